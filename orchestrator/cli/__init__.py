@@ -1,0 +1,49 @@
+"""The ``activecollect`` command: argument parsing and printing only.
+
+Each command group lives in its own module with ``register(subparsers)`` and,
+for benchmarks, ``register_bench(bench_subparsers)``; every sub-parser sets
+``func(args) -> int``.
+"""
+
+from __future__ import annotations
+
+import sys
+
+from orchestrator.cli import collect, common, loop, models, secure, service
+
+_MODULES = (collect, models, service, loop, secure)
+
+
+def build_parser() -> common.Parser:
+    parser = common.Parser(
+        prog="activecollect",
+        description="Active data collection for robot world models: an ensemble's disagreement "
+                    "decides where simulated pushing collectors gather the next episodes.",
+    )
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=common.Parser)
+    sub.required = True
+    bench = sub.add_parser("bench", help="benchmarks (sim, score, dispatch, loop); --json for figures")
+    bench_sub = bench.add_subparsers(dest="bench", metavar="BENCH", parser_class=common.Parser)
+    bench_sub.required = True
+    for module in _MODULES:
+        module.register(sub)
+        if hasattr(module, "register_bench"):
+            module.register_bench(bench_sub)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        return int(args.func(args) or 0)
+    except common.UsageError as exc:
+        print(f"activecollect: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("activecollect: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

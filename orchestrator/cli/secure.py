@@ -1,0 +1,5 @@
+"""CLI commands (being built)."""
+
+
+def register(sub) -> None:
+    """Adds this group's commands."""

@@ -1,0 +1,41 @@
+"""The storage package's exceptions: one root, one subclass per way a thing on disk can be wrong."""
+
+
+class StorageError(Exception):
+    """Root of every error raised by ``storage``."""
+
+
+class EpisodeError(StorageError):
+    """An episode file could not be read or written."""
+
+
+class TruncatedEpisodeError(EpisodeError):
+    """The file ends before its MCAP footer / summary: a partial write or a cut transfer."""
+
+
+class CorruptEpisodeError(EpisodeError):
+    """The bytes are damaged: a CRC mismatch, an undecodable record, inconsistent lengths."""
+
+
+class ForeignFileError(EpisodeError):
+    """The file is not an activecollect episode (not MCAP, or MCAP without our channels/metadata)."""
+
+
+class CatalogError(StorageError):
+    """The catalog refused an operation (unknown id, conflicting row, bad split)."""
+
+
+class QueueError(StorageError):
+    """A request-queue operation was refused (unknown id, illegal transition)."""
+
+
+class StaleLeaseError(QueueError):
+    """A renew / upload / fail carried a fencing token that is no longer the live one."""
+
+
+class RegistryError(StorageError):
+    """The model registry refused an operation (unknown version, no champion to roll back to)."""
+
+
+class CorruptCheckpointError(RegistryError):
+    """A checkpoint's weights do not match their recorded sha256, or its files are unreadable."""

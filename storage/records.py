@@ -1,0 +1,108 @@
+"""Episode records: the in-memory form of one collected episode, shared by the
+simulator (which produces it), the MCAP layer (which stores it) and the models
+(which learn from it).
+
+Alignment: ``frames[t]`` and ``states[t]`` are observed *before* ``actions[t]``
+is applied; the world model learns ``frames[t-C+1..t], actions[t] -> frames[t+1]``.
+The last action therefore has no recorded successor frame.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from storage.errors import EpisodeError
+
+#: Column names of ``Episode.states`` (world units: the table is 512 x 512, y up).
+STATE_FIELDS: tuple[str, ...] = (
+    "agent_x", "agent_y", "agent_vx", "agent_vy",
+    "obj_x", "obj_y", "obj_theta", "obj_vx", "obj_vy", "obj_omega",
+    "contact",
+)
+STATE_DIM = len(STATE_FIELDS)
+ACTION_DIM = 2
+
+
+@dataclass
+class EpisodeMeta:
+    """Provenance of one episode; stored as the MCAP metadata record ``episode``."""
+
+    episode_id: str
+    """Globally unique id (uuid4 hex)."""
+    task: str
+    """Task family, e.g. ``push``."""
+    shape: str
+    """Pushed object's shape: ``T``, ``box``, ``L`` or ``disk``."""
+    physics: dict[str, float]
+    """Physics parameters: mass, friction, ground_friction."""
+    seed: int
+    """Seed of the collection policy's generator."""
+    policy: str
+    """Collection policy name (``random_waypoints``, ``push``, ...)."""
+    policy_params: dict[str, Any] = field(default_factory=dict)
+    """Parameters the policy was built with."""
+    start_state: dict[str, Any] = field(default_factory=dict)
+    """The simulator state the episode was reset to (``workers.env.SimState.to_dict``)."""
+    action_prefix_len: int = 0
+    """How many of the leading actions replayed a requested prefix."""
+    image_size: int = 64
+    """Frame height and width in pixels."""
+    control_hz: float = 10.0
+    """Actions per simulated second."""
+    worker_id: str = ""
+    """Worker that collected it ('' for local collection)."""
+    request_id: str = ""
+    """Collection request it fulfils ('' when none)."""
+    model_version: str = ""
+    """Model version whose disagreement asked for it ('' when none)."""
+    software_version: str = ""
+    """activecollect version that wrote it."""
+    created: str = ""
+    """Creation time, ISO 8601 UTC."""
+
+    def to_json(self) -> str:
+        return json.dumps(dataclasses.asdict(self), sort_keys=True)
+
+    @classmethod
+    def from_json(cls, text: str | bytes) -> "EpisodeMeta":
+        """Parse and validate; raises ``EpisodeError`` naming the bad field."""
+        try:
+            raw = json.loads(text)
+        except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+            raise EpisodeError(f"episode metadata is not JSON: {exc}") from exc
+        if not isinstance(raw, dict):
+            raise EpisodeError(f"episode metadata must be an object, found {type(raw).__name__}")
+        known = {f.name for f in dataclasses.fields(cls)}
+        required = {f.name for f in dataclasses.fields(cls)
+                    if f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING}
+        missing = required - raw.keys()
+        if missing:
+            raise EpisodeError(f"episode metadata lacks {sorted(missing)}")
+        return cls(**{k: v for k, v in raw.items() if k in known})
+
+
+@dataclass
+class Episode:
+    """One episode: frames (T,H,W,3) uint8, actions (T,2) float32, states (T,STATE_DIM) float64."""
+
+    meta: EpisodeMeta
+    frames: np.ndarray
+    actions: np.ndarray
+    states: np.ndarray
+
+    def __post_init__(self) -> None:
+        t = len(self.frames)
+        if self.frames.ndim != 4 or self.frames.shape[-1] != 3 or self.frames.dtype != np.uint8:
+            raise EpisodeError(f"frames must be (T,H,W,3) uint8, found {self.frames.shape} {self.frames.dtype}")
+        if self.actions.shape != (t, ACTION_DIM):
+            raise EpisodeError(f"actions must be ({t}, {ACTION_DIM}), found {self.actions.shape}")
+        if self.states.shape != (t, STATE_DIM):
+            raise EpisodeError(f"states must be ({t}, {STATE_DIM}), found {self.states.shape}")
+
+    def __len__(self) -> int:
+        return len(self.frames)
