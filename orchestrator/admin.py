@@ -1,0 +1,243 @@
+"""The admin operations behind ``NS/admin/**``: pure functions over the queue, catalog and registry.
+
+No Zenoh here: the service decodes the query, calls :func:`serve` (or :func:`handle`) and sends
+the bytes back; the operator CLI and the dashboard read the same reply bodies. Every refusal is a
+``ProtocolError`` whose code says what kind of refusal it is (bad_field, unknown_request,
+illegal_transition, unknown_op, ...).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+from collections.abc import Callable, Iterable, Mapping
+from typing import Any
+
+from orchestrator import protocol
+from orchestrator.protocol import AdminRequest, ErrorCode, Event, EventKind, ProtocolError, RequestSpec
+from storage.errors import QueueError, StaleLeaseError, StorageError
+from storage.queue import (
+    IllegalTransitionError,
+    NewRequest,
+    Request,
+    RequestQueue,
+    RequestStatus,
+    UnknownRequestError,
+)
+
+#: Most requests one ``queue.ls`` returns (keeps the reply under MAX_MESSAGE_BYTES).
+MAX_LIST = 200
+#: Splits ``stats`` counts episodes of.
+SPLITS: tuple[str, ...] = ("train", "eval")
+
+_ARGS: dict[str, tuple[set[str], set[str]]] = {
+    # op: (required args, optional args)
+    "queue.ls": (set(), {"status", "limit"}),
+    "queue.show": ({"id"}, set()),
+    "queue.add": ({f.name for f in dataclasses.fields(RequestSpec) if f.default is dataclasses.MISSING
+                   and f.default_factory is dataclasses.MISSING},
+                  {f.name for f in dataclasses.fields(RequestSpec)}),
+    "queue.cancel": ({"id"}, set()),
+    "queue.retry": ({"id"}, set()),
+    "queue.prioritize": ({"id", "priority"}, set()),
+    "workers.ls": (set(), set()),
+    "stats": (set(), set()),
+    "models.ls": (set(), {"status"}),
+}
+assert set(_ARGS) == set(protocol.ADMIN_OPS), "every admin op needs an argument spec"
+
+#: Reason of a manual request that gives none.
+_MANUAL_REASON = {"model_version": "", "score": None, "source_episode": "", "step": None, "planner": "manual"}
+
+#: The event an admin op that changed something publishes.
+_EVENTS: dict[str, EventKind] = {
+    "queue.add": EventKind.REQUEST_QUEUED,
+    "queue.cancel": EventKind.REQUEST_CANCELLED,
+    "queue.retry": EventKind.REQUEST_RETRIED,
+    "queue.prioritize": EventKind.REQUEST_PRIORITIZED,
+}
+
+
+def protocol_error(exc: StorageError) -> ProtocolError:
+    """The wire error for a refused queue operation (also used by the service's lease / renew / fail)."""
+    if isinstance(exc, StaleLeaseError):
+        code = ErrorCode.STALE_TOKEN
+    elif isinstance(exc, UnknownRequestError):
+        code = ErrorCode.UNKNOWN_REQUEST
+    elif isinstance(exc, IllegalTransitionError):
+        code = ErrorCode.ILLEGAL_TRANSITION
+    elif isinstance(exc, QueueError):
+        code = ErrorCode.BAD_FIELD
+    else:
+        code = ErrorCode.INTERNAL
+    return ProtocolError(code, str(exc))
+
+
+def finite(obj: Any) -> Any:
+    """A copy with NaN / infinities replaced by None, so strict JSON can carry it (model metrics)."""
+    if isinstance(obj, float):
+        return obj if math.isfinite(obj) else None
+    if isinstance(obj, Mapping):
+        return {str(k): finite(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [finite(v) for v in obj]
+    return obj
+
+
+def request_summary(request: Request) -> dict[str, Any]:
+    """A request without its bulky fields (action prefix as a length, error cut to 200 chars)."""
+    out = request.to_dict()
+    out["prefix_steps"] = len(out.pop("action_prefix"))
+    if out["last_error"] is not None:
+        out["last_error"] = out["last_error"][:200]
+    return finite(out)
+
+
+def _check_args(op: str, args: Mapping[str, Any]) -> None:
+    required, optional = _ARGS[op]
+    missing = sorted(required - set(args))
+    unknown = sorted(set(args) - required - optional)
+    if missing or unknown:
+        expected = ", ".join(sorted(required) + [f"[{o}]" for o in sorted(optional - required)]) or "no arguments"
+        raise ProtocolError(ErrorCode.BAD_FIELD, f"{op}: expected {expected}; "
+                            f"missing {missing or 'none'}, unknown {unknown or 'none'}")
+
+
+def _int_arg(op: str, name: str, value: Any, lo: int, hi: int) -> int:
+    if isinstance(value, bool) or not isinstance(value, int) or not lo <= value <= hi:
+        raise ProtocolError(ErrorCode.BAD_FIELD, f"{op}: {name} expected an integer in [{lo}, {hi}], "
+                            f"found {value!r:.40}")
+    return value
+
+
+def _priority_arg(op: str, value: Any) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) \
+            or abs(value) > 1e12:
+        raise ProtocolError(ErrorCode.BAD_FIELD, f"{op}: priority expected a finite number, found {value!r:.40}")
+    return float(value)
+
+
+def _status_arg(op: str, value: Any, choices: Iterable[str]) -> str | None:
+    choices = tuple(choices)
+    if value is None:
+        return None
+    if value not in choices:
+        raise ProtocolError(ErrorCode.BAD_FIELD, f"{op}: status expected one of {', '.join(choices)}, "
+                            f"found {value!r:.40}")
+    return value
+
+
+def _worker_ids(workers: Callable[[], Iterable[str]] | None) -> list[str]:
+    return sorted(set(workers())) if workers is not None else []
+
+
+def _queue_op(op: str, args: Mapping[str, Any], queue: RequestQueue) -> dict[str, Any]:
+    if op == "queue.ls":
+        status = _status_arg(op, args.get("status"), (s.value for s in RequestStatus))
+        limit = _int_arg(op, "limit", args.get("limit", 50), 1, MAX_LIST)
+        return {"requests": [request_summary(r) for r in queue.list(status=status, limit=limit)],
+                "counts": queue.counts()}
+    if op == "queue.add":
+        spec = RequestSpec.from_dict({"reason": dict(_MANUAL_REASON), **args})
+        request, created = queue.enqueue(NewRequest(**spec.to_dict()))
+        return {"request": request_summary(request), "created": created}
+    request_id = protocol.check_id("id", args["id"])
+    if op == "queue.show":
+        return {"request": finite(queue.get(request_id).to_dict())}
+    if op == "queue.cancel":
+        return {"request": request_summary(queue.cancel(request_id))}
+    if op == "queue.retry":
+        return {"request": request_summary(queue.retry(request_id))}
+    if op == "queue.prioritize":
+        return {"request": request_summary(queue.prioritize(request_id, _priority_arg(op, args["priority"])))}
+    raise ProtocolError(ErrorCode.UNKNOWN_OP, f"expected a queue op, found {op!r}")  # pragma: no cover
+
+
+def _workers_ls(queue: RequestQueue, workers: Callable[[], Iterable[str]] | None) -> dict[str, Any]:
+    alive = _worker_ids(workers)
+    leases: dict[str, list[str]] = {w: [] for w in alive}
+    for request in queue.list(status=RequestStatus.LEASED):
+        leases.setdefault(request.worker_id or "", []).append(request.id)
+    return {"workers": [{"id": w, "alive": w in alive, "leases": sorted(ids)} for w, ids in sorted(leases.items())]}
+
+
+def _stats(queue: RequestQueue, catalog: Any, registry: Any,
+           workers: Callable[[], Iterable[str]] | None) -> dict[str, Any]:
+    episodes = None
+    if catalog is not None:
+        episodes = {split: catalog.count(split=split) for split in SPLITS}
+        episodes["total"] = catalog.count()
+    return {"requests": queue.counts(), "episodes": episodes,
+            "champion": registry.champion() if registry is not None else None,
+            "workers": len(_worker_ids(workers))}
+
+
+def _models_ls(args: Mapping[str, Any], registry: Any) -> dict[str, Any]:
+    if registry is None:
+        raise ProtocolError(ErrorCode.UNAVAILABLE, "models.ls: this service has no model registry")
+    status = args.get("status")
+    records = registry.list(status) if status is not None else registry.list()
+    models = []
+    for rec in records:
+        row = rec.to_json()
+        row.pop("config", None)
+        models.append(finite(row))
+    return {"models": models, "champion": registry.champion()}
+
+
+def handle(op: str, args: Mapping[str, Any] | None = None, *, queue: RequestQueue, catalog: Any = None,
+           registry: Any = None, workers: Callable[[], Iterable[str]] | None = None) -> dict[str, Any]:
+    """Run one admin op; returns the reply body (pass it to ``protocol.ok_reply``).
+
+    catalog: a ``storage.catalog.Catalog`` (for ``stats``); registry: a ``storage.models.ModelRegistry``
+    (``stats``, ``models.ls``); workers: returns the ids of the workers alive now.
+    Raises ProtocolError: unknown_op, bad_field (bad arguments), unknown_request, illegal_transition.
+    """
+    request = AdminRequest(op=op, args=dict(args or {}))  # validates op and args' JSON-ness
+    op, args = request.op, request.args
+    _check_args(op, args)
+    try:
+        if op.startswith("queue."):
+            return _queue_op(op, args, queue)
+        if op == "workers.ls":
+            return _workers_ls(queue, workers)
+        if op == "stats":
+            return _stats(queue, catalog, registry, workers)
+        return _models_ls(args, registry)
+    except StorageError as exc:
+        raise protocol_error(exc) from exc
+
+
+def serve(payload: bytes | None, *, op: str | None = None, queue: RequestQueue, catalog: Any = None,
+          registry: Any = None, workers: Callable[[], Iterable[str]] | None = None) -> bytes:
+    """Answer one admin query: ``payload`` is an AdminRequest (JSON) or empty; ``op`` the key's op.
+
+    Returns the reply bytes: ok with the body, or an error reply (never raises ProtocolError).
+    """
+    try:
+        if payload is None or len(payload) == 0:
+            if op is None:
+                raise ProtocolError(ErrorCode.BAD_JSON, "expected an AdminRequest, found no payload")
+            request = AdminRequest(op=op)
+        else:
+            request = AdminRequest.from_json(payload)
+            if op is not None and request.op != op:
+                raise ProtocolError(ErrorCode.BAD_FIELD, f"op: expected {op!r} (the key's op), "
+                                    f"found {request.op!r}")
+        body = handle(request.op, request.args, queue=queue, catalog=catalog, registry=registry,
+                      workers=workers)
+        return protocol.ok_reply(**body)
+    except ProtocolError as exc:
+        return exc.reply()
+
+
+def admin_event(op: str, body: Mapping[str, Any], at: float | None = None) -> Event | None:
+    """The event a successful op publishes (queue.add / cancel / retry / prioritize), or None."""
+    kind = _EVENTS.get(op)
+    if kind is None or (op == "queue.add" and not body.get("created")):
+        return None
+    request = body["request"]
+    data = {"request_id": request["id"], "status": request["status"], "priority": request["priority"],
+            "shape": request["shape"], "source": "admin"}
+    return Event(kind=kind.value, at=time.time() if at is None else at, data=data)

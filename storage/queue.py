@@ -1,0 +1,528 @@
+"""The durable request queue: collection requests in ``catalog.sqlite`` with leases and fencing.
+
+Lifecycle (the only legal moves are in ``TRANSITIONS``)::
+
+    queued --lease--> leased --complete--> done
+    leased --fail / expire / worker_lost--> queued     (attempts + 1)
+                                        \\-> dead       (when attempts reach max_attempts)
+    leased --release--> queued                        (a graceful give-back: no attempt counted)
+    queued | leased --cancel--> cancelled
+    dead | cancelled --retry--> queued                (attempts reset to 0)
+
+Attempts count the leases that ended *without* an episode, whatever ended them: a
+``fail``, a lease that expired, or a worker whose liveliness was lost. So a request
+that kills its worker every time still ends ``dead`` after ``max_attempts`` and never
+loops. The fencing token is the lease number of the request (1 for its first lease,
+2 for its second, ...): it only grows, even across ``retry``, so a worker holding an
+older lease can never renew, complete or fail the request again.
+
+Every transition is one ``BEGIN IMMEDIATE`` transaction on a per-thread connection.
+SQLite specifics (the connection, pragmas, ``BEGIN IMMEDIATE``) stay inside
+``RequestQueue``; its SQL is otherwise plain, so a PostgreSQL backend can take its place
+behind the same methods (``lease`` becomes ``SELECT ... FOR UPDATE SKIP LOCKED``).
+Durability: WAL with ``synchronous=NORMAL`` survives a crash of the process (SIGKILL);
+pass ``synchronous="FULL"`` to also survive a power loss, at the cost of an fsync per change.
+"""
+
+from __future__ import annotations
+
+import json
+import sqlite3
+import threading
+import time
+import uuid
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
+from dataclasses import asdict, dataclass, field
+from enum import Enum
+from pathlib import Path
+from typing import Any
+
+from storage.errors import QueueError, StaleLeaseError
+
+
+class RequestStatus(str, Enum):
+    """Where a request is in its lifecycle."""
+
+    QUEUED = "queued"
+    LEASED = "leased"
+    DONE = "done"
+    DEAD = "dead"
+    CANCELLED = "cancelled"
+
+
+class UnknownRequestError(QueueError):
+    """No request has this id."""
+
+
+class IllegalTransitionError(QueueError):
+    """The request's status does not allow the operation (e.g. cancel a done request)."""
+
+
+_Q, _L, _D, _X, _C = (RequestStatus.QUEUED, RequestStatus.LEASED, RequestStatus.DONE,
+                      RequestStatus.DEAD, RequestStatus.CANCELLED)
+
+#: The state machine: action -> (statuses it may start from, statuses it may end in).
+TRANSITIONS: dict[str, tuple[frozenset[RequestStatus], frozenset[RequestStatus]]] = {
+    "lease": (frozenset({_Q}), frozenset({_L})),
+    "renew": (frozenset({_L}), frozenset({_L})),
+    "complete": (frozenset({_L}), frozenset({_D})),
+    "fail": (frozenset({_L}), frozenset({_Q, _X})),
+    "expire": (frozenset({_L}), frozenset({_Q, _X})),
+    "worker_lost": (frozenset({_L}), frozenset({_Q, _X})),
+    "release": (frozenset({_L}), frozenset({_Q})),
+    "cancel": (frozenset({_Q, _L}), frozenset({_C})),
+    "retry": (frozenset({_X, _C}), frozenset({_Q})),
+    "prioritize": (frozenset({_Q, _L, _X, _C}), frozenset({_Q, _L, _X, _C})),
+}
+
+#: Actions that belong to the live lease: a wrong token / worker is a StaleLeaseError.
+_LEASE_ACTIONS = frozenset({"renew", "complete", "fail", "release"})
+
+
+def check_transition(action: str, current: RequestStatus, target: RequestStatus) -> None:
+    """Raise IllegalTransitionError unless ``action`` may move a request from ``current`` to ``target``."""
+    sources, targets = TRANSITIONS[action]
+    if current not in sources or target not in targets:
+        raise IllegalTransitionError(
+            f"{action}: expected a request in status {'/'.join(sorted(s.value for s in sources))}, "
+            f"found {current.value}")
+
+
+@dataclass
+class NewRequest:
+    """What a planner or an operator asks to be collected (task-space checks live in orchestrator.protocol)."""
+
+    task: str
+    """Task family, e.g. ``push``."""
+    shape: str
+    """Object shape."""
+    start_state: dict[str, Any]
+    """Simulator state to reset to (``SimState.to_dict`` form)."""
+    policy: str = "push"
+    """Collection policy name."""
+    policy_params: dict[str, Any] = field(default_factory=dict)
+    """Parameters of the policy."""
+    action_prefix: list[list[float]] = field(default_factory=list)
+    """Actions replayed from the start state before the policy takes over."""
+    steps: int = 50
+    """Episode length asked for."""
+    priority: float = 0.0
+    """Higher is leased first."""
+    reason: dict[str, Any] = field(default_factory=dict)
+    """Why it exists: model_version, score, source_episode, step, planner."""
+    max_attempts: int = 3
+    """Unsuccessful leases allowed before the request is dead."""
+    idempotency_key: str | None = None
+    """Enqueueing twice with the same key returns the first request."""
+
+    def __post_init__(self) -> None:
+        for name in ("task", "shape", "policy"):
+            if not isinstance(getattr(self, name), str) or not getattr(self, name):
+                raise QueueError(f"{name}: expected a non-empty string, found {getattr(self, name)!r}")
+        for name in ("start_state", "policy_params", "reason"):
+            if not isinstance(getattr(self, name), dict):
+                raise QueueError(f"{name}: expected a dict, found {type(getattr(self, name)).__name__}")
+        if not isinstance(self.steps, int) or self.steps < 1:
+            raise QueueError(f"steps: expected an integer >= 1, found {self.steps!r}")
+        if not isinstance(self.max_attempts, int) or self.max_attempts < 1:
+            raise QueueError(f"max_attempts: expected an integer >= 1, found {self.max_attempts!r}")
+        self.priority = float(self.priority)
+        if self.idempotency_key is not None and not isinstance(self.idempotency_key, str):
+            raise QueueError(f"idempotency_key: expected a string or None, found {self.idempotency_key!r}")
+
+
+@dataclass
+class Request:
+    """One stored request, as read from the queue."""
+
+    id: str
+    created: float
+    updated: float
+    priority: float
+    task: str
+    shape: str
+    start_state: dict[str, Any]
+    policy: str
+    policy_params: dict[str, Any]
+    action_prefix: list[list[float]]
+    steps: int
+    reason: dict[str, Any]
+    attempts: int
+    """Leases that ended without an episode since the last retry."""
+    max_attempts: int
+    status: RequestStatus
+    worker_id: str | None
+    """Worker holding (or, once done, last holding) the lease."""
+    token: int
+    """Fencing token of the latest lease (0 before the first lease)."""
+    lease_expires: float | None
+    last_error: str | None
+    idempotency_key: str | None
+    episode_id: str | None
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-able form (status as its string)."""
+        out = asdict(self)
+        out["status"] = self.status.value
+        return out
+
+
+@dataclass
+class Lease:
+    """A granted lease: the request, its fencing token and when it expires."""
+
+    request: Request
+    token: int
+    expires_at: float
+
+
+_COLUMNS = ("id", "created", "updated", "priority", "task", "shape", "start_state", "policy",
+            "policy_params", "action_prefix", "steps", "reason", "attempts", "max_attempts", "status",
+            "worker_id", "token", "lease_expires", "last_error", "idempotency_key", "episode_id")
+_JSON_COLUMNS = frozenset({"start_state", "policy_params", "action_prefix", "reason"})
+_SELECT = f"SELECT {', '.join(_COLUMNS)} FROM requests"
+
+_SCHEMA = (
+    """CREATE TABLE IF NOT EXISTS requests (
+        id TEXT PRIMARY KEY,
+        created REAL NOT NULL,
+        updated REAL NOT NULL,
+        priority REAL NOT NULL,
+        task TEXT NOT NULL,
+        shape TEXT NOT NULL,
+        start_state TEXT NOT NULL,
+        policy TEXT NOT NULL,
+        policy_params TEXT NOT NULL,
+        action_prefix TEXT NOT NULL,
+        steps INTEGER NOT NULL,
+        reason TEXT NOT NULL,
+        attempts INTEGER NOT NULL DEFAULT 0,
+        max_attempts INTEGER NOT NULL,
+        status TEXT NOT NULL,
+        worker_id TEXT,
+        token INTEGER NOT NULL DEFAULT 0,
+        lease_expires REAL,
+        last_error TEXT,
+        idempotency_key TEXT UNIQUE,
+        episode_id TEXT
+    )""",
+    # Leasing walks this index in (priority, age) order and stops at the first capable row.
+    "CREATE INDEX IF NOT EXISTS requests_ready ON requests (status, priority DESC, created)",
+    "CREATE INDEX IF NOT EXISTS requests_expiry ON requests (status, lease_expires)",
+    "CREATE INDEX IF NOT EXISTS requests_worker ON requests (worker_id, status)",
+    "CREATE INDEX IF NOT EXISTS requests_status ON requests (status, updated)",
+)
+
+
+def _row_to_request(row: Sequence[Any]) -> Request:
+    values = {name: (json.loads(v) if name in _JSON_COLUMNS else v) for name, v in zip(_COLUMNS, row)}
+    values["status"] = RequestStatus(values["status"])
+    return Request(**values)
+
+
+class RequestQueue:
+    """Collection requests in a SQLite file (usually the catalog's ``catalog.sqlite``), safe across threads."""
+
+    def __init__(self, db_path: str | Path, *, clock: Callable[[], float] = time.time,
+                 busy_timeout_s: float = 30.0, synchronous: str = "NORMAL") -> None:
+        """Open (creating if needed) the requests table in ``db_path``.
+
+        clock: the time source used when a method gets no ``now``. Raises QueueError on a bad file.
+        """
+        if synchronous not in ("NORMAL", "FULL"):
+            raise QueueError(f"synchronous: expected NORMAL or FULL, found {synchronous!r}")
+        self.db_path = Path(db_path)
+        self._clock = clock
+        self._busy_timeout_ms = int(busy_timeout_s * 1000)
+        self._synchronous = synchronous
+        self._local = threading.local()
+        self._all: list[sqlite3.Connection] = []
+        self._lock = threading.Lock()
+        self._closed = False
+        with self._tx() as conn:
+            for statement in _SCHEMA:
+                conn.execute(statement)
+
+    # --- connections -----------------------------------------------------
+
+    def _conn(self) -> sqlite3.Connection:
+        conn = getattr(self._local, "conn", None)
+        if conn is not None:
+            return conn
+        if self._closed:
+            raise QueueError(f"the queue on {self.db_path} is closed")
+        try:
+            conn = sqlite3.connect(self.db_path, isolation_level=None, check_same_thread=False)
+            conn.execute(f"PRAGMA busy_timeout = {self._busy_timeout_ms}")
+            conn.execute("PRAGMA journal_mode = WAL")
+            conn.execute(f"PRAGMA synchronous = {self._synchronous}")
+        except sqlite3.Error as exc:
+            raise QueueError(f"cannot open the queue database {self.db_path}: {exc}") from exc
+        self._local.conn = conn
+        with self._lock:
+            self._all.append(conn)
+        return conn
+
+    @contextmanager
+    def _tx(self, conn: sqlite3.Connection | None = None) -> Iterator[sqlite3.Connection]:
+        """One write transaction; with ``conn``, join the caller's open transaction instead."""
+        if conn is not None:
+            yield conn
+            return
+        own = self._conn()
+        try:
+            own.execute("BEGIN IMMEDIATE")
+        except sqlite3.Error as exc:
+            raise QueueError(f"cannot start a transaction on {self.db_path}: {exc}") from exc
+        try:
+            yield own
+            own.execute("COMMIT")
+        except sqlite3.Error as exc:
+            self._rollback(own)
+            raise QueueError(f"queue transaction on {self.db_path} failed: {exc}") from exc
+        except BaseException:
+            self._rollback(own)
+            raise
+
+    @staticmethod
+    def _rollback(conn: sqlite3.Connection) -> None:
+        if conn.in_transaction:  # SQLite may already have rolled back (disk full, I/O error)
+            conn.execute("ROLLBACK")
+
+    def close(self) -> None:
+        """Close every connection this queue opened (in any thread); call it once the threads are done."""
+        with self._lock:
+            self._closed = True
+            conns, self._all = self._all, []
+        for conn in conns:
+            conn.close()
+        self._local = threading.local()
+
+    def __enter__(self) -> RequestQueue:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def _now(self, now: float | None) -> float:
+        return self._clock() if now is None else float(now)
+
+    # --- reading ---------------------------------------------------------
+
+    def _fetch(self, conn: sqlite3.Connection, request_id: str) -> Request:
+        row = conn.execute(f"{_SELECT} WHERE id = ?", (request_id,)).fetchone()
+        if row is None:
+            raise UnknownRequestError(f"expected a known request id, found {request_id!r}")
+        return _row_to_request(row)
+
+    def get(self, request_id: str) -> Request:
+        """The request with this id; UnknownRequestError if none."""
+        return self._fetch(self._conn(), request_id)
+
+    def list(self, status: RequestStatus | str | None = None, limit: int | None = None) -> list[Request]:
+        """Requests, newest change first; queued ones in the order they will be leased."""
+        sql, args = _SELECT, []
+        if status is not None:
+            try:
+                status = RequestStatus(status)
+            except ValueError:
+                raise QueueError(f"status: expected one of {', '.join(s.value for s in RequestStatus)}, "
+                                 f"found {status!r}") from None
+            sql += " WHERE status = ?"
+            args.append(status.value)
+        sql += (" ORDER BY priority DESC, created, rowid" if status == _Q
+                else " ORDER BY updated DESC, rowid DESC")
+        if limit is not None:
+            sql += " LIMIT ?"
+            args.append(int(limit))
+        return [_row_to_request(r) for r in self._conn().execute(sql, args)]
+
+    def counts(self) -> dict[str, int]:
+        """Number of requests in every status (zeros included)."""
+        out = {s.value: 0 for s in RequestStatus}
+        for status, n in self._conn().execute("SELECT status, COUNT(*) FROM requests GROUP BY status"):
+            out[status] = n
+        return out
+
+    # --- enqueue ---------------------------------------------------------
+
+    def enqueue(self, new: NewRequest, *, now: float | None = None) -> tuple[Request, bool]:
+        """Store a queued request; (request, created). An existing idempotency key returns (that one, False)."""
+        return self.enqueue_many([new], now=now)[0]
+
+    def enqueue_many(self, news: Sequence[NewRequest], *, now: float | None = None) -> list[tuple[Request, bool]]:
+        """Several enqueues in one transaction (a planner's batch)."""
+        t = self._now(now)
+        out = []
+        with self._tx() as conn:
+            for new in news:
+                if new.idempotency_key is not None:
+                    row = conn.execute(f"{_SELECT} WHERE idempotency_key = ?", (new.idempotency_key,)).fetchone()
+                    if row is not None:
+                        out.append((_row_to_request(row), False))
+                        continue
+                request_id = uuid.uuid4().hex
+                conn.execute(
+                    "INSERT INTO requests (id, created, updated, priority, task, shape, start_state, policy,"
+                    " policy_params, action_prefix, steps, reason, attempts, max_attempts, status,"
+                    " idempotency_key) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, 0, ?, ?, ?)",
+                    (request_id, t, t, new.priority, new.task, new.shape, _dumps(new.start_state), new.policy,
+                     _dumps(new.policy_params), _dumps(new.action_prefix), new.steps, _dumps(new.reason),
+                     new.max_attempts, _Q.value, new.idempotency_key))
+                out.append((self._fetch(conn, request_id), True))
+        return out
+
+    # --- the lease -------------------------------------------------------
+
+    def lease(self, worker_id: str, tasks: Sequence[str] = (), shapes: Sequence[str] = (),
+              lease_s: float = 30.0, now: float | None = None) -> Lease | None:
+        """Lease the best queued request this worker can do, or None.
+
+        Highest priority first, oldest first among equals; ``tasks`` / ``shapes`` empty means any.
+        """
+        if not worker_id:
+            raise QueueError("worker_id: expected a non-empty string, found ''")
+        if lease_s <= 0:
+            raise QueueError(f"lease_s: expected > 0, found {lease_s}")
+        t = self._now(now)
+        sql, args = "SELECT id FROM requests WHERE status = 'queued'", []
+        for column, values in (("task", tasks), ("shape", shapes)):
+            if values:
+                sql += f" AND {column} IN ({', '.join('?' * len(values))})"
+                args.extend(values)
+        sql += " ORDER BY priority DESC, created, rowid LIMIT 1"
+        with self._tx() as conn:
+            row = conn.execute(sql, args).fetchone()
+            if row is None:
+                return None
+            check_transition("lease", _Q, _L)
+            conn.execute("UPDATE requests SET status = 'leased', worker_id = ?, token = token + 1,"
+                         " lease_expires = ?, updated = ? WHERE id = ?", (worker_id, t + lease_s, t, row[0]))
+            request = self._fetch(conn, row[0])
+        return Lease(request=request, token=request.token, expires_at=t + lease_s)
+
+    def _live(self, conn: sqlite3.Connection, action: str, request_id: str, token: int,
+              worker_id: str | None) -> Request:
+        """The request if ``token`` (and ``worker_id`` when given) hold its live lease; else StaleLeaseError."""
+        request = self._fetch(conn, request_id)
+        stale = token != request.token or (worker_id is not None and worker_id != request.worker_id)
+        if stale or request.status != _L:
+            raise StaleLeaseError(
+                f"{action} {request_id}: expected the live lease, found token {token} from "
+                f"{worker_id or 'a worker'} while the request is {request.status.value} with token "
+                f"{request.token} held by {request.worker_id}")
+        return request
+
+    def renew(self, request_id: str, token: int, worker_id: str | None = None, lease_s: float = 30.0,
+              now: float | None = None) -> float:
+        """Extend a live lease to now + lease_s; returns the new expiry. StaleLeaseError if not live."""
+        t = self._now(now)
+        with self._tx() as conn:
+            self._live(conn, "renew", request_id, token, worker_id)
+            check_transition("renew", _L, _L)
+            conn.execute("UPDATE requests SET lease_expires = ?, updated = ? WHERE id = ?",
+                         (t + lease_s, t, request_id))
+        return t + lease_s
+
+    def complete(self, request_id: str, token: int, episode_id: str, conn: sqlite3.Connection | None = None,
+                 *, worker_id: str | None = None, now: float | None = None) -> bool:
+        """Mark a leased request done with its episode; True if it changed, False if already done so.
+
+        A repeat with the same token and episode (a duplicate upload) returns False and changes nothing;
+        any other stale token / worker raises StaleLeaseError. ``conn``: run inside the caller's open
+        transaction on the same database (Catalog.ingest_bytes(in_transaction=...)).
+        """
+        t = self._now(now)
+        with self._tx(conn) as c:
+            request = self._fetch(c, request_id)
+            if request.status == _D and request.token == token and request.episode_id == episode_id:
+                return False
+            self._live(c, "complete", request_id, token, worker_id)
+            check_transition("complete", _L, _D)
+            c.execute("UPDATE requests SET status = 'done', episode_id = ?, lease_expires = NULL, updated = ?"
+                      " WHERE id = ?", (episode_id, t, request_id))
+        return True
+
+    def _end_lease(self, conn: sqlite3.Connection, request: Request, action: str, error: str, t: float,
+                   count: bool = True) -> Request:
+        """Back to queued (or dead once attempts reach max_attempts), keeping the error."""
+        attempts = request.attempts + (1 if count else 0)
+        target = _X if attempts >= request.max_attempts else _Q
+        check_transition(action, request.status, target)
+        conn.execute("UPDATE requests SET status = ?, attempts = ?, last_error = ?, lease_expires = NULL,"
+                     " updated = ? WHERE id = ?", (target.value, attempts, error, t, request.id))
+        return self._fetch(conn, request.id)
+
+    def fail(self, request_id: str, token: int, error: str, *, worker_id: str | None = None,
+             now: float | None = None) -> Request:
+        """A worker gives its lease back with an error (counts an attempt). Returns the request after."""
+        t = self._now(now)
+        with self._tx() as conn:
+            request = self._live(conn, "fail", request_id, token, worker_id)
+            return self._end_lease(conn, request, "fail", str(error), t)
+
+    def release(self, request_id: str, token: int, *, worker_id: str | None = None,
+                now: float | None = None) -> Request:
+        """A draining worker gives its lease back unharmed: queued again, no attempt counted."""
+        t = self._now(now)
+        with self._tx() as conn:
+            request = self._live(conn, "release", request_id, token, worker_id)
+            check_transition("release", _L, _Q)
+            conn.execute("UPDATE requests SET status = 'queued', lease_expires = NULL, updated = ? WHERE id = ?",
+                         (t, request_id))
+            return self._fetch(conn, request_id)
+
+    def expire_leases(self, now: float | None = None) -> list[Request]:
+        """End every lease past its expiry (an attempt each); the requests after the change."""
+        t = self._now(now)
+        with self._tx() as conn:
+            rows = conn.execute(f"{_SELECT} WHERE status = 'leased' AND lease_expires <= ?", (t,)).fetchall()
+            return [self._end_lease(conn, r, "expire", f"lease expired (worker {r.worker_id}, token {r.token})", t)
+                    for r in map(_row_to_request, rows)]
+
+    def reap_expired(self, now: float | None = None) -> int:
+        """End every lease past its expiry; the number ended."""
+        return len(self.expire_leases(now))
+
+    def release_worker_leases(self, worker_id: str, now: float | None = None) -> list[Request]:
+        """End every lease a lost worker holds (an attempt each); the requests after the change."""
+        t = self._now(now)
+        with self._tx() as conn:
+            rows = conn.execute(f"{_SELECT} WHERE status = 'leased' AND worker_id = ?", (worker_id,)).fetchall()
+            return [self._end_lease(conn, r, "worker_lost", f"worker {worker_id} lost (token {r.token})", t)
+                    for r in map(_row_to_request, rows)]
+
+    def release_worker(self, worker_id: str, now: float | None = None) -> int:
+        """End every lease a lost worker holds; the number ended."""
+        return len(self.release_worker_leases(worker_id, now))
+
+    # --- operator actions --------------------------------------------------
+
+    def _operator(self, action: str, request_id: str, target: RequestStatus | None, sets: str,
+                  args: tuple[Any, ...], now: float | None) -> Request:
+        t = self._now(now)
+        with self._tx() as conn:
+            request = self._fetch(conn, request_id)
+            check_transition(action, request.status, target or request.status)
+            conn.execute(f"UPDATE requests SET {sets}, updated = ? WHERE id = ?", (*args, t, request_id))
+            return self._fetch(conn, request_id)
+
+    def cancel(self, request_id: str, now: float | None = None) -> Request:
+        """Cancel a queued or leased request (a leased one's worker then gets StaleLeaseError)."""
+        return self._operator("cancel", request_id, _C, "status = 'cancelled', lease_expires = NULL", (), now)
+
+    def retry(self, request_id: str, now: float | None = None) -> Request:
+        """A dead or cancelled request back to queued with attempts reset (its last error is kept)."""
+        return self._operator("retry", request_id, _Q, "status = 'queued', attempts = 0", (), now)
+
+    def prioritize(self, request_id: str, priority: float, now: float | None = None) -> Request:
+        """Set a request's priority (any status but done)."""
+        return self._operator("prioritize", request_id, None, "priority = ?", (float(priority),), now)
+
+
+def _dumps(value: Any) -> str:
+    try:
+        return json.dumps(value, allow_nan=False, separators=(",", ":"))
+    except (TypeError, ValueError) as exc:
+        raise QueueError(f"expected JSON-encodable finite values, found {value!r:.80} ({exc})") from None

@@ -1,0 +1,173 @@
+"""Admin operations over a real queue and a real model registry in a tmp data dir."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from orchestrator import admin, protocol
+from orchestrator.protocol import ErrorCode, ProtocolError
+from storage.errors import QueueError, StaleLeaseError, StorageError
+from storage.models import ModelRegistry
+from storage.queue import IllegalTransitionError, NewRequest, RequestQueue, UnknownRequestError
+
+START = {"shape": "box", "agent": [100.0, 100.0], "object": [256.0, 256.0, 0.0]}
+SPEC = {"task": "push", "shape": "box", "start_state": START, "policy": "push", "steps": 20,
+        "priority": 1.5, "idempotency_key": "manual-1"}
+
+
+@pytest.fixture
+def queue(tmp_path: Path):
+    q = RequestQueue(tmp_path / "catalog.sqlite")
+    yield q
+    q.close()
+
+
+def call(op: str, args: dict | None = None, **kw) -> dict:
+    return admin.handle(op, args, **kw)
+
+
+def refused(code: ErrorCode, op: str, args: dict | None = None, **kw) -> ProtocolError:
+    with pytest.raises(ProtocolError) as info:
+        admin.handle(op, args, **kw)
+    assert info.value.code == code, info.value
+    return info.value
+
+
+def test_add_show_ls(queue: RequestQueue) -> None:
+    body = call("queue.add", SPEC, queue=queue)
+    assert body["created"] is True
+    request = body["request"]
+    assert request["status"] == "queued" and request["priority"] == 1.5 and request["reason"]["planner"] == "manual"
+    again = call("queue.add", dict(SPEC, priority=9.0), queue=queue)
+    assert again["created"] is False and again["request"]["id"] == request["id"]
+    assert admin.admin_event("queue.add", again) is None
+    shown = call("queue.show", {"id": request["id"]}, queue=queue)["request"]
+    assert shown["start_state"]["object"] == [256.0, 256.0, 0.0] and shown["action_prefix"] == []
+    listed = call("queue.ls", {"status": "queued"}, queue=queue)
+    assert [r["id"] for r in listed["requests"]] == [request["id"]] and listed["counts"]["queued"] == 1
+    assert call("queue.ls", {"status": "done"}, queue=queue)["requests"] == []
+    assert len(call("queue.ls", queue=queue)["requests"]) == 1
+
+
+def test_add_validates_through_the_protocol(queue: RequestQueue) -> None:
+    refused(ErrorCode.BAD_FIELD, "queue.add", dict(SPEC, shape="hexagon"), queue=queue)
+    refused(ErrorCode.BAD_FIELD, "queue.add", dict(SPEC, start_state=dict(START, agent=[600.0, 1.0])), queue=queue)
+    refused(ErrorCode.BAD_FIELD, "queue.add", dict(SPEC, steps=protocol.MAX_EPISODE_STEPS + 1), queue=queue)
+    refused(ErrorCode.BAD_FIELD, "queue.add", dict(SPEC, colour="red"), queue=queue)
+    refused(ErrorCode.BAD_FIELD, "queue.add", {"task": "push"}, queue=queue)
+    assert queue.counts()["queued"] == 0
+
+
+def test_cancel_retry_prioritize(queue: RequestQueue) -> None:
+    rid = call("queue.add", SPEC, queue=queue)["request"]["id"]
+    body = call("queue.prioritize", {"id": rid, "priority": 7}, queue=queue)
+    assert body["request"]["priority"] == 7.0
+    event = admin.admin_event("queue.prioritize", body, at=5.0)
+    assert event.kind == "request.prioritized" and event.data["request_id"] == rid
+    assert protocol.Event.from_json(event.to_json()) == event
+    assert call("queue.cancel", {"id": rid}, queue=queue)["request"]["status"] == "cancelled"
+    err = refused(ErrorCode.ILLEGAL_TRANSITION, "queue.cancel", {"id": rid}, queue=queue)
+    assert "cancelled" in err.message
+    assert call("queue.retry", {"id": rid}, queue=queue)["request"]["status"] == "queued"
+    refused(ErrorCode.ILLEGAL_TRANSITION, "queue.retry", {"id": rid}, queue=queue)
+    refused(ErrorCode.UNKNOWN_REQUEST, "queue.show", {"id": "nope"}, queue=queue)
+    refused(ErrorCode.UNKNOWN_REQUEST, "queue.cancel", {"id": "nope"}, queue=queue)
+
+
+def test_retry_a_dead_request(queue: RequestQueue) -> None:
+    req, _ = queue.enqueue(NewRequest(task="push", shape="box", start_state=START, max_attempts=1))
+    queue.fail(req.id, queue.lease("w1").token, "sim crashed")
+    shown = call("queue.ls", {"status": "dead"}, queue=queue)["requests"][0]
+    assert shown["id"] == req.id and shown["last_error"] == "sim crashed"
+    assert call("queue.retry", {"id": req.id}, queue=queue)["request"]["attempts"] == 0
+    assert queue.lease("w2").request.id == req.id
+
+
+@pytest.mark.parametrize("op, args, code", [
+    ("queue.drop", {}, ErrorCode.UNKNOWN_OP),
+    ("", {}, ErrorCode.UNKNOWN_OP),
+    ("queue.ls", {"status": "sleeping"}, ErrorCode.BAD_FIELD),
+    ("queue.ls", {"limit": 0}, ErrorCode.BAD_FIELD),
+    ("queue.ls", {"limit": admin.MAX_LIST + 1}, ErrorCode.BAD_FIELD),
+    ("queue.ls", {"limit": "5"}, ErrorCode.BAD_FIELD),
+    ("queue.ls", {"colour": "red"}, ErrorCode.BAD_FIELD),
+    ("queue.show", {}, ErrorCode.BAD_FIELD),
+    ("queue.show", {"id": "a/b"}, ErrorCode.BAD_FIELD),
+    ("queue.show", {"id": 5}, ErrorCode.BAD_FIELD),
+    ("queue.prioritize", {"id": "x"}, ErrorCode.BAD_FIELD),
+    ("queue.prioritize", {"id": "x", "priority": "high"}, ErrorCode.BAD_FIELD),
+    ("queue.prioritize", {"id": "x", "priority": True}, ErrorCode.BAD_FIELD),
+    ("stats", {"x": 1}, ErrorCode.BAD_FIELD),
+    ("models.ls", {}, ErrorCode.UNAVAILABLE),
+])
+def test_bad_ops_and_args(queue: RequestQueue, op: str, args: dict, code: ErrorCode) -> None:
+    err = refused(code, op, args, queue=queue)
+    assert err.message
+
+
+def test_workers_and_stats(queue: RequestQueue, tmp_path: Path) -> None:
+    for _ in range(3):
+        queue.enqueue(NewRequest(task="push", shape="T", start_state=dict(START, shape="T")))
+    held = queue.lease("w1")
+    queue.lease("ghost")  # a lease whose worker is no longer alive (not reaped yet)
+    body = call("workers.ls", queue=queue, workers=lambda: ["w2", "w1"])
+    ghost = [r.id for r in queue.list(status="leased") if r.worker_id == "ghost"]
+    assert body["workers"] == [
+        {"id": "ghost", "alive": False, "leases": ghost},
+        {"id": "w1", "alive": True, "leases": [held.request.id]},
+        {"id": "w2", "alive": True, "leases": []},
+    ]
+    registry = ModelRegistry(tmp_path)
+    stats = call("stats", queue=queue, registry=registry, workers=lambda: ["w1"])
+    assert stats == {"requests": {"queued": 1, "leased": 2, "done": 0, "dead": 0, "cancelled": 0},
+                     "episodes": None, "champion": None, "workers": 1}
+
+
+def test_stats_with_a_catalog(queue: RequestQueue, tmp_path: Path) -> None:
+    catalog_mod = pytest.importorskip("storage.catalog")
+    catalog = catalog_mod.Catalog(tmp_path)
+    stats = call("stats", queue=queue, catalog=catalog)
+    assert stats["episodes"] == {"train": 0, "eval": 0, "total": 0}
+
+
+def test_models_ls(queue: RequestQueue, tmp_path: Path) -> None:
+    registry = ModelRegistry(tmp_path)
+    assert call("models.ls", queue=queue, registry=registry) == {"models": [], "champion": None}
+    version = registry.register(b"weights" * 10, {"members": 2}, {"h1_mse": 0.01, "spearman": float("nan")},
+                                snapshot_id="snap-1", eval_split_hash="split-1")
+    registry.promote(version)
+    body = call("models.ls", queue=queue, registry=registry)
+    assert body["champion"] == version and body["models"][0]["version"] == version
+    assert body["models"][0]["metrics"] == {"h1_mse": 0.01, "spearman": None}  # NaN made JSON-safe
+    protocol.ok_reply(**body)  # strict JSON (no NaN) must accept it
+    assert call("models.ls", {"status": "candidate"}, queue=queue, registry=registry)["models"] == []
+
+
+def test_serve_bytes(queue: RequestQueue) -> None:
+    reply = admin.serve(protocol.AdminRequest(op="queue.add", args=SPEC).to_json(), op="queue.add", queue=queue)
+    body = protocol.parse_reply(reply)
+    assert body["created"] is True
+    assert protocol.parse_reply(admin.serve(b"", op="stats", queue=queue))["requests"]["queued"] == 1
+    for payload, op, code in [
+        (b"{oops", "stats", "bad_json"),
+        (b'{"v": 9, "op": "stats"}', "stats", "bad_version"),
+        (protocol.AdminRequest(op="stats").to_json(), "queue.ls", "bad_field"),  # op disagrees with the key
+        (b"", None, "bad_json"),
+        (protocol.AdminRequest(op="queue.show", args={"id": "nope"}).to_json(), None, "unknown_request"),
+    ]:
+        answer = json.loads(admin.serve(payload, op=op, queue=queue))
+        assert answer["ok"] is False and answer["error"] == code, answer
+
+
+@pytest.mark.parametrize("exc, code", [
+    (StaleLeaseError("x"), ErrorCode.STALE_TOKEN),
+    (UnknownRequestError("x"), ErrorCode.UNKNOWN_REQUEST),
+    (IllegalTransitionError("x"), ErrorCode.ILLEGAL_TRANSITION),
+    (QueueError("x"), ErrorCode.BAD_FIELD),
+    (StorageError("x"), ErrorCode.INTERNAL),
+])
+def test_protocol_error_mapping(exc: StorageError, code: ErrorCode) -> None:
+    assert admin.protocol_error(exc).code == code
