@@ -1,5 +1,352 @@
-"""CLI commands (being built)."""
+"""CLI: ``train``, ``eval``, ``score``, ``models ls|show|promote|rollback`` and ``bench score``.
+
+Argument parsing and printing only: every command is one call into ``uncertainty`` (training,
+evaluation, scoring, the scoring benchmark) or ``storage.models`` (the registry and its gate).
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+from pathlib import Path
+from typing import Any
+
+from orchestrator.cli import common
+from storage.catalog import Catalog
+from storage.episodes import read_episode
+from storage.errors import CatalogError, CorruptCheckpointError, EpisodeError, RegistryError, StorageError
+from storage.models import ModelRecord, ModelRegistry
+from storage.records import Episode
+from uncertainty.benchmark import run_score_bench
+from uncertainty.checkpoint import load_ensemble
+from uncertainty.ensemble import Ensemble
+from uncertainty.errors import ConfigError, UncertaintyError
+from uncertainty.score import score_episode
+from uncertainty.train import TrainConfig, evaluate, train_candidate
+
+_DEVICES = ("auto", "cpu", "cuda")
 
 
-def register(sub) -> None:
-    """Adds this group's commands."""
+def register(sub: argparse._SubParsersAction) -> None:
+    """Adds ``train``, ``eval``, ``score`` and ``models``."""
+    p = sub.add_parser("train", help="train a candidate ensemble, evaluate it, run it through the gate")
+    p.add_argument("--members", type=common.positive_int, default=TrainConfig.members, metavar="K",
+                   help=f"ensemble size (default {TrainConfig.members})")
+    p.add_argument("--epochs", type=common.positive_int, default=TrainConfig.epochs, metavar="E",
+                   help=f"passes over the training windows (default {TrainConfig.epochs})")
+    p.add_argument("--from-champion", action="store_true", help="warm-start from the champion's weights")
+    p.add_argument("--seed", type=common.non_negative_int, default=TrainConfig.seed, metavar="S")
+    p.add_argument("--device", choices=_DEVICES, default="auto")
+    p.add_argument("--min-improvement", type=float, default=TrainConfig.min_rel_improvement, metavar="FRAC",
+                   help="the gate's minimum relative improvement of h1_mse over the champion "
+                        f"(default {TrainConfig.min_rel_improvement})")
+    p.set_defaults(func=_train)
+    p = sub.add_parser("eval", help="evaluate a model (default: the champion) on the pinned eval split")
+    p.add_argument("version", nargs="?", metavar="VERSION")
+    p.add_argument("--device", choices=_DEVICES, default="auto")
+    p.set_defaults(func=_eval)
+    p = sub.add_parser("score", help="per-step disagreement of an episode and its most uncertain states")
+    p.add_argument("episode", metavar="EPISODE", help="an episode id (or unique prefix) in the catalog, "
+                                                      "or a path to an .mcap file")
+    p.add_argument("--top", type=common.non_negative_int, default=5, metavar="K",
+                   help="how many top states to show (default 5)")
+    p.add_argument("--horizon", type=common.positive_int, default=1, metavar="H",
+                   help="roll each member out H steps (default 1)")
+    p.add_argument("--device", choices=_DEVICES, default="auto")
+    p.set_defaults(func=_score)
+    for p in (sub.choices["train"], sub.choices["eval"], sub.choices["score"]):
+        common.add_data_arg(p)
+        common.add_json_arg(p)
+
+    models = sub.add_parser("models", help="the model registry: list, show, promote, roll back")
+    msub = models.add_subparsers(dest="models_command", metavar="ACTION", parser_class=common.Parser)
+    msub.required = True
+    p = msub.add_parser("ls", help="list registered models, champion marked")
+    p.set_defaults(func=_models_ls)
+    p = msub.add_parser("show", help="one model: metrics, lineage, status and reason")
+    p.add_argument("version", metavar="VERSION")
+    p.set_defaults(func=_models_show)
+    p = msub.add_parser("promote", help="make VERSION the champion (override; still checks sha256 and split)")
+    p.add_argument("version", metavar="VERSION")
+    p.set_defaults(func=_models_promote)
+    p = msub.add_parser("rollback", help="return to the previous champion whose weights are intact")
+    p.set_defaults(func=_models_rollback)
+    for p in msub.choices.values():
+        common.add_data_arg(p)
+        common.add_json_arg(p)
+
+
+# -- helpers shared by the handlers ------------------------------------------------------------
+
+
+def _strict(obj: Any) -> Any:
+    """Replace non-finite floats with None so that ``--json`` output is strict JSON."""
+    if isinstance(obj, float) and not math.isfinite(obj):
+        return None
+    if isinstance(obj, dict):
+        return {k: _strict(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_strict(v) for v in obj]
+    return obj
+
+
+def _fail(message: str) -> int:
+    print(f"activecollect: {message}", file=sys.stderr)
+    return 1
+
+
+def _data_dir(args: argparse.Namespace) -> Path:
+    data = Path(args.data)
+    if not data.is_dir():
+        raise common.UsageError(f"no data directory at {data} (give --data DIR, "
+                                f"or collect and train first)")
+    return data
+
+
+def _registry(args: argparse.Namespace) -> ModelRegistry:
+    return ModelRegistry(_data_dir(args))
+
+
+def _record(registry: ModelRegistry, version: str) -> ModelRecord:
+    try:
+        return registry.get(version)
+    except RegistryError as exc:
+        raise common.UsageError(str(exc)) from None
+
+
+def _num(value: Any, fmt: str = ".5g") -> str:
+    return format(value, fmt) if isinstance(value, (int, float)) and not isinstance(value, bool) else "-"
+
+
+# -- models ------------------------------------------------------------------------------------
+
+
+def _models_ls(args: argparse.Namespace) -> int:
+    registry = _registry(args)
+    records, champion = registry.list(), registry.champion()
+    if args.json:
+        common.print_json(_strict({"champion": champion, "models": [r.to_json() for r in records]}))
+        return 0
+    if not records:
+        print(f"no models registered in {registry.models_dir} (run: activecollect train)")
+        return 0
+    print(f"{'':2}{'VERSION':18} {'STATUS':9} {'H1_MSE':>10} {'H1_PSNR':>8} {'PARENT':18} CREATED")
+    for r in records:
+        mark = "* " if r.version == champion else "  "
+        print(f"{mark}{r.version:18} {r.status.value:9} {_num(r.metrics.get('h1_mse')):>10} "
+              f"{_num(r.metrics.get('h1_psnr'), '.2f'):>8} {r.parent or '-':18} {r.created[:19]}")
+    return 0
+
+
+def _models_show(args: argparse.Namespace) -> int:
+    registry = _registry(args)
+    rec = _record(registry, args.version)
+    history = [e for e in registry.history() if e.version == rec.version]
+    if args.json:
+        out = rec.to_json()
+        out["champion_history"] = [vars(e) for e in history]
+        common.print_json(_strict(out))
+        return 0
+    print(f"version          {rec.version}")
+    print(f"status           {rec.status.value}{' (' + rec.reason + ')' if rec.reason else ''}")
+    print(f"created          {rec.created}")
+    print(f"parent           {rec.parent or '-'}")
+    print(f"data snapshot    {rec.snapshot_id}")
+    print(f"eval split       {rec.eval_split_hash}")
+    print(f"weights          {rec.weights_path} ({rec.size_bytes} bytes, sha256 {rec.weights_sha256})")
+    for e in history:
+        back = f", rolled back {e.rolled_back_at}" if e.rolled_back_at else ""
+        print(f"champion since   {e.promoted_at}{back}")
+    print("metrics")
+    for key in sorted(rec.metrics):
+        value = rec.metrics[key]
+        shown = (_num(value) if isinstance(value, (int, float)) else
+                 f"[{len(value)} values]" if isinstance(value, (list, dict)) else value)
+        print(f"  {key:22} {shown}")
+    return 0
+
+
+def _models_promote(args: argparse.Namespace) -> int:
+    registry = _registry(args)
+    _record(registry, args.version)
+    try:
+        decision = registry.promote(args.version, eval_split_hash=_current_split(args.data))
+    except CorruptCheckpointError as exc:
+        return _fail(f"refusing to promote: {exc}")
+    except RegistryError as exc:
+        return _fail(str(exc))
+    if args.json:
+        common.print_json(_strict(decision.to_json()))
+    elif decision.promoted:
+        before = f" (was {decision.champion_before})" if decision.champion_before else ""
+        print(f"champion is now {args.version}{before}")
+    else:
+        print(decision.reason)
+    return 0
+
+
+def _models_rollback(args: argparse.Namespace) -> int:
+    registry = _registry(args)
+    before = registry.champion()
+    try:
+        version = registry.rollback()
+    except RegistryError as exc:
+        return _fail(f"cannot roll back: {exc}")
+    if args.json:
+        common.print_json({"champion": version, "rolled_back_from": before})
+    else:
+        print(f"champion is now {version} (rolled back from {before})")
+    return 0
+
+
+def _current_split(data: Path) -> str | None:
+    """The catalog's pinned eval split hash, or None when none is pinned yet."""
+    split = Catalog(data).eval_split()
+    return None if split is None else split.hash
+
+
+def register_bench(bench_sub: argparse._SubParsersAction) -> None:
+    """Adds ``bench score``."""
+    p = bench_sub.add_parser("score", help="frames/s of the fused ensemble and of the per-member loop")
+    p.add_argument("--members", type=common.positive_int, default=5, metavar="K", help="ensemble size (default 5)")
+    p.add_argument("--size", type=common.positive_int, default=64, metavar="PX", help="frame size (default 64)")
+    p.add_argument("--seconds", type=common.positive_float, default=10.0, metavar="S",
+                   help="rough total measuring time (default 10)")
+    p.add_argument("--threads", type=common.positive_int, default=None, metavar="N",
+                   help="torch intra-op threads (default: torch's)")
+    p.add_argument("--device", choices=_DEVICES, default="auto")
+    common.add_json_arg(p)
+    p.set_defaults(func=_bench_score)
+
+
+# -- train / eval / score ----------------------------------------------------------------------
+
+
+def _train(args: argparse.Namespace) -> int:
+    data = _data_dir(args)
+    try:
+        cfg = TrainConfig(members=args.members, epochs=args.epochs, from_champion=args.from_champion,
+                          seed=args.seed, device=args.device, min_rel_improvement=args.min_improvement)
+    except ConfigError as exc:
+        raise common.UsageError(str(exc)) from None
+    registry = ModelRegistry(data)
+    try:
+        result = train_candidate(Catalog(data), registry, cfg)
+    except (UncertaintyError, StorageError) as exc:
+        return _fail(f"training failed: {exc}")
+    champion = registry.champion()
+    if args.json:
+        common.print_json(_strict({"version": result.version, "metrics": result.metrics,
+                                   "decision": result.decision.to_json(), "losses": result.losses,
+                                   "champion": champion}))
+        return 0
+    m = result.metrics
+    print(f"trained {result.version}: {m.get('train_episodes')} episodes, {m.get('train_windows')} windows, "
+          f"{cfg.epochs} epochs in {_num(m.get('train_seconds'), '.1f')} s (final loss {_num(m.get('train_loss'))})")
+    _print_eval(m)
+    verdict = "promoted" if result.decision.promoted else "refused"
+    print(f"gate: {verdict}: {result.decision.reason}")
+    print(f"champion: {champion or 'none'}")
+    return 0
+
+
+def _print_eval(m: dict[str, Any]) -> None:
+    for h in (1, 5, 10):
+        if f"h{h}_mse" in m:
+            print(f"eval h{h:<2}  mse {_num(m.get(f'h{h}_mse')):>10}  psnr {_num(m.get(f'h{h}_psnr'), '.2f'):>6} dB  "
+                  f"ssim {_num(m.get(f'h{h}_ssim'), '.3f'):>6}  | copy-last mse "
+                  f"{_num(m.get(f'baseline_h{h}_mse')):>10}  psnr {_num(m.get(f'baseline_h{h}_psnr'), '.2f'):>6} dB")
+    print(f"calibration: spearman(disagreement, error) {_num(m.get('spearman'), '.3f')}, "
+          f"on {m.get('eval_episodes')} eval episodes ({m.get('eval_windows')} windows)")
+
+
+def _load(registry: ModelRegistry, version: str | None, device: str) -> Ensemble | None:
+    """The ensemble of ``version`` (champion when None); prints why and returns None if it cannot."""
+    if version is None and registry.champion() is None:
+        _fail("no champion model yet: train one first (activecollect train)")
+        return None
+    try:
+        return load_ensemble(registry, version, None if device == "auto" else device)
+    except (CorruptCheckpointError, UncertaintyError) as exc:
+        _fail(f"cannot load {version or 'the champion'}: {exc}")
+        return None
+
+
+def _eval(args: argparse.Namespace) -> int:
+    data = _data_dir(args)
+    registry = ModelRegistry(data)
+    if args.version is not None:
+        _record(registry, args.version)
+    ensemble = _load(registry, args.version, args.device)
+    if ensemble is None:
+        return 1
+    try:
+        metrics = evaluate(ensemble, Catalog(data))
+    except (UncertaintyError, StorageError) as exc:
+        return _fail(f"evaluation failed: {exc}")
+    if args.json:
+        common.print_json(_strict({"version": ensemble.version, "metrics": metrics}))
+        return 0
+    print(f"model {ensemble.version} on eval split {metrics.get('eval_split_hash')}")
+    _print_eval(metrics)
+    return 0
+
+
+def _episode(arg: str, data: Path) -> Episode:
+    """The episode named by ``arg``: an .mcap path, or an id / unique id prefix in the catalog."""
+    path = Path(arg)
+    if path.suffix == ".mcap" or path.is_file():
+        if not path.is_file():
+            raise common.UsageError(f"no episode file at {path}")
+        return read_episode(path)
+    if not data.is_dir():
+        raise common.UsageError(f"{arg!r} is not a file, and there is no data directory at {data} to look it up")
+    catalog = Catalog(data)
+    try:
+        return catalog.load(catalog.resolve(arg).episode_id)
+    except CatalogError as exc:
+        raise common.UsageError(str(exc)) from None
+
+
+def _score(args: argparse.Namespace) -> int:
+    try:
+        episode = _episode(args.episode, Path(args.data))
+    except EpisodeError as exc:
+        return _fail(f"cannot read episode {args.episode}: {exc}")
+    registry = _registry(args)
+    ensemble = _load(registry, None, args.device)
+    if ensemble is None:
+        return 1
+    try:
+        score = score_episode(ensemble, episode, top_k=args.top, horizon=args.horizon)
+    except UncertaintyError as exc:
+        return _fail(f"cannot score episode {episode.meta.episode_id}: {exc}")
+    if args.json:
+        common.print_json(_strict(score.to_json()))
+        return 0
+    print(f"episode {score.episode_id} ({len(score.per_step)} steps, {episode.meta.shape}) scored by "
+          f"{score.model_version}: mean disagreement {_num(score.mean)} (horizon {score.horizon})")
+    for s in score.top:
+        agent, obj = s.state.get("agent", ()), s.state.get("object", ())
+        print(f"  step {s.step:4d}  score {_num(s.score):>10}  agent {_fmt_xy(agent)}  object {_fmt_xy(obj)}")
+    return 0
+
+
+def _fmt_xy(values: Any) -> str:
+    return "(" + ", ".join(f"{v:.1f}" for v in values) + ")" if values else "-"
+
+
+def _bench_score(args: argparse.Namespace) -> int:
+    try:
+        out = run_score_bench(members=args.members, image_size=args.size, seconds=args.seconds,
+                              threads=args.threads, device=args.device)
+    except ConfigError as exc:
+        raise common.UsageError(str(exc)) from None
+    if args.json:
+        common.print_json(_strict(out))
+        return 0
+    print(f"fused {out['fused_fps']:.0f} frames/s, per-member loop {out['loop_fps']:.0f} frames/s: "
+          f"{out['speedup']:.2f}x (K={args.members}, {args.size}px, {out['device']}, {out['threads']} threads; "
+          f"max |fused - loop| {out['max_abs_diff']:.1e})")
+    return 0

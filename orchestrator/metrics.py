@@ -1,0 +1,127 @@
+"""The service's metrics, exposed by the dashboard at ``/metrics`` in Prometheus text format 0.0.4.
+
+A thin layer over ``prometheus_client``: each ``ServiceMetrics`` owns its own ``CollectorRegistry``
+(no process-global state, so two services or two tests never share counters), and its methods name
+what happened (``lease()``, ``upload("stored")``) instead of exposing label plumbing to callers.
+``prometheus_client`` metrics are thread-safe, so the Zenoh handlers, the scheduler and the HTTP
+server may all touch one instance.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Iterable, Iterator, Mapping
+from contextlib import contextmanager
+
+from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram
+from prometheus_client.exposition import CONTENT_TYPE_PLAIN_0_0_4, generate_latest
+
+#: The Content-Type header to send with ``render()``'s text (names are legacy-valid, so the 0.0.4
+#: text format is exact; prometheus_client's "latest" would announce 1.0.0).
+CONTENT_TYPE = CONTENT_TYPE_PLAIN_0_0_4
+NAMESPACE = "activecollect"
+
+#: Request statuses always exported (0 when empty), so a dashboard's series never vanish.
+QUEUE_STATUSES: tuple[str, ...] = ("queued", "leased", "done", "dead", "cancelled")
+UPLOAD_RESULTS: tuple[str, ...] = ("stored", "duplicate", "refused")
+RETRAIN_OUTCOMES: tuple[str, ...] = ("promoted", "rejected", "failed")
+#: Scoring one episode takes milliseconds (tiny CPU model) to seconds (big model, slow host).
+SCORING_BUCKETS: tuple[float, ...] = (0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0, 30.0)
+
+
+def _check(value: str, allowed: Iterable[str], what: str) -> str:
+    allowed = tuple(allowed)
+    if value not in allowed:
+        raise ValueError(f"{what} must be one of {', '.join(allowed)}, found {value!r}")
+    return value
+
+
+class ServiceMetrics:
+    """The counters, gauges and histograms the service and dashboard report.
+
+    Parameters: ``registry`` to register into (a fresh ``CollectorRegistry`` when None).
+    """
+
+    def __init__(self, registry: CollectorRegistry | None = None) -> None:
+        self.registry = registry if registry is not None else CollectorRegistry(auto_describe=True)
+        r, ns = self.registry, NAMESPACE
+        self.queue_depth = Gauge("queue_depth", "Collection requests in the queue, by status.",
+                                 ["status"], namespace=ns, registry=r)
+        self.leases = Counter("leases", "Leases handed to workers.", namespace=ns, registry=r)
+        self.uploads = Counter("uploads", "Episode uploads, by result (stored, duplicate, refused).",
+                               ["result"], namespace=ns, registry=r)
+        self.refusals = Counter("refusals", "Inbound messages refused, by reason (protocol error code).",
+                                ["reason"], namespace=ns, registry=r)
+        self.retrains = Counter("retrains", "Retrain jobs finished, by outcome (promoted, rejected, failed).",
+                                ["outcome"], namespace=ns, registry=r)
+        self.scoring_seconds = Histogram("scoring_seconds", "Time to score one episode with the champion.",
+                                         namespace=ns, registry=r, buckets=SCORING_BUCKETS)
+        self.workers_alive = Gauge("workers_alive", "Workers with a live liveliness token.",
+                                   namespace=ns, registry=r)
+        self.episodes = Gauge("episodes", "Episodes in the catalog, by split.", ["split"],
+                              namespace=ns, registry=r)
+        self.champion_h1_mse = Gauge("champion_h1_mse", "The champion's horizon-1 MSE on the eval split.",
+                                     namespace=ns, registry=r)
+        self.champion_info = Gauge("champion_info", "The champion's version (value 1; label version).",
+                                   ["version"], namespace=ns, registry=r)
+        for status in QUEUE_STATUSES:
+            self.queue_depth.labels(status=status).set(0)
+        for result in UPLOAD_RESULTS:
+            self.uploads.labels(result=result)
+        for outcome in RETRAIN_OUTCOMES:
+            self.retrains.labels(outcome=outcome)
+
+    def set_queue_depth(self, counts: Mapping[str, int]) -> None:
+        """Set the queue gauge from ``RequestQueue.counts()``; statuses not in ``counts`` read 0."""
+        for status in sorted(set(QUEUE_STATUSES) | set(counts)):
+            self.queue_depth.labels(status=status).set(counts.get(status, 0))
+
+    def lease(self, n: int = 1) -> None:
+        """Count ``n`` leases handed out."""
+        self.leases.inc(n)
+
+    def upload(self, result: str) -> None:
+        """Count one upload; ``result`` is one of ``UPLOAD_RESULTS`` (ValueError otherwise)."""
+        self.uploads.labels(result=_check(result, UPLOAD_RESULTS, "upload result")).inc()
+
+    def refusal(self, reason: str) -> None:
+        """Count one refused message; ``reason`` should be a short code (``bad_sha256``), not a message."""
+        if not reason:
+            raise ValueError("refusal reason must be a non-empty code, found ''")
+        self.refusals.labels(reason=reason).inc()
+
+    def retrain(self, outcome: str) -> None:
+        """Count one finished retrain; ``outcome`` is one of ``RETRAIN_OUTCOMES`` (ValueError otherwise)."""
+        self.retrains.labels(outcome=_check(outcome, RETRAIN_OUTCOMES, "retrain outcome")).inc()
+
+    def observe_scoring(self, seconds: float) -> None:
+        """Record how long scoring one episode took."""
+        self.scoring_seconds.observe(seconds)
+
+    @contextmanager
+    def time_scoring(self) -> Iterator[None]:
+        """Time the block as one scoring (recorded even if it raises)."""
+        start = time.perf_counter()
+        try:
+            yield
+        finally:
+            self.observe_scoring(time.perf_counter() - start)
+
+    def set_workers_alive(self, n: int) -> None:
+        self.workers_alive.set(n)
+
+    def set_episodes(self, counts: Mapping[str, int]) -> None:
+        """Set the catalog gauge from ``{split: count}``."""
+        for split, n in counts.items():
+            self.episodes.labels(split=split).set(n)
+
+    def set_champion(self, version: str | None, h1_mse: float | None = None) -> None:
+        """Name the champion (None: there is none) and its eval error."""
+        self.champion_info.clear()
+        if version is not None:
+            self.champion_info.labels(version=version).set(1)
+        self.champion_h1_mse.set(float("nan") if h1_mse is None else h1_mse)
+
+    def render(self) -> str:
+        """Every metric in Prometheus text exposition format 0.0.4 (HELP and TYPE lines, escaped labels)."""
+        return generate_latest(self.registry).decode("utf-8")

@@ -1,0 +1,568 @@
+"""The model registry: versioned checkpoints on disk, their rows in the catalog, and the promotion gate.
+
+Layout: ``DATA/models/<version>/`` holds ``weights.pt`` (opaque bytes, whatever the trainer
+serialised), ``config.json``, ``metrics.json`` and ``meta.json`` (snapshot id, eval split hash,
+parent, created, sha256 of the weights). The rows live in the ``models`` table of
+``DATA/catalog.sqlite`` next to the episodes; the alias ``champion`` (table ``model_aliases``) names
+the model in service and ``champion_history`` remembers every promotion, so a rollback can walk back.
+
+Versions are ``m<6-digit sequence>-<8 hex of the weights' sha256>``: unique, and they sort in
+registration order. Every change is one ``BEGIN IMMEDIATE`` transaction, so the alias switch is atomic.
+The tables are created through the catalog's ``ensure_schema`` (component ``models``).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import os
+import shutil
+import sqlite3
+import uuid
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from datetime import datetime, timezone
+from enum import Enum
+from pathlib import Path
+from typing import Any
+
+from storage.catalog import DB_NAME, connect, ensure_schema, transaction
+from storage.errors import CorruptCheckpointError, RegistryError
+
+WEIGHTS_FILE = "weights.pt"
+CONFIG_FILE = "config.json"
+METRICS_FILE = "metrics.json"
+META_FILE = "meta.json"
+CHAMPION = "champion"
+DEFAULT_METRIC = "h1_mse"
+DEFAULT_MIN_REL_IMPROVEMENT = 0.02
+
+_MIGRATIONS: tuple[tuple[str, ...], ...] = (
+    (
+        """CREATE TABLE IF NOT EXISTS models (
+            version TEXT PRIMARY KEY,
+            seq INTEGER NOT NULL UNIQUE,
+            status TEXT NOT NULL,
+            reason TEXT NOT NULL DEFAULT '',
+            parent TEXT,
+            snapshot_id TEXT NOT NULL,
+            eval_split_hash TEXT NOT NULL,
+            weights_sha256 TEXT NOT NULL,
+            size_bytes INTEGER NOT NULL,
+            created TEXT NOT NULL,
+            updated TEXT NOT NULL,
+            metrics TEXT NOT NULL,
+            config TEXT NOT NULL)""",
+        "CREATE INDEX IF NOT EXISTS models_status ON models(status)",
+        """CREATE TABLE IF NOT EXISTS model_aliases (
+            alias TEXT PRIMARY KEY,
+            version TEXT NOT NULL REFERENCES models(version))""",
+        """CREATE TABLE IF NOT EXISTS champion_history (
+            id INTEGER PRIMARY KEY AUTOINCREMENT,
+            version TEXT NOT NULL REFERENCES models(version),
+            promoted_at TEXT NOT NULL,
+            reason TEXT NOT NULL,
+            rolled_back_at TEXT)""",
+    ),
+)
+
+
+class ModelStatus(str, Enum):
+    """Where a registered model stands. Transitions happen only in ``ModelRegistry``."""
+
+    CANDIDATE = "candidate"
+    """Registered, not yet through the gate."""
+    CHAMPION = "champion"
+    """The model in service (exactly one, or none before the first promotion)."""
+    RETIRED = "retired"
+    """A former champion, replaced by a better one or rolled back."""
+    REJECTED = "rejected"
+    """Refused by the gate; kept, with the reason."""
+
+
+@dataclass(frozen=True)
+class ModelRecord:
+    """One registered model: its registry row plus where its files are."""
+
+    version: str
+    """Unique, sortable version name (``m000001-1a2b3c4d``)."""
+    status: ModelStatus
+    """Current status."""
+    reason: str
+    """Why it has that status (the gate's or the operator's words); '' for a fresh candidate."""
+    parent: str | None
+    """Version it was warm-started from, if any."""
+    snapshot_id: str
+    """Catalog snapshot (training episode ids) it was trained on."""
+    eval_split_hash: str
+    """Hash of the eval split its metrics were measured on."""
+    weights_sha256: str
+    """sha256 hex of the weights file as registered."""
+    size_bytes: int
+    """Size of the weights file."""
+    created: str
+    """Registration time, ISO 8601 UTC."""
+    metrics: dict[str, Any]
+    """Evaluation metrics (``h1_mse`` ...)."""
+    config: dict[str, Any]
+    """Model / training configuration, as the trainer gave it."""
+    path: Path
+    """The checkpoint directory."""
+
+    @property
+    def weights_path(self) -> Path:
+        return self.path / WEIGHTS_FILE
+
+    def to_json(self) -> dict[str, Any]:
+        """A strict-JSON-able dict: non-finite metric values (NaN, inf) become None."""
+        return {
+            "version": self.version, "status": self.status.value, "reason": self.reason,
+            "parent": self.parent, "snapshot_id": self.snapshot_id,
+            "eval_split_hash": self.eval_split_hash, "weights_sha256": self.weights_sha256,
+            "size_bytes": self.size_bytes, "created": self.created, "metrics": _finite(self.metrics),
+            "config": self.config, "path": str(self.path),
+        }
+
+
+@dataclass(frozen=True)
+class GateDecision:
+    """What the promotion gate decided, and why, in words an operator can act on."""
+
+    promoted: bool
+    """True when the candidate is now the champion."""
+    reason: str
+    """One sentence: the comparison made, or the check that failed."""
+    version: str = ""
+    """The candidate."""
+    champion_before: str | None = None
+    """The champion when the gate ran (None for the first model)."""
+    metric: str = DEFAULT_METRIC
+    """The metric compared."""
+    candidate_value: float | None = None
+    """The candidate's value of ``metric`` (None when missing)."""
+    champion_value: float | None = None
+    """The champion's value of ``metric`` (None when there was no champion)."""
+
+    def to_json(self) -> dict[str, Any]:
+        return {
+            "promoted": self.promoted, "reason": self.reason, "version": self.version,
+            "champion_before": self.champion_before, "metric": self.metric,
+            "candidate_value": self.candidate_value, "champion_value": self.champion_value,
+        }
+
+
+@dataclass(frozen=True)
+class ChampionEntry:
+    """One promotion in the champion history."""
+
+    version: str
+    promoted_at: str
+    reason: str
+    rolled_back_at: str | None = field(default=None)
+
+
+def _finite(obj: Any) -> Any:
+    """``obj`` with every non-finite float replaced by None (JSON has no NaN)."""
+    if isinstance(obj, float) and not math.isfinite(obj):
+        return None
+    if isinstance(obj, dict):
+        return {k: _finite(v) for k, v in obj.items()}
+    if isinstance(obj, list):
+        return [_finite(v) for v in obj]
+    return obj
+
+
+def _now() -> str:
+    return datetime.now(timezone.utc).isoformat(timespec="microseconds")
+
+
+def _fsync_dir(path: Path) -> None:
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def _write_synced(path: Path, data: bytes) -> None:
+    with open(path, "wb") as f:
+        f.write(data)
+        f.flush()
+        os.fsync(f.fileno())
+
+
+def _dump(obj: Any, what: str) -> bytes:
+    try:
+        return json.dumps(obj, sort_keys=True, indent=2).encode()
+    except (TypeError, ValueError) as exc:
+        raise RegistryError(f"{what} must be JSON-serialisable: {exc}") from exc
+
+
+def _non_finite(metrics: dict[str, Any], metric: str) -> str | None:
+    """Name the first number that matters which is missing or not finite, or None if all are fine.
+
+    The numbers that matter are the gate metric and every horizon-1 metric (``h1_*``): a diverged
+    model is NaN there. Longer horizons may be NaN by construction (episodes too short to roll out).
+    """
+    value = metrics.get(metric)
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        return f"{metric} is missing or not a number (found {value!r})"
+    for key in sorted(k for k in metrics if k == metric or k.startswith("h1_")):
+        v = metrics[key]
+        if isinstance(v, (int, float)) and not isinstance(v, bool) and not math.isfinite(v):
+            return f"{key} is not finite ({v})"
+    return None
+
+
+class ModelRegistry:
+    """Checkpoints under ``data_dir/models`` and their rows in ``data_dir/catalog.sqlite``.
+
+    Safe to use from several threads and processes: each call opens its own connection and every
+    change is one ``BEGIN IMMEDIATE`` transaction.
+    """
+
+    def __init__(self, data_dir: str | os.PathLike[str]) -> None:
+        self.data_dir = Path(data_dir)
+        self.models_dir = self.data_dir / "models"
+        self.models_dir.mkdir(parents=True, exist_ok=True)
+        self.db_path = self.data_dir / DB_NAME
+        with self._connect() as conn:
+            ensure_schema(conn, "models", _MIGRATIONS)
+
+    # -- connections ---------------------------------------------------------------------------
+
+    @contextmanager
+    def _connect(self) -> Iterator[sqlite3.Connection]:
+        conn = connect(self.db_path)  # the catalog's settings: WAL, busy timeout, synchronous=FULL
+        try:
+            yield conn
+        finally:
+            conn.close()
+
+    @contextmanager
+    def _transaction(self) -> Iterator[sqlite3.Connection]:
+        with self._connect() as conn, transaction(conn):
+            yield conn
+
+    # -- reading -------------------------------------------------------------------------------
+
+    def _record(self, row: sqlite3.Row) -> ModelRecord:
+        return ModelRecord(
+            version=row["version"], status=ModelStatus(row["status"]), reason=row["reason"],
+            parent=row["parent"], snapshot_id=row["snapshot_id"],
+            eval_split_hash=row["eval_split_hash"], weights_sha256=row["weights_sha256"],
+            size_bytes=row["size_bytes"], created=row["created"],
+            metrics=json.loads(row["metrics"]), config=json.loads(row["config"]),
+            path=self.models_dir / row["version"],
+        )
+
+    def _get(self, conn: sqlite3.Connection, version: str) -> ModelRecord:
+        row = conn.execute("SELECT * FROM models WHERE version = ?", (version,)).fetchone()
+        if row is None:
+            known = [r[0] for r in conn.execute("SELECT version FROM models ORDER BY seq DESC LIMIT 5")]
+            hint = f"; latest: {', '.join(known)}" if known else "; the registry is empty"
+            raise RegistryError(f"unknown model version {version!r}{hint}")
+        return self._record(row)
+
+    def get(self, version: str) -> ModelRecord:
+        """The record of ``version``; raises ``RegistryError`` if it is not registered."""
+        with self._connect() as conn:
+            return self._get(conn, version)
+
+    def list(self, status: ModelStatus | str | None = None) -> list[ModelRecord]:
+        """All models in registration order, optionally only those with ``status``."""
+        if status is not None and status not in {s.value for s in ModelStatus}:
+            raise RegistryError(f"status must be one of {', '.join(s.value for s in ModelStatus)}, "
+                                f"found {status!r}")
+        with self._connect() as conn:
+            if status is None:
+                rows = conn.execute("SELECT * FROM models ORDER BY seq").fetchall()
+            else:
+                rows = conn.execute("SELECT * FROM models WHERE status = ? ORDER BY seq",
+                                    (ModelStatus(status).value,)).fetchall()
+        return [self._record(r) for r in rows]
+
+    def _champion(self, conn: sqlite3.Connection) -> str | None:
+        row = conn.execute("SELECT version FROM model_aliases WHERE alias = ?", (CHAMPION,)).fetchone()
+        return None if row is None else row[0]
+
+    def champion(self) -> str | None:
+        """The version in service, or None before the first promotion."""
+        with self._connect() as conn:
+            return self._champion(conn)
+
+    def history(self) -> list[ChampionEntry]:
+        """Every promotion, oldest first (rolled-back ones carry ``rolled_back_at``)."""
+        with self._connect() as conn:
+            rows = conn.execute("SELECT version, promoted_at, reason, rolled_back_at "
+                                "FROM champion_history ORDER BY id").fetchall()
+        return [ChampionEntry(*tuple(r)) for r in rows]
+
+    def load_weights(self, version: str) -> bytes:
+        """The weights bytes of ``version``, checked against their recorded sha256.
+
+        Raises ``RegistryError`` for an unknown version and ``CorruptCheckpointError`` when the
+        file is missing, unreadable or does not match its sha256.
+        """
+        return self._read_verified(self.get(version))
+
+    def verify(self, version: str) -> None:
+        """Raise ``CorruptCheckpointError`` unless the weights of ``version`` match their sha256."""
+        self.load_weights(version)
+
+    def _read_verified(self, rec: ModelRecord) -> bytes:
+        try:
+            data = rec.weights_path.read_bytes()
+        except FileNotFoundError:
+            raise CorruptCheckpointError(
+                f"checkpoint {rec.version}: weights file {rec.weights_path} is missing") from None
+        except OSError as exc:
+            raise CorruptCheckpointError(
+                f"checkpoint {rec.version}: cannot read {rec.weights_path}: {exc}") from exc
+        found = hashlib.sha256(data).hexdigest()
+        if found != rec.weights_sha256:
+            raise CorruptCheckpointError(
+                f"checkpoint {rec.version}: weights sha256 mismatch: expected {rec.weights_sha256}, "
+                f"found {found} ({len(data)} bytes, registered {rec.size_bytes}) in {rec.weights_path}")
+        return data
+
+    # -- registering ---------------------------------------------------------------------------
+
+    def register(self, weights: bytes, config: dict[str, Any], metrics: dict[str, Any],
+                 snapshot_id: str, eval_split_hash: str, parent: str | None = None) -> str:
+        """Store a new checkpoint as a ``candidate`` and return its version.
+
+        The directory is written under a temporary name, fsynced and renamed before the row is
+        committed, so a registered version always has complete files. Raises ``RegistryError`` for
+        empty weights, non-JSON config/metrics, empty ids or an unknown ``parent``.
+        """
+        if not isinstance(weights, (bytes, bytearray, memoryview)) or len(weights) == 0:
+            raise RegistryError(f"weights must be non-empty bytes, found {type(weights).__name__} "
+                                f"of length {len(weights) if hasattr(weights, '__len__') else '?'}")
+        for name, value in (("snapshot_id", snapshot_id), ("eval_split_hash", eval_split_hash)):
+            if not isinstance(value, str) or not value:
+                raise RegistryError(f"{name} must be a non-empty string, found {value!r}")
+        if not isinstance(config, dict) or not isinstance(metrics, dict):
+            raise RegistryError(f"config and metrics must be dicts, found {type(config).__name__} "
+                                f"and {type(metrics).__name__}")
+        weights = bytes(weights)
+        sha = hashlib.sha256(weights).hexdigest()
+        config_bytes, metrics_bytes = _dump(config, "config"), _dump(metrics, "metrics")
+        created = _now()
+        # The big writes and their fsyncs happen before taking the write lock (leases wait on it).
+        tmp = self._stage({WEIGHTS_FILE: weights, CONFIG_FILE: config_bytes, METRICS_FILE: metrics_bytes})
+        try:
+            with self._transaction() as conn:
+                if parent is not None:
+                    self._get(conn, parent)
+                seq = conn.execute("SELECT COALESCE(MAX(seq), 0) + 1 FROM models").fetchone()[0]
+                version = f"m{seq:06d}-{sha[:8]}"
+                meta = {"version": version, "snapshot_id": snapshot_id, "eval_split_hash": eval_split_hash,
+                        "parent": parent, "created": created, "weights_sha256": sha,
+                        "size_bytes": len(weights), "weights_file": WEIGHTS_FILE}
+                _write_synced(tmp / META_FILE, _dump(meta, "meta"))
+                final = self._publish(tmp, version)
+                try:
+                    conn.execute(
+                        "INSERT INTO models (version, seq, status, reason, parent, snapshot_id, "
+                        "eval_split_hash, weights_sha256, size_bytes, created, updated, metrics, config) "
+                        "VALUES (?, ?, ?, '', ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                        (version, seq, ModelStatus.CANDIDATE.value, parent, snapshot_id, eval_split_hash,
+                         sha, len(weights), created, created, metrics_bytes.decode(), config_bytes.decode()))
+                except sqlite3.Error:
+                    shutil.rmtree(final, ignore_errors=True)
+                    raise
+        finally:
+            if tmp.exists():
+                shutil.rmtree(tmp, ignore_errors=True)
+        return version
+
+    def _stage(self, files: dict[str, bytes]) -> Path:
+        """Write ``files`` into a fresh temporary directory under ``models/``, each fsynced."""
+        tmp = self.models_dir / f".tmp-{uuid.uuid4().hex}"
+        tmp.mkdir()
+        try:
+            for name, data in files.items():
+                _write_synced(tmp / name, data)
+        except OSError:
+            shutil.rmtree(tmp, ignore_errors=True)
+            raise
+        return tmp
+
+    def _publish(self, tmp: Path, version: str) -> Path:
+        """Under the write lock: rename the staged ``tmp`` to ``models/<version>`` durably."""
+        final = self.models_dir / version
+        if final.exists():
+            # No row names this version (we hold the write lock and seq is new): a crash left it
+            # between rename and commit. Nothing references it, so it can go.
+            shutil.rmtree(final)
+        _fsync_dir(tmp)
+        os.rename(tmp, final)
+        _fsync_dir(self.models_dir)
+        return final
+
+    # -- the gate and the alias ----------------------------------------------------------------
+
+    def gate(self, version: str, min_rel_improvement: float = DEFAULT_MIN_REL_IMPROVEMENT,
+             metric: str = DEFAULT_METRIC, eval_split_hash: str | None = None) -> GateDecision:
+        """Promote ``version`` to champion only if it is measurably better; otherwise mark it rejected.
+
+        Checks, in order: the weights match their sha256; the candidate was evaluated on the current
+        eval split (``eval_split_hash`` if given, else the champion's); the gate metric and every
+        ``h1_*`` metric are finite; and ``metric`` < champion's ``metric * (1 - min_rel_improvement)``.
+        The first model needs only the first three. A refused candidate is kept with status
+        ``rejected`` and the reason. Raises ``RegistryError`` for an unknown version or a bad
+        ``min_rel_improvement``.
+        """
+        if not 0 <= min_rel_improvement < 1:
+            raise RegistryError(f"min_rel_improvement must be in [0, 1), found {min_rel_improvement}")
+        rec = self.get(version)
+        try:
+            self._read_verified(rec)
+        except CorruptCheckpointError as exc:
+            return self._refuse(rec, f"corrupt checkpoint: {exc}", metric)
+        with self._transaction() as conn:
+            current = self._champion(conn)
+            if current == version:
+                return GateDecision(False, f"{version} is already the champion", version, current,
+                                    metric)
+            champ = self._get(conn, current) if current is not None else None
+            promoted, reason, champ_value = self._judge(rec, champ, metric, min_rel_improvement,
+                                                        eval_split_hash)
+            if promoted:
+                self._switch(conn, version, reason)
+            else:
+                self._set_status(conn, version, ModelStatus.REJECTED, reason)
+        cand_value = rec.metrics.get(metric)
+        return GateDecision(promoted, reason, version, current, metric,
+                            cand_value if isinstance(cand_value, (int, float)) else None, champ_value)
+
+    def _judge(self, rec: ModelRecord, champ: ModelRecord | None, metric: str, min_rel: float,
+               split: str | None) -> tuple[bool, str, float | None]:
+        """(promote?, reason, champion's value) for ``rec`` against ``champ``; no side effects."""
+        expected = split if split is not None else (champ.eval_split_hash if champ else None)
+        if expected is not None and rec.eval_split_hash != expected:
+            return False, (f"wrong eval split: {rec.version} was evaluated on {rec.eval_split_hash}, "
+                           f"the current eval split is {expected}"), None
+        bad = _non_finite(rec.metrics, metric)
+        if bad is not None:
+            return False, f"metrics not finite: {bad}", None
+        value = float(rec.metrics[metric])
+        if champ is None:
+            return True, f"first champion: {metric} {value:.6g} on eval split {rec.eval_split_hash}", None
+        if champ.eval_split_hash != rec.eval_split_hash:
+            return False, (f"not comparable: champion {champ.version} was evaluated on "
+                           f"{champ.eval_split_hash}, {rec.version} on {rec.eval_split_hash}; "
+                           f"re-evaluate the champion or promote by hand"), None
+        champ_value = champ.metrics.get(metric)
+        if not isinstance(champ_value, (int, float)) or not math.isfinite(champ_value):
+            return True, (f"{metric} {value:.6g} replaces champion {champ.version}, whose {metric} "
+                          f"is not a finite number ({champ_value!r})"), None
+        bar = champ_value * (1 - min_rel)
+        rel = (champ_value - value) / champ_value if champ_value else 0.0
+        words = (f"{metric} {value:.6g} vs champion {champ.version} {champ_value:.6g} "
+                 f"({rel:+.1%} relative improvement; needs >= {min_rel:.1%}, i.e. < {bar:.6g})")
+        if value < bar:
+            return True, f"promoted: {words}", float(champ_value)
+        return False, f"not better enough: {words}", float(champ_value)
+
+    def _refuse(self, rec: ModelRecord, reason: str, metric: str) -> GateDecision:
+        with self._transaction() as conn:
+            current = self._champion(conn)
+            if current != rec.version:
+                self._set_status(conn, rec.version, ModelStatus.REJECTED, reason)
+        value = rec.metrics.get(metric)
+        return GateDecision(False, reason, rec.version, current, metric,
+                            value if isinstance(value, (int, float)) else None)
+
+    def promote(self, version: str, eval_split_hash: str | None = None,
+                reason: str = "promoted by the operator") -> GateDecision:
+        """Make ``version`` the champion without comparing metrics (the operator's override).
+
+        Still refuses, by raising, a checkpoint whose weights do not match their sha256
+        (``CorruptCheckpointError``) and one evaluated on another eval split than
+        ``eval_split_hash`` (or the champion's when not given) (``RegistryError``).
+        """
+        rec = self.get(version)
+        self._read_verified(rec)
+        with self._transaction() as conn:
+            current = self._champion(conn)
+            if current == version:
+                return GateDecision(False, f"{version} is already the champion", version, current)
+            champ = self._get(conn, current) if current is not None else None
+            expected = eval_split_hash if eval_split_hash is not None else (
+                champ.eval_split_hash if champ else None)
+            if expected is not None and rec.eval_split_hash != expected:
+                raise RegistryError(
+                    f"refusing to promote {version}: it was evaluated on eval split "
+                    f"{rec.eval_split_hash}, the current eval split is {expected}")
+            self._switch(conn, version, reason)
+        return GateDecision(True, reason, version, current)
+
+    def rollback(self) -> str:
+        """Return to the previous champion whose weights still match their sha256; return its version.
+
+        Previous champions with corrupt or missing weights are skipped. The rolled-back champion
+        becomes ``retired``. Raises ``RegistryError`` when there is no champion or no earlier one to
+        return to (nothing changes then).
+        """
+        with self._connect() as conn:
+            current = self._champion(conn)
+        if current is None:
+            raise RegistryError("no champion to roll back from: nothing has been promoted yet")
+        # Checking sha256 reads files; do it before taking the write lock, then re-check the state.
+        entries = self._live_history()
+        skipped: list[str] = []
+        target = None
+        for _, version in reversed(entries[:-1]):
+            if version == current:
+                continue
+            try:
+                self.verify(version)
+            except CorruptCheckpointError as exc:
+                skipped.append(f"{version} ({exc})")
+                continue
+            target = version
+            break
+        if target is None:
+            why = f"; skipped corrupt: {'; '.join(skipped)}" if skipped else ""
+            raise RegistryError(f"no previous champion to roll back to from {current}{why}")
+        with self._transaction() as conn:
+            if self._champion(conn) != current or self._live_history(conn) != entries:
+                raise RegistryError("the champion changed while rolling back; run rollback again")
+            now = _now()
+            last_of_target = max(eid for eid, v in entries if v == target)
+            later = [eid for eid, _ in entries if eid > last_of_target]
+            conn.executemany("UPDATE champion_history SET rolled_back_at = ? WHERE id = ?",
+                             [(now, eid) for eid in later])
+            self._set_status(conn, current, ModelStatus.RETIRED, f"rolled back to {target} at {now}")
+            self._set_status(conn, target, ModelStatus.CHAMPION, f"restored by rollback from {current}")
+            conn.execute("INSERT OR REPLACE INTO model_aliases (alias, version) VALUES (?, ?)",
+                         (CHAMPION, target))
+        return target
+
+    def _live_history(self, conn: sqlite3.Connection | None = None) -> list[tuple[int, str]]:
+        """(id, version) of promotions not rolled back, oldest first."""
+        if conn is None:
+            with self._connect() as own:
+                return self._live_history(own)
+        return [(r[0], r[1]) for r in conn.execute(
+            "SELECT id, version FROM champion_history WHERE rolled_back_at IS NULL ORDER BY id")]
+
+    def _switch(self, conn: sqlite3.Connection, version: str, reason: str) -> None:
+        """Inside a transaction: retire the champion, crown ``version``, record the promotion."""
+        current = self._champion(conn)
+        if current is not None:
+            self._set_status(conn, current, ModelStatus.RETIRED, f"replaced by {version}")
+        self._set_status(conn, version, ModelStatus.CHAMPION, reason)
+        conn.execute("INSERT OR REPLACE INTO model_aliases (alias, version) VALUES (?, ?)",
+                     (CHAMPION, version))
+        conn.execute("INSERT INTO champion_history (version, promoted_at, reason) VALUES (?, ?, ?)",
+                     (version, _now(), reason))
+
+    @staticmethod
+    def _set_status(conn: sqlite3.Connection, version: str, status: ModelStatus, reason: str) -> None:
+        conn.execute("UPDATE models SET status = ?, reason = ?, updated = ? WHERE version = ?",
+                     (status.value, reason, _now(), version))

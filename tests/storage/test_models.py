@@ -1,0 +1,264 @@
+"""The model registry: round trips, the promotion gate, rollback, corrupt checkpoints (real SQLite files)."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import sqlite3
+import threading
+
+import pytest
+
+from storage.errors import CorruptCheckpointError, RegistryError
+from storage.models import GateDecision, ModelRegistry, ModelStatus
+
+SPLIT = "split-aaaa"
+
+
+def _metrics(h1_mse: float, **extra: float) -> dict:
+    return {"h1_mse": h1_mse, "h1_psnr": 20.0, "h5_mse": 2 * h1_mse, "baseline_h1_mse": 0.05, **extra}
+
+
+def _register(reg: ModelRegistry, h1_mse: float, *, split: str = SPLIT, weights: bytes | None = None,
+              parent: str | None = None, **extra: float) -> str:
+    weights = weights if weights is not None else f"weights {h1_mse} {extra}".encode() * 10
+    return reg.register(weights, {"members": 2, "image_size": 16}, _metrics(h1_mse, **extra),
+                        snapshot_id="snap-1", eval_split_hash=split, parent=parent)
+
+
+def _flip_byte(reg: ModelRegistry, version: str) -> None:
+    path = reg.get(version).weights_path
+    data = bytearray(path.read_bytes())
+    data[len(data) // 2] ^= 0xFF
+    path.write_bytes(bytes(data))
+
+
+@pytest.fixture
+def reg(tmp_path) -> ModelRegistry:
+    return ModelRegistry(tmp_path / "data")
+
+
+def test_register_and_load_round_trip(reg: ModelRegistry) -> None:
+    weights = bytes(range(256)) * 7
+    version = reg.register(weights, {"members": 3}, {"h1_mse": 0.01, "note": "x"}, "snap-9", SPLIT)
+    assert reg.load_weights(version) == weights
+    rec = reg.get(version)
+    assert rec.status is ModelStatus.CANDIDATE and rec.reason == ""
+    assert rec.config == {"members": 3} and rec.metrics == {"h1_mse": 0.01, "note": "x"}
+    assert (rec.snapshot_id, rec.eval_split_hash, rec.parent) == ("snap-9", SPLIT, None)
+    assert rec.weights_sha256 == hashlib.sha256(weights).hexdigest() and rec.size_bytes == len(weights)
+    meta = json.loads((rec.path / "meta.json").read_text())
+    assert meta["weights_sha256"] == rec.weights_sha256 and meta["snapshot_id"] == "snap-9"
+    assert json.loads((rec.path / "config.json").read_text()) == {"members": 3}
+    assert json.loads((rec.path / "metrics.json").read_text())["h1_mse"] == 0.01
+    assert not [p for p in reg.models_dir.iterdir() if p.name.startswith(".tmp")]
+    assert reg.champion() is None
+    # A second registry on the same directory sees the same rows (they are in catalog.sqlite).
+    again = ModelRegistry(reg.data_dir)
+    assert again.get(version) == rec
+    with sqlite3.connect(reg.data_dir / "catalog.sqlite") as conn:
+        assert conn.execute("PRAGMA journal_mode").fetchone()[0] == "wal"
+
+
+def test_versions_are_unique_and_sort_in_registration_order(reg: ModelRegistry) -> None:
+    versions = [_register(reg, 0.1, weights=b"same weights") for _ in range(3)]
+    versions.append(_register(reg, 0.1, weights=b"other"))
+    assert len(set(versions)) == 4 and versions == sorted(versions)
+    assert [r.version for r in reg.list()] == versions
+
+
+def test_register_refuses_bad_input(reg: ModelRegistry) -> None:
+    with pytest.raises(RegistryError, match="non-empty bytes"):
+        reg.register(b"", {}, {}, "snap", SPLIT)
+    with pytest.raises(RegistryError, match="JSON-serialisable"):
+        reg.register(b"w", {"x": object()}, {}, "snap", SPLIT)
+    with pytest.raises(RegistryError, match="eval_split_hash"):
+        reg.register(b"w", {}, {}, "snap", "")
+    with pytest.raises(RegistryError, match="unknown model version 'nope'"):
+        reg.register(b"w", {}, {}, "snap", SPLIT, parent="nope")
+    assert reg.list() == [] and list(reg.models_dir.iterdir()) == []
+
+
+def test_get_unknown_version_says_so(reg: ModelRegistry) -> None:
+    with pytest.raises(RegistryError, match="unknown model version 'm9'; the registry is empty"):
+        reg.get("m9")
+
+
+def test_first_model_becomes_champion(reg: ModelRegistry) -> None:
+    v = _register(reg, 0.02)
+    decision = reg.gate(v, eval_split_hash=SPLIT)
+    assert isinstance(decision, GateDecision) and decision.promoted
+    assert "first champion" in decision.reason and decision.champion_before is None
+    assert reg.champion() == v and reg.get(v).status is ModelStatus.CHAMPION
+
+
+def test_first_model_with_nan_or_wrong_split_is_refused(reg: ModelRegistry) -> None:
+    nan = _register(reg, math.nan)
+    d = reg.gate(nan, eval_split_hash=SPLIT)
+    assert not d.promoted and "not finite" in d.reason and "h1_mse" in d.reason
+    wrong = _register(reg, 0.01, split="split-other")
+    d = reg.gate(wrong, eval_split_hash=SPLIT)
+    assert not d.promoted and "wrong eval split" in d.reason
+    assert reg.champion() is None
+
+
+def test_gate_promotes_better_and_refuses_worse_nan_and_wrong_split(reg: ModelRegistry) -> None:
+    champ = _register(reg, 0.010)
+    assert reg.gate(champ).promoted
+    worse = _register(reg, 0.012)
+    barely = _register(reg, 0.0099)  # 1% better: below the default 2% bar
+    nan = _register(reg, 0.005, h1_psnr=math.inf)
+    wrong = _register(reg, 0.001, split="split-bbbb")
+    for version, words in ((worse, "not better enough"), (barely, "not better enough"),
+                           (nan, "h1_psnr is not finite"), (wrong, "wrong eval split")):
+        d = reg.gate(version)
+        assert not d.promoted and words in d.reason, d.reason
+        rec = reg.get(version)
+        assert rec.status is ModelStatus.REJECTED and rec.reason == d.reason
+        assert reg.load_weights(version)  # rejected candidates are kept
+    assert reg.champion() == champ
+
+    better = _register(reg, 0.008, parent=champ)
+    d = reg.gate(better)
+    assert d.promoted and d.champion_before == champ and d.champion_value == 0.010
+    assert d.candidate_value == 0.008 and "-" not in d.reason.split("(")[1][:2]
+    assert reg.champion() == better
+    assert reg.get(champ).status is ModelStatus.RETIRED
+    assert [e.version for e in reg.history()] == [champ, better]
+    assert len(reg.list(ModelStatus.REJECTED)) == 4
+
+
+def test_gate_uses_the_given_current_split_over_the_champions(reg: ModelRegistry) -> None:
+    champ = _register(reg, 0.010)
+    reg.gate(champ)
+    cand = _register(reg, 0.001)
+    d = reg.gate(cand, eval_split_hash="split-new")
+    assert not d.promoted and "current eval split is split-new" in d.reason
+
+
+def test_gate_threshold_is_configurable(reg: ModelRegistry) -> None:
+    reg.gate(_register(reg, 0.010))
+    barely = _register(reg, 0.0099)
+    assert reg.gate(barely, min_rel_improvement=0.0).promoted
+    with pytest.raises(RegistryError, match="min_rel_improvement"):
+        reg.gate(barely, min_rel_improvement=1.5)
+
+
+def test_gate_refuses_a_corrupt_candidate(reg: ModelRegistry) -> None:
+    reg.gate(_register(reg, 0.010))
+    cand = _register(reg, 0.001)
+    _flip_byte(reg, cand)
+    d = reg.gate(cand)
+    assert not d.promoted and "corrupt checkpoint" in d.reason and "sha256 mismatch" in d.reason
+    assert reg.get(cand).status is ModelStatus.REJECTED
+
+
+def test_corrupt_checkpoint_is_refused_on_load_and_promote(reg: ModelRegistry) -> None:
+    v = _register(reg, 0.01)
+    _flip_byte(reg, v)
+    with pytest.raises(CorruptCheckpointError, match=f"checkpoint {v}: weights sha256 mismatch: expected"):
+        reg.load_weights(v)
+    with pytest.raises(CorruptCheckpointError, match="sha256 mismatch"):
+        reg.promote(v)
+    assert reg.champion() is None
+    reg.get(v).weights_path.unlink()
+    with pytest.raises(CorruptCheckpointError, match="is missing"):
+        reg.load_weights(v)
+
+
+def test_promote_overrides_metrics_but_not_the_split(reg: ModelRegistry) -> None:
+    champ = _register(reg, 0.010)
+    reg.gate(champ)
+    worse = _register(reg, 0.5)
+    assert reg.gate(worse).promoted is False
+    d = reg.promote(worse)
+    assert d.promoted and reg.champion() == worse and reg.get(worse).reason == "promoted by the operator"
+    assert reg.promote(worse).promoted is False  # already champion
+    wrong = _register(reg, 0.001, split="split-bbbb")
+    with pytest.raises(RegistryError, match="evaluated on eval split split-bbbb"):
+        reg.promote(wrong)
+    assert reg.champion() == worse
+
+
+def test_rollback_restores_the_previous_champion(reg: ModelRegistry) -> None:
+    a, b, c = (_register(reg, mse) for mse in (0.010, 0.008, 0.006))
+    for v in (a, b, c):
+        assert reg.gate(v).promoted
+    assert reg.rollback() == b
+    assert reg.champion() == b and reg.get(b).status is ModelStatus.CHAMPION
+    assert reg.get(c).status is ModelStatus.RETIRED and "rolled back" in reg.get(c).reason
+    assert reg.rollback() == a
+    with pytest.raises(RegistryError, match="no previous champion"):
+        reg.rollback()
+    assert reg.champion() == a
+    assert [e.rolled_back_at is None for e in reg.history()] == [True, False, False]
+
+
+def test_rollback_skips_a_corrupt_previous_champion(reg: ModelRegistry) -> None:
+    a, b, c = (_register(reg, mse) for mse in (0.010, 0.008, 0.006))
+    for v in (a, b, c):
+        reg.gate(v)
+    _flip_byte(reg, b)
+    _flip_byte(reg, a)
+    with pytest.raises(RegistryError, match=r"no previous champion.*skipped corrupt.*sha256 mismatch"):
+        reg.rollback()
+    assert reg.champion() == c  # nothing changed
+    reg.get(a).weights_path.write_bytes(f"weights {0.010} {{}}".encode() * 10)  # repaired
+    assert reg.rollback() == a
+    assert reg.get(b).status is ModelStatus.RETIRED
+    with pytest.raises(RegistryError, match="no previous champion"):
+        reg.rollback()
+
+
+def test_rollback_without_champion(reg: ModelRegistry) -> None:
+    with pytest.raises(RegistryError, match="nothing has been promoted"):
+        reg.rollback()
+
+
+def test_rollback_after_re_promotion_walks_the_history(reg: ModelRegistry) -> None:
+    a, b = _register(reg, 0.010), _register(reg, 0.008)
+    reg.gate(a)
+    reg.gate(b)
+    reg.promote(a)  # history: a, b, a
+    assert reg.rollback() == b
+    assert reg.rollback() == a
+    with pytest.raises(RegistryError):
+        reg.rollback()
+
+
+def test_concurrent_registers_get_distinct_versions(reg: ModelRegistry) -> None:
+    versions: list[str] = []
+    errors: list[BaseException] = []
+
+    def work(i: int) -> None:
+        try:
+            versions.append(ModelRegistry(reg.data_dir).register(
+                f"w{i}".encode(), {}, {"h1_mse": 0.1}, "snap", SPLIT))
+        except BaseException as exc:  # noqa: BLE001 - reported by the assert below
+            errors.append(exc)
+
+    threads = [threading.Thread(target=work, args=(i,)) for i in range(4)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert errors == [] and len(set(versions)) == 4
+    assert sorted(versions) == [r.version for r in reg.list()]
+
+
+def test_record_to_json_is_strict_json(reg: ModelRegistry) -> None:
+    v = reg.register(b"w", {}, {"h1_mse": math.nan, "curve": [1.0, math.inf], "name": "x"}, "snap", SPLIT)
+    assert reg.get(v).metrics["h1_mse"] != reg.get(v).metrics["h1_mse"]  # NaN kept in the record
+    text = json.dumps(reg.get(v).to_json(), allow_nan=False)
+    assert json.loads(text)["metrics"] == {"h1_mse": None, "curve": [1.0, None], "name": "x"}
+
+
+def test_register_replaces_a_directory_left_by_a_crash(reg: ModelRegistry) -> None:
+    weights = b"crashed before commit"
+    orphan = reg.models_dir / f"m000001-{hashlib.sha256(weights).hexdigest()[:8]}"
+    orphan.mkdir()
+    (orphan / "weights.pt").write_bytes(b"half")
+    version = reg.register(weights, {}, {"h1_mse": 0.1}, "snap", SPLIT)
+    assert version == orphan.name and reg.load_weights(version) == weights
+    assert sorted(p.name for p in reg.models_dir.iterdir()) == [version]
