@@ -1,0 +1,163 @@
+"""Collecting episodes: reset to a start state, replay a prefix, run a policy, record everything.
+
+``collect_episode`` is what a worker does for one collection request (and what
+``activecollect collect`` does locally); ``create_eval_split`` builds the pinned
+evaluation split from a fixed seed.
+"""
+
+from __future__ import annotations
+
+import importlib.metadata
+import uuid
+from datetime import datetime, timezone
+from typing import Any, Mapping
+
+import numpy as np
+
+from orchestrator.protocol import MAX_EPISODE_STEPS, MAX_PREFIX_STEPS, SHAPES, WORLD_SIZE
+from storage.records import ACTION_DIM, STATE_DIM, Episode, EpisodeMeta
+from workers.env import CONTROL_HZ, PushSim, SimState, sample_state
+from workers.policies import make_policy
+
+#: Task family of every episode this module records.
+TASK = "push"
+#: Policy and parameters of the evaluation split.
+EVAL_POLICY = "push"
+
+
+class EvalSplitConflict(ValueError):
+    """An evaluation split is already pinned and was made with other parameters."""
+
+
+def software_version() -> str:
+    """The installed activecollect version ('0+unknown' when run from an uninstalled tree)."""
+    try:
+        return importlib.metadata.version("activecollect")
+    except importlib.metadata.PackageNotFoundError:
+        return "0+unknown"
+
+
+def _check_prefix(action_prefix: Any) -> np.ndarray:
+    if action_prefix is None:
+        return np.zeros((0, ACTION_DIM), np.float32)
+    try:
+        prefix = np.asarray(action_prefix, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ValueError(f"action_prefix: expected a (P, {ACTION_DIM}) array of numbers") from None
+    if prefix.size == 0:
+        return np.zeros((0, ACTION_DIM), np.float32)
+    if prefix.ndim != 2 or prefix.shape[1] != ACTION_DIM:
+        raise ValueError(f"action_prefix: expected shape (P, {ACTION_DIM}), found {prefix.shape}")
+    if len(prefix) > MAX_PREFIX_STEPS:
+        raise ValueError(f"action_prefix: expected at most {MAX_PREFIX_STEPS} steps, found {len(prefix)}")
+    prefix = prefix.astype(np.float32)
+    if not (np.isfinite(prefix).all() and (prefix >= 0).all() and (prefix <= WORLD_SIZE).all()):
+        raise ValueError(f"action_prefix: expected finite targets in [0, {WORLD_SIZE}]")
+    return prefix
+
+
+def collect_episode(*, start_state: SimState | Mapping[str, Any], policy: str,
+                    policy_params: Mapping[str, Any] | None = None, seed: int, steps: int = 50,
+                    image_size: int = 64, action_prefix: np.ndarray | None = None,
+                    request_id: str = "", worker_id: str = "", model_version: str = "") -> Episode:
+    """Records one episode: reset to ``start_state``, replay ``action_prefix``, then run ``policy``.
+
+    The episode has ``len(action_prefix) + steps`` steps; its leading actions are the prefix
+    (``meta.action_prefix_len`` says how many), so the state the prefix leads to is recorded
+    along with the context before it. The policy is seeded with ``seed`` and starts at the
+    state the prefix leaves. Actions are stored as float32 and the simulator is stepped with
+    exactly the stored values, so replaying an episode's actions reproduces it bit for bit.
+
+    Raises ValueError for a bad state, policy, parameters, step count, image size or prefix.
+    """
+    state = start_state if isinstance(start_state, SimState) else SimState.from_dict(start_state)
+    if isinstance(steps, bool) or not isinstance(steps, (int, np.integer)) or not 1 <= steps <= MAX_EPISODE_STEPS:
+        raise ValueError(f"steps: expected an int in [1, {MAX_EPISODE_STEPS}], found {steps!r}")
+    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
+        raise ValueError(f"seed: expected a non-negative int, found {seed!r}")
+    prefix = _check_prefix(action_prefix)
+    pol = make_policy(policy, policy_params, np.random.default_rng(int(seed)))
+    sim = PushSim(image_size)
+    sim.reset(state)
+
+    n_prefix = len(prefix)
+    total = n_prefix + int(steps)
+    frames = np.empty((total, image_size, image_size, 3), np.uint8)
+    actions = np.empty((total, ACTION_DIM), np.float32)
+    states = np.empty((total, STATE_DIM), np.float64)
+    actions[:n_prefix] = prefix
+    for t in range(total):
+        sim.render_into(frames[t])
+        sim.state_vector(states[t])
+        if t == n_prefix:
+            pol.reset(sim)
+        if t >= n_prefix:
+            actions[t] = pol.act(sim)
+        sim.step(float(actions[t, 0]), float(actions[t, 1]))
+
+    meta = EpisodeMeta(
+        episode_id=uuid.uuid4().hex, task=TASK, shape=state.shape, physics=dict(state.physics),
+        seed=int(seed), policy=policy, policy_params=dict(pol.params), start_state=state.to_dict(),
+        action_prefix_len=n_prefix, image_size=image_size, control_hz=float(CONTROL_HZ),
+        worker_id=worker_id, request_id=request_id, model_version=model_version,
+        software_version=software_version(), created=datetime.now(timezone.utc).isoformat(),
+    )
+    return Episode(meta=meta, frames=frames, actions=actions, states=states)
+
+
+def eval_split_plan(episodes: int = 24, seed: int = 1234) -> list[tuple[int, SimState]]:
+    """The (policy seed, start state) of each evaluation episode: shapes in turn, default physics."""
+    if isinstance(episodes, bool) or not isinstance(episodes, int) or episodes < 1:
+        raise ValueError(f"episodes: expected a positive int, found {episodes!r}")
+    rng = np.random.default_rng(seed)
+    plan = []
+    for i in range(episodes):
+        start = sample_state(rng, shape=SHAPES[i % len(SHAPES)])
+        plan.append((int(rng.integers(2**31)), start))
+    return plan
+
+
+def create_eval_split(catalog, episodes: int = 24, seed: int = 1234, steps: int = 50,
+                      image_size: int = 64) -> str:
+    """Collects the evaluation split with the ``push`` policy, indexes it (split "eval"), pins it.
+
+    ``catalog`` is a ``storage.catalog.Catalog``. Shapes take turns, physics are the defaults,
+    start states and policy seeds come from ``seed``. Returns the split's hash. When a split
+    is already pinned, returns its hash if it was made with the same parameters and raises
+    ``EvalSplitConflict`` (a ValueError) otherwise.
+    """
+    plan = eval_split_plan(episodes, seed)
+    params = {"episodes": episodes, "seed": seed, "steps": steps, "image_size": image_size,
+              "policy": EVAL_POLICY}
+    existing = catalog.eval_split()
+    if existing is not None:
+        _check_same_split(catalog, existing, params, plan)
+        return existing.hash
+    ids = []
+    for policy_seed, start in plan:
+        ep = collect_episode(start_state=start, policy=EVAL_POLICY, seed=policy_seed, steps=steps,
+                             image_size=image_size)
+        ids.append(catalog.add_episode(ep, split="eval").episode_id)
+    return catalog.pin_eval_split(ids, params=params)
+
+
+def _check_same_split(catalog, existing, params: dict[str, Any], plan: list[tuple[int, SimState]]) -> None:
+    """Raises EvalSplitConflict unless the pinned split is the one ``params`` would make."""
+    if existing.params:
+        if existing.params != params:
+            raise EvalSplitConflict(f"an evaluation split is already pinned with {existing.params}; "
+                                    f"asked for {params}")
+        return
+    # Pinned without parameters: compare what its episodes' metadata says.
+    want = sorted((policy_seed, start.shape) for policy_seed, start in plan)
+    found = []
+    for episode_id in existing.ids:
+        m, frames = catalog.meta(episode_id), catalog.get(episode_id).frames
+        if m.image_size != params["image_size"] or m.policy != EVAL_POLICY or frames != params["steps"]:
+            raise EvalSplitConflict(
+                f"an evaluation split is already pinned with other parameters: episode {episode_id} has "
+                f"{frames} steps at {m.image_size}px by policy {m.policy!r}, asked for {params}")
+        found.append((m.seed, m.shape))
+    if sorted(found) != want:
+        raise EvalSplitConflict(f"an evaluation split is already pinned whose {len(found)} episodes are "
+                                f"not the ones {params} makes")
