@@ -1,5 +1,307 @@
-"""CLI commands (being built)."""
+"""CLI: ``collect``, ``episodes ls|show|verify``, ``ingest``, ``eval-split create|show``, ``bench sim``."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from tqdm import tqdm
+
+from orchestrator.cli import common
+from orchestrator.protocol import MAX_EPISODE_STEPS, POLICIES, SHAPES
+from storage.catalog import SPLITS, Catalog, EpisodeRow
+from storage.errors import CatalogError, StorageError
+from workers import simbench
+from workers.collect import EvalSplitConflict, collect_episode, create_eval_split
+from workers.env import sample_state
+
+MIN_SIZE, MAX_SIZE = 8, 1024
 
 
-def register(sub) -> None:
-    """Adds this group's commands."""
+def image_size(text: str) -> int:
+    value = common.positive_int(text)
+    if not MIN_SIZE <= value <= MAX_SIZE:
+        raise argparse.ArgumentTypeError(f"expected a size in pixels in [{MIN_SIZE}, {MAX_SIZE}], found {value}")
+    return value
+
+
+def episode_steps(text: str) -> int:
+    value = common.positive_int(text)
+    if value > MAX_EPISODE_STEPS:
+        raise argparse.ArgumentTypeError(f"expected at most {MAX_EPISODE_STEPS} steps, found {value}")
+    return value
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    """Adds ``collect``, ``episodes``, ``ingest`` and ``eval-split``."""
+    p = sub.add_parser("collect", help="record pushing episodes locally and index them")
+    p.add_argument("--episodes", type=common.positive_int, default=10, metavar="N", help="how many (default 10)")
+    p.add_argument("--shape", choices=(*SHAPES, "all"), default="all",
+                   help="object shape; 'all' takes the shapes in turn (default)")
+    p.add_argument("--policy", choices=POLICIES, default="push", help="collection policy (default push)")
+    p.add_argument("--size", type=image_size, default=64, metavar="PX", help="frame size in pixels (default 64)")
+    p.add_argument("--steps", type=episode_steps, default=50, metavar="T", help="steps per episode (default 50)")
+    p.add_argument("--seed", type=common.non_negative_int, default=0, metavar="K",
+                   help="seed of start states and policies (default 0)")
+    common.add_data_arg(p)
+    common.add_json_arg(p)
+    p.set_defaults(func=_collect)
+
+    episodes = sub.add_parser("episodes", help="the episode catalog: list, show, verify")
+    esub = episodes.add_subparsers(dest="episodes_command", metavar="ACTION", parser_class=common.Parser)
+    esub.required = True
+    p = esub.add_parser("ls", help="list indexed episodes, oldest first")
+    p.add_argument("--split", choices=SPLITS)
+    p.add_argument("--shape", choices=SHAPES)
+    p.add_argument("--limit", type=common.positive_int, metavar="N", help="only the N newest")
+    p.set_defaults(func=_episodes_ls)
+    p = esub.add_parser("show", help="one episode: catalog row and provenance")
+    p.add_argument("episode_id", metavar="ID", help="episode id or a unique prefix of it")
+    p.set_defaults(func=_episodes_show)
+    p = esub.add_parser("verify", help="re-hash and re-verify episode files (all when no ID); exit 1 if any is bad")
+    p.add_argument("episode_ids", nargs="*", metavar="ID")
+    p.set_defaults(func=_episodes_verify)
+    for p in esub.choices.values():
+        common.add_data_arg(p)
+        common.add_json_arg(p)
+
+    p = sub.add_parser("ingest", help="verify and index MCAP episode files collected elsewhere")
+    p.add_argument("paths", nargs="+", type=Path, metavar="PATH", help="MCAP files, or directories of them")
+    p.add_argument("--split", choices=SPLITS, default="train", help="split to index them in (default train)")
+    common.add_data_arg(p)
+    common.add_json_arg(p)
+    p.set_defaults(func=_ingest)
+
+    split = sub.add_parser("eval-split", help="the pinned evaluation split: create, show")
+    ssub = split.add_subparsers(dest="eval_split_command", metavar="ACTION", parser_class=common.Parser)
+    ssub.required = True
+    p = ssub.add_parser("create", help="collect the evaluation episodes (push policy, all shapes) and pin them")
+    p.add_argument("--episodes", type=common.positive_int, default=24, metavar="N", help="default 24")
+    p.add_argument("--seed", type=common.non_negative_int, default=1234, metavar="K", help="default 1234")
+    p.add_argument("--size", type=image_size, default=64, metavar="PX", help="default 64")
+    p.add_argument("--steps", type=episode_steps, default=50, metavar="T", help="default 50")
+    p.set_defaults(func=_eval_split_create)
+    p = ssub.add_parser("show", help="the pinned split's hash and episodes")
+    p.set_defaults(func=_eval_split_show)
+    for p in ssub.choices.values():
+        common.add_data_arg(p)
+        common.add_json_arg(p)
+
+
+def register_bench(bench_sub: argparse._SubParsersAction) -> None:
+    """Adds ``bench sim``."""
+    p = bench_sub.add_parser("sim", help="recorded frames per second of one process (simulate + render + write MCAP)")
+    p.add_argument("--size", type=image_size, default=96, metavar="PX", help="frame size (default 96)")
+    p.add_argument("--seconds", type=common.positive_float, default=5.0, metavar="S",
+                   help="how long to measure (default 5)")
+    common.add_json_arg(p)
+    p.set_defaults(func=_bench_sim)
+
+
+# -- helpers -----------------------------------------------------------------------------------
+
+
+def _existing_catalog(args: argparse.Namespace) -> Catalog:
+    data = Path(args.data)
+    if not (data / "catalog.sqlite").is_file():
+        raise common.UsageError(f"no catalog at {data} (give --data DIR, or collect episodes first)")
+    return Catalog(data)
+
+
+def _resolve(cat: Catalog, episode_id: str) -> EpisodeRow:
+    try:
+        return cat.resolve(episode_id)
+    except CatalogError as exc:
+        raise common.UsageError(str(exc)) from None
+
+
+def _megabytes(n: int) -> str:
+    return f"{n / 1e6:.1f} MB"
+
+
+# -- collect -----------------------------------------------------------------------------------
+
+
+def _collect(args: argparse.Namespace) -> int:
+    cat = Catalog(args.data)
+    rng = np.random.default_rng(args.seed)
+    results, frames, size = [], 0, 0
+    started = time.perf_counter()
+    with tqdm(total=args.episodes, unit="ep", desc="collect", file=sys.stderr, disable=None) as bar:
+        for i in range(args.episodes):
+            shape = SHAPES[i % len(SHAPES)] if args.shape == "all" else args.shape
+            start = sample_state(rng, shape=shape)
+            ep = collect_episode(start_state=start, policy=args.policy, seed=int(rng.integers(2**31)),
+                                 steps=args.steps, image_size=args.size)
+            res = cat.add_episode(ep)
+            results.append(res)
+            frames += len(ep)
+            size += res.path.stat().st_size
+            bar.update(1)
+    seconds = time.perf_counter() - started
+    out = {"episodes": [r.episode_id for r in results], "frames": frames, "bytes": size,
+           "seconds": round(seconds, 3), "data_dir": str(cat.data_dir),
+           "episodes_dir": str(cat.episodes_dir), "catalog": str(cat.db_path), "total_episodes": cat.count()}
+    if args.json:
+        common.print_json(out)
+        return 0
+    print(f"collected {len(results)} episodes ({frames} frames, {_megabytes(size)}) in {seconds:.1f} s")
+    print(f"episodes: {cat.episodes_dir}/<date>/<episode_id>.mcap")
+    print(f"catalog:  {cat.db_path} ({out['total_episodes']} episodes)")
+    return 0
+
+
+# -- episodes ----------------------------------------------------------------------------------
+
+
+def _episodes_ls(args: argparse.Namespace) -> int:
+    cat = _existing_catalog(args)
+    rows = cat.list(split=args.split, shape=args.shape, limit=args.limit, newest_first=args.limit is not None)
+    if args.limit is not None:
+        rows.reverse()
+    if args.json:
+        common.print_json([r.to_json() for r in rows])
+        return 0
+    if not rows:
+        print(f"no episodes in {cat.data_dir}")
+        return 0
+    print(f"{'EPISODE':<32}  {'SHAPE':<5} {'FRAMES':>6}  {'SPLIT':<5}  {'CREATED':<19}  {'SIZE':>8}  REQUEST")
+    for r in rows:
+        print(f"{r.episode_id:<32}  {r.shape:<5} {r.frames:>6}  {r.split:<5}  {r.created[:19]:<19}  "
+              f"{r.size_bytes / 1e3:>6.0f}KB  {r.request_id or '-'}")
+    print(f"{len(rows)} of {cat.count()} episodes")
+    return 0
+
+
+def _episodes_show(args: argparse.Namespace) -> int:
+    cat = _existing_catalog(args)
+    row = _resolve(cat, args.episode_id)
+    out: dict[str, Any] = {**row.to_json(), "meta": vars(cat.meta(row.episode_id))}
+    if args.json:
+        common.print_json(out)
+        return 0
+    text = {**{k: v for k, v in out.items() if k != "meta"}, **out["meta"]}
+    text["ingested"] = datetime.fromtimestamp(row.ingested, timezone.utc).isoformat(timespec="seconds")
+    for key, value in text.items():
+        print(f"{key:<18} {value if value != '' else '-'}")
+    return 0
+
+
+def _episodes_verify(args: argparse.Namespace) -> int:
+    cat = _existing_catalog(args)
+    rows = [_resolve(cat, i) for i in args.episode_ids] if args.episode_ids else cat.list()
+    report = []
+    for row in tqdm(rows, unit="ep", desc="verify", file=sys.stderr, disable=None):
+        try:
+            cat.verify(row.episode_id)
+            report.append({"episode_id": row.episode_id, "ok": True, "error": ""})
+        except StorageError as exc:
+            report.append({"episode_id": row.episode_id, "ok": False,
+                           "error": f"{type(exc).__name__}: {exc}"})
+    bad = [r for r in report if not r["ok"]]
+    if args.json:
+        common.print_json({"checked": len(report), "bad": len(bad), "episodes": report})
+    else:
+        for r in bad:
+            print(f"BAD {r['episode_id']}: {r['error']}")
+        print(f"verified {len(report)} episodes: {len(report) - len(bad)} ok, {len(bad)} bad")
+    return 1 if bad else 0
+
+
+# -- ingest ------------------------------------------------------------------------------------
+
+
+def _expand(paths: list[Path]) -> list[Path]:
+    files = []
+    for path in paths:
+        if path.is_dir():
+            files.extend(sorted(p for p in path.rglob("*.mcap") if not p.name.startswith(".")))
+        elif path.exists():
+            files.append(path)
+        else:
+            raise common.UsageError(f"no such file or directory: {path}")
+    return files
+
+
+def _ingest(args: argparse.Namespace) -> int:
+    files = _expand(args.paths)
+    cat = Catalog(args.data)
+    report = []
+    for path in files:
+        try:
+            res = cat.ingest_file(path, split=args.split)
+        except StorageError as exc:
+            report.append({"path": str(path), "ok": False, "error": f"{type(exc).__name__}: {exc}"})
+            print(f"activecollect: refused {path}: {exc}", file=sys.stderr)
+            continue
+        report.append({"path": str(path), "ok": True, "episode_id": res.episode_id,
+                       "duplicate": res.duplicate, "stored": str(res.path)})
+        if not args.json:
+            state = "already indexed" if res.duplicate else "ingested"
+            print(f"{state} {res.episode_id} from {path}")
+    refused = sum(not r["ok"] for r in report)
+    if args.json:
+        common.print_json({"ingested": len(report) - refused, "refused": refused, "files": report})
+    else:
+        print(f"{len(report) - refused} of {len(report)} files indexed in {cat.db_path}")
+    return 1 if refused else 0
+
+
+# -- eval split --------------------------------------------------------------------------------
+
+
+def _eval_split_create(args: argparse.Namespace) -> int:
+    cat = Catalog(args.data)
+    print(f"collecting {args.episodes} evaluation episodes ({args.steps} steps, {args.size}px) ...",
+          file=sys.stderr)
+    try:
+        digest = create_eval_split(cat, episodes=args.episodes, seed=args.seed, steps=args.steps,
+                                   image_size=args.size)
+    except (EvalSplitConflict, CatalogError) as exc:
+        print(f"activecollect: {exc}", file=sys.stderr)
+        return 1
+    split = cat.eval_split()
+    if args.json:
+        common.print_json({"hash": digest, "episodes": len(split.ids) if split else 0})
+    else:
+        print(f"eval split pinned: {len(split.ids) if split else 0} episodes, hash {digest}")
+    return 0
+
+
+def _eval_split_show(args: argparse.Namespace) -> int:
+    cat = _existing_catalog(args)
+    split = cat.eval_split()
+    if split is None:
+        print(f"activecollect: no eval split is pinned in {cat.data_dir} "
+              "(create one: activecollect eval-split create)", file=sys.stderr)
+        return 1
+    if args.json:
+        common.print_json({"hash": split.hash, "created": split.created, "params": split.params,
+                           "episodes": split.ids})
+        return 0
+    shapes: dict[str, int] = {}
+    for i in split.ids:
+        shape = cat.get(i).shape
+        shapes[shape] = shapes.get(shape, 0) + 1
+    print(f"hash      {split.hash}")
+    print(f"created   {split.created}")
+    print(f"episodes  {len(split.ids)} ({', '.join(f'{k}: {v}' for k, v in sorted(shapes.items()))})")
+    return 0
+
+
+# -- bench -------------------------------------------------------------------------------------
+
+
+def _bench_sim(args: argparse.Namespace) -> int:
+    result = simbench.run_sim_bench(image_size=args.size, seconds=args.seconds)
+    if args.json:
+        common.print_json(result)
+    else:
+        for key, value in result.items():
+            print(f"{key:<24} {value}")
+    return 0

@@ -1,0 +1,78 @@
+"""Run every benchmark in turn and save the JSON results (``make bench``).
+
+Each benchmark measures its figure next to a baseline taken in the same run
+(a ratio), because the machines are shared and noisy. Results are written to
+``bench/results/<UTC timestamp>.json`` and printed; copy the figures, the
+command, the machine and the date into BENCHMARKS.md.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime as dt
+import json
+import platform
+import subprocess
+import sys
+from pathlib import Path
+
+HERE = Path(__file__).resolve().parent
+PY = sys.executable
+CLI = [PY, "-m", "orchestrator"]
+
+BENCHES: dict[str, list[str]] = {
+    "sim": [PY, str(HERE / "sim_vs_pusht.py"), "--seconds", "5", "--rounds", "3"],
+    "score": CLI + ["bench", "score", "--json"],
+    "dispatch": CLI + ["bench", "dispatch", "--workers", "8", "--json"],
+    "loop": CLI + ["bench", "loop", "--seeds", "3", "--json"],
+}
+
+
+def _last_json(text: str) -> object:
+    """The last line of output that parses as JSON (benchmarks may log before it)."""
+    for line in reversed(text.strip().splitlines()):
+        try:
+            return json.loads(line)
+        except json.JSONDecodeError:
+            continue
+    try:
+        return json.loads(text)
+    except json.JSONDecodeError:
+        return {"error": "no JSON in output", "tail": text[-2000:]}
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m bench", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--only", default=",".join(BENCHES),
+                        help=f"comma-separated subset of {','.join(BENCHES)} (default: all)")
+    args = parser.parse_args(argv)
+    names = [n.strip() for n in args.only.split(",") if n.strip()]
+    unknown = [n for n in names if n not in BENCHES]
+    if unknown:
+        parser.error(f"unknown benchmark(s) {unknown}; choose from {list(BENCHES)}")
+    started = dt.datetime.now(dt.timezone.utc)
+    results: dict[str, object] = {
+        "started": started.isoformat(timespec="seconds"),
+        "machine": {"node": platform.node(), "cpu_count": __import__("os").cpu_count(),
+                    "python": platform.python_version(), "platform": platform.platform()},
+    }
+    failed = []
+    for name in names:
+        print(f"== bench {name}: {' '.join(BENCHES[name])}", file=sys.stderr, flush=True)
+        proc = subprocess.run(BENCHES[name], capture_output=True, text=True)
+        results[name] = _last_json(proc.stdout)
+        if proc.returncode != 0:
+            failed.append(name)
+            results[name] = {"error": f"exit {proc.returncode}", "stderr": proc.stderr[-2000:]}
+        print(json.dumps(results[name], indent=2, default=str))
+    out_dir = HERE / "results"
+    out_dir.mkdir(exist_ok=True)
+    out = out_dir / f"{started:%Y%m%dT%H%M%SZ}.json"
+    out.write_text(json.dumps(results, indent=2, default=str))
+    print(f"results written to {out}", file=sys.stderr)
+    return 1 if failed else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

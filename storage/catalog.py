@@ -1,0 +1,554 @@
+"""The catalog: an SQLite index (WAL mode) of every episode file under a data directory.
+
+Layout::
+
+    DATA/catalog.sqlite                       this index, plus other components' tables
+    DATA/episodes/<yyyy-mm-dd>/<episode_id>.mcap
+
+Ingest is idempotent (the same file twice is one episode) and atomic: the file is
+verified, staged under a temporary name and fsynced outside any lock; then, inside
+one ``BEGIN IMMEDIATE`` transaction, it is renamed into place, its row inserted and
+the caller's ``in_transaction`` hook run. Any failure removes the renamed file before
+the write lock is released, so no row ever points at a missing file and no other
+ingest can have claimed the name in between.
+
+Other components (``storage.queue``, ``storage.models``) keep their tables in the
+same file: open it with ``connect`` and create them with ``ensure_schema``, which
+records each component's schema version in the ``schema_versions`` table.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import re
+import sqlite3
+import time
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
+from dataclasses import asdict, dataclass, field
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Any
+
+from storage.episodes import (
+    encode_episode,
+    inspect_episode,
+    publish,
+    read_episode,
+    sha256_hex,
+    stage_bytes,
+    verify_episode,
+)
+from storage.errors import CatalogError, CorruptEpisodeError, EpisodeError
+from storage.records import Episode, EpisodeMeta
+
+#: Splits an episode can belong to. ``eval`` episodes never enter a training snapshot.
+SPLITS: tuple[str, ...] = ("train", "eval")
+DB_NAME = "catalog.sqlite"
+EPISODES_DIR = "episodes"
+BUSY_TIMEOUT_MS = 30_000
+_SAFE_ID = re.compile(r"^[A-Za-z0-9_-]{1,128}$")
+
+Migration = Sequence[str]
+
+_CATALOG_MIGRATIONS: tuple[Migration, ...] = (
+    (
+        """CREATE TABLE IF NOT EXISTS episodes (
+            episode_id TEXT PRIMARY KEY,
+            path TEXT NOT NULL,
+            sha256 TEXT NOT NULL,
+            frames INTEGER NOT NULL,
+            task TEXT NOT NULL,
+            shape TEXT NOT NULL,
+            request_id TEXT NOT NULL,
+            worker_id TEXT NOT NULL,
+            model_version TEXT NOT NULL,
+            split TEXT NOT NULL,
+            created TEXT NOT NULL,
+            size_bytes INTEGER NOT NULL,
+            ingested REAL NOT NULL,
+            meta TEXT NOT NULL)""",
+        "CREATE INDEX IF NOT EXISTS episodes_split ON episodes(split, shape)",
+        "CREATE INDEX IF NOT EXISTS episodes_request ON episodes(request_id)",
+        "CREATE INDEX IF NOT EXISTS episodes_ingested ON episodes(ingested)",
+        """CREATE TABLE IF NOT EXISTS eval_split (
+            id INTEGER PRIMARY KEY CHECK (id = 1),
+            hash TEXT NOT NULL,
+            params TEXT NOT NULL,
+            created TEXT NOT NULL)""",
+        """CREATE TABLE IF NOT EXISTS eval_split_members (
+            episode_id TEXT PRIMARY KEY REFERENCES episodes(episode_id))""",
+    ),
+)
+
+
+# ---------------------------------------------------------------------------------------------
+# the shared database file
+
+
+def connect(db_path: str | Path) -> sqlite3.Connection:
+    """Opens the catalog database: autocommit (explicit transactions), WAL, busy timeout.
+
+    One connection per thread: open one where you need it and close it after.
+    """
+    conn = sqlite3.connect(db_path, timeout=BUSY_TIMEOUT_MS / 1000, isolation_level=None)
+    conn.row_factory = sqlite3.Row
+    conn.execute(f"PRAGMA busy_timeout = {BUSY_TIMEOUT_MS}")
+    conn.execute("PRAGMA journal_mode = WAL")
+    conn.execute("PRAGMA synchronous = FULL")  # a committed ingest survives power loss
+    conn.execute("PRAGMA foreign_keys = ON")
+    return conn
+
+
+@contextmanager
+def transaction(conn: sqlite3.Connection) -> Iterator[sqlite3.Connection]:
+    """``BEGIN IMMEDIATE`` ... ``COMMIT``; ``ROLLBACK`` and re-raise on any exception."""
+    conn.execute("BEGIN IMMEDIATE")
+    try:
+        yield conn
+    except BaseException:
+        if conn.in_transaction:
+            conn.execute("ROLLBACK")
+        raise
+    conn.execute("COMMIT")
+
+
+def ensure_schema(conn: sqlite3.Connection, component: str, migrations: Sequence[Migration]) -> int:
+    """Applies ``migrations[v:]`` where ``v`` is ``component``'s recorded version; returns the new one.
+
+    Each migration is a sequence of SQL statements, applied in one transaction together
+    with the version bump. Raises ``CatalogError`` if the file is newer than this code.
+    """
+    with transaction(conn):
+        conn.execute("CREATE TABLE IF NOT EXISTS schema_versions ("
+                     "component TEXT PRIMARY KEY, version INTEGER NOT NULL, updated TEXT NOT NULL)")
+        row = conn.execute("SELECT version FROM schema_versions WHERE component = ?", (component,)).fetchone()
+        version = row["version"] if row else 0
+        if version > len(migrations):
+            raise CatalogError(f"{component} tables are at schema version {version}, this code knows "
+                               f"versions up to {len(migrations)}; upgrade activecollect")
+        for statements in migrations[version:]:
+            for sql in statements:
+                conn.execute(sql)
+        if version < len(migrations):
+            conn.execute("INSERT INTO schema_versions(component, version, updated) VALUES (?, ?, ?) "
+                         "ON CONFLICT(component) DO UPDATE SET version = excluded.version, "
+                         "updated = excluded.updated", (component, len(migrations), _now_iso()))
+    return len(migrations)
+
+
+def _now_iso() -> str:
+    return datetime.now(timezone.utc).isoformat(timespec="seconds")
+
+
+def _content_hash(pairs: Sequence[tuple[str, str]]) -> str:
+    """sha256 over sorted ``(episode_id, sha256)`` pairs, one ``id sha\\n`` line each."""
+    h = hashlib.sha256()
+    for episode_id, sha in sorted(pairs):
+        h.update(f"{episode_id} {sha}\n".encode())
+    return h.hexdigest()
+
+
+# ---------------------------------------------------------------------------------------------
+# records
+
+
+@dataclass
+class EpisodeRow:
+    """One indexed episode."""
+
+    episode_id: str
+    path: Path
+    """Absolute path of the MCAP file."""
+    sha256: str
+    frames: int
+    task: str
+    shape: str
+    request_id: str
+    worker_id: str
+    split: str
+    created: str
+    """When the episode was collected (ISO 8601 UTC, from its metadata)."""
+    size_bytes: int
+    model_version: str
+    ingested: float
+    """When it was indexed (unix seconds)."""
+
+    def to_json(self) -> dict[str, Any]:
+        out = asdict(self)
+        out["path"] = str(self.path)
+        return out
+
+
+@dataclass
+class IngestResult:
+    episode_id: str
+    path: Path
+    sha256: str
+    duplicate: bool
+    """True when this exact file was already indexed (nothing changed)."""
+
+
+@dataclass
+class EvalSplit:
+    ids: list[str]
+    """Sorted episode ids."""
+    hash: str
+    """sha256 over the sorted (episode_id, sha256) pairs."""
+    params: dict[str, Any] = field(default_factory=dict)
+    """How the split was generated (episodes, seed, steps, image_size ...)."""
+    created: str = ""
+
+
+@dataclass
+class Snapshot:
+    ids: list[str]
+    """Sorted episode ids."""
+    snapshot_id: str
+    """First 16 hex digits of the content hash of ``ids`` and their sha256s."""
+
+
+# ---------------------------------------------------------------------------------------------
+# the catalog
+
+
+def _episode_date(created: str) -> str:
+    try:
+        when = datetime.fromisoformat(created)
+    except (TypeError, ValueError):
+        when = datetime.now(timezone.utc)
+    if when.tzinfo is None:
+        when = when.replace(tzinfo=timezone.utc)
+    return when.astimezone(timezone.utc).strftime("%Y-%m-%d")
+
+
+def _check_split(split: str) -> None:
+    if split not in SPLITS:
+        raise CatalogError(f"unknown split {split!r}; expected one of {', '.join(SPLITS)}")
+
+
+def _since_seconds(since: float | str | datetime) -> float:
+    if isinstance(since, datetime):
+        return (since if since.tzinfo else since.replace(tzinfo=timezone.utc)).timestamp()
+    if isinstance(since, str):
+        try:
+            return _since_seconds(datetime.fromisoformat(since))
+        except ValueError:
+            raise CatalogError(f"since must be an ISO 8601 time, found {since!r}") from None
+    return float(since)
+
+
+class Catalog:
+    """Index of the episodes under ``data_dir``; safe to share between threads and processes."""
+
+    def __init__(self, data_dir: str | Path):
+        self.data_dir = Path(data_dir).absolute()
+        self.episodes_dir = self.data_dir / EPISODES_DIR
+        self.episodes_dir.mkdir(parents=True, exist_ok=True)
+        self._db_path = self.data_dir / DB_NAME
+        with self._connect() as conn:
+            ensure_schema(conn, "catalog", _CATALOG_MIGRATIONS)
+
+    @property
+    def db_path(self) -> Path:
+        return self._db_path
+
+    @contextmanager
+    def _connect(self) -> Iterator[sqlite3.Connection]:
+        conn = connect(self._db_path)
+        try:
+            yield conn
+        finally:
+            conn.close()
+
+    def _row(self, r: sqlite3.Row) -> EpisodeRow:
+        return EpisodeRow(
+            episode_id=r["episode_id"], path=self.data_dir / r["path"], sha256=r["sha256"],
+            frames=r["frames"], task=r["task"], shape=r["shape"], request_id=r["request_id"],
+            worker_id=r["worker_id"], split=r["split"], created=r["created"],
+            size_bytes=r["size_bytes"], model_version=r["model_version"], ingested=r["ingested"])
+
+    # --- ingest ---------------------------------------------------------------------------------
+
+    def add_episode(self, ep: Episode, split: str = "train",
+                    in_transaction: Callable[[sqlite3.Connection], None] | None = None) -> IngestResult:
+        """Encodes an in-memory episode and indexes it (see ``ingest_bytes``)."""
+        data = encode_episode(ep)
+        return self._store(data, sha256_hex(data), ep.meta, len(ep), split, in_transaction)
+
+    def ingest_file(self, path: str | Path, split: str = "train") -> IngestResult:
+        """Verifies and indexes an MCAP file collected elsewhere (copied into the data dir).
+
+        Raises ``CatalogError`` for a missing/unreadable path, ``EpisodeError`` subclasses
+        for a bad file.
+        """
+        path = Path(path)
+        try:
+            data = path.read_bytes()
+        except OSError as exc:
+            raise CatalogError(f"{path}: cannot read: {exc.strerror or exc}") from exc
+        return self._ingest(data, None, split, None, str(path))
+
+    def ingest_bytes(self, data: bytes, expected_sha256: str | None = None, split: str = "train",
+                     in_transaction: Callable[[sqlite3.Connection], None] | None = None) -> IngestResult:
+        """Verifies ``data`` (sha256 when given, MCAP structure, CRCs, schemas) and indexes it.
+
+        ``in_transaction(conn)`` runs inside the ``BEGIN IMMEDIATE`` transaction that inserts
+        the row (it must not commit); if it raises, nothing is indexed, the new file is
+        removed and the exception propagates. It is not called for a duplicate (the first
+        ingest of those bytes already ran it and committed).
+
+        Raises ``CorruptEpisodeError`` on a sha256 mismatch, the ``EpisodeError`` subclasses of
+        ``verify_episode``, ``CatalogError`` for an unknown split, an unsafe episode id, or an
+        id already indexed with different bytes or in another split.
+        """
+        return self._ingest(data, expected_sha256, split, in_transaction, None)
+
+    def _ingest(self, data: bytes, expected_sha256: str | None, split: str,
+                in_transaction: Callable[[sqlite3.Connection], None] | None, name: str | None) -> IngestResult:
+        _check_split(split)
+        data = bytes(data)
+        sha = sha256_hex(data)
+        if expected_sha256 is not None and expected_sha256.lower() != sha:
+            raise CorruptEpisodeError(f"{name or 'upload'}: sha256 mismatch: expected {expected_sha256}, "
+                                      f"found {sha} ({len(data)} bytes)")
+        info = inspect_episode(data, name=name)
+        return self._store(data, sha, info.meta, info.frames, split, in_transaction)
+
+    def _store(self, data: bytes, sha: str, meta: EpisodeMeta, frames: int, split: str,
+               in_transaction: Callable[[sqlite3.Connection], None] | None) -> IngestResult:
+        _check_split(split)
+        if not isinstance(meta.episode_id, str) or not _SAFE_ID.match(meta.episode_id):
+            raise CatalogError(f"episode id {meta.episode_id!r} is not a safe file name "
+                               "(expected 1-128 letters, digits, '-' or '_')")
+        rel = f"{EPISODES_DIR}/{_episode_date(meta.created)}/{meta.episode_id}.mcap"
+        final = self.data_dir / rel
+        known = self.find(meta.episode_id)
+        if known is not None:  # fast path; re-checked under the lock below
+            return self._duplicate(known, sha, split, data)
+        staged = stage_bytes(final, data)  # the slow part (write + fsync), outside the write lock
+        try:
+            with self._connect() as conn:
+                return self._insert(conn, staged, final, rel, data, sha, meta, frames, split, in_transaction)
+        finally:
+            staged.unlink(missing_ok=True)
+
+    def _insert(self, conn: sqlite3.Connection, staged: Path, final: Path, rel: str, data: bytes,
+                sha: str, meta: EpisodeMeta, frames: int, split: str,
+                in_transaction: Callable[[sqlite3.Connection], None] | None) -> IngestResult:
+        conn.execute("BEGIN IMMEDIATE")
+        published = False
+        try:
+            r = conn.execute("SELECT * FROM episodes WHERE episode_id = ?", (meta.episode_id,)).fetchone()
+            if r is not None:
+                conn.execute("ROLLBACK")
+                return self._duplicate(self._row(r), sha, split, data)
+            publish(staged, final)
+            published = True
+            conn.execute(
+                "INSERT INTO episodes(episode_id, path, sha256, frames, task, shape, request_id, worker_id, "
+                "model_version, split, created, size_bytes, ingested, meta) "
+                "VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                (meta.episode_id, rel, sha, frames, str(meta.task), str(meta.shape),
+                 str(meta.request_id), str(meta.worker_id), str(meta.model_version), split,
+                 str(meta.created), len(data), time.time(), meta.to_json()))
+            if in_transaction is not None:
+                in_transaction(conn)
+            conn.execute("COMMIT")
+        except BaseException:
+            # Remove the file while still holding the write lock: nobody can have indexed it.
+            if published:
+                final.unlink(missing_ok=True)
+            if conn.in_transaction:
+                conn.execute("ROLLBACK")
+            raise
+        return IngestResult(meta.episode_id, final, sha, duplicate=False)
+
+    def _duplicate(self, known: EpisodeRow, sha: str, split: str, data: bytes) -> IngestResult:
+        if known.sha256 != sha:
+            raise CatalogError(f"episode {known.episode_id} is already indexed with sha256 {known.sha256}; "
+                               f"refusing different bytes (sha256 {sha})")
+        if known.split != split:
+            raise CatalogError(f"episode {known.episode_id} is already indexed in split {known.split!r}, "
+                               f"not {split!r}")
+        if not known.path.exists():  # the same bytes restore a file lost from disk
+            staged = stage_bytes(known.path, data)
+            publish(staged, known.path)
+        return IngestResult(known.episode_id, known.path, sha, duplicate=True)
+
+    # --- queries --------------------------------------------------------------------------------
+
+    def find(self, episode_id: str) -> EpisodeRow | None:
+        with self._connect() as conn:
+            r = conn.execute("SELECT * FROM episodes WHERE episode_id = ?", (episode_id,)).fetchone()
+        return self._row(r) if r else None
+
+    def get(self, episode_id: str) -> EpisodeRow:
+        """The row of ``episode_id``; ``CatalogError`` if it is not indexed."""
+        row = self.find(episode_id)
+        if row is None:
+            raise CatalogError(f"no episode {episode_id!r} in the catalog at {self.data_dir}")
+        return row
+
+    def resolve(self, id_or_prefix: str) -> EpisodeRow:
+        """The episode whose id is ``id_or_prefix`` or uniquely starts with it (for the CLI)."""
+        row = self.find(id_or_prefix)
+        if row is not None:
+            return row
+        pattern = id_or_prefix.replace("\\", "\\\\").replace("%", "\\%").replace("_", "\\_") + "%"
+        with self._connect() as conn:
+            rows = conn.execute("SELECT * FROM episodes WHERE episode_id LIKE ? ESCAPE '\\' LIMIT 3",
+                                (pattern,)).fetchall()
+        if len(rows) == 1 and id_or_prefix:
+            return self._row(rows[0])
+        if len(rows) > 1 and id_or_prefix:
+            raise CatalogError(f"episode id prefix {id_or_prefix!r} is ambiguous "
+                               f"({', '.join(r['episode_id'] for r in rows[:2])}, ...)")
+        raise CatalogError(f"no episode {id_or_prefix!r} in the catalog at {self.data_dir}")
+
+    def list(self, split: str | None = None, shape: str | None = None, limit: int | None = None,
+             since: float | str | datetime | None = None, newest_first: bool = False) -> list[EpisodeRow]:
+        """Indexed episodes in ingest order (``newest_first`` reverses it).
+
+        ``since``: only episodes indexed at or after this time (unix seconds, ISO 8601 or datetime).
+        """
+        where, args = self._filters(split, shape, since)
+        sql = f"SELECT * FROM episodes{where} ORDER BY rowid {'DESC' if newest_first else 'ASC'}"
+        if limit is not None:
+            sql += " LIMIT ?"
+            args.append(int(limit))
+        with self._connect() as conn:
+            return [self._row(r) for r in conn.execute(sql, args).fetchall()]
+
+    def count(self, split: str | None = None, shape: str | None = None,
+              since: float | str | datetime | None = None) -> int:
+        where, args = self._filters(split, shape, since)
+        with self._connect() as conn:
+            return conn.execute(f"SELECT COUNT(*) FROM episodes{where}", args).fetchone()[0]
+
+    def _filters(self, split: str | None, shape: str | None,
+                 since: float | str | datetime | None) -> tuple[str, list[Any]]:
+        clauses, args = [], []
+        if split is not None:
+            _check_split(split)
+            clauses.append("split = ?")
+            args.append(split)
+        if shape is not None:
+            clauses.append("shape = ?")
+            args.append(shape)
+        if since is not None:
+            clauses.append("ingested >= ?")
+            args.append(_since_seconds(since))
+        return (" WHERE " + " AND ".join(clauses) if clauses else ""), args
+
+    def summary(self) -> dict[str, Any]:
+        """Episode, frame and byte totals by split and shape (for status displays)."""
+        with self._connect() as conn:
+            rows = conn.execute("SELECT split, shape, COUNT(*) AS n, SUM(frames) AS frames, "
+                                "SUM(size_bytes) AS bytes FROM episodes GROUP BY split, shape").fetchall()
+        out: dict[str, Any] = {"episodes": 0, "frames": 0, "bytes": 0, "by_split": {}, "by_shape": {}}
+        for r in rows:
+            out["episodes"] += r["n"]
+            out["frames"] += r["frames"]
+            out["bytes"] += r["bytes"]
+            out["by_split"][r["split"]] = out["by_split"].get(r["split"], 0) + r["n"]
+            out["by_shape"][r["shape"]] = out["by_shape"].get(r["shape"], 0) + r["n"]
+        return out
+
+    def meta(self, episode_id: str) -> EpisodeMeta:
+        """The provenance recorded at ingest (no file access)."""
+        with self._connect() as conn:
+            r = conn.execute("SELECT meta FROM episodes WHERE episode_id = ?", (episode_id,)).fetchone()
+        if r is None:
+            raise CatalogError(f"no episode {episode_id!r} in the catalog at {self.data_dir}")
+        return EpisodeMeta.from_json(r["meta"])
+
+    def _read_checked(self, row: EpisodeRow) -> bytes:
+        try:
+            data = row.path.read_bytes()
+        except FileNotFoundError:
+            raise EpisodeError(f"{row.path}: file of episode {row.episode_id} is missing") from None
+        except OSError as exc:
+            raise EpisodeError(f"{row.path}: cannot read: {exc.strerror or exc}") from exc
+        sha = sha256_hex(data)
+        if sha != row.sha256:
+            raise CorruptEpisodeError(f"{row.path}: sha256 is {sha}, the catalog recorded {row.sha256}")
+        return data
+
+    def load(self, episode_id: str) -> Episode:
+        """Reads an indexed episode, checking its sha256 and CRCs."""
+        row = self.get(episode_id)
+        return read_episode(self._read_checked(row), name=str(row.path))
+
+    def verify(self, episode_id: str) -> EpisodeMeta:
+        """Re-hashes and re-verifies an indexed episode's file; raises a ``StorageError`` if bad."""
+        row = self.get(episode_id)
+        meta = verify_episode(self._read_checked(row), name=str(row.path))
+        if meta.episode_id != row.episode_id:
+            raise CorruptEpisodeError(f"{row.path}: holds episode {meta.episode_id}, "
+                                      f"indexed as {row.episode_id}")
+        return meta
+
+    # --- evaluation split and snapshots --------------------------------------------------------
+
+    def pin_eval_split(self, ids: Sequence[str], params: dict[str, Any] | None = None) -> str:
+        """Pins the evaluation split to ``ids`` (all indexed with split ``eval``); returns its hash.
+
+        Pinning the same ids again returns the same hash; a different set is refused
+        (``CatalogError``): the split is fixed for the life of the data directory.
+        """
+        ids = sorted(set(ids))
+        if not ids:
+            raise CatalogError("an eval split needs at least one episode")
+        with self._connect() as conn, transaction(conn):
+            marks = ",".join("?" * len(ids))
+            rows = conn.execute(f"SELECT episode_id, sha256, split FROM episodes WHERE episode_id IN ({marks})",
+                                ids).fetchall()
+            unknown = sorted(set(ids) - {r["episode_id"] for r in rows})
+            if unknown:
+                raise CatalogError(f"cannot pin unknown episodes: {', '.join(unknown[:5])}"
+                                   f"{' ...' if len(unknown) > 5 else ''}")
+            wrong = [r["episode_id"] for r in rows if r["split"] != "eval"]
+            if wrong:
+                raise CatalogError(f"episodes {', '.join(wrong[:5])} are in split 'train'; only episodes "
+                                   "added with split='eval' can be pinned")
+            digest = _content_hash([(r["episode_id"], r["sha256"]) for r in rows])
+            current = conn.execute("SELECT hash FROM eval_split WHERE id = 1").fetchone()
+            if current is not None:
+                if current["hash"] != digest:
+                    raise CatalogError(f"an eval split is already pinned (hash {current['hash'][:16]}); "
+                                       "it cannot be replaced")
+                return digest
+            conn.execute("INSERT INTO eval_split(id, hash, params, created) VALUES (1, ?, ?, ?)",
+                         (digest, json.dumps(params or {}, sort_keys=True), _now_iso()))
+            conn.executemany("INSERT INTO eval_split_members(episode_id) VALUES (?)", [(i,) for i in ids])
+        return digest
+
+    def eval_split(self) -> EvalSplit | None:
+        """The pinned evaluation split, or None. ``CatalogError`` if its rows no longer match its hash."""
+        with self._connect() as conn:
+            head = conn.execute("SELECT hash, params, created FROM eval_split WHERE id = 1").fetchone()
+            if head is None:
+                return None
+            rows = conn.execute("SELECT m.episode_id, e.sha256 FROM eval_split_members m "
+                                "JOIN episodes e USING (episode_id) ORDER BY m.episode_id").fetchall()
+        digest = _content_hash([(r["episode_id"], r["sha256"]) for r in rows])
+        if digest != head["hash"]:
+            raise CatalogError(f"the pinned eval split's episodes hash to {digest[:16]}, "
+                               f"pinned as {head['hash'][:16]}")
+        return EvalSplit(ids=[r["episode_id"] for r in rows], hash=head["hash"],
+                         params=json.loads(head["params"]), created=head["created"])
+
+    def snapshot(self, split: str = "train") -> Snapshot:
+        """The episodes of ``split`` now, with a content id. Training never sees eval episodes."""
+        _check_split(split)
+        with self._connect() as conn:
+            rows = conn.execute(
+                "SELECT episode_id, sha256 FROM episodes WHERE split = ? AND episode_id NOT IN "
+                "(SELECT episode_id FROM eval_split_members) ORDER BY episode_id"
+                if split == "train" else
+                "SELECT episode_id, sha256 FROM episodes WHERE split = ? ORDER BY episode_id",
+                (split,)).fetchall()
+        pairs = [(r["episode_id"], r["sha256"]) for r in rows]
+        return Snapshot(ids=[p[0] for p in pairs], snapshot_id=_content_hash(pairs)[:16])
