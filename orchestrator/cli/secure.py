@@ -1,5 +1,88 @@
-"""CLI commands (being built)."""
+"""CLI: ``activecollect router`` and ``activecollect secure init|check``."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from orchestrator.cli.common import Parser, UsageError, add_json_arg, print_json, positive_int
+from orchestrator.router import RouterConfig, RouterError, run_router
+from orchestrator.secure import (DEFAULT_NAMESPACE, DEFAULT_ROUTER_ENDPOINT, SecureConfigError,
+                                 SecureInitConfig, init_secure, validate_secure_config)
 
 
 def register(sub) -> None:
-    """Adds this group's commands."""
+    """Adds ``router`` and ``secure``."""
+    p = sub.add_parser("router", help="run a Zenoh router that orchestrator, workers and operators connect to")
+    p.add_argument("--listen", action="append", default=[], metavar="EP",
+                   help="endpoint to listen on, e.g. tls/0.0.0.0:7447 (repeatable; default "
+                        "tcp/127.0.0.1:7447 without --zenoh-config)")
+    p.add_argument("--connect", action="append", default=[], metavar="EP",
+                   help="another site's router to link to (repeatable)")
+    p.add_argument("--zenoh-config", type=Path, metavar="FILE",
+                   help="Zenoh JSON5 config, e.g. router.json5 from `secure init`")
+    p.set_defaults(func=_router)
+
+    s = sub.add_parser("secure", help="secure profile: mutual TLS, passwords, default-deny ACL")
+    ssub = s.add_subparsers(dest="secure_command", metavar="ACTION", parser_class=Parser)
+    ssub.required = True
+    init = ssub.add_parser("init", help="write a CA, per-role certificates and passwords, and "
+                                        "router/orchestrator/worker/operator Zenoh configs")
+    init.add_argument("directory", type=Path, metavar="DIR")
+    init.add_argument("--namespace", default=DEFAULT_NAMESPACE, help="key namespace the ACL protects")
+    init.add_argument("--router-endpoint", default=DEFAULT_ROUTER_ENDPOINT, metavar="tls/HOST:PORT",
+                      help=f"where clients reach the router (default {DEFAULT_ROUTER_ENDPOINT})")
+    init.add_argument("--router-listen", metavar="tls/ADDR:PORT",
+                      help="what the router binds, e.g. tls/0.0.0.0:7447 (default: --router-endpoint)")
+    init.add_argument("--host", action="append", default=[], dest="hosts", metavar="NAME",
+                      help="another name or address of the router for its certificate (repeatable)")
+    init.add_argument("--valid-days", type=positive_int, default=825, help="certificate lifetime")
+    init.add_argument("--force", action="store_true", help="replace an existing profile in DIR")
+    add_json_arg(init)
+    init.set_defaults(func=_init)
+    check = ssub.add_parser("check", help="check that every file a Zenoh config names exists and is readable")
+    check.add_argument("config", type=Path, metavar="FILE")
+    check.set_defaults(func=_check)
+
+
+def _router(args: argparse.Namespace) -> int:
+    try:
+        cfg = RouterConfig(listen=tuple(args.listen), connect=tuple(args.connect),
+                           zenoh_config=args.zenoh_config)
+        return run_router(cfg, out=sys.stdout)
+    except RouterError as exc:
+        raise UsageError(str(exc)) from exc
+
+
+def _init(args: argparse.Namespace) -> int:
+    try:
+        cfg = SecureInitConfig(directory=args.directory, namespace=args.namespace,
+                               router_endpoint=args.router_endpoint, router_listen=args.router_listen,
+                               extra_hosts=tuple(args.hosts), force=args.force, valid_days=args.valid_days)
+        result = init_secure(cfg)
+    except SecureConfigError as exc:
+        raise UsageError(str(exc)) from exc
+    if args.json:
+        print_json({"directory": str(result.directory), "ca_certificate": str(result.ca_certificate),
+                    "configs": {role: str(p) for role, p in result.configs.items()}})
+        return 0
+    print(f"wrote a secure profile to {result.directory} (namespace {cfg.namespace}, "
+          f"router {cfg.router_listen or cfg.router_endpoint})")
+    for role, path in result.configs.items():
+        print(f"  {role:<12} {path}")
+    print("start the router:  activecollect router --zenoh-config "
+          f"{result.configs['router']}")
+    print("copy to each host: ca.pem, ROLE.json5, ROLE.pem, ROLE-key.pem (same paths, or edit them)")
+    return 0
+
+
+def _check(args: argparse.Namespace) -> int:
+    try:
+        files = validate_secure_config(args.config)
+    except SecureConfigError as exc:
+        raise UsageError(str(exc)) from exc
+    print(f"{args.config}: {len(files)} referenced file(s) present and readable")
+    for path in files:
+        print(f"  {path}")
+    return 0

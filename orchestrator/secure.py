@@ -1,0 +1,431 @@
+"""The secure deployment profile: mutual TLS, user/password and a default-deny ACL.
+
+Nothing here authenticates anyone. Zenoh does that from its own configuration;
+this module writes that configuration (``secure init``) and refuses to start a
+secure profile whose files are missing or unreadable (``validate_secure_config``).
+
+Who is who: every role has its own certificate, signed by a private CA, whose
+common name is the role name, and its own user/password. The router accepts
+only TLS, requires a client certificate from that CA (mTLS) and checks the
+password against its dictionary. Its ACL subjects match on both the
+certificate's common name and the username, so a role's password alone, or
+its certificate alone, is not enough to act as that role.
+"""
+
+from __future__ import annotations
+
+import datetime
+import ipaddress
+import json
+import os
+import secrets
+import stat
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import json5
+from cryptography import x509
+from cryptography.hazmat.primitives import hashes, serialization
+from cryptography.hazmat.primitives.asymmetric import ec
+from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
+
+from orchestrator.protocol import Keys, ProtocolError
+
+#: Roles that get a config, a certificate and a password. The router is the only listener.
+CLIENT_ROLES: tuple[str, ...] = ("orchestrator", "worker", "operator")
+ROLES: tuple[str, ...] = ("router", *CLIENT_ROLES)
+#: Every message kind Zenoh's ACL filters.
+ACL_MESSAGES: tuple[str, ...] = ("put", "delete", "declare_subscriber", "query", "reply",
+                                 "declare_queryable", "liveliness_token",
+                                 "declare_liveliness_subscriber", "liveliness_query")
+DEFAULT_NAMESPACE = "activecollect"
+DEFAULT_ROUTER_ENDPOINT = "tls/127.0.0.1:7447"
+#: Config keys (slash paths) whose values are files Zenoh opens at start-up.
+FILE_KEYS: tuple[str, ...] = (
+    "transport/link/tls/root_ca_certificate",
+    "transport/link/tls/listen_private_key",
+    "transport/link/tls/listen_certificate",
+    "transport/link/tls/connect_private_key",
+    "transport/link/tls/connect_certificate",
+    "transport/auth/usrpwd/dictionary_file",
+    "transport/auth/pubkey/public_key_file",
+    "transport/auth/pubkey/private_key_file",
+    "transport/auth/pubkey/known_keys_file",
+)
+
+
+class SecureConfigError(Exception):
+    """A secure profile cannot be written or started; the message is one line naming the file."""
+
+
+@dataclass
+class SecureInitConfig:
+    """What ``activecollect secure init`` writes."""
+
+    directory: Path
+    """Where the configs, certificates and credentials go (created 0700)."""
+    namespace: str = DEFAULT_NAMESPACE
+    """Key namespace the ACL protects (NS/orch/**, NS/admin/**, NS/workers/**, NS/events/**)."""
+    router_endpoint: str = DEFAULT_ROUTER_ENDPOINT
+    """tls/HOST:PORT the router listens on and the clients connect to."""
+    router_listen: str | None = None
+    """Endpoint the router binds (e.g. tls/0.0.0.0:7447); defaults to router_endpoint."""
+    extra_hosts: tuple[str, ...] = ()
+    """More names/addresses put in the router certificate (other ways clients reach it)."""
+    force: bool = False
+    """Overwrite an existing set (new CA, new passwords: every host needs the new files)."""
+    valid_days: int = 825
+    """Certificate lifetime."""
+
+    def __post_init__(self) -> None:
+        self.directory = Path(self.directory)
+        try:
+            Keys(self.namespace)
+        except ProtocolError as exc:
+            raise SecureConfigError(exc.message) from exc
+        self.router_host()  # validates router_endpoint
+        if self.router_listen is not None and not self.router_listen.startswith("tls/"):
+            raise SecureConfigError(f"expected the router to listen on a tls/ endpoint, "
+                                    f"found {self.router_listen!r}")
+        if self.valid_days <= 0:
+            raise SecureConfigError(f"expected valid_days > 0, found {self.valid_days}")
+
+    def router_host(self) -> str:
+        """The HOST of ``tls/HOST:PORT`` (brackets removed for IPv6)."""
+        proto, _, rest = self.router_endpoint.partition("/")
+        host, sep, port = rest.rpartition(":")
+        if proto != "tls" or not sep or not host or not port.isdigit() or not 0 < int(port) < 65536:
+            raise SecureConfigError(f"expected a router endpoint like tls/HOST:PORT, "
+                                    f"found {self.router_endpoint!r}")
+        return host.strip("[]")
+
+
+@dataclass
+class SecureSet:
+    """Paths of what ``init_secure`` wrote."""
+
+    directory: Path
+    """The directory itself."""
+    configs: dict[str, Path] = field(default_factory=dict)
+    """role -> Zenoh JSON5 config."""
+    credentials: dict[str, tuple[str, str]] = field(default_factory=dict)
+    """role -> (user, password)."""
+    ca_certificate: Path | None = None
+    """The private CA's certificate (the CA's key is not kept)."""
+
+
+# ---------------------------------------------------------------- certificates
+
+def _name(common_name: str) -> x509.Name:
+    return x509.Name([x509.NameAttribute(NameOID.ORGANIZATION_NAME, "activecollect"),
+                      x509.NameAttribute(NameOID.COMMON_NAME, common_name)])
+
+
+def _san(host: str) -> x509.GeneralName:
+    try:
+        return x509.IPAddress(ipaddress.ip_address(host))
+    except ValueError:
+        return x509.DNSName(host)
+
+
+def make_ca(common_name: str = "activecollect CA", valid_days: int = 825
+            ) -> tuple[ec.EllipticCurvePrivateKey, x509.Certificate]:
+    """A fresh self-signed CA (ECDSA P-256) that may sign end-entity certificates only."""
+    key = ec.generate_private_key(ec.SECP256R1())
+    now = datetime.datetime.now(datetime.timezone.utc)
+    cert = (x509.CertificateBuilder()
+            .subject_name(_name(common_name)).issuer_name(_name(common_name))
+            .public_key(key.public_key()).serial_number(x509.random_serial_number())
+            .not_valid_before(now - datetime.timedelta(minutes=5))
+            .not_valid_after(now + datetime.timedelta(days=valid_days))
+            .add_extension(x509.BasicConstraints(ca=True, path_length=0), critical=True)
+            .add_extension(x509.KeyUsage(digital_signature=True, key_cert_sign=True, crl_sign=True,
+                                         content_commitment=False, key_encipherment=False,
+                                         data_encipherment=False, key_agreement=False,
+                                         encipher_only=False, decipher_only=False), critical=True)
+            .add_extension(x509.SubjectKeyIdentifier.from_public_key(key.public_key()), critical=False)
+            .sign(key, hashes.SHA256()))
+    return key, cert
+
+
+def issue_certificate(ca_key: ec.EllipticCurvePrivateKey, ca_cert: x509.Certificate,
+                      common_name: str, hosts: tuple[str, ...] = (), valid_days: int = 825
+                      ) -> tuple[ec.EllipticCurvePrivateKey, x509.Certificate]:
+    """A certificate for one role, usable as TLS client and server; CN = ``common_name``.
+
+    ``hosts`` become subject alternative names (a client checks the router's name against
+    them); a certificate without hosts still carries its CN as a DNS name, since some TLS
+    stacks refuse end-entity certificates without any SAN.
+    """
+    key = ec.generate_private_key(ec.SECP256R1())
+    now = datetime.datetime.now(datetime.timezone.utc)
+    names = [_san(h) for h in dict.fromkeys((*hosts, common_name))]
+    cert = (x509.CertificateBuilder()
+            .subject_name(_name(common_name)).issuer_name(ca_cert.subject)
+            .public_key(key.public_key()).serial_number(x509.random_serial_number())
+            .not_valid_before(now - datetime.timedelta(minutes=5))
+            .not_valid_after(now + datetime.timedelta(days=valid_days))
+            .add_extension(x509.BasicConstraints(ca=False, path_length=None), critical=True)
+            .add_extension(x509.KeyUsage(digital_signature=True, key_cert_sign=False, crl_sign=False,
+                                         content_commitment=False, key_encipherment=False,
+                                         data_encipherment=False, key_agreement=False,
+                                         encipher_only=False, decipher_only=False), critical=True)
+            .add_extension(x509.ExtendedKeyUsage([ExtendedKeyUsageOID.SERVER_AUTH,
+                                                  ExtendedKeyUsageOID.CLIENT_AUTH]), critical=False)
+            .add_extension(x509.SubjectAlternativeName(names), critical=False)
+            .add_extension(x509.AuthorityKeyIdentifier.from_issuer_public_key(ca_key.public_key()),
+                           critical=False)
+            .sign(ca_key, hashes.SHA256()))
+    return key, cert
+
+
+def cert_pem(cert: x509.Certificate) -> bytes:
+    return cert.public_bytes(serialization.Encoding.PEM)
+
+
+def key_pem(key: ec.EllipticCurvePrivateKey) -> bytes:
+    return key.private_bytes(serialization.Encoding.PEM, serialization.PrivateFormat.PKCS8,
+                             serialization.NoEncryption())
+
+
+# ---------------------------------------------------------------- access control
+
+def _rule(rule_id: str, flows: list[str], messages: list[str], key_exprs: list[str]) -> dict[str, Any]:
+    """An allow rule; its id starts with the role whose policy it belongs to."""
+    return {"id": rule_id, "permission": "allow", "flows": flows, "messages": messages,
+            "key_exprs": key_exprs}
+
+
+def build_acl(namespace: str = DEFAULT_NAMESPACE) -> dict[str, Any]:
+    """The router's ``access_control`` section: default deny, one policy per role.
+
+    Flows are seen from the router: ``ingress`` is what a role sends, ``egress`` what the
+    router forwards to it. A message crosses the router only when the sender's ingress
+    rule and the receiver's egress rule both allow it.
+    """
+    keys = Keys(namespace)
+    ns = keys.namespace
+    worker_keys = [keys.lease, keys.renew, keys.upload, keys.fail]
+    service_keys = [f"{ns}/orch/**", keys.admin_all]
+    rules: list[dict[str, Any]] = [
+        # orchestrator: serves the queryables, replies, publishes events, watches workers
+        _rule("orchestrator-serve", ["ingress"], ["declare_queryable", "reply"], service_keys),
+        _rule("orchestrator-publish", ["ingress"], ["put", "delete"], [keys.events_all]),
+        _rule("orchestrator-watch", ["ingress"], ["declare_liveliness_subscriber", "liveliness_query"],
+              [f"{ns}/workers/**"]),
+        _rule("orchestrator-receive", ["egress"], ["query"], service_keys),
+        _rule("orchestrator-receive-workers", ["egress"], ["liveliness_token", "reply"],
+              [f"{ns}/workers/**"]),
+        _rule("orchestrator-see-subscribers", ["egress"], ["declare_subscriber"], [keys.events_all]),
+        # worker: asks for work and reports presence, nothing else
+        _rule("worker-ask", ["ingress"], ["query"], worker_keys),
+        _rule("worker-presence", ["ingress"], ["liveliness_token"], [keys.workers_all]),
+        _rule("worker-answers", ["egress"], ["reply", "declare_queryable"], worker_keys),
+        # operator: admin queries and the event stream
+        _rule("operator-ask", ["ingress"], ["query"], [keys.admin_all]),
+        _rule("operator-watch", ["ingress"], ["declare_subscriber"], [keys.events_all]),
+        _rule("operator-answers", ["egress"], ["reply", "declare_queryable"], [keys.admin_all]),
+        _rule("operator-events", ["egress"], ["put", "delete"], [keys.events_all]),
+        # router: another site's router (same profile) carries all of this namespace both ways;
+        # each router enforces the rules above on its own clients
+        _rule("router-link", ["ingress", "egress"], list(ACL_MESSAGES), [f"{ns}/**"]),
+    ]
+    # A router linked to another one is only authenticated by user/password on the side it
+    # connects to; the side it connects from knows only the certificate. Hence CN only there.
+    subjects: list[dict[str, Any]] = [{"id": "router", "cert_common_names": ["router"]}]
+    subjects += [{"id": role, "cert_common_names": [role], "usernames": [role]} for role in CLIENT_ROLES]
+    by_role: dict[str, list[str]] = {role: [] for role in ROLES}
+    for rule in rules:
+        by_role[rule["id"].split("-", 1)[0]].append(rule["id"])
+    policies = [{"id": f"{role}-policy", "rules": ids, "subjects": [role]}
+                for role, ids in by_role.items()]
+    return {"enabled": True, "default_permission": "deny", "rules": rules,
+            "subjects": subjects, "policies": policies}
+
+
+# ---------------------------------------------------------------- configs
+
+def _tls(directory: Path, role: str, listen: bool) -> dict[str, Any]:
+    cert, key = str(directory / f"{role}.pem"), str(directory / f"{role}-key.pem")
+    tls: dict[str, Any] = {"root_ca_certificate": str(directory / "ca.pem"),
+                           "connect_certificate": cert, "connect_private_key": key,
+                           "enable_mtls": True, "verify_name_on_connect": True}
+    if listen:
+        tls.update(listen_certificate=cert, listen_private_key=key)
+    return tls
+
+
+def router_config(cfg: SecureInitConfig, password: str) -> dict[str, Any]:
+    """Zenoh config of the router: TLS only, client certificates required, passwords checked, ACL.
+
+    The router's own user/password is what it presents when linked (``--connect``) to another
+    site's router built from the same profile.
+    """
+    d = cfg.directory.resolve()
+    return {
+        "mode": "router",
+        "listen": {"endpoints": [cfg.router_listen or cfg.router_endpoint]},
+        "connect": {"endpoints": []},
+        "scouting": {"multicast": {"enabled": False}, "gossip": {"enabled": False}},
+        "transport": {
+            "link": {"protocols": ["tls"], "tls": _tls(d, "router", listen=True)},
+            "auth": {"usrpwd": {"user": "router", "password": password,
+                                "dictionary_file": str(d / "users.txt")}},
+        },
+        "access_control": build_acl(cfg.namespace),
+    }
+
+
+def client_config(cfg: SecureInitConfig, role: str, password: str) -> dict[str, Any]:
+    """Zenoh config of one client role: connects to the router over mutual TLS with its password."""
+    d = cfg.directory.resolve()
+    return {
+        "mode": "client",
+        "connect": {"endpoints": [cfg.router_endpoint]},
+        "listen": {"endpoints": []},
+        "scouting": {"multicast": {"enabled": False}, "gossip": {"enabled": False}},
+        "transport": {
+            "link": {"protocols": ["tls"], "tls": _tls(d, role, listen=False)},
+            "auth": {"usrpwd": {"user": role, "password": password}},
+        },
+    }
+
+
+def _json5_text(role: str, cfg: SecureInitConfig, body: dict[str, Any]) -> str:
+    header = (f"// activecollect secure profile: {role} (namespace {cfg.namespace!r}).\n"
+              f"// Zenoh's own config format; pass it with --zenoh-config. Written by "
+              f"`activecollect secure init`.\n"
+              f"// Holds this role's password: keep it private (0600).\n")
+    return header + json.dumps(body, indent=2) + "\n"
+
+
+def _write(path: Path, data: bytes, secret: bool) -> None:
+    """Writes via a temporary name created with its final mode, so a secret is never readable by others."""
+    tmp = path.with_name(f".{path.name}.tmp")
+    tmp.unlink(missing_ok=True)
+    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600 if secret else 0o644)
+    with os.fdopen(fd, "wb") as f:
+        f.write(data)
+        f.flush()
+        os.fsync(f.fileno())
+    os.chmod(tmp, 0o600 if secret else 0o644)  # umask may have narrowed the public ones
+    os.replace(tmp, path)
+
+
+def planned_files(directory: Path) -> list[Path]:
+    """Every file ``init_secure`` writes into ``directory``."""
+    names = ["ca.pem", "users.txt"]
+    for role in ROLES:
+        names += [f"{role}.json5", f"{role}.pem", f"{role}-key.pem"]
+    return [directory / n for n in names]
+
+
+def init_secure(cfg: SecureInitConfig) -> SecureSet:
+    """Writes a ready secure profile: CA, per-role certificates and passwords, four Zenoh configs.
+
+    Raises SecureConfigError when the directory already holds a profile and ``force`` is off,
+    or when it cannot be created.
+    """
+    planned = planned_files(cfg.directory)
+    if cfg.directory.is_dir():  # it becomes 0700: never take over a directory holding other things
+        others = sorted(p.name for p in cfg.directory.iterdir() if p not in planned)
+        if others:
+            raise SecureConfigError(f"expected an empty directory or a secure profile at {cfg.directory}, "
+                                    f"found other files ({', '.join(others[:3])})")
+    existing = [p for p in planned if p.exists()]
+    if existing and not cfg.force:
+        raise SecureConfigError(f"{cfg.directory} already holds a secure profile "
+                                f"({existing[0].name}, ...); pass --force to replace it")
+    try:
+        cfg.directory.mkdir(parents=True, exist_ok=True)
+        os.chmod(cfg.directory, 0o700)
+    except OSError as exc:
+        raise SecureConfigError(f"cannot create {cfg.directory}: {exc.strerror}") from exc
+    out = SecureSet(directory=cfg.directory)
+    ca_key, ca_cert = make_ca(valid_days=cfg.valid_days)
+    _write(cfg.directory / "ca.pem", cert_pem(ca_cert), secret=False)
+    out.ca_certificate = cfg.directory / "ca.pem"
+    router_hosts = (cfg.router_host(), *cfg.extra_hosts, "localhost", "127.0.0.1")
+    for role in ROLES:
+        key, cert = issue_certificate(ca_key, ca_cert, role,
+                                      hosts=router_hosts if role == "router" else (),
+                                      valid_days=cfg.valid_days)
+        _write(cfg.directory / f"{role}.pem", cert_pem(cert), secret=False)
+        _write(cfg.directory / f"{role}-key.pem", key_pem(key), secret=True)
+    del ca_key  # not kept: a new role certificate means a new `secure init --force`
+    out.credentials = {role: (role, secrets.token_urlsafe(24)) for role in ROLES}
+    users = "".join(f"{user}:{password}\n" for user, password in out.credentials.values())
+    _write(cfg.directory / "users.txt", users.encode(), secret=True)
+    for role in ROLES:
+        password = out.credentials[role][1]
+        body = router_config(cfg, password) if role == "router" else client_config(cfg, role, password)
+        out.configs[role] = cfg.directory / f"{role}.json5"
+        _write(out.configs[role], _json5_text(role, cfg, body).encode(), secret=True)
+    return out
+
+
+# ---------------------------------------------------------------- start-up check
+
+def _lookup(config: dict[str, Any], slash_key: str) -> Any:
+    node: Any = config
+    for part in slash_key.split("/"):
+        if not isinstance(node, dict) or part not in node:
+            return None
+        node = node[part]
+    return node
+
+
+def _check_file(config_path: Path, key: str, value: Any) -> Path:
+    if not isinstance(value, str) or not value:
+        raise SecureConfigError(f"{config_path}: expected a file path at {key}, found {value!r}")
+    path = Path(value).expanduser()
+    what = f"{config_path}: {key} -> {path}"
+    if not path.exists():
+        raise SecureConfigError(f"{what} is missing")
+    try:
+        with open(path, "rb") as f:
+            head = f.read(65536)
+    except OSError as exc:
+        raise SecureConfigError(f"{what} is unreadable ({exc.strerror})") from exc
+    if key.startswith("transport/link/tls/") and b"-----BEGIN " not in head:
+        raise SecureConfigError(f"{what} is not a PEM file")
+    if key.endswith("dictionary_file") and not any(b":" in line for line in head.splitlines()):
+        raise SecureConfigError(f"{what} holds no user:password line")
+    return path
+
+
+def validate_secure_config(path: str | os.PathLike[str]) -> list[Path]:
+    """Checks a Zenoh JSON5 config before a process starts with it; returns the files it references.
+
+    Every file the config names (TLS CA, certificates and keys, the usrpwd dictionary,
+    pubkey files) must exist and be readable; TLS files must be PEM. A config naming no
+    files passes (it is not a secure profile). Raises SecureConfigError with a one-line
+    message naming the config, the key and the file; CLIs turn it into exit status 2.
+    """
+    config_path = Path(path)
+    try:
+        text = config_path.read_text()
+    except OSError as exc:
+        raise SecureConfigError(f"cannot read Zenoh config {config_path} "
+                                f"({exc.strerror or exc})") from exc
+    try:
+        config = json5.loads(text)
+    except ValueError as exc:
+        first = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        raise SecureConfigError(f"{config_path} is not valid JSON5: {first}") from exc
+    if not isinstance(config, dict):
+        raise SecureConfigError(f"{config_path}: expected a JSON5 object, found {type(config).__name__}")
+    return [_check_file(config_path, key, value) for key in FILE_KEYS
+            if (value := _lookup(config, key)) is not None]
+
+
+def is_secure_profile(path: str | os.PathLike[str]) -> bool:
+    """True when the config only allows TLS links (what ``secure init`` writes)."""
+    config = json5.loads(Path(path).read_text())
+    return _lookup(config, "transport/link/protocols") == ["tls"]
+
+
+def private_mode_ok(path: Path) -> bool:
+    """True when nobody but the owner can read ``path`` (0600 or narrower)."""
+    return stat.S_IMODE(path.stat().st_mode) & 0o077 == 0
