@@ -1,5 +1,357 @@
-"""CLI commands (being built)."""
+"""``activecollect serve``, ``worker``, and the operator commands that talk to a running service.
+
+Operator commands (``queue``, ``workers``, ``stats``, ``watch``) are Zenoh queries to
+``NS/admin/**``; when no service answers they say so in one line and exit 1.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import signal
+import sys
+import threading
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from typing import Any
+
+import numpy as np
+import zenoh
+
+from orchestrator import dispatchbench, protocol, transport
+from orchestrator.cli import common
+from orchestrator.loop import ChampionScorer
+from orchestrator.planner import ActivePlanner, ActivePlannerConfig, UniformPlanner, UniformPlannerConfig, \
+    uniform_start_state
+from orchestrator.protocol import AdminRequest, Event, Keys, ProtocolError
+from orchestrator.service import PlannerFactory, Service, ServiceConfig, ServiceContext, ServiceError
+from storage.queue import RequestStatus
+from workers import agent
+
+PLANNERS = ("active", "uniform", "none")
 
 
-def register(sub) -> None:
-    """Adds this group's commands."""
+def register(sub: argparse._SubParsersAction) -> None:
+    """Adds serve, worker, queue, workers, stats and watch."""
+    p = sub.add_parser("serve", help="run the orchestrator: queue, leases, uploads, admin over Zenoh")
+    common.add_data_arg(p)
+    transport.add_connection_args(p, listen=True)
+    p.add_argument("--lease-s", type=common.positive_float, default=30.0, help="lease length (default 30)")
+    p.add_argument("--reap-interval-s", type=common.positive_float, default=1.0,
+                   help="how often expired leases are looked for (default 1)")
+    p.add_argument("--planner", choices=PLANNERS, default="active",
+                   help="what turns stored episodes into requests (default active)")
+    p.add_argument("--seed-requests", type=common.non_negative_int, default=0, metavar="N",
+                   help="uniform requests to seed an empty queue with at start (default 0)")
+    p.add_argument("--steps", type=common.positive_int, default=50, help="steps per planned episode (default 50)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the planner's generator (default 0)")
+    p.add_argument("--log-level", default="INFO", choices=("DEBUG", "INFO", "WARNING", "ERROR"))
+    p.set_defaults(func=cmd_serve)
+
+    p = sub.add_parser("worker", help="run a collector worker: lease, simulate, record MCAP, upload")
+    agent.add_arguments(p)
+    p.set_defaults(func=agent.run_from_args)
+
+    _register_queue(sub)
+    p = sub.add_parser("workers", help="workers known to the service")
+    wsub = p.add_subparsers(dest="workers_command", metavar="CMD", parser_class=common.Parser)
+    wsub.required = True
+    p = wsub.add_parser("ls", help="workers alive and the leases they hold")
+    _operator_args(p)
+    p.set_defaults(func=cmd_workers_ls)
+    p = sub.add_parser("stats", help="queue counts, episodes, champion, workers")
+    _operator_args(p)
+    p.set_defaults(func=cmd_stats)
+    p = sub.add_parser("watch", help="follow the service's events (Ctrl-C to stop)")
+    _operator_args(p)
+    p.add_argument("--count", type=common.positive_int, default=None, metavar="N", help="exit after N events")
+    p.set_defaults(func=cmd_watch)
+
+
+def _register_queue(sub: argparse._SubParsersAction) -> None:
+    q = sub.add_parser("queue", help="the collection request queue of a running service")
+    qsub = q.add_subparsers(dest="queue_command", metavar="CMD", parser_class=common.Parser)
+    qsub.required = True
+    p = qsub.add_parser("ls", help="requests, newest change first (queued: in lease order)")
+    _operator_args(p)
+    p.add_argument("--status", choices=[s.value for s in RequestStatus], default=None)
+    p.add_argument("--limit", type=common.positive_int, default=50)
+    p.set_defaults(func=cmd_queue_ls)
+    p = qsub.add_parser("show", help="one request in full")
+    _operator_args(p)
+    p.add_argument("id")
+    p.set_defaults(func=lambda a: _print_op(a, "queue.show", {"id": a.id}, _print_request))
+    p = qsub.add_parser("add", help="queue a manual request (a uniform start state unless --start-state)")
+    _operator_args(p)
+    p.add_argument("--shape", required=True, choices=protocol.SHAPES)
+    p.add_argument("--task", default="push", choices=protocol.TASKS)
+    p.add_argument("--policy", default="push", choices=protocol.POLICIES)
+    p.add_argument("--policy-params", type=_json_object, default={}, metavar="JSON")
+    p.add_argument("--start-state", type=_json_object, default=None, metavar="JSON",
+                   help="start state in SimState.to_dict form (default: drawn uniformly with --seed)")
+    p.add_argument("--seed", type=int, default=None, help="seed of the uniform start state (default: random)")
+    p.add_argument("--steps", type=common.positive_int, default=50)
+    p.add_argument("--priority", type=float, default=0.0)
+    p.add_argument("--max-attempts", type=common.positive_int, default=3)
+    p.add_argument("--idempotency-key", default=None, metavar="K")
+    p.set_defaults(func=cmd_queue_add)
+    for name, op, help_text in (("cancel", "queue.cancel", "cancel a queued or leased request"),
+                                ("retry", "queue.retry", "put a dead or cancelled request back in the queue")):
+        p = qsub.add_parser(name, help=help_text)
+        _operator_args(p)
+        p.add_argument("id")
+        p.set_defaults(func=lambda a, op=op: _print_op(a, op, {"id": a.id}, _print_request))
+    p = qsub.add_parser("prioritize", help="set a request's priority (higher is leased first)")
+    _operator_args(p)
+    p.add_argument("id")
+    p.add_argument("priority", type=float)
+    p.set_defaults(func=lambda a: _print_op(a, "queue.prioritize", {"id": a.id, "priority": a.priority},
+                                            _print_request))
+
+
+def register_bench(bench_sub: argparse._SubParsersAction) -> None:
+    p = bench_sub.add_parser("dispatch", help="lease->complete round trips/s and latency vs raw Zenoh queries")
+    p.add_argument("--workers", type=common.positive_int, default=8, help="concurrent dispatch clients (default 8)")
+    p.add_argument("--seconds", type=common.positive_float, default=5.0, help="measuring time per phase")
+    p.add_argument("--data", default=None, help="data directory (default: a temporary one)")
+    common.add_json_arg(p)
+    p.set_defaults(func=cmd_bench_dispatch)
+
+
+def _operator_args(p: argparse.ArgumentParser) -> None:
+    transport.add_connection_args(p)
+    common.add_json_arg(p)
+
+
+def _json_object(text: str) -> dict:
+    try:
+        value = json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise argparse.ArgumentTypeError(f"expected a JSON object, found {text!r:.60} ({exc})") from None
+    if not isinstance(value, dict):
+        raise argparse.ArgumentTypeError(f"expected a JSON object, found {type(value).__name__}")
+    return value
+
+
+# --- serve ---------------------------------------------------------------------------------------
+
+def planner_factory(name: str, steps: int, seed: int) -> PlannerFactory | None:
+    """The factory ``serve --planner`` names (None for ``none``)."""
+    if name == "none":
+        return None
+
+    def build(ctx: ServiceContext):
+        rng = np.random.default_rng(seed)
+        depth = lambda: ctx.queue.counts()[RequestStatus.QUEUED.value]  # noqa: E731
+        uniform = UniformPlannerConfig(steps=steps)
+        if name == "uniform":
+            return UniformPlanner(uniform, rng, depth)
+        scorer = ChampionScorer(ctx.data_dir, observe=ctx.metrics.observe_scoring)
+        return ActivePlanner(ActivePlannerConfig(steps=steps, seed_uniform=uniform), scorer, rng, depth)
+
+    return build
+
+
+def cmd_serve(args: argparse.Namespace) -> int:
+    logging.basicConfig(level=args.log_level, format="%(asctime)s %(name)s %(levelname)s %(message)s")
+    listen, connect = transport.endpoints_from_args(args)
+    try:
+        config = ServiceConfig(data_dir=args.data, namespace=args.namespace, mode=args.mode, listen=listen,
+                               connect=connect, zenoh_config=args.zenoh_config, lease_s=args.lease_s,
+                               reap_interval_s=args.reap_interval_s, seed_requests=args.seed_requests,
+                               planner=planner_factory(args.planner, args.steps, args.seed))
+    except ServiceError as exc:
+        raise common.UsageError(str(exc)) from None
+    stop = threading.Event()
+    for sig in (signal.SIGTERM, signal.SIGINT):
+        signal.signal(sig, lambda signum, frame: stop.set())
+    service = Service(config)
+    try:
+        service.start()
+    except ServiceError as exc:
+        print(f"activecollect serve: {exc}", file=sys.stderr)
+        service.stop()
+        return 1
+    print(f"serving {args.namespace} on {', '.join(listen + connect) or args.zenoh_config} "
+          f"(data {args.data}, planner {args.planner}); Ctrl-C to stop", flush=True)
+    try:
+        stop.wait()
+    finally:
+        service.stop()
+    return 0
+
+
+# --- operator commands -----------------------------------------------------------------------------
+
+class _NoService(Exception):
+    """Nobody answered: printed as one line, exit 1."""
+
+
+@contextmanager
+def _session(args: argparse.Namespace) -> Iterator[zenoh.Session]:
+    listen, connect = transport.endpoints_from_args(args)
+    try:
+        session = transport.open_session(args.mode, listen, connect, args.zenoh_config)
+    except transport.TransportError as exc:
+        raise _NoService(str(exc)) from None
+    try:
+        yield session
+    finally:
+        session.close()
+
+
+def admin_call(session: zenoh.Session, keys: Keys, op: str, args: dict[str, Any], timeout: float) -> dict[str, Any]:
+    """One admin op over Zenoh; the reply body. Raises _NoService, ProtocolError (refused)."""
+    try:
+        reply = transport.query(session, keys.admin(op), AdminRequest(op=op, args=args).to_json(), timeout=timeout)
+    except transport.NoReplyError:
+        raise _NoService(f"no orchestrator answered on {keys.admin(op)} within {timeout:g} s "
+                         "(is `activecollect serve` running and reachable?)") from None
+    except transport.RemoteError as exc:
+        raise ProtocolError(protocol.ErrorCode.INTERNAL, str(exc)) from None
+    return protocol.parse_reply(reply)
+
+
+def _run_op(args: argparse.Namespace, op: str, op_args: dict[str, Any]) -> dict[str, Any]:
+    try:
+        keys = Keys(args.namespace)
+    except ProtocolError as exc:
+        raise common.UsageError(exc.message) from None
+    with _session(args) as session:
+        return admin_call(session, keys, op, op_args, args.timeout)
+
+
+def _print_op(args: argparse.Namespace, op: str, op_args: dict[str, Any], show) -> int:
+    try:
+        body = _run_op(args, op, op_args)
+    except _NoService as exc:
+        print(f"activecollect: {exc}", file=sys.stderr)
+        return 1
+    except ProtocolError as exc:
+        print(f"activecollect: {op} refused: {exc.code.value}: {exc.message}", file=sys.stderr)
+        return 1
+    if args.json:
+        common.print_json(body)
+    else:
+        show(body)
+    return 0
+
+
+def _fmt_time(t: float | None) -> str:
+    return time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(t)) if t else "-"
+
+
+def _print_request(body: dict[str, Any]) -> None:
+    r = body["request"]
+    created = body.get("created")
+    if created is not None:
+        print("queued" if created else "already queued (same idempotency key)")
+    for k in ("id", "status", "priority", "task", "shape", "policy", "steps", "attempts", "max_attempts",
+              "worker_id", "token", "episode_id", "last_error", "idempotency_key"):
+        if k in r:
+            print(f"{k:>16}: {r[k] if r[k] is not None else '-'}")
+    for k in ("created", "updated", "lease_expires"):
+        if k in r:
+            print(f"{k:>16}: {_fmt_time(r[k])}")
+    for k in ("policy_params", "reason", "start_state"):
+        if k in r:
+            print(f"{k:>16}: {json.dumps(r[k], sort_keys=True)}")
+
+
+def cmd_queue_ls(args: argparse.Namespace) -> int:
+    def show(body: dict[str, Any]) -> None:
+        print(" ".join(f"{k}={v}" for k, v in body["counts"].items()))
+        print(f"{'ID':32}  {'STATUS':9} {'PRIO':>7} {'SHAPE':5} {'POLICY':16} {'TRY':>5} {'WORKER':16} UPDATED")
+        for r in body["requests"]:
+            tries = f"{r['attempts']}/{r['max_attempts']}"
+            print(f"{r['id']:32}  {r['status']:9} {r['priority']:7.3g} {r['shape']:5} {r['policy']:16} "
+                  f"{tries:>5} {(r['worker_id'] or '-')[:16]:16} {_fmt_time(r['updated'])}")
+    op_args: dict[str, Any] = {"limit": args.limit}
+    if args.status:
+        op_args["status"] = args.status
+    return _print_op(args, "queue.ls", op_args, show)
+
+
+def cmd_queue_add(args: argparse.Namespace) -> int:
+    start = args.start_state
+    if start is None:
+        start = uniform_start_state(np.random.default_rng(args.seed), args.shape)
+    op_args = {"task": args.task, "shape": args.shape, "start_state": start, "policy": args.policy,
+               "policy_params": args.policy_params, "steps": args.steps, "priority": args.priority,
+               "max_attempts": args.max_attempts}
+    if args.idempotency_key is not None:
+        op_args["idempotency_key"] = args.idempotency_key
+    return _print_op(args, "queue.add", op_args, _print_request)
+
+
+def cmd_workers_ls(args: argparse.Namespace) -> int:
+    def show(body: dict[str, Any]) -> None:
+        print(f"{'WORKER':32} {'ALIVE':5} LEASES")
+        for w in body["workers"]:
+            print(f"{w['id']:32} {'yes' if w['alive'] else 'no':5} {' '.join(w['leases']) or '-'}")
+    return _print_op(args, "workers.ls", {}, show)
+
+
+def cmd_stats(args: argparse.Namespace) -> int:
+    def show(body: dict[str, Any]) -> None:
+        print("requests: " + " ".join(f"{k}={v}" for k, v in body["requests"].items()))
+        episodes = body.get("episodes") or {}
+        print("episodes: " + (" ".join(f"{k}={v}" for k, v in episodes.items()) or "-"))
+        print(f"champion: {body.get('champion') or '-'}")
+        print(f"workers:  {body.get('workers', 0)} alive")
+    return _print_op(args, "stats", {}, show)
+
+
+def cmd_watch(args: argparse.Namespace) -> int:
+    """Print events as they come; first checks that a service answers."""
+    try:
+        keys = Keys(args.namespace)
+    except ProtocolError as exc:
+        raise common.UsageError(exc.message) from None
+    seen = threading.Semaphore(0)
+    try:
+        with _session(args) as session:
+            admin_call(session, keys, "stats", {}, args.timeout)
+            sub = session.declare_subscriber(keys.events_all, lambda s: _print_event(s, args.json, seen))
+            if not args.json:
+                print(f"watching {keys.events_all} (Ctrl-C to stop)", flush=True)
+            try:
+                for _ in range(args.count or sys.maxsize):
+                    seen.acquire()
+            finally:
+                sub.undeclare()
+    except _NoService as exc:
+        print(f"activecollect: {exc}", file=sys.stderr)
+        return 1
+    except ProtocolError as exc:
+        print(f"activecollect: stats refused: {exc.code.value}: {exc.message}", file=sys.stderr)
+        return 1
+    return 0
+
+
+def _print_event(sample: zenoh.Sample, as_json: bool, seen: threading.Semaphore) -> None:
+    try:
+        event = Event.from_json(sample.payload.to_bytes())
+    except ProtocolError as exc:
+        print(f"# unreadable event on {sample.key_expr}: {exc}", file=sys.stderr, flush=True)
+        return
+    if as_json:
+        print(json.dumps(event.to_dict(), sort_keys=True), flush=True)
+    else:
+        data = " ".join(f"{k}={v}" for k, v in sorted(event.data.items()))
+        print(f"{_fmt_time(event.at)} {event.kind:20} {data}", flush=True)
+    seen.release()
+
+
+# --- bench -------------------------------------------------------------------------------------
+
+def cmd_bench_dispatch(args: argparse.Namespace) -> int:
+    result = dispatchbench.run(dispatchbench.BenchConfig(workers=args.workers, seconds=args.seconds,
+                                                         data_dir=args.data))
+    if args.json:
+        common.print_json(result)
+    else:
+        print(dispatchbench.format_result(result))
+    return 0

@@ -1,0 +1,341 @@
+"""``activecollect bench dispatch``: how fast the service hands out and takes back work.
+
+Three phases, each with ``workers`` concurrent client threads in this process
+talking to a server in a child process over loopback TCP (peer mode):
+
+1. ``raw``: a bare Zenoh queryable that echoes its payload -- the floor any
+   query-based dispatch pays. Client payload: a LeaseRequest's bytes.
+2. ``dispatch``: the real ``Service`` (real SQLite queue, WAL). Each cycle is
+   ``lease`` then ``fail`` -- the lease-ending transaction with the same fencing
+   check as ``complete``, without an episode, so the request goes back to the
+   queue and is leased again (requests get the maximum attempts). This is the
+   dispatch path alone: two queries, two ``BEGIN IMMEDIATE`` transactions.
+3. ``upload``: the full worker path on the real ``Service``: ``lease`` then
+   ``upload`` of a tiny pre-encoded MCAP episode (2 steps of 8x8 frames, made
+   before the clock starts) -- verify, write + fsync, index and complete in one
+   transaction. Bounded by MCAP verification and fsync, not by dispatch.
+
+Latencies are per query (lease, fail, upload) and per cycle; throughput is
+cycles per second over all clients.
+"""
+
+from __future__ import annotations
+
+import argparse
+import socket
+import os
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+import uuid
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import zenoh
+
+from orchestrator import protocol, transport
+from orchestrator.protocol import Keys
+from orchestrator.service import Service, ServiceConfig
+from storage.catalog import Catalog
+from storage.episodes import encode_episode
+from storage.queue import NewRequest, RequestQueue
+from storage.records import Episode, EpisodeMeta
+
+_START = {"shape": "box", "agent": [100.0, 100.0], "agent_vel": [0.0, 0.0], "object": [256.0, 256.0, 0.0],
+          "object_vel": [0.0, 0.0, 0.0], "physics": {"mass": 1.0, "friction": 0.6, "ground_friction": 1.0}}
+
+
+@dataclass
+class BenchConfig:
+    """What ``bench dispatch`` measures."""
+
+    workers: int = 8
+    """Concurrent client threads."""
+    seconds: float = 5.0
+    """Measuring time of each phase."""
+    data_dir: Path | None = None
+    """Data directory of the benchmark service (default: a fresh temporary one)."""
+    dispatch_requests: int = 1000
+    """Requests in the queue for the dispatch phase (each can be leased up to MAX_ATTEMPTS times)."""
+    upload_requests: int = 1500
+    """Requests (and pre-encoded episodes) for the upload phase; the phase ends early when they run out."""
+    lease_s: float = 60.0
+    """Lease length the benchmark service hands out."""
+
+    def __post_init__(self) -> None:
+        if self.workers < 1 or not self.seconds > 0:
+            raise ValueError(f"workers must be >= 1 and seconds > 0, found {self.workers} and {self.seconds}")
+
+
+# --- the server side (child process) ---------------------------------------------------------------
+
+def _serve_echo(listen: str, key: str) -> None:
+    session = transport.open_session(listen=[listen])
+    queryable = session.declare_queryable(key, lambda q: q.reply(key, q.payload.to_bytes() if q.payload else b""))
+    _ready_and_wait()
+    queryable.undeclare()
+    session.close()
+
+
+def _serve_service(listen: str, namespace: str, data_dir: str, lease_s: float) -> None:
+    service = Service(ServiceConfig(data_dir=Path(data_dir), namespace=namespace, listen=(listen,),
+                                    lease_s=lease_s, reap_interval_s=5.0))
+    service.start()
+    _ready_and_wait()
+    service.stop()
+
+
+def _ready_and_wait() -> None:
+    print("ready", flush=True)
+    sys.stdin.read()  # the parent closes our stdin to stop us
+
+
+class _Child:
+    """A server role of this module in a child process; ``stop()`` closes its stdin and waits."""
+
+    def __init__(self, *role_args: str, timeout: float = 60.0) -> None:
+        env = dict(os.environ, PYTHONUNBUFFERED="1")
+        self.popen = subprocess.Popen([sys.executable, "-m", "orchestrator.dispatchbench", *role_args],
+                                      stdin=subprocess.PIPE, stdout=subprocess.PIPE, env=env, text=True)
+        line = _readline(self.popen, timeout)
+        if line.strip() != "ready":
+            self.stop()
+            raise RuntimeError(f"benchmark server {role_args[0]} did not start (said {line!r})")
+
+    def stop(self) -> None:
+        if self.popen.stdin is not None:
+            self.popen.stdin.close()
+        try:
+            self.popen.wait(30)
+        except subprocess.TimeoutExpired:
+            self.popen.kill()
+            self.popen.wait()
+
+
+def _readline(popen: subprocess.Popen, timeout: float) -> str:
+    out: list[str] = []
+    reader = threading.Thread(target=lambda: out.append(popen.stdout.readline()), daemon=True)
+    reader.start()
+    reader.join(timeout)
+    return out[0] if out else ""
+
+
+# --- the client side -------------------------------------------------------------------------------
+
+def _percentiles(samples: list[float]) -> dict[str, float]:
+    if not samples:
+        return {"n": 0}
+    a = np.asarray(samples) * 1e3  # ms
+    return {"n": int(a.size), "p50_ms": round(float(np.percentile(a, 50)), 3),
+            "p99_ms": round(float(np.percentile(a, 99)), 3), "max_ms": round(float(a.max()), 3)}
+
+
+def _drive(workers: int, seconds: float, cycle: Callable[[zenoh.Session, int, dict[str, list[float]]], bool],
+           session: zenoh.Session) -> dict[str, Any]:
+    """Run ``cycle(session, worker_index, latencies)`` in ``workers`` threads for ``seconds``.
+
+    ``cycle`` returns False when it has nothing more to do. Returns cycles/s and latency percentiles.
+    """
+    lats: list[dict[str, list[float]]] = [{} for _ in range(workers)]
+    counts = [0] * workers
+    deadline = time.perf_counter() + seconds
+
+    def loop(i: int) -> None:
+        while time.perf_counter() < deadline:
+            if not cycle(session, i, lats[i]):
+                return
+            counts[i] += 1
+
+    threads = [threading.Thread(target=loop, args=(i,)) for i in range(workers)]
+    start = time.perf_counter()
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    elapsed = time.perf_counter() - start
+    merged: dict[str, list[float]] = {}
+    for per_thread in lats:
+        for name, values in per_thread.items():
+            merged.setdefault(name, []).extend(values)
+    return {"cycles": sum(counts), "seconds": round(elapsed, 3), "cycles_per_s": round(sum(counts) / elapsed, 1),
+            "latency": {name: _percentiles(v) for name, v in sorted(merged.items())}}
+
+
+def _timed(lats: dict[str, list[float]], name: str, fn: Callable[[], bytes]) -> bytes:
+    t0 = time.perf_counter()
+    out = fn()
+    lats.setdefault(name, []).append(time.perf_counter() - t0)
+    return out
+
+
+def _phase_raw(cfg: BenchConfig, endpoint: str) -> dict[str, Any]:
+    key = "bench/echo"
+    child = _Child("echo", "--listen", endpoint, "--key", key)
+    session = transport.open_session(connect=[endpoint])
+    try:
+        payload = protocol.LeaseRequest(worker_id="bench-0").to_json()
+        transport.query(session, key, payload, timeout=30)  # connected and routed before the clock starts
+
+        def cycle(s: zenoh.Session, i: int, lats: dict[str, list[float]]) -> bool:
+            _timed(lats, "query", lambda: transport.query(s, key, payload, timeout=10))
+            return True
+
+        return _drive(cfg.workers, cfg.seconds, cycle, session)
+    finally:
+        session.close()
+        child.stop()
+
+
+def _tiny_episode(request_id: str) -> bytes:
+    meta = EpisodeMeta(episode_id=uuid.uuid4().hex, task="push", shape="box", physics=dict(_START["physics"]),
+                       seed=0, policy="push", start_state=dict(_START), image_size=8, request_id=request_id,
+                       worker_id="bench")
+    return encode_episode(Episode(meta, np.zeros((2, 8, 8, 3), np.uint8), np.zeros((2, 2), np.float32),
+                                  np.zeros((2, 11), np.float64)))
+
+
+def _fill(data_dir: Path, n: int, max_attempts: int) -> list[str]:
+    """Enqueue ``n`` requests directly in the service's database (before it starts); their ids."""
+    catalog = Catalog(data_dir)
+    with RequestQueue(catalog.db_path) as queue:
+        news = [NewRequest(task="push", shape="box", start_state=dict(_START), steps=2, max_attempts=max_attempts)
+                for _ in range(n)]
+        return [r.id for r, _ in queue.enqueue_many(news)]
+
+
+def _lease(s: zenoh.Session, keys: Keys, msg: bytes, lats: dict[str, list[float]]) -> dict[str, Any] | None:
+    try:
+        body = protocol.parse_reply(_timed(lats, "lease", lambda: transport.query(s, keys.lease, msg, timeout=10)))
+    except protocol.ProtocolError as exc:
+        if exc.code == protocol.ErrorCode.NO_WORK:
+            return None
+        raise
+    return body["grant"]
+
+
+def _phase_dispatch(cfg: BenchConfig, endpoint: str, data_dir: Path) -> dict[str, Any]:
+    namespace = "bench"
+    keys = Keys(namespace)
+    _fill(data_dir, cfg.dispatch_requests, protocol.MAX_ATTEMPTS)
+    child = _Child("service", "--listen", endpoint, "--namespace", namespace, "--data", str(data_dir),
+                   "--lease-s", str(cfg.lease_s))
+    session = transport.open_session(connect=[endpoint])
+    try:
+        transport.query(session, keys.admin("stats"), timeout=30)
+        lease_msgs = [protocol.LeaseRequest(worker_id=f"bench-{i}").to_json() for i in range(cfg.workers)]
+
+        def cycle(s: zenoh.Session, i: int, lats: dict[str, list[float]]) -> bool:
+            t0 = time.perf_counter()
+            grant = _lease(s, keys, lease_msgs[i], lats)
+            if grant is None:
+                return False
+            msg = protocol.FailRequest(request_id=grant["request_id"], token=grant["token"],
+                                       worker_id=f"bench-{i}", error="bench: give back").to_json()
+            protocol.parse_reply(_timed(lats, "fail", lambda: transport.query(s, keys.fail, msg, timeout=10)))
+            lats.setdefault("cycle", []).append(time.perf_counter() - t0)
+            return True
+
+        return _drive(cfg.workers, cfg.seconds, cycle, session)
+    finally:
+        session.close()
+        child.stop()
+
+
+def _phase_upload(cfg: BenchConfig, endpoint: str, data_dir: Path) -> dict[str, Any]:
+    namespace = "benchup"
+    keys = Keys(namespace)
+    ids = _fill(data_dir, cfg.upload_requests, 3)
+    episodes = {rid: _tiny_episode(rid) for rid in ids}
+    child = _Child("service", "--listen", endpoint, "--namespace", namespace, "--data", str(data_dir),
+                   "--lease-s", str(cfg.lease_s))
+    session = transport.open_session(connect=[endpoint])
+    try:
+        transport.query(session, keys.admin("stats"), timeout=30)
+        lease_msgs = [protocol.LeaseRequest(worker_id=f"bench-{i}").to_json() for i in range(cfg.workers)]
+
+        def cycle(s: zenoh.Session, i: int, lats: dict[str, list[float]]) -> bool:
+            t0 = time.perf_counter()
+            grant = _lease(s, keys, lease_msgs[i], lats)
+            if grant is None:
+                return False
+            data = episodes[grant["request_id"]]
+            header = protocol.UploadHeader.for_payload(data, request_id=grant["request_id"], token=grant["token"],
+                                                       worker_id=f"bench-{i}").to_json()
+            protocol.parse_reply(_timed(lats, "upload",
+                                        lambda: transport.query(s, keys.upload, data, header, timeout=30)))
+            lats.setdefault("cycle", []).append(time.perf_counter() - t0)
+            return True
+
+        result = _drive(cfg.workers, cfg.seconds, cycle, session)
+        result["episode_bytes"] = len(next(iter(episodes.values())))
+        return result
+    finally:
+        session.close()
+        child.stop()
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def run(cfg: BenchConfig) -> dict[str, Any]:
+    """Run the three phases; a JSON-able result with the goal checks."""
+    with tempfile.TemporaryDirectory(prefix="activecollect-dispatch-") as tmp:
+        base = Path(cfg.data_dir) if cfg.data_dir is not None else Path(tmp)
+        raw = _phase_raw(cfg, f"tcp/127.0.0.1:{_free_port()}")
+        dispatch = _phase_dispatch(cfg, f"tcp/127.0.0.1:{_free_port()}", base / "dispatch")
+        upload = _phase_upload(cfg, f"tcp/127.0.0.1:{_free_port()}", base / "upload")
+    raw_p99 = raw["latency"]["query"]["p99_ms"]
+    lease_p99 = dispatch["latency"]["lease"]["p99_ms"]
+    return {
+        "workers": cfg.workers, "seconds_per_phase": cfg.seconds, "cpus": os.cpu_count(),
+        "raw_zenoh": raw, "dispatch_lease_fail": dispatch, "upload_lease_upload": upload,
+        "goals": {
+            "lease_round_trips_per_s": dispatch["cycles_per_s"], "lease_round_trips_goal": 2000,
+            "lease_p99_over_raw_p99": round(lease_p99 / raw_p99, 2) if raw_p99 else None,
+            "p99_ratio_goal": 5.0,
+        },
+    }
+
+
+def format_result(r: dict[str, Any]) -> str:
+    """Human-readable summary of :func:`run`'s result."""
+    lines = [f"dispatch benchmark: {r['workers']} clients, {r['seconds_per_phase']:g} s per phase, {r['cpus']} CPUs"]
+    for name, label in (("raw_zenoh", "raw Zenoh echo query"), ("dispatch_lease_fail", "lease -> fail (dispatch)"),
+                        ("upload_lease_upload", "lease -> upload (tiny MCAP)")):
+        phase = r[name]
+        lat = "  ".join(f"{k} p50 {v['p50_ms']:.3f} ms p99 {v['p99_ms']:.3f} ms"
+                        for k, v in phase["latency"].items() if v.get("n"))
+        lines.append(f"  {label:30} {phase['cycles_per_s']:9.1f} /s   {lat}")
+    g = r["goals"]
+    lines.append(f"  goals: {g['lease_round_trips_per_s']:.0f} lease round trips/s (goal >= "
+                 f"{g['lease_round_trips_goal']}), lease p99 = {g['lease_p99_over_raw_p99']}x raw p99 "
+                 f"(goal <= {g['p99_ratio_goal']:g}x)")
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> None:
+    """Child-process roles: ``echo`` and ``service`` (used by :func:`run`)."""
+    parser = argparse.ArgumentParser(prog="python -m orchestrator.dispatchbench")
+    parser.add_argument("role", choices=("echo", "service"))
+    parser.add_argument("--listen", required=True)
+    parser.add_argument("--key", default="bench/echo")
+    parser.add_argument("--namespace", default="bench")
+    parser.add_argument("--data", default=None)
+    parser.add_argument("--lease-s", type=float, default=60.0)
+    args = parser.parse_args(argv)
+    if args.role == "echo":
+        _serve_echo(args.listen, args.key)
+    else:
+        _serve_service(args.listen, args.namespace, args.data, args.lease_s)
+
+
+if __name__ == "__main__":
+    main()

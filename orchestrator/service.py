@@ -1,0 +1,503 @@
+"""The orchestrator service: the queue, the catalog and the planner behind Zenoh.
+
+``Service(ServiceConfig).start()`` opens a Zenoh session and answers:
+
+- ``NS/orch/lease | renew | upload | fail`` for workers (see ``orchestrator.protocol``);
+- ``NS/admin/**`` for operators and dashboards (``orchestrator.admin``);
+
+it watches the liveliness tokens ``NS/workers/*`` (a lost worker's leases go
+back to the queue at once), expires leases on a timer, and publishes what
+happens on ``NS/events/**``.
+
+Threads: Zenoh's own threads only enqueue queries; a small pool per key answers
+them (SQLite work, at most a few milliseconds). A maintenance thread reaps
+expired leases and handles liveliness changes. A background thread hands each
+stored episode to the planner and the ``on_episode`` callbacks, so scoring and
+planning never stall leasing.
+
+Every reply is ``protocol.ok_reply`` / ``error_reply`` bytes; a message that
+fails validation gets an error reply and changes nothing.
+"""
+
+from __future__ import annotations
+
+import logging
+import queue as queue_mod
+import threading
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import zenoh
+
+from orchestrator import admin, protocol, transport
+from orchestrator.metrics import ServiceMetrics
+from orchestrator.planner import Planner
+from orchestrator.protocol import ErrorCode, EventKind, Keys, ProtocolError
+from orchestrator.transport import Incoming, Response
+from storage.catalog import Catalog
+from storage.episodes import read_episode
+from storage.errors import EpisodeError, QueueError, StaleLeaseError, StorageError
+from storage.models import ModelRegistry
+from storage.queue import IllegalTransitionError, NewRequest, Request, RequestQueue, RequestStatus
+from storage.records import Episode
+
+log = logging.getLogger(__name__)
+
+
+class ServiceError(Exception):
+    """The service could not start (bad config, Zenoh or storage refused)."""
+
+
+@dataclass(frozen=True)
+class StoredEpisode:
+    """An episode a worker uploaded and the service stored, as the background callbacks get it."""
+
+    episode_id: str
+    """Catalog id of the episode."""
+    request_id: str
+    """The request it completed."""
+    worker_id: str
+    """The worker that collected it."""
+    episode: Episode
+    """The decoded episode (frames, actions, states, provenance)."""
+
+
+@dataclass
+class ServiceContext:
+    """What a planner factory or a callback may use: the service's storage, keys and event publisher."""
+
+    data_dir: Path
+    keys: Keys
+    queue: RequestQueue
+    catalog: Catalog
+    registry: ModelRegistry
+    metrics: ServiceMetrics
+    publish: Callable[[EventKind, dict[str, Any]], None]
+
+
+PlannerFactory = Callable[[ServiceContext], Planner]
+EpisodeCallback = Callable[[StoredEpisode], None]
+
+
+@dataclass
+class ServiceConfig:
+    """Everything ``activecollect serve`` decides."""
+
+    data_dir: Path
+    """Data directory: catalog.sqlite (episodes, requests, models) and episodes/."""
+    namespace: str = "activecollect"
+    """Prefix of every Zenoh key of this deployment."""
+    mode: str = "peer"
+    """Zenoh mode without a config file: peer or client."""
+    listen: tuple[str, ...] = ()
+    """Zenoh endpoints to listen on, e.g. tcp/127.0.0.1:7447."""
+    connect: tuple[str, ...] = ()
+    """Zenoh endpoints (routers, peers) to connect to."""
+    zenoh_config: Path | None = None
+    """A Zenoh JSON5 config file, passed through unchanged (listen/connect add endpoints)."""
+    lease_s: float = 30.0
+    """Lease length handed to workers; they renew well before it runs out."""
+    reap_interval_s: float = 1.0
+    """How often expired leases are looked for."""
+    max_upload_bytes: int = protocol.MAX_UPLOAD_BYTES
+    """Largest episode upload accepted."""
+    planner: PlannerFactory | None = None
+    """Builds the planner from the service context; None plans nothing (manual requests only)."""
+    seed_requests: int = 0
+    """Requests the planner seeds an empty queue with at start."""
+    on_episode: tuple[EpisodeCallback, ...] = ()
+    """Called in the background thread for every stored episode (after the planner)."""
+    handler_threads: int = 4
+    """Threads answering uploads (verify, fsync, index); admin queries get 2 more."""
+    inline_dispatch: bool = True
+    """Answer lease / renew / fail on Zenoh's own threads: each is one short SQLite transaction, and
+    skipping the hand-off to a Python thread gave ~40% more leases/s on 2 busy cores."""
+    metrics: ServiceMetrics | None = None
+    """Where to count; a fresh ServiceMetrics when None."""
+
+    def __post_init__(self) -> None:
+        self.data_dir = Path(self.data_dir)
+        self.listen, self.connect = tuple(self.listen), tuple(self.connect)
+        if self.zenoh_config is not None:
+            self.zenoh_config = Path(self.zenoh_config)
+        try:
+            Keys(self.namespace)
+        except ProtocolError as exc:
+            raise ServiceError(f"namespace: {exc.message}") from None
+        if self.mode not in transport.MODES:
+            raise ServiceError(f"mode: expected one of {transport.MODES}, found {self.mode!r}")
+        checks = [("lease_s", self.lease_s, 0.05, 86400.0), ("reap_interval_s", self.reap_interval_s, 0.01, 3600.0),
+                  ("max_upload_bytes", self.max_upload_bytes, 1, protocol.MAX_UPLOAD_BYTES),
+                  ("seed_requests", self.seed_requests, 0, 10_000), ("handler_threads", self.handler_threads, 1, 64)]
+        for name, value, lo, hi in checks:
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not lo <= value <= hi:
+                raise ServiceError(f"{name}: expected a number in [{lo}, {hi}], found {value!r}")
+        if not all(callable(cb) for cb in self.on_episode):
+            raise ServiceError("on_episode: expected callables")
+
+
+class Service:
+    """The orchestrator: ``start()`` serves until ``stop()``."""
+
+    def __init__(self, config: ServiceConfig) -> None:
+        self.config = config
+        self.keys = Keys(config.namespace)
+        self.metrics = config.metrics if config.metrics is not None else ServiceMetrics()
+        self.session: zenoh.Session | None = None
+        self.queue: RequestQueue | None = None
+        self.catalog: Catalog | None = None
+        self.context: ServiceContext | None = None
+        self.planner: Planner | None = None
+        self._servers: list[transport.Server] = []
+        self._liveliness_sub: Any = None
+        self._alive: set[str] = set()
+        self._alive_lock = threading.Lock()
+        self._tasks: queue_mod.Queue[Callable[[], None] | None] = queue_mod.Queue()
+        self._stored: queue_mod.Queue[StoredEpisode | None] = queue_mod.Queue()
+        self._threads: list[threading.Thread] = []
+        self._stopping = threading.Event()
+        # Queue writes from our own threads take turns here instead of inside SQLite, whose busy
+        # handler sleeps in steps of up to 100 ms: that was the p99 of a lease under load.
+        self._writes = threading.Lock()
+
+    # --- lifecycle -----------------------------------------------------------------------------
+
+    def start(self) -> None:
+        """Open storage and Zenoh and start answering. Raises ServiceError."""
+        cfg = self.config
+        try:
+            cfg.data_dir.mkdir(parents=True, exist_ok=True)
+            self.catalog = Catalog(cfg.data_dir)
+            self.queue = RequestQueue(self.catalog.db_path)
+            registry = ModelRegistry(cfg.data_dir)
+        except (StorageError, OSError) as exc:
+            raise ServiceError(f"cannot open the data directory {cfg.data_dir}: {exc}") from exc
+        self.context = ServiceContext(cfg.data_dir, self.keys, self.queue, self.catalog, registry,
+                                      self.metrics, self.publish)
+        try:
+            self.session = transport.open_session(cfg.mode, cfg.listen, cfg.connect, cfg.zenoh_config)
+        except transport.TransportError as exc:
+            raise ServiceError(str(exc)) from exc
+        if cfg.planner is not None:
+            self.planner = cfg.planner(self.context)
+            self._seed_queue()
+        self._threads = [threading.Thread(target=self._maintain, name="maintenance", daemon=True),
+                         threading.Thread(target=self._after_episodes, name="episodes", daemon=True)]
+        for t in self._threads:
+            t.start()
+        k, fast = self.keys, 0 if cfg.inline_dispatch else cfg.handler_threads
+        self._servers = [self._serve(k.lease, self._lease, fast), self._serve(k.renew, self._renew, fast),
+                         self._serve(k.fail, self._fail, fast),
+                         self._serve(k.upload, self._upload, cfg.handler_threads),
+                         self._serve(k.admin_all, self._admin, 2)]
+        self._liveliness_sub = self.session.liveliness().declare_subscriber(
+            k.workers_all, self._on_liveliness, history=True)
+        log.info("serving namespace %s (listen %s, connect %s, data %s)", cfg.namespace,
+                 list(cfg.listen), list(cfg.connect), cfg.data_dir)
+
+    def stop(self) -> None:
+        """Stop answering, finish the work in hand, close Zenoh and storage. Idempotent."""
+        if self._stopping.is_set():
+            return
+        self._stopping.set()
+        if self._liveliness_sub is not None:
+            self._liveliness_sub.undeclare()
+        for server in self._servers:
+            server.close()
+        self._tasks.put(None)
+        self._stored.put(None)
+        for t in self._threads:
+            t.join(timeout=30)
+        if self.session is not None:
+            self.session.close()
+        if self.queue is not None:
+            self.queue.close()
+        log.info("stopped")
+
+    def __enter__(self) -> Service:
+        self.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+    def workers(self) -> list[str]:
+        """Ids of the workers whose liveliness token is alive now."""
+        with self._alive_lock:
+            return sorted(self._alive)
+
+    def publish(self, kind: EventKind, data: dict[str, Any]) -> None:
+        """Publish one event on ``NS/events/<kind>`` (best effort: an event is a notification, not state).
+
+        ``data`` must be JSON-able with finite numbers. Encoded directly (an ``Event`` in wire form)
+        rather than through the validating dataclass: this runs on every lease.
+        """
+        if self.session is None or self.session.is_closed():
+            return
+        kind = EventKind(kind)
+        payload = protocol.encode({"v": protocol.PROTOCOL_VERSION, "kind": kind.value, "at": time.time(),
+                                   "data": data})
+        try:
+            self.session.put(self.keys.events(kind), payload)
+        except zenoh.ZError as exc:
+            log.warning("cannot publish %s: %s", kind.value, exc)
+
+    # --- query handlers ------------------------------------------------------------------------
+
+    def _serve(self, key: str, handler: Callable[[Incoming], bytes], threads: int) -> transport.Server:
+        """A Server for ``handler``: a ProtocolError becomes its error reply (and counts as a refusal)."""
+
+        def answer(msg: Incoming) -> Response:
+            try:
+                return Response(handler(msg))
+            except ProtocolError as exc:
+                self.metrics.refusal(exc.code.value)
+                log.info("refused %s: %s", msg.key, exc)
+                return Response(exc.reply())
+
+        def crashed(code: str, message: str) -> bytes:  # a bug in a handler: logged by the Server
+            self.metrics.refusal(code)
+            return protocol.error_reply(code, message)
+
+        return transport.Server(self.session, key, answer, threads, error_body=crashed)
+
+    def _lease(self, msg: Incoming) -> bytes:
+        req = protocol.LeaseRequest.from_json(msg.payload)
+        lease_s = self.config.lease_s
+        try:
+            with self._writes:
+                lease = self.queue.lease(req.worker_id, req.tasks, req.shapes, lease_s)
+        except QueueError as exc:
+            raise admin.protocol_error(exc) from exc
+        if lease is None:
+            return protocol.error_reply(ErrorCode.NO_WORK, "no queued request matches "
+                                        f"tasks={req.tasks or 'any'} shapes={req.shapes or 'any'}")
+        r = lease.request
+        # Built as a dict, not a LeaseGrant: the request was validated when it was queued, the
+        # worker validates the grant it receives, and dataclass round trips cost ~100 us per lease.
+        grant = {"request_id": r.id, "task": r.task, "shape": r.shape, "start_state": r.start_state,
+                 "policy": r.policy, "policy_params": r.policy_params, "action_prefix": r.action_prefix,
+                 "steps": r.steps, "model_version": str(r.reason.get("model_version") or ""),
+                 "token": lease.token, "expires_at": lease.expires_at, "lease_s": lease_s,
+                 "seed": protocol.request_seed(r.id, lease.token)}
+        self.metrics.lease()
+        self.publish(EventKind.REQUEST_LEASED, {"request_id": r.id, "worker_id": req.worker_id,
+                                                "token": lease.token, "shape": r.shape})
+        return protocol.ok_reply(grant=grant)
+
+    def _renew(self, msg: Incoming) -> bytes:
+        req = protocol.RenewRequest.from_json(msg.payload)
+        try:
+            with self._writes:
+                expires = self.queue.renew(req.request_id, req.token, req.worker_id, self.config.lease_s)
+        except QueueError as exc:
+            raise admin.protocol_error(exc) from exc
+        return protocol.ok_reply(expires_at=expires)
+
+    def _fail(self, msg: Incoming) -> bytes:
+        req = protocol.FailRequest.from_json(msg.payload)
+        try:
+            with self._writes:
+                request = self.queue.fail(req.request_id, req.token, req.error, worker_id=req.worker_id)
+        except QueueError as exc:
+            raise admin.protocol_error(exc) from exc
+        self._publish_lease_end(request, f"worker {req.worker_id} failed")
+        return protocol.ok_reply(status=request.status.value, attempts=request.attempts)
+
+    def _upload(self, msg: Incoming) -> bytes:
+        header = protocol.UploadHeader.from_json(msg.attachment)
+        try:
+            request = self.queue.get(header.request_id)
+        except QueueError as exc:
+            raise admin.protocol_error(exc) from exc
+        if self._is_duplicate(request, header):
+            self.metrics.upload("duplicate")
+            return protocol.duplicate_reply(request_id=request.id, episode_id=request.episode_id)
+        self._check_live(request, header)  # before a byte is written
+        if header.size > self.config.max_upload_bytes or len(msg.payload) > self.config.max_upload_bytes:
+            raise ProtocolError(ErrorCode.TOO_LARGE, f"payload: expected at most {self.config.max_upload_bytes} "
+                                f"bytes, found {max(header.size, len(msg.payload))}")
+        data = header.check_payload(msg.payload)
+        episode = self._decode(data, header)
+        try:
+            result = self.catalog.ingest_bytes(
+                data, expected_sha256=header.sha256, split="train",
+                in_transaction=lambda conn: self.queue.complete(
+                    header.request_id, header.token, episode.meta.episode_id, conn,
+                    worker_id=header.worker_id))
+        except (StaleLeaseError, IllegalTransitionError) as exc:
+            request = self.queue.get(header.request_id)  # a racing identical upload may have won
+            if self._is_duplicate(request, header):
+                self.metrics.upload("duplicate")
+                return protocol.duplicate_reply(request_id=request.id, episode_id=request.episode_id)
+            raise self._reject(admin.protocol_error(exc), header) from exc
+        except EpisodeError as exc:
+            raise self._reject(ProtocolError(ErrorCode.CORRUPT_EPISODE, str(exc)), header) from exc
+        except StorageError as exc:  # CatalogError: the id is indexed with other bytes
+            raise self._reject(ProtocolError(ErrorCode.BAD_FIELD, str(exc)), header) from exc
+        if result.duplicate:  # indexed before: by a racing identical upload, or for another request
+            if self._is_duplicate(self.queue.get(header.request_id), header):
+                self.metrics.upload("duplicate")
+                return protocol.duplicate_reply(request_id=header.request_id, episode_id=result.episode_id)
+            raise self._reject(ProtocolError(ErrorCode.BAD_FIELD, f"episode {result.episode_id} is already "
+                               "in the catalog for another request"), header)
+        self.metrics.upload("stored")
+        self.publish(EventKind.REQUEST_DONE, {"request_id": header.request_id, "worker_id": header.worker_id,
+                                              "episode_id": result.episode_id})
+        self.publish(EventKind.EPISODE_STORED, {"episode_id": result.episode_id, "request_id": header.request_id,
+                                                "shape": episode.meta.shape, "frames": len(episode)})
+        self._stored.put(StoredEpisode(result.episode_id, header.request_id, header.worker_id, episode))
+        return protocol.ok_reply(request_id=header.request_id, episode_id=result.episode_id)
+
+    def _is_duplicate(self, request: Request, header: protocol.UploadHeader) -> bool:
+        """A repeat of the upload that completed ``request``: same token, same bytes."""
+        if request.status != RequestStatus.DONE or request.token != header.token or not request.episode_id:
+            return False
+        row = self.catalog.find(request.episode_id)
+        return row is not None and row.sha256 == header.sha256
+
+    def _check_live(self, request: Request, header: protocol.UploadHeader) -> None:
+        if (request.status != RequestStatus.LEASED or request.token != header.token
+                or request.worker_id != header.worker_id):
+            raise self._reject(ProtocolError(
+                ErrorCode.STALE_TOKEN, f"upload {request.id}: expected the live lease, found token "
+                f"{header.token} from {header.worker_id} while the request is {request.status.value} "
+                f"with token {request.token} held by {request.worker_id}"), header)
+
+    def _decode(self, data: bytes, header: protocol.UploadHeader) -> Episode:
+        try:
+            episode = read_episode(data, name=f"upload for {header.request_id}")
+        except EpisodeError as exc:
+            raise self._reject(ProtocolError(ErrorCode.CORRUPT_EPISODE, str(exc)), header) from exc
+        if episode.meta.request_id != header.request_id:
+            raise self._reject(ProtocolError(
+                ErrorCode.BAD_FIELD, f"episode provenance: expected request_id {header.request_id}, "
+                f"found {episode.meta.request_id!r}"), header)
+        return episode
+
+    def _reject(self, exc: ProtocolError, header: protocol.UploadHeader) -> ProtocolError:
+        self.metrics.upload("refused")
+        self.publish(EventKind.EPISODE_REJECTED, {"request_id": header.request_id, "worker_id": header.worker_id,
+                                                  "error": exc.code.value, "message": exc.message[:500]})
+        return exc
+
+    def _admin(self, msg: Incoming) -> bytes:
+        op = self.keys.admin_op(msg.key)
+        if msg.payload:
+            request = protocol.AdminRequest.from_json(msg.payload)
+            if request.op != op:
+                raise ProtocolError(ErrorCode.BAD_FIELD, f"op: expected {op!r} (the key's op), found {request.op!r}")
+        else:
+            request = protocol.AdminRequest(op=op)
+        with self._writes:
+            body = admin.handle(request.op, request.args, queue=self.queue, catalog=self.catalog,
+                                registry=self.context.registry, workers=self.workers)
+        event = admin.admin_event(request.op, body)
+        if event is not None:
+            self.publish(EventKind(event.kind), admin.finite(event.data))
+        return protocol.ok_reply(**body)
+
+    # --- background ------------------------------------------------------------------------------
+
+    def _on_liveliness(self, sample: zenoh.Sample) -> None:
+        """Zenoh thread: note the change, leave the SQLite work to the maintenance thread."""
+        try:
+            worker_id = self.keys.worker_id(str(sample.key_expr))
+        except ProtocolError as exc:
+            log.warning("ignoring liveliness token %s: %s", sample.key_expr, exc)
+            return
+        joined = sample.kind == zenoh.SampleKind.PUT
+        with self._alive_lock:
+            (self._alive.add if joined else self._alive.discard)(worker_id)
+            self.metrics.set_workers_alive(len(self._alive))
+        if joined:
+            self.publish(EventKind.WORKER_JOINED, {"worker_id": worker_id})
+        else:
+            self._tasks.put(lambda: self._worker_lost(worker_id))
+
+    def _worker_lost(self, worker_id: str) -> None:
+        with self._alive_lock:
+            if worker_id in self._alive:  # it came back before we got here
+                return
+        with self._writes:
+            released = self.queue.release_worker_leases(worker_id)
+        log.info("worker %s lost; %d lease(s) released", worker_id, len(released))
+        self.publish(EventKind.WORKER_LOST, {"worker_id": worker_id, "released": [r.id for r in released]})
+        for request in released:
+            self._publish_lease_end(request, f"worker {worker_id} lost")
+
+    def _publish_lease_end(self, request: Request, why: str) -> None:
+        kind = EventKind.REQUEST_DEAD if request.status == RequestStatus.DEAD else EventKind.REQUEST_FAILED
+        self.publish(kind, {"request_id": request.id, "status": request.status.value,
+                            "attempts": request.attempts, "why": why, "error": (request.last_error or "")[:500]})
+
+    def _maintain(self) -> None:
+        """Reap expired leases every reap_interval_s; run liveliness tasks as they come."""
+        interval = self.config.reap_interval_s
+        next_reap = time.monotonic()
+        while True:
+            try:
+                task = self._tasks.get(timeout=max(0.0, next_reap - time.monotonic()))
+            except queue_mod.Empty:
+                task = self._reap
+                next_reap = time.monotonic() + interval
+            if task is None:
+                return
+            try:
+                task()
+            except StorageError:
+                log.exception("maintenance task failed; will try again")
+
+    def _reap(self) -> None:
+        with self._writes:
+            expired = self.queue.expire_leases()
+        for request in expired:
+            log.info("lease of %s expired (attempt %d)", request.id, request.attempts)
+            self._publish_lease_end(request, "lease expired")
+        self.metrics.set_queue_depth(self.queue.counts())
+        self.metrics.set_episodes({split: self.catalog.count(split=split) for split in admin.SPLITS})
+
+    def _seed_queue(self) -> None:
+        counts = self.queue.counts()
+        if self.config.seed_requests and counts["queued"] + counts["leased"] == 0:
+            self._enqueue(self.planner.seed(self.config.seed_requests), "seed")
+
+    def _enqueue(self, news: Sequence[NewRequest], source: str) -> None:
+        if not news:
+            return
+        with self._writes:
+            stored = self.queue.enqueue_many(news)
+        for request, created in stored:
+            if created:
+                self.publish(EventKind.REQUEST_QUEUED, {"request_id": request.id, "status": request.status.value,
+                                                        "priority": request.priority, "shape": request.shape,
+                                                        "source": source})
+
+    def _after_episodes(self) -> None:
+        """Background thread: the planner and on_episode callbacks, one batch of stored episodes at a time."""
+        while True:
+            batch = [self._stored.get()]
+            while not self._stored.empty():
+                batch.append(self._stored.get_nowait())
+            done = None in batch
+            batch = [b for b in batch if b is not None]
+            if batch:
+                self._handle_stored(batch)
+            if done:
+                return
+
+    def _handle_stored(self, batch: list[StoredEpisode]) -> None:
+        if self.planner is not None:
+            try:
+                self._enqueue(self.planner.plan([b.episode for b in batch]), self.planner.name)
+            except Exception:  # noqa: BLE001 -- a planner bug must not stop ingest; it is logged
+                log.exception("planner %s failed on %d episode(s)", self.planner.name, len(batch))
+        for stored in batch:
+            for callback in self.config.on_episode:
+                try:
+                    callback(stored)
+                except Exception:  # noqa: BLE001 -- one failing callback must not starve the others
+                    log.exception("on_episode callback %r failed for %s", callback, stored.episode_id)

@@ -1,0 +1,328 @@
+"""Zenoh plumbing shared by the service, the workers and the operator CLI.
+
+A leaf module: it imports nothing else of ours, so workers on any host can use
+it. It knows bytes, keys and endpoints, not the JSON messages riding on them
+(those are ``orchestrator.protocol``'s business).
+
+Two things about zenoh-python 1.x shape this module:
+
+- A query's *final* reply (the "no more replies" marker) is sent when the
+  ``zenoh.Query`` object is dropped. A query left alive in Python keeps the
+  querier waiting until its timeout, so :class:`Server` replies and then
+  drops every query explicitly, whatever the handler did.
+- A ``get`` towards a key nobody serves (yet) ends at once with no reply, and
+  a ``get`` whose queryable never answers ends at its timeout with a
+  ``ReplyError`` whose payload is ``Timeout``. :func:`request` turns both
+  into :class:`NoReplyError`; the first is retried until the deadline,
+  because declarations propagate asynchronously right after a session opens
+  or a peer reconnects.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import queue as queue_mod
+import threading
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import zenoh
+
+log = logging.getLogger(__name__)
+
+#: Encoding of error replies we send; zenoh's own errors (``Timeout``) carry another one.
+ERROR_ENCODING = "application/json"
+MODES = ("peer", "client")
+
+
+class TransportError(Exception):
+    """Root of every error raised by ``orchestrator.transport``."""
+
+
+class NoReplyError(TransportError):
+    """Nobody answered a query before its deadline (no service, or it is unreachable or stuck)."""
+
+
+class RemoteError(TransportError):
+    """The remote side answered with an error reply.
+
+    ``payload`` is the raw error body; ``code`` and ``message`` are read from it
+    when it is a JSON object (``{"code": ..., "message": ...}``, possibly nested
+    under ``"error"``), else ``code`` is ``"remote"`` and ``message`` the text.
+    """
+
+    def __init__(self, key: str, payload: bytes) -> None:
+        self.key = key
+        self.payload = payload
+        self.code, self.message = _parse_error(payload)
+        super().__init__(f"{key}: {self.code}: {self.message}")
+
+
+@dataclass(frozen=True)
+class Response:
+    """One successful reply: its payload and optional attachment."""
+
+    payload: bytes
+    attachment: bytes | None = None
+
+
+@dataclass(frozen=True)
+class Incoming:
+    """One query as a handler sees it: concrete key, payload, attachment."""
+
+    key: str
+    payload: bytes
+    attachment: bytes | None
+
+
+def _parse_error(payload: bytes) -> tuple[str, str]:
+    try:
+        body = json.loads(payload)
+    except (json.JSONDecodeError, UnicodeDecodeError):
+        return "remote", payload.decode("utf-8", "replace")
+    if isinstance(body, dict) and isinstance(body.get("error"), dict):
+        body = body["error"]
+    if isinstance(body, dict):
+        return str(body.get("error", body.get("code", "remote"))), str(body.get("message", body))
+    return "remote", str(body)
+
+
+def default_error_body(code: str, message: str) -> bytes:
+    """The body :class:`Server` answers with when a handler crashes or a key is a pattern.
+
+    The same shape as ``orchestrator.protocol.error_reply`` (this module may not import it).
+    """
+    return json.dumps({"v": 1, "ok": False, "error": code, "message": message}).encode()
+
+
+# --------------------------------------------------------------------------- config
+
+def make_config(mode: str = "peer", listen: Sequence[str] = (), connect: Sequence[str] = (),
+                config_file: str | Path | None = None) -> zenoh.Config:
+    """Build a Zenoh config.
+
+    With ``config_file`` the file (Zenoh's own JSON5 format: routers, TLS,
+    user/password, ACL) is used unchanged; ``listen``/``connect`` only add
+    endpoints to it and ``mode`` is ignored. Without it: ``mode`` (``peer`` or
+    ``client``), exactly the given endpoints, multicast scouting off (one
+    machine, explicit endpoints; nothing is discovered behind our back).
+
+    Raises ``TransportError`` for an unknown mode or a config file Zenoh refuses.
+    """
+    if config_file is not None:
+        try:
+            config = zenoh.Config.from_file(str(config_file))
+        except (zenoh.ZError, OSError, ValueError) as exc:
+            raise TransportError(f"cannot load Zenoh config {config_file}: {exc}") from exc
+        _add_endpoints(config, "listen", listen)
+        _add_endpoints(config, "connect", connect)
+        return config
+    if mode not in MODES:
+        raise TransportError(f"mode must be one of {MODES}, found {mode!r}")
+    if mode == "client" and not connect:
+        raise TransportError("client mode needs at least one connect endpoint, found none")
+    config = zenoh.Config()
+    try:
+        config.insert_json5("mode", json.dumps(mode))
+        config.insert_json5("scouting/multicast/enabled", "false")
+        config.insert_json5("listen/endpoints", json.dumps(list(listen)))
+        config.insert_json5("connect/endpoints", json.dumps(list(connect)))
+    except zenoh.ZError as exc:
+        raise TransportError(f"bad endpoint in listen={list(listen)} connect={list(connect)}: {exc}") from exc
+    return config
+
+
+def _add_endpoints(config: zenoh.Config, section: str, endpoints: Sequence[str]) -> None:
+    if not endpoints:
+        return
+    current = json.loads(config.get_json(f"{section}/endpoints") or "null")
+    if isinstance(current, dict):  # per-mode form: {"router": [...], "peer": [...], ...}
+        merged: list[str] | dict[str, list[str]] = {
+            k: list(v or []) + list(endpoints) for k, v in current.items()}
+    else:
+        merged = list(current or []) + list(endpoints)
+    try:
+        config.insert_json5(f"{section}/endpoints", json.dumps(merged))
+    except zenoh.ZError as exc:
+        raise TransportError(f"bad {section} endpoint in {list(endpoints)}: {exc}") from exc
+
+
+def open_session(mode: str = "peer", listen: Sequence[str] = (), connect: Sequence[str] = (),
+                 config_file: str | Path | None = None) -> zenoh.Session:
+    """Open a Zenoh session from :func:`make_config`'s arguments.
+
+    Raises ``TransportError`` when Zenoh cannot open it (port in use, bad endpoint).
+    """
+    config = make_config(mode, listen, connect, config_file)
+    try:
+        return zenoh.open(config)
+    except zenoh.ZError as exc:
+        raise TransportError(f"cannot open Zenoh session (listen={list(listen)}, "
+                             f"connect={list(connect)}, config={config_file}): {exc}") from exc
+
+
+# --------------------------------------------------------------------------- querying
+
+def request(session: zenoh.Session, key: str, payload: bytes = b"", attachment: bytes | None = None,
+            timeout: float = 5.0) -> Response:
+    """Send one query and return the first reply.
+
+    Waits up to ``timeout`` seconds in all. A query that reaches nobody is
+    re-sent with a short backoff until the deadline (declarations propagate
+    asynchronously); one that reaches a queryable is never re-sent.
+
+    Raises ``NoReplyError`` when nobody answers in time, ``RemoteError`` when
+    the answer is an error reply.
+    """
+    deadline = time.monotonic() + timeout
+    backoff = 0.02
+    while True:
+        remaining = deadline - time.monotonic()
+        if remaining <= 0:
+            raise NoReplyError(f"no reply on {key} within {timeout:g} s (is the service running "
+                               f"and reachable?)")
+        replies = session.get(key, payload=payload, attachment=attachment, timeout=remaining,
+                              consolidation=zenoh.ConsolidationMode.NONE)
+        got_any = False
+        for reply in replies:
+            got_any = True
+            if reply.ok is not None:
+                att = reply.ok.attachment
+                return Response(reply.ok.payload.to_bytes(), att.to_bytes() if att is not None else None)
+            err = reply.err
+            if str(err.encoding).startswith(ERROR_ENCODING):
+                raise RemoteError(key, err.payload.to_bytes())
+            raise NoReplyError(f"no reply on {key} within {timeout:g} s: "
+                               f"{err.payload.to_bytes().decode('utf-8', 'replace')}")
+        if got_any:  # only non-matching replies; treat like silence
+            continue
+        time.sleep(min(backoff, max(deadline - time.monotonic(), 0)))
+        backoff = min(backoff * 2, 0.25)
+
+
+def query(session: zenoh.Session, key: str, payload: bytes = b"", attachment: bytes | None = None,
+          timeout: float = 5.0) -> bytes:
+    """:func:`request` returning only the reply payload."""
+    return request(session, key, payload, attachment, timeout).payload
+
+
+# --------------------------------------------------------------------------- serving
+
+Handler = Callable[[Incoming], Response]
+
+
+class Server:
+    """A queryable whose queries are handled by a pool of Python threads.
+
+    The Zenoh callback only enqueues the query, so slow handlers (SQLite,
+    fsync) never block Zenoh's own threads. ``threads=0`` answers in the
+    callback itself instead: no hand-off, for handlers that take well under a
+    millisecond. Every query gets exactly one reply
+    and is dropped right after it: ``handler``'s ``Response``; if the handler
+    raised, an ordinary reply with body ``error_body("internal", why)`` (the
+    crash is logged with its traceback and the server stays up); if the key is
+    a pattern (``*``), which has no concrete key to reply on, an error reply
+    with body ``error_body("bad_field", why)`` (``RemoteError`` for
+    :func:`request`).
+    """
+
+    def __init__(self, session: zenoh.Session, key_expr: str, handler: Handler, threads: int = 2,
+                 error_body: Callable[[str, str], bytes] = default_error_body) -> None:
+        if threads < 0:
+            raise TransportError(f"threads must be >= 0, found {threads}")
+        self.key_expr = key_expr
+        self._handler = handler
+        self._error_body = error_body
+        self._queue: queue_mod.SimpleQueue[zenoh.Query | None] = queue_mod.SimpleQueue()
+        self._threads = [threading.Thread(target=self._run, name=f"serve:{key_expr}:{i}", daemon=True)
+                         for i in range(threads)]
+        for t in self._threads:
+            t.start()
+        # threads=0 answers on Zenoh's callback thread: no hand-off, for handlers of a few hundred us.
+        self._queryable = session.declare_queryable(key_expr, self._queue.put if threads else self._serve_one)
+
+    def close(self, timeout: float = 5.0) -> None:
+        """Undeclare the queryable and let the handler threads finish what they hold."""
+        try:
+            self._queryable.undeclare()
+        except zenoh.ZError as exc:  # the session may already be closed
+            log.debug("undeclare %s: %s", self.key_expr, exc)
+        for _ in self._threads:
+            self._queue.put(None)
+        for t in self._threads:
+            t.join(timeout)
+
+    def _run(self) -> None:
+        while True:
+            q = self._queue.get()
+            if q is None:
+                return
+            self._serve_one(q)
+
+    def _serve_one(self, q: zenoh.Query) -> None:
+        try:
+            key = str(q.key_expr)
+            if "*" in key or "$" in key:  # no concrete key to reply on: an error reply instead
+                q.reply_err(self._error_body("bad_field", f"expected a concrete key, found the pattern "
+                                             f"{key!r}"), encoding=ERROR_ENCODING)
+                return
+            response = self._answer(q)
+            q.reply(key, response.payload, attachment=response.attachment)
+        except zenoh.ZError as exc:  # the querier left or the session is closing
+            log.debug("cannot reply on %s: %s", q.key_expr, exc)
+        finally:
+            q.drop()  # sends the final reply now, not whenever Python collects it
+
+    def _answer(self, q: zenoh.Query) -> Response:
+        key = str(q.key_expr)
+        payload = q.payload.to_bytes() if q.payload is not None else b""
+        att = q.attachment.to_bytes() if q.attachment is not None else None
+        try:
+            return self._handler(Incoming(key, payload, att))
+        except Exception as exc:  # noqa: BLE001 -- boundary: one bad query must not take the service down
+            log.exception("handler for %s failed", key)
+            return Response(self._error_body("internal", f"{type(exc).__name__}: {exc}"))
+
+
+# --------------------------------------------------------------------------- command-line flags
+
+#: Where ``serve`` listens and everyone else connects when no endpoint or config file is given.
+DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
+
+
+def add_connection_args(parser: argparse.ArgumentParser, *, listen: bool = False, timeout: float = 5.0) -> None:
+    """The flags every process that talks Zenoh shares: endpoints, config file, namespace, timeout.
+
+    ``listen=True`` (the service) adds ``--listen``; ``--connect`` is always there.
+    """
+    if listen:
+        parser.add_argument("--listen", action="append", default=[], metavar="EP",
+                            help=f"Zenoh endpoint to listen on (repeatable; default {DEFAULT_ENDPOINT} "
+                                 "when no --connect or --zenoh-config is given)")
+    parser.add_argument("--connect", action="append", default=[], metavar="EP",
+                        help="Zenoh endpoint to connect to, e.g. tcp/10.0.0.5:7447 (repeatable"
+                             + ("" if listen else f"; default {DEFAULT_ENDPOINT} without --zenoh-config") + ")")
+    parser.add_argument("--zenoh-config", type=Path, default=None, metavar="FILE",
+                        help="Zenoh JSON5 config file, used unchanged (routers, TLS, passwords, ACL)")
+    parser.add_argument("--mode", choices=MODES, default="peer",
+                        help="Zenoh mode when no config file is given (default peer)")
+    parser.add_argument("--namespace", default="activecollect",
+                        help="key prefix of the deployment (default activecollect)")
+    parser.add_argument("--timeout", type=float, default=timeout, metavar="S",
+                        help=f"seconds to wait for a reply (default {timeout:g})")
+
+
+def endpoints_from_args(args: argparse.Namespace) -> tuple[tuple[str, ...], tuple[str, ...]]:
+    """(listen, connect) from :func:`add_connection_args` flags, defaults applied."""
+    listen = tuple(getattr(args, "listen", None) or ())
+    connect = tuple(args.connect or ())
+    if args.zenoh_config is None and not listen and not connect:
+        if hasattr(args, "listen"):
+            listen = (DEFAULT_ENDPOINT,)
+        else:
+            connect = (DEFAULT_ENDPOINT,)
+    return listen, connect

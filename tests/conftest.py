@@ -1,0 +1,167 @@
+"""Shared test fixtures: free ports, data dirs, real service/worker subprocesses, wait_for.
+
+Import the plain helpers with ``from tests.conftest import wait_for, free_port``;
+the fixtures are found by pytest on their own.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+import uuid
+from collections.abc import Callable, Iterator, Sequence
+from pathlib import Path
+from typing import TypeVar
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+T = TypeVar("T")
+
+
+def free_port() -> int:
+    """A TCP port on 127.0.0.1 that was free a moment ago."""
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def wait_for(condition: Callable[[], T], timeout: float = 10.0, interval: float = 0.02,
+             message: str = "condition") -> T:
+    """Poll ``condition`` until it returns something truthy; return that value.
+
+    Raises ``AssertionError`` naming ``message`` (and the last value seen) when
+    ``timeout`` seconds pass first.
+    """
+    deadline = time.monotonic() + timeout
+    last: T | None = None
+    while time.monotonic() < deadline:
+        last = condition()
+        if last:
+            return last
+        time.sleep(interval)
+    raise AssertionError(f"timed out after {timeout:g} s waiting for {message}; last value: {last!r}")
+
+
+@pytest.fixture
+def port() -> int:
+    return free_port()
+
+
+@pytest.fixture
+def endpoint(port: int) -> str:
+    """A loopback Zenoh endpoint with a free port, for one test's service to listen on."""
+    return f"tcp/127.0.0.1:{port}"
+
+
+@pytest.fixture
+def namespace() -> str:
+    """A namespace unique to the test, so nothing leaks between deployments."""
+    return f"t{uuid.uuid4().hex[:10]}"
+
+
+@pytest.fixture
+def data_dir(tmp_path: Path) -> Path:
+    d = tmp_path / "data"
+    d.mkdir()
+    return d
+
+
+class Proc:
+    """A subprocess started by :func:`spawn` with its combined output in a log file."""
+
+    def __init__(self, name: str, args: Sequence[str], log_path: Path, env: dict[str, str]) -> None:
+        self.name = name
+        self.args = list(args)
+        self.log_path = log_path
+        self._log = open(log_path, "wb")
+        self.popen = subprocess.Popen(self.args, stdout=self._log, stderr=subprocess.STDOUT,
+                                      cwd=REPO, env=env, start_new_session=True)
+
+    @property
+    def pid(self) -> int:
+        return self.popen.pid
+
+    def log(self) -> str:
+        if not self._log.closed:
+            self._log.flush()
+        return self.log_path.read_text(errors="replace")
+
+    def alive(self) -> bool:
+        return self.popen.poll() is None
+
+    def signal(self, sig: int) -> None:
+        if self.alive():
+            os.kill(self.popen.pid, sig)
+
+    def wait(self, timeout: float = 20.0) -> int:
+        """Wait for exit; return the exit code (raises subprocess.TimeoutExpired)."""
+        return self.popen.wait(timeout)
+
+    def stop(self, timeout: float = 10.0) -> int | None:
+        """SIGTERM, then SIGKILL if it does not exit in ``timeout``; close the log."""
+        if self.alive():
+            self.signal(signal.SIGCONT)  # a stopped process cannot act on SIGTERM
+            self.signal(signal.SIGTERM)
+            try:
+                self.popen.wait(timeout)
+            except subprocess.TimeoutExpired:
+                self.signal(signal.SIGKILL)
+                self.popen.wait(timeout)
+        self._log.close()
+        return self.popen.returncode
+
+
+@pytest.fixture
+def spawn(tmp_path: Path) -> Iterator[Callable[..., Proc]]:
+    """Factory ``spawn(name, *cli_args, module="orchestrator")`` running ``python -m MODULE *cli_args``.
+
+    Every process is stopped at teardown; a failing test prints their logs.
+    """
+    procs: list[Proc] = []
+    env = dict(os.environ, PYTHONUNBUFFERED="1", PYTHONPATH=str(REPO))
+
+    def _spawn(name: str, *cli_args: str, module: str = "orchestrator") -> Proc:
+        log_path = tmp_path / f"{name}.{len(procs)}.log"
+        proc = Proc(name, [sys.executable, "-m", module, *cli_args], log_path, env)
+        procs.append(proc)
+        return proc
+
+    yield _spawn
+    workers_first = sorted(reversed(procs), key=lambda p: not p.name.startswith("worker"))
+    for proc in workers_first:  # workers before the service they talk to
+        proc.stop()
+    for proc in procs:
+        sys.stdout.write(f"\n----- {proc.name} (pid {proc.pid}, rc {proc.popen.returncode}) -----\n")
+        sys.stdout.write(proc.log()[-4000:])
+
+
+@pytest.fixture
+def spawn_service(spawn: Callable[..., Proc], data_dir: Path, endpoint: str,
+                  namespace: str) -> Callable[..., Proc]:
+    """Factory ``spawn_service(*extra_args)``: ``activecollect serve`` on this test's endpoint and data dir."""
+
+    def _service(*extra: str, name: str = "service") -> Proc:
+        return spawn(name, "serve", "--data", str(data_dir), "--namespace", namespace,
+                     "--listen", endpoint, "--planner", "none", "--reap-interval-s", "0.2", *extra)
+
+    return _service
+
+
+@pytest.fixture
+def spawn_worker(spawn: Callable[..., Proc], endpoint: str, namespace: str) -> Callable[..., Proc]:
+    """Factory ``spawn_worker(worker_id, *extra_args)``: a worker connected to the test's service.
+
+    Runs ``python -m workers.agent`` (the same flags as ``activecollect worker``, without
+    importing the CLI's torch-heavy command groups, so it starts in about a second).
+    """
+
+    def _worker(worker_id: str, *extra: str) -> Proc:
+        return spawn(f"worker-{worker_id}", "--connect", endpoint, "--namespace", namespace,
+                     "--id", worker_id, "--size", "16", *extra, module="workers.agent")
+
+    return _worker

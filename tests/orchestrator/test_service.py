@@ -1,0 +1,352 @@
+"""orchestrator.service in-process, driven by a real Zenoh client session over loopback."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import threading
+from pathlib import Path
+from typing import Any
+
+import pytest
+import zenoh
+
+from orchestrator import protocol, transport
+from orchestrator.protocol import ErrorCode, Keys, LeaseGrant, ProtocolError
+from orchestrator.service import Service, ServiceConfig, ServiceError, StoredEpisode
+from storage.catalog import Catalog
+from storage.episodes import encode_episode
+from storage.queue import NewRequest, RequestQueue, RequestStatus
+from tests.conftest import wait_for
+from workers.collect import collect_episode
+
+START = {"shape": "box", "agent": [100.0, 100.0], "object": [256.0, 256.0, 0.3]}
+
+
+def new_request(shape: str = "box", **kw: Any) -> NewRequest:
+    return NewRequest(task="push", shape=shape, start_state={**START, "shape": shape}, policy="push",
+                      steps=kw.pop("steps", 5), **kw)
+
+
+@pytest.fixture
+def make_service(data_dir: Path, endpoint: str, namespace: str):
+    services: list[Service] = []
+
+    def make(**kw: Any) -> Service:
+        cfg = ServiceConfig(data_dir=data_dir, namespace=namespace, listen=(endpoint,),
+                            lease_s=kw.pop("lease_s", 30.0), reap_interval_s=kw.pop("reap_interval_s", 0.05), **kw)
+        service = Service(cfg)
+        service.start()
+        services.append(service)
+        return service
+
+    yield make
+    for service in services:
+        service.stop()
+
+
+@pytest.fixture
+def service(make_service) -> Service:
+    return make_service()
+
+
+@pytest.fixture
+def client(endpoint: str):
+    session = transport.open_session(connect=[endpoint])
+    yield session
+    session.close()
+
+
+@pytest.fixture
+def keys(namespace: str) -> Keys:
+    return Keys(namespace)
+
+
+def call(client: zenoh.Session, key: str, payload: bytes = b"", attachment: bytes | None = None) -> dict:
+    return protocol.parse_reply(transport.query(client, key, payload, attachment, timeout=10))
+
+
+def lease(client, keys, worker: str = "w1", **kw) -> LeaseGrant:
+    body = call(client, keys.lease, protocol.LeaseRequest(worker_id=worker, **kw).to_json())
+    return LeaseGrant.from_dict(body["grant"])
+
+
+def episode_bytes(grant: LeaseGrant, worker: str = "w1") -> bytes:
+    ep = collect_episode(start_state=grant.start_state, policy=grant.policy, policy_params=grant.policy_params,
+                         seed=grant.seed, steps=grant.steps, image_size=16, request_id=grant.request_id,
+                         worker_id=worker)
+    return encode_episode(ep)
+
+
+def upload(client, keys, grant: LeaseGrant, data: bytes, worker: str = "w1", **header_kw: Any) -> dict:
+    header = protocol.UploadHeader.for_payload(data, request_id=grant.request_id, token=grant.token,
+                                               worker_id=worker)
+    raw = {**header.to_dict(), **header_kw}
+    return call(client, keys.upload, data, protocol.encode({"v": 1, **raw}))
+
+
+def refused(code: ErrorCode, fn, *args, **kw) -> str:
+    with pytest.raises(ProtocolError) as info:
+        fn(*args, **kw)
+    assert info.value.code == code, info.value
+    return info.value.message
+
+
+def test_config_is_validated(data_dir: Path) -> None:
+    with pytest.raises(ServiceError, match="lease_s"):
+        ServiceConfig(data_dir=data_dir, lease_s=0)
+    with pytest.raises(ServiceError, match="namespace"):
+        ServiceConfig(data_dir=data_dir, namespace="a/*")
+    with pytest.raises(ServiceError, match="mode"):
+        ServiceConfig(data_dir=data_dir, mode="router")
+
+
+def test_lease_grants_the_best_matching_request_or_says_no_work(service, client, keys) -> None:
+    refused(ErrorCode.NO_WORK, lease, client, keys)
+    low, _ = service.queue.enqueue(new_request("box", priority=1.0))
+    high, _ = service.queue.enqueue(new_request("T", priority=5.0))
+    grant = lease(client, keys, shapes=["box"])
+    assert (grant.request_id, grant.token, grant.shape) == (low.id, 1, "box")
+    assert grant.seed == protocol.request_seed(low.id, 1) and grant.lease_s == 30.0
+    assert lease(client, keys, worker="w2").request_id == high.id
+    refused(ErrorCode.NO_WORK, lease, client, keys)
+    r = service.queue.get(low.id)
+    assert (r.status, r.worker_id) == (RequestStatus.LEASED, "w1")
+
+
+def test_upload_stores_indexes_and_completes_once(service, client, keys, data_dir) -> None:
+    request, _ = service.queue.enqueue(new_request())
+    grant = lease(client, keys)
+    data = episode_bytes(grant)
+    body = upload(client, keys, grant, data)
+    assert body["request_id"] == request.id and "duplicate" not in body
+    done = service.queue.get(request.id)
+    assert (done.status, done.episode_id) == (RequestStatus.DONE, body["episode_id"])
+    row = Catalog(data_dir).get(body["episode_id"])
+    assert row.sha256 == hashlib.sha256(data).hexdigest() and row.request_id == request.id
+    again = upload(client, keys, grant, data)  # e.g. the reply was lost and the worker retried
+    assert again == {**body, "duplicate": True}
+    assert Catalog(data_dir).count() == 1
+    assert len(list((data_dir / "episodes").rglob("*.mcap"))) == 1
+
+
+def test_concurrent_identical_uploads_store_one_episode(service, client, keys, data_dir) -> None:
+    service.queue.enqueue(new_request())
+    grant = lease(client, keys)
+    data = episode_bytes(grant)
+    results: list[dict] = []
+    threads = [threading.Thread(target=lambda: results.append(upload(client, keys, grant, data))) for _ in range(4)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert len(results) == 4 and len({r["episode_id"] for r in results}) == 1
+    assert sum(1 for r in results if not r.get("duplicate")) == 1
+    assert Catalog(data_dir).count() == 1
+
+
+def test_stale_token_upload_is_refused_before_anything_is_written(service, client, keys, data_dir) -> None:
+    service.queue.enqueue(new_request())
+    old = lease(client, keys, worker="slow")
+    data = episode_bytes(old, worker="slow")
+    call(client, keys.fail, protocol.FailRequest(request_id=old.request_id, token=old.token, worker_id="slow",
+                                                 error="boom").to_json())
+    new = lease(client, keys, worker="fast")
+    assert new.token == old.token + 1
+    message = refused(ErrorCode.STALE_TOKEN, upload, client, keys, old, data, worker="slow")
+    assert "token 1" in message
+    upload(client, keys, new, episode_bytes(new, worker="fast"), worker="fast")
+    assert service.queue.get(new.request_id).worker_id == "fast"
+    assert Catalog(data_dir).count() == 1
+
+
+@pytest.mark.parametrize("damage", ["truncated", "flipped", "not_mcap"])
+def test_corrupt_uploads_are_refused_and_nothing_is_indexed(service, client, keys, data_dir, damage) -> None:
+    service.queue.enqueue(new_request())
+    grant = lease(client, keys)
+    data = bytearray(episode_bytes(grant))
+    if damage == "truncated":
+        data = data[: len(data) // 2]
+    elif damage == "flipped":
+        data[len(data) // 2] ^= 0xFF
+    else:
+        data = bytearray(b"hello, this is not an episode" * 10)
+    message = refused(ErrorCode.CORRUPT_EPISODE, upload, client, keys, grant, bytes(data))
+    assert message
+    assert Catalog(data_dir).count() == 0
+    assert not list((data_dir / "episodes").rglob("*")) or not list((data_dir / "episodes").rglob("*.mcap"))
+    assert service.queue.get(grant.request_id).status == RequestStatus.LEASED  # still the worker's to fix
+
+
+def test_hash_size_and_provenance_mismatches_are_refused(service, client, keys, data_dir) -> None:
+    service.queue.enqueue(new_request())
+    other, _ = service.queue.enqueue(new_request())
+    grant = lease(client, keys)
+    data = episode_bytes(grant)
+    refused(ErrorCode.HASH_MISMATCH, upload, client, keys, grant, data, sha256="0" * 64)
+    refused(ErrorCode.BAD_FIELD, upload, client, keys, grant, data, size=len(data) + 1)
+    foreign = LeaseGrant.from_dict({**grant.to_dict(), "request_id": other.id})
+    message = refused(ErrorCode.BAD_FIELD, upload, client, keys, grant, episode_bytes(foreign))
+    assert "provenance" in message
+    assert Catalog(data_dir).count() == 0
+
+
+def test_oversized_upload_is_refused(make_service, client, keys, data_dir) -> None:
+    service = make_service(max_upload_bytes=1000)
+    service.queue.enqueue(new_request())
+    grant = lease(client, keys)
+    refused(ErrorCode.TOO_LARGE, upload, client, keys, grant, episode_bytes(grant))
+    assert Catalog(data_dir).count() == 0
+
+
+def test_renew_extends_a_live_lease_and_refuses_a_stale_one(make_service, client, keys) -> None:
+    service = make_service(lease_s=2.0)
+    service.queue.enqueue(new_request())
+    grant = lease(client, keys)
+    msg = protocol.RenewRequest(request_id=grant.request_id, token=grant.token, worker_id="w1").to_json()
+    assert call(client, keys.renew, msg)["expires_at"] >= grant.expires_at
+    wrong = protocol.RenewRequest(request_id=grant.request_id, token=grant.token, worker_id="w2").to_json()
+    refused(ErrorCode.STALE_TOKEN, call, client, keys.renew, wrong)
+    unknown = protocol.RenewRequest(request_id="nope", token=1, worker_id="w1").to_json()
+    refused(ErrorCode.UNKNOWN_REQUEST, call, client, keys.renew, unknown)
+
+
+def test_fail_counts_attempts_until_dead(service, client, keys) -> None:
+    request, _ = service.queue.enqueue(new_request(max_attempts=2))
+    statuses = []
+    for _ in range(2):
+        grant = lease(client, keys)
+        body = call(client, keys.fail, protocol.FailRequest(request_id=grant.request_id, token=grant.token,
+                                                            worker_id="w1", error="sim exploded").to_json())
+        statuses.append((body["status"], body["attempts"]))
+    assert statuses == [("queued", 1), ("dead", 2)]
+    assert service.queue.get(request.id).last_error == "sim exploded"
+    refused(ErrorCode.NO_WORK, lease, client, keys)
+
+
+def test_expired_leases_are_reaped(make_service, client, keys) -> None:
+    service = make_service(lease_s=0.3)
+    request, _ = service.queue.enqueue(new_request())
+    lease(client, keys)
+    wait_for(lambda: service.queue.get(request.id).status == RequestStatus.QUEUED, timeout=10,
+             message="the expired lease goes back to the queue")
+    assert service.queue.get(request.id).attempts == 1
+    assert lease(client, keys, worker="w2").token == 2
+
+
+def test_lost_worker_releases_its_leases_at_once(service, client, keys, endpoint) -> None:
+    request, _ = service.queue.enqueue(new_request())
+    worker = transport.open_session(connect=[endpoint])
+    token = worker.liveliness().declare_token(keys.worker("w9"))
+    wait_for(lambda: "w9" in service.workers(), message="the service sees the worker")
+    grant = lease(worker, keys, worker="w9")
+    assert grant.request_id == request.id
+    token.undeclare()
+    worker.close()
+    wait_for(lambda: service.queue.get(request.id).status == RequestStatus.QUEUED, timeout=10,
+             message="the lost worker's lease is released (lease_s is 30 s)")
+    assert "w9" not in service.workers()
+    assert "worker w9 lost" in service.queue.get(request.id).last_error
+
+
+BAD_MESSAGES = {
+    "bad_json": b"{not json",
+    "bad_version": b'{"v": 2, "worker_id": "w1"}',
+    "no_version": b'{"worker_id": "w1"}',
+    "bad_field": b'{"v": 1, "worker_id": "w 1/*"}',
+    "unknown_field": b'{"v": 1, "worker_id": "w1", "extra": 1}',
+    "too_large": b'{"v": 1, "worker_id": "' + b"x" * (protocol.MAX_MESSAGE_BYTES + 10) + b'"}',
+    "empty": b"",
+    "array": b"[1, 2]",
+}
+
+
+@pytest.mark.parametrize("which", ["lease", "renew", "fail", "upload", "admin"])
+def test_malformed_messages_get_error_replies_and_change_nothing(service, client, keys, data_dir, which) -> None:
+    request, _ = service.queue.enqueue(new_request())
+    before = service.queue.get(request.id)
+    key = keys.admin("queue.add") if which == "admin" else getattr(keys, which)
+    for name, payload in BAD_MESSAGES.items():
+        if which == "upload":  # the header travels as the attachment
+            reply = transport.query(client, key, b"\x89MCAP0\r\n", payload, timeout=10)
+        else:
+            reply = transport.query(client, key, payload, timeout=10)
+        if which == "admin" and name == "empty":
+            continue  # an empty admin payload means "the key's op with no arguments" (refused below anyway)
+        with pytest.raises(ProtocolError) as info:
+            protocol.parse_reply(reply)
+        expected = {"bad_json", "bad_version", "bad_field", "too_large", "unknown_op"}
+        assert info.value.code.value in expected, (name, info.value)
+    assert service.queue.get(request.id) == before
+    assert service.queue.counts()["queued"] == 1 and Catalog(data_dir).count() == 0
+    assert lease(client, keys).request_id == request.id  # still serving
+
+
+def test_admin_ops_and_events(service, client, keys, namespace) -> None:
+    events: list[dict] = []
+    sub = client.declare_subscriber(keys.events_all, lambda s: events.append(json.loads(s.payload.to_bytes())))
+    spec = {"task": "push", "shape": "T", "start_state": {**START, "shape": "T"}, "idempotency_key": "k1"}
+    added = call(client, keys.admin("queue.add"), protocol.AdminRequest(op="queue.add", args=spec).to_json())
+    again = call(client, keys.admin("queue.add"), protocol.AdminRequest(op="queue.add", args=spec).to_json())
+    assert added["created"] and not again["created"] and added["request"]["id"] == again["request"]["id"]
+    rid = added["request"]["id"]
+    listed = call(client, keys.admin("queue.ls"))  # empty payload: the key's op, no arguments
+    assert [r["id"] for r in listed["requests"]] == [rid] and listed["counts"]["queued"] == 1
+
+    def op(name: str, **args: Any) -> dict:
+        return call(client, keys.admin(name), protocol.AdminRequest(op=name, args=args).to_json())
+
+    assert op("queue.prioritize", id=rid, priority=7.5)["request"]["priority"] == 7.5
+    assert op("queue.cancel", id=rid)["request"]["status"] == "cancelled"
+    assert op("queue.retry", id=rid)["request"]["status"] == "queued"
+    assert op("queue.show", id=rid)["request"]["start_state"]["shape"] == "T"
+    refused(ErrorCode.UNKNOWN_REQUEST, op, "queue.show", id="nope")
+    assert op("stats")["requests"]["queued"] == 1
+    assert op("workers.ls") == {"workers": []}
+    wait_for(lambda: {e["kind"] for e in events} >= {"request.queued", "request.prioritized",
+                                                      "request.cancelled", "request.retried"},
+             message="admin events")
+    sub.undeclare()
+    with pytest.raises(transport.RemoteError):  # a pattern has no concrete key to answer on
+        transport.query(client, f"{namespace}/admin/*", timeout=5)
+
+
+def test_planner_and_callbacks_run_off_the_query_path(make_service, client, keys) -> None:
+    gate = threading.Event()
+    seen: list[StoredEpisode] = []
+
+    class OnePerEpisode:
+        name = "test"
+
+        def seed(self, n: int) -> list[NewRequest]:
+            return [new_request("disk") for _ in range(n)]
+
+        def plan(self, episodes) -> list[NewRequest]:
+            gate.wait(30)  # a slow scorer: leasing must not wait for it
+            return [new_request("L") for _ in episodes]
+
+    service = make_service(planner=lambda ctx: OnePerEpisode(), seed_requests=2, on_episode=(seen.append,))
+    assert service.queue.counts()["queued"] == 2
+    grant = lease(client, keys)
+    upload(client, keys, grant, episode_bytes(grant))
+    second = lease(client, keys)  # answered while the planner is still blocked
+    assert second.shape == "disk"
+    gate.set()
+    wait_for(lambda: len(seen) == 1, message="the on_episode callback ran")
+    assert seen[0].request_id == grant.request_id and seen[0].episode.frames.shape[1:] == (16, 16, 3)
+    wait_for(lambda: service.queue.counts()["queued"] == 1, message="the planner's request is queued")
+    assert lease(client, keys).shape == "L"
+
+
+def test_restart_keeps_everything_acknowledged(make_service, client, keys, data_dir) -> None:
+    service = make_service()
+    service.queue.enqueue(new_request())
+    grant = lease(client, keys)
+    upload(client, keys, grant, episode_bytes(grant))
+    service.stop()
+    service = make_service()
+    assert service.queue.get(grant.request_id).status == RequestStatus.DONE
+    assert Catalog(data_dir).count() == 1
+    q = RequestQueue(Catalog(data_dir).db_path)
+    assert q.counts()["done"] == 1
+    q.close()

@@ -1,0 +1,135 @@
+"""The operator CLI (queue, workers, stats, watch), ``activecollect worker`` and ``bench dispatch``."""
+
+from __future__ import annotations
+
+import json
+import threading
+from pathlib import Path
+
+import pytest
+
+from orchestrator import dispatchbench
+from orchestrator.cli import main
+from orchestrator.service import Service, ServiceConfig
+from storage.catalog import Catalog
+from storage.queue import RequestStatus
+from tests.conftest import free_port, wait_for
+from tests.orchestrator.test_service import new_request
+from workers.agent import WorkerError, parse_capabilities
+
+
+@pytest.fixture
+def service(data_dir: Path, endpoint: str, namespace: str):
+    svc = Service(ServiceConfig(data_dir=data_dir, namespace=namespace, listen=(endpoint,), reap_interval_s=0.1))
+    svc.start()
+    yield svc
+    svc.stop()
+
+
+@pytest.fixture
+def cli(endpoint: str, namespace: str, capsys):
+    """Run ``activecollect CMD...`` against the test's service; (exit code, stdout, stderr)."""
+
+    def run(*argv: str) -> tuple[int, str, str]:
+        rc = main([*argv, "--connect", endpoint, "--namespace", namespace, "--timeout", "10"])
+        out = capsys.readouterr()
+        return rc, out.out, out.err
+
+    return run
+
+
+def test_queue_commands_round_trip(service, cli) -> None:
+    rc, out, _ = cli("queue", "add", "--shape", "T", "--seed", "3", "--steps", "7", "--priority", "2",
+                     "--idempotency-key", "op-1", "--json")
+    assert rc == 0
+    added = json.loads(out)
+    rid = added["request"]["id"]
+    assert added["created"] and added["request"]["steps"] == 7
+    rc, out, _ = cli("queue", "add", "--shape", "T", "--idempotency-key", "op-1")
+    assert rc == 0 and "already queued" in out
+    rc, out, _ = cli("queue", "ls")
+    assert rc == 0 and rid in out and "queued=1" in out
+    rc, out, _ = cli("queue", "prioritize", rid, "9.5", "--json")
+    assert json.loads(out)["request"]["priority"] == 9.5
+    rc, out, _ = cli("queue", "cancel", rid)
+    assert rc == 0 and "cancelled" in out
+    rc, out, _ = cli("queue", "ls", "--status", "cancelled", "--json")
+    assert [r["id"] for r in json.loads(out)["requests"]] == [rid]
+    rc, out, _ = cli("queue", "retry", rid)
+    assert rc == 0 and service.queue.get(rid).status == RequestStatus.QUEUED
+    rc, out, _ = cli("queue", "show", rid)
+    assert rc == 0 and '"shape": "T"' in out and "idempotency_key: op-1" in out
+
+
+def test_refusals_and_usage_errors(service, cli) -> None:
+    rc, _, err = cli("queue", "show", "no-such-id")
+    assert rc == 1 and err.count("\n") == 1 and "unknown_request" in err
+    rc, _, err = cli("queue", "add", "--shape", "T", "--start-state", '{"shape": "T", "agent": [1, 2]}')
+    assert rc == 1 and "bad_field" in err
+    with pytest.raises(SystemExit) as info:
+        cli("queue", "add", "--shape", "hexagon")
+    assert info.value.code == 2
+
+
+def test_stats_workers_and_watch(service, cli, endpoint, namespace, capsys) -> None:
+    rc, out, _ = cli("stats")
+    assert rc == 0 and "requests: queued=0" in out and "episodes: " in out
+    rc, out, _ = cli("workers", "ls", "--json")
+    assert rc == 0 and json.loads(out) == {"workers": []}
+
+    result: dict = {}
+
+    def watch() -> None:
+        result["rc"] = main(["watch", "--count", "1", "--json", "--connect", endpoint, "--namespace", namespace])
+
+    t = threading.Thread(target=watch)
+    t.start()
+    # keep adding until the watcher (which subscribes after its first query) has seen one
+    n = 0
+    while t.is_alive() and n < 200:
+        service.publish("request.queued", {"request_id": f"r{n}", "source": "test"})
+        t.join(0.05)
+        n += 1
+    t.join(10)
+    assert result.get("rc") == 0
+    event = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert event["kind"] == "request.queued" and event["data"]["source"] == "test"
+
+
+@pytest.mark.parametrize("argv", [["queue", "ls"], ["stats"], ["workers", "ls"], ["watch"],
+                                  ["queue", "cancel", "abc"]])
+def test_no_service_is_one_line_and_exit_1(argv, namespace, capsys) -> None:
+    rc = main([*argv, "--connect", f"tcp/127.0.0.1:{free_port()}", "--namespace", namespace, "--timeout", "0.3"])
+    err = capsys.readouterr().err
+    assert rc == 1 and err.count("\n") == 1 and "no orchestrator answered" in err
+
+
+def test_parse_capabilities() -> None:
+    assert parse_capabilities("push:T,box") == (("push",), ("T", "box"))
+    assert parse_capabilities("T, L") == ((), ("T", "L"))
+    assert parse_capabilities("push") == (("push",), ())
+    assert parse_capabilities("") == ((), ())
+    with pytest.raises(WorkerError, match="hexagon"):
+        parse_capabilities("push:hexagon")
+
+
+def test_activecollect_worker_once_collects_and_uploads(service, spawn, endpoint, namespace, data_dir) -> None:
+    request, _ = service.queue.enqueue(new_request("disk", steps=6))
+    proc = spawn("worker-cli", "worker", "--connect", endpoint, "--namespace", namespace, "--id", "cli-w",
+                 "--capabilities", "push:disk", "--once", "--size", "16")
+    assert proc.wait(120) == 0, proc.log()
+    done = service.queue.get(request.id)
+    assert (done.status, done.worker_id) == (RequestStatus.DONE, "cli-w")
+    ep = Catalog(data_dir).load(done.episode_id)
+    assert ep.meta.request_id == request.id and ep.frames.shape == (6, 16, 16, 3)
+    wait_for(lambda: "cli-w" not in service.workers(), message="the worker's token goes when it exits")
+
+
+def test_dispatch_bench_runs_every_phase(tmp_path) -> None:
+    result = dispatchbench.run(dispatchbench.BenchConfig(workers=2, seconds=0.3, dispatch_requests=20,
+                                                         upload_requests=20, data_dir=tmp_path))
+    for phase in ("raw_zenoh", "dispatch_lease_fail", "upload_lease_upload"):
+        assert result[phase]["cycles"] > 0, phase
+    assert set(result["dispatch_lease_fail"]["latency"]) == {"lease", "fail", "cycle"}
+    assert "lease_p99_over_raw_p99" in result["goals"]
+    assert "lease -> fail" in dispatchbench.format_result(result)

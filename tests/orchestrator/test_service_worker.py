@@ -1,0 +1,87 @@
+"""The worker agent as a real subprocess against an in-process service: renew, drain, give back, late service."""
+
+from __future__ import annotations
+
+import signal
+from pathlib import Path
+
+import pytest
+
+from orchestrator.service import Service, ServiceConfig
+from storage.catalog import Catalog
+from storage.queue import RequestStatus
+from tests.conftest import wait_for
+from tests.orchestrator.test_service import new_request
+from workers.agent import WorkerConfig, WorkerError
+
+
+@pytest.fixture
+def start_service(data_dir: Path, endpoint: str, namespace: str):
+    services: list[Service] = []
+
+    def start(lease_s: float = 30.0) -> Service:
+        svc = Service(ServiceConfig(data_dir=data_dir, namespace=namespace, listen=(endpoint,), lease_s=lease_s,
+                                    reap_interval_s=0.05))
+        svc.start()
+        services.append(svc)
+        return svc
+
+    yield start
+    for svc in services:
+        svc.stop()
+
+
+def test_worker_config_is_validated() -> None:
+    with pytest.raises(WorkerError, match="worker_id"):
+        WorkerConfig(worker_id="a/b")
+    with pytest.raises(WorkerError, match="shapes"):
+        WorkerConfig(shapes=("hexagon",))
+    with pytest.raises(WorkerError, match="image_size"):
+        WorkerConfig(image_size=2)
+    assert WorkerConfig().worker_id  # <host>-<pid>
+
+
+def test_renewals_keep_a_lease_alive_past_lease_s(start_service, spawn_worker) -> None:
+    service = start_service(lease_s=0.6)
+    request, _ = service.queue.enqueue(new_request(steps=20))  # 2 s of paced collection > 3 leases
+    w = spawn_worker("R", "--realtime", "1", "--once")
+    assert w.wait(60) == 0, w.log()
+    done = service.queue.get(request.id)
+    assert (done.status, done.attempts, done.token) == (RequestStatus.DONE, 0, 1)
+
+
+def test_sigterm_drains_the_current_request(start_service, spawn_worker, data_dir) -> None:
+    service = start_service()
+    request, _ = service.queue.enqueue(new_request(steps=20))
+    other, _ = service.queue.enqueue(new_request(steps=5))
+    w = spawn_worker("D", "--realtime", "1")
+    wait_for(lambda: service.queue.get(request.id).status == RequestStatus.LEASED, timeout=30,
+             message="the worker leases the first request")
+    w.signal(signal.SIGTERM)
+    assert w.wait(30) == 0, w.log()
+    assert service.queue.get(request.id).status == RequestStatus.DONE  # finished, not dropped
+    assert service.queue.get(other.id).status == RequestStatus.QUEUED  # and took nothing new
+    assert Catalog(data_dir).count() == 1
+
+
+def test_second_sigterm_gives_the_request_back(start_service, spawn_worker) -> None:
+    service = start_service()
+    request, _ = service.queue.enqueue(new_request(steps=100))  # 10 s of paced collection
+    w = spawn_worker("G", "--realtime", "1")
+    wait_for(lambda: service.queue.get(request.id).status == RequestStatus.LEASED, timeout=30,
+             message="the worker leases the request")
+    w.signal(signal.SIGTERM)
+    wait_for(lambda: "draining" in w.log(), message="the first signal is taken")  # two at once merge into one
+    w.signal(signal.SIGTERM)
+    assert w.wait(30) == 0, w.log()
+    back = service.queue.get(request.id)
+    assert back.status == RequestStatus.QUEUED and "worker stopped" in back.last_error
+
+
+def test_worker_started_before_the_service_waits_and_then_works(start_service, spawn_worker) -> None:
+    w = spawn_worker("E", "--max-episodes", "1")
+    wait_for(lambda: "worker E up" in w.log(), timeout=30, message="the worker is up, no service yet")
+    service = start_service()
+    request, _ = service.queue.enqueue(new_request(steps=5))
+    assert w.wait(60) == 0, w.log()
+    assert service.queue.get(request.id).status == RequestStatus.DONE

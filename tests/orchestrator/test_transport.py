@@ -1,0 +1,189 @@
+"""orchestrator.transport on real Zenoh sessions over loopback."""
+
+from __future__ import annotations
+
+import json
+import threading
+import time
+
+import pytest
+import zenoh
+
+from orchestrator import transport
+from orchestrator.transport import Incoming, NoReplyError, RemoteError, Response, Server
+from tests.conftest import wait_for
+
+
+@pytest.fixture
+def pair(endpoint: str):
+    """A listening 'service' session and a connected 'client' session."""
+    server = transport.open_session(listen=[endpoint])
+    client = transport.open_session(connect=[endpoint])
+    yield server, client
+    client.close()
+    server.close()
+
+
+def test_make_config_is_explicit_peer_without_multicast(endpoint: str) -> None:
+    config = transport.make_config(listen=[endpoint], connect=["tcp/127.0.0.1:1"])
+    assert json.loads(config.get_json("mode")) == "peer"
+    assert json.loads(config.get_json("scouting/multicast/enabled")) is False
+    assert json.loads(config.get_json("listen/endpoints")) == [endpoint]
+    assert json.loads(config.get_json("connect/endpoints")) == ["tcp/127.0.0.1:1"]
+
+
+def test_make_config_rejects_unknown_mode_and_lonely_client() -> None:
+    with pytest.raises(transport.TransportError, match="mode must be one of"):
+        transport.make_config(mode="router")
+    with pytest.raises(transport.TransportError, match="client mode needs"):
+        transport.make_config(mode="client")
+
+
+def test_config_file_passes_through_and_flags_add_endpoints(tmp_path, endpoint: str) -> None:
+    path = tmp_path / "zenoh.json5"
+    path.write_text("""{
+      // a standard Zenoh config, as an operator would write it
+      mode: "client",
+      connect: { endpoints: ["tcp/10.0.0.1:7447"] },
+      scouting: { multicast: { enabled: true } },
+    }""")
+    config = transport.make_config(connect=[endpoint], config_file=path)
+    assert json.loads(config.get_json("mode")) == "client"
+    assert json.loads(config.get_json("scouting/multicast/enabled")) is True  # the file wins
+    assert json.loads(config.get_json("connect/endpoints")) == ["tcp/10.0.0.1:7447", endpoint]
+
+
+def test_bad_config_file_is_a_transport_error(tmp_path) -> None:
+    path = tmp_path / "broken.json5"
+    path.write_text("{ mode: ")
+    with pytest.raises(transport.TransportError, match="cannot load Zenoh config"):
+        transport.make_config(config_file=path)
+
+
+def test_request_round_trip_with_attachment_and_large_payload(pair) -> None:
+    server_session, client = pair
+    seen: list[Incoming] = []
+
+    def echo(msg: Incoming) -> Response:
+        seen.append(msg)
+        return Response(msg.payload[::-1], attachment=msg.attachment)
+
+    server = Server(server_session, "t/echo", echo)
+    try:
+        reply = transport.request(client, "t/echo", b"abc", attachment=b"hdr", timeout=5)
+        assert reply == Response(b"cba", b"hdr")
+        big = bytes(range(256)) * 8192  # 2 MiB: fragmented by Zenoh
+        assert transport.query(client, "t/echo", big, timeout=10) == big[::-1]
+        assert seen[0].key == "t/echo" and seen[0].attachment == b"hdr"
+    finally:
+        server.close()
+
+
+def test_no_reply_when_nobody_serves_the_key(pair) -> None:
+    _, client = pair
+    start = time.monotonic()
+    with pytest.raises(NoReplyError, match="no reply on t/nobody"):
+        transport.query(client, "t/nobody", b"x", timeout=0.3)
+    assert time.monotonic() - start < 5
+
+
+def test_no_reply_when_the_queryable_never_answers(pair) -> None:
+    server_session, client = pair
+    held: list[zenoh.Query] = []
+    queryable = server_session.declare_queryable("t/stuck", held.append)
+    try:
+        with pytest.raises(NoReplyError, match="Timeout"):
+            transport.query(client, "t/stuck", b"x", timeout=1.0)
+        assert held, "the query reached the queryable"
+    finally:
+        for q in held:
+            q.drop()
+        queryable.undeclare()
+
+
+def test_handler_crashes_get_an_internal_error_reply_and_the_server_stays_up(pair) -> None:
+    server_session, client = pair
+
+    def handler(msg: Incoming) -> Response:
+        if msg.payload == b"crash":
+            raise ZeroDivisionError("boom")
+        return Response(b"fine")
+
+    server = Server(server_session, "t/h", handler)
+    try:
+        body = json.loads(transport.query(client, "t/h", b"crash"))
+        assert body["ok"] is False and body["error"] == "internal" and "ZeroDivisionError" in body["message"]
+        assert transport.query(client, "t/h", b"ok") == b"fine"
+    finally:
+        server.close()
+
+
+def test_remote_error_replies_become_remote_error(pair) -> None:
+    server_session, client = pair
+    body = json.dumps({"v": 1, "ok": False, "error": "bad", "message": "no thanks"}).encode()
+    queryable = server_session.declare_queryable(
+        "t/e", lambda q: q.reply_err(body, encoding=transport.ERROR_ENCODING))
+    try:
+        with pytest.raises(RemoteError) as info:
+            transport.query(client, "t/e", b"x")
+        assert (info.value.code, info.value.message) == ("bad", "no thanks")
+    finally:
+        queryable.undeclare()
+
+
+def test_wildcard_queries_are_refused_before_the_handler_runs(pair) -> None:
+    server_session, client = pair
+    calls: list[str] = []
+    server = Server(server_session, "t/admin/**", lambda m: calls.append(m.key) or Response(b"x"))
+    try:
+        assert transport.query(client, "t/admin/stats") == b"x"
+        with pytest.raises(RemoteError) as info:
+            transport.query(client, "t/admin/*")
+        assert info.value.code == "bad_field"
+        assert calls == ["t/admin/stats"]
+    finally:
+        server.close()
+
+
+@pytest.mark.parametrize("threads", [0, 3])  # 0: answered on Zenoh's callback thread
+def test_concurrent_requests_all_get_their_own_reply(pair, threads: int) -> None:
+    server_session, client = pair
+    server = Server(server_session, "t/inc", lambda m: Response(str(int(m.payload) + 1).encode()), threads=threads)
+    results: dict[int, int] = {}
+
+    def call(i: int) -> None:
+        results[i] = int(transport.query(client, "t/inc", str(i).encode()))
+
+    try:
+        threads = [threading.Thread(target=call, args=(i,)) for i in range(40)]
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join()
+        assert results == {i: i + 1 for i in range(40)}
+    finally:
+        server.close()
+
+
+def test_request_waits_for_a_service_that_starts_late(endpoint: str) -> None:
+    client = transport.open_session(connect=[endpoint])
+    server_session = transport.open_session(listen=[endpoint])
+    server = Server(server_session, "t/late", lambda m: Response(b"here"))
+    try:
+        assert transport.query(client, "t/late", timeout=15) == b"here"
+    finally:
+        server.close()
+        server_session.close()
+        client.close()
+
+
+def test_liveliness_token_loss_is_seen(pair) -> None:
+    server_session, client = pair
+    events: list[tuple[str, bool]] = []
+    sub = server_session.liveliness().declare_subscriber(
+        "t/workers/*", lambda s: events.append((str(s.key_expr), s.kind == zenoh.SampleKind.PUT)), history=True)
+    token = client.liveliness().declare_token("t/workers/w1")
+    wait_for(lambda: ("t/workers/w1", True) in events, message="token appears")
+    token.undeclare()
+    wait_for(lambda: ("t/workers/w1", False) in events, message="token disappears")
+    sub.undeclare()

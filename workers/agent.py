@@ -1,0 +1,420 @@
+"""The worker agent: lease a collection request over Zenoh, collect it, upload the MCAP.
+
+Loop (``Worker.run``)::
+
+    lease -> reset the simulator to the start state, replay the action prefix, run the policy
+          -> encode MCAP (the request id in its provenance) -> upload -> next
+
+While an episode is being collected a background timer renews the lease every
+``lease_s / 3``. Transient failures (nobody answers: the service is restarting
+or unreachable) are retried with exponential backoff. Real failures are
+reported with ``fail``, which counts an attempt: the collection raised (for
+instance the request names a policy parameter this worker does not know --
+``policy_params: {"fail": true}`` is such a request, the documented way to
+make a *poison* request that fails on every worker), or the service refused
+the upload as corrupt. A lease that is no longer ours (the service says
+``stale_token``) is dropped without a word: someone else owns the request now.
+
+SIGTERM / SIGINT drain: the current request is finished and uploaded, then
+the worker exits; a second signal gives the current request back at once
+(``fail`` with "worker stopped") and exits.
+
+Imports only ``storage``, ``workers``, ``orchestrator.protocol`` and
+``orchestrator.transport`` -- the wire contract -- so it runs on any host.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import os
+import random
+import re
+import signal
+import socket
+import sys
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import zenoh
+
+from orchestrator import protocol, transport
+from orchestrator.protocol import ErrorCode, Keys, LeaseGrant, ProtocolError
+from storage.episodes import encode_episode
+from workers.collect import collect_episode
+from workers.env import CONTROL_HZ
+
+log = logging.getLogger("workers.agent")  # also when run as __main__
+
+
+class WorkerError(Exception):
+    """The worker could not start (bad config, Zenoh refused the session)."""
+
+
+def default_worker_id() -> str:
+    """``<host>-<pid>``, cut to the characters a key chunk may hold."""
+    return re.sub(r"[^A-Za-z0-9_.\-]", "-", f"{socket.gethostname()}-{os.getpid()}")[:128]
+
+
+@dataclass
+class WorkerConfig:
+    """Everything ``activecollect worker`` decides."""
+
+    worker_id: str = ""
+    """Unique id (liveliness key NS/workers/<id>); '' picks <host>-<pid>."""
+    namespace: str = "activecollect"
+    """Prefix of every Zenoh key of the deployment."""
+    mode: str = "peer"
+    """Zenoh mode without a config file: peer or client."""
+    listen: tuple[str, ...] = ()
+    """Zenoh endpoints to listen on (usually none for a worker)."""
+    connect: tuple[str, ...] = ()
+    """Zenoh endpoints of the service or routers."""
+    zenoh_config: Path | None = None
+    """A Zenoh JSON5 config file, passed through unchanged."""
+    tasks: tuple[str, ...] = ()
+    """Tasks this worker can do; empty means any."""
+    shapes: tuple[str, ...] = ()
+    """Object shapes this worker can do; empty means any."""
+    image_size: int = 64
+    """Camera frame side in pixels."""
+    max_episodes: int | None = None
+    """Exit after uploading this many episodes (None: run until stopped)."""
+    once: bool = False
+    """Handle at most one request, then exit; also exit at once if there is no work."""
+    realtime: float = 0.0
+    """Pace episodes like a real robot: 1.0 takes steps / control_hz seconds per episode; 0 = flat out."""
+    timeout_s: float = 10.0
+    """How long one query waits for the service's reply."""
+    idle_poll_s: float = 0.5
+    """Wait between lease attempts while the queue has no work for this worker."""
+    max_backoff_s: float = 5.0
+    """Longest wait between retries of a query nobody answered."""
+    upload_attempts: int = 8
+    """Uploads of one episode tried before giving up (the lease then expires on its own)."""
+
+    def __post_init__(self) -> None:
+        self.worker_id = self.worker_id or default_worker_id()
+        self.listen, self.connect = tuple(self.listen), tuple(self.connect)
+        self.tasks, self.shapes = tuple(self.tasks), tuple(self.shapes)
+        try:
+            self.keys = Keys(self.namespace)
+            protocol.check_id("worker_id", self.worker_id)
+            protocol.LeaseRequest(worker_id=self.worker_id, tasks=list(self.tasks), shapes=list(self.shapes))
+        except ProtocolError as exc:
+            raise WorkerError(exc.message) from None
+        if self.mode not in transport.MODES:
+            raise WorkerError(f"mode: expected one of {transport.MODES}, found {self.mode!r}")
+        if not 8 <= self.image_size <= 1024:
+            raise WorkerError(f"image_size: expected 8..1024 pixels, found {self.image_size}")
+        if self.max_episodes is not None and self.max_episodes < 1:
+            raise WorkerError(f"max_episodes: expected >= 1 or None, found {self.max_episodes}")
+        for name in ("realtime", "timeout_s", "idle_poll_s", "max_backoff_s"):
+            value = getattr(self, name)
+            if not value >= 0 or (name != "realtime" and value == 0):
+                raise WorkerError(f"{name}: expected a positive number, found {value!r}")
+        if self.upload_attempts < 1:
+            raise WorkerError(f"upload_attempts: expected >= 1, found {self.upload_attempts}")
+
+
+class _Renewer:
+    """Renews one lease every lease_s / 3 on its own thread until stopped; notes when it is lost."""
+
+    def __init__(self, call: Callable[[str, bytes], dict[str, Any]], key: str, grant: LeaseGrant,
+                 worker_id: str) -> None:
+        self._call, self._key, self._grant = call, key, grant
+        self._msg = protocol.RenewRequest(request_id=grant.request_id, token=grant.token,
+                                          worker_id=worker_id).to_json()
+        self._stop = threading.Event()
+        self.lost: str | None = None
+        self._thread = threading.Thread(target=self._run, name=f"renew:{grant.request_id}", daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        interval = max(self._grant.lease_s / 3.0, 0.01)
+        while not self._stop.wait(interval):
+            try:
+                self._call(self._key, self._msg)
+            except transport.TransportError as exc:  # transient: try again next tick
+                log.warning("renew %s: %s", self._grant.request_id, exc)
+            except ProtocolError as exc:
+                if exc.code in (ErrorCode.STALE_TOKEN, ErrorCode.UNKNOWN_REQUEST):
+                    self.lost = exc.message
+                    log.warning("lease of %s lost (%s): %s", self._grant.request_id, exc.code.value, exc.message)
+                    return
+                log.warning("renew %s refused: %s", self._grant.request_id, exc)
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._thread.join()
+
+
+class Worker:
+    """One collector: ``run()`` until stopped, ``max_episodes`` reached, or (``once``) one request."""
+
+    def __init__(self, config: WorkerConfig) -> None:
+        self.config = config
+        self.keys: Keys = config.keys
+        self.session: zenoh.Session | None = None
+        self._token: Any = None
+        self._stop = threading.Event()
+        self._abort = threading.Event()
+        self._rng = random.Random(config.worker_id)  # backoff jitter, reproducible per worker
+        self.uploaded = 0
+        self.failed = 0
+
+    # --- lifecycle -----------------------------------------------------------------------------
+
+    def stop(self) -> None:
+        """Drain: finish the current request, then return from ``run``. A second call gives it back."""
+        # Runs in a signal handler: only events and logging (its handler lock is re-entrant).
+        if self._stop.is_set():
+            self._abort.set()
+            log.info("stopping now: giving the current request back")
+        else:
+            self._stop.set()
+            log.info("draining: finishing the current request (signal again to give it back)")
+
+    def install_signal_handlers(self) -> None:
+        """SIGTERM / SIGINT call ``stop`` (main thread only)."""
+        for sig in (signal.SIGTERM, signal.SIGINT):
+            signal.signal(sig, lambda signum, frame: self.stop())
+
+    def run(self) -> int:
+        """Work until stopped; returns the number of episodes uploaded. Raises WorkerError on start."""
+        cfg = self.config
+        try:
+            self.session = transport.open_session(cfg.mode, cfg.listen, cfg.connect, cfg.zenoh_config)
+        except transport.TransportError as exc:
+            raise WorkerError(str(exc)) from exc
+        try:
+            self._token = self.session.liveliness().declare_token(self.keys.worker(cfg.worker_id))
+            log.info("worker %s up (tasks %s, shapes %s)", cfg.worker_id, list(cfg.tasks) or "any",
+                     list(cfg.shapes) or "any")
+            self._loop()
+        finally:
+            if self._token is not None:
+                self._token.undeclare()
+            self.session.close()
+        log.info("worker %s done: %d uploaded, %d failed", cfg.worker_id, self.uploaded, self.failed)
+        return self.uploaded
+
+    def _loop(self) -> None:
+        cfg = self.config
+        while not self._stop.is_set():
+            if cfg.max_episodes is not None and self.uploaded >= cfg.max_episodes:
+                return
+            grant = self._lease()
+            if grant is None:
+                if cfg.once:
+                    log.info("no work; exiting (--once)")
+                    return
+                self._stop.wait(cfg.idle_poll_s)
+                continue
+            self._handle(grant)
+            if cfg.once:
+                return
+
+    # --- talking to the service ----------------------------------------------------------------
+
+    def _call(self, key: str, payload: bytes, attachment: bytes | None = None) -> dict[str, Any]:
+        """One query; the reply body. Raises TransportError (nobody answered) or ProtocolError (refused)."""
+        reply = transport.query(self.session, key, payload, attachment, timeout=self.config.timeout_s)
+        return protocol.parse_reply(reply)
+
+    def _retrying(self, what: str, fn: Callable[[], dict[str, Any]], attempts: int | None = None,
+                  until_stopped: bool = False) -> dict[str, Any] | None:
+        """``fn()`` retried with exponential backoff while nobody answers.
+
+        None when out of ``attempts``, when told to give the request back, or (``until_stopped``)
+        when told to drain. ProtocolError (a refusal) propagates.
+        """
+        delay, n = 0.1, 0
+        while True:
+            try:
+                return fn()
+            except transport.TransportError as exc:
+                n += 1
+                if attempts is not None and n >= attempts:
+                    log.warning("%s: giving up after %d attempts: %s", what, n, exc)
+                    return None
+                wait = min(delay, self.config.max_backoff_s) * (0.5 + self._rng.random())
+                log.warning("%s: %s; retrying in %.2f s", what, exc, wait)
+                if self._abort.wait(wait) or (until_stopped and self._stop.is_set()):
+                    return None
+                delay *= 2
+
+    def _lease(self) -> LeaseGrant | None:
+        cfg = self.config
+        msg = protocol.LeaseRequest(worker_id=cfg.worker_id, tasks=list(cfg.tasks),
+                                    shapes=list(cfg.shapes)).to_json()
+        try:
+            body = self._retrying("lease", lambda: self._call(self.keys.lease, msg), until_stopped=True)
+        except ProtocolError as exc:
+            if exc.code != ErrorCode.NO_WORK:
+                log.warning("lease refused: %s", exc)
+            return None
+        if body is None:
+            return None
+        try:
+            grant = LeaseGrant.from_dict(body["grant"])
+        except ProtocolError as exc:  # a request no worker can do: say so, so it ends dead, not looping
+            raw = body["grant"]
+            log.warning("lease of %s is malformed: %s", raw.get("request_id"), exc)
+            self._fail_raw(str(raw.get("request_id")), raw.get("token"), f"malformed lease: {exc}")
+            return None
+        log.info("leased %s token %d (%s, %s, %d steps)", grant.request_id, grant.token, grant.shape,
+                 grant.policy, grant.steps)
+        return grant
+
+    def _fail(self, grant: LeaseGrant, error: str) -> None:
+        self._fail_raw(grant.request_id, grant.token, error)
+
+    def _fail_raw(self, request_id: str, token: Any, error: str) -> None:
+        try:
+            msg = protocol.FailRequest(request_id=request_id, token=token, worker_id=self.config.worker_id,
+                                       error=error[:protocol.MAX_ERROR_CHARS]).to_json()
+            body = self._retrying("fail", lambda: self._call(self.keys.fail, msg), self.config.upload_attempts)
+        except ProtocolError as exc:
+            log.warning("fail %s refused: %s", request_id, exc)
+            return
+        self.failed += 1
+        if body is not None:
+            log.info("reported failure of %s: now %s after %s attempt(s)", request_id,
+                     body.get("status"), body.get("attempts"))
+
+    # --- one request -----------------------------------------------------------------------------
+
+    def _handle(self, grant: LeaseGrant) -> None:
+        renewer = _Renewer(lambda k, m: self._call(k, m), self.keys.renew, grant, self.config.worker_id)
+        try:
+            started = time.monotonic()
+            try:
+                episode = self._collect(grant)
+                data = encode_episode(episode)
+            except Exception as exc:  # noqa: BLE001 -- any collection failure is reported, not hidden
+                log.warning("collection of %s failed: %s: %s", grant.request_id, type(exc).__name__, exc)
+                self._fail(grant, f"collection failed: {type(exc).__name__}: {exc}")
+                return
+            if not self._pace(started, len(episode)):
+                self._fail(grant, "worker stopped before finishing the episode")
+                return
+            if renewer.lost is not None:
+                log.warning("dropping the episode of %s: the lease is no longer ours", grant.request_id)
+                return
+            self._upload(grant, data)
+        finally:
+            renewer.stop()
+
+    def _collect(self, grant: LeaseGrant):
+        prefix = np.asarray(grant.action_prefix, np.float32).reshape(-1, 2) if grant.action_prefix else None
+        return collect_episode(start_state=grant.start_state, policy=grant.policy,
+                               policy_params=grant.policy_params, seed=grant.seed, steps=grant.steps,
+                               image_size=self.config.image_size, action_prefix=prefix,
+                               request_id=grant.request_id, worker_id=self.config.worker_id,
+                               model_version=grant.model_version)
+
+    def _pace(self, started: float, frames: int) -> bool:
+        """Wait out the episode's real duration when pacing; False if told to give the request back."""
+        remaining = started + self.config.realtime * frames / CONTROL_HZ - time.monotonic()
+        return not (remaining > 0 and self._abort.wait(remaining)) and not self._abort.is_set()
+
+    def _upload(self, grant: LeaseGrant, data: bytes) -> None:
+        header = protocol.UploadHeader.for_payload(data, request_id=grant.request_id, token=grant.token,
+                                                   worker_id=self.config.worker_id).to_json()
+        try:
+            body = self._retrying("upload", lambda: self._call(self.keys.upload, data, header),
+                                  self.config.upload_attempts)
+        except ProtocolError as exc:
+            if exc.code in (ErrorCode.STALE_TOKEN, ErrorCode.UNKNOWN_REQUEST):
+                log.warning("upload of %s refused (%s): the lease is no longer ours", grant.request_id, exc)
+            else:
+                log.warning("upload of %s refused: %s", grant.request_id, exc)
+                self._fail(grant, f"upload refused: {exc}")
+            return
+        if body is not None:
+            self.uploaded += 1
+            log.info("uploaded %s: episode %s%s", grant.request_id, body.get("episode_id"),
+                     " (duplicate)" if body.get("duplicate") else "")
+
+
+# --- command line (shared by ``activecollect worker`` and ``python -m workers.agent``) -----------
+# ``python -m workers.agent`` needs neither torch nor the service's code: a collector host
+# installs only what the simulator needs.
+
+def parse_capabilities(text: str) -> tuple[tuple[str, ...], tuple[str, ...]]:
+    """``"push:T,box"`` -> (("push",), ("T", "box")); ``"T,box"`` -> ((), ("T", "box")); ``""`` -> any.
+
+    Raises WorkerError naming the unknown task or shape.
+    """
+    text = text.strip()
+    if not text:
+        return (), ()
+    tasks: tuple[str, ...] = ()
+    if ":" in text:
+        task_part, text = text.split(":", 1)
+        tasks = tuple(t.strip() for t in task_part.split("+") if t.strip())
+    elif text in protocol.TASKS:
+        return (text,), ()
+    shapes = tuple(s.strip() for s in text.split(",") if s.strip())
+    bad = [t for t in tasks if t not in protocol.TASKS] + [s for s in shapes if s not in protocol.SHAPES]
+    if bad:
+        raise WorkerError(f"capabilities: expected TASK:SHAPE,... with tasks in {protocol.TASKS} and shapes in "
+                          f"{protocol.SHAPES}, found {', '.join(bad)}")
+    return tasks, shapes
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """The worker's flags."""
+    transport.add_connection_args(parser, timeout=10.0)
+    parser.add_argument("--id", default="", help="worker id (default <host>-<pid>)")
+    parser.add_argument("--capabilities", default="", metavar="C",
+                        help='what it can collect: "push:T,box", "T,box" or "push" (default: anything)')
+    parser.add_argument("--once", action="store_true", help="handle at most one request, then exit")
+    parser.add_argument("--max-episodes", type=int, default=None, metavar="N", help="exit after N uploads")
+    parser.add_argument("--size", type=int, default=64, metavar="PX", help="frame side in pixels (default 64)")
+    parser.add_argument("--realtime", type=float, default=0.0, metavar="X",
+                        help="pace episodes to X times real time (1.0 = steps / 10 Hz seconds; default 0 = flat out)")
+    parser.add_argument("--log-level", default="INFO", choices=("DEBUG", "INFO", "WARNING", "ERROR"))
+
+
+def config_from_args(args: argparse.Namespace) -> WorkerConfig:
+    """Build the WorkerConfig; WorkerError for a bad value."""
+    listen, connect = transport.endpoints_from_args(args)
+    tasks, shapes = parse_capabilities(args.capabilities)
+    return WorkerConfig(worker_id=args.id, namespace=args.namespace, mode=args.mode, listen=listen,
+                        connect=connect, zenoh_config=args.zenoh_config, tasks=tasks, shapes=shapes,
+                        image_size=args.size, max_episodes=args.max_episodes, once=args.once,
+                        realtime=args.realtime, timeout_s=args.timeout)
+
+
+def run_from_args(args: argparse.Namespace) -> int:
+    """Run a worker from parsed flags until it is done or stopped; exit status (2: bad flags)."""
+    logging.basicConfig(level=args.log_level, format="%(asctime)s %(name)s %(levelname)s %(message)s")
+    try:
+        worker = Worker(config_from_args(args))
+    except WorkerError as exc:
+        print(f"activecollect worker: error: {exc}", file=sys.stderr)
+        return 2
+    worker.install_signal_handlers()
+    try:
+        worker.run()
+    except WorkerError as exc:
+        print(f"activecollect worker: {exc}", file=sys.stderr)
+        return 1
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m workers.agent", description=__doc__.splitlines()[0])
+    add_arguments(parser)
+    return run_from_args(parser.parse_args(argv))
+
+
+if __name__ == "__main__":
+    sys.exit(main())
