@@ -31,6 +31,7 @@ from cryptography.hazmat.primitives.asymmetric import ec
 from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 
 from orchestrator.protocol import Keys, ProtocolError
+from orchestrator.transport import FILE_KEYS, SecureConfigError, lookup_key, validate_secure_config
 
 #: Roles that get a config, a certificate and a password. The router is the only listener.
 CLIENT_ROLES: tuple[str, ...] = ("orchestrator", "worker", "operator")
@@ -41,22 +42,6 @@ ACL_MESSAGES: tuple[str, ...] = ("put", "delete", "declare_subscriber", "query",
                                  "declare_liveliness_subscriber", "liveliness_query")
 DEFAULT_NAMESPACE = "activecollect"
 DEFAULT_ROUTER_ENDPOINT = "tls/127.0.0.1:7447"
-#: Config keys (slash paths) whose values are files Zenoh opens at start-up.
-FILE_KEYS: tuple[str, ...] = (
-    "transport/link/tls/root_ca_certificate",
-    "transport/link/tls/listen_private_key",
-    "transport/link/tls/listen_certificate",
-    "transport/link/tls/connect_private_key",
-    "transport/link/tls/connect_certificate",
-    "transport/auth/usrpwd/dictionary_file",
-    "transport/auth/pubkey/public_key_file",
-    "transport/auth/pubkey/private_key_file",
-    "transport/auth/pubkey/known_keys_file",
-)
-
-
-class SecureConfigError(Exception):
-    """A secure profile cannot be written or started; the message is one line naming the file."""
 
 
 @dataclass
@@ -367,63 +352,10 @@ def init_secure(cfg: SecureInitConfig) -> SecureSet:
 
 # ---------------------------------------------------------------- start-up check
 
-def _lookup(config: dict[str, Any], slash_key: str) -> Any:
-    node: Any = config
-    for part in slash_key.split("/"):
-        if not isinstance(node, dict) or part not in node:
-            return None
-        node = node[part]
-    return node
-
-
-def _check_file(config_path: Path, key: str, value: Any) -> Path:
-    if not isinstance(value, str) or not value:
-        raise SecureConfigError(f"{config_path}: expected a file path at {key}, found {value!r}")
-    path = Path(value).expanduser()
-    what = f"{config_path}: {key} -> {path}"
-    if not path.exists():
-        raise SecureConfigError(f"{what} is missing")
-    try:
-        with open(path, "rb") as f:
-            head = f.read(65536)
-    except OSError as exc:
-        raise SecureConfigError(f"{what} is unreadable ({exc.strerror})") from exc
-    if key.startswith("transport/link/tls/") and b"-----BEGIN " not in head:
-        raise SecureConfigError(f"{what} is not a PEM file")
-    if key.endswith("dictionary_file") and not any(b":" in line for line in head.splitlines()):
-        raise SecureConfigError(f"{what} holds no user:password line")
-    return path
-
-
-def validate_secure_config(path: str | os.PathLike[str]) -> list[Path]:
-    """Checks a Zenoh JSON5 config before a process starts with it; returns the files it references.
-
-    Every file the config names (TLS CA, certificates and keys, the usrpwd dictionary,
-    pubkey files) must exist and be readable; TLS files must be PEM. A config naming no
-    files passes (it is not a secure profile). Raises SecureConfigError with a one-line
-    message naming the config, the key and the file; CLIs turn it into exit status 2.
-    """
-    config_path = Path(path)
-    try:
-        text = config_path.read_text()
-    except OSError as exc:
-        raise SecureConfigError(f"cannot read Zenoh config {config_path} "
-                                f"({exc.strerror or exc})") from exc
-    try:
-        config = json5.loads(text)
-    except ValueError as exc:
-        first = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-        raise SecureConfigError(f"{config_path} is not valid JSON5: {first}") from exc
-    if not isinstance(config, dict):
-        raise SecureConfigError(f"{config_path}: expected a JSON5 object, found {type(config).__name__}")
-    return [_check_file(config_path, key, value) for key in FILE_KEYS
-            if (value := _lookup(config, key)) is not None]
-
-
 def is_secure_profile(path: str | os.PathLike[str]) -> bool:
     """True when the config only allows TLS links (what ``secure init`` writes)."""
     config = json5.loads(Path(path).read_text())
-    return _lookup(config, "transport/link/protocols") == ["tls"]
+    return lookup_key(config, "transport/link/protocols") == ["tls"]
 
 
 def private_mode_ok(path: Path) -> bool:

@@ -23,13 +23,16 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import os
 import queue as queue_mod
 import threading
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
+import json5
 import zenoh
 
 log = logging.getLogger(__name__)
@@ -60,6 +63,80 @@ class RemoteError(TransportError):
         self.payload = payload
         self.code, self.message = _parse_error(payload)
         super().__init__(f"{key}: {self.code}: {self.message}")
+
+# ---------------------------------------------------------------- config files
+
+#: Config keys (slash paths) whose values are files Zenoh opens at start-up.
+FILE_KEYS: tuple[str, ...] = (
+    "transport/link/tls/root_ca_certificate",
+    "transport/link/tls/listen_private_key",
+    "transport/link/tls/listen_certificate",
+    "transport/link/tls/connect_private_key",
+    "transport/link/tls/connect_certificate",
+    "transport/auth/usrpwd/dictionary_file",
+    "transport/auth/pubkey/public_key_file",
+    "transport/auth/pubkey/private_key_file",
+    "transport/auth/pubkey/known_keys_file",
+)
+
+
+class SecureConfigError(TransportError):
+    """A secure profile cannot be written or started; the message is one line naming the file."""
+
+
+def lookup_key(config: dict[str, Any], slash_key: str) -> Any:
+    """The value at a slash path (``transport/link/tls/...``) of a parsed config, or None."""
+    node: Any = config
+    for part in slash_key.split("/"):
+        if not isinstance(node, dict) or part not in node:
+            return None
+        node = node[part]
+    return node
+
+
+def _check_file(config_path: Path, key: str, value: Any) -> Path:
+    if not isinstance(value, str) or not value:
+        raise SecureConfigError(f"{config_path}: expected a file path at {key}, found {value!r}")
+    path = Path(value).expanduser()
+    what = f"{config_path}: {key} -> {path}"
+    if not path.exists():
+        raise SecureConfigError(f"{what} is missing")
+    try:
+        with open(path, "rb") as f:
+            head = f.read(65536)
+    except OSError as exc:
+        raise SecureConfigError(f"{what} is unreadable ({exc.strerror})") from exc
+    if key.startswith("transport/link/tls/") and b"-----BEGIN " not in head:
+        raise SecureConfigError(f"{what} is not a PEM file")
+    if key.endswith("dictionary_file") and not any(b":" in line for line in head.splitlines()):
+        raise SecureConfigError(f"{what} holds no user:password line")
+    return path
+
+
+def validate_secure_config(path: str | os.PathLike[str]) -> list[Path]:
+    """Checks a Zenoh JSON5 config before a process starts with it; returns the files it references.
+
+    Every file the config names (TLS CA, certificates and keys, the usrpwd dictionary,
+    pubkey files) must exist and be readable; TLS files must be PEM. A config naming no
+    files passes (it is not a secure profile). Raises SecureConfigError with a one-line
+    message naming the config, the key and the file; CLIs turn it into exit status 2.
+    """
+    config_path = Path(path)
+    try:
+        text = config_path.read_text()
+    except OSError as exc:
+        raise SecureConfigError(f"cannot read Zenoh config {config_path} "
+                                f"({exc.strerror or exc})") from exc
+    try:
+        config = json5.loads(text)
+    except ValueError as exc:
+        first = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        raise SecureConfigError(f"{config_path} is not valid JSON5: {first}") from exc
+    if not isinstance(config, dict):
+        raise SecureConfigError(f"{config_path}: expected a JSON5 object, found {type(config).__name__}")
+    return [_check_file(config_path, key, value) for key in FILE_KEYS
+            if (value := lookup_key(config, key)) is not None]
+
 
 
 @dataclass(frozen=True)
@@ -111,9 +188,12 @@ def make_config(mode: str = "peer", listen: Sequence[str] = (), connect: Sequenc
     ``client``), exactly the given endpoints, multicast scouting off (one
     machine, explicit endpoints; nothing is discovered behind our back).
 
-    Raises ``TransportError`` for an unknown mode or a config file Zenoh refuses.
+    Raises ``SecureConfigError`` when a file the config names (CA, certificate, key,
+    password dictionary) is missing or unreadable, ``TransportError`` for an unknown
+    mode or a config file Zenoh refuses.
     """
     if config_file is not None:
+        validate_secure_config(config_file)  # a missing cert or key: one clear line, before Zenoh's own
         try:
             config = zenoh.Config.from_file(str(config_file))
         except (zenoh.ZError, OSError, ValueError) as exc:
@@ -317,7 +397,13 @@ def add_connection_args(parser: argparse.ArgumentParser, *, listen: bool = False
 
 
 def endpoints_from_args(args: argparse.Namespace) -> tuple[tuple[str, ...], tuple[str, ...]]:
-    """(listen, connect) from :func:`add_connection_args` flags, defaults applied."""
+    """(listen, connect) from :func:`add_connection_args` flags, defaults applied.
+
+    Every process calls this first, so a ``--zenoh-config`` whose certificate, key or
+    password file is missing stops it here: raises ``SecureConfigError`` (one line).
+    """
+    if args.zenoh_config is not None:
+        validate_secure_config(args.zenoh_config)
     listen = tuple(getattr(args, "listen", None) or ())
     connect = tuple(args.connect or ())
     if args.zenoh_config is None and not listen and not connect:

@@ -398,7 +398,7 @@ def run_from_args(args: argparse.Namespace) -> int:
     logging.basicConfig(level=args.log_level, format="%(asctime)s %(name)s %(levelname)s %(message)s")
     try:
         worker = Worker(config_from_args(args))
-    except WorkerError as exc:
+    except (WorkerError, transport.SecureConfigError) as exc:
         print(f"activecollect worker: error: {exc}", file=sys.stderr)
         return 2
     worker.install_signal_handlers()

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import sys
 
+from orchestrator import transport
 from orchestrator.cli import collect, common, loop, models, secure, service
 
 _MODULES = (collect, models, service, loop, secure)
@@ -37,7 +38,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     try:
         return int(args.func(args) or 0)
-    except common.UsageError as exc:
+    except (common.UsageError, transport.SecureConfigError) as exc:
         print(f"activecollect: error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
