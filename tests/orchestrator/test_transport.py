@@ -56,7 +56,21 @@ def test_config_file_passes_through_and_flags_add_endpoints(tmp_path, endpoint: 
 def test_bad_config_file_is_a_transport_error(tmp_path) -> None:
     path = tmp_path / "broken.json5"
     path.write_text("{ mode: ")
+    with pytest.raises(transport.TransportError, match="not valid JSON5"):
+        transport.make_config(config_file=path)
+
+
+def test_config_file_zenoh_refuses_is_a_transport_error(tmp_path) -> None:
+    path = tmp_path / "unknown-key.json5"
+    path.write_text('{ mode: "client", no_such_section: { x: 1 } }')
     with pytest.raises(transport.TransportError, match="cannot load Zenoh config"):
+        transport.make_config(config_file=path)
+
+
+def test_config_naming_a_missing_certificate_is_refused(tmp_path) -> None:
+    path = tmp_path / "tls.json5"
+    path.write_text('{ transport: { link: { tls: { root_ca_certificate: "%s" } } } }' % (tmp_path / "ca.pem"))
+    with pytest.raises(transport.SecureConfigError, match="ca.pem is missing"):
         transport.make_config(config_file=path)
 
 
