@@ -1,0 +1,86 @@
+import io
+
+import pytest
+import torch
+
+from storage.errors import CorruptCheckpointError, RegistryError
+from storage.models import ModelRegistry
+from uncertainty.checkpoint import ensemble_from_bytes, ensemble_to_bytes, load_ensemble, save_candidate
+from uncertainty.ensemble import Ensemble
+from uncertainty.errors import CheckpointError
+from uncertainty.model import PredictorConfig
+
+CFG = PredictorConfig(image_size=16, widths=(4, 8, 8), action_hidden=8)
+METRICS = {"h1_mse": 0.01, "h1_psnr": 20.0}
+
+
+def _ensemble() -> Ensemble:
+    ens = Ensemble(CFG, members=2, seed=3)
+    ens.set_action_stats([256.0, 250.0], [100.0, 90.0])
+    return ens
+
+
+def test_round_trip_through_the_registry_gives_the_same_predictions(tmp_path):
+    registry = ModelRegistry(tmp_path)
+    ens = _ensemble()
+    version = save_candidate(registry, ens, METRICS, "snap", "evalhash", train_config={"epochs": 1})
+    rec = registry.get(version)
+    assert rec.config["predictor"] == CFG.to_dict() and rec.config["members"] == 2
+    assert rec.metrics == METRICS and rec.snapshot_id == "snap" and rec.eval_split_hash == "evalhash"
+    loaded = load_ensemble(registry, version, device="cpu")
+    assert loaded.version == version and not loaded.training
+    ctx, act = torch.rand(3, 2, 3, 16, 16), torch.rand(3, 2) * 512
+    with torch.no_grad():
+        torch.testing.assert_close(loaded(ctx, loaded.normalize_actions(act)), ens(ctx, ens.normalize_actions(act)),
+                                   atol=0, rtol=0)
+    torch.testing.assert_close(loaded.action_std, ens.action_std)
+
+
+def test_load_without_version_takes_the_champion(tmp_path):
+    registry = ModelRegistry(tmp_path)
+    with pytest.raises(RegistryError, match="no champion"):
+        load_ensemble(registry)
+    version = save_candidate(registry, _ensemble(), METRICS, "snap", "evalhash")
+    registry.promote(version)
+    assert load_ensemble(registry, device="cpu").version == version
+
+
+def test_corrupt_weights_on_disk_are_refused(tmp_path):
+    registry = ModelRegistry(tmp_path)
+    version = save_candidate(registry, _ensemble(), METRICS, "snap", "evalhash")
+    path = registry.get(version).weights_path
+    data = bytearray(path.read_bytes())
+    data[len(data) // 2] ^= 0xFF
+    path.write_bytes(bytes(data))
+    with pytest.raises(CorruptCheckpointError, match="sha256 mismatch"):
+        load_ensemble(registry, version)
+
+
+def test_registered_bytes_that_are_not_an_ensemble_are_refused(tmp_path):
+    registry = ModelRegistry(tmp_path)
+    version = registry.register(b"not a torch file", {}, METRICS, "snap", "evalhash")
+    with pytest.raises(CheckpointError, match="not a readable torch file") as info:
+        load_ensemble(registry, version)
+    assert isinstance(info.value, CorruptCheckpointError)  # one except clause catches both kinds
+
+
+@pytest.mark.parametrize("change, message", [
+    (lambda p: p.update(format="other"), "format must be"),
+    (lambda p: p.update(format_version=99), "format_version"),
+    (lambda p: p["params"].pop("enc1.weight"), "parameters must be"),
+    (lambda p: p["params"].update({"enc1.weight": torch.zeros(1)}), "shape"),
+    (lambda p: p.update(predictor={"image_size": 12}), "config is invalid"),
+    (lambda p: p.update(action_std=torch.zeros(2)), "normalisation"),
+])
+def test_inconsistent_checkpoints_are_refused(change, message):
+    payload = torch.load(io.BytesIO(ensemble_to_bytes(_ensemble())), weights_only=True)
+    change(payload)
+    buf = io.BytesIO()
+    torch.save(payload, buf)
+    with pytest.raises(CheckpointError, match=message):
+        ensemble_from_bytes(buf.getvalue())
+
+
+def test_checkpoint_loads_with_weights_only():
+    payload = torch.load(io.BytesIO(ensemble_to_bytes(_ensemble())), weights_only=True)
+    assert payload["members"] == 2

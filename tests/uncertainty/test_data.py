@@ -1,0 +1,66 @@
+import numpy as np
+import pytest
+
+from storage.catalog import Catalog
+from tests.uncertainty.synth import make_episode
+from uncertainty.data import action_stats, build_windows, load_eval, load_train, member_indices
+from uncertainty.errors import DataError
+from uncertainty.model import PredictorConfig
+
+CFG = PredictorConfig(image_size=16, context=2)
+
+
+def test_windows_line_up_context_action_and_next_frame():
+    eps = [make_episode(0, steps=6), make_episode(1, steps=5)]
+    w = build_windows(eps, CFG, horizon=2)
+    assert len(w) == 3 + 2 and w.horizon == 2
+    ctx, act, tgt = w.batch(np.arange(len(w)), "cpu")
+    i = 4  # second episode, step 2
+    assert (w.episode[i], w.step[i]) == (1, 2)
+    ep = eps[1]
+    np.testing.assert_array_equal((ctx[i] * 255).round().byte().permute(0, 2, 3, 1).numpy(), ep.frames[1:3])
+    np.testing.assert_array_equal(act[i].numpy(), ep.actions[2:4])
+    np.testing.assert_array_equal((tgt[i] * 255).round().byte().permute(0, 2, 3, 1).numpy(), ep.frames[3:5])
+
+
+def test_windows_refuse_wrong_size_and_too_short_episodes():
+    with pytest.raises(DataError, match="frames must be"):
+        build_windows([make_episode(0, size=32)], CFG)
+    with pytest.raises(DataError, match="long enough"):
+        build_windows([make_episode(0, steps=2)], CFG, horizon=1)
+
+
+def test_bootstrap_draws_whole_episodes_and_is_seeded():
+    w = build_windows([make_episode(s, steps=6) for s in range(5)], CFG)
+    a = member_indices(w, 3, True, np.random.default_rng(0))
+    b = member_indices(w, 3, True, np.random.default_rng(0))
+    assert all(np.array_equal(x, y) for x, y in zip(a, b))
+    for idx in a:
+        counts = np.bincount(w.episode[idx], minlength=5)
+        assert set(counts.tolist()) <= {0, 4, 8, 12, 16, 20}  # 4 windows per drawn episode
+    assert all(len(i) == len(w) for i in member_indices(w, 2, False, np.random.default_rng(0)))
+
+
+def test_action_stats():
+    mean, std = action_stats([make_episode(s) for s in range(3)])
+    assert mean.shape == std.shape == (2,) and np.all(std > 1)
+
+
+def test_train_and_eval_splits_never_mix(tmp_path):
+    cat = Catalog(tmp_path)
+    train_ids = {cat.add_episode(make_episode(s, steps=5)).episode_id for s in range(3)}
+    eval_ids = {cat.add_episode(make_episode(10 + s, steps=5), split="eval").episode_id for s in range(2)}
+    with pytest.raises(DataError, match="no eval split"):
+        load_eval(cat)
+    cat.pin_eval_split(sorted(eval_ids))
+    train = load_train(cat)
+    episodes, split_hash = load_eval(cat)
+    assert set(train.episode_ids) == train_ids
+    assert {e.meta.episode_id for e in train.episodes} == train_ids
+    assert {e.meta.episode_id for e in episodes} == eval_ids and split_hash == cat.eval_split().hash
+    assert train.snapshot_id == cat.snapshot().snapshot_id
+
+
+def test_empty_train_split_is_refused(tmp_path):
+    with pytest.raises(DataError, match="no train episodes"):
+        load_train(Catalog(tmp_path))

@@ -1,0 +1,48 @@
+import json
+
+import numpy as np
+import pytest
+
+from tests.uncertainty.synth import make_episode
+from uncertainty.errors import ConfigError
+from uncertainty.score import pick_top, score_episode, state_dict
+from workers.env import SimState
+
+
+def test_pick_top_keeps_states_apart():
+    scores = np.array([np.nan, 9, 8.5, 8, 1, 2, 7, 6.5, 0, np.nan])
+    assert pick_top(scores, 3, min_separation=3) == [1, 6]  # nothing else is 3 steps from both
+    assert pick_top(scores, 3, min_separation=2) == [1, 3, 6]
+    assert pick_top(scores, 10, min_separation=1)[:3] == [1, 2, 3]
+    assert pick_top(np.full(4, np.nan), 2, 1) == []
+
+
+def test_score_episode_gives_what_a_request_needs(trained):
+    ens, _ = trained
+    ep = make_episode(7, "disk", steps=12)
+    result = score_episode(ens, ep, top_k=3, min_separation=3)
+    assert result.per_step.shape == (12,) and np.isnan(result.per_step[0]) and np.isnan(result.per_step[-1])
+    assert 1 <= len(result.top) <= 3
+    steps = [s.step for s in result.top]
+    assert all(abs(a - b) >= 3 for i, a in enumerate(steps) for b in steps[i + 1:])
+    assert [s.score for s in result.top] == sorted((s.score for s in result.top), reverse=True)
+    assert result.top[0].score == pytest.approx(np.nanmax(result.per_step))
+    for s in result.top:
+        assert len(s.action_prefix) == s.step
+        np.testing.assert_allclose(s.action_prefix, ep.actions[:s.step])
+        sim = SimState.from_dict(s.state)  # the simulator accepts it as a start state
+        np.testing.assert_allclose(sim.to_vector()[:10], ep.states[s.step][:10])
+        assert s.start_state == ep.meta.start_state and s.shape == "disk" and s.episode_id == ep.meta.episode_id
+    json.dumps(result.to_json())  # JSON-able, NaN steps as null
+
+
+def test_state_dict_matches_the_simulator_form():
+    row = np.arange(11, dtype=float)
+    d = state_dict(row, "T", {"mass": 1.0})
+    assert d == {"shape": "T", "agent": [0.0, 1.0], "agent_vel": [2.0, 3.0], "object": [4.0, 5.0, 6.0],
+                 "object_vel": [7.0, 8.0, 9.0], "physics": {"mass": 1.0}}
+
+
+def test_bad_arguments_are_refused(trained):
+    with pytest.raises(ConfigError):
+        score_episode(trained[0], make_episode(0), top_k=-1)

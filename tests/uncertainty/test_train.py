@@ -1,0 +1,99 @@
+import numpy as np
+import pytest
+
+from storage.catalog import Catalog
+from storage.models import ModelRegistry, ModelStatus
+from tests.uncertainty.conftest import TINY, baseline_mse
+from tests.uncertainty.synth import make_episode
+from uncertainty.checkpoint import load_ensemble
+from uncertainty.data import load_train
+from uncertainty.errors import ConfigError, DataError
+from uncertainty.train import TrainConfig, evaluate, evaluate_episodes, fit, new_ensemble, train_candidate, train_windows
+
+
+def test_tiny_model_overfits_a_tiny_dataset(trained, t_episodes):
+    ens, losses = trained
+    assert losses[-1] < losses[0] / 5
+    assert losses[-1] < baseline_mse(t_episodes) / 5
+
+
+def test_same_seed_same_training():
+    eps = [make_episode(s, steps=6) for s in range(2)]
+    cfg = TrainConfig(epochs=1, seed=3, bootstrap=True, **TINY)
+    a, b = new_ensemble(cfg, eps), new_ensemble(cfg, eps)
+    la, lb = fit(a, train_windows(eps, a, cfg), cfg), fit(b, train_windows(eps, b, cfg), cfg)
+    assert la == lb
+    assert all(np.array_equal(x.detach().numpy(), y.detach().numpy()) for x, y in zip(a.params, b.params))
+
+
+def test_disagreement_is_higher_out_of_distribution(trained):
+    ens, _ = trained
+    held_out = [make_episode(seed, "T", steps=12) for seed in range(100, 104)]
+    novel = [make_episode(seed, shape, steps=12) for seed in range(100, 102) for shape in ("disk", "L")]
+
+    def mean_dis(eps):
+        return float(np.mean([np.nanmean(ens.disagreement(e.frames, e.actions)) for e in eps]))
+
+    assert mean_dis(novel) > 1.5 * mean_dis(held_out)
+
+
+def test_evaluate_reports_accuracy_next_to_baseline_and_calibration(trained):
+    ens, _ = trained
+    eps = [make_episode(seed, "T", steps=12) for seed in range(200, 203)]
+    m = evaluate_episodes(ens, eps, "hash", horizons=(1, 5, 10), rollout_stride=2)
+    for h in (1, 5, 10):
+        assert {f"h{h}_mse", f"h{h}_psnr", f"h{h}_ssim", f"baseline_h{h}_mse"} <= m.keys()
+    assert m["h1_mse"] < m["baseline_h1_mse"]
+    assert m["h1_psnr"] > m["baseline_h1_psnr"]
+    assert -1 <= m["spearman"] <= 1
+    assert len(m["sparsification"]["curve"]) == 10
+    assert m["eval_split_hash"] == "hash" and m["eval_windows"] == 3 * 10
+
+
+def _catalog(tmp_path, n_train=4, n_eval=2):
+    cat = Catalog(tmp_path)
+    for s in range(n_train):
+        cat.add_episode(make_episode(s, "T", steps=8))
+    ids = [cat.add_episode(make_episode(50 + s, "T", steps=8), split="eval").episode_id for s in range(n_eval)]
+    return cat, ids
+
+
+def test_train_candidate_trains_on_train_split_evaluates_on_eval_split_and_gates(tmp_path):
+    cat, eval_ids = _catalog(tmp_path)
+    cat.pin_eval_split(eval_ids)
+    registry = ModelRegistry(tmp_path)
+    result = train_candidate(cat, registry, TrainConfig(epochs=2, eval_rollout_stride=3, **TINY))
+    assert result.decision.promoted and registry.champion() == result.version
+    rec = registry.get(result.version)
+    assert rec.eval_split_hash == cat.eval_split().hash == result.metrics["eval_split_hash"]
+    assert rec.snapshot_id == cat.snapshot().snapshot_id
+    assert result.metrics["train_episodes"] == 4 and result.metrics["eval_episodes"] == 2
+    # the train data never includes an eval episode, the evaluation only eval episodes
+    train = load_train(cat)
+    assert not set(train.episode_ids) & set(eval_ids)
+    assert result.metrics["eval_windows"] == 2 * 6
+    # warm start from the champion; it is registered with the champion as parent
+    warm = train_candidate(cat, registry, TrainConfig(epochs=1, from_champion=True, **TINY))
+    assert registry.get(warm.version).parent == result.version
+    assert registry.get(warm.version).status in (ModelStatus.CHAMPION, ModelStatus.REJECTED)
+    again = evaluate(load_ensemble(registry, result.version, "cpu"), cat)
+    assert again["h1_mse"] == pytest.approx(result.metrics["h1_mse"], rel=1e-5)
+
+
+def test_train_candidate_needs_an_eval_split(tmp_path):
+    cat, _ = _catalog(tmp_path, n_eval=1)
+    with pytest.raises(DataError, match="no eval split"):
+        train_candidate(cat, ModelRegistry(tmp_path), TrainConfig(epochs=1, **TINY))
+
+
+def test_warm_start_without_champion_is_refused(tmp_path):
+    cat, ids = _catalog(tmp_path, n_train=1, n_eval=1)
+    cat.pin_eval_split(ids)
+    with pytest.raises(ConfigError, match="no champion"):
+        train_candidate(cat, ModelRegistry(tmp_path), TrainConfig(epochs=1, from_champion=True, **TINY))
+
+
+@pytest.mark.parametrize("kwargs", [{"epochs": 0}, {"lr": -1.0}, {"device": "tpu"}, {"max_windows": 0}])
+def test_train_config_refuses_bad_values(kwargs):
+    with pytest.raises(ConfigError):
+        TrainConfig(**kwargs)

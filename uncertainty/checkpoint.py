@@ -1,0 +1,113 @@
+"""Ensemble checkpoints: bytes in the model registry, loaded back with ``weights_only`` safety.
+
+The weights file is a ``torch.save`` of plain containers and tensors (no
+pickled classes), so ``torch.load(weights_only=True)`` reads it; the predictor
+config, member count and action normalisation travel inside it, so a checkpoint
+is self-describing. The registry checks the bytes' sha256; this module checks
+that they describe an ensemble.
+"""
+
+from __future__ import annotations
+
+import io
+import pickle
+import zipfile
+from typing import Any
+
+import torch
+
+from storage.errors import RegistryError
+from storage.models import ModelRegistry
+from uncertainty.ensemble import Ensemble, default_device
+from uncertainty.errors import CheckpointError, ConfigError
+from uncertainty.model import PredictorConfig
+
+FORMAT = "activecollect-ensemble"
+FORMAT_VERSION = 1
+
+
+def ensemble_to_bytes(ensemble: Ensemble) -> bytes:
+    """Serialise weights, predictor config, member count, seed and action normalisation."""
+    payload = {
+        "format": FORMAT, "format_version": FORMAT_VERSION,
+        "predictor": ensemble.config.to_dict(), "members": ensemble.members, "seed": ensemble.seed,
+        "params": {name: p.detach().cpu().contiguous() for name, p in zip(ensemble.names, ensemble.params)},
+        "action_mean": ensemble.action_mean.detach().cpu(), "action_std": ensemble.action_std.detach().cpu(),
+    }
+    buf = io.BytesIO()
+    torch.save(payload, buf)
+    return buf.getvalue()
+
+
+def ensemble_from_bytes(data: bytes, device: torch.device | str | None = None) -> Ensemble:
+    """Rebuild an ensemble from ``ensemble_to_bytes``; raises ``CheckpointError`` naming what is wrong."""
+    try:
+        payload = torch.load(io.BytesIO(data), map_location="cpu", weights_only=True)
+    except (pickle.UnpicklingError, RuntimeError, EOFError, zipfile.BadZipFile, ValueError, OSError) as exc:
+        raise CheckpointError(f"checkpoint is not a readable torch file ({len(data)} bytes): "
+                              f"{type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''}") from exc
+    if not isinstance(payload, dict) or payload.get("format") != FORMAT:
+        found = payload.get("format") if isinstance(payload, dict) else type(payload).__name__
+        raise CheckpointError(f"checkpoint format must be {FORMAT!r}, found {found!r}")
+    if payload.get("format_version") != FORMAT_VERSION:
+        raise CheckpointError(f"checkpoint format_version must be {FORMAT_VERSION}, "
+                              f"found {payload.get('format_version')!r}")
+    try:
+        config = PredictorConfig.from_dict(payload["predictor"])
+        ensemble = Ensemble(config, members=int(payload["members"]), seed=int(payload["seed"]))
+    except (KeyError, TypeError, ConfigError) as exc:
+        raise CheckpointError(f"checkpoint config is invalid: {exc}") from exc
+    _load_tensors(ensemble, payload)
+    return ensemble.to(device if device is not None else default_device())
+
+
+def _load_tensors(ensemble: Ensemble, payload: dict[str, Any]) -> None:
+    params = payload.get("params")
+    if not isinstance(params, dict) or set(params) != set(ensemble.names):
+        found = sorted(params) if isinstance(params, dict) else type(params).__name__
+        raise CheckpointError(f"checkpoint parameters must be {sorted(ensemble.names)}, found {found}")
+    with torch.no_grad():
+        for name, p in zip(ensemble.names, ensemble.params):
+            t = params[name]
+            if not isinstance(t, torch.Tensor) or t.shape != p.shape:
+                shape = tuple(t.shape) if isinstance(t, torch.Tensor) else type(t).__name__
+                raise CheckpointError(f"checkpoint parameter {name} must have shape {tuple(p.shape)}, found {shape}")
+            p.copy_(t)
+        for key in ("action_mean", "action_std"):
+            t = payload.get(key)
+            if not isinstance(t, torch.Tensor) or t.shape != (ensemble.config.action_dim,):
+                raise CheckpointError(f"checkpoint {key} must be a tensor of shape "
+                                      f"({ensemble.config.action_dim},), found {t!r}")
+        try:
+            ensemble.set_action_stats(payload["action_mean"].numpy(), payload["action_std"].numpy())
+        except ConfigError as exc:
+            raise CheckpointError(f"checkpoint action normalisation is invalid: {exc}") from exc
+
+
+def save_candidate(registry: ModelRegistry, ensemble: Ensemble, metrics: dict[str, Any], snapshot_id: str,
+                   eval_hash: str, parent: str | None = None,
+                   train_config: dict[str, Any] | None = None) -> str:
+    """Register the ensemble as a candidate and return its version (the gate is the caller's call).
+
+    Raises ``storage.errors.RegistryError`` when the registry refuses it.
+    """
+    config = {"predictor": ensemble.config.to_dict(), "members": ensemble.members, "seed": ensemble.seed,
+              "format": FORMAT, "format_version": FORMAT_VERSION, "train": train_config or {}}
+    return registry.register(ensemble_to_bytes(ensemble), config, metrics, snapshot_id, eval_hash, parent)
+
+
+def load_ensemble(registry: ModelRegistry, version: str | None = None,
+                  device: torch.device | str | None = None) -> Ensemble:
+    """Load ``version`` (default: the champion) in eval mode.
+
+    Raises ``storage.errors.RegistryError`` for an unknown version or when there is
+    no champion, ``CorruptCheckpointError`` when the weights fail their sha256, and
+    ``CheckpointError`` (also a ``CorruptCheckpointError``) when they are not an ensemble.
+    """
+    if version is None:
+        version = registry.champion()
+        if version is None:
+            raise RegistryError("no champion model yet: train one first (activecollect train)")
+    ensemble = ensemble_from_bytes(registry.load_weights(version), device)
+    ensemble.version = version
+    return ensemble.eval()

@@ -1,0 +1,168 @@
+"""Training and evaluation windows cut from catalog episodes.
+
+A window is what the predictor learns from: ``C`` context frames, the action(s)
+taken after the last of them, and the true next frame(s). All frames of a set of
+episodes are kept once, as uint8, and windows are index arrays into them, so
+a few thousand windows cost no more memory than their episodes.
+
+Training reads only the catalog's ``train`` snapshot and refuses any episode that
+is also in the pinned eval split; evaluation reads only the eval split.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Protocol, Sequence
+
+import numpy as np
+import torch
+
+from storage.records import Episode
+from uncertainty.errors import DataError
+from uncertainty.model import PredictorConfig
+
+
+class CatalogLike(Protocol):
+    """What this module needs of ``storage.catalog.Catalog``."""
+
+    def snapshot(self, split: str = "train"): ...
+    def eval_split(self): ...
+    def load(self, episode_id: str) -> Episode: ...
+
+
+@dataclass
+class Windows:
+    """Windows over a set of episodes: index arrays into one uint8 frame store."""
+
+    frames: torch.Tensor
+    """(F, 3, H, W) uint8: every frame of every episode, episodes back to back."""
+    actions: torch.Tensor
+    """(F, A) float32 raw actions aligned with ``frames``."""
+    context: torch.Tensor
+    """(N, C) int64: frame indices of each window's context, oldest first."""
+    action_idx: torch.Tensor
+    """(N, H) int64: indices (into ``actions``) of the actions to apply, in order."""
+    target: torch.Tensor
+    """(N, H) int64: frame indices of the true next frames."""
+    episode: np.ndarray
+    """(N,) int: which episode (position in ``episode_ids``) each window comes from."""
+    step: np.ndarray
+    """(N,) int: the step t of the last context frame."""
+    episode_ids: list[str]
+    """Ids of the episodes, in store order."""
+
+    def __len__(self) -> int:
+        return len(self.context)
+
+    @property
+    def horizon(self) -> int:
+        return self.target.shape[1]
+
+    def subset(self, idx: np.ndarray) -> "Windows":
+        """The windows at ``idx`` (same frame store)."""
+        t = torch.as_tensor(np.asarray(idx, dtype=np.int64))
+        return Windows(self.frames, self.actions, self.context[t], self.action_idx[t], self.target[t],
+                       self.episode[idx], self.step[idx], self.episode_ids)
+
+    def batch(self, idx: torch.Tensor, device: torch.device | str) -> tuple[torch.Tensor, ...]:
+        """Float tensors for windows ``idx`` (any shape S): context (*S,C,3,H,W), actions (*S,H,A), targets (*S,H,3,H,W)."""
+        ctx = self.frames[self.context[idx]].to(device).float().div_(255.0)   # (*S, C, 3, H, W)
+        act = self.actions[self.action_idx[idx]].to(device)                   # (*S, H, A)
+        tgt = self.frames[self.target[idx]].to(device).float().div_(255.0)    # (*S, H, 3, H, W)
+        return ctx, act, tgt
+
+
+def build_windows(episodes: Sequence[Episode], config: PredictorConfig, horizon: int = 1,
+                  stride: int = 1) -> Windows:
+    """Every window with ``config.context`` frames of context and ``horizon`` successors.
+
+    ``stride`` keeps every stride-th start step. Raises ``DataError`` when an
+    episode's frames do not match the config or no episode is long enough.
+    """
+    if horizon < 1 or stride < 1:
+        raise DataError(f"horizon and stride must be >= 1, found {horizon} and {stride}")
+    c, size = config.context, config.image_size
+    frames, actions, ctx, act, tgt, epi, steps = [], [], [], [], [], [], []
+    offset = 0
+    for i, ep in enumerate(episodes):
+        if ep.frames.shape[1:] != (size, size, 3):
+            raise DataError(f"episode {ep.meta.episode_id}: frames must be ({size},{size},3), "
+                            f"found {ep.frames.shape[1:]}; train with image_size={ep.frames.shape[1]}")
+        t = len(ep)
+        s = np.arange(c - 1, t - horizon, stride)                      # (n,) valid start steps
+        frames.append(torch.from_numpy(np.ascontiguousarray(ep.frames)).permute(0, 3, 1, 2))  # (T, 3, H, W)
+        actions.append(torch.from_numpy(np.asarray(ep.actions, dtype=np.float32)))            # (T, A)
+        ctx.append(offset + s[:, None] + np.arange(-c + 1, 1)[None, :])  # (n, C)
+        act.append(offset + s[:, None] + np.arange(horizon)[None, :])    # (n, H)
+        tgt.append(offset + s[:, None] + np.arange(1, horizon + 1)[None, :])  # (n, H)
+        epi.append(np.full(len(s), i))
+        steps.append(s)
+        offset += t
+    n = sum(len(s) for s in steps)
+    if n == 0:
+        raise DataError(f"no episode of {len(episodes)} is long enough for context {c} and horizon {horizon}")
+    return Windows(
+        frames=torch.cat(frames).contiguous(), actions=torch.cat(actions),
+        context=torch.as_tensor(np.concatenate(ctx), dtype=torch.int64),
+        action_idx=torch.as_tensor(np.concatenate(act), dtype=torch.int64),
+        target=torch.as_tensor(np.concatenate(tgt), dtype=torch.int64),
+        episode=np.concatenate(epi), step=np.concatenate(steps),
+        episode_ids=[ep.meta.episode_id for ep in episodes])
+
+
+def action_stats(episodes: Sequence[Episode]) -> tuple[np.ndarray, np.ndarray]:
+    """Per-dimension mean and std of the actions (std floored at 1e-3); stored in checkpoints."""
+    acts = np.concatenate([np.asarray(ep.actions, dtype=np.float64) for ep in episodes])  # (sum T, A)
+    return acts.mean(axis=0).astype(np.float32), np.maximum(acts.std(axis=0), 1e-3).astype(np.float32)
+
+
+def member_indices(windows: Windows, members: int, bootstrap: bool,
+                   rng: np.random.Generator) -> list[np.ndarray]:
+    """Window indices each member trains on: all of them, or a bootstrap resample of the episodes.
+
+    A bootstrap member sees each drawn episode's windows once per time it was drawn.
+    """
+    everything = np.arange(len(windows))
+    if not bootstrap:
+        return [everything for _ in range(members)]
+    n_eps = len(windows.episode_ids)
+    by_episode = [np.flatnonzero(windows.episode == e) for e in range(n_eps)]
+    out = []
+    for _ in range(members):
+        drawn = rng.integers(0, n_eps, size=n_eps)
+        out.append(np.concatenate([by_episode[e] for e in drawn]))
+    return out
+
+
+@dataclass
+class TrainData:
+    """The training episodes of one catalog snapshot."""
+
+    episodes: list[Episode]
+    snapshot_id: str
+    episode_ids: list[str]
+
+
+def load_train(catalog: CatalogLike, max_episodes: int | None = None) -> TrainData:
+    """Loads the ``train`` snapshot; raises ``DataError`` if it is empty or overlaps the eval split."""
+    snap = catalog.snapshot(split="train")
+    ids = list(snap.ids)
+    split = catalog.eval_split()
+    if split is not None:
+        leaked = sorted(set(ids) & set(split.ids))
+        if leaked:
+            raise DataError(f"train snapshot {snap.snapshot_id} holds {len(leaked)} eval-split episodes "
+                            f"(first {leaked[0]}); the eval split must never be trained on")
+    if not ids:
+        raise DataError("the catalog has no train episodes; collect some first")
+    if max_episodes is not None:
+        ids = ids[:max_episodes]
+    return TrainData([catalog.load(i) for i in ids], snap.snapshot_id, ids)
+
+
+def load_eval(catalog: CatalogLike) -> tuple[list[Episode], str]:
+    """The pinned eval split's episodes and hash; raises ``DataError`` when none is pinned."""
+    split = catalog.eval_split()
+    if split is None or not split.ids:
+        raise DataError("no eval split is pinned in the catalog; create one (workers.collect.create_eval_split)")
+    return [catalog.load(i) for i in split.ids], split.hash

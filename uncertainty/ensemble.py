@@ -1,0 +1,268 @@
+"""K independently initialised predictors run as one fused forward pass, and their disagreement.
+
+The members' parameters live stacked, one tensor per parameter with a leading
+member axis ``K``; ``torch.func.functional_call`` under ``torch.vmap`` runs all
+K members in one call (vmap turns each convolution into a single grouped
+convolution). ``forward_loop`` runs the same weights member by member; it exists
+to check the fused pass and to benchmark it.
+"""
+
+from __future__ import annotations
+
+import copy
+
+import numpy as np
+import torch
+from torch import nn
+from torch.func import functional_call
+from torch.nn import functional as F
+
+from uncertainty.errors import ConfigError, DataError
+from uncertainty.model import Predictor, PredictorConfig
+
+
+def default_device() -> torch.device:
+    """CUDA when there is one, CPU otherwise."""
+    return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+
+
+def frames_to_tensor(frames: np.ndarray, device: torch.device | str = "cpu") -> torch.Tensor:
+    """(T,H,W,3) uint8 -> (T,3,H,W) float32 in [0, 1]."""
+    t = torch.from_numpy(np.ascontiguousarray(frames)).to(device)  # (T, H, W, 3) uint8
+    return t.permute(0, 3, 1, 2).float().div_(255.0)              # (T, 3, H, W)
+
+
+class Ensemble(nn.Module):
+    """K predictors with stacked parameters; ``forward`` returns every member's prediction (K,B,3,H,W)."""
+
+    def __init__(self, config: PredictorConfig, members: int = 5, seed: int = 0) -> None:
+        super().__init__()
+        if members < 1:
+            raise ConfigError(f"members must be >= 1, found {members}")
+        self.config = config
+        self.members = members
+        self.seed = seed
+        self.version = ""
+        """Registry version it was loaded from ('' for a fresh or unsaved ensemble)."""
+        gen = torch.Generator().manual_seed(seed)
+        nets = []
+        for _ in range(members):
+            net = Predictor(config)
+            net.reset_parameters(gen)
+            nets.append(net)
+        # The template holds no weights of its own that matter: functional_call swaps them in.
+        # Kept out of the module tree (not a submodule), so .to(device) leaves it on "meta".
+        self.__dict__["template"] = copy.deepcopy(nets[0]).to("meta")
+        self.names = [n for n, _ in nets[0].named_parameters()]
+        self.params = nn.ParameterList(
+            nn.Parameter(torch.stack([dict(n.named_parameters())[name].detach() for n in nets]))  # (K, ...)
+            for name in self.names)
+        self.buffer_names = [n for n, _ in nets[0].named_buffers()]
+        for name, buf in nets[0].named_buffers():
+            self.register_buffer("buf_" + name, buf, persistent=False)
+        # Action normalisation (raw world units -> roughly zero mean, unit std); set from training data.
+        self.register_buffer("action_mean", torch.zeros(config.action_dim))
+        self.register_buffer("action_std", torch.ones(config.action_dim))
+
+    # -- parameters -------------------------------------------------------------------------------
+    def _buffers_dict(self) -> dict[str, torch.Tensor]:
+        return {name: getattr(self, "buf_" + name) for name in self.buffer_names}
+
+    def member_params(self, k: int) -> dict[str, torch.Tensor]:
+        """Member k's parameters as a name -> tensor dict (views into the stacked tensors)."""
+        return {name: p[k] for name, p in zip(self.names, self.params)}
+
+    def member(self, k: int) -> Predictor:
+        """A standalone ``Predictor`` holding a copy of member k's weights."""
+        net = Predictor(self.config).to(self.action_mean.device)
+        net.load_state_dict({n: t.detach().clone() for n, t in self.member_params(k).items()})
+        return net
+
+    def set_action_stats(self, mean: np.ndarray, std: np.ndarray) -> None:
+        """Sets the normalisation of raw actions: (a - mean) / std, per dimension."""
+        mean = torch.as_tensor(np.asarray(mean, dtype=np.float32))
+        std = torch.as_tensor(np.asarray(std, dtype=np.float32))
+        if mean.shape != (self.config.action_dim,) or std.shape != (self.config.action_dim,):
+            raise ConfigError(f"action stats must have shape ({self.config.action_dim},), "
+                              f"found {tuple(mean.shape)} and {tuple(std.shape)}")
+        if not torch.all(std > 0):
+            raise ConfigError(f"action std must be > 0, found {std.tolist()}")
+        self.action_mean.copy_(mean)
+        self.action_std.copy_(std)
+
+    def normalize_actions(self, actions: torch.Tensor) -> torch.Tensor:
+        """Raw actions (..., A) in world units -> normalised actions (..., A)."""
+        return (actions - self.action_mean) / self.action_std
+
+    @property
+    def device(self) -> torch.device:
+        return self.action_mean.device
+
+    # -- forward passes ---------------------------------------------------------------------------
+    def _one(self, params: dict, context: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+        return functional_call(self.template, (params, self._buffers_dict()), (context, action))
+
+    def forward(self, context: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+        """Fused pass over all members as grouped convolutions (one call per layer for all K).
+
+        context: (B,C,3,H,W) shared by all members, or (K,B,C,3,H,W) one per member;
+        action: (B,A) or (K,B,A), normalised. Returns (K,B,3,H,W).
+        """
+        return grouped_forward(dict(zip(self.names, self.params)), self._buffers_dict(),
+                               self.config, self.members, context, action)
+
+    def forward_vmap(self, context: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+        """Fused pass via ``torch.vmap`` over ``functional_call`` (same result; slower on CPU)."""
+        params = dict(zip(self.names, self.params))
+        ctx_dim = 0 if context.dim() == 6 else None
+        act_dim = 0 if action.dim() == 3 else None
+        return torch.vmap(self._one, in_dims=(0, ctx_dim, act_dim))(params, context, action)
+
+    def forward_loop(self, context: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+        """The same predictions as ``forward``, one member at a time (for tests and benchmarks)."""
+        outs = []
+        for k in range(self.members):
+            ctx = context[k] if context.dim() == 6 else context
+            act = action[k] if action.dim() == 3 else action
+            outs.append(self._one(self.member_params(k), ctx, act))  # (B, 3, H, W)
+        return torch.stack(outs)  # (K, B, 3, H, W)
+
+    def rollout(self, context: torch.Tensor, actions: torch.Tensor, fused: bool | str = True) -> torch.Tensor:
+        """Each member rolls out on its own predictions.
+
+        context (B,C,3,H,W) shared, actions (B,H,A) normalised -> (K,B,H,3,H,W), clamped to [0,1].
+        """
+        step = {True: self.forward, False: self.forward_loop, "vmap": self.forward_vmap}[fused]
+        k = self.members
+        ctx = context                                                    # (B, C, 3, H, W): shared at first
+        preds = []
+        for i in range(actions.shape[1]):
+            nxt = step(ctx, actions[:, i]).clamp(0.0, 1.0)               # (K, B, 3, H, W)
+            preds.append(nxt)
+            if ctx.dim() == 5:
+                ctx = ctx.unsqueeze(0).expand(k, *ctx.shape)             # (K, B, C, 3, H, W)
+            ctx = torch.cat([ctx[:, :, 1:], nxt[:, :, None]], dim=2)     # (K, B, C, 3, H, W)
+        return torch.stack(preds, dim=2)                                 # (K, B, H, 3, H, W)
+
+    # -- disagreement -----------------------------------------------------------------------------
+    @torch.inference_mode()
+    def disagreement(self, frames: np.ndarray, actions: np.ndarray, horizon: int = 1,
+                     fused: bool | str = True, batch_size: int = 256) -> np.ndarray:
+        """Per-step disagreement of one episode: (T,) float64.
+
+        frames (T,H,W,3) uint8, actions (T,2) raw world units. For step t the members
+        predict frames t+1..t+horizon (each on its own predictions); the score is the
+        variance across members, averaged over pixels and over the horizon's steps.
+        Steps without ``C-1`` earlier frames or without ``horizon`` successors are NaN.
+        Raises ``DataError`` on mismatched shapes.
+        """
+        windows = episode_windows(frames, actions, self.config, horizon)
+        out = np.full(len(frames), np.nan)
+        if windows is None:
+            return out
+        steps, ctx_idx, act_idx = windows
+        x = frames_to_tensor(frames, self.device)                                        # (T, 3, H, W)
+        a = self.normalize_actions(torch.as_tensor(actions, dtype=torch.float32, device=self.device))
+        scores = []
+        for lo in range(0, len(steps), batch_size):
+            ctx = x[torch.as_tensor(ctx_idx[lo:lo + batch_size], device=self.device)]   # (B, C, 3, H, W)
+            act = a[torch.as_tensor(act_idx[lo:lo + batch_size], device=self.device)]   # (B, Hz, A)
+            preds = self.rollout(ctx, act, fused=fused)                                # (K, B, Hz, 3, H, W)
+            scores.append(preds.var(dim=0, unbiased=False).mean(dim=(1, 2, 3, 4)))     # (B,)
+        out[steps] = torch.cat(scores).double().cpu().numpy()
+        return out
+
+
+def episode_windows(frames: np.ndarray, actions: np.ndarray, config: PredictorConfig,
+                    horizon: int) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """Valid steps of an episode and their index arrays, or None when the episode is too short.
+
+    Returns steps (N,), context frame indices (N,C) and action indices (N,horizon).
+    Raises ``DataError`` when frames and actions disagree in length or image size.
+    """
+    if horizon < 1:
+        raise ConfigError(f"horizon must be >= 1, found {horizon}")
+    t = len(frames)
+    if frames.ndim != 4 or frames.shape[1:] != (config.image_size, config.image_size, 3):
+        raise DataError(f"frames must be (T,{config.image_size},{config.image_size},3), found {frames.shape}")
+    if actions.shape != (t, config.action_dim):
+        raise DataError(f"actions must be ({t},{config.action_dim}), found {actions.shape}")
+    c = config.context
+    steps = np.arange(c - 1, t - horizon)                      # (N,) every step with context and successors
+    if len(steps) == 0:
+        return None
+    ctx_idx = steps[:, None] + np.arange(-c + 1, 1)[None, :]   # (N, C)
+    act_idx = steps[:, None] + np.arange(horizon)[None, :]     # (N, horizon)
+    return steps, ctx_idx, act_idx
+
+
+def _gconv(xs: list[torch.Tensor], p: dict, name: str, k: int, stride: int = 1, padding: int = 1,
+           shared: bool = False) -> torch.Tensor:
+    """A grouped convolution over member-grouped inputs (B, K*c_i, h, w).
+
+    A convolution over a channel concatenation is the sum of convolutions over
+    the parts, so member-wise concatenations (skips, action maps) are never
+    materialised: each part gets its slice of the weight. Channels-last input
+    makes oneDNN's grouped convolution about as fast per FLOP as a plain one.
+    """
+    w = p[name + ".weight"]                                          # (K, Cout, Cin, kh, kw)
+    out = None
+    off = 0
+    for i, x in enumerate(xs):
+        ci = x.shape[1] if shared else x.shape[1] // k
+        wi = w[:, :, off:off + ci].reshape(-1, ci, *w.shape[3:])    # (K*Cout, ci, kh, kw)
+        off += ci
+        bias = p[name + ".bias"].reshape(-1) if i == 0 else None    # (K*Cout,)
+        x = x.contiguous(memory_format=torch.channels_last)
+        y = F.conv2d(x, wi, bias, stride=stride, padding=padding, groups=1 if shared else k)
+        out = y if out is None else out + y                          # (B, K*Cout, h', w')
+    if off != w.shape[2]:
+        raise ConfigError(f"layer {name} expects {w.shape[2]} input channels per member, found {off}")
+    return out
+
+
+def grouped_forward(p: dict, buffers: dict, config: PredictorConfig, k: int,
+                    context: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+    """``Predictor.forward`` for K stacked members at once; see ``Ensemble.forward`` for shapes."""
+    if context.dim() == 5 and action.dim() == 3:
+        context = context.expand(k, *context.shape)                  # (K, B, C, 3, H, W)
+    shared = context.dim() == 5
+    if shared:
+        b, c, _, h, w = context.shape
+        x = torch.cat([context.reshape(b, c * 3, h, w) * 2 - 1,        # (B, 3C, H, W), centred
+                       buffers["coords_full"].expand(b, -1, -1, -1),  # (B, 2, H, W)
+                       action[:, :, None, None].expand(-1, -1, h, w)], dim=1)  # (B, 3C+2+A, H, W)
+        last = context[:, -1].unsqueeze(0)                           # (1, B, 3, H, W)
+    else:
+        _, b, c, _, h, w = context.shape
+        act_k = action.expand(k, *action.shape) if action.dim() == 2 else action  # (K, B, A)
+        x = context.permute(1, 0, 2, 3, 4, 5).reshape(b, k, c * 3, h, w) * 2 - 1  # (B, K, 3C, H, W), centred
+        coords = buffers["coords_full"].expand(b, k, -1, -1, -1)            # (B, K, 2, H, W)
+        a_full = act_k.permute(1, 0, 2)[..., None, None].expand(-1, -1, -1, h, w)  # (B, K, A, H, W)
+        x = torch.cat([x, coords, a_full], dim=2).reshape(b, -1, h, w)      # (B, K*(3C+2+A), H, W)
+        last = context[:, :, -1]                                     # (K, B, 3, H, W)
+    if config.context != c or config.image_size != h or config.image_size != w:
+        raise ConfigError(f"context must be (...,{config.context},3,{config.image_size},{config.image_size}),"
+                          f" found {tuple(context.shape)}")
+    e1 = F.silu(_gconv([x], p, "enc1", k, 2, 1, shared=shared))     # (B, K*w0, H/2, W/2)
+    e2 = F.silu(_gconv([e1], p, "enc2", k, 2, 1))                   # (B, K*w1, H/4, W/4)
+    e3 = F.silu(_gconv([e2], p, "enc3", k, 2, 1))                   # (B, K*w2, H/8, W/8)
+    act = action.expand(k, *action.shape) if action.dim() == 2 else action  # (K, B, A)
+    hid = F.silu(torch.baddbmm(p["film.0.bias"][:, None], act, p["film.0.weight"].transpose(1, 2)))  # (K, B, Ah)
+    film = torch.baddbmm(p["film.2.bias"][:, None], hid, p["film.2.weight"].transpose(1, 2))         # (K, B, 2*w2)
+    gamma, beta = film.permute(1, 0, 2).chunk(2, dim=-1)            # (B, K, w2) each
+    hl, wl = e3.shape[-2:]
+    z = e3 * (1 + gamma.reshape(b, -1, 1, 1)) + beta.reshape(b, -1, 1, 1)  # (B, K*w2, h, w)
+    a_map = act.permute(1, 0, 2)[..., None, None].expand(-1, -1, -1, hl, wl)  # (B, K, A, h, w)
+    coords = buffers["coords_low"].expand(b, k, -1, -1, -1)         # (B, K, 2, h, w)
+    side = torch.cat([a_map, coords], dim=2).reshape(b, -1, hl, wl)  # (B, K*(A+2), h, w)
+    z = F.silu(_gconv([z, side], p, "mid1", k))                      # (B, K*w2, h, w)
+    z = F.silu(_gconv([z], p, "mid2", k))                            # (B, K*w2, h, w)
+    d = F.interpolate(z, scale_factor=2.0, mode="nearest")          # (B, K*w2, H/4, W/4)
+    d = F.silu(_gconv([d, e2], p, "dec2", k))                        # (B, K*w1, H/4, W/4)
+    d = F.interpolate(d, scale_factor=2.0, mode="nearest")          # (B, K*w1, H/2, W/2)
+    d = F.silu(_gconv([d, e1], p, "dec1", k))                        # (B, K*w0, H/2, W/2)
+    # pixel_shuffle maps channel j*4+i to channel j, so member blocks of 12 become blocks of 3.
+    delta = F.pixel_shuffle(_gconv([d], p, "out", k).contiguous(), 2)  # (B, K*3, H, W)
+    delta = delta.reshape(b, k, 3, h, w).permute(1, 0, 2, 3, 4)     # (K, B, 3, H, W)
+    return last + delta                                              # (K, B, 3, H, W)

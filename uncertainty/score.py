@@ -1,0 +1,114 @@
+"""Scoring an episode: where does the ensemble disagree, and what would it take to go back there?
+
+Each top state carries everything the planner needs to build a collection
+request: the simulator state at that step (velocities included), the episode's
+start state, and the action prefix that led from the start to it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from storage.records import STATE_FIELDS, Episode
+from uncertainty.ensemble import Ensemble
+from uncertainty.errors import ConfigError
+
+_COL = {name: i for i, name in enumerate(STATE_FIELDS)}
+
+
+@dataclass
+class ScoredState:
+    """One uncertain state of an episode, ready to become a collection request."""
+
+    step: int
+    """Step t: the state observed before actions[t]."""
+    score: float
+    """Disagreement at that step."""
+    state: dict[str, Any]
+    """Simulator state at step t in ``SimState.to_dict`` form."""
+    start_state: dict[str, Any]
+    """The episode's start state (``SimState.to_dict`` form)."""
+    action_prefix: list[list[float]]
+    """actions[:step]: replayed from ``start_state`` they lead to ``state``."""
+    shape: str
+    """Object shape."""
+    physics: dict[str, float]
+    """Physics parameters of the episode."""
+    episode_id: str
+    """The scored episode."""
+
+    def to_json(self) -> dict[str, Any]:
+        return {"step": self.step, "score": self.score, "state": self.state, "start_state": self.start_state,
+                "action_prefix": self.action_prefix, "shape": self.shape, "physics": self.physics,
+                "episode_id": self.episode_id}
+
+
+@dataclass
+class EpisodeScore:
+    """Per-step disagreement of one episode and its top states."""
+
+    episode_id: str
+    per_step: np.ndarray
+    """(T,) disagreement, NaN where a step has too little context or no successor."""
+    top: list[ScoredState] = field(default_factory=list)
+    horizon: int = 1
+    model_version: str = ""
+
+    @property
+    def mean(self) -> float:
+        """Mean disagreement over the scored steps (NaN if none)."""
+        ok = np.isfinite(self.per_step)
+        return float(self.per_step[ok].mean()) if ok.any() else float("nan")
+
+    def to_json(self) -> dict[str, Any]:
+        return {"episode_id": self.episode_id, "horizon": self.horizon, "model_version": self.model_version,
+                "mean": self.mean, "per_step": [None if not np.isfinite(v) else float(v) for v in self.per_step],
+                "top": [s.to_json() for s in self.top]}
+
+
+def state_dict(row: np.ndarray, shape: str, physics: dict[str, float]) -> dict[str, Any]:
+    """A ``states`` row (STATE_FIELDS order) as ``SimState.to_dict``'s form."""
+    r = [float(v) for v in row]
+    c = _COL
+    return {"shape": shape, "agent": [r[c["agent_x"]], r[c["agent_y"]]],
+            "agent_vel": [r[c["agent_vx"]], r[c["agent_vy"]]],
+            "object": [r[c["obj_x"]], r[c["obj_y"]], r[c["obj_theta"]]],
+            "object_vel": [r[c["obj_vx"]], r[c["obj_vy"]], r[c["obj_omega"]]],
+            "physics": {k: float(v) for k, v in physics.items()}}
+
+
+def pick_top(scores: np.ndarray, k: int, min_separation: int) -> list[int]:
+    """Indices of up to k highest finite scores, no two closer than ``min_separation`` steps."""
+    order = [i for i in np.argsort(-np.nan_to_num(scores, nan=-np.inf), kind="stable") if np.isfinite(scores[i])]
+    chosen: list[int] = []
+    for i in order:
+        if len(chosen) == k:
+            break
+        if all(abs(int(i) - j) >= min_separation for j in chosen):
+            chosen.append(int(i))
+    return chosen
+
+
+def score_episode(ensemble: Ensemble, episode: Episode, top_k: int = 5, horizon: int = 1,
+                  min_separation: int = 5) -> EpisodeScore:
+    """Per-step disagreement of ``episode`` and its ``top_k`` most uncertain, well-separated states.
+
+    Raises ``ConfigError`` for a bad top_k / min_separation and ``DataError`` when
+    the episode's frames do not fit the ensemble.
+    """
+    if top_k < 0 or min_separation < 1:
+        raise ConfigError(f"top_k must be >= 0 and min_separation >= 1, found {top_k} and {min_separation}")
+    per_step = ensemble.disagreement(episode.frames, episode.actions, horizon=horizon)  # (T,)
+    meta = episode.meta
+    start = dict(meta.start_state) if meta.start_state else state_dict(episode.states[0], meta.shape, meta.physics)
+    top = [ScoredState(step=t, score=float(per_step[t]),
+                       state=state_dict(episode.states[t], meta.shape, meta.physics),
+                       start_state=start,
+                       action_prefix=[[float(x), float(y)] for x, y in episode.actions[:t]],
+                       shape=meta.shape, physics={k: float(v) for k, v in meta.physics.items()},
+                       episode_id=meta.episode_id)
+           for t in pick_top(per_step, top_k, min_separation)]
+    return EpisodeScore(meta.episode_id, per_step, top, horizon, ensemble.version)

@@ -1,0 +1,297 @@
+"""Training a candidate ensemble on a catalog snapshot, evaluating it on the pinned eval split.
+
+``train_candidate`` is the whole retrain job: load the train snapshot, fit the
+members (one fused forward and backward per step; each member draws its own
+shuffled batch), evaluate on the eval split, register the candidate and run it
+through the registry's promotion gate.
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+import time
+from dataclasses import asdict, dataclass, field
+from typing import Any, Callable, Sequence
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from storage.models import GateDecision, ModelRegistry
+from storage.records import Episode
+from uncertainty import metrics as M
+from uncertainty.checkpoint import load_ensemble, save_candidate
+from uncertainty.data import (CatalogLike, Windows, action_stats, build_windows, load_eval, load_train,
+                              member_indices)
+from uncertainty.ensemble import Ensemble, default_device
+from uncertainty.errors import ConfigError, DataError
+from uncertainty.model import PredictorConfig
+
+
+@dataclass
+class TrainConfig:
+    """One training run (``activecollect train`` builds it)."""
+
+    members: int = 5
+    """Ensemble size K (ignored when warm-starting: the champion's K is kept)."""
+    epochs: int = 8
+    """Passes over the training windows."""
+    batch_size: int = 16
+    """Windows per member per step."""
+    lr: float = 1.5e-3
+    """Peak Adam learning rate (cosine-decayed to a tenth)."""
+    grad_clip: float | None = 1.0
+    """Per-member gradient norm cap (None: no clipping); keeps one bad batch from derailing a member."""
+    bootstrap: bool = False
+    """Train each member on a bootstrap resample of the episodes."""
+    seed: int = 0
+    """Seeds initialisation, shuffling and bootstrap draws."""
+    device: str = "auto"
+    """"auto" (CUDA if available), "cpu" or "cuda"."""
+    max_windows: int | None = None
+    """Cap on training windows (a seeded random subset); None uses all."""
+    max_episodes: int | None = None
+    """Cap on training episodes (the snapshot's first ones); None uses all."""
+    from_champion: bool = False
+    """Warm-start from the champion's weights (and keep its normalisation)."""
+    context: int = 2
+    """Context frames C of a fresh model."""
+    widths: tuple[int, int, int] = (16, 32, 64)
+    """Channel widths of a fresh model."""
+    min_rel_improvement: float = 0.02
+    """The gate's minimum relative improvement of h1_mse over the champion."""
+    eval_rollout_stride: int = 5
+    """Start every n-th eval step for the h5/h10 rollouts (h1 uses every step)."""
+    progress: bool | None = None
+    """Show a progress bar; None: only when stderr is a terminal."""
+
+    def __post_init__(self) -> None:
+        for name in ("members", "epochs", "batch_size", "context", "eval_rollout_stride"):
+            if int(getattr(self, name)) < 1:
+                raise ConfigError(f"{name} must be >= 1, found {getattr(self, name)}")
+        if not self.lr > 0 or not math.isfinite(self.lr):
+            raise ConfigError(f"lr must be a positive number, found {self.lr}")
+        if self.grad_clip is not None and not self.grad_clip > 0:
+            raise ConfigError(f"grad_clip must be a positive number or None, found {self.grad_clip}")
+        for name in ("max_windows", "max_episodes"):
+            if getattr(self, name) is not None and getattr(self, name) < 1:
+                raise ConfigError(f"{name} must be >= 1 or None, found {getattr(self, name)}")
+        if self.device not in ("auto", "cpu", "cuda"):
+            raise ConfigError(f"device must be auto, cpu or cuda, found {self.device!r}")
+        if not 0 <= self.min_rel_improvement < 1:
+            raise ConfigError(f"min_rel_improvement must be in [0, 1), found {self.min_rel_improvement}")
+        self.widths = tuple(int(w) for w in self.widths)
+
+    def torch_device(self) -> torch.device:
+        if self.device == "auto":
+            return default_device()
+        if self.device == "cuda" and not torch.cuda.is_available():
+            raise ConfigError("device cuda requested but torch sees no CUDA device")
+        return torch.device(self.device)
+
+    def to_dict(self) -> dict[str, Any]:
+        d = asdict(self)
+        d["widths"] = list(self.widths)
+        return d
+
+
+@dataclass
+class TrainResult:
+    """What a retrain produced: the registered version, its metrics, and the gate's decision."""
+
+    version: str
+    metrics: dict[str, Any]
+    decision: GateDecision
+    losses: list[float] = field(default_factory=list)
+    """Mean training loss per epoch."""
+
+
+def _show_progress(flag: bool | None) -> bool:
+    return sys.stderr.isatty() if flag is None else flag
+
+
+def _clip_per_member(params: list[torch.Tensor], max_norm: float) -> None:
+    """Scales each member's gradients (slices along dim 0) to a norm of at most ``max_norm``."""
+    sq = sum(p.grad.pow(2).flatten(1).sum(dim=1) for p in params)        # (K,)
+    scale = (max_norm / (sq.sqrt() + 1e-6)).clamp(max=1.0)               # (K,)
+    for p in params:
+        p.grad.mul_(scale.view(-1, *([1] * (p.dim() - 1))))
+
+
+def fit(ensemble: Ensemble, windows: Windows, cfg: TrainConfig,
+        on_epoch: Callable[[int, float], None] | None = None) -> list[float]:
+    """Train all members in place on ``windows`` (horizon 1); returns the mean loss of each epoch.
+
+    Every step draws, for each member, its own batch from its own seeded order
+    (the same seed gives the same weights), and runs one fused forward/backward.
+    """
+    if windows.horizon != 1:
+        raise DataError(f"training needs horizon-1 windows, found horizon {windows.horizon}")
+    rng = np.random.default_rng(cfg.seed)
+    k, b, device = ensemble.members, cfg.batch_size, ensemble.device
+    pools = member_indices(windows, k, cfg.bootstrap, rng)
+    steps = max(1, math.ceil(max(len(p) for p in pools) / b))
+    opt = torch.optim.Adam(ensemble.params.parameters(), lr=cfg.lr)
+    sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=steps * cfg.epochs, eta_min=cfg.lr / 10)
+    losses = []
+    ensemble.train()
+    bar = tqdm(total=steps * cfg.epochs, desc="train", unit="step", disable=not _show_progress(cfg.progress),
+               file=sys.stderr, dynamic_ncols=True)
+    try:
+        for epoch in range(cfg.epochs):
+            orders = [np.resize(rng.permutation(p), steps * b) for p in pools]  # (steps*B,) per member
+            order = torch.as_tensor(np.stack(orders).reshape(k, steps, b))      # (K, steps, B)
+            total = 0.0
+            for s in range(steps):
+                ctx, act, tgt = windows.batch(order[:, s], device)  # (K,B,C,3,H,W), (K,B,1,A), (K,B,1,3,H,W)
+                pred = ensemble(ctx, ensemble.normalize_actions(act[:, :, 0]))     # (K, B, 3, H, W)
+                # Sum over members of each member's mean loss: every member learns as if alone.
+                loss = (pred - tgt[:, :, 0]).pow(2).mean(dim=(1, 2, 3, 4)).sum()
+                opt.zero_grad(set_to_none=True)
+                loss.backward()
+                if cfg.grad_clip is not None:
+                    _clip_per_member(list(ensemble.params), cfg.grad_clip)
+                opt.step()
+                sched.step()
+                total += loss.item() / k
+                bar.update(1)
+                bar.set_postfix(epoch=epoch + 1, loss=f"{total / (s + 1):.2e}")
+            losses.append(total / steps)
+            if on_epoch is not None:
+                on_epoch(epoch, losses[-1])
+    finally:
+        bar.close()
+        ensemble.eval()
+    return losses
+
+
+@torch.inference_mode()
+def _rollout_stats(ensemble: Ensemble, windows: Windows, batch_size: int) -> dict[str, np.ndarray]:
+    """Per-window, per-horizon-step arrays (N, H): mean's mse/ssim, copy-last mse/ssim, disagreement."""
+    out: dict[str, list] = {"mse": [], "ssim": [], "base_mse": [], "base_ssim": [], "var": []}
+    for lo in range(0, len(windows), batch_size):
+        idx = torch.arange(lo, min(lo + batch_size, len(windows)))
+        ctx, act, tgt = windows.batch(idx, ensemble.device)  # (B,C,3,H,W), (B,H,A), (B,H,3,H,W)
+        preds = ensemble.rollout(ctx, ensemble.normalize_actions(act))  # (K, B, H, 3, H, W)
+        mean = preds.mean(dim=0)                                         # (B, H, 3, H, W)
+        var = preds.var(dim=0, unbiased=False).mean(dim=(2, 3, 4))      # (B, H)
+        last = ctx[:, -1]                                                # (B, 3, H, W)
+        cols: dict[str, list] = {key: [] for key in out if key != "var"}
+        for h in range(windows.horizon):
+            cols["mse"].append(M.mse(mean[:, h], tgt[:, h]))
+            cols["ssim"].append(M.ssim(mean[:, h], tgt[:, h]))
+            cols["base_mse"].append(M.mse(last, tgt[:, h]))
+            cols["base_ssim"].append(M.ssim(last, tgt[:, h]))
+        for key, col in cols.items():
+            out[key].append(torch.stack(col, dim=1).double().cpu().numpy())  # (B, H)
+        out["var"].append(var.double().cpu().numpy())
+    return {key: np.concatenate(v) for key, v in out.items()}
+
+
+def _horizon_metrics(stats: dict[str, np.ndarray], col: int, h: int) -> dict[str, float]:
+    m = float(stats["mse"][:, col].mean())
+    base = float(stats["base_mse"][:, col].mean())
+    return {f"h{h}_mse": m, f"h{h}_psnr": M.psnr_from_mse(m), f"h{h}_ssim": float(stats["ssim"][:, col].mean()),
+            f"h{h}_disagreement": float(stats["var"][:, col].mean()),
+            f"baseline_h{h}_mse": base, f"baseline_h{h}_psnr": M.psnr_from_mse(base),
+            f"baseline_h{h}_ssim": float(stats["base_ssim"][:, col].mean()),
+            f"h{h}_psnr_gain_db": M.psnr_from_mse(m) - M.psnr_from_mse(base)}
+
+
+def evaluate_episodes(ensemble: Ensemble, episodes: Sequence[Episode], eval_hash: str,
+                      horizons: Sequence[int] = (1, 5, 10), rollout_stride: int = 5,
+                      batch_size: int = 64) -> dict[str, Any]:
+    """Accuracy and calibration of the ensemble mean on ``episodes``.
+
+    Horizon 1 uses every window; longer horizons roll each member out on its own
+    predictions from every ``rollout_stride``-th step (NaN when episodes are too
+    short). PSNR is computed from the mean MSE (a copy-last baseline can have zero
+    error on a static frame, which would make per-frame PSNR infinite).
+    Calibration: Spearman between per-window disagreement and the mean's error at
+    horizon 1, and the sparsification curve with its oracle.
+    """
+    cfg = ensemble.config
+    w1 = build_windows(episodes, cfg, horizon=1)
+    s1 = _rollout_stats(ensemble, w1, batch_size)
+    out: dict[str, Any] = {"eval_split_hash": eval_hash, "eval_episodes": len(episodes), "eval_windows": len(w1)}
+    out.update(_horizon_metrics(s1, 0, 1))
+    longer = sorted(h for h in horizons if h > 1)
+    if longer:
+        try:
+            wl = build_windows(episodes, cfg, horizon=longer[-1], stride=rollout_stride)
+            sl = _rollout_stats(ensemble, wl, batch_size)
+            for h in longer:
+                out.update(_horizon_metrics(sl, h - 1, h))
+            out[f"h{longer[-1]}_windows"] = len(wl)
+        except DataError:
+            for h in longer:
+                out.update({f"h{h}_{k}": float("nan") for k in ("mse", "psnr", "ssim")})
+    var, err = s1["var"][:, 0], s1["mse"][:, 0]
+    out["spearman"] = M.spearman(var, err)
+    curve = M.sparsification(var, err)
+    out["sparsification"] = curve
+    out["sparsification_error"] = M.sparsification_error(curve)
+    return out
+
+
+def evaluate(ensemble: Ensemble, catalog: CatalogLike, **kwargs: Any) -> dict[str, Any]:
+    """``evaluate_episodes`` on the catalog's pinned eval split (never the train split).
+
+    Raises ``DataError`` when no eval split is pinned.
+    """
+    episodes, eval_hash = load_eval(catalog)
+    return evaluate_episodes(ensemble, episodes, eval_hash, **kwargs)
+
+
+def new_ensemble(cfg: TrainConfig, episodes: Sequence[Episode]) -> Ensemble:
+    """A fresh ensemble shaped for ``episodes`` (image size from their frames), normalised on their actions."""
+    if not episodes:
+        raise DataError("cannot build an ensemble for zero episodes")
+    pcfg = PredictorConfig(image_size=int(episodes[0].frames.shape[1]), context=cfg.context, widths=cfg.widths)
+    ens = Ensemble(pcfg, members=cfg.members, seed=cfg.seed)
+    ens.set_action_stats(*action_stats(episodes))
+    return ens.to(cfg.torch_device())
+
+
+def train_windows(episodes: Sequence[Episode], ensemble: Ensemble, cfg: TrainConfig) -> Windows:
+    """Horizon-1 training windows of ``episodes``, capped at ``cfg.max_windows`` (seeded subset)."""
+    windows = build_windows(episodes, ensemble.config, horizon=1)
+    if cfg.max_windows is not None and len(windows) > cfg.max_windows:
+        rng = np.random.default_rng(cfg.seed + 1)
+        windows = windows.subset(np.sort(rng.choice(len(windows), cfg.max_windows, replace=False)))
+    return windows
+
+
+def train_candidate(catalog: CatalogLike, registry: ModelRegistry, cfg: TrainConfig) -> TrainResult:
+    """Train on the train snapshot, evaluate on the eval split, register, and run the gate.
+
+    Raises ``DataError`` (no train data, no eval split, eval episodes in the
+    snapshot), ``ConfigError`` (warm start without a champion, or one shaped for
+    other images) and the registry's errors.
+    """
+    data = load_train(catalog, cfg.max_episodes)
+    eval_episodes, eval_hash = load_eval(catalog)
+    parent = None
+    if cfg.from_champion:
+        parent = registry.champion()
+        if parent is None:
+            raise ConfigError("--from-champion given but there is no champion yet")
+        ensemble = load_ensemble(registry, parent, cfg.torch_device())
+        size = int(data.episodes[0].frames.shape[1])
+        if ensemble.config.image_size != size:
+            raise ConfigError(f"champion {parent} predicts {ensemble.config.image_size}px frames, "
+                              f"the train snapshot has {size}px")
+    else:
+        ensemble = new_ensemble(cfg, data.episodes)
+    windows = train_windows(data.episodes, ensemble, cfg)
+    start = time.perf_counter()
+    losses = fit(ensemble, windows, cfg)
+    train_s = time.perf_counter() - start
+    metrics = evaluate_episodes(ensemble, eval_episodes, eval_hash, rollout_stride=cfg.eval_rollout_stride)
+    metrics.update({"train_episodes": len(data.episodes), "train_windows": len(windows),
+                    "train_seconds": round(train_s, 2), "train_loss": losses[-1], "epochs": cfg.epochs})
+    version = save_candidate(registry, ensemble, metrics, data.snapshot_id, eval_hash, parent=parent,
+                             train_config=cfg.to_dict())
+    decision = registry.gate(version, cfg.min_rel_improvement, eval_split_hash=eval_hash)
+    return TrainResult(version, metrics, decision, losses)
