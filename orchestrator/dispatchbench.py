@@ -1,7 +1,8 @@
 """``activecollect bench dispatch``: how fast the service hands out and takes back work.
 
-Three phases, each with ``workers`` concurrent client threads in this process
-talking to a server in a child process over loopback TCP (peer mode):
+Three phases with ``workers`` concurrent client threads in this process
+talking to a server in a child process over loopback TCP (peer mode), and one
+in-process phase without Zenoh:
 
 1. ``raw``: a bare Zenoh queryable that echoes its payload -- the floor any
    query-based dispatch pays. Client payload: a LeaseRequest's bytes.
@@ -14,6 +15,23 @@ talking to a server in a child process over loopback TCP (peer mode):
    ``upload`` of a tiny pre-encoded MCAP episode (2 steps of 8x8 frames, made
    before the clock starts) -- verify, write + fsync, index and complete in one
    transaction. Bounded by MCAP verification and fsync, not by dispatch.
+4. ``queue``: ``RequestQueue.lease`` then ``RequestQueue.complete`` in this
+   process, one thread, on a fresh queue file set up as the service sets it up
+   (WAL, background checkpoints); each request is leased once and ends ``done``.
+   No Zenoh, no episode file: the SQLite floor of a cycle that ends in
+   ``complete``, the transition the wire only reaches through an upload.
+
+How far ``dispatch`` stands in for real dispatch: a worker's cycle is lease ->
+(renews) -> upload, and both lease-ending transactions are one ``UPDATE`` with
+the same fencing ``WHERE`` and one commit, so ``fail`` costs the queue what
+``complete`` does (``queue`` shows the two side by side); what it leaves out is
+the episode itself (``upload``). Each cycle is two round trips and is counted
+once. The clients share one process and one Zenoh session, where real workers
+each have their own, so on a small machine they take CPU from the server.
+
+``raw`` and ``dispatch`` run in alternating slices (``rounds`` of each, both
+servers up throughout) so that on a shared machine, whose load changes from one
+second to the next, the two phases whose p99s are compared see the same load.
 
 Latencies are per query (lease, fail, upload) and per cycle; throughput is
 cycles per second over all clients.
@@ -30,7 +48,8 @@ import tempfile
 import threading
 import time
 import uuid
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -64,12 +83,17 @@ class BenchConfig:
     """Requests in the queue for the dispatch phase (each can be leased up to MAX_ATTEMPTS times)."""
     upload_requests: int = 1500
     """Requests (and pre-encoded episodes) for the upload phase; the phase ends early when they run out."""
+    queue_requests: int = 20000
+    """Requests for the in-process queue phase; it ends early when they are all done."""
     lease_s: float = 60.0
     """Lease length the benchmark service hands out."""
+    rounds: int = 3
+    """Slices the raw and dispatch phases alternate in (seconds / rounds each)."""
 
     def __post_init__(self) -> None:
-        if self.workers < 1 or not self.seconds > 0:
-            raise ValueError(f"workers must be >= 1 and seconds > 0, found {self.workers} and {self.seconds}")
+        if self.workers < 1 or not self.seconds > 0 or self.rounds < 1:
+            raise ValueError(f"workers and rounds must be >= 1 and seconds > 0, found {self.workers}, "
+                             f"{self.rounds} and {self.seconds}")
 
 
 # --- the server side (child process) ---------------------------------------------------------------
@@ -135,11 +159,22 @@ def _percentiles(samples: list[float]) -> dict[str, float]:
             "p99_ms": round(float(np.percentile(a, 99)), 3), "max_ms": round(float(a.max()), 3)}
 
 
-def _drive(workers: int, seconds: float, cycle: Callable[[zenoh.Session, int, dict[str, list[float]]], bool],
-           session: zenoh.Session) -> dict[str, Any]:
+Cycle = Callable[[zenoh.Session, int, dict[str, list[float]]], bool]
+
+
+@dataclass
+class _Slice:
+    """What one ``_drive`` measured: cycles, wall time and every latency sample."""
+
+    cycles: int
+    seconds: float
+    samples: dict[str, list[float]]
+
+
+def _drive(workers: int, seconds: float, cycle: Cycle, session: zenoh.Session) -> _Slice:
     """Run ``cycle(session, worker_index, latencies)`` in ``workers`` threads for ``seconds``.
 
-    ``cycle`` returns False when it has nothing more to do. Returns cycles/s and latency percentiles.
+    ``cycle`` returns False when it has nothing more to do.
     """
     lats: list[dict[str, list[float]]] = [{} for _ in range(workers)]
     counts = [0] * workers
@@ -157,13 +192,22 @@ def _drive(workers: int, seconds: float, cycle: Callable[[zenoh.Session, int, di
         t.start()
     for t in threads:
         t.join()
-    elapsed = time.perf_counter() - start
     merged: dict[str, list[float]] = {}
     for per_thread in lats:
         for name, values in per_thread.items():
             merged.setdefault(name, []).extend(values)
-    return {"cycles": sum(counts), "seconds": round(elapsed, 3), "cycles_per_s": round(sum(counts) / elapsed, 1),
-            "latency": {name: _percentiles(v) for name, v in sorted(merged.items())}}
+    return _Slice(sum(counts), time.perf_counter() - start, merged)
+
+
+def _summary(slices: list[_Slice]) -> dict[str, Any]:
+    """Cycles/s and latency percentiles over all the slices of one phase."""
+    cycles, seconds = sum(s.cycles for s in slices), sum(s.seconds for s in slices)
+    merged: dict[str, list[float]] = {}
+    for sl in slices:
+        for name, values in sl.samples.items():
+            merged.setdefault(name, []).extend(values)
+    return {"cycles": cycles, "seconds": round(seconds, 3), "cycles_per_s": round(cycles / seconds, 1),
+            "rounds": len(slices), "latency": {name: _percentiles(v) for name, v in sorted(merged.items())}}
 
 
 def _timed(lats: dict[str, list[float]], name: str, fn: Callable[[], bytes]) -> bytes:
@@ -173,7 +217,9 @@ def _timed(lats: dict[str, list[float]], name: str, fn: Callable[[], bytes]) -> 
     return out
 
 
-def _phase_raw(cfg: BenchConfig, endpoint: str) -> dict[str, Any]:
+@contextmanager
+def _raw_server(endpoint: str) -> Iterator[tuple[zenoh.Session, Cycle]]:
+    """An echo server in a child process and a connected client: (session, one query cycle)."""
     key = "bench/echo"
     child = _Child("echo", "--listen", endpoint, "--key", key)
     session = transport.open_session(connect=[endpoint])
@@ -185,7 +231,7 @@ def _phase_raw(cfg: BenchConfig, endpoint: str) -> dict[str, Any]:
             _timed(lats, "query", lambda: transport.query(s, key, payload, timeout=10))
             return True
 
-        return _drive(cfg.workers, cfg.seconds, cycle, session)
+        yield session, cycle
     finally:
         session.close()
         child.stop()
@@ -218,7 +264,9 @@ def _lease(s: zenoh.Session, keys: Keys, msg: bytes, lats: dict[str, list[float]
     return body["grant"]
 
 
-def _phase_dispatch(cfg: BenchConfig, endpoint: str, data_dir: Path) -> dict[str, Any]:
+@contextmanager
+def _dispatch_server(cfg: BenchConfig, endpoint: str, data_dir: Path) -> Iterator[tuple[zenoh.Session, Cycle]]:
+    """The real service in a child process and a connected client: (session, one lease -> fail cycle)."""
     namespace = "bench"
     keys = Keys(namespace)
     _fill(data_dir, cfg.dispatch_requests, protocol.MAX_ATTEMPTS)
@@ -240,10 +288,22 @@ def _phase_dispatch(cfg: BenchConfig, endpoint: str, data_dir: Path) -> dict[str
             lats.setdefault("cycle", []).append(time.perf_counter() - t0)
             return True
 
-        return _drive(cfg.workers, cfg.seconds, cycle, session)
+        yield session, cycle
     finally:
         session.close()
         child.stop()
+
+
+def _phases_raw_and_dispatch(cfg: BenchConfig, data_dir: Path) -> tuple[dict[str, Any], dict[str, Any]]:
+    """Both servers up; raw and dispatch slices alternate ``cfg.rounds`` times."""
+    raw_slices: list[_Slice] = []
+    dispatch_slices: list[_Slice] = []
+    with _raw_server(f"tcp/127.0.0.1:{_free_port()}") as (raw_session, raw_cycle), \
+            _dispatch_server(cfg, f"tcp/127.0.0.1:{_free_port()}", data_dir) as (dispatch_session, dispatch_cycle):
+        for _ in range(cfg.rounds):
+            raw_slices.append(_drive(cfg.workers, cfg.seconds / cfg.rounds, raw_cycle, raw_session))
+            dispatch_slices.append(_drive(cfg.workers, cfg.seconds / cfg.rounds, dispatch_cycle, dispatch_session))
+    return _summary(raw_slices), _summary(dispatch_slices)
 
 
 def _phase_upload(cfg: BenchConfig, endpoint: str, data_dir: Path) -> dict[str, Any]:
@@ -271,12 +331,38 @@ def _phase_upload(cfg: BenchConfig, endpoint: str, data_dir: Path) -> dict[str, 
             lats.setdefault("cycle", []).append(time.perf_counter() - t0)
             return True
 
-        result = _drive(cfg.workers, cfg.seconds, cycle, session)
+        result = _summary([_drive(cfg.workers, cfg.seconds, cycle, session)])
         result["episode_bytes"] = len(next(iter(episodes.values())))
         return result
     finally:
         session.close()
         child.stop()
+
+
+def _phase_queue(cfg: BenchConfig, data_dir: Path) -> dict[str, Any]:
+    """lease -> complete and lease -> fail on the queue itself, one thread, no Zenoh."""
+    _fill(data_dir, cfg.queue_requests, protocol.MAX_ATTEMPTS)
+    out: dict[str, Any] = {}
+    with RequestQueue(Catalog(data_dir).db_path, background_checkpoint=True) as queue:
+        for name in ("lease_fail", "lease_complete"):
+            lats: dict[str, list[float]] = {}
+            cycles, deadline = 0, time.perf_counter() + cfg.seconds / 2
+            start = time.perf_counter()
+            while time.perf_counter() < deadline:
+                t0 = time.perf_counter()
+                lease = queue.lease("bench", lease_s=cfg.lease_s)
+                if lease is None:
+                    break
+                if name == "lease_fail":
+                    queue.fail(lease.request.id, lease.token, "bench: give back", worker_id="bench")
+                else:
+                    queue.complete(lease.request.id, lease.token, uuid.uuid4().hex, worker_id="bench")
+                lats.setdefault("cycle", []).append(time.perf_counter() - t0)
+                cycles += 1
+            elapsed = time.perf_counter() - start
+            out[name] = {"cycles": cycles, "seconds": round(elapsed, 3), "cycles_per_s": round(cycles / elapsed, 1),
+                         "latency": {k: _percentiles(v) for k, v in lats.items()}}
+    return out
 
 
 def _free_port() -> int:
@@ -286,17 +372,18 @@ def _free_port() -> int:
 
 
 def run(cfg: BenchConfig) -> dict[str, Any]:
-    """Run the three phases; a JSON-able result with the goal checks."""
+    """Run the phases; a JSON-able result with the goal checks."""
     with tempfile.TemporaryDirectory(prefix="activecollect-dispatch-") as tmp:
         base = Path(cfg.data_dir) if cfg.data_dir is not None else Path(tmp)
-        raw = _phase_raw(cfg, f"tcp/127.0.0.1:{_free_port()}")
-        dispatch = _phase_dispatch(cfg, f"tcp/127.0.0.1:{_free_port()}", base / "dispatch")
+        raw, dispatch = _phases_raw_and_dispatch(cfg, base / "dispatch")
         upload = _phase_upload(cfg, f"tcp/127.0.0.1:{_free_port()}", base / "upload")
+        queue = _phase_queue(cfg, base / "queue")
     raw_p99 = raw["latency"]["query"]["p99_ms"]
     lease_p99 = dispatch["latency"]["lease"]["p99_ms"]
     return {
         "workers": cfg.workers, "seconds_per_phase": cfg.seconds, "cpus": os.cpu_count(),
         "raw_zenoh": raw, "dispatch_lease_fail": dispatch, "upload_lease_upload": upload,
+        "queue_in_process": queue,
         "goals": {
             "lease_round_trips_per_s": dispatch["cycles_per_s"], "lease_round_trips_goal": 2000,
             "lease_p99_over_raw_p99": round(lease_p99 / raw_p99, 2) if raw_p99 else None,
@@ -313,6 +400,11 @@ def format_result(r: dict[str, Any]) -> str:
         phase = r[name]
         lat = "  ".join(f"{k} p50 {v['p50_ms']:.3f} ms p99 {v['p99_ms']:.3f} ms"
                         for k, v in phase["latency"].items() if v.get("n"))
+        lines.append(f"  {label:30} {phase['cycles_per_s']:9.1f} /s   {lat}")
+    for name, phase in r["queue_in_process"].items():
+        cyc = phase["latency"].get("cycle", {})
+        lat = f"cycle p50 {cyc['p50_ms']:.3f} ms p99 {cyc['p99_ms']:.3f} ms" if cyc.get("n") else ""
+        label = f"in-process {name.replace('_', ' -> ')}"
         lines.append(f"  {label:30} {phase['cycles_per_s']:9.1f} /s   {lat}")
     g = r["goals"]
     lines.append(f"  goals: {g['lease_round_trips_per_s']:.0f} lease round trips/s (goal >= "

@@ -52,6 +52,7 @@ MAX_PREFIX_STEPS = 1000
 #   orch/upload  UploadHeader attachment -> ok {"request_id", "episode_id"} | duplicate_reply(same)
 #                + raw MCAP payload         | error stale_token, hash_mismatch, corrupt_episode, too_large
 #   orch/fail    FailRequest             -> ok {"status": "queued" | "dead", "attempts": n} | error stale_token
+#   orch/release ReleaseRequest          -> ok {"status": "queued", "attempts": n} | error stale_token
 #   admin/<op>   AdminRequest (or empty) -> ok with the op's body (orchestrator.admin) | error
 # Any key: bad_json, bad_version, bad_field, too_large for a malformed message; internal for a bug.
 # ---------------------------------------------------------------------------
@@ -153,6 +154,10 @@ class Keys:
     def fail(self) -> str:
         return f"{self.namespace}/orch/fail"
 
+    @property
+    def release(self) -> str:
+        return f"{self.namespace}/orch/release"
+
     def admin(self, op: str) -> str:
         """Key of one admin op: ``queue.ls`` -> ``NS/admin/queue/ls``."""
         if op not in ADMIN_OPS:
@@ -194,7 +199,7 @@ class Keys:
 
     def events(self, kind: EventKind | str) -> str:
         """Key events of ``kind`` are published on: ``request.done`` -> ``NS/events/request/done``."""
-        return f"{self.namespace}/events/{EventKind(kind).value.replace('.', '/')}"
+        return f"{self.namespace}/events/{_EVENT_PATHS[EventKind(kind)]}"
 
     @property
     def events_all(self) -> str:
@@ -316,13 +321,21 @@ def validate_action_prefix(value: Any, name: str = "action_prefix") -> list[list
 # --- encoding ---------------------------------------------------------------
 
 
+# One encoder and one decoder for every message: json.dumps / json.loads with options build a new
+# one per call, which showed up on the lease path.
+_ENCODER = json.JSONEncoder(allow_nan=False, separators=(",", ":"))
+
+
 def encode(obj: dict[str, Any]) -> bytes:
     """Compact JSON bytes (no NaN / Infinity)."""
-    return json.dumps(obj, allow_nan=False, separators=(",", ":")).encode()
+    return _ENCODER.encode(obj).encode()
 
 
 def _reject_constant(name: str) -> Any:
     raise ValueError(f"non-finite number {name}")
+
+
+_DECODER = json.JSONDecoder(parse_constant=_reject_constant)
 
 
 def decode(data: bytes | bytearray | memoryview | str | None, max_bytes: int = MAX_MESSAGE_BYTES) -> dict[str, Any]:
@@ -332,8 +345,8 @@ def decode(data: bytes | bytearray | memoryview | str | None, max_bytes: int = M
     raw = data.encode() if isinstance(data, str) else bytes(data)
     if len(raw) > max_bytes:
         raise ProtocolError(ErrorCode.TOO_LARGE, f"expected at most {max_bytes} bytes, found {len(raw)}")
-    try:
-        obj = json.loads(raw, parse_constant=_reject_constant)
+    try:  # what json.loads does with bytes, without building a decoder per call
+        obj = _DECODER.decode(raw.decode(json.detect_encoding(raw), "surrogatepass"))
     except (UnicodeDecodeError, ValueError) as exc:
         raise ProtocolError(ErrorCode.BAD_JSON, f"expected a JSON object: {exc}") from None
     if not isinstance(obj, dict):
@@ -357,27 +370,41 @@ class Message:
         return dataclasses.asdict(self)
 
     def to_json(self) -> bytes:
-        return encode({"v": PROTOCOL_VERSION, **self.to_dict()})
+        # Fields are JSON values already (validated), so no deep copy on the way to the encoder.
+        ordered, _, _ = _field_names(type(self))
+        return encode({"v": PROTOCOL_VERSION, **{name: getattr(self, name) for name in ordered}})
 
     @classmethod
     def from_dict(cls, obj: Any) -> Any:
         """Build and validate from a decoded object (no ``"v"``); unknown or missing fields are refused."""
         if not isinstance(obj, dict):
             raise _bad(f"{cls.__name__}: expected a JSON object, found {type(obj).__name__}")
-        fields = dataclasses.fields(cls)  # type: ignore[arg-type]
-        names = {f.name for f in fields}
-        unknown = sorted(set(obj) - names)
-        if unknown:
+        _, names, required = _field_names(cls)
+        if not names.issuperset(obj):
+            unknown = sorted(set(obj) - names, key=str)
             raise _bad(f"{cls.__name__}: unknown field(s) {', '.join(map(str, unknown))[:200]}")
-        missing = [f.name for f in fields if f.name not in obj and f.default is dataclasses.MISSING
-                   and f.default_factory is dataclasses.MISSING]
-        if missing:
+        if not required.issubset(obj):
+            missing = [f.name for f in dataclasses.fields(cls) if f.name in required and f.name not in obj]
             raise _bad(f"{cls.__name__}: missing field(s) {', '.join(missing)}")
         return cls(**obj)
 
     @classmethod
     def from_json(cls, data: bytes | bytearray | memoryview | str | None) -> Any:
         return cls.from_dict(decode(data))
+
+
+_FIELDS: dict[type, tuple[tuple[str, ...], frozenset[str], frozenset[str]]] = {}
+
+
+def _field_names(cls: type) -> tuple[tuple[str, ...], frozenset[str], frozenset[str]]:
+    """(field names in order, the same as a set, required field names) of a message class, once per class."""
+    cached = _FIELDS.get(cls)
+    if cached is None:
+        fields = dataclasses.fields(cls)
+        names = tuple(f.name for f in fields)
+        cached = _FIELDS[cls] = (names, frozenset(names), frozenset(
+            f.name for f in fields if f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING))
+    return cached
 
 
 # --- worker messages ----------------------------------------------------------
@@ -525,6 +552,20 @@ class FailRequest(Message):
         self.error = _str("error", self.error, max_len=MAX_ERROR_CHARS)
 
 
+@dataclass
+class ReleaseRequest(Message):
+    """Worker -> ``NS/orch/release``: give the lease back unharmed (a draining worker; no attempt counted)."""
+
+    request_id: str
+    token: int
+    worker_id: str
+
+    def validate(self) -> None:
+        check_id("request_id", self.request_id)
+        self.token = _int("token", self.token, 1, 2**62)
+        check_id("worker_id", self.worker_id)
+
+
 # --- requests, admin, events --------------------------------------------------
 
 
@@ -584,6 +625,8 @@ class EventKind(str, Enum):
     REQUEST_FAILED = "request.failed"
     """A lease ended without an episode (fail, expiry, worker loss) and the request went back to queued."""
     REQUEST_DEAD = "request.dead"
+    REQUEST_RELEASED = "request.released"
+    """A draining worker gave its lease back unharmed: queued again, no attempt counted."""
     REQUEST_CANCELLED = "request.cancelled"
     REQUEST_RETRIED = "request.retried"
     REQUEST_PRIORITIZED = "request.prioritized"
@@ -595,6 +638,9 @@ class EventKind(str, Enum):
     MODEL_ROLLED_BACK = "model.rolled_back"
     WORKER_JOINED = "worker.joined"
     WORKER_LOST = "worker.lost"
+
+
+_EVENT_PATHS = {kind: kind.value.replace(".", "/") for kind in EventKind}
 
 
 @dataclass

@@ -191,7 +191,7 @@ def build_acl(namespace: str = DEFAULT_NAMESPACE) -> dict[str, Any]:
     """
     keys = Keys(namespace)
     ns = keys.namespace
-    worker_keys = [keys.lease, keys.renew, keys.upload, keys.fail]
+    worker_keys = [keys.lease, keys.renew, keys.upload, keys.fail, keys.release]
     service_keys = [f"{ns}/orch/**", keys.admin_all]
     rules: list[dict[str, Any]] = [
         # orchestrator: serves the queryables, replies, publishes events, watches workers

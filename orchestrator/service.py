@@ -2,15 +2,17 @@
 
 ``Service(ServiceConfig).start()`` opens a Zenoh session and answers:
 
-- ``NS/orch/lease | renew | upload | fail`` for workers (see ``orchestrator.protocol``);
+- ``NS/orch/lease | renew | upload | fail | release`` for workers (see ``orchestrator.protocol``);
 - ``NS/admin/**`` for operators and dashboards (``orchestrator.admin``);
 
 it watches the liveliness tokens ``NS/workers/*`` (a lost worker's leases go
 back to the queue at once), expires leases on a timer, and publishes what
 happens on ``NS/events/**``.
 
-Threads: Zenoh's own threads only enqueue queries; a small pool per key answers
-them (SQLite work, at most a few milliseconds). A maintenance thread reaps
+Threads: lease / renew / fail / release are answered on Zenoh's callback threads (one
+short SQLite transaction each); uploads and admin queries are handed to a small pool per
+key (verification, fsync). The queue checkpoints its WAL on a thread of its own, so no
+transition waits for those fsyncs. A maintenance thread reaps
 expired leases and handles liveliness changes. A background thread hands each
 stored episode to the planner and the ``on_episode`` callbacks, so scoring and
 planning never stall leasing.
@@ -38,7 +40,7 @@ from orchestrator.planner import Planner
 from orchestrator.protocol import ErrorCode, EventKind, Keys, ProtocolError
 from orchestrator.transport import Incoming, Response
 from storage.catalog import Catalog
-from storage.episodes import read_episode
+from storage.episodes import EpisodeInfo, read_episode
 from storage.errors import EpisodeError, QueueError, StaleLeaseError, StorageError
 from storage.models import ModelRegistry
 from storage.queue import IllegalTransitionError, NewRequest, Request, RequestQueue, RequestStatus
@@ -113,8 +115,8 @@ class ServiceConfig:
     handler_threads: int = 4
     """Threads answering uploads (verify, fsync, index); admin queries get 2 more."""
     inline_dispatch: bool = True
-    """Answer lease / renew / fail on Zenoh's own threads: each is one short SQLite transaction, and
-    skipping the hand-off to a Python thread gave ~40% more leases/s on 2 busy cores."""
+    """Answer lease / renew / fail / release on Zenoh's own threads: each is one short SQLite transaction,
+    and skipping the hand-off to a Python thread gave ~40% more leases/s on 2 busy cores."""
     metrics: ServiceMetrics | None = None
     """Where to count; a fresh ServiceMetrics when None."""
 
@@ -159,8 +161,9 @@ class Service:
         self._stored: queue_mod.Queue[StoredEpisode | None] = queue_mod.Queue()
         self._threads: list[threading.Thread] = []
         self._stopping = threading.Event()
-        # Queue writes from our own threads take turns here instead of inside SQLite, whose busy
-        # handler sleeps in steps of up to 100 ms: that was the p99 of a lease under load.
+        # Writes to catalog.sqlite from our own threads (queue transitions, an upload's ingest
+        # transaction) take turns here instead of inside SQLite, whose busy handler sleeps in
+        # steps of up to 100 ms: that was the p99 of a lease under load.
         self._writes = threading.Lock()
 
     # --- lifecycle -----------------------------------------------------------------------------
@@ -171,7 +174,7 @@ class Service:
         try:
             cfg.data_dir.mkdir(parents=True, exist_ok=True)
             self.catalog = Catalog(cfg.data_dir)
-            self.queue = RequestQueue(self.catalog.db_path)
+            self.queue = RequestQueue(self.catalog.db_path, background_checkpoint=True)
             registry = ModelRegistry(cfg.data_dir)
         except (StorageError, OSError) as exc:
             raise ServiceError(f"cannot open the data directory {cfg.data_dir}: {exc}") from exc
@@ -190,7 +193,7 @@ class Service:
             t.start()
         k, fast = self.keys, 0 if cfg.inline_dispatch else cfg.handler_threads
         self._servers = [self._serve(k.lease, self._lease, fast), self._serve(k.renew, self._renew, fast),
-                         self._serve(k.fail, self._fail, fast),
+                         self._serve(k.fail, self._fail, fast), self._serve(k.release, self._release, fast),
                          self._serve(k.upload, self._upload, cfg.handler_threads),
                          self._serve(k.admin_all, self._admin, 2)]
         self._liveliness_sub = self.session.liveliness().declare_subscriber(
@@ -307,6 +310,18 @@ class Service:
         self._publish_lease_end(request, f"worker {req.worker_id} failed")
         return protocol.ok_reply(status=request.status.value, attempts=request.attempts)
 
+    def _release(self, msg: Incoming) -> bytes:
+        req = protocol.ReleaseRequest.from_json(msg.payload)
+        try:
+            with self._writes:
+                request = self.queue.release(req.request_id, req.token, worker_id=req.worker_id)
+        except QueueError as exc:
+            raise admin.protocol_error(exc) from exc
+        self.publish(EventKind.REQUEST_RELEASED, {"request_id": request.id, "worker_id": req.worker_id,
+                                                  "token": req.token, "status": request.status.value,
+                                                  "attempts": request.attempts})
+        return protocol.ok_reply(status=request.status.value, attempts=request.attempts)
+
     def _upload(self, msg: Incoming) -> bytes:
         header = protocol.UploadHeader.from_json(msg.attachment)
         try:
@@ -321,13 +336,14 @@ class Service:
             raise ProtocolError(ErrorCode.TOO_LARGE, f"payload: expected at most {self.config.max_upload_bytes} "
                                 f"bytes, found {max(header.size, len(msg.payload))}")
         data = header.check_payload(msg.payload)
-        episode = self._decode(data, header)
+        episode = self._decode(data, header)  # the one full read of the bytes; ingest reuses it
         try:
             result = self.catalog.ingest_bytes(
                 data, expected_sha256=header.sha256, split="train",
                 in_transaction=lambda conn: self.queue.complete(
                     header.request_id, header.token, episode.meta.episode_id, conn,
-                    worker_id=header.worker_id))
+                    worker_id=header.worker_id),
+                verified=EpisodeInfo(meta=episode.meta, frames=len(episode)), write_lock=self._writes)
         except (StaleLeaseError, IllegalTransitionError) as exc:
             request = self.queue.get(header.request_id)  # a racing identical upload may have won
             if self._is_duplicate(request, header):

@@ -25,13 +25,14 @@ import re
 import sqlite3
 import time
 from collections.abc import Callable, Iterator, Sequence
-from contextlib import contextmanager
+from contextlib import AbstractContextManager, contextmanager, nullcontext
 from dataclasses import asdict, dataclass, field
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
 
 from storage.episodes import (
+    EpisodeInfo,
     encode_episode,
     inspect_episode,
     publish,
@@ -291,7 +292,9 @@ class Catalog:
         return self._ingest(data, None, split, None, str(path))
 
     def ingest_bytes(self, data: bytes, expected_sha256: str | None = None, split: str = "train",
-                     in_transaction: Callable[[sqlite3.Connection], None] | None = None) -> IngestResult:
+                     in_transaction: Callable[[sqlite3.Connection], None] | None = None,
+                     verified: EpisodeInfo | None = None,
+                     write_lock: AbstractContextManager[Any] | None = None) -> IngestResult:
         """Verifies ``data`` (sha256 when given, MCAP structure, CRCs, schemas) and indexes it.
 
         ``in_transaction(conn)`` runs inside the ``BEGIN IMMEDIATE`` transaction that inserts
@@ -299,25 +302,37 @@ class Catalog:
         removed and the exception propagates. It is not called for a duplicate (the first
         ingest of those bytes already ran it and committed).
 
+        ``verified``: what the caller learned by fully reading these very bytes itself
+        (``read_episode`` / ``inspect_episode``, e.g. the service checking an upload's provenance);
+        the MCAP is then not parsed a second time. The sha256 is still computed and checked.
+
+        ``write_lock``: held around the write transaction only (not the verification or the
+        staging fsync). A process whose other threads write the same file (the service's queue)
+        passes the lock they take, so they wait for this ingest on it, woken when it commits,
+        rather than in SQLite's busy handler, which sleeps in steps of up to 100 ms.
+
         Raises ``CorruptEpisodeError`` on a sha256 mismatch, the ``EpisodeError`` subclasses of
         ``verify_episode``, ``CatalogError`` for an unknown split, an unsafe episode id, or an
         id already indexed with different bytes or in another split.
         """
-        return self._ingest(data, expected_sha256, split, in_transaction, None)
+        return self._ingest(data, expected_sha256, split, in_transaction, None, verified, write_lock)
 
     def _ingest(self, data: bytes, expected_sha256: str | None, split: str,
-                in_transaction: Callable[[sqlite3.Connection], None] | None, name: str | None) -> IngestResult:
+                in_transaction: Callable[[sqlite3.Connection], None] | None, name: str | None,
+                verified: EpisodeInfo | None = None,
+                write_lock: AbstractContextManager[Any] | None = None) -> IngestResult:
         _check_split(split)
         data = bytes(data)
         sha = sha256_hex(data)
         if expected_sha256 is not None and expected_sha256.lower() != sha:
             raise CorruptEpisodeError(f"{name or 'upload'}: sha256 mismatch: expected {expected_sha256}, "
                                       f"found {sha} ({len(data)} bytes)")
-        info = inspect_episode(data, name=name)
-        return self._store(data, sha, info.meta, info.frames, split, in_transaction)
+        info = verified if verified is not None else inspect_episode(data, name=name)
+        return self._store(data, sha, info.meta, info.frames, split, in_transaction, write_lock)
 
     def _store(self, data: bytes, sha: str, meta: EpisodeMeta, frames: int, split: str,
-               in_transaction: Callable[[sqlite3.Connection], None] | None) -> IngestResult:
+               in_transaction: Callable[[sqlite3.Connection], None] | None,
+               write_lock: AbstractContextManager[Any] | None = None) -> IngestResult:
         _check_split(split)
         if not isinstance(meta.episode_id, str) or not _SAFE_ID.match(meta.episode_id):
             raise CatalogError(f"episode id {meta.episode_id!r} is not a safe file name "
@@ -330,7 +345,8 @@ class Catalog:
         staged = stage_bytes(final, data)  # the slow part (write + fsync), outside the write lock
         try:
             with self._connect() as conn:
-                return self._insert(conn, staged, final, rel, data, sha, meta, frames, split, in_transaction)
+                with write_lock if write_lock is not None else nullcontext():
+                    return self._insert(conn, staged, final, rel, data, sha, meta, frames, split, in_transaction)
         finally:
             staged.unlink(missing_ok=True)
 

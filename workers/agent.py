@@ -17,7 +17,8 @@ the upload as corrupt. A lease that is no longer ours (the service says
 
 SIGTERM / SIGINT drain: the current request is finished and uploaded, then
 the worker exits; a second signal gives the current request back at once
-(``fail`` with "worker stopped") and exits.
+(``release``: queued again, no attempt counted -- the request did nothing wrong)
+and exits.
 
 Imports only ``storage``, ``workers``, ``orchestrator.protocol`` and
 ``orchestrator.transport`` -- the wire contract -- so it runs on any host.
@@ -167,6 +168,7 @@ class Worker:
         self._rng = random.Random(config.worker_id)  # backoff jitter, reproducible per worker
         self.uploaded = 0
         self.failed = 0
+        self.released = 0
 
     # --- lifecycle -----------------------------------------------------------------------------
 
@@ -201,7 +203,8 @@ class Worker:
             if self._token is not None:
                 self._token.undeclare()
             self.session.close()
-        log.info("worker %s done: %d uploaded, %d failed", cfg.worker_id, self.uploaded, self.failed)
+        log.info("worker %s done: %d uploaded, %d failed, %d released", cfg.worker_id, self.uploaded,
+                 self.failed, self.released)
         return self.uploaded
 
     def _loop(self) -> None:
@@ -288,6 +291,22 @@ class Worker:
             log.info("reported failure of %s: now %s after %s attempt(s)", request_id,
                      body.get("status"), body.get("attempts"))
 
+    def _release(self, grant: LeaseGrant) -> None:
+        """Give a lease back unharmed (a second stop signal): one try, the service may be going too."""
+        msg = protocol.ReleaseRequest(request_id=grant.request_id, token=grant.token,
+                                      worker_id=self.config.worker_id).to_json()
+        try:
+            body = self._retrying("release", lambda: self._call(self.keys.release, msg), 1)
+        except ProtocolError as exc:  # stale: the request is not ours any more anyway
+            log.warning("release of %s refused: %s", grant.request_id, exc)
+            return
+        if body is None:
+            log.warning("release of %s not answered; the service ends the lease when this worker's "
+                        "liveliness token goes (counting an attempt)", grant.request_id)
+            return
+        self.released += 1
+        log.info("released %s: %s again, %s attempt(s)", grant.request_id, body.get("status"), body.get("attempts"))
+
     # --- one request -----------------------------------------------------------------------------
 
     def _handle(self, grant: LeaseGrant) -> None:
@@ -302,7 +321,7 @@ class Worker:
                 self._fail(grant, f"collection failed: {type(exc).__name__}: {exc}")
                 return
             if not self._pace(started, len(episode)):
-                self._fail(grant, "worker stopped before finishing the episode")
+                self._release(grant)
                 return
             if renewer.lost is not None:
                 log.warning("dropping the episode of %s: the lease is no longer ours", grant.request_id)

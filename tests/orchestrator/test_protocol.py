@@ -26,6 +26,7 @@ MESSAGES = [
     p.RenewRequest(request_id="r1", token=2, worker_id="w-1"),
     p.UploadHeader.for_payload(b"mcap bytes", request_id="r1", token=2, worker_id="w-1"),
     p.FailRequest(request_id="r1", token=2, worker_id="w-1", error="pymunk exploded"),
+    p.ReleaseRequest(request_id="r1", token=2, worker_id="w-1"),
     p.RequestSpec(task="push", shape="T", start_state=START, priority=2.5, idempotency_key="k",
                   reason={"model_version": "m3", "score": 0.9, "source_episode": "e", "step": 4}),
     p.AdminRequest(op="queue.ls", args={"status": "queued", "limit": 10}),
@@ -169,8 +170,8 @@ def test_replies() -> None:
 
 def test_keys() -> None:
     k = p.Keys("lab/a-1")
-    assert (k.lease, k.renew, k.upload, k.fail) == ("lab/a-1/orch/lease", "lab/a-1/orch/renew",
-                                                    "lab/a-1/orch/upload", "lab/a-1/orch/fail")
+    assert (k.lease, k.renew, k.upload, k.fail, k.release) == (
+        "lab/a-1/orch/lease", "lab/a-1/orch/renew", "lab/a-1/orch/upload", "lab/a-1/orch/fail", "lab/a-1/orch/release")
     assert k.admin("queue.ls") == "lab/a-1/admin/queue/ls" and k.admin_op("lab/a-1/admin/queue/ls") == "queue.ls"
     assert k.admin_all == "lab/a-1/admin/**"
     assert k.worker("w-1") == "lab/a-1/workers/w-1" and k.worker_id("lab/a-1/workers/w-1") == "w-1"

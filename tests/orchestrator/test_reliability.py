@@ -215,7 +215,7 @@ def test_malformed_messages_on_every_key_get_errors_and_the_service_stays_up(spa
     big = b'{"v": 1, "worker_id": "' + b"x" * (protocol.MAX_MESSAGE_BYTES + 1) + b'"}'
     bad = [b"", b"\xff\xfe", b"{", b"[]", b'{"v": 99, "worker_id": "w"}', b'{"worker_id": "w"}',
            b'{"v": 1, "worker_id": 7}', b'{"v": 1, "request_id": "../../etc", "token": -1, "worker_id": "w"}', big]
-    keys = [ops.keys.lease, ops.keys.renew, ops.keys.fail, ops.keys.upload] + \
+    keys = [ops.keys.lease, ops.keys.renew, ops.keys.fail, ops.keys.release, ops.keys.upload] + \
         [ops.keys.admin(op) for op in protocol.ADMIN_OPS]
     codes = set()
     for key in keys:

@@ -224,6 +224,34 @@ def test_fail_counts_attempts_until_dead(service, client, keys) -> None:
     refused(ErrorCode.NO_WORK, lease, client, keys)
 
 
+def test_release_gives_a_lease_back_without_an_attempt(service, client, keys) -> None:
+    events: list[dict] = []
+    sub = client.declare_subscriber(keys.events_all, lambda s: events.append(json.loads(s.payload.to_bytes())))
+
+    def subscribed() -> bool:  # the subscription reaches the service asynchronously: probe until it has
+        service.publish(protocol.EventKind.WORKER_JOINED, {"worker_id": "probe"})
+        return bool(events)
+
+    wait_for(subscribed, message="the event subscription is in place")
+    request, _ = service.queue.enqueue(new_request(max_attempts=1))
+    grant = lease(client, keys)
+    msg = protocol.ReleaseRequest(request_id=grant.request_id, token=grant.token, worker_id="w1").to_json()
+    assert call(client, keys.release, msg) == {"status": "queued", "attempts": 0}
+    wait_for(lambda: [e["data"] for e in events if e["kind"] == "request.released"] == [
+        {"request_id": request.id, "worker_id": "w1", "token": 1, "status": "queued", "attempts": 0}],
+        message="one request.released event")
+    sub.undeclare()
+    refused(ErrorCode.STALE_TOKEN, call, client, keys.release, msg)  # not ours any more
+    after = service.queue.get(request.id)
+    assert (after.status, after.attempts, after.last_error) == (RequestStatus.QUEUED, 0, None)
+    again = lease(client, keys, worker="w2")  # max_attempts=1 and still alive: nothing was counted
+    assert (again.request_id, again.token) == (request.id, 2)
+    wrong = protocol.ReleaseRequest(request_id=again.request_id, token=again.token, worker_id="w1").to_json()
+    refused(ErrorCode.STALE_TOKEN, call, client, keys.release, wrong)
+    unknown = protocol.ReleaseRequest(request_id="nope", token=1, worker_id="w1").to_json()
+    refused(ErrorCode.UNKNOWN_REQUEST, call, client, keys.release, unknown)
+
+
 def test_expired_leases_are_reaped(make_service, client, keys) -> None:
     service = make_service(lease_s=0.3)
     request, _ = service.queue.enqueue(new_request())

@@ -127,9 +127,11 @@ def test_activecollect_worker_once_collects_and_uploads(service, spawn, endpoint
 
 def test_dispatch_bench_runs_every_phase(tmp_path) -> None:
     result = dispatchbench.run(dispatchbench.BenchConfig(workers=2, seconds=0.3, dispatch_requests=20,
-                                                         upload_requests=20, data_dir=tmp_path))
+                                                         upload_requests=20, queue_requests=20, data_dir=tmp_path))
     for phase in ("raw_zenoh", "dispatch_lease_fail", "upload_lease_upload"):
         assert result[phase]["cycles"] > 0, phase
+    for phase in ("lease_fail", "lease_complete"):
+        assert result["queue_in_process"][phase]["cycles"] > 0, phase
     assert set(result["dispatch_lease_fail"]["latency"]) == {"lease", "fail", "cycle"}
     assert "lease_p99_over_raw_p99" in result["goals"]
     assert "lease -> fail" in dispatchbench.format_result(result)

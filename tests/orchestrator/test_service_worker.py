@@ -75,7 +75,9 @@ def test_second_sigterm_gives_the_request_back(start_service, spawn_worker) -> N
     w.signal(signal.SIGTERM)
     assert w.wait(30) == 0, w.log()
     back = service.queue.get(request.id)
-    assert back.status == RequestStatus.QUEUED and "worker stopped" in back.last_error
+    # Released, not failed: no attempt counted and no error (a lost worker would have cost an attempt too).
+    assert (back.status, back.attempts, back.token, back.last_error) == (RequestStatus.QUEUED, 0, 1, None)
+    assert f"released {request.id}" in w.log()
 
 
 def test_worker_started_before_the_service_waits_and_then_works(start_service, spawn_worker) -> None:

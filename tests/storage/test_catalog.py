@@ -112,6 +112,23 @@ def test_sha_mismatch_refused(cat, rng):
     assert cat.count() == 0 and all_files(cat) == []
 
 
+def test_ingest_with_caller_verified_info_indexes_the_same_row(cat, rng, tmp_path):
+    data = episodes.encode_episode(make_episode(rng))
+    info = episodes.inspect_episode(data)  # what the service learns reading an upload once
+    res = cat.ingest_bytes(data, expected_sha256=episodes.sha256_hex(data), verified=info)
+    plain_cat = Catalog(tmp_path / "plain")
+    plain = plain_cat.ingest_bytes(data)  # the catalog verifies on its own
+    fields = ("episode_id", "sha256", "frames", "task", "shape", "request_id", "created", "size_bytes")
+    assert [getattr(cat.get(res.episode_id), f) for f in fields] == \
+        [getattr(plain_cat.get(plain.episode_id), f) for f in fields]
+    assert cat.meta(res.episode_id) == plain_cat.meta(plain.episode_id)
+    assert_same(cat.load(res.episode_id), episodes.read_episode(data))
+    other = episodes.encode_episode(make_episode(rng))
+    with pytest.raises(CorruptEpisodeError, match="sha256 mismatch"):  # the hash is still checked
+        cat.ingest_bytes(other, expected_sha256="00" * 32, verified=episodes.inspect_episode(other))
+    assert cat.count() == 1
+
+
 def test_ingest_file_errors_name_the_path(cat, rng, tmp_path):
     bad = tmp_path / "half.mcap"
     bad.write_bytes(episodes.encode_episode(make_episode(rng))[:300])

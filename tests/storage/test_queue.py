@@ -21,6 +21,7 @@ from storage.queue import (
     UnknownRequestError,
     check_transition,
 )
+from tests.conftest import wait_for
 
 START = {"shape": "T", "agent": [100.0, 100.0], "object": [256.0, 256.0, 0.0]}
 
@@ -375,3 +376,23 @@ def test_acknowledged_changes_survive_sigkill(tmp_path: Path) -> None:
     conn = sqlite3.connect(path)
     assert conn.execute("PRAGMA integrity_check").fetchone()[0] == "ok"
     conn.close()
+
+
+def test_background_checkpoint_moves_the_wal_into_the_database_and_stops_on_close(tmp_path: Path) -> None:
+    db = tmp_path / "catalog.sqlite"
+    queue = RequestQueue(db, background_checkpoint=True, checkpoint_every=1)
+    try:
+        before = db.stat().st_size
+        stored = queue.enqueue_many([new(reason={"note": "x" * 500}) for _ in range(300)])  # ~40 pages, WAL only
+        lease = queue.lease("w1")
+        queue.fail(lease.request.id, lease.token, "boom")
+        wait_for(lambda: db.stat().st_size > before, timeout=30,
+                 message="the checkpointer thread copies the new pages into the database file")
+        assert {t.name for t in threading.enumerate()} >= {"wal-checkpoint"}
+    finally:
+        queue.close()
+    assert "wal-checkpoint" not in {t.name for t in threading.enumerate()}
+    with RequestQueue(db) as reopened:  # everything committed is there, through any connection
+        assert reopened.counts()["queued"] == 300
+        assert reopened.get(stored[0][0].id).reason == {"note": "x" * 500}
+        assert reopened.get(lease.request.id).attempts == 1
