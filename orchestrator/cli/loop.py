@@ -1,5 +1,228 @@
-"""CLI commands (being built)."""
+"""The closed loop's commands: ``run``, ``retrain``, ``dashboard`` and ``bench loop``.
+
+Argument parsing and printing only; each command is one call into
+``orchestrator.loop``, ``orchestrator.scheduler``, ``orchestrator.dashboard`` or
+``orchestrator.loopbench``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import threading
+import time
+from pathlib import Path
+
+from orchestrator import loop, loopbench
+from orchestrator.cli import common
+from orchestrator.dashboard import Dashboard, DashboardConfig, DataSources
+from orchestrator.scheduler import EXIT_BUSY, RetrainBusyError, run_retrain
+from storage.catalog import Catalog
+from storage.queue import Request
+from storage.records import Episode
+from uncertainty.train import TrainConfig
+# The CLI is the composition root: it alone hands the simulator to the orchestrator's loops.
+from workers.collect import collect_episode, create_eval_split
 
 
-def register(sub) -> None:
-    """Adds this group's commands."""
+def register(sub: argparse._SubParsersAction) -> None:
+    d = loop.RunConfig(data_dir=common.DEFAULT_DATA)
+    p = sub.add_parser("run", help="the whole loop on this machine: service, workers, retrains, report")
+    common.add_data_arg(p)
+    common.add_json_arg(p)
+    p.add_argument("--budget", type=common.positive_int, default=d.budget,
+                   help=f"stop at this many training episodes (default {d.budget})")
+    p.add_argument("--round", type=common.positive_int, default=d.round_episodes, dest="round_episodes",
+                   help=f"retrain every N episodes; the next N are planned by the model it made (default "
+                        f"{d.round_episodes})")
+    p.add_argument("--workers", type=common.positive_int, default=d.workers,
+                   help=f"worker processes (default {d.workers})")
+    p.add_argument("--planner", choices=("active", "uniform"), default=d.planner,
+                   help=f"where episodes start (default {d.planner})")
+    p.add_argument("--steps", type=common.positive_int, default=d.steps, help=f"steps per episode (default {d.steps})")
+    p.add_argument("--image-size", type=common.positive_int, default=d.image_size,
+                   help=f"frame size in pixels (default {d.image_size})")
+    p.add_argument("--eval-episodes", type=common.positive_int, default=d.eval_episodes,
+                   help=f"episodes in the eval split, made when missing (default {d.eval_episodes})")
+    p.add_argument("--seed", type=int, default=d.seed, help=f"planner seed (default {d.seed})")
+    p.add_argument("--dashboard-port", type=int, default=d.dashboard_port,
+                   help=f"dashboard port on 127.0.0.1 (default {d.dashboard_port}; 0 any, -1 off)")
+    p.add_argument("--retrain-args", default=" ".join(d.retrain_args),
+                   help=f"arguments of each retrain job (default '{' '.join(d.retrain_args)}')")
+    p.add_argument("--no-progress", action="store_true", help="no live progress line")
+    p.set_defaults(func=_run)
+
+    p = sub.add_parser("retrain", help="one retrain job (train, evaluate, gate) under DATA/retrain.lock, then exit")
+    common.add_data_arg(p)
+    common.add_json_arg(p)
+    add_train_args(p)
+    p.add_argument("--wait", action="store_true",
+                   help=f"wait for a running retrain to finish instead of exiting {EXIT_BUSY} at once")
+    p.set_defaults(func=_retrain)
+
+    p = sub.add_parser("dashboard", help="serve the read-only dashboard over a data directory")
+    common.add_data_arg(p)
+    p.add_argument("--host", default="127.0.0.1", help="address to bind (default 127.0.0.1)")
+    p.add_argument("--port", type=common.non_negative_int, default=8765, help="TCP port (default 8765, 0 = any)")
+    p.set_defaults(func=_dashboard)
+
+
+def register_bench(bench: argparse._SubParsersAction) -> None:
+    d = loopbench.LoopBenchConfig()
+    p = bench.add_parser("loop", help="active vs uniform planner: eval error per episodes collected")
+    common.add_json_arg(p)
+    p.add_argument("--seeds", type=common.positive_int, default=len(d.seeds),
+                   help=f"seeds 0..N-1, one run of each arm per seed (default {len(d.seeds)})")
+    p.add_argument("--budget", type=common.positive_int, default=d.budget,
+                   help=f"training episodes per arm (default {d.budget})")
+    p.add_argument("--round", type=common.positive_int, default=d.round_episodes, dest="round_episodes",
+                   help=f"retrain every N episodes (default {d.round_episodes})")
+    p.add_argument("--steps", type=common.positive_int, default=d.steps, help=f"steps per episode (default {d.steps})")
+    p.add_argument("--image-size", type=common.positive_int, default=d.image_size,
+                   help=f"frame size in pixels (default {d.image_size})")
+    p.add_argument("--epochs", type=common.positive_int, default=d.train.epochs,
+                   help=f"training epochs per retrain (default {d.train.epochs})")
+    p.add_argument("--members", type=common.positive_int, default=d.train.members,
+                   help=f"ensemble size (default {d.train.members})")
+    p.add_argument("--device", choices=("auto", "cpu", "cuda"), default=d.train.device, help="torch device")
+    p.add_argument("--out", type=Path, default=None,
+                   help="output directory (default ./activecollect-bench/loop-<timestamp>)")
+    p.set_defaults(func=_bench_loop)
+
+
+def bench_collect(request: Request, seed: int, image_size: int) -> Episode:
+    """``loopbench.Collect`` over the simulator: the episode a request asks for, collected here."""
+    return collect_episode(start_state=request.start_state, policy=request.policy,
+                           policy_params=request.policy_params, seed=seed, steps=request.steps,
+                           image_size=image_size, action_prefix=request.action_prefix or None,
+                           request_id=request.id, worker_id="bench",
+                           model_version=str(request.reason.get("model_version") or ""))
+
+
+def bench_eval_split(catalog: Catalog, episodes: int, seed: int, steps: int, image_size: int) -> str:
+    return create_eval_split(catalog, episodes=episodes, seed=seed, steps=steps, image_size=image_size)
+
+
+def _bench_loop(args: argparse.Namespace) -> int:
+    d = loopbench.LoopBenchConfig()
+    train = TrainConfig(**{**d.train.to_dict(), "epochs": args.epochs, "members": args.members,
+                           "device": args.device, "widths": d.train.widths})
+    try:
+        cfg = loopbench.LoopBenchConfig(seeds=tuple(range(args.seeds)), budget=args.budget,
+                                        round_episodes=args.round_episodes, steps=args.steps,
+                                        image_size=args.image_size, train=train)
+    except ValueError as exc:
+        raise common.UsageError(str(exc)) from None
+    out = args.out or Path("activecollect-bench") / time.strftime("loop-%Y%m%dT%H%M%S")
+    if (out / "summary.json").exists():
+        raise common.UsageError(f"{out} already holds a bench loop result; give a fresh --out")
+    log = (lambda line: print(line, file=sys.stderr, flush=True))
+    summary = loopbench.run_bench(cfg, out, bench_collect, bench_eval_split, log=log)
+    if args.json:
+        common.print_json(summary)
+        return 0
+    for metric in ("h1", "h5"):
+        h = summary[metric]["headline"]
+        print(f"{metric} MSE final: active {h['active_final']:.4e}  uniform {h['uniform_final']:.4e}")
+        print(f"  episodes to reach the other arm's final error (budget {h['budget']}): uniform "
+              f"{_eps(h['uniform_episodes_to_match_active'])}, active {_eps(h['active_episodes_to_match_uniform'])}")
+    print(f"plot: {summary['plot']}\nsummary: {out / 'summary.json'}  ({summary['seconds']:.0f} s)")
+    return 0
+
+
+def _eps(v: float | None) -> str:
+    return "not within the budget" if v is None else f"{v:.1f}"
+
+
+def add_train_args(p: argparse.ArgumentParser, defaults: TrainConfig | None = None) -> None:
+    """Training settings shared by ``retrain`` and ``run`` (the rest keep TrainConfig's defaults)."""
+    d = defaults or TrainConfig()
+    p.add_argument("--members", type=common.positive_int, default=d.members, help=f"ensemble size (default {d.members})")
+    p.add_argument("--epochs", type=common.positive_int, default=d.epochs, help=f"epochs (default {d.epochs})")
+    p.add_argument("--batch-size", type=common.positive_int, default=d.batch_size,
+                   help=f"windows per member per step (default {d.batch_size})")
+    p.add_argument("--lr", type=common.positive_float, default=d.lr, help=f"peak learning rate (default {d.lr})")
+    p.add_argument("--widths", type=_widths, default=d.widths,
+                   help=f"channel widths A,B,C of a fresh model (default {','.join(map(str, d.widths))})")
+    p.add_argument("--max-windows", type=common.positive_int, default=d.max_windows,
+                   help="cap on training windows (a seeded subset; default all)")
+    p.add_argument("--seed", type=int, default=d.seed, help=f"training seed (default {d.seed})")
+    p.add_argument("--device", choices=("auto", "cpu", "cuda"), default=d.device, help="torch device")
+    p.add_argument("--from-champion", action="store_true", default=d.from_champion,
+                   help="warm-start from the champion's weights")
+    p.add_argument("--min-improvement", type=float, default=d.min_rel_improvement,
+                   help=f"the gate's minimum relative h1 MSE improvement (default {d.min_rel_improvement})")
+
+
+def train_config(args: argparse.Namespace) -> TrainConfig:
+    return TrainConfig(members=args.members, epochs=args.epochs, batch_size=args.batch_size, lr=args.lr,
+                       widths=args.widths, max_windows=args.max_windows, seed=args.seed, device=args.device,
+                       from_champion=args.from_champion, min_rel_improvement=args.min_improvement,
+                       progress=False)
+
+
+def _widths(text: str) -> tuple[int, int, int]:
+    try:
+        widths = tuple(int(w) for w in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected three integers like 8,16,32, found {text!r}") from None
+    if len(widths) != 3 or min(widths) < 1:
+        raise argparse.ArgumentTypeError(f"expected three positive integers like 8,16,32, found {text!r}")
+    return widths  # type: ignore[return-value]
+
+
+def _run(args: argparse.Namespace) -> int:
+    try:
+        cfg = loop.RunConfig(data_dir=args.data, budget=args.budget, round_episodes=args.round_episodes,
+                             workers=args.workers, planner=args.planner, steps=args.steps,
+                             image_size=args.image_size, eval_episodes=args.eval_episodes, seed=args.seed,
+                             dashboard_port=args.dashboard_port, retrain_args=tuple(args.retrain_args.split()),
+                             progress=not args.no_progress)
+    except ValueError as exc:
+        raise common.UsageError(str(exc)) from None
+    run = loop.LoopRun(cfg, bench_eval_split)
+    result = run.run()
+    if args.json:
+        common.print_json(result.to_json())
+    else:
+        h1 = "-" if result.champion_h1_mse is None else f"{result.champion_h1_mse:.4e}"
+        print(f"{'interrupted' if result.interrupted else 'done'}: {result.episodes} episodes, "
+              f"{len(result.retrains)} retrains, champion {result.champion or '-'} (eval h1 MSE {h1}), "
+              f"{result.seconds:.0f} s")
+        print(f"report: {result.report}")
+    return 130 if result.interrupted else 0
+
+
+def _retrain(args: argparse.Namespace) -> int:
+    try:
+        result = run_retrain(args.data, train_config(args), wait=args.wait)
+    except RetrainBusyError as exc:
+        print(f"activecollect retrain: {exc}", file=sys.stderr)
+        return EXIT_BUSY
+    if args.json:
+        # one line, so a scheduler reading the job's stdout finds it whatever was printed before
+        print(json.dumps(result, default=str, allow_nan=True))
+    else:
+        verdict = "promoted" if result["promoted"] else "not promoted"
+        print(f"{result['version']}: {verdict}: {result['reason']}")
+        print(f"  h1_mse {result['metrics'].get('h1_mse')}  h5_mse {result['metrics'].get('h5_mse')}  "
+              f"champion {result['champion']}")
+    return 0
+
+
+def _dashboard(args: argparse.Namespace) -> int:
+    if not (args.data / "catalog.sqlite").exists():
+        raise common.UsageError(f"no catalog in {args.data} (expected {args.data / 'catalog.sqlite'})")
+    frames = loop.FramesSource(loop.ChampionScorer(args.data), Catalog(args.data))
+    dash = Dashboard(DashboardConfig(host=args.host, port=args.port), DataSources(args.data, frames_png=frames).sources())
+    try:
+        dash.start()
+    except OSError as exc:
+        raise common.UsageError(f"cannot serve on {args.host}:{args.port}: {exc.strerror}") from None
+    print(f"dashboard on {dash.url} (Ctrl-C to stop)", flush=True)
+    try:
+        threading.Event().wait()
+    finally:
+        dash.stop()
+    return 0

@@ -1,0 +1,256 @@
+"""The read-only HTTP dashboard: one page, JSON under ``/api/``, Prometheus text at ``/metrics``.
+
+Standard library only (``http.server.ThreadingHTTPServer``), bound to a local
+port. Every handler is a GET that reads; nothing changes state. The data comes
+from ``DashboardSources``, a bundle of callables, so the same server shows an
+in-process service (``activecollect run``) or just a data directory.
+
+Endpoints: ``/`` (the page), ``/api/stats``, ``/api/queue``, ``/api/workers``,
+``/api/models``, ``/api/curve``, ``/frames.png`` (predicted vs real frames of the
+champion), ``/metrics``.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import logging
+import math
+import threading
+from dataclasses import dataclass, field
+from http import HTTPStatus
+from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+from pathlib import Path
+from typing import Any, Callable
+from urllib.parse import urlsplit
+
+from matplotlib.figure import Figure
+
+from orchestrator.dashboard_page import render_page
+from storage.catalog import Catalog
+from storage.models import ModelRegistry
+from storage.queue import RequestQueue
+
+log = logging.getLogger(__name__)
+
+PROMETHEUS_CONTENT_TYPE = "text/plain; version=0.0.4; charset=utf-8"
+
+
+@dataclass
+class DashboardConfig:
+    """Where and how the dashboard serves."""
+
+    host: str = "127.0.0.1"
+    """Address to bind; keep it local, the dashboard has no authentication."""
+    port: int = 8765
+    """TCP port (0 picks a free one; see ``Dashboard.url``)."""
+    refresh_s: float = 2.0
+    """How often the page re-reads the numbers."""
+    queue_rows: int = 50
+    """How many of the latest requests the queue table shows."""
+
+    def __post_init__(self) -> None:
+        if not 0 <= self.port <= 65535:
+            raise ValueError(f"port must be in [0, 65535], found {self.port}")
+        if self.refresh_s <= 0 or self.queue_rows < 1:
+            raise ValueError(f"refresh_s > 0 and queue_rows >= 1 expected, found {self.refresh_s}, {self.queue_rows}")
+
+
+@dataclass
+class DashboardSources:
+    """What the dashboard shows; each callable returns JSON-able data and must be thread-safe."""
+
+    stats: Callable[[], dict]
+    queue: Callable[[int], dict]
+    workers: Callable[[], list[dict]]
+    models: Callable[[], dict]
+    curve: Callable[[], list[dict]]
+    metrics_text: Callable[[], str] = lambda: ""
+    frames_png: Callable[[], bytes] = lambda: b""
+
+
+class Dashboard:
+    """A ThreadingHTTPServer in a daemon thread; ``start`` / ``stop``."""
+
+    def __init__(self, cfg: DashboardConfig, sources: DashboardSources) -> None:
+        self.cfg = cfg
+        self.sources = sources
+        self._server: ThreadingHTTPServer | None = None
+        self._thread: threading.Thread | None = None
+
+    @property
+    def url(self) -> str:
+        if self._server is None:
+            raise RuntimeError("the dashboard is not started")
+        host, port = self._server.server_address[:2]
+        return f"http://{host}:{port}/"
+
+    def start(self) -> None:
+        handler = type("Handler", (_Handler,), {"dashboard": self})
+        self._server = ThreadingHTTPServer((self.cfg.host, self.cfg.port), handler)
+        self._server.daemon_threads = True
+        self._thread = threading.Thread(target=self._server.serve_forever, name="dashboard", daemon=True)
+        self._thread.start()
+        log.info("dashboard on %s", self.url)
+
+    def stop(self) -> None:
+        if self._server is not None:
+            self._server.shutdown()
+            self._server.server_close()
+        if self._thread is not None:
+            self._thread.join()
+        self._server = self._thread = None
+
+    def route(self, path: str) -> tuple[int, str, bytes]:
+        """(status, content type, body) for a GET of ``path``."""
+        src = self.sources
+        if path in ("/", "/index.html"):
+            return 200, "text/html; charset=utf-8", render_page(self.cfg.refresh_s)
+        if path == "/metrics":
+            return 200, PROMETHEUS_CONTENT_TYPE, src.metrics_text().encode()
+        if path == "/frames.png":
+            return 200, "image/png", src.frames_png() or _placeholder_png()
+        api: dict[str, Callable[[], Any]] = {
+            "/api/stats": src.stats,
+            "/api/queue": lambda: src.queue(self.cfg.queue_rows),
+            "/api/workers": lambda: {"workers": src.workers()},
+            "/api/models": src.models,
+            "/api/curve": lambda: {"points": src.curve()},
+        }
+        if path in api:
+            return 200, "application/json", json.dumps(_finite(api[path]()), default=str).encode()
+        return 404, "text/plain; charset=utf-8", f"no such page: {path}\n".encode()
+
+
+class _Handler(BaseHTTPRequestHandler):
+    dashboard: Dashboard
+    server_version = "activecollect-dashboard"
+
+    def do_GET(self) -> None:  # noqa: N802 (http.server's naming)
+        path = urlsplit(self.path).path
+        try:
+            status, ctype, body = self.dashboard.route(path)
+        except Exception as exc:  # one broken source must not take the page down; it is logged
+            log.exception("dashboard %s failed", path)
+            status, ctype, body = 500, "text/plain; charset=utf-8", f"{type(exc).__name__}: {exc}\n".encode()
+        self.send_response(status)
+        self.send_header("Content-Type", ctype)
+        self.send_header("Content-Length", str(len(body)))
+        self.send_header("Cache-Control", "no-store")
+        self.end_headers()
+        self.wfile.write(body)
+
+    def do_HEAD(self) -> None:  # noqa: N802
+        self.send_response(HTTPStatus.METHOD_NOT_ALLOWED)
+        self.end_headers()
+
+    def log_message(self, format: str, *args: Any) -> None:  # noqa: A002 (signature of the base class)
+        log.debug("dashboard: " + format, *args)
+
+
+def _finite(obj: Any) -> Any:
+    """JSON for browsers: NaN and infinities become null."""
+    if isinstance(obj, float) and not math.isfinite(obj):
+        return None
+    if isinstance(obj, dict):
+        return {k: _finite(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_finite(v) for v in obj]
+    return obj
+
+
+_PLACEHOLDER: list[bytes] = []
+
+
+def _placeholder_png() -> bytes:
+    """A small 'no champion yet' image, so the page's <img> never 404s."""
+    if not _PLACEHOLDER:
+        fig = Figure(figsize=(3, 0.6), dpi=80)
+        fig.text(0.5, 0.5, "no champion yet", ha="center", va="center", color="#888")
+        buf = io.BytesIO()
+        fig.savefig(buf, format="png")
+        _PLACEHOLDER.append(buf.getvalue())
+    return _PLACEHOLDER[0]
+
+
+# -- sources over a data directory ------------------------------------------------------------
+
+@dataclass
+class DataSources:
+    """``DashboardSources`` read from a data directory (one SQLite connection set per thread).
+
+    ``workers``, ``metrics_text``, ``retrains`` and ``frames_png`` come from the running
+    service when there is one; ``budget`` is the run's episode budget (0 = none).
+    """
+
+    data_dir: Path
+    workers: Callable[[], list[dict]] = lambda: []
+    metrics_text: Callable[[], str] = lambda: ""
+    retrains: Callable[[], list[dict]] = lambda: []
+    frames_png: Callable[[], bytes] = lambda: b""
+    budget: int = 0
+    _local: threading.local = field(default_factory=threading.local)
+
+    def _stores(self) -> tuple[Catalog, RequestQueue, ModelRegistry]:
+        loc = self._local
+        if not hasattr(loc, "stores"):
+            catalog = Catalog(self.data_dir)
+            loc.stores = (catalog, RequestQueue(catalog.db_path), ModelRegistry(self.data_dir))
+        return loc.stores
+
+    def sources(self) -> DashboardSources:
+        return DashboardSources(stats=self.stats, queue=self.queue, workers=self.workers, models=self.models,
+                                curve=self.curve, metrics_text=self.metrics_text, frames_png=self.frames_png)
+
+    def stats(self) -> dict:
+        catalog, queue, registry = self._stores()
+        champion = registry.champion()
+        h1 = registry.get(champion).metrics.get("h1_mse") if champion else None
+        retrains = self.retrains()
+        return {"episodes": {"train": catalog.count(split="train"), "eval": catalog.count(split="eval")},
+                "budget": self.budget, "queue": queue.counts(), "workers_alive": len(self.workers()),
+                "champion": champion, "champion_h1_mse": h1,
+                "retrains": len(retrains), "last_retrain": retrains[-1] if retrains else None}
+
+    def queue(self, rows: int) -> dict:
+        _, queue, _ = self._stores()
+        latest = queue.list(limit=rows)
+        return {"counts": queue.counts(), "requests": [request_json(r) for r in latest]}
+
+    def models(self) -> dict:
+        _, _, registry = self._stores()
+        champion = registry.champion()
+        models = []
+        for m in registry.list():
+            d = m.to_json()
+            d.pop("config", None)
+            models.append(d)
+        return {"champion": champion, "models": models}
+
+    def curve(self) -> list[dict]:
+        catalog, _, registry = self._stores()
+        return learning_curve(catalog, registry)
+
+
+def request_json(r: Any) -> dict:
+    """The fields of a queued request the dashboard shows."""
+    return {"id": r.id, "status": getattr(r.status, "value", r.status), "priority": r.priority,
+            "shape": r.shape, "policy": r.policy, "reason": r.reason, "attempts": r.attempts,
+            "last_error": r.last_error, "created": r.created}
+
+
+def learning_curve(catalog: Catalog, registry: ModelRegistry) -> list[dict]:
+    """Eval error of every registered model against the training episodes it saw, oldest first."""
+    points = []
+    for m in sorted(registry.list(), key=lambda m: m.version):
+        episodes = m.metrics.get("train_episodes")
+        if episodes is None:  # models trained elsewhere: count what the catalog held when it was made
+            episodes = _episodes_before(catalog, m.created)
+        points.append({"version": m.version, "episodes": int(episodes), "status": m.status.value,
+                       "promoted": m.status.value in ("champion", "retired"),
+                       "h1_mse": m.metrics.get("h1_mse"), "h5_mse": m.metrics.get("h5_mse")})
+    return points
+
+
+def _episodes_before(catalog: Catalog, created: str) -> int:
+    return sum(1 for row in catalog.list(split="train") if row.created <= created)

@@ -1,0 +1,125 @@
+"""The dashboard's one HTML page (with its script and style); the server fills in the refresh period.
+
+Plain DOM and fetch, no framework and nothing loaded from elsewhere, so the page
+works on a host with no internet. Every number has an element id the browser
+test reads (``q-queued``, ``q-done``, ``episodes``, ...).
+"""
+
+PAGE = """<!doctype html>
+<html lang="en">
+<head>
+<meta charset="utf-8">
+<title>activecollect</title>
+<link rel="icon" href="data:,">
+<style>
+ body { font: 14px/1.4 system-ui, sans-serif; margin: 1.5em; color: #222; background: #fafafa; }
+ h1 { font-size: 1.3em; margin: 0 0 .5em; } h2 { font-size: 1.05em; margin: 1.2em 0 .4em; }
+ .cards { display: flex; gap: .8em; flex-wrap: wrap; }
+ .card { background: #fff; border: 1px solid #ddd; border-radius: 6px; padding: .5em .9em; min-width: 7em; }
+ .card b { display: block; font-size: 1.5em; }
+ table { border-collapse: collapse; background: #fff; font-size: 12.5px; }
+ th, td { border: 1px solid #ddd; padding: 2px 6px; text-align: left; vertical-align: top; }
+ .champion { background: #e8f5e9; font-weight: bold; }
+ .muted { color: #888; } svg { background: #fff; border: 1px solid #ddd; }
+</style>
+</head>
+<body>
+<h1>activecollect <span id="updated" class="muted"></span></h1>
+<div class="cards">
+ <div class="card">episodes<b id="episodes">-</b><span id="budget" class="muted"></span></div>
+ <div class="card">queued<b id="q-queued">-</b></div>
+ <div class="card">leased<b id="q-leased">-</b></div>
+ <div class="card">done<b id="q-done">-</b></div>
+ <div class="card">dead<b id="q-dead">-</b></div>
+ <div class="card">cancelled<b id="q-cancelled">-</b></div>
+ <div class="card">workers alive<b id="workers-alive">-</b></div>
+ <div class="card">champion<b id="champion">-</b><span id="champion-error" class="muted"></span></div>
+ <div class="card">last retrain<b id="last-retrain">-</b><span id="last-retrain-reason" class="muted"></span></div>
+</div>
+<h2>Learning curve (champion eval h1 MSE per training episodes)</h2>
+<svg id="curve" width="560" height="220" viewBox="0 0 560 220"></svg>
+<h2>Models</h2>
+<table id="models"><thead><tr><th>version</th><th>status</th><th>h1 MSE</th><th>h5 MSE</th>
+<th>created</th><th>reason</th></tr></thead><tbody></tbody></table>
+<h2>Queue (latest requests)</h2>
+<table id="queue"><thead><tr><th>id</th><th>status</th><th>priority</th><th>shape</th><th>policy</th>
+<th>planner</th><th>score</th><th>source episode / step</th><th>model</th><th>attempts</th><th>error</th>
+</tr></thead><tbody></tbody></table>
+<h2>Workers</h2>
+<table id="workers"><thead><tr><th>id</th><th>details</th></tr></thead><tbody></tbody></table>
+<h2>Predicted vs real (champion, eval episodes)</h2>
+<img id="frames" alt="no champion yet" src="/frames.png">
+<script>
+"use strict";
+const REFRESH_MS = __REFRESH_MS__;
+function text(id, value) { const el = document.getElementById(id); if (el) el.textContent = value; }
+function fmt(x) { return (x === null || x === undefined || Number.isNaN(x)) ? "-" :
+  (typeof x === "number" ? (Math.abs(x) < 0.01 && x !== 0 ? x.toExponential(2) : x.toFixed(4)) : String(x)); }
+function cell(tr, value, cls) { const td = document.createElement("td"); td.textContent = value;
+  if (cls) td.className = cls; tr.appendChild(td); }
+function fill(tableId, rows, build) { const body = document.querySelector("#" + tableId + " tbody");
+  body.replaceChildren(); for (const r of rows) { const tr = document.createElement("tr"); build(tr, r); body.appendChild(tr); } }
+async function getJSON(path) { const r = await fetch(path, {cache: "no-store"});
+  if (!r.ok) throw new Error(path + " answered " + r.status); return r.json(); }
+let lastChampion = null;
+function drawCurve(points) {
+  const svg = document.getElementById("curve"); svg.replaceChildren();
+  const ns = "http://www.w3.org/2000/svg"; const W = 560, H = 220, L = 60, B = 30;
+  const pts = points.filter(p => typeof p.h1_mse === "number" && Number.isFinite(p.h1_mse));
+  if (pts.length === 0) { const t = document.createElementNS(ns, "text"); t.setAttribute("x", 20);
+    t.setAttribute("y", 100); t.textContent = "no trained model yet"; svg.appendChild(t); return; }
+  const xs = pts.map(p => p.episodes), ys = pts.map(p => p.h1_mse);
+  const x0 = Math.min(...xs), x1 = Math.max(...xs) || 1, y0 = 0, y1 = Math.max(...ys) * 1.1 || 1;
+  const sx = x => L + (W - L - 10) * (x1 === x0 ? 0.5 : (x - x0) / (x1 - x0));
+  const sy = y => H - B - (H - B - 10) * (y - y0) / (y1 - y0);
+  const line = document.createElementNS(ns, "polyline");
+  line.setAttribute("points", pts.map(p => sx(p.episodes) + "," + sy(p.h1_mse)).join(" "));
+  line.setAttribute("fill", "none"); line.setAttribute("stroke", "#1565c0"); line.setAttribute("stroke-width", 2);
+  svg.appendChild(line);
+  for (const p of pts) { const c = document.createElementNS(ns, "circle"); c.setAttribute("cx", sx(p.episodes));
+    c.setAttribute("cy", sy(p.h1_mse)); c.setAttribute("r", 4);
+    c.setAttribute("fill", p.status === "champion" ? "#2e7d32" : (p.promoted ? "#1565c0" : "#bbb")); svg.appendChild(c); }
+  const labels = [[L, H - 8, x0 + " ep"], [W - 60, H - 8, x1 + " ep"], [4, sy(y1 / 1.1) + 4, fmt(y1 / 1.1)], [4, H - B, "0"]];
+  for (const [x, y, s] of labels) { const t = document.createElementNS(ns, "text"); t.setAttribute("x", x);
+    t.setAttribute("y", y); t.setAttribute("font-size", 11); t.textContent = s; svg.appendChild(t); }
+}
+async function refresh() {
+  try {
+    const [stats, queue, models, workers, curve] = await Promise.all(
+      ["/api/stats", "/api/queue", "/api/models", "/api/workers", "/api/curve"].map(getJSON));
+    text("episodes", stats.episodes.train);
+    text("budget", stats.budget ? "of " + stats.budget : "");
+    for (const s of ["queued", "leased", "done", "dead", "cancelled"]) text("q-" + s, queue.counts[s] || 0);
+    text("workers-alive", workers.workers.length);
+    text("champion", models.champion || "none");
+    text("champion-error", stats.champion_h1_mse === null ? "" : "h1 MSE " + fmt(stats.champion_h1_mse));
+    const last = stats.last_retrain;
+    text("last-retrain", last ? last.status : "none");
+    text("last-retrain-reason", last ? (last.version || "") + " " + (last.reason || "") : "");
+    fill("queue", queue.requests, (tr, q) => { const r = q.reason || {};
+      for (const v of [q.id, q.status, fmt(q.priority), q.shape, q.policy, r.planner || "", fmt(r.score),
+        (r.source_episode || "").slice(0, 8) + (r.step === null || r.step === undefined ? "" : " @" + r.step),
+        r.model_version || "", q.attempts, q.last_error || ""]) cell(tr, v); });
+    fill("models", models.models, (tr, m) => { const cls = m.version === models.champion ? "champion" : "";
+      for (const v of [m.version, m.status, fmt(m.metrics.h1_mse), fmt(m.metrics.h5_mse), m.created, m.reason])
+        cell(tr, v, cls); });
+    fill("workers", workers.workers, (tr, w) => { cell(tr, w.id); cell(tr, JSON.stringify(w.info || {})); });
+    drawCurve(curve.points);
+    if (models.champion !== lastChampion) { lastChampion = models.champion;
+      document.getElementById("frames").src = "/frames.png?v=" + encodeURIComponent(models.champion || ""); }
+    text("updated", "updated " + new Date().toLocaleTimeString());
+  } catch (err) {
+    text("updated", "refresh failed: " + err.message);
+  }
+}
+refresh();
+setInterval(refresh, REFRESH_MS);
+</script>
+</body>
+</html>
+"""
+
+
+def render_page(refresh_s: float) -> bytes:
+    """The page with its refresh period filled in."""
+    return PAGE.replace("__REFRESH_MS__", str(int(refresh_s * 1000))).encode()

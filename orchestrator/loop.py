@@ -1,0 +1,486 @@
+"""The closed loop on one machine: collect -> score -> plan -> retrain -> promote -> hot-swap.
+
+Parts, each usable alone:
+
+- ``ChampionScorer``: the ``planner.Scorer`` backed by the registry's champion; it
+  reloads (hot-swaps) when the champion changes, whoever promoted it.
+- ``RoundPlanner``: the service's planner in lockstep rounds: it keeps each round's
+  episodes and plans the next round when a retrain has finished.
+- ``run_loop``: ``activecollect run``: the service, N worker processes over Zenoh on
+  loopback, the eval split, the seed requests, the retrain scheduler, the dashboard
+  and a progress line, until the episode budget is spent; then the report.
+"""
+
+from __future__ import annotations
+
+import logging
+import socket
+import subprocess
+import sys
+import threading
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Callable, Sequence
+
+import numpy as np
+from tqdm import tqdm
+
+from orchestrator.dashboard import Dashboard, DashboardConfig, DataSources, learning_curve
+from orchestrator.metrics import ServiceMetrics
+from orchestrator.planner import (
+    ActivePlanner, ActivePlannerConfig, Planner, Scores, UniformPlanner, UniformPlannerConfig,
+)
+from orchestrator.protocol import EventKind
+from orchestrator.report import ReportInputs, frames_png, write_report
+from orchestrator.scheduler import RetrainRecord, RetrainScheduler, ScheduleConfig, die_with_parent
+from orchestrator.service import Service, ServiceConfig
+from storage.catalog import Catalog
+from storage.errors import RegistryError
+from storage.models import ModelRegistry
+from storage.queue import NewRequest, RequestQueue
+from storage.records import Episode
+from uncertainty.checkpoint import load_ensemble
+from uncertainty.ensemble import Ensemble
+
+log = logging.getLogger(__name__)
+
+
+class ChampionScorer:
+    """Scores episodes with the current champion; None while there is none.
+
+    Every call compares the registry's champion with the loaded one and reloads on a
+    change, so a promotion by the scheduler, by ``activecollect retrain`` from cron or
+    by an operator's rollback is picked up without a restart. ``reload()`` forces it.
+    """
+
+    def __init__(self, data_dir: Path, device: str = "cpu",
+                 observe: Callable[[float], None] = lambda seconds: None) -> None:
+        self.data_dir = Path(data_dir)
+        self.device = device
+        self.observe = observe
+        self._lock = threading.Lock()
+        self._local = threading.local()
+        self.version: str | None = None
+        self.ensemble: Ensemble | None = None
+
+    def _registry(self) -> ModelRegistry:
+        if not hasattr(self._local, "registry"):
+            self._local.registry = ModelRegistry(self.data_dir)
+        return self._local.registry
+
+    def reload(self) -> str | None:
+        """Load the registry's champion if it is not the one loaded; returns its version."""
+        champion = self._registry().champion()
+        with self._lock:
+            if champion == self.version:
+                return champion
+            if champion is None:
+                self.version, self.ensemble = None, None
+                return None
+            try:
+                ensemble = load_ensemble(self._registry(), champion, self.device)
+            except RegistryError as exc:  # a corrupt checkpoint: keep scoring with the one we have
+                log.error("could not load champion %s, keeping %s: %s", champion, self.version, exc)
+                return self.version
+            self.version, self.ensemble = champion, ensemble
+            log.info("scorer now uses champion %s", champion)
+            return champion
+
+    def __call__(self, episode: Episode) -> Scores | None:
+        self.reload()
+        with self._lock:
+            ensemble, version = self.ensemble, self.version
+        if ensemble is None or version is None:
+            return None
+        if ensemble.config.image_size != episode.frames.shape[1]:
+            log.warning("episode %s has %dpx frames, champion %s predicts %dpx; not scored",
+                        episode.meta.episode_id, episode.frames.shape[1], version, ensemble.config.image_size)
+            return Scores(version, np.full(len(episode), np.nan))
+        start = time.perf_counter()
+        per_step = ensemble.disagreement(episode.frames, episode.actions)
+        self.observe(time.perf_counter() - start)
+        return Scores(version, per_step)
+
+
+class RoundPlanner:
+    """Lockstep rounds for the service: collect a round, retrain, then plan the next round.
+
+    The service calls ``plan`` for every stored episode (in its background thread);
+    this only keeps the round's episodes. ``release`` (called when a retrain has
+    finished, so the freshest champion scores them) asks the inner planner for the
+    next round and fills it up to ``round_episodes`` with uniform requests. Requests
+    never exceed what is left of ``budget``: workers idle while the model retrains,
+    which is what lets each round be planned by the model the previous rounds made.
+    """
+
+    def __init__(self, inner: Planner, round_episodes: int, budget: int, collected: Callable[[], int],
+                 outstanding: Callable[[], int]) -> None:
+        self.inner = inner
+        self.name = inner.name
+        self.round_episodes = round_episodes
+        self.budget = budget
+        self.collected = collected
+        self.outstanding = outstanding
+        self._buffer: list[Episode] = []
+        self._lock = threading.Lock()
+
+    def seed(self, n: int) -> list[NewRequest]:
+        return self.inner.seed(min(n, self._room()))
+
+    def plan(self, new_episodes: Sequence[Episode]) -> list[NewRequest]:
+        with self._lock:
+            self._buffer.extend(new_episodes)
+            del self._buffer[:-self.round_episodes]  # a round's worth is all a plan looks at
+        return []
+
+    def has_episodes(self) -> bool:
+        with self._lock:
+            return bool(self._buffer)
+
+    def remember(self, episodes: Sequence[Episode]) -> None:
+        """Put episodes back in the buffer (a resumed run plans from the catalog's latest)."""
+        self.plan(episodes)
+
+    def _room(self) -> int:
+        return max(0, min(self.round_episodes, self.budget - self.collected() - self.outstanding()))
+
+    def release(self) -> list[NewRequest]:
+        """The next round's requests: planned from the buffered episodes, topped up uniformly."""
+        with self._lock:
+            episodes, self._buffer = self._buffer, []
+        room = self._room()
+        if room == 0:
+            return []
+        planned = self.inner.plan(episodes)[:room] if episodes else []
+        return planned + self.inner.seed(room - len(planned))
+
+
+class FramesSource:
+    """The dashboard's predicted-vs-real PNG: the champion on a few eval episodes, redrawn per champion."""
+
+    def __init__(self, scorer: ChampionScorer, catalog: Catalog, samples: int = 3) -> None:
+        self.scorer = scorer
+        self.catalog = catalog
+        self.samples = samples
+        self._cache: tuple[str | None, bytes] = (None, b"")
+        self._lock = threading.Lock()
+
+    def __call__(self) -> bytes:
+        version = self.scorer.reload()
+        split = self.catalog.eval_split()
+        if version is None or split is None or self.scorer.ensemble is None:
+            return b""
+        with self._lock:
+            if self._cache[0] != version:
+                episodes = [self.catalog.load(i) for i in split.ids[:self.samples]]
+                self._cache = (version, frames_png(self.scorer.ensemble, episodes))
+            return self._cache[1]
+
+
+@dataclass
+class RunConfig:
+    """``activecollect run``: the whole loop on one machine (defaults finish in minutes on 2 CPU cores)."""
+
+    data_dir: Path
+    """Data directory (resumed when it already holds a catalog)."""
+    budget: int = 96
+    """Stop once the catalog holds this many training episodes."""
+    round_episodes: int = 24
+    """Retrain after every this many episodes; the next round is planned by the model it made."""
+    workers: int = 2
+    """Worker processes over Zenoh on loopback."""
+    planner: str = "active"
+    """``active`` (ensemble disagreement) or ``uniform`` (the control arm)."""
+    steps: int = 40
+    """Steps per episode."""
+    image_size: int = 32
+    """Frame size in pixels (workers render at this size)."""
+    eval_episodes: int = 16
+    """Episodes in the eval split (push policy, all shapes), made when missing."""
+    eval_seed: int = 1234
+    """Seed of the eval split."""
+    seed: int = 0
+    """Seeds the planner."""
+    retrain_args: tuple[str, ...] = ("--members", "4", "--epochs", "6", "--widths", "8,16,32", "--max-windows",
+                                     "1200", "--from-champion", "--device", "cpu", "--min-improvement", "0.005")
+    """Arguments of each ``activecollect retrain`` job."""
+    retrain_timeout_s: float = 600.0
+    """A retrain running longer is killed (the champion stays)."""
+    dashboard_port: int = 8765
+    """Dashboard port on 127.0.0.1 (0 = any free port, -1 = no dashboard)."""
+    namespace: str = "activecollect"
+    """Zenoh key prefix."""
+    zenoh_port: int = 0
+    """Loopback TCP port of the service (0 = a free one)."""
+    lease_s: float = 30.0
+    """Lease length handed to workers."""
+    progress: bool = True
+    """Show the live progress line."""
+
+    def __post_init__(self) -> None:
+        self.data_dir = Path(self.data_dir)
+        if self.planner not in ("active", "uniform"):
+            raise ValueError(f"planner must be active or uniform, found {self.planner!r}")
+        for name in ("budget", "round_episodes", "workers", "steps", "image_size", "eval_episodes"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name} must be >= 1, found {getattr(self, name)}")
+        if self.dashboard_port < -1 or self.dashboard_port > 65535:
+            raise ValueError(f"dashboard_port must be -1 (off), 0 (any) or a port, found {self.dashboard_port}")
+
+
+#: Creates (or checks) the pinned eval split: (catalog, episodes, seed, steps, image size) -> its hash.
+MakeEvalSplit = Callable[[Catalog, int, int, int, int], str]
+
+
+def worker_command(endpoint: str, namespace: str, worker_id: str, image_size: int) -> list[str]:
+    """One worker process (``activecollect worker``) connected to the service on loopback."""
+    return [sys.executable, "-m", "orchestrator", "worker", "--connect", endpoint, "--namespace", namespace,
+            "--id", worker_id, "--size", str(image_size)]
+
+
+@dataclass
+class RunResult:
+    """What ``activecollect run`` did."""
+
+    report: Path
+    episodes: int
+    champion: str | None
+    champion_h1_mse: float | None
+    retrains: list[dict]
+    seconds: float
+    interrupted: bool
+
+    def to_json(self) -> dict:
+        d = asdict(self)
+        d["report"] = str(self.report)
+        return d
+
+
+class LoopRun:
+    """``activecollect run``: see the module docstring. ``run()`` blocks until done or Ctrl-C."""
+
+    def __init__(self, cfg: RunConfig, make_eval_split: MakeEvalSplit,
+                 worker_cmd: Callable[[str, str, str, int], list[str]] = worker_command) -> None:
+        self.cfg = cfg
+        self.make_eval_split = make_eval_split
+        self.worker_cmd = worker_cmd
+        self.metrics = ServiceMetrics()
+        self.procs: list[subprocess.Popen] = []
+        self.service: Service | None = None
+        self.dashboard: Dashboard | None = None
+        self._shown: tuple[str, int] = ("", -1)
+
+    # -- set-up ---------------------------------------------------------------------------------
+    def _setup(self) -> None:
+        cfg = self.cfg
+        self.catalog = Catalog(cfg.data_dir)
+        self.queue = RequestQueue(self.catalog.db_path)
+        self.registry = ModelRegistry(cfg.data_dir)
+        self.make_eval_split(self.catalog, cfg.eval_episodes, cfg.eval_seed, cfg.steps, cfg.image_size)
+        self.scorer = ChampionScorer(cfg.data_dir, observe=self.metrics.observe_scoring)
+        rng = np.random.default_rng(cfg.seed + self.catalog.count(split="train"))  # a resumed run draws anew
+        depth = lambda: self.queue.counts().get("queued", 0)  # noqa: E731
+        uniform = UniformPlannerConfig(steps=cfg.steps, max_queue_depth=cfg.round_episodes)
+        inner: Planner = (UniformPlanner(uniform, rng, depth) if cfg.planner == "uniform" else ActivePlanner(
+            ActivePlannerConfig(steps=cfg.steps, budget_per_round=cfg.round_episodes,
+                                max_queue_depth=cfg.round_episodes, seed_uniform=uniform), self.scorer, rng, depth))
+        self.planner = RoundPlanner(inner, cfg.round_episodes, cfg.budget, self._count, self._outstanding)
+        endpoint = f"tcp/127.0.0.1:{cfg.zenoh_port or free_port()}"
+        # Workers first, while this process has no other threads yet (see die_with_parent); they
+        # retry until the service below answers.
+        logs = cfg.data_dir / "logs"
+        logs.mkdir(parents=True, exist_ok=True)
+        for i in range(cfg.workers):
+            wid = f"run-w{i}"
+            with open(logs / f"{wid}.log", "ab") as out:
+                self.procs.append(subprocess.Popen(self.worker_cmd(endpoint, cfg.namespace, wid, cfg.image_size),
+                                                   stdout=out, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
+                                                   preexec_fn=die_with_parent))
+        self.service = Service(ServiceConfig(data_dir=cfg.data_dir, namespace=cfg.namespace, listen=(endpoint,),
+                                             lease_s=cfg.lease_s, planner=lambda ctx: self.planner,
+                                             metrics=self.metrics))
+        self.service.start()
+        self.scheduler = RetrainScheduler(
+            # the rounds decide when to retrain (see _wait_until_done), so no count trigger here
+            ScheduleConfig(timeout_s=cfg.retrain_timeout_s, retrain_args=cfg.retrain_args),
+            cfg.data_dir, self._count, on_promoted=self._promoted, on_finished=self._retrained)
+        self.scheduler.start()
+        if cfg.dashboard_port >= 0:
+            self._start_dashboard()
+
+    def _start_dashboard(self) -> None:
+        src = DataSources(self.cfg.data_dir, workers=lambda: [{"id": w} for w in self.service.workers()],
+                          metrics_text=self._metrics_text, frames_png=FramesSource(self.scorer, self.catalog), budget=self.cfg.budget,
+                          retrains=lambda: [r.to_json() for r in self.scheduler.history])
+        dash = Dashboard(DashboardConfig(port=self.cfg.dashboard_port), src.sources())
+        try:
+            dash.start()
+        except OSError as exc:  # a busy port must not stop the run
+            log.warning("no dashboard: cannot bind 127.0.0.1:%d: %s", self.cfg.dashboard_port, exc)
+            return
+        self.dashboard = dash
+
+    # -- callbacks ------------------------------------------------------------------------------
+    def _count(self) -> int:
+        return self.catalog.count(split="train")
+
+    def _outstanding(self) -> int:
+        counts = self.queue.counts()
+        return counts.get("queued", 0) + counts.get("leased", 0)
+
+    def _promoted(self, version: str) -> None:
+        self.scorer.reload()
+        h1 = self.registry.get(version).metrics.get("h1_mse")
+        self.metrics.set_champion(version, h1)
+        self.service.publish(EventKind.MODEL_PROMOTED, {"version": version, "h1_mse": h1})
+
+    def _retrained(self, rec: RetrainRecord) -> None:
+        outcome = rec.status.value if rec.status.value in ("promoted", "rejected") else "failed"
+        self.metrics.retrain(outcome)
+
+    def _metrics_text(self) -> str:
+        self.metrics.set_queue_depth(self.queue.counts())
+        self.metrics.set_workers_alive(len(self.service.workers()))
+        self.metrics.set_episodes({"train": self._count(), "eval": self.catalog.count(split="eval")})
+        return self.metrics.render()
+
+    # -- the loop -------------------------------------------------------------------------------
+    def run(self) -> RunResult:
+        """Collect until the budget is spent and the last retrain is done; then write the report."""
+        start = time.time()
+        interrupted = False
+        try:
+            self._setup()
+            self._wait_until_done()
+        except KeyboardInterrupt:
+            interrupted = True
+            log.warning("interrupted: stopping workers; the next run resumes from the catalog")
+        finally:
+            self._teardown(interrupted)
+        return self._finish(start, interrupted)
+
+    def _trained_on(self) -> int:
+        """The most training episodes any finished retrain saw (this run's or an earlier one's)."""
+        seen = [int(m.metrics.get("train_episodes", 0)) for m in self.registry.list()]
+        seen += [r.episodes for r in self.scheduler.history if r.finished is not None]
+        return max(seen, default=0)
+
+    def _wait_until_done(self) -> None:
+        cfg = self.cfg
+        bar = tqdm(total=cfg.budget, unit="ep", desc=f"run ({cfg.planner})", disable=not cfg.progress,
+                   file=sys.stderr, dynamic_ncols=True)
+        asked_for = -1
+        try:
+            while True:
+                count, running = self._count(), self.scheduler.running
+                self._show(bar, count)
+                if not running and self._outstanding() == 0:
+                    if self._trained_on() >= count:  # a retrain (of this run or an earlier one) saw it all
+                        if count >= cfg.budget:
+                            return
+                        self._release()
+                    elif count >= cfg.budget or count % cfg.round_episodes == 0:
+                        if asked_for != count:  # the round is complete: retrain, then plan the next
+                            self.scheduler.request("round")
+                            asked_for = count
+                    else:  # mid-round and nothing outstanding (a request died): fill the round
+                        self._release()
+                self._check_workers()
+                time.sleep(0.5)  # the progress line's refresh period, not a synchronisation
+        finally:
+            self._show(bar, self._count())
+            bar.close()
+
+    def _release(self) -> None:
+        if not self.planner.has_episodes():
+            latest = self.catalog.list(split="train", limit=self.cfg.round_episodes, newest_first=True)[::-1]
+            self.planner.remember([self.catalog.load(r.episode_id) for r in latest])
+        made = 0
+        for request, created in self.queue.enqueue_many(self.planner.release()):
+            made += created
+            if created:
+                self.service.publish(EventKind.REQUEST_QUEUED, {
+                    "request_id": request.id, "status": request.status.value, "priority": request.priority,
+                    "shape": request.shape, "source": request.reason.get("planner", self.planner.name)})
+        log.info("released a round of %d requests", made)
+
+    def _check_workers(self) -> None:
+        dead = [p for p in self.procs if p.poll() is not None]
+        if len(dead) == len(self.procs):
+            raise LoopError(f"all {len(self.procs)} workers exited (codes {[p.returncode for p in dead]}); "
+                            f"see {self.cfg.data_dir / 'logs'}")
+
+    def _show(self, bar: tqdm, count: int) -> None:
+        counts = self.queue.counts()
+        champion = self.scorer.version or self.registry.champion()
+        h1 = self.registry.get(champion).metrics.get("h1_mse") if champion else None
+        last = self.scheduler.history[-1] if self.scheduler.history else None
+        retrain = f"{last.status.value}@{last.episodes}" if last else "none"
+        text = (f"queue {counts.get('queued', 0)}+{counts.get('leased', 0)} | workers "
+                            f"{len(self.service.workers())}/{len(self.procs)} | champion {champion or '-'}"
+                            f"{f' h1 {h1:.2e}' if h1 is not None else ''} | retrain {retrain}")
+        if (text, count) != self._shown:  # redraw on change only: quiet in logs
+            self._shown = (text, count)
+            bar.n = min(count, bar.total)
+            bar.set_postfix_str(text, refresh=True)
+
+    # -- tear-down ------------------------------------------------------------------------------
+    def _teardown(self, interrupted: bool) -> None:
+        if interrupted:  # a terminal's Ctrl-C reached the workers too: they are draining already, and a
+            for p in self.procs:  # second signal would make them give their request back unfinished
+                try:
+                    p.wait(timeout=10)
+                except subprocess.TimeoutExpired:
+                    break
+        for p in self.procs:  # SIGTERM: a worker finishes and uploads its current episode, then exits
+            if p.poll() is None:
+                p.terminate()
+        for p in self.procs:
+            try:
+                p.wait(timeout=30)
+            except subprocess.TimeoutExpired:
+                p.kill()
+                p.wait()
+        if self.dashboard is not None:
+            self.dashboard.stop()
+        if hasattr(self, "scheduler"):
+            self.scheduler.stop(kill_running=interrupted)
+        if self.service is not None:
+            self.service.stop()
+
+    def _finish(self, start: float, interrupted: bool) -> RunResult:
+        champion = self.registry.champion()
+        ensemble = None
+        if champion is not None:
+            self.scorer.reload()
+            ensemble = self.scorer.ensemble
+        h1 = self.registry.get(champion).metrics.get("h1_mse") if champion else None
+        retrains = [r.to_json() for r in self.scheduler.history]
+        count = self._count()
+        summary = {"planner": self.cfg.planner, "episodes": count, "budget": self.cfg.budget,
+                   "round_episodes": self.cfg.round_episodes, "workers": self.cfg.workers,
+                   "image_size": self.cfg.image_size, "steps": self.cfg.steps, "champion": champion,
+                   "champion_h1_mse": h1, "retrains": len(retrains), "interrupted": interrupted,
+                   "seconds": round(time.time() - start, 1), "queue": self.queue.counts()}
+        train_rows = self.catalog.list(split="train", limit=40, newest_first=True)
+        split = self.catalog.eval_split()
+        inputs = ReportInputs(curve=learning_curve(self.catalog, self.registry), summary=summary,
+                              retrains=retrains, champion=ensemble,
+                              train_sample=[self.catalog.load(r.episode_id) for r in train_rows],
+                              eval_sample=[self.catalog.load(i) for i in (split.ids[:3] if split else [])])
+        report = write_report(self.cfg.data_dir, inputs)
+        self.queue.close()
+        return RunResult(report=report, episodes=count, champion=champion, champion_h1_mse=h1,
+                         retrains=retrains, seconds=summary["seconds"], interrupted=interrupted)
+
+
+class LoopError(Exception):
+    """The loop cannot go on (every worker died, the service would not start)."""
+
+
+def free_port() -> int:
+    """A loopback TCP port that was free a moment ago."""
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]

@@ -1,0 +1,246 @@
+"""``activecollect bench loop``: the active planner against the uniform planner.
+
+Both arms get the same seed, the same episode budget, the same policy mix, the
+same eval split and the same training schedule (retrain from scratch every
+``round_episodes`` episodes, synchronously, so each arm's k-th model has seen
+exactly k rounds). The first round is the same uniform seed requests in both arms;
+after that the active arm plans from its champion's disagreement on the last
+round's episodes, the uniform arm draws uniformly.
+
+Collection runs in-process through a ``Collect`` callable (the CLI passes the
+simulator's ``collect_episode``), not over Zenoh: the question here is which
+planner yields the better data per episode, and with a deterministic simulator
+the transport does not change what is collected; leaving it out removes timing
+from the comparison (with asynchronous workers, how many episodes arrive while a
+retrain runs would differ between arms). The queue, catalog, registry, trainer
+and gate are the real ones.
+
+Headline: the episodes the uniform arm needs to reach the active arm's final eval
+error, divided by the active arm's budget (< 1: uniform is more efficient; > 1:
+active is), interpolated on the mean curves, with the per-seed values.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Callable, Sequence
+
+import numpy as np
+from matplotlib.figure import Figure
+
+from orchestrator.loop import ChampionScorer
+from orchestrator.planner import (
+    ActivePlanner, ActivePlannerConfig, Planner, PolicyMix, UniformPlanner, UniformPlannerConfig,
+)
+from orchestrator.scheduler import run_retrain
+from storage.catalog import Catalog
+from storage.queue import Request, RequestQueue
+from storage.records import Episode
+from uncertainty.train import TrainConfig
+
+#: Collects the episode a request asks for: (request, policy seed, image size) -> Episode.
+Collect = Callable[[Request, int, int], Episode]
+#: Creates (or checks) the pinned eval split in a catalog: (catalog, episodes, seed, steps, image size) -> hash.
+MakeEvalSplit = Callable[[Catalog, int, int, int, int], str]
+ARMS = ("active", "uniform")
+
+
+@dataclass
+class LoopBenchConfig:
+    """One comparison of the two planners."""
+
+    seeds: tuple[int, ...] = (0, 1, 2)
+    """One run of each arm per seed."""
+    budget: int = 48
+    """Training episodes per arm."""
+    round_episodes: int = 16
+    """Retrain after every this many episodes (the first round is the uniform seed)."""
+    steps: int = 40
+    """Steps per episode."""
+    image_size: int = 16
+    """Frame size in pixels (16: three seeds of both arms take ~25 min on a busy 2-core CPU)."""
+    eval_episodes: int = 16
+    """Episodes in the eval split (push policy, all shapes)."""
+    eval_seed: int = 1234
+    """Seed of the eval split (the same for every seed and arm)."""
+    train: TrainConfig = field(default_factory=lambda: TrainConfig(
+        members=4, epochs=6, batch_size=32, widths=(8, 16, 32), device="cpu", progress=False,
+        min_rel_improvement=0.0))
+    """Training settings (every retrain trains from scratch on all data so far)."""
+    active: ActivePlannerConfig = field(default_factory=lambda: ActivePlannerConfig(
+        budget_per_round=16, max_queue_depth=16, percentile=75.0, min_distance=0.15))
+    """The active arm's planner (its budget per round is set to ``round_episodes``)."""
+    policies: PolicyMix = field(default_factory=PolicyMix)
+    """The collection policies of both arms."""
+
+    def __post_init__(self) -> None:
+        if not self.seeds:
+            raise ValueError("seeds must name at least one seed")
+        if self.round_episodes < 1 or self.budget < 2 * self.round_episodes:
+            raise ValueError(f"need round_episodes >= 1 and budget >= 2 rounds, found round_episodes="
+                             f"{self.round_episodes}, budget={self.budget}")
+        self.active.budget_per_round = self.round_episodes
+        self.active.max_queue_depth = self.round_episodes
+        self.active.steps = self.steps
+        self.active.seed_uniform = self._uniform()
+
+    def _uniform(self) -> UniformPlannerConfig:
+        return UniformPlannerConfig(steps=self.steps, max_queue_depth=self.round_episodes, policies=self.policies)
+
+    def to_json(self) -> dict:
+        d = asdict(self)
+        d["train"] = self.train.to_dict()
+        return d
+
+
+def make_planner(arm: str, cfg: LoopBenchConfig, scorer: ChampionScorer, rng: np.random.Generator,
+                 queue: RequestQueue) -> Planner:
+    depth = lambda: queue.counts().get("queued", 0)  # noqa: E731
+    if arm == "active":
+        return ActivePlanner(cfg.active, scorer, rng, depth)
+    if arm == "uniform":
+        return UniformPlanner(cfg._uniform(), rng, depth)
+    raise ValueError(f"arm must be one of {ARMS}, found {arm!r}")
+
+
+def run_arm(arm: str, seed: int, cfg: LoopBenchConfig, data_dir: Path, collect: Collect,
+            make_eval_split: MakeEvalSplit, log: Callable[[str], None] = print) -> list[dict]:
+    """One arm for one seed; returns one point per retrain (episodes, h1/h5 of candidate and champion)."""
+    catalog = Catalog(data_dir)
+    queue = RequestQueue(catalog.db_path)
+    make_eval_split(catalog, cfg.eval_episodes, cfg.eval_seed, cfg.steps, cfg.image_size)
+    planner = make_planner(arm, cfg, ChampionScorer(data_dir), np.random.default_rng(seed), queue)
+    train = TrainConfig(**{**cfg.train.to_dict(), "seed": seed, "widths": tuple(cfg.train.widths)})
+    points: list[dict] = []
+    round_eps: list[Episode] = []
+    reasons: list[str] = []
+    collected = catalog.count(split="train")
+    while collected < cfg.budget:
+        missing = cfg.round_episodes - len(round_eps) - queue.counts().get("queued", 0)
+        if missing > 0:  # the first round, or a round the planner could not fill with diverse states
+            queue.enqueue_many(planner.seed(missing))
+        lease = queue.lease("bench", (), (), 600.0)
+        ep = collect(lease.request, seed * 1_000_003 + collected, cfg.image_size)
+        stored = catalog.add_episode(ep)
+        queue.complete(lease.request.id, lease.token, stored.episode_id)
+        round_eps.append(ep)
+        reasons.append(str(lease.request.reason.get("planner", "")))
+        collected += 1
+        if len(round_eps) == cfg.round_episodes or collected == cfg.budget:
+            start = time.perf_counter()
+            result = run_retrain(data_dir, train)
+            points.append(_point(arm, seed, collected, result, time.perf_counter() - start, reasons))
+            log(f"  {arm:7s} seed {seed} {collected:4d} ep: h1 {points[-1]['h1_mse']:.3e} "
+                f"h5 {points[-1]['h5_mse']:.3e} ({points[-1]['train_s']:.0f} s)")
+            queue.enqueue_many(planner.plan(round_eps))
+            round_eps, reasons = [], []
+    queue.close()
+    return points
+
+
+def _point(arm: str, seed: int, episodes: int, result: dict, seconds: float, reasons: list[str]) -> dict:
+    m = result["metrics"]
+    return {"arm": arm, "seed": seed, "episodes": episodes, "version": result["version"],
+            "h1_mse": m.get("h1_mse"), "h5_mse": m.get("h5_mse"), "promoted": result["promoted"],
+            "champion": result["champion"], "train_s": round(seconds, 1),
+            "round_planners": {k: reasons.count(k) for k in sorted(set(reasons))}}
+
+
+def episodes_to_reach(curve: Sequence[tuple[int, float]], target: float) -> float:
+    """First episode count at which a (episodes, error) curve reaches ``target`` (linear
+    interpolation between points); ``inf`` when it never does."""
+    prev = None
+    for x, y in curve:
+        if y <= target:
+            if prev is None or prev[1] == y:
+                return float(x)
+            (x0, y0) = prev
+            return float(x0 + (x - x0) * (y0 - target) / (y0 - y))
+        prev = (x, y)
+    return math.inf
+
+
+def summarize(points: list[dict], cfg: LoopBenchConfig, metric: str = "h1_mse") -> dict:
+    """Mean and spread per arm and episode count, and the headline ratios (per seed and on the means)."""
+    curves: dict[str, dict] = {}
+    for arm in ARMS:
+        by_ep: dict[int, list[float]] = {}
+        for p in points:
+            if p["arm"] == arm:
+                by_ep.setdefault(p["episodes"], []).append(float(p[metric]))
+        curves[arm] = {str(e): {"mean": float(np.mean(v)), "std": float(np.std(v)), "n": len(v)}
+                       for e, v in sorted(by_ep.items())}
+    mean = {arm: [(int(e), s["mean"]) for e, s in curves[arm].items()] for arm in ARMS}
+    per_seed = []
+    for seed in cfg.seeds:
+        c = {arm: [(p["episodes"], float(p[metric])) for p in points if p["arm"] == arm and p["seed"] == seed]
+             for arm in ARMS}
+        if all(c.values()):
+            per_seed.append(_ratios(c["active"], c["uniform"]) | {"seed": seed})
+    return {"metric": metric, "curves": curves, "headline": _ratios(mean["active"], mean["uniform"]),
+            "per_seed": per_seed}
+
+
+def _ratios(active: list[tuple[int, float]], uniform: list[tuple[int, float]]) -> dict:
+    """uniform_needed / budget to match active's final error, and active_needed / budget for uniform's."""
+    a_final, u_final = active[-1][1], uniform[-1][1]
+    budget = active[-1][0]
+    u_need = episodes_to_reach(uniform, a_final)
+    a_need = episodes_to_reach(active, u_final)
+    finite = lambda v: v if math.isfinite(v) else None  # noqa: E731 (None: not reached within the budget)
+    return {"active_final": a_final, "uniform_final": u_final,
+            "uniform_episodes_to_match_active": finite(u_need), "active_episodes_to_match_uniform": finite(a_need),
+            "uniform_over_active_ratio": u_need / budget if math.isfinite(u_need) else None,
+            "active_over_uniform_ratio": a_need / budget if math.isfinite(a_need) else None,
+            "budget": budget}
+
+
+def plot(points: list[dict], path: Path) -> None:
+    """Mean +- std eval MSE (h1 and h5) per episodes collected, both arms."""
+    fig = Figure(figsize=(10, 3.8))
+    for i, metric in enumerate(("h1_mse", "h5_mse")):
+        ax = fig.add_subplot(1, 2, i + 1)
+        for arm, color in zip(ARMS, ("#c62828", "#1565c0")):
+            by_ep: dict[int, list[float]] = {}
+            for p in points:
+                if p["arm"] == arm and p[metric] is not None and math.isfinite(p[metric]):
+                    by_ep.setdefault(p["episodes"], []).append(p[metric])
+            if not by_ep:
+                continue
+            xs = sorted(by_ep)
+            mu = np.array([np.mean(by_ep[x]) for x in xs])
+            sd = np.array([np.std(by_ep[x]) for x in xs])
+            ax.plot(xs, mu, "o-", color=color, label=f"{arm} (mean of {len(by_ep[xs[-1]])} seeds)")
+            ax.fill_between(xs, mu - sd, mu + sd, color=color, alpha=0.15)
+        ax.set_xlabel("training episodes collected")
+        ax.set_ylabel(f"eval {metric.replace('_', ' ')}")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8)
+    fig.suptitle("activecollect bench loop: active vs uniform planner")
+    fig.savefig(path, dpi=100, bbox_inches="tight")
+
+
+def run_bench(cfg: LoopBenchConfig, out_dir: Path, collect: Collect, make_eval_split: MakeEvalSplit,
+              log: Callable[[str], None] = print) -> dict:
+    """Every seed, both arms; writes ``summary.json`` and ``loop.png`` in ``out_dir``; returns the summary."""
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    start = time.perf_counter()
+    points: list[dict] = []
+    for seed in cfg.seeds:
+        for arm in ARMS:
+            data_dir = out_dir / f"seed{seed}" / arm
+            if (data_dir / "catalog.sqlite").exists():
+                raise ValueError(f"{data_dir} already holds a catalog; give bench loop a fresh --out")
+            points += run_arm(arm, seed, cfg, data_dir, collect, make_eval_split, log)
+    summary = {"config": cfg.to_json(), "points": points, "h1": summarize(points, cfg, "h1_mse"),
+               "h5": summarize(points, cfg, "h5_mse"), "seconds": round(time.perf_counter() - start, 1),
+               "transport": "in-process collection (no Zenoh); real queue, catalog, trainer and gate"}
+    plot(points, out_dir / "loop.png")
+    summary["plot"] = str(out_dir / "loop.png")
+    (out_dir / "summary.json").write_text(json.dumps(summary, indent=2, default=str))
+    return summary

@@ -1,0 +1,391 @@
+"""Planners: where the next episodes should start.
+
+A planner turns newly stored episodes into collection requests. Two share one
+interface so every comparison has its control arm:
+
+- ``ActivePlanner`` scores each new episode with the champion ensemble (through a
+  ``Scorer`` callable), keeps the steps above an adaptive threshold (a running
+  percentile of recent scores), makes them diverse in a normalised state space,
+  and caps them by a per-round budget and the queue's depth.
+- ``UniformPlanner`` draws start states uniformly over the task space of
+  ``orchestrator.protocol``; it is the control arm and the seed of the queue
+  before any model exists.
+
+Both draw the collection policy from the same ``PolicyMix``: only where the
+episodes start differs between the arms.
+
+Where an active request starts: directly at the uncertain state (the object's and the
+agent's pose at that step, the episode's shape and physics), at rest, with no action
+prefix. Replaying ``actions[:step]`` from the episode's start would reproduce the state
+exactly, but the replayed frames repeat data the catalog already holds and make the
+episode longer (``collect_episode`` records prefix + steps); starting at the state
+spends every collected frame next to the state the model does not understand and keeps
+active and uniform episodes the same length, so "per episode" stays a fair unit.
+Velocities are zeroed by default because uniform and eval episodes start at rest, and
+candidates are kept inside the task space (OBJECT_RANGE / AGENT_RANGE): in ``bench loop``
+without these two rules two thirds of the active requests went to one shape, with the
+object pushed against a wall (where the ensemble disagrees about the wall's pixels rather
+than the dynamics), and the active arm lost clearly on h5; with them it is level on h5
+and still about 2% behind uniform on h1. ``ActivePlannerConfig.replay_prefix`` switches
+to exact replay.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from dataclasses import dataclass, field
+from typing import Callable, Protocol, Sequence
+
+import numpy as np
+
+from orchestrator import protocol
+from storage.queue import NewRequest
+from storage.records import STATE_FIELDS, Episode
+
+_COL = {name: i for i, name in enumerate(STATE_FIELDS)}
+#: Push sides the "push" policy may be given.
+PUSH_SIDES: tuple[str, ...] = ("left", "right", "top", "bottom")
+#: Clearance (world units) between a sampled agent and the object's centre: the largest shape's
+#: bounding radius (the L, ~124) plus the agent's (15), so a uniform start never overlaps the object.
+AGENT_CLEARANCE = 140.0
+
+
+class Planner(Protocol):
+    """Turns new episodes into requests (``plan``) and fills an empty queue (``seed``)."""
+
+    name: str
+
+    def plan(self, new_episodes: Sequence[Episode]) -> list[NewRequest]: ...
+
+    def seed(self, n: int) -> list[NewRequest]: ...
+
+
+@dataclass(frozen=True)
+class Scores:
+    """What a scorer says about one episode."""
+
+    model_version: str
+    """Version of the ensemble that scored it."""
+    per_step: np.ndarray
+    """(T,) disagreement per step; NaN where a step has no context or no successor."""
+
+
+#: Scores an episode with the current champion; None while no model exists.
+Scorer = Callable[[Episode], "Scores | None"]
+
+
+@dataclass
+class PolicyMix:
+    """The collection policies both arms draw from, with their weights."""
+
+    push_weight: float = 0.5
+    """Probability of the ``push`` policy (towards a random side); the rest is ``random_waypoints``."""
+    push_noise: float = 6.0
+    """Noise of the push policy's targets, world units (the policy's own default)."""
+
+    def __post_init__(self) -> None:
+        if not 0.0 <= self.push_weight <= 1.0:
+            raise ValueError(f"push_weight must be in [0, 1], found {self.push_weight}")
+        if self.push_noise < 0:
+            raise ValueError(f"push_noise must be >= 0, found {self.push_noise}")
+
+    def draw(self, rng: np.random.Generator) -> tuple[str, dict]:
+        """One (policy name, params) pair."""
+        if rng.random() < self.push_weight:
+            return "push", {"side": str(rng.choice(PUSH_SIDES)), "noise": self.push_noise}
+        return "random_waypoints", {}
+
+
+@dataclass
+class UniformPlannerConfig:
+    """The control arm: uniform start states."""
+
+    steps: int = 50
+    """Steps per requested episode."""
+    per_episode: int = 1
+    """Requests planned per new episode (1 keeps the queue as deep as it was)."""
+    max_queue_depth: int = 64
+    """Never plan past this many queued requests."""
+    sample_physics: bool = False
+    """Draw physics uniformly from PHYSICS_RANGES; False uses each parameter's default."""
+    shapes: tuple[str, ...] = protocol.SHAPES
+    """Shapes to draw from."""
+    policies: PolicyMix = field(default_factory=PolicyMix)
+    """Collection policy mix (shared with the active arm)."""
+
+    def __post_init__(self) -> None:
+        if not 1 <= self.steps <= protocol.MAX_EPISODE_STEPS:
+            raise ValueError(f"steps must be in [1, {protocol.MAX_EPISODE_STEPS}], found {self.steps}")
+        if self.per_episode < 0 or self.max_queue_depth < 1:
+            raise ValueError(f"per_episode must be >= 0 and max_queue_depth >= 1, "
+                             f"found {self.per_episode} and {self.max_queue_depth}")
+        unknown = set(self.shapes) - set(protocol.SHAPES)
+        if not self.shapes or unknown:
+            raise ValueError(f"shapes must be a non-empty subset of {protocol.SHAPES}, found {self.shapes}")
+
+
+def uniform_start_state(rng: np.random.Generator, shape: str, sample_physics: bool = False) -> dict:
+    """A start state (``SimState.to_dict`` form) drawn uniformly over the task space."""
+    lo, hi = protocol.OBJECT_RANGE
+    obj = (float(rng.uniform(lo, hi)), float(rng.uniform(lo, hi)), float(rng.uniform(0.0, 2 * math.pi)))
+    alo, ahi = protocol.AGENT_RANGE
+    while True:  # rejection sampling; the free area is most of the table
+        agent = (float(rng.uniform(alo, ahi)), float(rng.uniform(alo, ahi)))
+        if math.hypot(agent[0] - obj[0], agent[1] - obj[1]) >= AGENT_CLEARANCE:
+            break
+    if sample_physics:
+        physics = {k: float(rng.uniform(low, high)) for k, (low, high, _) in protocol.PHYSICS_RANGES.items()}
+    else:
+        physics = {k: float(default) for k, (_, _, default) in protocol.PHYSICS_RANGES.items()}
+    return {"shape": shape, "agent": list(agent), "agent_vel": [0.0, 0.0],
+            "object": list(obj), "object_vel": [0.0, 0.0, 0.0], "physics": physics}
+
+
+class UniformPlanner:
+    """Start states drawn uniformly over the task space: the control arm."""
+
+    name = "uniform"
+
+    def __init__(self, cfg: UniformPlannerConfig, rng: np.random.Generator,
+                 queue_depth: Callable[[], int] = lambda: 0) -> None:
+        self.cfg = cfg
+        self.rng = rng
+        self.queue_depth = queue_depth
+
+    def seed(self, n: int) -> list[NewRequest]:
+        """``n`` uniform requests (capped by the queue depth)."""
+        room = max(0, self.cfg.max_queue_depth - self.queue_depth())
+        return [self.draw_request("seed") for _ in range(min(n, room))]
+
+    def plan(self, new_episodes: Sequence[Episode]) -> list[NewRequest]:
+        """``per_episode`` uniform requests per new episode, capped by the queue depth."""
+        room = max(0, self.cfg.max_queue_depth - self.queue_depth())
+        return [self.draw_request("uniform") for _ in range(min(room, self.cfg.per_episode * len(new_episodes)))]
+
+    def draw_request(self, why: str) -> NewRequest:
+        """One uniform request; ``why`` goes into its reason as the planner name."""
+        shape = str(self.rng.choice(self.cfg.shapes))
+        policy, params = self.cfg.policies.draw(self.rng)
+        return NewRequest(
+            task="push", shape=shape,
+            start_state=uniform_start_state(self.rng, shape, self.cfg.sample_physics),
+            policy=policy, policy_params=params, action_prefix=[], steps=self.cfg.steps,
+            priority=0.0,
+            reason={"model_version": "", "score": None, "source_episode": "", "step": None,
+                    "planner": why},
+        )
+
+
+@dataclass
+class ActivePlannerConfig:
+    """The uncertainty planner."""
+
+    steps: int = 50
+    """Steps per requested episode (after any replayed prefix)."""
+    percentile: float = 75.0
+    """Adaptive threshold: this percentile of the recent scores of the current model."""
+    window: int = 2000
+    """How many recent per-step scores the percentile is taken over."""
+    budget_per_round: int = 2
+    """At most this many requests per planning round (one call of ``plan``)."""
+    max_queue_depth: int = 64
+    """Never plan past this many queued requests."""
+    min_distance: float = 0.15
+    """Two requests closer than this in the normalised state space are one too many."""
+    memory: int = 256
+    """How many recently requested states new candidates must also keep away from."""
+    explore_fraction: float = 0.0
+    """Share of each round's budget given to uniform requests (0 = pure active)."""
+    replay_prefix: bool = False
+    """Start from the episode's start and replay actions[:step] instead of starting at the state."""
+    at_rest: bool = True
+    """Start at the uncertain pose with zero velocities (as uniform and eval episodes start)."""
+    task_space_only: bool = True
+    """Only request states whose object and agent lie in OBJECT_RANGE / AGENT_RANGE: the model is
+    judged there, and an ensemble also disagrees where the data is thin for no useful reason
+    (objects pushed against the walls)."""
+    max_shape_share: float = 0.5
+    """At most this share of a round's requests may be of one shape (no collapse onto one shape)."""
+    seed_uniform: UniformPlannerConfig = field(default_factory=UniformPlannerConfig)
+    """How seeds (before any model) and exploration requests are drawn; its policy mix is shared."""
+
+    def __post_init__(self) -> None:
+        if not 0.0 <= self.percentile < 100.0:
+            raise ValueError(f"percentile must be in [0, 100), found {self.percentile}")
+        if self.window < 1 or self.budget_per_round < 0 or self.max_queue_depth < 1:
+            raise ValueError(f"window >= 1, budget_per_round >= 0 and max_queue_depth >= 1 expected, found "
+                             f"{self.window}, {self.budget_per_round}, {self.max_queue_depth}")
+        if not 0.0 < self.max_shape_share <= 1.0:
+            raise ValueError(f"max_shape_share must be in (0, 1], found {self.max_shape_share}")
+        if self.min_distance < 0 or not 0.0 <= self.explore_fraction <= 1.0:
+            raise ValueError(f"min_distance >= 0 and explore_fraction in [0, 1] expected, found "
+                             f"{self.min_distance} and {self.explore_fraction}")
+        if not 1 <= self.steps <= protocol.MAX_EPISODE_STEPS:
+            raise ValueError(f"steps must be in [1, {protocol.MAX_EPISODE_STEPS}], found {self.steps}")
+
+
+def state_features(shape: str, agent: Sequence[float], obj: Sequence[float],
+                   physics: dict[str, float]) -> np.ndarray:
+    """The normalised state a diversity distance is measured in.
+
+    Object x, y and agent x, y over WORLD_SIZE; cos and sin of the object's angle; the
+    shape one-hot; each physics parameter scaled to [0, 1] over its range. Two shapes
+    are always at least sqrt(2) apart, more than any sensible ``min_distance``.
+    """
+    w = protocol.WORLD_SIZE
+    onehot = [1.0 if shape == s else 0.0 for s in protocol.SHAPES]
+    phys = [(float(physics.get(k, d)) - lo) / (hi - lo) for k, (lo, hi, d) in protocol.PHYSICS_RANGES.items()]
+    return np.array([obj[0] / w, obj[1] / w, math.cos(obj[2]), math.sin(obj[2]),
+                     agent[0] / w, agent[1] / w, *onehot, *phys], dtype=np.float64)
+
+
+@dataclass(frozen=True)
+class Candidate:
+    """One uncertain state in a new episode."""
+
+    score: float
+    episode: Episode
+    step: int
+    features: np.ndarray
+
+
+def select_diverse(candidates: Sequence[Candidate], k: int, min_distance: float,
+                   taken: Sequence[np.ndarray] = (), max_per_shape: int | None = None) -> list[Candidate]:
+    """Greedy by score: keep a candidate only if it is ``min_distance`` from every kept one.
+
+    ``taken`` holds features of states requested earlier, which also count as kept;
+    ``max_per_shape`` caps how many kept candidates share an object shape.
+    Returns at most ``k`` candidates, highest score first.
+    """
+    kept: list[Candidate] = []
+    per_shape: dict[str, int] = {}
+    others = [np.asarray(t) for t in taken]
+    for cand in sorted(candidates, key=lambda c: -c.score):
+        if len(kept) >= k:
+            break
+        shape = cand.episode.meta.shape
+        if max_per_shape is not None and per_shape.get(shape, 0) >= max_per_shape:
+            continue
+        if all(np.linalg.norm(cand.features - o) >= min_distance for o in others):
+            kept.append(cand)
+            per_shape[shape] = per_shape.get(shape, 0) + 1
+            others.append(cand.features)
+    return kept
+
+
+class ActivePlanner:
+    """Requests the states the champion ensemble disagrees on most, diverse and budgeted."""
+
+    name = "active"
+
+    def __init__(self, cfg: ActivePlannerConfig, scorer: Scorer, rng: np.random.Generator,
+                 queue_depth: Callable[[], int] = lambda: 0) -> None:
+        self.cfg = cfg
+        self.scorer = scorer
+        self.rng = rng
+        self.queue_depth = queue_depth
+        self.uniform = UniformPlanner(cfg.seed_uniform, rng, queue_depth)
+        self._recent: deque[float] = deque(maxlen=cfg.window)
+        self._recent_version = ""
+        self._requested: deque[np.ndarray] = deque(maxlen=cfg.memory)
+        self._requested_steps: set[tuple[str, int]] = set()
+        self.threshold = math.nan
+
+    def seed(self, n: int) -> list[NewRequest]:
+        """Uniform requests: before any model exists there is nothing to be uncertain about."""
+        room = max(0, self.cfg.max_queue_depth - self.queue_depth())
+        return [self.uniform.draw_request("seed") for _ in range(min(n, room))]
+
+    def plan(self, new_episodes: Sequence[Episode]) -> list[NewRequest]:
+        """Score the new episodes and request their most uncertain, mutually distant states.
+
+        With no model yet, each new episode is replaced by one uniform request so the
+        queue never runs dry. Returns at most ``budget_per_round`` requests and never
+        more than the room left under ``max_queue_depth``.
+        """
+        room = max(0, self.cfg.max_queue_depth - self.queue_depth())
+        budget = min(self.cfg.budget_per_round, room)
+        if budget == 0 or not new_episodes:
+            return []
+        scored = [(ep, self.scorer(ep)) for ep in new_episodes]
+        if any(s is None for _, s in scored):
+            return [self.uniform.draw_request("seed") for _ in range(min(budget, len(new_episodes)))]
+        n_explore = int(round(budget * self.cfg.explore_fraction))
+        versions = {id(ep): s.model_version for ep, s in scored}
+        fresh = [c for c in self._candidates(scored)
+                 if (c.episode.meta.episode_id, c.step) not in self._requested_steps]
+        k = budget - n_explore
+        chosen = select_diverse(fresh, k, self.cfg.min_distance, list(self._requested),
+                                max_per_shape=max(1, math.ceil(k * self.cfg.max_shape_share)))
+        requests = []
+        for cand in chosen:
+            self._requested.append(cand.features)
+            self._requested_steps.add((cand.episode.meta.episode_id, cand.step))
+            requests.append(self._request(cand, versions[id(cand.episode)]))
+        requests += [self.uniform.draw_request("explore") for _ in range(n_explore)]
+        return requests
+
+    def _candidates(self, scored: list[tuple[Episode, Scores]]) -> list[Candidate]:
+        """Update the running threshold with the new scores, then keep the steps above it."""
+        version = scored[-1][1].model_version
+        if version != self._recent_version:  # a new champion: its scores live on another scale
+            self._recent.clear()
+            self._recent_version = version
+        for _, s in scored:
+            self._recent.extend(float(v) for v in s.per_step if np.isfinite(v))
+        if not self._recent:
+            return []
+        self.threshold = float(np.percentile(np.fromiter(self._recent, float), self.cfg.percentile))
+        out = []
+        for ep, s in scored:
+            for step, value in enumerate(s.per_step):
+                if np.isfinite(value) and value > self.threshold and step < len(ep) and self._admissible(ep, step):
+                    out.append(Candidate(float(value), ep, step, _episode_features(ep, step)))
+        return out
+
+    def _admissible(self, ep: Episode, step: int) -> bool:
+        if not self.cfg.task_space_only:
+            return True
+        s = ep.states[step]
+        (olo, ohi), (alo, ahi) = protocol.OBJECT_RANGE, protocol.AGENT_RANGE
+        return (olo <= s[_COL["obj_x"]] <= ohi and olo <= s[_COL["obj_y"]] <= ohi
+                and alo <= s[_COL["agent_x"]] <= ahi and alo <= s[_COL["agent_y"]] <= ahi)
+
+    def _request(self, cand: Candidate, model_version: str) -> NewRequest:
+        ep, step = cand.episode, cand.step
+        policy, params = self.cfg.seed_uniform.policies.draw(self.rng)
+        if self.cfg.replay_prefix:
+            start, prefix = dict(ep.meta.start_state), ep.actions[:step].astype(float).tolist()
+        else:
+            start, prefix = state_at(ep, step), []
+            if self.cfg.at_rest:
+                start["agent_vel"], start["object_vel"] = [0.0, 0.0], [0.0, 0.0, 0.0]
+        scale = self.threshold if self.threshold > 0 else 1.0
+        return NewRequest(
+            task=ep.meta.task, shape=ep.meta.shape, start_state=start,
+            policy=policy, policy_params=params, action_prefix=prefix, steps=self.cfg.steps,
+            # relative to the threshold, so requests from different champions compare
+            priority=round(cand.score / scale, 6),
+            reason={"model_version": model_version, "score": cand.score,
+                    "source_episode": ep.meta.episode_id, "step": step, "planner": "active",
+                    "threshold": self.threshold},
+            idempotency_key=f"active:{ep.meta.episode_id}:{step}",
+        )
+
+
+def state_at(ep: Episode, step: int) -> dict:
+    """The simulator state (``SimState.to_dict`` form) at ``step`` of an episode."""
+    s = ep.states[step]
+    return {"shape": ep.meta.shape,
+            "agent": [float(s[_COL["agent_x"]]), float(s[_COL["agent_y"]])],
+            "agent_vel": [float(s[_COL["agent_vx"]]), float(s[_COL["agent_vy"]])],
+            "object": [float(s[_COL["obj_x"]]), float(s[_COL["obj_y"]]), float(s[_COL["obj_theta"]])],
+            "object_vel": [float(s[_COL["obj_vx"]]), float(s[_COL["obj_vy"]]), float(s[_COL["obj_omega"]])],
+            "physics": {k: float(v) for k, v in ep.meta.physics.items()}}
+
+
+def _episode_features(ep: Episode, step: int) -> np.ndarray:
+    s = ep.states[step]
+    return state_features(ep.meta.shape, (s[_COL["agent_x"]], s[_COL["agent_y"]]),
+                          (s[_COL["obj_x"]], s[_COL["obj_y"]], s[_COL["obj_theta"]]), ep.meta.physics)

@@ -1,0 +1,201 @@
+"""The run report: an HTML page with PNG plots, written to ``DATA/reports/<timestamp>/``.
+
+Plots: eval error per training episodes collected (every registered model, the
+champions joined by a line), disagreement over object position (the champion's
+per-step scores on training episodes, at the object's position), and predicted
+versus real frames for a few eval samples. Each plot is a function returning PNG
+bytes, so the dashboard can serve the same pictures.
+"""
+
+from __future__ import annotations
+
+import html
+import io
+import json
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Sequence
+
+import matplotlib
+import numpy as np
+import torch
+from matplotlib.colors import LogNorm
+from matplotlib.figure import Figure
+
+from storage.records import STATE_FIELDS, Episode
+from uncertainty.ensemble import Ensemble, episode_windows, frames_to_tensor
+
+matplotlib.use("Agg")  # no display on servers; Figure() below never needs pyplot's global state
+
+_COL = {name: i for i, name in enumerate(STATE_FIELDS)}
+
+
+def _png(fig: Figure) -> bytes:
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=100, bbox_inches="tight")
+    return buf.getvalue()
+
+
+def curve_png(points: Sequence[dict], title: str = "Eval error per training episodes") -> bytes:
+    """Eval MSE (h1, h5) of each model against the training episodes it saw.
+
+    ``points``: dicts with episodes, h1_mse, h5_mse, promoted (as ``dashboard.learning_curve``).
+    """
+    fig = Figure(figsize=(6, 3.6))
+    ax = fig.add_subplot(1, 1, 1)
+    for key, color in (("h1_mse", "#1565c0"), ("h5_mse", "#c62828")):
+        pts = [p for p in points if isinstance(p.get(key), (int, float)) and np.isfinite(p[key])]
+        if not pts:
+            continue
+        ax.scatter([p["episodes"] for p in pts], [p[key] for p in pts], color=color, alpha=0.35, s=18,
+                   label=f"{key} (every candidate)")
+        champs = [p for p in pts if p.get("promoted")]
+        if champs:
+            ax.plot([p["episodes"] for p in champs], [p[key] for p in champs], "o-", color=color,
+                    label=f"{key} (promoted)")
+    ax.set_xlabel("training episodes collected")
+    ax.set_ylabel("eval MSE")
+    ax.set_title(title)
+    ax.grid(alpha=0.3)
+    if ax.has_data():
+        ax.legend(fontsize=8)
+    else:
+        ax.text(0.5, 0.5, "no model evaluated yet", ha="center", transform=ax.transAxes)
+    return _png(fig)
+
+
+def disagreement_png(ensemble: Ensemble, episodes: Sequence[Episode]) -> bytes:
+    """Per-step disagreement of ``ensemble`` scattered at the object's position on the table."""
+    xs, ys, scores = [], [], []
+    for ep in episodes:
+        s = ensemble.disagreement(ep.frames, ep.actions)
+        ok = np.isfinite(s)
+        xs.append(ep.states[ok, _COL["obj_x"]])
+        ys.append(ep.states[ok, _COL["obj_y"]])
+        scores.append(s[ok])
+    fig = Figure(figsize=(5, 4.2))
+    ax = fig.add_subplot(1, 1, 1)
+    if scores and sum(len(s) for s in scores):
+        c = np.concatenate(scores)
+        floor = max(float(c[c > 0].min()) if (c > 0).any() else 1e-12, 1e-12)
+        order = np.argsort(c)  # most uncertain drawn last, on top
+        sc = ax.scatter(np.concatenate(xs)[order], np.concatenate(ys)[order], c=np.maximum(c[order], floor), s=8,
+                        cmap="viridis", norm=LogNorm(vmin=floor, vmax=max(float(c.max()), floor * 10)))
+        fig.colorbar(sc, ax=ax, label="ensemble disagreement (log scale)")
+    ax.set_xlim(0, 512)
+    ax.set_ylim(0, 512)
+    ax.set_aspect("equal")
+    ax.set_xlabel("object x")
+    ax.set_ylabel("object y")
+    ax.set_title(f"Disagreement over object position ({len(episodes)} episodes)")
+    return _png(fig)
+
+
+@torch.inference_mode()
+def frames_png(ensemble: Ensemble, episodes: Sequence[Episode], samples: int = 3, seed: int = 0) -> bytes:
+    """For a few eval steps: last context frame, the real next frame, the ensemble mean, its variance."""
+    rng = np.random.default_rng(seed)
+    rows = []
+    for ep in list(episodes)[:samples]:
+        windows = episode_windows(ep.frames, ep.actions, ensemble.config, horizon=1)
+        if windows is None:
+            continue
+        steps, ctx_idx, act_idx = windows
+        i = int(rng.integers(len(steps)))
+        x = frames_to_tensor(ep.frames, ensemble.device)                                # (T, 3, H, W)
+        ctx = x[torch.as_tensor(ctx_idx[i:i + 1])]                                       # (1, C, 3, H, W)
+        act = ensemble.normalize_actions(torch.as_tensor(ep.actions[act_idx[i, 0]][None], dtype=torch.float32))
+        preds = ensemble(ctx, act).clamp(0, 1)[:, 0]                                     # (K, 3, H, W)
+        mean = preds.mean(0).permute(1, 2, 0).cpu().numpy()                              # (H, W, 3)
+        var = preds.var(0, unbiased=False).mean(0).cpu().numpy()                         # (H, W)
+        t = int(steps[i])
+        rows.append((ep.frames[t], ep.frames[t + 1], mean, var, f"{ep.meta.shape} step {t}"))
+    fig = Figure(figsize=(8, 2.1 * max(1, len(rows))))
+    titles = ("context (t)", "real (t+1)", "predicted mean (t+1)", "member variance")
+    for r, (ctx_f, real, mean, var, label) in enumerate(rows):
+        for c, img in enumerate((ctx_f, real, mean, var)):
+            ax = fig.add_subplot(len(rows), 4, r * 4 + c + 1)
+            ax.imshow(img, cmap="magma" if c == 3 else None, interpolation="nearest")
+            ax.set_xticks([])
+            ax.set_yticks([])
+            if r == 0:
+                ax.set_title(titles[c], fontsize=9)
+            if c == 0:
+                ax.set_ylabel(label, fontsize=8)
+    if not rows:
+        fig.text(0.5, 0.5, "no eval episodes long enough", ha="center")
+    return _png(fig)
+
+
+@dataclass
+class ReportInputs:
+    """What a report shows."""
+
+    curve: list[dict]
+    """Learning-curve points (``dashboard.learning_curve``)."""
+    summary: dict[str, Any]
+    """Headline numbers of the run (episodes, champion, eval error, time, settings)."""
+    retrains: list[dict] = field(default_factory=list)
+    """``RetrainRecord.to_json()`` of each retrain."""
+    champion: Ensemble | None = None
+    """The champion ensemble (None before the first promotion)."""
+    train_sample: list[Episode] = field(default_factory=list)
+    """Training episodes for the disagreement map."""
+    eval_sample: list[Episode] = field(default_factory=list)
+    """Eval episodes for predicted vs real frames."""
+
+
+def write_report(data_dir: Path, inputs: ReportInputs, when: float | None = None) -> Path:
+    """Write ``DATA/reports/<timestamp>/index.html`` with its PNGs; returns the index path."""
+    stamp = time.strftime("%Y%m%dT%H%M%S", time.gmtime(when or time.time()))
+    out = Path(data_dir) / "reports" / stamp
+    n = 1
+    while out.exists():
+        out = Path(data_dir) / "reports" / f"{stamp}-{n}"
+        n += 1
+    out.mkdir(parents=True)
+    images = {"curve.png": curve_png(inputs.curve)}
+    if inputs.champion is not None:
+        images["disagreement.png"] = disagreement_png(inputs.champion, inputs.train_sample)
+        images["frames.png"] = frames_png(inputs.champion, inputs.eval_sample)
+    for name, data in images.items():
+        (out / name).write_bytes(data)
+    (out / "summary.json").write_text(json.dumps({"summary": inputs.summary, "curve": inputs.curve,
+                                                  "retrains": inputs.retrains}, indent=2, default=str))
+    (out / "index.html").write_text(_html(inputs, images))
+    return out / "index.html"
+
+
+def _html(inputs: ReportInputs, images: dict[str, bytes]) -> str:
+    esc = html.escape
+    summary = "".join(f"<tr><th>{esc(str(k))}</th><td>{esc(_fmt(v))}</td></tr>" for k, v in inputs.summary.items())
+    retrain_rows = "".join(
+        f"<tr><td>{esc(r.get('trigger', ''))}</td><td>{r.get('episodes', '')}</td><td>{esc(str(r.get('status')))}"
+        f"</td><td>{esc(r.get('version') or '')}</td><td>{esc(_fmt(r.get('metrics', {}).get('h1_mse')))}</td>"
+        f"<td>{esc(_fmt((r.get('finished') or 0) - r.get('started', 0)))}</td><td>{esc(r.get('reason') or '')}</td></tr>"
+        for r in inputs.retrains)
+    figs = {"curve.png": "Eval error per training episodes collected",
+            "disagreement.png": "Champion disagreement over object position",
+            "frames.png": "Predicted versus real frames (champion, eval episodes)"}
+    body = "".join(f"<h2>{esc(title)}</h2><img src='{name}' alt='{esc(title)}'>"
+                   for name, title in figs.items() if name in images)
+    return f"""<!doctype html>
+<html lang="en"><head><meta charset="utf-8"><title>activecollect run report</title>
+<style>body{{font:14px/1.4 system-ui,sans-serif;margin:2em;max-width:60em}}
+table{{border-collapse:collapse}}td,th{{border:1px solid #ccc;padding:3px 8px;text-align:left}}
+img{{max-width:100%;border:1px solid #ddd}}</style></head><body>
+<h1>activecollect run report</h1>
+<table>{summary}</table>
+{body}
+<h2>Retrains</h2>
+<table><tr><th>trigger</th><th>episodes</th><th>status</th><th>version</th><th>h1 MSE</th><th>seconds</th>
+<th>reason</th></tr>{retrain_rows}</table>
+</body></html>
+"""
+
+
+def _fmt(v: Any) -> str:
+    if isinstance(v, float):
+        return f"{v:.4g}"
+    return "" if v is None else str(v)

@@ -1,0 +1,418 @@
+"""Scheduled retraining: when to retrain, and running each retrain in its own process.
+
+``RetrainScheduler`` decides when a retrain is due (every N new training
+episodes and/or on a cron expression), starts at most one job at a time as a
+child process (``python -m orchestrator retrain --data DIR --json ...``), so
+training never shares a GIL or a core budget with the request path, and reads
+its one-line JSON result when it exits. A job that fails, times out or is killed
+changes nothing: promotion happens only at the very end of a job, through the
+registry's gate. When a job promotes a new champion, ``on_promoted(version)`` lets
+the service hot-swap its scorer.
+
+The lock that keeps two retrains from training at once is taken by the job
+itself (``retrain_lock``), so it also holds against ``activecollect retrain``
+started by system cron or by hand.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import ctypes
+import dataclasses
+import ctypes.util
+import fcntl
+import json
+import logging
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from dataclasses import asdict, dataclass, field
+from enum import Enum
+from pathlib import Path
+from typing import Callable, Iterator
+
+from croniter import croniter
+
+from storage.catalog import Catalog
+from storage.models import ModelRegistry
+from uncertainty.train import TrainConfig, train_candidate
+
+log = logging.getLogger(__name__)
+
+LOCK_NAME = "retrain.lock"
+#: Exit status of a retrain that found another one holding the lock.
+EXIT_BUSY = 3
+
+
+class SchedulerError(Exception):
+    """The retrain schedule or a retrain job could not be set up."""
+
+
+class RetrainBusyError(SchedulerError):
+    """Another retrain holds the lock."""
+
+
+class RetrainStatus(str, Enum):
+    running = "running"
+    promoted = "promoted"
+    rejected = "rejected"
+    failed = "failed"
+    killed = "killed"
+    timeout = "timeout"
+    busy = "busy"
+
+
+@dataclass
+class ScheduleConfig:
+    """When to retrain and how a job is run."""
+
+    every_episodes: int = 0
+    """Retrain each time the training episode count crosses a multiple of this (0 = never on count)."""
+    cron: str = ""
+    """Also retrain on this cron expression, e.g. ``*/10 * * * *`` ('' = never on time)."""
+    timeout_s: float = 1800.0
+    """A job running longer than this is killed (and changes nothing)."""
+    poll_s: float = 0.5
+    """How often the scheduler thread checks whether a job is due or done."""
+    retrain_args: tuple[str, ...] = ()
+    """Extra arguments given to ``activecollect retrain`` (training and gate settings)."""
+
+    def __post_init__(self) -> None:
+        if self.every_episodes < 0:
+            raise ValueError(f"every_episodes must be >= 0, found {self.every_episodes}")
+        if self.cron and not croniter.is_valid(self.cron):
+            raise ValueError(f"cron must be a cron expression like '*/10 * * * *', found {self.cron!r}")
+        if self.timeout_s <= 0 or self.poll_s <= 0:
+            raise ValueError(f"timeout_s and poll_s must be > 0, found {self.timeout_s} and {self.poll_s}")
+
+
+@dataclass
+class RetrainRecord:
+    """One retrain job, as the dashboard and the report show it."""
+
+    trigger: str
+    """Why it ran: ``episodes``, ``cron``, ``manual`` or what ``request`` was given (``round``)."""
+    started: float
+    """Unix time the job started."""
+    episodes: int
+    """Training episodes in the catalog when it started."""
+    status: RetrainStatus = RetrainStatus.running
+    finished: float | None = None
+    version: str = ""
+    """The candidate's version ('' when it did not get that far)."""
+    reason: str = ""
+    """The gate's decision, or why the job failed."""
+    metrics: dict = field(default_factory=dict)
+    returncode: int | None = None
+    log_path: str = ""
+
+    def to_json(self) -> dict:
+        d = asdict(self)
+        d["status"] = self.status.value
+        return d
+
+
+@contextlib.contextmanager
+def retrain_lock(data_dir: Path, wait: bool = False) -> Iterator[Path]:
+    """Hold ``DATA/retrain.lock`` (``fcntl.flock``) for one retrain.
+
+    The kernel drops the lock when the holder dies, so a killed job never leaves a
+    stale lock. The file's content says who holds it and in which phase (see
+    ``note_phase``). Raises ``RetrainBusyError`` when another process holds it and
+    ``wait`` is False.
+    """
+    path = Path(data_dir) / LOCK_NAME
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | (0 if wait else fcntl.LOCK_NB))
+        except BlockingIOError:
+            holder = read_lock_info(data_dir)
+            raise RetrainBusyError(f"another retrain holds {path} (pid {holder.get('pid', '?')}, "
+                                   f"phase {holder.get('phase', '?')}); not training") from None
+        note_phase(data_dir, "locked", fd=fd)
+        yield path
+    finally:
+        os.close(fd)  # closing releases the flock
+
+
+def note_phase(data_dir: Path, phase: str, fd: int | None = None) -> None:
+    """Record the lock holder's pid and phase in the lock file (for operators and tests)."""
+    info = json.dumps({"pid": os.getpid(), "phase": phase, "time": time.time()}).encode()
+    own = fd is None
+    if own:
+        fd = os.open(Path(data_dir) / LOCK_NAME, os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, info, 0)
+    finally:
+        if own:
+            os.close(fd)
+
+
+def read_lock_info(data_dir: Path) -> dict:
+    """What the lock file says about its holder ({} when empty or unreadable)."""
+    try:
+        return json.loads((Path(data_dir) / LOCK_NAME).read_text() or "{}")
+    except (OSError, json.JSONDecodeError):
+        return {}
+
+
+def lock_held(data_dir: Path) -> bool:
+    """Whether some process holds the retrain lock right now."""
+    path = Path(data_dir) / LOCK_NAME
+    if not path.exists():
+        return False
+    fd = os.open(path, os.O_RDWR)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        return True
+    finally:
+        os.close(fd)
+    return False
+
+
+def run_retrain(data_dir: Path, cfg: TrainConfig, wait: bool = False) -> dict:
+    """One retrain job under the lock: train on the train snapshot, evaluate, register, gate.
+
+    With ``cfg.from_champion`` the champion's weights are fine-tuned on all the data (a
+    fresh model while there is no champion yet).
+
+    Returns ``{"version", "promoted", "reason", "metrics", "champion"}``. Raises
+    ``RetrainBusyError`` when another job holds the lock (and ``wait`` is False), and
+    whatever training raises (``uncertainty`` and ``storage`` errors); in every failure
+    the champion is untouched, because only the gate at the very end promotes.
+    """
+    data_dir = Path(data_dir)
+    with retrain_lock(data_dir, wait=wait):
+        catalog = Catalog(data_dir)
+        registry = ModelRegistry(data_dir)
+        if cfg.from_champion and registry.champion() is None:  # the first retrain has nothing to start from
+            cfg = dataclasses.replace(cfg, from_champion=False)
+        note_phase(data_dir, "training")
+        result = train_candidate(catalog, registry, cfg)
+        note_phase(data_dir, "done")
+        return {"version": result.version, "promoted": result.decision.promoted,
+                "reason": result.decision.reason, "champion": registry.champion(),
+                "metrics": {k: v for k, v in result.metrics.items() if not isinstance(v, (list, dict))}}
+
+
+_PR_SET_PDEATHSIG = 1  # linux/prctl.h
+_prctl = ctypes.CDLL(ctypes.util.find_library("c"), use_errno=True).prctl  # resolved before any fork
+
+
+def die_with_parent() -> None:
+    """``preexec_fn`` of a child process: SIGTERM it when the thread that started it dies (Linux).
+
+    Use it only from a process's main thread before other threads start (``preexec_fn``
+    runs between fork and exec, where a lock held by another thread could deadlock).
+    """
+    _prctl(_PR_SET_PDEATHSIG, signal.SIGTERM)
+
+
+def retrain_command(data_dir: Path, extra: tuple[str, ...] = ()) -> list[str]:
+    """The child process that runs one retrain job."""
+    return [sys.executable, "-m", "orchestrator", "retrain", "--data", str(data_dir), "--json", *extra]
+
+
+class RetrainScheduler:
+    """Starts retrain jobs when due, one at a time, each in its own process.
+
+    ``count_episodes`` returns the number of training episodes in the catalog (so the
+    schedule survives restarts); ``on_promoted(version)`` runs in the scheduler's
+    thread after a job promoted a new champion; ``on_finished(record)`` after every job,
+    whatever its outcome.
+    """
+
+    def __init__(self, cfg: ScheduleConfig, data_dir: Path, count_episodes: Callable[[], int],
+                 on_promoted: Callable[[str], None] = lambda version: None,
+                 command: Callable[[Path, tuple[str, ...]], list[str]] = retrain_command,
+                 on_finished: Callable[[RetrainRecord], None] = lambda record: None) -> None:
+        self.cfg = cfg
+        self.data_dir = Path(data_dir)
+        self.count_episodes = count_episodes
+        self.on_promoted = on_promoted
+        self.on_finished = on_finished
+        self.command = command
+        self.history: list[RetrainRecord] = []
+        self._lock = threading.Lock()
+        self._proc: subprocess.Popen | None = None
+        self._current: RetrainRecord | None = None
+        self._last_count = count_episodes()
+        self._next_cron = self._cron_after(time.time())
+        self._pending_manual = ""
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+
+    # -- public -----------------------------------------------------------------
+    @property
+    def running(self) -> bool:
+        with self._lock:
+            return self._proc is not None
+
+    @property
+    def current(self) -> RetrainRecord | None:
+        return self._current
+
+    def request(self, trigger: str = "manual") -> None:
+        """Ask for one retrain as soon as none is running; ``trigger`` is recorded as its reason."""
+        self._pending_manual = trigger
+
+    def start(self) -> None:
+        """Run ``tick`` every ``poll_s`` in a daemon thread until ``stop``."""
+        self._thread = threading.Thread(target=self._run, name="retrain-scheduler", daemon=True)
+        self._thread.start()
+
+    def stop(self, kill_running: bool = True) -> None:
+        """Stop scheduling; a running job is terminated (it changes nothing) unless told otherwise."""
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join()
+        if kill_running:
+            self._terminate("stopped with the scheduler")
+        else:
+            self.wait_idle()
+
+    def wait_idle(self, timeout: float | None = None) -> bool:
+        """Wait until no job runs (polling its exit); False on timeout."""
+        deadline = None if timeout is None else time.monotonic() + timeout
+        while self.running:
+            if deadline is not None and time.monotonic() > deadline:
+                return False
+            self._reap(block_s=0.2)
+        return True
+
+    def tick(self, now: float | None = None) -> RetrainRecord | None:
+        """Reap a finished job, then start one if due. Returns the job started, if any."""
+        now = time.time() if now is None else now
+        self._reap()
+        if self.running:
+            return None
+        trigger = self._due(now)
+        return self._launch(trigger) if trigger else None
+
+    # -- internals --------------------------------------------------------------
+    def _run(self) -> None:
+        while not self._stop.wait(self.cfg.poll_s):
+            self.tick()
+
+    def _cron_after(self, t: float) -> float | None:
+        return croniter(self.cfg.cron, t).get_next(float) if self.cfg.cron else None
+
+    def _due(self, now: float) -> str:
+        if self._pending_manual:
+            trigger, self._pending_manual = self._pending_manual, ""
+            return trigger
+        n = self.cfg.every_episodes
+        if n and self.count_episodes() // n > self._last_count // n:
+            return "episodes"
+        if self._next_cron is not None and now >= self._next_cron:
+            self._next_cron = self._cron_after(now)
+            return "cron"
+        return ""
+
+    def _launch(self, trigger: str) -> RetrainRecord:
+        episodes = self.count_episodes()
+        self._last_count = episodes
+        logs = self.data_dir / "logs"
+        logs.mkdir(parents=True, exist_ok=True)
+        rec = RetrainRecord(trigger=trigger, started=time.time(), episodes=episodes)
+        rec.log_path = str(logs / f"retrain-{time.strftime('%Y%m%dT%H%M%S')}-{len(self.history)}.log")
+        with open(rec.log_path + ".out", "wb") as out, open(rec.log_path, "wb") as err:
+            proc = subprocess.Popen(self.command(self.data_dir, self.cfg.retrain_args),
+                                    stdout=out, stderr=err, stdin=subprocess.DEVNULL)
+        with self._lock:
+            self._proc, self._current = proc, rec
+            self.history.append(rec)
+        log.info("retrain started (%s, %d episodes, pid %d)", trigger, episodes, proc.pid)
+        return rec
+
+    def _reap(self, block_s: float = 0.0) -> None:
+        with self._lock:
+            proc, rec = self._proc, self._current
+        if proc is None or rec is None:
+            return
+        try:
+            rc = proc.wait(timeout=block_s) if block_s else proc.poll()
+        except subprocess.TimeoutExpired:
+            rc = None
+        if rc is None:
+            if time.time() - rec.started > self.cfg.timeout_s:
+                self._terminate(f"timed out after {self.cfg.timeout_s:.0f} s", RetrainStatus.timeout)
+            return
+        self._finish(proc, rec, rc)
+
+    def _terminate(self, why: str, status: RetrainStatus = RetrainStatus.killed) -> None:
+        with self._lock:
+            proc, rec = self._proc, self._current
+        if proc is None or rec is None:
+            return
+        proc.send_signal(signal.SIGTERM)
+        try:
+            rc = proc.wait(timeout=10)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            rc = proc.wait()
+        self._finish(proc, rec, rc, status=status, reason=why)
+
+    def _finish(self, proc: subprocess.Popen, rec: RetrainRecord, rc: int,
+                status: RetrainStatus | None = None, reason: str = "") -> None:
+        with self._lock:
+            if self._proc is not proc:
+                return  # another thread finished it first
+            self._proc = None
+        rec.finished, rec.returncode = time.time(), rc
+        result = _last_json(Path(rec.log_path + ".out"))
+        if status is not None:
+            rec.status, rec.reason = status, reason
+        elif rc == 0 and result:
+            rec.version = str(result.get("version", ""))
+            rec.metrics = dict(result.get("metrics") or {})
+            rec.status = RetrainStatus.promoted if result.get("promoted") else RetrainStatus.rejected
+            rec.reason = str(result.get("reason", ""))
+        elif rc == EXIT_BUSY:
+            rec.status, rec.reason = RetrainStatus.busy, _tail(Path(rec.log_path))
+        elif rc < 0:
+            rec.status = RetrainStatus.killed
+            rec.reason = f"killed by {signal.Signals(-rc).name}"
+        else:
+            rec.status = RetrainStatus.failed
+            rec.reason = f"exit status {rc}: {_tail(Path(rec.log_path))}"
+        level = logging.INFO if rec.status in (RetrainStatus.promoted, RetrainStatus.rejected) else logging.WARNING
+        log.log(level, "retrain %s: %s %s", rec.status.value, rec.version or "-", rec.reason)
+        if rec.status is RetrainStatus.promoted:
+            self.on_promoted(rec.version)
+        self.on_finished(rec)
+
+
+def _last_json(path: Path) -> dict:
+    """The last line of a job's stdout that parses as a JSON object ({} when none)."""
+    try:
+        text = path.read_text(errors="replace")
+    except OSError:
+        return {}
+    with contextlib.suppress(json.JSONDecodeError):
+        whole = json.loads(text)
+        if isinstance(whole, dict):
+            return whole
+    lines = text.splitlines()
+    for line in reversed(lines):
+        with contextlib.suppress(json.JSONDecodeError):
+            obj = json.loads(line)
+            if isinstance(obj, dict):
+                return obj
+    return {}
+
+
+def _tail(path: Path, n: int = 300) -> str:
+    try:
+        text = path.read_text(errors="replace").strip()
+    except OSError:
+        return "no log"
+    lines = text.splitlines()
+    return lines[-1][-n:] if lines else "no output"

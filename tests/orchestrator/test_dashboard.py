@@ -1,0 +1,222 @@
+"""The dashboard: JSON endpoints, Prometheus text, and the page in a real headless Chromium.
+
+The browser is Debian's ``chromium``, installed here when missing (root + apt), and
+driven over the DevTools protocol with ``websocket-client``.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import time
+import urllib.error
+import urllib.request
+from pathlib import Path
+
+import numpy as np
+import pytest
+import websocket
+from prometheus_client.parser import text_string_to_metric_families
+
+from orchestrator.dashboard import Dashboard, DashboardConfig, DataSources
+from orchestrator.metrics import ServiceMetrics
+from orchestrator.planner import UniformPlanner, UniformPlannerConfig
+from storage.catalog import Catalog
+from storage.models import ModelRegistry
+from storage.queue import RequestQueue
+
+
+def wait_for(cond, timeout: float = 20.0, what: str = "condition"):
+    deadline = time.monotonic() + timeout
+    while True:
+        value = cond()
+        if value:
+            return value
+        if time.monotonic() > deadline:
+            raise AssertionError(f"timed out after {timeout:.0f} s waiting for {what}")
+        time.sleep(0.05)
+
+
+def get(url: str) -> tuple[int, str, bytes]:
+    try:
+        with urllib.request.urlopen(url, timeout=10) as r:
+            return r.status, r.headers["Content-Type"], r.read()
+    except urllib.error.HTTPError as exc:
+        return exc.code, exc.headers["Content-Type"], exc.read()
+
+
+@pytest.fixture
+def stores(tmp_path):
+    catalog = Catalog(tmp_path)
+    queue = RequestQueue(catalog.db_path)
+    registry = ModelRegistry(tmp_path)
+    yield tmp_path, catalog, queue, registry
+    queue.close()
+
+
+@pytest.fixture
+def dashboard(stores):
+    data_dir, catalog, queue, registry = stores
+    metrics = ServiceMetrics()
+    def render() -> str:
+        metrics.set_queue_depth(queue.counts())
+        return metrics.render()
+    src = DataSources(data_dir, workers=lambda: [{"id": "w1", "info": {"shapes": ["T"]}}],
+                      metrics_text=render, budget=40)
+    dash = Dashboard(DashboardConfig(port=0, refresh_s=0.2), src.sources())
+    dash.start()
+    yield dash, queue, registry
+    dash.stop()
+
+
+def enqueue_uniform(queue: RequestQueue, n: int, seed: int = 0) -> None:
+    for req in UniformPlanner(UniformPlannerConfig(), np.random.default_rng(seed)).seed(n):
+        queue.enqueue(req)
+
+
+def test_api_endpoints_answer_json(dashboard):
+    dash, queue, registry = dashboard
+    enqueue_uniform(queue, 3)
+    version = registry.register(b"weights", {"image_size": 16}, {"h1_mse": 0.02, "h5_mse": 0.05},
+                                snapshot_id="snap", eval_split_hash="hash")
+    registry.promote(version)
+    status, ctype, body = get(dash.url + "api/queue")
+    assert status == 200 and ctype == "application/json"
+    q = json.loads(body)
+    assert q["counts"]["queued"] == 3 and len(q["requests"]) == 3
+    assert q["requests"][0]["reason"]["planner"] == "seed"
+    models = json.loads(get(dash.url + "api/models")[2])
+    assert models["champion"] == version and models["models"][0]["metrics"]["h1_mse"] == 0.02
+    stats = json.loads(get(dash.url + "api/stats")[2])
+    assert stats["champion"] == version and stats["champion_h1_mse"] == 0.02 and stats["budget"] == 40
+    assert stats["workers_alive"] == 1
+    assert json.loads(get(dash.url + "api/workers")[2])["workers"][0]["id"] == "w1"
+    [point] = json.loads(get(dash.url + "api/curve")[2])["points"]
+    assert point["version"] == version and point["episodes"] == 0 and point["status"] == "champion"
+    status, ctype, body = get(dash.url + "frames.png")
+    assert status == 200 and ctype == "image/png" and body.startswith(b"\x89PNG")
+    assert get(dash.url + "nope")[0] == 404
+
+
+def test_metrics_parse_as_prometheus_text(dashboard):
+    dash, queue, _ = dashboard
+    enqueue_uniform(queue, 2)
+    status, ctype, body = get(dash.url + "metrics")
+    assert status == 200 and ctype.startswith("text/plain; version=0.0.4")
+    families = {f.name: f for f in text_string_to_metric_families(body.decode())}
+    depth = {s.labels["status"]: s.value for s in families["activecollect_queue_depth"].samples}
+    assert depth["queued"] == 2.0 and depth["done"] == 0.0
+
+
+# -- the real browser --------------------------------------------------------------------------
+
+def chromium_path() -> str:
+    """Debian's chromium, installed when missing and possible; skips with the reason otherwise."""
+    path = shutil.which("chromium")
+    if path:
+        return path
+    if os.geteuid() != 0 or not shutil.which("apt-get"):
+        pytest.skip("chromium is missing and cannot be installed here (needs root and apt-get)")
+    proc = subprocess.run(["apt-get", "install", "-y", "--no-install-recommends", "chromium"],
+                          capture_output=True, text=True, timeout=600)
+    path = shutil.which("chromium")
+    if proc.returncode != 0 or not path:
+        pytest.skip(f"chromium could not be installed: apt-get exit {proc.returncode}: "
+                    f"{(proc.stderr or proc.stdout).strip().splitlines()[-1:]}")
+    return path
+
+
+class Browser:
+    """Headless Chromium driven over the DevTools protocol (one page)."""
+
+    def __init__(self, binary: str, profile: Path) -> None:
+        self.proc = subprocess.Popen(
+            [binary, "--headless=new", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
+             "--disable-component-update", "--disable-sync", "--no-first-run", "--disable-dev-shm-usage",
+             f"--user-data-dir={profile}", "--remote-debugging-address=127.0.0.1",
+             "--remote-debugging-port=0", "about:blank"],
+            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        port_file = profile / "DevToolsActivePort"
+        wait_for(lambda: port_file.exists() and len(port_file.read_text().splitlines()) >= 2,
+                 timeout=60, what="chromium's DevTools port")
+        port = int(port_file.read_text().splitlines()[0])
+        pages = wait_for(lambda: [t for t in json.loads(urllib.request.urlopen(
+            f"http://127.0.0.1:{port}/json/list", timeout=5).read()) if t["type"] == "page"],
+            what="a page target")
+        self.ws = websocket.create_connection(pages[0]["webSocketDebuggerUrl"], timeout=30, suppress_origin=True)
+        self._id = 0
+        self.events: list[dict] = []
+
+    def call(self, method: str, **params) -> dict:
+        self._id += 1
+        self.ws.send(json.dumps({"id": self._id, "method": method, "params": params}))
+        while True:
+            msg = json.loads(self.ws.recv())
+            if msg.get("id") == self._id:
+                if "error" in msg:
+                    raise AssertionError(f"{method} failed: {msg['error']}")
+                return msg.get("result", {})
+            self.events.append(msg)
+
+    def evaluate(self, expr: str):
+        return self.call("Runtime.evaluate", expression=expr, returnByValue=True)["result"].get("value")
+
+    def errors(self) -> list[str]:
+        """Console errors, uncaught exceptions and failed loads seen so far."""
+        self.call("Runtime.evaluate", expression="0")  # drain pending events
+        out = []
+        for e in self.events:
+            method, p = e.get("method"), e.get("params", {})
+            if method == "Runtime.exceptionThrown":
+                out.append(p["exceptionDetails"].get("text", "exception"))
+            elif method == "Runtime.consoleAPICalled" and p.get("type") in ("error", "assert"):
+                out.append(" ".join(str(a.get("value", a.get("description"))) for a in p.get("args", [])))
+            elif method == "Log.entryAdded" and p["entry"]["level"] == "error":
+                out.append(p["entry"]["text"] + " " + p["entry"].get("url", ""))
+        return out
+
+    def close(self) -> None:
+        self.ws.close()
+        self.proc.terminate()
+        try:
+            self.proc.wait(timeout=20)
+        except subprocess.TimeoutExpired:
+            self.proc.kill()
+            self.proc.wait()
+
+
+@pytest.fixture
+def browser(tmp_path):
+    binary = chromium_path()
+    b = Browser(binary, tmp_path / "chromium-profile")
+    yield b
+    b.close()
+
+
+@pytest.mark.timeout(240)
+def test_page_shows_live_queue_numbers_without_console_errors(dashboard, browser):
+    dash, queue, registry = dashboard
+    enqueue_uniform(queue, 2)
+    browser.call("Runtime.enable")
+    browser.call("Log.enable")
+    browser.call("Page.enable")
+    browser.call("Page.navigate", url=dash.url)
+    queued = lambda: browser.evaluate("document.getElementById('q-queued').textContent")  # noqa: E731
+    wait_for(lambda: queued() == "2", what="the page to show 2 queued requests")
+    assert browser.evaluate("document.getElementById('workers-alive').textContent") == "1"
+    assert browser.evaluate("document.querySelectorAll('#queue tbody tr').length") == 2
+    # a request added behind the page's back shows up without a reload
+    enqueue_uniform(queue, 1, seed=1)
+    wait_for(lambda: queued() == "3", what="the page to show the new request")
+    # a champion appears in the models table and the cards
+    version = registry.register(b"weights", {}, {"h1_mse": 0.01, "h5_mse": 0.03},
+                                snapshot_id="snap", eval_split_hash="hash")
+    registry.promote(version)
+    wait_for(lambda: browser.evaluate("document.getElementById('champion').textContent") == version,
+             what="the champion card")
+    wait_for(lambda: browser.evaluate("document.querySelectorAll('#curve circle').length") == 1,
+             what="the learning curve point")
+    assert browser.evaluate("document.getElementById('updated').textContent").startswith("updated")
+    assert browser.errors() == []

@@ -1,0 +1,39 @@
+"""The bench loop's arithmetic: episodes to reach an error, the headline ratios, mean and spread."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+
+from orchestrator.loopbench import LoopBenchConfig, episodes_to_reach, summarize
+
+
+def test_episodes_to_reach_interpolates_between_retrains():
+    curve = [(16, 1.0), (32, 0.8), (48, 0.6)]
+    assert episodes_to_reach(curve, 1.2) == 16
+    assert episodes_to_reach(curve, 0.8) == 32
+    assert episodes_to_reach(curve, 0.7) == pytest.approx(40.0)
+    assert episodes_to_reach(curve, 0.5) == math.inf
+
+
+def test_summary_headline_and_spread():
+    cfg = LoopBenchConfig(seeds=(0, 1), budget=48, round_episodes=16)
+    points = []
+    for seed, shift in ((0, 0.0), (1, 0.1)):
+        for ep, (a, u) in zip((16, 32, 48), ((1.0, 1.0), (0.7, 0.8), (0.5, 0.7))):
+            points.append({"arm": "active", "seed": seed, "episodes": ep, "h1_mse": a + shift})
+            points.append({"arm": "uniform", "seed": seed, "episodes": ep, "h1_mse": u + shift})
+    s = summarize(points, cfg, "h1_mse")
+    assert s["curves"]["active"]["48"] == {"mean": pytest.approx(0.55), "std": pytest.approx(0.05), "n": 2}
+    h = s["headline"]
+    # active reaches uniform's final 0.75 at 16 + 16 * (1.05 - 0.75) / (1.05 - 0.75) = 32 episodes
+    assert h["active_episodes_to_match_uniform"] == pytest.approx(32.0)
+    assert h["active_over_uniform_ratio"] == pytest.approx(32 / 48)
+    assert h["uniform_episodes_to_match_active"] is None and h["uniform_over_active_ratio"] is None
+    assert [p["seed"] for p in s["per_seed"]] == [0, 1]
+
+
+def test_config_refuses_a_budget_of_less_than_two_rounds():
+    with pytest.raises(ValueError, match="budget"):
+        LoopBenchConfig(budget=16, round_episodes=16)

@@ -1,0 +1,241 @@
+"""The planners: uniform sampling within the task space, the adaptive threshold, diversity, caps."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from orchestrator import protocol
+from orchestrator.planner import (
+    ActivePlanner, ActivePlannerConfig, Candidate, PolicyMix, Scores, UniformPlanner, UniformPlannerConfig,
+    select_diverse, state_at, state_features,
+)
+from storage.queue import NewRequest, RequestQueue
+from storage.records import STATE_FIELDS, Episode, EpisodeMeta
+from uncertainty.ensemble import Ensemble
+from uncertainty.model import PredictorConfig
+
+COL = {n: i for i, n in enumerate(STATE_FIELDS)}
+
+
+def make_episode(rng: np.random.Generator, steps: int = 20, shape: str = "T", size: int = 16,
+                 jitter: float = 60.0) -> Episode:
+    """A synthetic episode whose object wanders from a random start (so steps differ in state)."""
+    states = np.zeros((steps, len(STATE_FIELDS)))
+    start = rng.uniform(150, 350, size=4)
+    walk = np.cumsum(rng.normal(0, jitter / math.sqrt(steps), size=(steps, 4)), axis=0)
+    states[:, COL["obj_x"]], states[:, COL["obj_y"]] = start[0] + walk[:, 0], start[1] + walk[:, 1]
+    states[:, COL["agent_x"]], states[:, COL["agent_y"]] = start[2] + walk[:, 2], start[3] + walk[:, 3]
+    states[:, COL["obj_theta"]] = np.linspace(0, 1.5 * jitter / 60.0, steps)
+    meta = EpisodeMeta(episode_id=f"ep{rng.integers(1 << 40):x}", task="push", shape=shape,
+                       physics={"mass": 1.0, "friction": 0.6, "ground_friction": 1.0}, seed=0,
+                       policy="push", start_state={"shape": shape}, image_size=size)
+    frames = rng.integers(0, 255, size=(steps, size, size, 3), dtype=np.uint8)
+    actions = rng.uniform(0, 512, size=(steps, 2)).astype(np.float32)
+    return Episode(meta=meta, frames=frames, actions=actions, states=states)
+
+
+def acfg(**kw) -> ActivePlannerConfig:
+    """The active config with the task-space filter and the shape cap off (synthetic episodes are all T)."""
+    return ActivePlannerConfig(**{"task_space_only": False, "max_shape_share": 1.0, **kw})
+
+
+def step_scorer(version: str = "m1"):
+    """A real scorer whose per-step score is the step index (so the ranking is known)."""
+    return lambda ep: Scores(version, np.arange(len(ep), dtype=float))
+
+
+def test_uniform_requests_stay_in_the_task_space():
+    planner = UniformPlanner(UniformPlannerConfig(sample_physics=True, max_queue_depth=1000),
+                             np.random.default_rng(0))
+    reqs = planner.seed(400)
+    assert len(reqs) == 400
+    lo, hi = protocol.OBJECT_RANGE
+    alo, ahi = protocol.AGENT_RANGE
+    for r in reqs:
+        s = r.start_state
+        assert r.shape == s["shape"] and r.shape in protocol.SHAPES
+        assert lo <= s["object"][0] <= hi and lo <= s["object"][1] <= hi and 0 <= s["object"][2] < 2 * math.pi
+        assert alo <= s["agent"][0] <= ahi and alo <= s["agent"][1] <= ahi
+        assert math.dist(s["agent"], s["object"][:2]) >= 140.0
+        for k, (plo, phi, _) in protocol.PHYSICS_RANGES.items():
+            assert plo <= s["physics"][k] <= phi
+        assert r.policy in protocol.POLICIES and r.action_prefix == []
+        assert r.reason["planner"] == "seed"
+    # uniform: every shape and both policies show up about as often as they should
+    shapes = [r.shape for r in reqs]
+    assert {shapes.count(s) for s in protocol.SHAPES} <= set(range(70, 131))
+    xs = np.array([r.start_state["object"][0] for r in reqs])
+    assert abs(xs.mean() - (lo + hi) / 2) < 15 and xs.std() > (hi - lo) / 4
+    pushes = sum(r.policy == "push" for r in reqs)
+    assert 150 < pushes < 250
+
+
+def test_same_seed_gives_same_requests():
+    a = UniformPlanner(UniformPlannerConfig(), np.random.default_rng(7)).seed(5)
+    b = UniformPlanner(UniformPlannerConfig(), np.random.default_rng(7)).seed(5)
+    assert [r.start_state for r in a] == [r.start_state for r in b]
+    assert [r.policy_params for r in a] == [r.policy_params for r in b]
+
+
+def test_active_planner_seeds_uniform_before_any_model():
+    rng = np.random.default_rng(1)
+    planner = ActivePlanner(acfg(), lambda ep: None, rng)
+    assert [r.reason["planner"] for r in planner.seed(3)] == ["seed"] * 3
+    # with no champion, each new episode is replaced by a uniform request
+    reqs = planner.plan([make_episode(rng), make_episode(rng)])
+    assert [r.reason["planner"] for r in reqs] == ["seed", "seed"]
+
+
+def test_threshold_is_a_running_percentile_and_requests_say_why():
+    rng = np.random.default_rng(2)
+    cfg = acfg(percentile=75.0, budget_per_round=100, min_distance=0.0)
+    planner = ActivePlanner(cfg, step_scorer("m7"), rng)
+    ep = make_episode(rng, steps=20)
+    reqs = planner.plan([ep])
+    assert planner.threshold == pytest.approx(np.percentile(np.arange(20), 75))
+    steps = sorted(r.reason["step"] for r in reqs)
+    assert steps == [s for s in range(20) if s > planner.threshold]
+    top = reqs[0]
+    assert top.reason == {"model_version": "m7", "score": 19.0, "source_episode": ep.meta.episode_id,
+                          "step": 19, "planner": "active", "threshold": planner.threshold}
+    assert top.priority > reqs[-1].priority  # higher score, higher priority
+    # the request starts at the scored state, velocities included, no prefix
+    assert top.start_state == state_at(ep, 19) and top.action_prefix == []
+    assert top.start_state["object"][:2] == [ep.states[19, COL["obj_x"]], ep.states[19, COL["obj_y"]]]
+    assert top.idempotency_key == f"active:{ep.meta.episode_id}:19"
+
+
+def test_threshold_adapts_to_recent_scores_and_resets_on_a_new_champion():
+    rng = np.random.default_rng(3)
+    version = {"v": "m1", "scale": 1.0}
+    scorer = lambda ep: Scores(version["v"], np.full(len(ep), version["scale"]))  # noqa: E731
+    planner = ActivePlanner(acfg(budget_per_round=5, min_distance=0.0), scorer, rng)
+    planner.plan([make_episode(rng)])
+    assert planner.threshold == pytest.approx(1.0)
+    version.update(v="m2", scale=0.01)  # a better champion: its disagreement is far lower
+    planner.plan([make_episode(rng)])
+    assert planner.threshold == pytest.approx(0.01)
+
+
+def test_replay_prefix_mode_starts_at_the_episode_start():
+    rng = np.random.default_rng(4)
+    cfg = acfg(budget_per_round=1, replay_prefix=True)
+    ep = make_episode(rng, steps=12)
+    [req] = ActivePlanner(cfg, step_scorer(), rng).plan([ep])
+    assert req.start_state == ep.meta.start_state
+    assert req.action_prefix == ep.actions[:11].astype(float).tolist()
+
+
+def test_candidates_are_diverse():
+    rng = np.random.default_rng(5)
+    # one episode that sits still (every step the same state) and one that moves a lot
+    still = make_episode(rng, steps=30, jitter=0.0)
+    moving = make_episode(rng, steps=30, jitter=400.0)
+    cfg = acfg(percentile=0.0, budget_per_round=10, min_distance=0.15)
+    reqs = ActivePlanner(cfg, step_scorer(), rng).plan([still, moving])
+    from_still = [r for r in reqs if r.reason["source_episode"] == still.meta.episode_id]
+    assert len(from_still) <= 1  # identical states are one request, however uncertain
+    feats = [state_features(r.shape, r.start_state["agent"], r.start_state["object"], r.start_state["physics"])
+             for r in reqs]
+    assert min(np.linalg.norm(a - b) for i, a in enumerate(feats) for b in feats[i + 1:]) >= 0.15
+
+
+def test_select_diverse_keeps_highest_scores_and_respects_earlier_requests():
+    f = lambda *v: np.array(v, dtype=float)  # noqa: E731
+    ep = make_episode(np.random.default_rng(6))
+    cands = [Candidate(3.0, ep, 0, f(0, 0)), Candidate(2.0, ep, 1, f(0.01, 0)), Candidate(1.0, ep, 2, f(1, 0))]
+    assert [c.step for c in select_diverse(cands, 5, 0.1)] == [0, 2]
+    assert [c.step for c in select_diverse(cands, 1, 0.1)] == [0]
+    assert [c.step for c in select_diverse(cands, 5, 0.1, taken=[f(0, 0.02)])] == [2]
+
+
+def test_budget_per_round_and_queue_depth_caps(tmp_path):
+    rng = np.random.default_rng(8)
+    queue = RequestQueue(tmp_path / "q.sqlite")
+    cfg = acfg(percentile=0.0, budget_per_round=3, max_queue_depth=5, min_distance=0.0)
+    planner = ActivePlanner(cfg, step_scorer(), rng, queue_depth=lambda: queue.counts().get("queued", 0))
+    eps = [make_episode(rng, steps=30) for _ in range(4)]
+    first = planner.plan(eps)
+    assert len(first) == 3  # the round's budget, not 4 * 30 candidates
+    for r in first:
+        queue.enqueue(r)
+    second = planner.plan(eps)  # the same episodes again: other steps, never the same ones
+    assert len(second) == 2  # only room for 2 more under max_queue_depth=5
+    assert {r.idempotency_key for r in first}.isdisjoint(r.idempotency_key for r in second)
+    for r in second:
+        queue.enqueue(r)
+    assert planner.plan([make_episode(rng)]) == [] and queue.counts()["queued"] == 5
+    uni = UniformPlanner(UniformPlannerConfig(max_queue_depth=5), rng,
+                         queue_depth=lambda: queue.counts().get("queued", 0))
+    assert uni.seed(10) == [] and uni.plan(eps) == []
+
+
+def test_active_requests_round_trip_through_the_queue(tmp_path):
+    rng = np.random.default_rng(9)
+    queue = RequestQueue(tmp_path / "q.sqlite")
+    planner = ActivePlanner(acfg(budget_per_round=2), step_scorer(), rng)
+    ep = make_episode(rng)
+    reqs = planner.plan([ep])
+    created = [queue.enqueue(r)[1] for r in reqs]
+    assert created == [True, True]
+    # planning the same episode again (e.g. after a restart) asks for nothing new
+    again = ActivePlanner(acfg(budget_per_round=2), step_scorer(), rng).plan([ep])
+    assert [queue.enqueue(r)[1] for r in again] == [False, False]
+    leased = queue.lease("w1", ["push"], [ep.meta.shape], 30.0)
+    assert leased is not None and leased.request.reason["planner"] == "active"
+    assert leased.request.reason["step"] == 19  # highest score leased first
+
+
+def test_with_a_real_ensemble_as_the_scorer():
+    rng = np.random.default_rng(10)
+    ensemble = Ensemble(PredictorConfig(image_size=16, context=2, widths=(4, 4, 4), action_hidden=8),
+                        members=3, seed=0)
+    scorer = lambda ep: Scores("tiny", ensemble.disagreement(ep.frames, ep.actions))  # noqa: E731
+    planner = ActivePlanner(acfg(budget_per_round=3, min_distance=0.0), scorer, rng)
+    reqs = planner.plan([make_episode(rng, steps=12)])
+    assert 1 <= len(reqs) <= 3
+    assert all(r.reason["score"] > planner.threshold for r in reqs)
+    assert all(0 < r.reason["step"] < 11 for r in reqs)  # step 0 has no context, step 11 no successor
+
+
+def test_both_arms_share_the_policy_mix():
+    mix = PolicyMix(push_weight=0.5)
+    rng = np.random.default_rng(11)
+    draws = [mix.draw(rng) for _ in range(200)]
+    assert {name for name, _ in draws} == {"push", "random_waypoints"}
+    assert {p["side"] for name, p in draws if name == "push"} == {"left", "right", "top", "bottom"}
+    with pytest.raises(ValueError, match="push_weight"):
+        PolicyMix(push_weight=1.5)
+
+
+def test_bad_configs_say_what_was_expected():
+    with pytest.raises(ValueError, match="percentile"):
+        ActivePlannerConfig(percentile=100.0)
+    with pytest.raises(ValueError, match="shapes"):
+        UniformPlannerConfig(shapes=("hexagon",))
+    assert isinstance(UniformPlanner(UniformPlannerConfig(), np.random.default_rng(0)).seed(1)[0], NewRequest)
+
+
+def test_requests_stay_in_the_task_space_start_at_rest_and_spread_over_shapes():
+    rng = np.random.default_rng(12)
+    eps = []
+    for shape in ("T", "L"):
+        ep = make_episode(rng, steps=30, shape=shape, jitter=400.0)
+        ep.states[:, COL["agent_vx"]] = 300.0  # moving fast everywhere
+        eps.append(ep)
+    cfg = ActivePlannerConfig(percentile=0.0, budget_per_round=8, min_distance=0.0, max_shape_share=0.5)
+    scorer = lambda ep: Scores("m1", np.arange(len(ep), dtype=float) * (10.0 if ep.meta.shape == "T" else 1.0))  # noqa: E731
+    reqs = ActivePlanner(cfg, scorer, rng).plan(eps)
+    lo, hi = protocol.OBJECT_RANGE
+    alo, ahi = protocol.AGENT_RANGE
+    assert reqs
+    for r in reqs:
+        s = r.start_state
+        assert lo <= s["object"][0] <= hi and lo <= s["object"][1] <= hi
+        assert alo <= s["agent"][0] <= ahi and alo <= s["agent"][1] <= ahi
+        assert s["agent_vel"] == [0.0, 0.0] and s["object_vel"] == [0.0, 0.0, 0.0]
+    # T scores ten times higher, yet at most half the round is T
+    assert sum(r.shape == "T" for r in reqs) <= 4

@@ -1,0 +1,234 @@
+"""Scheduled retraining: when jobs start, one at a time, and what a failed or killed job leaves."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from orchestrator.planner import UniformPlanner, UniformPlannerConfig
+from orchestrator.scheduler import (
+    EXIT_BUSY, RetrainBusyError, RetrainScheduler, RetrainStatus, ScheduleConfig, lock_held, read_lock_info,
+    retrain_lock,
+)
+from storage.catalog import Catalog
+from storage.models import ModelRegistry
+from workers.collect import collect_episode, create_eval_split
+
+
+def wait_for(cond, timeout: float = 60.0, what: str = "condition"):
+    deadline = time.monotonic() + timeout
+    while True:
+        value = cond()
+        if value:
+            return value
+        if time.monotonic() > deadline:
+            raise AssertionError(f"timed out after {timeout:.0f} s waiting for {what}")
+        time.sleep(0.05)
+
+
+def script_command(code: str):
+    """A retrain job that runs ``code`` in a fresh Python (a real child process)."""
+    return lambda data_dir, extra: [sys.executable, "-c", code, str(data_dir)]
+
+
+PROMOTES = "import json; print(json.dumps({'version': 'm000002-ab', 'promoted': True, 'reason': 'better', " \
+           "'metrics': {'h1_mse': 0.01}}))"
+REJECTS = "import json; print(json.dumps({'version': 'm000003-cd', 'promoted': False, 'reason': 'worse'}))"
+FAILS = "import sys; print('loading...'); sys.exit('CorruptCheckpointError: weights do not match')"
+HANGS = "import pathlib, sys, time; pathlib.Path(sys.argv[1], 'started').touch(); time.sleep(600)"
+
+
+class Counter:
+    def __init__(self) -> None:
+        self.n = 0
+
+    def __call__(self) -> int:
+        return self.n
+
+
+def test_retrains_every_n_episodes_and_reports_a_promotion(tmp_path):
+    episodes, promoted = Counter(), []
+    sched = RetrainScheduler(ScheduleConfig(every_episodes=5), tmp_path, episodes, promoted.append,
+                             command=script_command(PROMOTES))
+    assert sched.tick() is None
+    episodes.n = 4
+    assert sched.tick() is None
+    episodes.n = 5
+    rec = sched.tick()
+    assert rec is not None and rec.trigger == "episodes" and rec.episodes == 5
+    assert sched.wait_idle(timeout=60)
+    assert rec.status is RetrainStatus.promoted and rec.version == "m000002-ab" and rec.reason == "better"
+    assert rec.metrics == {"h1_mse": 0.01} and promoted == ["m000002-ab"]
+    assert sched.tick() is None  # the count restarts at the job's start
+    json.dumps(rec.to_json())
+
+
+def test_one_job_at_a_time(tmp_path):
+    episodes = Counter()
+    sched = RetrainScheduler(ScheduleConfig(every_episodes=1), tmp_path, episodes,
+                             command=script_command(HANGS))
+    episodes.n = 1
+    first = sched.tick()
+    assert first is not None
+    episodes.n = 10
+    assert sched.tick() is None and sched.running and len(sched.history) == 1
+    sched.stop()
+    assert first.status is RetrainStatus.killed and "stopped" in first.reason and not sched.running
+
+
+def test_a_failed_job_is_logged_with_its_reason_and_promotes_nothing(tmp_path):
+    promoted = []
+    sched = RetrainScheduler(ScheduleConfig(), tmp_path, Counter(), promoted.append, command=script_command(FAILS))
+    sched.request()
+    rec = sched.tick()
+    assert sched.wait_idle(timeout=60)
+    assert rec.status is RetrainStatus.failed and rec.returncode == 1
+    assert "CorruptCheckpointError" in rec.reason and promoted == []
+    assert Path(rec.log_path).read_text().strip().endswith("weights do not match")
+
+
+def test_a_rejected_candidate_is_not_swapped_in(tmp_path):
+    promoted = []
+    sched = RetrainScheduler(ScheduleConfig(), tmp_path, Counter(), promoted.append, command=script_command(REJECTS))
+    sched.request()
+    rec = sched.tick()
+    sched.wait_idle(timeout=60)
+    assert rec.status is RetrainStatus.rejected and rec.reason == "worse" and promoted == []
+
+
+def test_a_killed_job_is_recorded_as_killed(tmp_path):
+    sched = RetrainScheduler(ScheduleConfig(), tmp_path, Counter(), command=script_command(HANGS))
+    sched.request()
+    rec = sched.tick()
+    wait_for(lambda: (tmp_path / "started").exists(), what="the job to start")
+    os.kill(sched._proc.pid, signal.SIGKILL)
+    assert sched.wait_idle(timeout=30)
+    assert rec.status is RetrainStatus.killed and rec.reason == "killed by SIGKILL"
+
+
+def test_a_job_past_its_timeout_is_killed(tmp_path):
+    sched = RetrainScheduler(ScheduleConfig(timeout_s=0.5), tmp_path, Counter(), command=script_command(HANGS))
+    sched.request()
+    rec = sched.tick()
+    wait_for(lambda: (tmp_path / "started").exists(), what="the job to start")
+    wait_for(lambda: sched.tick() is None and not sched.running, timeout=30, what="the timeout")
+    assert rec.status is RetrainStatus.timeout and "timed out" in rec.reason
+
+
+def test_cron_schedule(tmp_path):
+    sched = RetrainScheduler(ScheduleConfig(cron="*/5 * * * *"), tmp_path, Counter(),
+                             command=script_command(PROMOTES))
+    nxt = sched._next_cron
+    assert nxt is not None and nxt > time.time() - 1
+    assert sched.tick(now=nxt - 1) is None
+    rec = sched.tick(now=nxt + 1)
+    assert rec is not None and rec.trigger == "cron"
+    sched.wait_idle(timeout=60)
+    assert sched._next_cron > nxt
+    with pytest.raises(ValueError, match="cron"):
+        ScheduleConfig(cron="every five minutes")
+
+
+def test_the_lock_admits_one_holder_across_processes(tmp_path):
+    holder = subprocess.Popen([sys.executable, "-c", (
+        "import sys, time, pathlib\n"
+        "from orchestrator.scheduler import retrain_lock, note_phase\n"
+        "with retrain_lock(pathlib.Path(sys.argv[1])):\n"
+        "    note_phase(pathlib.Path(sys.argv[1]), 'training')\n"
+        "    time.sleep(600)\n"), str(tmp_path)])
+    try:
+        wait_for(lambda: read_lock_info(tmp_path).get("phase") == "training", what="the holder")
+        assert lock_held(tmp_path)
+        with pytest.raises(RetrainBusyError, match=f"pid {holder.pid}, phase training"):
+            with retrain_lock(tmp_path):
+                pass
+    finally:
+        holder.kill()
+        holder.wait()
+    # the kernel dropped the dead holder's lock: no stale lock file to clean up
+    assert not lock_held(tmp_path)
+    with retrain_lock(tmp_path):
+        assert lock_held(tmp_path)
+    assert EXIT_BUSY == 3
+
+
+# -- the real retrain job: `activecollect retrain` ------------------------------------------------
+
+TINY = ("--members", "2", "--widths", "4,4,4", "--batch-size", "8", "--device", "cpu", "--min-improvement", "0")
+
+
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory):
+    """A data dir with an eval split, a few training episodes and a champion."""
+    data = tmp_path_factory.mktemp("retrain")
+    catalog = Catalog(data)
+    create_eval_split(catalog, episodes=4, seed=1, steps=12, image_size=16)
+    planner = UniformPlanner(UniformPlannerConfig(steps=12), np.random.default_rng(0))
+    for i, r in enumerate(planner.seed(6)):
+        catalog.add_episode(collect_episode(start_state=r.start_state, policy=r.policy,
+                                            policy_params=r.policy_params, seed=i, steps=12, image_size=16))
+    first = retrain(data, "--epochs", "1")
+    assert first.returncode == 0, first.stderr
+    assert json.loads(first.stdout)["promoted"] is True
+    return data
+
+
+def retrain(data: Path, *extra: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "orchestrator", "retrain", "--data", str(data), "--json",
+                           *TINY, *extra], capture_output=True, text=True, timeout=300)
+
+
+def models(data: Path) -> list[str]:
+    return [m.version for m in ModelRegistry(data).list()]
+
+
+def champion(data: Path) -> str | None:
+    return ModelRegistry(data).champion()
+
+
+def test_a_retrain_killed_midway_leaves_the_champion(trained):
+    before, versions = champion(trained), models(trained)
+    promoted: list[str] = []
+    sched = RetrainScheduler(ScheduleConfig(retrain_args=(*TINY, "--epochs", "100000")), trained,
+                             Counter(), promoted.append)
+    sched.request()
+    rec = sched.tick()
+    wait_for(lambda: read_lock_info(trained).get("phase") == "training" and lock_held(trained),
+             what="the retrain to start training")
+    os.kill(sched._proc.pid, signal.SIGKILL)
+    assert sched.wait_idle(timeout=60)
+    assert rec.status is RetrainStatus.killed and rec.reason == "killed by SIGKILL"
+    assert champion(trained) == before and models(trained) == versions and promoted == []
+    assert not lock_held(trained)
+    # and the next job runs normally
+    done = retrain(trained, "--epochs", "1")
+    assert done.returncode == 0, done.stderr
+    assert len(models(trained)) == len(versions) + 1
+
+
+@pytest.mark.timeout(600)
+def test_two_retrains_at_once_train_once(trained):
+    versions = models(trained)
+    first = subprocess.Popen([sys.executable, "-m", "orchestrator", "retrain", "--data", str(trained), "--json",
+                              *TINY, "--epochs", "60"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        wait_for(lambda: read_lock_info(trained).get("phase") == "training", what="the first retrain to train")
+        second = retrain(trained, "--epochs", "1")
+        assert first.poll() is None, "the first retrain ended before the second started; make it longer"
+        assert second.returncode == EXIT_BUSY
+        assert f"another retrain holds {trained / 'retrain.lock'} (pid {first.pid}, phase training)" in second.stderr
+        out, err = first.communicate(timeout=300)
+    finally:
+        if first.poll() is None:
+            first.kill()
+            first.wait()
+    assert first.returncode == 0, err
+    assert len(models(trained)) == len(versions) + 1 and json.loads(out)["version"] not in versions

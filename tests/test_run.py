@@ -1,0 +1,110 @@
+"""``activecollect run`` end to end: real service, worker processes over Zenoh, retrain jobs, report.
+
+Tiny settings (16 px frames, 12-step episodes, a 2-member ensemble of 4-channel
+layers) so the whole loop fits in a test; the default settings are measured by hand
+(see the report of the helper session / BENCHMARKS.md).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import sqlite3
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from storage.catalog import Catalog
+from storage.models import ModelRegistry
+from storage.queue import RequestQueue
+
+TINY = ["--round", "4", "--workers", "2", "--steps", "12", "--image-size", "16", "--eval-episodes", "4",
+        "--dashboard-port", "0", "--no-progress", "--retrain-args",
+        "--members 2 --epochs 2 --widths 4,4,4 --batch-size 8 --from-champion --device cpu --min-improvement 0"]
+
+
+def wait_for(cond, timeout: float, what: str):
+    deadline = time.monotonic() + timeout
+    while True:
+        value = cond()
+        if value:
+            return value
+        if time.monotonic() > deadline:
+            raise AssertionError(f"timed out after {timeout:.0f} s waiting for {what}")
+        time.sleep(0.1)
+
+
+def run_cmd(data: Path, budget: int) -> list[str]:
+    return [sys.executable, "-m", "orchestrator", "run", "--data", str(data), "--budget", str(budget), "--json",
+            *TINY]
+
+
+def train_count(data: Path) -> int:
+    if not (data / "catalog.sqlite").exists():
+        return 0
+    return Catalog(data).count(split="train")
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(600)
+def test_run_collects_retrains_promotes_reports_and_resumes_after_ctrl_c(tmp_path):
+    data = tmp_path / "data"
+    # 1. a run interrupted with Ctrl-C (SIGINT to its process group, as a terminal sends it)
+    first = subprocess.Popen(run_cmd(data, 12), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                             start_new_session=True)
+    try:
+        wait_for(lambda: train_count(data) >= 4, 240, "the first round of episodes")
+        os.killpg(first.pid, signal.SIGINT)
+        out, err = first.communicate(timeout=120)
+    finally:
+        if first.poll() is None:
+            first.kill()
+            first.wait()
+    assert first.returncode == 130, err[-2000:]
+    interrupted = json.loads(out)
+    assert interrupted["interrupted"] is True and Path(interrupted["report"]).exists()
+    # nothing acknowledged is lost: every done request has its episode in the catalog, nothing is leased
+    catalog = Catalog(data)
+    queue = RequestQueue(catalog.db_path)
+    done = queue.list(status="done")
+    assert done and all(catalog.get(r.episode_id).request_id == r.id for r in done)
+    assert queue.counts()["leased"] == 0
+    queue.close()
+    kept = train_count(data)
+
+    # 2. the next run resumes from the catalog and finishes the budget
+    second = subprocess.run(run_cmd(data, 12), capture_output=True, text=True, timeout=540)
+    assert second.returncode == 0, second.stderr[-3000:]
+    result = json.loads(second.stdout)
+    assert result["interrupted"] is False
+    assert 12 <= result["episodes"] <= 12 + 2 and result["episodes"] >= kept
+    assert train_count(data) == result["episodes"]
+
+    registry = ModelRegistry(data)
+    champion = registry.champion()
+    assert champion is not None and result["champion"] == champion
+    trained_on = sorted(int(m.metrics["train_episodes"]) for m in registry.list())
+    assert trained_on[-1] == result["episodes"]  # the last retrain saw the whole budget
+    assert any(r["status"] in ("promoted", "rejected") for r in result["retrains"])
+
+    # the rounds after the first model were planned by it (active requests with their reasons)
+    queue = RequestQueue(catalog.db_path)
+    reasons = [r.reason for r in queue.list(status="done")]
+    active = [r for r in reasons if r.get("planner") == "active"]
+    assert active, f"no active requests among {sorted({r.get('planner') for r in reasons})}"
+    assert all(r["model_version"] in {m.version for m in registry.list()} and r["score"] > 0 for r in active)
+    queue.close()
+
+    report = Path(result["report"])
+    assert report.name == "index.html" and report.parent.parent == data / "reports"
+    html = report.read_text()
+    for png in ("curve.png", "disagreement.png", "frames.png"):
+        assert png in html and (report.parent / png).read_bytes().startswith(b"\x89PNG")
+    summary = json.loads((report.parent / "summary.json").read_text())
+    assert summary["summary"]["episodes"] == result["episodes"] and summary["curve"]
+    with sqlite3.connect(data / "catalog.sqlite") as conn:
+        assert conn.execute("PRAGMA integrity_check").fetchone()[0] == "ok"
