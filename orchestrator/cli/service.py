@@ -26,6 +26,7 @@ from orchestrator.loop import ChampionScorer
 from orchestrator.planner import ActivePlanner, ActivePlannerConfig, UniformPlanner, UniformPlannerConfig, \
     uniform_start_state
 from orchestrator.protocol import AdminRequest, Event, Keys, ProtocolError
+from orchestrator.companions import CompanionConfig, Companions
 from orchestrator.service import PlannerFactory, Service, ServiceConfig, ServiceContext, ServiceError
 from storage.queue import RequestStatus
 from workers import agent
@@ -47,6 +48,14 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="uniform requests to seed an empty queue with at start (default 0)")
     p.add_argument("--steps", type=common.positive_int, default=50, help="steps per planned episode (default 50)")
     p.add_argument("--seed", type=int, default=0, help="seed of the planner's generator (default 0)")
+    d = CompanionConfig()
+    p.add_argument("--dashboard-port", type=int, default=d.dashboard_port, metavar="PORT",
+                   help=f"dashboard on 127.0.0.1:PORT (0 = any free port, -1 = none; default {d.dashboard_port})")
+    p.add_argument("--retrain-every", type=common.non_negative_int, default=d.retrain_every, metavar="N",
+                   help="retrain (in a child process) each time N more training episodes are stored "
+                        "(default 0 = not on count)")
+    p.add_argument("--retrain-cron", default=d.retrain_cron, metavar="EXPR",
+                   help="also retrain on this cron expression, e.g. '0 * * * *' (default: not on time)")
     p.add_argument("--log-level", default="INFO", choices=("DEBUG", "INFO", "WARNING", "ERROR"))
     p.set_defaults(func=cmd_serve)
 
@@ -158,6 +167,11 @@ def cmd_serve(args: argparse.Namespace) -> int:
     logging.basicConfig(level=args.log_level, format="%(asctime)s %(name)s %(levelname)s %(message)s")
     listen, connect = transport.endpoints_from_args(args)
     try:
+        extras = CompanionConfig(dashboard_port=args.dashboard_port, retrain_every=args.retrain_every,
+                                 retrain_cron=args.retrain_cron)
+    except ValueError as exc:
+        raise common.UsageError(str(exc)) from None
+    try:
         config = ServiceConfig(data_dir=args.data, namespace=args.namespace, mode=args.mode, listen=listen,
                                connect=connect, zenoh_config=args.zenoh_config, lease_s=args.lease_s,
                                reap_interval_s=args.reap_interval_s, seed_requests=args.seed_requests,
@@ -168,17 +182,23 @@ def cmd_serve(args: argparse.Namespace) -> int:
     for sig in (signal.SIGTERM, signal.SIGINT):
         signal.signal(sig, lambda signum, frame: stop.set())
     service = Service(config)
+    companions = Companions(extras, service)
     try:
         service.start()
-    except ServiceError as exc:
+        companions.start()
+    except (ServiceError, ValueError, OSError) as exc:
         print(f"activecollect serve: {exc}", file=sys.stderr)
+        companions.stop()
         service.stop()
         return 1
+    if companions.dashboard is not None:
+        print(f"dashboard at {companions.dashboard.url}", flush=True)
     print(f"serving {args.namespace} on {', '.join(listen + connect) or args.zenoh_config} "
           f"(data {args.data}, planner {args.planner}); Ctrl-C to stop", flush=True)
     try:
         stop.wait()
     finally:
+        companions.stop()
         service.stop()
     return 0
 

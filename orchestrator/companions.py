@@ -1,0 +1,97 @@
+"""What runs beside the service in ``activecollect serve``: the dashboard and the retrain scheduler.
+
+``activecollect run`` drives retraining in rounds itself (see ``orchestrator.loop``);
+a long-running ``serve`` instead retrains every N new training episodes and/or on a
+cron expression, one job at a time in a child process, so leasing never stalls. The
+champion scorer reloads a promoted model on its next call (hot swap), so a promotion
+only has to be announced.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+from orchestrator.dashboard import Dashboard, DashboardConfig, DataSources
+from orchestrator.loop import ChampionScorer, FramesSource
+from orchestrator.protocol import EventKind
+from orchestrator.scheduler import RetrainRecord, RetrainScheduler, ScheduleConfig
+from orchestrator.service import Service
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class CompanionConfig:
+    """The dashboard and the retrain schedule of ``activecollect serve``."""
+
+    dashboard_port: int = 8765
+    """Dashboard port on ``dashboard_host`` (0 = any free port, -1 = no dashboard)."""
+    dashboard_host: str = "127.0.0.1"
+    """Address the dashboard binds; it has no authentication, so keep it local."""
+    retrain_every: int = 0
+    """Retrain each time the training episode count crosses a multiple of this (0 = not on count)."""
+    retrain_cron: str = ""
+    """Also retrain on this cron expression, e.g. ``0 * * * *`` ('' = not on time)."""
+    retrain_timeout_s: float = 1800.0
+    """A retrain running longer than this is killed and changes nothing."""
+    retrain_args: tuple[str, ...] = ()
+    """Extra ``activecollect retrain`` arguments (training and gate settings)."""
+
+    def __post_init__(self) -> None:
+        if not -1 <= self.dashboard_port <= 65535:
+            raise ValueError(f"dashboard_port must be -1 (none) or in [0, 65535], found {self.dashboard_port}")
+        if self.retrain_every < 0:
+            raise ValueError(f"retrain_every must be >= 0, found {self.retrain_every}")
+        # The schedule's own checks (cron syntax, timeout), before anything starts.
+        ScheduleConfig(every_episodes=self.retrain_every, cron=self.retrain_cron,
+                       timeout_s=self.retrain_timeout_s, retrain_args=self.retrain_args)
+
+
+class Companions:
+    """Starts and stops the dashboard and the scheduler around a started ``Service``."""
+
+    def __init__(self, cfg: CompanionConfig, service: Service) -> None:
+        self.cfg = cfg
+        self.service = service
+        self.scheduler: RetrainScheduler | None = None
+        self.dashboard: Dashboard | None = None
+
+    def start(self) -> None:
+        """Raises ``ValueError`` for a bad schedule and ``OSError`` when the dashboard port is taken."""
+        cfg, ctx = self.cfg, self.service.context
+        if cfg.retrain_every or cfg.retrain_cron:
+            schedule = ScheduleConfig(every_episodes=cfg.retrain_every, cron=cfg.retrain_cron,
+                                      timeout_s=cfg.retrain_timeout_s, retrain_args=cfg.retrain_args)
+            self.scheduler = RetrainScheduler(schedule, ctx.data_dir, lambda: ctx.catalog.count(split="train"),
+                                              on_promoted=self._promoted, on_finished=self._finished)
+            self.scheduler.start()
+        if cfg.dashboard_port >= 0:
+            scorer = ChampionScorer(ctx.data_dir)
+            sources = DataSources(ctx.data_dir, workers=lambda: [{"id": w} for w in self.service.workers()],
+                                  metrics_text=self.service.metrics.render,
+                                  frames_png=FramesSource(scorer, ctx.catalog),
+                                  retrains=self._retrains)
+            dashboard = Dashboard(DashboardConfig(host=cfg.dashboard_host, port=cfg.dashboard_port),
+                                  sources.sources())
+            dashboard.start()
+            self.dashboard = dashboard
+
+    def stop(self) -> None:
+        if self.dashboard is not None:
+            self.dashboard.stop()
+        if self.scheduler is not None:
+            self.scheduler.stop(kill_running=True)
+
+    def _retrains(self) -> list[dict]:
+        return [r.to_json() for r in self.scheduler.history] if self.scheduler else []
+
+    def _promoted(self, version: str) -> None:
+        log.info("retrain promoted %s; the scorer swaps to it on its next call", version)
+        self.service.publish(EventKind.MODEL_PROMOTED, {"version": version})
+
+    def _finished(self, record: RetrainRecord) -> None:
+        status = record.status.value
+        self.service.metrics.retrain(status if status in ("promoted", "rejected") else "failed")
+        if status != "promoted":
+            log.info("retrain ended %s: %s", status, record.reason)

@@ -1,0 +1,70 @@
+"""``serve``'s companions: the scheduler retrains on new episodes in a child process and the
+dashboard reports the promoted champion, beside a real service."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import urllib.request
+
+import numpy as np
+import pytest
+
+from orchestrator.companions import CompanionConfig, Companions
+from orchestrator.planner import UniformPlanner, UniformPlannerConfig
+from orchestrator.service import Service, ServiceConfig
+from storage.models import ModelRegistry
+from tests.conftest import wait_for
+from workers.collect import collect_episode, create_eval_split
+
+TINY = ("--members", "2", "--widths", "4,4,4", "--batch-size", "8", "--device", "cpu",
+        "--min-improvement", "0", "--epochs", "1")
+
+
+def _get(url: str) -> bytes:
+    with urllib.request.urlopen(url, timeout=10) as reply:
+        return reply.read()
+
+
+def test_config_is_validated():
+    with pytest.raises(ValueError, match="dashboard_port"):
+        CompanionConfig(dashboard_port=-2)
+    with pytest.raises(ValueError, match="retrain_every"):
+        CompanionConfig(retrain_every=-1)
+    with pytest.raises(ValueError, match="cron"):
+        CompanionConfig(retrain_cron="every minute")
+
+
+def test_serve_refuses_a_bad_schedule_before_touching_anything(tmp_path):
+    proc = subprocess.run([sys.executable, "-m", "orchestrator", "serve", "--data", str(tmp_path / "d"),
+                           "--retrain-cron", "every minute"], capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 2
+    assert len(proc.stderr.strip().splitlines()) == 1 and "cron" in proc.stderr
+    assert not (tmp_path / "d").exists()
+
+
+def test_new_episodes_trigger_a_retrain_and_the_dashboard_shows_the_champion(data_dir, endpoint, namespace):
+    service = Service(ServiceConfig(data_dir=data_dir, namespace=namespace, listen=(endpoint,)))
+    companions = Companions(CompanionConfig(dashboard_port=0, retrain_every=3, retrain_args=TINY), service)
+    service.start()
+    try:
+        companions.start()
+        catalog = service.context.catalog
+        create_eval_split(catalog, episodes=4, seed=1, steps=12, image_size=16)
+        planner = UniformPlanner(UniformPlannerConfig(steps=12), np.random.default_rng(0))
+        for i, r in enumerate(planner.seed(3)):
+            catalog.add_episode(collect_episode(start_state=r.start_state, policy=r.policy,
+                                                policy_params=r.policy_params, seed=i, steps=12, image_size=16))
+        champion = wait_for(lambda: ModelRegistry(data_dir).champion(), timeout=240, message="a champion")
+        url = companions.dashboard.url
+        stats = wait_for(lambda: json.loads(_get(url + "api/stats")), message="stats")
+        assert champion in json.dumps(stats)
+        metrics = wait_for(lambda: (m := _get(url + "metrics").decode()) and
+                           'retrains_total{outcome="promoted"} 1.0' in m and m, timeout=30,
+                           message="the retrain counted in /metrics")
+        assert "queue_depth" in metrics
+        assert companions.scheduler.history[0].trigger == "episodes"
+    finally:
+        companions.stop()
+        service.stop()
