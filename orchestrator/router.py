@@ -18,7 +18,8 @@ from typing import Callable, TextIO
 
 import zenoh
 
-from orchestrator.secure import SecureConfigError, is_secure_profile, validate_secure_config
+from orchestrator.secure import is_secure_profile
+from orchestrator.transport import SecureConfigError, validate_secure_config
 
 #: Where a router listens when given neither --listen nor a config: loopback only, so an
 #: unconfigured router is never reachable (in plaintext) from other hosts.

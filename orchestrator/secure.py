@@ -31,7 +31,7 @@ from cryptography.hazmat.primitives.asymmetric import ec
 from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 
 from orchestrator.protocol import Keys, ProtocolError
-from orchestrator.transport import FILE_KEYS, SecureConfigError, lookup_key, validate_secure_config
+from orchestrator.transport import SecureConfigError, lookup_key
 
 #: Roles that get a config, a certificate and a password. The router is the only listener.
 CLIENT_ROLES: tuple[str, ...] = ("orchestrator", "worker", "operator")

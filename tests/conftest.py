@@ -30,8 +30,8 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
-def wait_for(condition: Callable[[], T], timeout: float = 10.0, interval: float = 0.02,
-             message: str = "condition") -> T:
+def wait_for(condition: Callable[[], T], timeout: float = 10.0, message: str = "condition",
+             interval: float = 0.02) -> T:
     """Poll ``condition`` until it returns something truthy; return that value.
 
     Raises ``AssertionError`` naming ``message`` (and the last value seen) when

@@ -13,7 +13,6 @@ import signal
 import sqlite3
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import pytest
@@ -21,21 +20,13 @@ import pytest
 from storage.catalog import Catalog
 from storage.models import ModelRegistry
 from storage.queue import RequestQueue
+from tests.conftest import wait_for
 
 TINY = ["--round", "4", "--workers", "2", "--steps", "12", "--image-size", "16", "--eval-episodes", "4",
         "--dashboard-port", "0", "--no-progress", "--retrain-args",
         "--members 2 --epochs 2 --widths 4,4,4 --batch-size 8 --from-champion --device cpu --min-improvement 0"]
 
 
-def wait_for(cond, timeout: float, what: str):
-    deadline = time.monotonic() + timeout
-    while True:
-        value = cond()
-        if value:
-            return value
-        if time.monotonic() > deadline:
-            raise AssertionError(f"timed out after {timeout:.0f} s waiting for {what}")
-        time.sleep(0.1)
 
 
 def run_cmd(data: Path, budget: int) -> list[str]:

@@ -10,7 +10,6 @@ import json
 import os
 import shutil
 import subprocess
-import time
 import urllib.error
 import urllib.request
 from pathlib import Path
@@ -26,17 +25,9 @@ from orchestrator.planner import UniformPlanner, UniformPlannerConfig
 from storage.catalog import Catalog
 from storage.models import ModelRegistry
 from storage.queue import RequestQueue
+from tests.conftest import wait_for
 
 
-def wait_for(cond, timeout: float = 20.0, what: str = "condition"):
-    deadline = time.monotonic() + timeout
-    while True:
-        value = cond()
-        if value:
-            return value
-        if time.monotonic() > deadline:
-            raise AssertionError(f"timed out after {timeout:.0f} s waiting for {what}")
-        time.sleep(0.05)
 
 
 def get(url: str) -> tuple[int, str, bytes]:
@@ -140,11 +131,11 @@ class Browser:
             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
         port_file = profile / "DevToolsActivePort"
         wait_for(lambda: port_file.exists() and len(port_file.read_text().splitlines()) >= 2,
-                 timeout=60, what="chromium's DevTools port")
+                 timeout=60, message="chromium's DevTools port")
         port = int(port_file.read_text().splitlines()[0])
         pages = wait_for(lambda: [t for t in json.loads(urllib.request.urlopen(
             f"http://127.0.0.1:{port}/json/list", timeout=5).read()) if t["type"] == "page"],
-            what="a page target")
+            message="a page target")
         self.ws = websocket.create_connection(pages[0]["webSocketDebuggerUrl"], timeout=30, suppress_origin=True)
         self._id = 0
         self.events: list[dict] = []
@@ -204,19 +195,19 @@ def test_page_shows_live_queue_numbers_without_console_errors(dashboard, browser
     browser.call("Page.enable")
     browser.call("Page.navigate", url=dash.url)
     queued = lambda: browser.evaluate("document.getElementById('q-queued').textContent")  # noqa: E731
-    wait_for(lambda: queued() == "2", what="the page to show 2 queued requests")
+    wait_for(lambda: queued() == "2", message="the page to show 2 queued requests")
     assert browser.evaluate("document.getElementById('workers-alive').textContent") == "1"
     assert browser.evaluate("document.querySelectorAll('#queue tbody tr').length") == 2
     # a request added behind the page's back shows up without a reload
     enqueue_uniform(queue, 1, seed=1)
-    wait_for(lambda: queued() == "3", what="the page to show the new request")
+    wait_for(lambda: queued() == "3", message="the page to show the new request")
     # a champion appears in the models table and the cards
     version = registry.register(b"weights", {}, {"h1_mse": 0.01, "h5_mse": 0.03},
                                 snapshot_id="snap", eval_split_hash="hash")
     registry.promote(version)
     wait_for(lambda: browser.evaluate("document.getElementById('champion').textContent") == version,
-             what="the champion card")
+             message="the champion card")
     wait_for(lambda: browser.evaluate("document.querySelectorAll('#curve circle').length") == 1,
-             what="the learning curve point")
+             message="the learning curve point")
     assert browser.evaluate("document.getElementById('updated').textContent").startswith("updated")
     assert browser.errors() == []

@@ -26,7 +26,8 @@ from orchestrator.secure import SecureInitConfig, SecureSet, init_secure
 from storage.catalog import Catalog
 from storage.queue import NewRequest, RequestQueue, RequestStatus
 from workers.env import sample_state
-from tests.orchestrator.test_secure import Proc, start_router, stays_false, wait_until
+from tests.orchestrator.test_secure import Proc, start_router, stays_false
+from tests.conftest import wait_for
 
 ADDR_A, ADDR_B = "10.231.0.1", "10.231.0.2"
 PORT = 7447  # free by construction: namespace A is new and empty
@@ -164,15 +165,15 @@ def test_zenoh_across_the_veth_pair_survives_a_cut(site):
     started[-1].wait_line("serving")
     asker = _script(pair, pair.b, ASK, str(configs["worker"]), f"{NS}/orch/lease")
     started.append(asker)
-    wait_until(lambda: _last_ask(asker)[1] == "reply", 30, "a reply from namespace A at namespace B")
+    wait_for(lambda: _last_ask(asker)[1] == "reply", 30, "a reply from namespace A at namespace B")
     pair.link(up=False)
     cut_at = _last_ask(asker)[0] + 1  # an ask already in flight may still complete
-    wait_until(lambda: _last_ask(asker)[0] > cut_at and _last_ask(asker)[1] == "none", 30,
+    wait_for(lambda: _last_ask(asker)[0] > cut_at and _last_ask(asker)[1] == "none", 30,
                "asks to go unanswered while the wire is cut")
     assert stays_false(lambda: _last_ask(asker)[0] > cut_at + 1 and _last_ask(asker)[1] == "reply"), \
         asker.output()
     pair.link(up=True)
-    wait_until(lambda: _last_ask(asker)[1] == "reply", 60, "the worker side to reconnect after the cut")
+    wait_for(lambda: _last_ask(asker)[1] == "reply", 60, "the worker side to reconnect after the cut")
 
 
 #: A worker process: the real agent, its config checked with validate_secure_config first,
@@ -180,7 +181,7 @@ def test_zenoh_across_the_veth_pair_survives_a_cut(site):
 WORKER = """
 import logging, sys
 from pathlib import Path
-from orchestrator.secure import validate_secure_config
+from orchestrator.transport import validate_secure_config
 from workers.agent import Worker, WorkerConfig
 logging.basicConfig(level=logging.INFO, stream=sys.stdout, format="%(name)s %(levelname)s %(message)s")
 validate_secure_config(sys.argv[1])
@@ -207,7 +208,7 @@ def enqueue(queue: RequestQueue, steps: int = 8, seed: int = 0) -> str:
 SERVICE = """
 import logging, signal, sys, threading
 from pathlib import Path
-from orchestrator.secure import validate_secure_config
+from orchestrator.transport import validate_secure_config
 from orchestrator.service import Service, ServiceConfig
 logging.basicConfig(level=logging.INFO, stream=sys.stdout, format="%(name)s %(levelname)s %(message)s")
 validate_secure_config(sys.argv[1])
@@ -248,7 +249,7 @@ def test_loop_works_across_the_two_addresses(deployment):
     request_id = enqueue(queue)
     worker = start_worker(configs["worker"], "far-w1", prefix=pair.exec_prefix(pair.b))
     started.append(worker)
-    wait_until(lambda: queue.get(request_id).status == RequestStatus.DONE, 90,
+    wait_for(lambda: queue.get(request_id).status == RequestStatus.DONE, 90,
                f"the request to be done by the worker at {ADDR_B}")
     assert worker.popen.wait(60) == 0, worker.output()
     done = queue.get(request_id)
@@ -264,13 +265,13 @@ def test_cut_mid_episode_is_released_redone_and_the_late_upload_refused(deployme
     # the cut worker paces its 30 steps at half a robot's speed (6 s): the wire is cut mid-episode
     cut = start_worker(configs["worker"], "cut-w1", realtime=2.0, prefix=pair.exec_prefix(pair.b))
     started.append(cut)
-    wait_until(lambda: queue.get(request_id).status == RequestStatus.LEASED, 90, "the first lease")
+    wait_for(lambda: queue.get(request_id).status == RequestStatus.LEASED, 90, "the first lease")
     first = queue.get(request_id)
     assert first.worker_id == "cut-w1"
     pair.link(up=False)
     other = start_worker(configs["worker"], "near-w2", prefix=pair.exec_prefix(pair.a))
     started.append(other)
-    wait_until(lambda: queue.get(request_id).status == RequestStatus.DONE, 90,
+    wait_for(lambda: queue.get(request_id).status == RequestStatus.DONE, 90,
                "the request to be leased again and completed by the other worker")
     done = queue.get(request_id)
     assert done.worker_id == "near-w2" and done.token > first.token

@@ -13,7 +13,8 @@ import zenoh
 from orchestrator.cli import main
 from orchestrator.router import DEFAULT_LISTEN, RouterConfig, RouterError, build_router_config, listen_endpoints
 from orchestrator.secure import SecureInitConfig, init_secure
-from tests.orchestrator.test_secure import Proc, activecollect, free_port, get_payloads, wait_until
+from tests.orchestrator.test_secure import Proc, activecollect, free_port, get_payloads
+from tests.conftest import wait_for
 
 
 def client(*connect: str) -> zenoh.Session:
@@ -68,7 +69,7 @@ def test_router_routes_between_clients_and_stops_on_signal(procs, sig):
     server, asker = client(endpoint), client(endpoint)
     try:
         queryable = server.declare_queryable("demo/ping", lambda q: q.reply(q.key_expr, b"pong"))
-        wait_until(lambda: get_payloads(asker, "demo/ping", timeout=1.0) == [b"pong"], 10, "a reply via the router")
+        wait_for(lambda: get_payloads(asker, "demo/ping", timeout=1.0) == [b"pong"], 10, "a reply via the router")
         queryable.undeclare()
     finally:
         asker.close()
@@ -84,7 +85,7 @@ def test_routers_of_two_sites_link_up(procs):
     worker_side, orchestrator_side = client(site_b), client(site_a)
     try:
         queryable = orchestrator_side.declare_queryable("demo/lease", lambda q: q.reply(q.key_expr, b"lease"))
-        wait_until(lambda: get_payloads(worker_side, "demo/lease", timeout=1.0) == [b"lease"], 15,
+        wait_for(lambda: get_payloads(worker_side, "demo/lease", timeout=1.0) == [b"lease"], 15,
                    "a reply across two routers")
         queryable.undeclare()
     finally:

@@ -21,17 +21,9 @@ from orchestrator.scheduler import (
 from storage.catalog import Catalog
 from storage.models import ModelRegistry
 from workers.collect import collect_episode, create_eval_split
+from tests.conftest import wait_for
 
 
-def wait_for(cond, timeout: float = 60.0, what: str = "condition"):
-    deadline = time.monotonic() + timeout
-    while True:
-        value = cond()
-        if value:
-            return value
-        if time.monotonic() > deadline:
-            raise AssertionError(f"timed out after {timeout:.0f} s waiting for {what}")
-        time.sleep(0.05)
 
 
 def script_command(code: str):
@@ -108,7 +100,7 @@ def test_a_killed_job_is_recorded_as_killed(tmp_path):
     sched = RetrainScheduler(ScheduleConfig(), tmp_path, Counter(), command=script_command(HANGS))
     sched.request()
     rec = sched.tick()
-    wait_for(lambda: (tmp_path / "started").exists(), what="the job to start")
+    wait_for(lambda: (tmp_path / "started").exists(), message="the job to start")
     os.kill(sched._proc.pid, signal.SIGKILL)
     assert sched.wait_idle(timeout=30)
     assert rec.status is RetrainStatus.killed and rec.reason == "killed by SIGKILL"
@@ -118,8 +110,8 @@ def test_a_job_past_its_timeout_is_killed(tmp_path):
     sched = RetrainScheduler(ScheduleConfig(timeout_s=0.5), tmp_path, Counter(), command=script_command(HANGS))
     sched.request()
     rec = sched.tick()
-    wait_for(lambda: (tmp_path / "started").exists(), what="the job to start")
-    wait_for(lambda: sched.tick() is None and not sched.running, timeout=30, what="the timeout")
+    wait_for(lambda: (tmp_path / "started").exists(), message="the job to start")
+    wait_for(lambda: sched.tick() is None and not sched.running, timeout=30, message="the timeout")
     assert rec.status is RetrainStatus.timeout and "timed out" in rec.reason
 
 
@@ -145,7 +137,7 @@ def test_the_lock_admits_one_holder_across_processes(tmp_path):
         "    note_phase(pathlib.Path(sys.argv[1]), 'training')\n"
         "    time.sleep(600)\n"), str(tmp_path)])
     try:
-        wait_for(lambda: read_lock_info(tmp_path).get("phase") == "training", what="the holder")
+        wait_for(lambda: read_lock_info(tmp_path).get("phase") == "training", message="the holder")
         assert lock_held(tmp_path)
         with pytest.raises(RetrainBusyError, match=f"pid {holder.pid}, phase training"):
             with retrain_lock(tmp_path):
@@ -202,7 +194,7 @@ def test_a_retrain_killed_midway_leaves_the_champion(trained):
     sched.request()
     rec = sched.tick()
     wait_for(lambda: read_lock_info(trained).get("phase") == "training" and lock_held(trained),
-             what="the retrain to start training")
+             message="the retrain to start training")
     os.kill(sched._proc.pid, signal.SIGKILL)
     assert sched.wait_idle(timeout=60)
     assert rec.status is RetrainStatus.killed and rec.reason == "killed by SIGKILL"
@@ -220,7 +212,7 @@ def test_two_retrains_at_once_train_once(trained):
     first = subprocess.Popen([sys.executable, "-m", "orchestrator", "retrain", "--data", str(trained), "--json",
                               *TINY, "--epochs", "60"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
-        wait_for(lambda: read_lock_info(trained).get("phase") == "training", what="the first retrain to train")
+        wait_for(lambda: read_lock_info(trained).get("phase") == "training", message="the first retrain to train")
         second = retrain(trained, "--epochs", "1")
         assert first.poll() is None, "the first retrain ended before the second started; make it longer"
         assert second.returncode == EXIT_BUSY

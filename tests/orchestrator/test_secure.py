@@ -27,9 +27,11 @@ from cryptography.x509.oid import NameOID
 from orchestrator.cli import main
 from orchestrator.protocol import Keys
 from orchestrator.secure import (CLIENT_ROLES, ROLES, SecureConfigError, SecureInitConfig, SecureSet,
-                                 build_acl, init_secure, private_mode_ok, validate_secure_config)
+                                 build_acl, init_secure, private_mode_ok)
+from orchestrator.transport import validate_secure_config
 from orchestrator.service import Service, ServiceConfig
 from storage.queue import RequestStatus
+from tests.conftest import wait_for
 
 REPO = Path(__file__).resolve().parents[2]
 NS = "activecollect"
@@ -46,15 +48,6 @@ def free_port(host: str = "127.0.0.1") -> int:
         return s.getsockname()[1]
 
 
-def wait_until(predicate: Callable[[], object], timeout: float, what: str, step: float = 0.05):
-    deadline = time.monotonic() + timeout
-    while True:
-        value = predicate()
-        if value:
-            return value
-        if time.monotonic() > deadline:
-            raise AssertionError(f"timed out after {timeout}s waiting for {what}")
-        time.sleep(step)
 
 
 def stays_false(predicate: Callable[[], object], window: float = ABSENT_WINDOW) -> bool:
@@ -89,7 +82,7 @@ class Proc:
                 raise AssertionError(f"{self.argv} exited {self.popen.returncode} before printing "
                                      f"{needle!r}: {self.output()}")
             return hit
-        return wait_until(found, timeout, f"{needle!r} from {' '.join(self.argv)[-120:]}")
+        return wait_for(found, timeout, f"{needle!r} from {' '.join(self.argv)[-120:]}")
 
     def output(self) -> str:
         return "\n".join(self.lines)[-2000:]
@@ -364,7 +357,7 @@ def test_worker_cannot_call_admin_but_operator_can(secure_router, sessions):
     calls: list[str] = []
     sessions.append(_serve(orch, KEYS.admin_all, b"admin", calls))
     key = KEYS.admin("queue.ls") if hasattr(KEYS, "admin") else f"{NS}/admin/queue/ls"
-    wait_until(lambda: get_payloads(operator, key) == [b"admin"], 10, "the operator's admin reply")
+    wait_for(lambda: get_payloads(operator, key) == [b"admin"], 10, "the operator's admin reply")
     before = len(calls)
     assert get_payloads(worker, key, timeout=1.0) == []
     assert get_payloads(worker, f"{NS}/**", timeout=1.0) == []  # a wildcard does not reach it either
@@ -378,7 +371,7 @@ def test_worker_cannot_impersonate_the_orchestrator(secure_router, sessions):
     fake_calls: list[str] = []
     sessions.append(_serve(impostor, KEYS.lease, b"fake lease", fake_calls))
     sessions.append(_serve(orch, KEYS.lease, b"real lease", real_calls))
-    wait_until(lambda: get_payloads(honest, KEYS.lease) == [b"real lease"], 10, "the real lease reply")
+    wait_for(lambda: get_payloads(honest, KEYS.lease) == [b"real lease"], 10, "the real lease reply")
     for _ in range(3):
         assert get_payloads(honest, KEYS.lease, timeout=1.0) == [b"real lease"]
     assert fake_calls == [] and len(real_calls) >= 4
@@ -394,7 +387,7 @@ def test_only_the_orchestrator_publishes_events(secure_router, sessions):
     def orchestrator_event_arrives() -> bool:
         orch.put(key, b"from orchestrator")
         return b"from orchestrator" in seen
-    wait_until(orchestrator_event_arrives, 10, "the orchestrator's event at the operator", step=0.2)
+    wait_for(orchestrator_event_arrives, 10, "the orchestrator's event at the operator", interval=0.2)
     worker.put(key, b"from worker")
     worker.delete(key)
     assert stays_false(lambda: any(p != b"from orchestrator" for p in seen)), seen
@@ -410,10 +403,10 @@ def test_worker_presence_reaches_the_orchestrator_only_from_workers(secure_route
     sessions.append(orch.liveliness().declare_subscriber(KEYS.workers_all, on_change, history=True))
     op_token = operator.liveliness().declare_token(f"{NS}/workers/not-a-worker")
     token = worker.liveliness().declare_token(f"{NS}/workers/w1")
-    wait_until(lambda: f"{NS}/workers/w1" in alive, 10, "the worker's liveliness token")
+    wait_for(lambda: f"{NS}/workers/w1" in alive, 10, "the worker's liveliness token")
     assert stays_false(lambda: f"{NS}/workers/not-a-worker" in alive)
     token.undeclare()
-    wait_until(lambda: f"{NS}/workers/w1" not in alive, 10, "the worker's token to go")
+    wait_for(lambda: f"{NS}/workers/w1" not in alive, 10, "the worker's token to go")
     op_token.undeclare()
 
 
@@ -433,9 +426,9 @@ def test_two_sites_linked_by_their_routers_keep_the_rules(secure_router, session
         admin_calls: list[str] = []
         sessions.append(_serve(orch, KEYS.lease, b"real lease", []))
         sessions.append(_serve(orch, KEYS.admin_all, b"admin", admin_calls))
-        wait_until(lambda: get_payloads(worker, KEYS.lease, timeout=1.0) == [b"real lease"], 15,
+        wait_for(lambda: get_payloads(worker, KEYS.lease, timeout=1.0) == [b"real lease"], 15,
                    "a lease reply from site A at a worker of site B")
-        wait_until(lambda: get_payloads(operator, f"{NS}/admin/queue/ls") == [b"admin"], 10, "admin reply")
+        wait_for(lambda: get_payloads(operator, f"{NS}/admin/queue/ls") == [b"admin"], 10, "admin reply")
         before = len(admin_calls)
         assert get_payloads(worker, f"{NS}/admin/queue/ls", timeout=1.0) == []
         assert stays_false(lambda: len(admin_calls) > before), admin_calls
@@ -461,7 +454,7 @@ def test_whole_loop_through_the_secure_router(secure_router, tmp_path, capsys):
         worker = Proc([sys.executable, "-m", "workers.agent", "--zenoh-config", str(secure_router.configs["worker"]),
                        "--id", "secure-w1", "--once"])
         assert worker.popen.wait(120) == 0, worker.output()
-        wait_until(lambda: service.queue.get(request_id).status == RequestStatus.DONE, 30,
+        wait_for(lambda: service.queue.get(request_id).status == RequestStatus.DONE, 30,
                    "the request to be done through the router")
         assert main(["queue", "show", request_id, *operator]) == 0
         shown = json.loads(capsys.readouterr().out)["request"]
