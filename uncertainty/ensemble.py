@@ -1,10 +1,13 @@
 """K independently initialised predictors run as one fused forward pass, and their disagreement.
 
 The members' parameters live stacked, one tensor per parameter with a leading
-member axis ``K``; ``torch.func.functional_call`` under ``torch.vmap`` runs all
-K members in one call (vmap turns each convolution into a single grouped
-convolution). ``forward_loop`` runs the same weights member by member; it exists
-to check the fused pass and to benchmark it.
+member axis ``K``. ``forward`` runs all K members as one grouped convolution per
+layer on channels-last activations whose channels are grouped by member
+(``grouped_forward``); member-wise concatenations (skips, the 2x upsample) are
+built in one NHWC copy each. ``forward_vmap`` does the same through
+``torch.vmap`` over ``torch.func.functional_call``; ``forward_loop`` runs the
+same weights member by member, as K ordinary ``Predictor`` calls. Both exist to
+check the fused pass and to benchmark it.
 """
 
 from __future__ import annotations
@@ -196,29 +199,54 @@ def episode_windows(frames: np.ndarray, actions: np.ndarray, config: PredictorCo
     return steps, ctx_idx, act_idx
 
 
-def _gconv(xs: list[torch.Tensor], p: dict, name: str, k: int, stride: int = 1, padding: int = 1,
-           shared: bool = False) -> torch.Tensor:
-    """A grouped convolution over member-grouped inputs (B, K*c_i, h, w).
+def _to_cl(x: torch.Tensor) -> torch.Tensor:
+    return x.contiguous(memory_format=torch.channels_last)
 
-    A convolution over a channel concatenation is the sum of convolutions over
-    the parts, so member-wise concatenations (skips, action maps) are never
-    materialised: each part gets its slice of the weight. Channels-last input
+
+def _cat_members(parts: list[torch.Tensor], k: int) -> torch.Tensor:
+    """Member-wise channel concatenation of (B, K*c_i, h, w) tensors -> (B, K*sum(c_i), h, w), channels-last.
+
+    Member m's block of the result holds every part's member-m channels, in order,
+    as a grouped convolution expects. Done in NHWC so it is one copy.
+    """
+    b, _, h, w = parts[0].shape
+    nhwc = [_to_cl(x).permute(0, 2, 3, 1).reshape(b, h, w, k, -1) for x in parts]  # (B, h, w, K, c_i)
+    return torch.cat(nhwc, dim=-1).reshape(b, h, w, -1).permute(0, 3, 1, 2)      # (B, K*sum c_i, h, w)
+
+
+def _upsample_cat_members(low: torch.Tensor, skip: torch.Tensor, k: int) -> torch.Tensor:
+    """``_cat_members([nearest_2x(low), skip])`` in one buffer: the 2x upsample is a broadcast copy into it.
+
+    low (B, K*c1, h, w), skip (B, K*c2, 2h, 2w) -> (B, K*(c1+c2), 2h, 2w), channels-last.
+    """
+    b, _, h, w = low.shape
+    c1, c2 = low.shape[1] // k, skip.shape[1] // k
+    buf = low.new_empty(b, h, 2, w, 2, k, c1 + c2)                                   # (B, h, 2, w, 2, K, c)
+    src = _to_cl(low).permute(0, 2, 3, 1).reshape(b, h, 1, w, 1, k, c1)             # (B, h, 1, w, 1, K, c1)
+    buf[..., :c1].copy_(src.expand(-1, -1, 2, -1, 2, -1, -1))
+    buf[..., c1:].copy_(_to_cl(skip).permute(0, 2, 3, 1).reshape(b, h, 2, w, 2, k, c2))
+    return buf.reshape(b, 2 * h, 2 * w, -1).permute(0, 3, 1, 2)                     # (B, K*c, 2h, 2w)
+
+
+def _gconv(x: torch.Tensor, p: dict, name: str, k: int, stride: int = 1, padding: int = 1,
+           shared: bool = False) -> torch.Tensor:
+    """Layer ``name`` of all K members as one convolution over (B, K*c, h, w) member-grouped input.
+
+    ``shared``: x is (B, c, h, w), the same for every member, and the K members' filters
+    are stacked into one ordinary convolution with K*Cout outputs. Channels-last input
     makes oneDNN's grouped convolution about as fast per FLOP as a plain one.
     """
     w = p[name + ".weight"]                                          # (K, Cout, Cin, kh, kw)
-    out = None
-    off = 0
-    for i, x in enumerate(xs):
-        ci = x.shape[1] if shared else x.shape[1] // k
-        wi = w[:, :, off:off + ci].reshape(-1, ci, *w.shape[3:])    # (K*Cout, ci, kh, kw)
-        off += ci
-        bias = p[name + ".bias"].reshape(-1) if i == 0 else None    # (K*Cout,)
-        x = x.contiguous(memory_format=torch.channels_last)
-        y = F.conv2d(x, wi, bias, stride=stride, padding=padding, groups=1 if shared else k)
-        out = y if out is None else out + y                          # (B, K*Cout, h', w')
-    if off != w.shape[2]:
-        raise ConfigError(f"layer {name} expects {w.shape[2]} input channels per member, found {off}")
-    return out
+    if x.shape[1] != (w.shape[2] if shared else k * w.shape[2]):
+        raise ConfigError(f"layer {name} expects {w.shape[2]} input channels per member, "
+                          f"found {x.shape[1] if shared else x.shape[1] / k}")
+    return F.conv2d(_to_cl(x), w.reshape(-1, *w.shape[2:]), p[name + ".bias"].reshape(-1),  # (K*Cout, Cin, kh, kw)
+                    stride=stride, padding=padding, groups=1 if shared else k)  # (B, K*Cout, h', w')
+
+
+def _silu(x: torch.Tensor) -> torch.Tensor:
+    # In place when no graph is recorded: saves an allocation and a pass over memory per layer.
+    return F.silu(x, inplace=not torch.is_grad_enabled())
 
 
 def grouped_forward(p: dict, buffers: dict, config: PredictorConfig, k: int,
@@ -229,40 +257,41 @@ def grouped_forward(p: dict, buffers: dict, config: PredictorConfig, k: int,
     shared = context.dim() == 5
     if shared:
         b, c, _, h, w = context.shape
-        x = torch.cat([context.reshape(b, c * 3, h, w) * 2 - 1,        # (B, 3C, H, W), centred
-                       buffers["coords_full"].expand(b, -1, -1, -1),  # (B, 2, H, W)
-                       action[:, :, None, None].expand(-1, -1, h, w)], dim=1)  # (B, 3C+2+A, H, W)
-        last = context[:, -1].unsqueeze(0)                           # (1, B, 3, H, W)
     else:
         _, b, c, _, h, w = context.shape
-        act_k = action.expand(k, *action.shape) if action.dim() == 2 else action  # (K, B, A)
-        x = context.permute(1, 0, 2, 3, 4, 5).reshape(b, k, c * 3, h, w) * 2 - 1  # (B, K, 3C, H, W), centred
-        coords = buffers["coords_full"].expand(b, k, -1, -1, -1)            # (B, K, 2, H, W)
-        a_full = act_k.permute(1, 0, 2)[..., None, None].expand(-1, -1, -1, h, w)  # (B, K, A, H, W)
-        x = torch.cat([x, coords, a_full], dim=2).reshape(b, -1, h, w)      # (B, K*(3C+2+A), H, W)
-        last = context[:, :, -1]                                     # (K, B, 3, H, W)
     if config.context != c or config.image_size != h or config.image_size != w:
         raise ConfigError(f"context must be (...,{config.context},3,{config.image_size},{config.image_size}),"
                           f" found {tuple(context.shape)}")
-    e1 = F.silu(_gconv([x], p, "enc1", k, 2, 1, shared=shared))     # (B, K*w0, H/2, W/2)
-    e2 = F.silu(_gconv([e1], p, "enc2", k, 2, 1))                   # (B, K*w1, H/4, W/4)
-    e3 = F.silu(_gconv([e2], p, "enc3", k, 2, 1))                   # (B, K*w2, H/8, W/8)
     act = action.expand(k, *action.shape) if action.dim() == 2 else action  # (K, B, A)
+    if shared:
+        # Built directly in NHWC: (B, H, W, 3C+2+A), viewed as a channels-last (B, 3C+2+A, H, W).
+        x = torch.cat([context.permute(0, 3, 4, 1, 2).reshape(b, h, w, c * 3) * 2 - 1,  # centred
+                       buffers["coords_full"].permute(1, 2, 0).expand(b, -1, -1, -1),
+                       action[:, None, None, :].expand(-1, h, w, -1)], dim=-1).permute(0, 3, 1, 2)
+        last = context[:, -1].unsqueeze(0)                           # (1, B, 3, H, W)
+    else:
+        x = context.permute(1, 4, 5, 0, 2, 3).reshape(b, h, w, k, c * 3) * 2 - 1  # (B, H, W, K, 3C), centred
+        x = torch.cat([x, buffers["coords_full"].permute(1, 2, 0)[None, :, :, None].expand(b, -1, -1, k, -1),
+                       act.permute(1, 0, 2)[:, None, None].expand(-1, h, w, -1, -1)], dim=-1)  # (B,H,W,K,3C+2+A)
+        x = x.reshape(b, h, w, -1).permute(0, 3, 1, 2)               # (B, K*(3C+2+A), H, W) channels-last
+        last = context[:, :, -1]                                     # (K, B, 3, H, W)
+    e1 = _silu(_gconv(x, p, "enc1", k, 2, 1, shared=shared))        # (B, K*w0, H/2, W/2)
+    e2 = _silu(_gconv(e1, p, "enc2", k, 2, 1))                      # (B, K*w1, H/4, W/4)
+    e3 = _silu(_gconv(e2, p, "enc3", k, 2, 1))                      # (B, K*w2, H/8, W/8)
     hid = F.silu(torch.baddbmm(p["film.0.bias"][:, None], act, p["film.0.weight"].transpose(1, 2)))  # (K, B, Ah)
     film = torch.baddbmm(p["film.2.bias"][:, None], hid, p["film.2.weight"].transpose(1, 2))         # (K, B, 2*w2)
     gamma, beta = film.permute(1, 0, 2).chunk(2, dim=-1)            # (B, K, w2) each
     hl, wl = e3.shape[-2:]
-    z = e3 * (1 + gamma.reshape(b, -1, 1, 1)) + beta.reshape(b, -1, 1, 1)  # (B, K*w2, h, w)
-    a_map = act.permute(1, 0, 2)[..., None, None].expand(-1, -1, -1, hl, wl)  # (B, K, A, h, w)
-    coords = buffers["coords_low"].expand(b, k, -1, -1, -1)         # (B, K, 2, h, w)
-    side = torch.cat([a_map, coords], dim=2).reshape(b, -1, hl, wl)  # (B, K*(A+2), h, w)
-    z = F.silu(_gconv([z, side], p, "mid1", k))                      # (B, K*w2, h, w)
-    z = F.silu(_gconv([z], p, "mid2", k))                            # (B, K*w2, h, w)
-    d = F.interpolate(z, scale_factor=2.0, mode="nearest")          # (B, K*w2, H/4, W/4)
-    d = F.silu(_gconv([d, e2], p, "dec2", k))                        # (B, K*w1, H/4, W/4)
-    d = F.interpolate(d, scale_factor=2.0, mode="nearest")          # (B, K*w1, H/2, W/2)
-    d = F.silu(_gconv([d, e1], p, "dec1", k))                        # (B, K*w0, H/2, W/2)
-    # pixel_shuffle maps channel j*4+i to channel j, so member blocks of 12 become blocks of 3.
-    delta = F.pixel_shuffle(_gconv([d], p, "out", k).contiguous(), 2)  # (B, K*3, H, W)
-    delta = delta.reshape(b, k, 3, h, w).permute(1, 0, 2, 3, 4)     # (K, B, 3, H, W)
-    return last + delta                                              # (K, B, 3, H, W)
+    z = torch.addcmul(beta.reshape(b, -1, 1, 1), e3, 1 + gamma.reshape(b, -1, 1, 1))  # (B, K*w2, h, w)
+    side = torch.cat([act.permute(1, 0, 2)[:, None, None].expand(-1, hl, wl, -1, -1),            # (B, h, w, K, A)
+                      buffers["coords_low"].permute(1, 2, 0)[None, :, :, None].expand(b, -1, -1, k, -1)],
+                     dim=-1).reshape(b, hl, wl, -1).permute(0, 3, 1, 2)  # (B, K*(A+2), h, w) channels-last
+    z = _silu(_gconv(_cat_members([z, side], k), p, "mid1", k))      # (B, K*w2, h, w)
+    z = _silu(_gconv(z, p, "mid2", k))                               # (B, K*w2, h, w)
+    d = _silu(_gconv(_upsample_cat_members(z, e2, k), p, "dec2", k))  # (B, K*w1, H/4, W/4)
+    d = _silu(_gconv(_upsample_cat_members(d, e1, k), p, "dec1", k))  # (B, K*w0, H/2, W/2)
+    out = _to_cl(_gconv(d, p, "out", k)).permute(0, 2, 3, 1)        # (B, H/2, W/2, K*12)
+    # pixel_shuffle semantics: channel j*4 + 2*i + jj of a member goes to colour j, offset (i, jj).
+    delta = out.reshape(b, h // 2, w // 2, k, 3, 2, 2).permute(3, 0, 4, 1, 5, 2, 6)  # (K, B, 3, H/2, 2, W/2, 2)
+    last = last.unflatten(3, (h // 2, 2)).unflatten(5, (w // 2, 2))  # (K or 1, B, 3, H/2, 2, W/2, 2)
+    return (last + delta).reshape(k, b, 3, h, w)                    # (K, B, 3, H, W)
