@@ -478,8 +478,8 @@ def _check_collection(msg: Any) -> None:
 
 
 @dataclass
-class RenewRequest(Message):
-    """Worker -> ``NS/orch/renew``: extend my lease (refused with stale_token if it is not mine any more)."""
+class LeaseRef(Message):
+    """The lease a worker's message is about: the request, the fencing token, the worker holding it."""
 
     request_id: str
     token: int
@@ -492,21 +492,21 @@ class RenewRequest(Message):
 
 
 @dataclass
-class UploadHeader(Message):
+class RenewRequest(LeaseRef):
+    """Worker -> ``NS/orch/renew``: extend my lease (refused with stale_token if it is not mine any more)."""
+
+
+@dataclass
+class UploadHeader(LeaseRef):
     """Worker -> ``NS/orch/upload`` as the query attachment; the payload is the raw MCAP bytes."""
 
-    request_id: str
-    token: int
-    worker_id: str
     sha256: str
     """Lower-case hex sha256 of the payload."""
     size: int
     """Payload length in bytes."""
 
     def validate(self) -> None:
-        check_id("request_id", self.request_id)
-        self.token = _int("token", self.token, 1, 2**62)
-        check_id("worker_id", self.worker_id)
+        super().validate()
         if not isinstance(self.sha256, str) or not _SHA256_RE.match(self.sha256):
             raise _bad(f"sha256: expected 64 lower-case hex digits, found {self.sha256!r:.80}")
         if isinstance(self.size, int) and not isinstance(self.size, bool) and self.size > MAX_UPLOAD_BYTES:
@@ -537,33 +537,19 @@ class UploadHeader(Message):
 
 
 @dataclass
-class FailRequest(Message):
+class FailRequest(LeaseRef):
     """Worker -> ``NS/orch/fail``: give the lease back with an error (counts an attempt)."""
 
-    request_id: str
-    token: int
-    worker_id: str
     error: str
 
     def validate(self) -> None:
-        check_id("request_id", self.request_id)
-        self.token = _int("token", self.token, 1, 2**62)
-        check_id("worker_id", self.worker_id)
+        super().validate()
         self.error = _str("error", self.error, max_len=MAX_ERROR_CHARS)
 
 
 @dataclass
-class ReleaseRequest(Message):
+class ReleaseRequest(LeaseRef):
     """Worker -> ``NS/orch/release``: give the lease back unharmed (a draining worker; no attempt counted)."""
-
-    request_id: str
-    token: int
-    worker_id: str
-
-    def validate(self) -> None:
-        check_id("request_id", self.request_id)
-        self.token = _int("token", self.token, 1, 2**62)
-        check_id("worker_id", self.worker_id)
 
 
 # --- requests, admin, events --------------------------------------------------
