@@ -110,8 +110,12 @@ def chromium_path() -> str:
         return path
     if os.geteuid() != 0 or not shutil.which("apt-get"):
         pytest.skip("chromium is missing and cannot be installed here (needs root and apt-get)")
-    proc = subprocess.run(["apt-get", "install", "-y", "--no-install-recommends", "chromium"],
-                          capture_output=True, text=True, timeout=600)
+    env = {**os.environ, "DEBIAN_FRONTEND": "noninteractive"}
+    install = ["apt-get", "install", "-y", "--no-install-recommends", "chromium"]
+    proc = subprocess.run(install, capture_output=True, text=True, timeout=600, env=env)
+    if proc.returncode != 0:  # a fresh machine has no package lists yet
+        subprocess.run(["apt-get", "update"], capture_output=True, text=True, timeout=600, env=env)
+        proc = subprocess.run(install, capture_output=True, text=True, timeout=600, env=env)
     path = shutil.which("chromium")
     if proc.returncode != 0 or not path:
         pytest.skip(f"chromium could not be installed: apt-get exit {proc.returncode}: "
@@ -187,6 +191,7 @@ def browser(tmp_path):
 
 
 @pytest.mark.timeout(240)
+@pytest.mark.timeout(1500)  # the first run on a fresh machine installs chromium
 def test_page_shows_live_queue_numbers_without_console_errors(dashboard, browser):
     dash, queue, registry = dashboard
     enqueue_uniform(queue, 2)
