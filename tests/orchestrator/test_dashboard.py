@@ -190,7 +190,6 @@ def browser(tmp_path):
     b.close()
 
 
-@pytest.mark.timeout(240)
 @pytest.mark.timeout(1500)  # the first run on a fresh machine installs chromium
 def test_page_shows_live_queue_numbers_without_console_errors(dashboard, browser):
     dash, queue, registry = dashboard
