@@ -15,6 +15,10 @@ from the comparison (with asynchronous workers, how many episodes arrive while a
 retrain runs would differ between arms). The queue, catalog, registry, trainer
 and gate are the real ones.
 
+The active arm ranks steps by ``LoopBenchConfig.signal`` (see ``SIGNALS``); episodes are
+stored under ids that sort in collection order (``_bench_id``), so training reads them
+in the same order in every run and two runs of one configuration give the same numbers.
+
 Headline: the episodes the uniform arm needs to reach the active arm's final eval
 error, divided by the active arm's budget (< 1: uniform is more efficient; > 1:
 active is), interpolated on the mean curves, with the per-seed values.
@@ -22,6 +26,7 @@ active is), interpolated on the mean curves, with the per-seed values.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import time
@@ -34,12 +39,13 @@ from matplotlib.figure import Figure
 
 from orchestrator.loop import ChampionScorer
 from orchestrator.planner import (
-    ActivePlanner, ActivePlannerConfig, Planner, PolicyMix, UniformPlanner, UniformPlannerConfig,
+    ActivePlanner, ActivePlannerConfig, Planner, PolicyMix, Scores, UniformPlanner, UniformPlannerConfig,
 )
 from orchestrator.scheduler import run_retrain
 from storage.catalog import Catalog
 from storage.queue import Request, RequestQueue
 from storage.records import Episode
+from uncertainty.score import change_disagreement, object_moving
 from uncertainty.train import TrainConfig
 
 #: Collects the episode a request asks for: (request, policy seed, image size) -> Episode.
@@ -47,6 +53,10 @@ Collect = Callable[[Request, int, int], Episode]
 #: Creates (or checks) the pinned eval split in a catalog: (catalog, episodes, seed, steps, image size) -> hash.
 MakeEvalSplit = Callable[[Catalog, int, int, int, int], str]
 ARMS = ("active", "uniform")
+#: What the active arm ranks steps by: ``disagreement`` (variance over all pixels, as the service's
+#: scorer), ``change`` (variance over the pixels that change), ``object`` (``change`` on the steps
+#: where the object moves, i.e. the pusher is in contact; other steps are not candidates).
+SIGNALS = ("disagreement", "change", "object")
 
 
 @dataclass
@@ -76,6 +86,10 @@ class LoopBenchConfig:
     """The active arm's planner (its budget per round is set to ``round_episodes``)."""
     policies: PolicyMix = field(default_factory=PolicyMix)
     """The collection policies of both arms."""
+    signal: str = "disagreement"
+    """What the active arm ranks steps by (one of ``SIGNALS``)."""
+    signal_horizon: int = 1
+    """Prediction horizon of the signal."""
 
     def __post_init__(self) -> None:
         if not self.seeds:
@@ -83,6 +97,9 @@ class LoopBenchConfig:
         if self.round_episodes < 1 or self.budget < 2 * self.round_episodes:
             raise ValueError(f"need round_episodes >= 1 and budget >= 2 rounds, found round_episodes="
                              f"{self.round_episodes}, budget={self.budget}")
+        if self.signal not in SIGNALS or self.signal_horizon < 1:
+            raise ValueError(f"signal must be one of {SIGNALS} and signal_horizon >= 1, found "
+                             f"{self.signal!r} and {self.signal_horizon}")
         self.active.budget_per_round = self.round_episodes
         self.active.max_queue_depth = self.round_episodes
         self.active.steps = self.steps
@@ -97,11 +114,35 @@ class LoopBenchConfig:
         return d
 
 
+class SignalScorer:
+    """The champion's ``Scores`` by the bench's signal (``ChampionScorer`` loads and hot-swaps it)."""
+
+    def __init__(self, champion: ChampionScorer, signal: str, horizon: int) -> None:
+        self.champion = champion
+        self.signal = signal
+        self.horizon = horizon
+
+    def __call__(self, episode: Episode) -> Scores | None:
+        if self.signal == "disagreement" and self.horizon == 1:
+            return self.champion(episode)
+        self.champion.reload()
+        ensemble, version = self.champion.ensemble, self.champion.version
+        if ensemble is None or version is None:
+            return None
+        if self.signal == "disagreement":
+            per_step = ensemble.disagreement(episode.frames, episode.actions, horizon=self.horizon)
+        else:
+            per_step = change_disagreement(ensemble, episode.frames, episode.actions, horizon=self.horizon)
+        if self.signal == "object":
+            per_step = np.where(object_moving(episode.states, self.horizon), per_step, np.nan)
+        return Scores(version, per_step)
+
+
 def make_planner(arm: str, cfg: LoopBenchConfig, scorer: ChampionScorer, rng: np.random.Generator,
                  queue: RequestQueue) -> Planner:
     depth = lambda: queue.counts().get("queued", 0)  # noqa: E731
     if arm == "active":
-        return ActivePlanner(cfg.active, scorer, rng, depth)
+        return ActivePlanner(cfg.active, SignalScorer(scorer, cfg.signal, cfg.signal_horizon), rng, depth)
     if arm == "uniform":
         return UniformPlanner(cfg._uniform(), rng, depth)
     raise ValueError(f"arm must be one of {ARMS}, found {arm!r}")
@@ -124,7 +165,7 @@ def run_arm(arm: str, seed: int, cfg: LoopBenchConfig, data_dir: Path, collect: 
         if missing > 0:  # the first round, or a round the planner could not fill with diverse states
             queue.enqueue_many(planner.seed(missing))
         lease = queue.lease("bench", (), (), 600.0)
-        ep = collect(lease.request, seed * 1_000_003 + collected, cfg.image_size)
+        ep = _bench_id(collect(lease.request, seed * 1_000_003 + collected, cfg.image_size), seed, collected)
         stored = catalog.add_episode(ep)
         queue.complete(lease.request.id, lease.token, stored.episode_id)
         round_eps.append(ep)
@@ -140,6 +181,16 @@ def run_arm(arm: str, seed: int, cfg: LoopBenchConfig, data_dir: Path, collect: 
             round_eps, reasons = [], []
     queue.close()
     return points
+
+
+def _bench_id(ep: Episode, seed: int, index: int) -> Episode:
+    """The episode under an id that sorts in collection order and is the same in every run.
+
+    Training reads the snapshot in id order; with uuid4 ids the order, and with it the
+    batches, changed from run to run (~1-2% eval noise between identical runs).
+    """
+    meta = dataclasses.replace(ep.meta, episode_id=f"bench{seed:04d}n{index:06d}")
+    return dataclasses.replace(ep, meta=meta)
 
 
 def _point(arm: str, seed: int, episodes: int, result: dict, seconds: float, reasons: list[str]) -> dict:

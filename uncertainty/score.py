@@ -11,9 +11,10 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
+import torch
 
 from storage.records import STATE_FIELDS, Episode
-from uncertainty.ensemble import Ensemble
+from uncertainty.ensemble import Ensemble, episode_windows, frames_to_tensor
 from uncertainty.errors import ConfigError
 
 _COL = {name: i for i, name in enumerate(STATE_FIELDS)}
@@ -78,6 +79,59 @@ def state_dict(row: np.ndarray, shape: str, physics: dict[str, float]) -> dict[s
             "object": [r[c["obj_x"]], r[c["obj_y"]], r[c["obj_theta"]]],
             "object_vel": [r[c["obj_vx"]], r[c["obj_vy"]], r[c["obj_omega"]]],
             "physics": {k: float(v) for k, v in physics.items()}}
+
+
+@torch.inference_mode()
+def change_disagreement(ensemble: Ensemble, frames: np.ndarray, actions: np.ndarray, horizon: int = 1,
+                        threshold: float = 0.1, batch_size: int = 256) -> np.ndarray:
+    """Per-step disagreement over the pixels that change: (T,) float64, NaN where a step has no score.
+
+    Like ``Ensemble.disagreement`` (variance across members, members rolling out on their own
+    predictions), but a pixel counts only where the frame changes over the horizon: where the
+    recorded next frames or the ensemble's mean prediction differ from the last context frame
+    by more than ``threshold`` (any channel). Static background and walls, where a weak ensemble
+    disagrees for no useful reason, drop out; the score is the masked variance summed over
+    pixels and divided by the frame's pixel count, so states where more moves (the object
+    as well as the pusher) weigh more. Raises ``DataError`` on mismatched shapes.
+    """
+    windows = episode_windows(frames, actions, ensemble.config, horizon)
+    out = np.full(len(frames), np.nan)
+    if windows is None:
+        return out
+    steps, ctx_idx, act_idx = windows
+    x = frames_to_tensor(frames, ensemble.device)                                    # (T, 3, H, W)
+    a = ensemble.normalize_actions(torch.as_tensor(actions, dtype=torch.float32, device=ensemble.device))
+    scores = []
+    for lo in range(0, len(steps), batch_size):
+        ctx_i = torch.as_tensor(ctx_idx[lo:lo + batch_size], device=ensemble.device)    # (B, C)
+        act_i = torch.as_tensor(act_idx[lo:lo + batch_size], device=ensemble.device)    # (B, Hz)
+        ctx = x[ctx_i]                                                                  # (B, C, 3, H, W)
+        preds = ensemble.rollout(ctx, a[act_i])                                         # (K, B, Hz, 3, H, W)
+        last = ctx[:, -1:]                                                              # (B, 1, 3, H, W)
+        real = x[act_i + 1]                                                             # (B, Hz, 3, H, W)
+        moved = ((real - last).abs().amax(dim=2) > threshold) | \
+                ((preds.mean(dim=0) - last).abs().amax(dim=2) > threshold)              # (B, Hz, H, W)
+        var = preds.var(dim=0, unbiased=False).mean(dim=2)                              # (B, Hz, H, W)
+        scores.append((var * moved).mean(dim=(1, 2, 3)))                                # (B,)
+    out[steps] = torch.cat(scores).double().cpu().numpy()
+    return out
+
+
+def object_moving(states: np.ndarray, horizon: int = 1, min_motion: float = 0.5) -> np.ndarray:
+    """(T,) bool: the object's pose changes between step t and t+horizon (False past the end).
+
+    ``states`` (T, STATE_DIM) in STATE_FIELDS order; motion is the object's displacement in
+    world units plus its rotation in radians times 50 (about the largest shape's radius), so
+    turning on the spot counts as moving.
+    """
+    out = np.zeros(len(states), dtype=bool)
+    if len(states) <= horizon:
+        return out
+    c = _COL
+    d = states[horizon:] - states[:-horizon]                                  # (T-h, STATE_DIM)
+    turn = np.abs((d[:, c["obj_theta"]] + np.pi) % (2 * np.pi) - np.pi)
+    out[:-horizon] = np.hypot(d[:, c["obj_x"]], d[:, c["obj_y"]]) + 50.0 * turn > min_motion
+    return out
 
 
 def pick_top(scores: np.ndarray, k: int, min_separation: int) -> list[int]:

@@ -86,6 +86,8 @@ def register_bench(bench: argparse._SubParsersAction) -> None:
     p.add_argument("--members", type=common.positive_int, default=d.train.members,
                    help=f"ensemble size (default {d.train.members})")
     p.add_argument("--device", choices=("auto", "cpu", "cuda"), default=d.train.device, help="torch device")
+    p.add_argument("--signal", choices=loopbench.SIGNALS, default=d.signal,
+                   help=f"what the active arm ranks steps by (default {d.signal})")
     p.add_argument("--out", type=Path, default=None,
                    help="output directory (default ./activecollect-bench/loop-<timestamp>)")
     p.set_defaults(func=_bench_loop)
@@ -111,7 +113,7 @@ def _bench_loop(args: argparse.Namespace) -> int:
     try:
         cfg = loopbench.LoopBenchConfig(seeds=tuple(range(args.seeds)), budget=args.budget,
                                         round_episodes=args.round_episodes, steps=args.steps,
-                                        image_size=args.image_size, train=train)
+                                        image_size=args.image_size, train=train, signal=args.signal)
     except ValueError as exc:
         raise common.UsageError(str(exc)) from None
     out = args.out or Path("activecollect-bench") / time.strftime("loop-%Y%m%dT%H%M%S")

@@ -6,7 +6,11 @@ import math
 
 import pytest
 
-from orchestrator.loopbench import LoopBenchConfig, episodes_to_reach, summarize
+import numpy as np
+
+from orchestrator.loopbench import LoopBenchConfig, _bench_id, episodes_to_reach, summarize
+from storage.records import Episode, EpisodeMeta
+from uncertainty.score import object_moving
 
 
 def test_episodes_to_reach_interpolates_between_retrains():
@@ -34,6 +38,24 @@ def test_summary_headline_and_spread():
     assert [p["seed"] for p in s["per_seed"]] == [0, 1]
 
 
-def test_config_refuses_a_budget_of_less_than_two_rounds():
+def test_config_refuses_a_budget_of_less_than_two_rounds_and_unknown_signals():
     with pytest.raises(ValueError, match="budget"):
         LoopBenchConfig(budget=16, round_episodes=16)
+    with pytest.raises(ValueError, match="signal"):
+        LoopBenchConfig(signal="loss")
+
+
+def test_bench_ids_sort_in_collection_order_and_repeat_across_runs():
+    meta = EpisodeMeta(episode_id="x", task="push", shape="T", physics={}, seed=0, policy="push")
+    ep = Episode(meta, np.zeros((3, 4, 4, 3), np.uint8), np.zeros((3, 2), np.float32), np.zeros((3, 11)))
+    ids = [_bench_id(ep, 1, i).meta.episode_id for i in (2, 10, 100)]
+    assert ids == sorted(ids) and ids == [_bench_id(ep, 1, i).meta.episode_id for i in (2, 10, 100)]
+    assert ep.meta.episode_id == "x"  # the collected episode is left as it was
+
+
+def test_object_moving_marks_the_steps_before_the_object_moves_or_turns():
+    states = np.zeros((5, 11))
+    states[2:, 4] = 10.0          # obj_x jumps between steps 1 and 2
+    states[4, 6] = 0.1            # obj_theta turns between steps 3 and 4
+    assert object_moving(states).tolist() == [False, True, False, True, False]
+    assert object_moving(states, horizon=2).tolist() == [True, True, True, False, False]

@@ -10,7 +10,7 @@ import pytest
 from orchestrator import protocol
 from orchestrator.planner import (
     ActivePlanner, ActivePlannerConfig, Candidate, PolicyMix, Scores, UniformPlanner, UniformPlannerConfig,
-    select_diverse, state_at, state_features,
+    AGENT_CLEARANCE, select_diverse, state_at, state_features,
 )
 from storage.queue import NewRequest, RequestQueue
 from storage.records import STATE_FIELDS, Episode, EpisodeMeta
@@ -91,7 +91,7 @@ def test_active_planner_seeds_uniform_before_any_model():
 
 def test_threshold_is_a_running_percentile_and_requests_say_why():
     rng = np.random.default_rng(2)
-    cfg = acfg(percentile=75.0, budget_per_round=100, min_distance=0.0)
+    cfg = acfg(percentile=75.0, budget_per_round=100, min_distance=0.0, redraw_agent=False)
     planner = ActivePlanner(cfg, step_scorer("m7"), rng)
     ep = make_episode(rng, steps=20)
     reqs = planner.plan([ep])
@@ -219,7 +219,7 @@ def test_bad_configs_say_what_was_expected():
     assert isinstance(UniformPlanner(UniformPlannerConfig(), np.random.default_rng(0)).seed(1)[0], NewRequest)
 
 
-def test_requests_stay_in_the_task_space_start_at_rest_and_spread_over_shapes():
+def test_requests_stay_in_the_task_space_start_at_rest_away_from_the_object_and_spread_over_shapes():
     rng = np.random.default_rng(12)
     eps = []
     for shape in ("T", "L"):
@@ -237,5 +237,9 @@ def test_requests_stay_in_the_task_space_start_at_rest_and_spread_over_shapes():
         assert lo <= s["object"][0] <= hi and lo <= s["object"][1] <= hi
         assert alo <= s["agent"][0] <= ahi and alo <= s["agent"][1] <= ahi
         assert s["agent_vel"] == [0.0, 0.0] and s["object_vel"] == [0.0, 0.0, 0.0]
+        # the object is the scored state's, the agent is drawn as a uniform start draws it
+        src = next(e for e in eps if e.meta.episode_id == r.reason["source_episode"])
+        assert s["object"][:2] == [src.states[r.reason["step"], COL["obj_x"]], src.states[r.reason["step"], COL["obj_y"]]]
+        assert math.dist(s["agent"], s["object"][:2]) >= AGENT_CLEARANCE
     # T scores ten times higher, yet at most half the round is T
     assert sum(r.shape == "T" for r in reqs) <= 4

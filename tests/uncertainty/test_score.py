@@ -5,7 +5,7 @@ import pytest
 
 from tests.uncertainty.synth import make_episode
 from uncertainty.errors import ConfigError
-from uncertainty.score import pick_top, score_episode, state_dict
+from uncertainty.score import change_disagreement, pick_top, score_episode, state_dict
 from workers.env import SimState
 
 
@@ -46,3 +46,19 @@ def test_state_dict_matches_the_simulator_form():
 def test_bad_arguments_are_refused(trained):
     with pytest.raises(ConfigError):
         score_episode(trained[0], make_episode(0), top_k=-1)
+
+
+def test_change_disagreement_counts_only_pixels_that_move(trained):
+    ens, _ = trained
+    ep = make_episode(7, "disk", steps=12)
+    plain = ens.disagreement(ep.frames, ep.actions)
+    masked = change_disagreement(ens, ep.frames, ep.actions, threshold=0.1)
+    assert masked.shape == plain.shape
+    np.testing.assert_array_equal(np.isnan(masked), np.isnan(plain))  # the same steps have a score
+    ok = ~np.isnan(plain)
+    assert np.all(masked[ok] >= 0) and np.all(masked[ok] <= plain[ok] + 1e-12)  # a subset of the pixels
+    everything = change_disagreement(ens, ep.frames, ep.actions, threshold=-1.0)  # every pixel "moves"
+    np.testing.assert_allclose(everything[ok], plain[ok], rtol=1e-5)
+    still = ep.frames.copy()
+    still[:] = still[0]  # nothing moves in the recording
+    assert np.nansum(change_disagreement(ens, still, ep.actions, threshold=1.1)) == 0.0
