@@ -13,6 +13,7 @@ check the fused pass and to benchmark it.
 from __future__ import annotations
 
 import copy
+from collections.abc import Callable
 
 import numpy as np
 import torch
@@ -159,6 +160,17 @@ class Ensemble(nn.Module):
         Steps without ``C-1`` earlier frames or without ``horizon`` successors are NaN.
         Raises ``DataError`` on mismatched shapes.
         """
+        return self.score_steps(frames, actions, horizon, _member_variance, fused, batch_size)
+
+    @torch.inference_mode()
+    def score_steps(self, frames: np.ndarray, actions: np.ndarray, horizon: int, score: StepScore,
+                    fused: bool | str = True, batch_size: int = 256) -> np.ndarray:
+        """Per-step scores of one episode's member rollouts: (T,) float64, NaN where a step has none.
+
+        Every valid step's context is rolled out ``horizon`` steps by each member, in batches;
+        ``score(preds (K,B,Hz,3,H,W), context (B,C,3,H,W), real (B,Hz,3,H,W)) -> (B,)`` reduces a
+        batch (``disagreement`` is the plain variance). Raises ``DataError`` on mismatched shapes.
+        """
         windows = episode_windows(frames, actions, self.config, horizon)
         out = np.full(len(frames), np.nan)
         if windows is None:
@@ -169,11 +181,19 @@ class Ensemble(nn.Module):
         scores = []
         for lo in range(0, len(steps), batch_size):
             ctx = x[torch.as_tensor(ctx_idx[lo:lo + batch_size], device=self.device)]   # (B, C, 3, H, W)
-            act = a[torch.as_tensor(act_idx[lo:lo + batch_size], device=self.device)]   # (B, Hz, A)
-            preds = self.rollout(ctx, act, fused=fused)                                # (K, B, Hz, 3, H, W)
-            scores.append(preds.var(dim=0, unbiased=False).mean(dim=(1, 2, 3, 4)))     # (B,)
+            act_i = torch.as_tensor(act_idx[lo:lo + batch_size], device=self.device)    # (B, Hz)
+            preds = self.rollout(ctx, a[act_i], fused=fused)                           # (K, B, Hz, 3, H, W)
+            scores.append(score(preds, ctx, x[act_i + 1]))                             # (B,)
         out[steps] = torch.cat(scores).double().cpu().numpy()
         return out
+
+
+#: Reduces a batch of member rollouts to one score per step: (preds, context, real next frames) -> (B,).
+StepScore = Callable[[torch.Tensor, torch.Tensor, torch.Tensor], torch.Tensor]
+
+
+def _member_variance(preds: torch.Tensor, context: torch.Tensor, real: torch.Tensor) -> torch.Tensor:
+    return preds.var(dim=0, unbiased=False).mean(dim=(1, 2, 3, 4))                     # (B,)
 
 
 def episode_windows(frames: np.ndarray, actions: np.ndarray, config: PredictorConfig,

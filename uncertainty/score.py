@@ -14,7 +14,7 @@ import numpy as np
 import torch
 
 from storage.records import STATE_FIELDS, Episode
-from uncertainty.ensemble import Ensemble, episode_windows, frames_to_tensor
+from uncertainty.ensemble import Ensemble
 from uncertainty.errors import ConfigError
 
 _COL = {name: i for i, name in enumerate(STATE_FIELDS)}
@@ -94,27 +94,14 @@ def change_disagreement(ensemble: Ensemble, frames: np.ndarray, actions: np.ndar
     pixels and divided by the frame's pixel count, so states where more moves (the object
     as well as the pusher) weigh more. Raises ``DataError`` on mismatched shapes.
     """
-    windows = episode_windows(frames, actions, ensemble.config, horizon)
-    out = np.full(len(frames), np.nan)
-    if windows is None:
-        return out
-    steps, ctx_idx, act_idx = windows
-    x = frames_to_tensor(frames, ensemble.device)                                    # (T, 3, H, W)
-    a = ensemble.normalize_actions(torch.as_tensor(actions, dtype=torch.float32, device=ensemble.device))
-    scores = []
-    for lo in range(0, len(steps), batch_size):
-        ctx_i = torch.as_tensor(ctx_idx[lo:lo + batch_size], device=ensemble.device)    # (B, C)
-        act_i = torch.as_tensor(act_idx[lo:lo + batch_size], device=ensemble.device)    # (B, Hz)
-        ctx = x[ctx_i]                                                                  # (B, C, 3, H, W)
-        preds = ensemble.rollout(ctx, a[act_i])                                         # (K, B, Hz, 3, H, W)
-        last = ctx[:, -1:]                                                              # (B, 1, 3, H, W)
-        real = x[act_i + 1]                                                             # (B, Hz, 3, H, W)
+    def masked_variance(preds: torch.Tensor, context: torch.Tensor, real: torch.Tensor) -> torch.Tensor:
+        last = context[:, -1:]                                                          # (B, 1, 3, H, W)
         moved = ((real - last).abs().amax(dim=2) > threshold) | \
                 ((preds.mean(dim=0) - last).abs().amax(dim=2) > threshold)              # (B, Hz, H, W)
         var = preds.var(dim=0, unbiased=False).mean(dim=2)                              # (B, Hz, H, W)
-        scores.append((var * moved).mean(dim=(1, 2, 3)))                                # (B,)
-    out[steps] = torch.cat(scores).double().cpu().numpy()
-    return out
+        return (var * moved).mean(dim=(1, 2, 3))                                        # (B,)
+
+    return ensemble.score_steps(frames, actions, horizon, masked_variance, batch_size=batch_size)
 
 
 def object_moving(states: np.ndarray, horizon: int = 1, min_motion: float = 0.5) -> np.ndarray:
