@@ -265,17 +265,30 @@ def _lease(s: zenoh.Session, keys: Keys, msg: bytes, lats: dict[str, list[float]
 
 
 @contextmanager
-def _dispatch_server(cfg: BenchConfig, endpoint: str, data_dir: Path) -> Iterator[tuple[zenoh.Session, Cycle]]:
-    """The real service in a child process and a connected client: (session, one lease -> fail cycle)."""
-    namespace = "bench"
+def _service(cfg: BenchConfig, endpoint: str, namespace: str, data_dir: Path) -> Iterator[tuple[zenoh.Session, Keys]]:
+    """The real service in a child process over ``data_dir``, and a client session that it answers."""
     keys = Keys(namespace)
-    _fill(data_dir, cfg.dispatch_requests, protocol.MAX_ATTEMPTS)
     child = _Child("service", "--listen", endpoint, "--namespace", namespace, "--data", str(data_dir),
                    "--lease-s", str(cfg.lease_s))
     session = transport.open_session(connect=[endpoint])
     try:
         transport.query(session, keys.admin("stats"), timeout=30)
-        lease_msgs = [protocol.LeaseRequest(worker_id=f"bench-{i}").to_json() for i in range(cfg.workers)]
+        yield session, keys
+    finally:
+        session.close()
+        child.stop()
+
+
+def _lease_messages(cfg: BenchConfig) -> list[bytes]:
+    return [protocol.LeaseRequest(worker_id=f"bench-{i}").to_json() for i in range(cfg.workers)]
+
+
+@contextmanager
+def _dispatch_server(cfg: BenchConfig, endpoint: str, data_dir: Path) -> Iterator[tuple[zenoh.Session, Cycle]]:
+    """The real service in a child process and a connected client: (session, one lease -> fail cycle)."""
+    _fill(data_dir, cfg.dispatch_requests, protocol.MAX_ATTEMPTS)
+    with _service(cfg, endpoint, "bench", data_dir) as (session, keys):
+        lease_msgs = _lease_messages(cfg)
 
         def cycle(s: zenoh.Session, i: int, lats: dict[str, list[float]]) -> bool:
             t0 = time.perf_counter()
@@ -289,9 +302,6 @@ def _dispatch_server(cfg: BenchConfig, endpoint: str, data_dir: Path) -> Iterato
             return True
 
         yield session, cycle
-    finally:
-        session.close()
-        child.stop()
 
 
 def _phases_raw_and_dispatch(cfg: BenchConfig, data_dir: Path) -> tuple[dict[str, Any], dict[str, Any]]:
@@ -307,16 +317,10 @@ def _phases_raw_and_dispatch(cfg: BenchConfig, data_dir: Path) -> tuple[dict[str
 
 
 def _phase_upload(cfg: BenchConfig, endpoint: str, data_dir: Path) -> dict[str, Any]:
-    namespace = "benchup"
-    keys = Keys(namespace)
     ids = _fill(data_dir, cfg.upload_requests, 3)
     episodes = {rid: _tiny_episode(rid) for rid in ids}
-    child = _Child("service", "--listen", endpoint, "--namespace", namespace, "--data", str(data_dir),
-                   "--lease-s", str(cfg.lease_s))
-    session = transport.open_session(connect=[endpoint])
-    try:
-        transport.query(session, keys.admin("stats"), timeout=30)
-        lease_msgs = [protocol.LeaseRequest(worker_id=f"bench-{i}").to_json() for i in range(cfg.workers)]
+    with _service(cfg, endpoint, "benchup", data_dir) as (session, keys):
+        lease_msgs = _lease_messages(cfg)
 
         def cycle(s: zenoh.Session, i: int, lats: dict[str, list[float]]) -> bool:
             t0 = time.perf_counter()
@@ -334,9 +338,6 @@ def _phase_upload(cfg: BenchConfig, endpoint: str, data_dir: Path) -> dict[str, 
         result = _summary([_drive(cfg.workers, cfg.seconds, cycle, session)])
         result["episode_bytes"] = len(next(iter(episodes.values())))
         return result
-    finally:
-        session.close()
-        child.stop()
 
 
 def _phase_queue(cfg: BenchConfig, data_dir: Path) -> dict[str, Any]:
