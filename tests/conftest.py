@@ -19,6 +19,8 @@ from typing import TypeVar
 
 import pytest
 
+from orchestrator.cli import main
+
 REPO = Path(__file__).resolve().parents[1]
 T = TypeVar("T")
 
@@ -166,3 +168,13 @@ def spawn_worker(spawn: Callable[..., Proc], endpoint: str, namespace: str) -> C
                      "--id", worker_id, "--size", "16", *extra, module="workers.agent")
 
     return _worker
+
+
+def run_cli(capsys, *argv: str) -> tuple[int, str, str]:
+    """``activecollect ARGV`` in this process: (exit status, stdout, stderr); usage errors give 2."""
+    try:
+        rc = main(list(argv))
+    except SystemExit as exc:  # argparse usage errors
+        rc = exc.code
+    out, err = capsys.readouterr()
+    return rc, out, err

@@ -9,19 +9,10 @@ import sys
 import numpy as np
 import pytest
 
-from orchestrator.cli import main
+from tests.conftest import run_cli
 from storage import episodes
 from storage.catalog import Catalog
 from tests.storage.test_episodes import make_episode
-
-
-def _run(capsys, *argv: str) -> tuple[int, str, str]:
-    try:
-        rc = main(list(argv))
-    except SystemExit as exc:  # argparse usage errors
-        rc = exc.code
-    out, err = capsys.readouterr()
-    return rc, out, err
 
 
 @pytest.fixture
@@ -35,7 +26,7 @@ def rng() -> np.random.Generator:
 
 
 def test_collect_indexes_episodes_and_says_where(capsys, data):
-    rc, out, err = _run(capsys, "collect", "--episodes", "2", "--size", "16", "--steps", "4",
+    rc, out, err = run_cli(capsys, "collect", "--episodes", "2", "--size", "16", "--steps", "4",
                         "--seed", "3", "--data", str(data))
     assert rc == 0, err
     assert f"{data}/episodes" in out and "catalog.sqlite (2 episodes)" in out
@@ -46,7 +37,7 @@ def test_collect_indexes_episodes_and_says_where(capsys, data):
         ep = cat.load(r.episode_id)
         assert ep.frames.shape == (4, 16, 16, 3) and ep.meta.policy == "push"
 
-    rc, out, _ = _run(capsys, "collect", "--episodes", "1", "--shape", "disk", "--policy", "random_waypoints",
+    rc, out, _ = run_cli(capsys, "collect", "--episodes", "1", "--shape", "disk", "--policy", "random_waypoints",
                       "--size", "16", "--steps", "3", "--data", str(data), "--json")
     report = json.loads(out)
     assert rc == 0 and report["total_episodes"] == 3 and report["frames"] == 3
@@ -60,28 +51,28 @@ def test_episodes_ls_show_verify(capsys, data, rng):
         cat.add_episode(ep)
     ids = [e.meta.episode_id for e in eps]
 
-    rc, out, _ = _run(capsys, "episodes", "ls", "--data", str(data), "--json")
+    rc, out, _ = run_cli(capsys, "episodes", "ls", "--data", str(data), "--json")
     assert rc == 0 and [r["episode_id"] for r in json.loads(out)] == ids
-    rc, out, _ = _run(capsys, "episodes", "ls", "--data", str(data), "--shape", "L")
+    rc, out, _ = run_cli(capsys, "episodes", "ls", "--data", str(data), "--shape", "L")
     assert rc == 0 and ids[1] in out and ids[0] not in out
 
-    rc, out, _ = _run(capsys, "episodes", "show", ids[0][:10], "--data", str(data), "--json")
+    rc, out, _ = run_cli(capsys, "episodes", "show", ids[0][:10], "--data", str(data), "--json")
     shown = json.loads(out)
     assert rc == 0 and shown["episode_id"] == ids[0] and shown["meta"]["physics"] == eps[0].meta.physics
 
-    rc, out, _ = _run(capsys, "episodes", "verify", "--data", str(data))
+    rc, out, _ = run_cli(capsys, "episodes", "verify", "--data", str(data))
     assert rc == 0 and "2 ok, 0 bad" in out
 
     path = cat.get(ids[1]).path
     blob = bytearray(path.read_bytes())
     blob[len(blob) // 2] ^= 1
     path.write_bytes(bytes(blob))
-    rc, out, _ = _run(capsys, "episodes", "verify", "--data", str(data), "--json")
+    rc, out, _ = run_cli(capsys, "episodes", "verify", "--data", str(data), "--json")
     report = json.loads(out)
     assert rc == 1 and report["bad"] == 1
     assert [r["ok"] for r in report["episodes"]] == [True, False]
     assert "sha256" in report["episodes"][1]["error"]
-    rc, out, _ = _run(capsys, "episodes", "verify", ids[0], "--data", str(data))
+    rc, out, _ = run_cli(capsys, "episodes", "verify", ids[0], "--data", str(data))
     assert rc == 0 and "1 ok, 0 bad" in out
 
 
@@ -90,12 +81,12 @@ def test_ingest_one_good_one_bad(capsys, data, rng, tmp_path):
     episodes.write_episode(good, make_episode(rng))
     bad = tmp_path / "bad.mcap"
     bad.write_bytes(good.read_bytes()[:-50])
-    rc, out, err = _run(capsys, "ingest", str(good), str(bad), "--data", str(data))
+    rc, out, err = run_cli(capsys, "ingest", str(good), str(bad), "--data", str(data))
     assert rc == 1
     assert "ingested" in out and "1 of 2 files indexed" in out
     assert "refused" in err and "bad.mcap" in err and "without an MCAP footer" in err
     assert Catalog(data).count() == 1
-    rc, out, _ = _run(capsys, "ingest", str(good), "--data", str(data), "--json")
+    rc, out, _ = run_cli(capsys, "ingest", str(good), "--data", str(data), "--json")
     assert rc == 0 and json.loads(out)["files"][0]["duplicate"] is True
 
 
@@ -104,28 +95,28 @@ def test_ingest_directory_and_split(capsys, data, rng, tmp_path):
     for i in range(2):
         episodes.write_episode(src / f"ep{i}.mcap", make_episode(rng))
     (src / ".ep9.mcap.x.tmp").write_bytes(b"leftover")
-    rc, out, err = _run(capsys, "ingest", str(src), "--split", "eval", "--data", str(data))
+    rc, out, err = run_cli(capsys, "ingest", str(src), "--split", "eval", "--data", str(data))
     assert rc == 0, err
     assert Catalog(data).count(split="eval") == 2
 
 
 def test_eval_split_create_and_show(capsys, data):
-    rc, out, err = _run(capsys, "eval-split", "show", "--data", str(data))
+    rc, out, err = run_cli(capsys, "eval-split", "show", "--data", str(data))
     assert rc == 2 and "no catalog" in err
-    rc, out, err = _run(capsys, "eval-split", "create", "--episodes", "4", "--size", "16", "--steps", "3",
+    rc, out, err = run_cli(capsys, "eval-split", "create", "--episodes", "4", "--size", "16", "--steps", "3",
                         "--data", str(data), "--json")
     assert rc == 0, err
     digest = json.loads(out)["hash"]
-    rc, out, _ = _run(capsys, "eval-split", "show", "--data", str(data), "--json")
+    rc, out, _ = run_cli(capsys, "eval-split", "show", "--data", str(data), "--json")
     shown = json.loads(out)
     assert rc == 0 and shown["hash"] == digest and len(shown["episodes"]) == 4
-    rc, out, _ = _run(capsys, "eval-split", "show", "--data", str(data))
+    rc, out, _ = run_cli(capsys, "eval-split", "show", "--data", str(data))
     assert "T: 1" in out and "disk: 1" in out
     # the same parameters again: same split; other parameters: refused
-    rc, out, _ = _run(capsys, "eval-split", "create", "--episodes", "4", "--size", "16", "--steps", "3",
+    rc, out, _ = run_cli(capsys, "eval-split", "create", "--episodes", "4", "--size", "16", "--steps", "3",
                       "--data", str(data), "--json")
     assert rc == 0 and json.loads(out)["hash"] == digest
-    rc, _, err = _run(capsys, "eval-split", "create", "--episodes", "4", "--size", "16", "--steps", "5",
+    rc, _, err = run_cli(capsys, "eval-split", "create", "--episodes", "4", "--size", "16", "--steps", "5",
                       "--data", str(data))
     assert rc == 1 and "already pinned" in err
     assert Catalog(data).snapshot().ids == []
@@ -145,21 +136,21 @@ def test_eval_split_create_and_show(capsys, data):
     (["bench", "sim", "--seconds", "-1"], "expected a positive number"),
 ])
 def test_usage_errors_exit_2_in_one_line(capsys, data, argv, needle):
-    rc, out, err = _run(capsys, *[str(data) if a == "DATA" else a for a in argv])
+    rc, out, err = run_cli(capsys, *[str(data) if a == "DATA" else a for a in argv])
     assert rc == 2
     assert needle in err and err.count("\n") == 1, err
     assert not data.exists()  # nothing was created
 
 
 def test_unknown_paths_and_ids_exit_2(capsys, data, rng, tmp_path):
-    rc, _, err = _run(capsys, "ingest", str(tmp_path / "nowhere.mcap"), "--data", str(data))
+    rc, _, err = run_cli(capsys, "ingest", str(tmp_path / "nowhere.mcap"), "--data", str(data))
     assert rc == 2 and "no such file or directory" in err and err.count("\n") == 1
-    rc, _, err = _run(capsys, "episodes", "ls", "--data", str(tmp_path / "nodata"))
+    rc, _, err = run_cli(capsys, "episodes", "ls", "--data", str(tmp_path / "nodata"))
     assert rc == 2 and "no catalog at" in err
     Catalog(data).add_episode(make_episode(rng))
-    rc, _, err = _run(capsys, "episodes", "show", "feedbeef", "--data", str(data))
+    rc, _, err = run_cli(capsys, "episodes", "show", "feedbeef", "--data", str(data))
     assert rc == 2 and "no episode 'feedbeef'" in err and err.count("\n") == 1
-    rc, _, err = _run(capsys, "episodes", "verify", "feedbeef", "--data", str(data))
+    rc, _, err = run_cli(capsys, "episodes", "verify", "feedbeef", "--data", str(data))
     assert rc == 2
 
 

@@ -13,20 +13,12 @@ import numpy as np
 import pytest
 
 from orchestrator.cli import main
+from tests.conftest import run_cli
 from storage.catalog import Catalog
 from storage.models import ModelRegistry, ModelStatus
 from storage.records import Episode, EpisodeMeta
 
 SPLIT = "split-aaaa"
-
-
-def _run(capsys, *argv: str) -> tuple[int, str, str]:
-    try:
-        rc = main(list(argv))
-    except SystemExit as exc:  # argparse usage errors
-        rc = exc.code
-    out, err = capsys.readouterr()
-    return rc, out, err
 
 
 @pytest.fixture
@@ -45,54 +37,54 @@ def _register(reg: ModelRegistry, h1_mse: float, split: str = SPLIT) -> str:
 
 
 def test_models_ls_json_and_text(capsys, data, reg) -> None:
-    rc, out, _ = _run(capsys, "models", "ls", "--data", str(data), "--json")
+    rc, out, _ = run_cli(capsys, "models", "ls", "--data", str(data), "--json")
     assert rc == 0 and json.loads(out) == {"champion": None, "models": []}
     a, b, nan = _register(reg, 0.01), _register(reg, 0.5), _register(reg, math.nan)
     reg.gate(a)
     reg.gate(b)
     reg.gate(nan)
-    rc, out, _ = _run(capsys, "models", "ls", "--data", str(data), "--json")
+    rc, out, _ = run_cli(capsys, "models", "ls", "--data", str(data), "--json")
     listing = json.loads(out)  # strict JSON: NaN became null
     assert rc == 0 and listing["champion"] == a
     assert [(m["version"], m["status"]) for m in listing["models"]] == [
         (a, "champion"), (b, "rejected"), (nan, "rejected")]
     assert listing["models"][2]["metrics"]["h1_mse"] is None
     assert "not better enough" in listing["models"][1]["reason"]
-    rc, out, _ = _run(capsys, "models", "ls", "--data", str(data))
+    rc, out, _ = run_cli(capsys, "models", "ls", "--data", str(data))
     assert rc == 0 and f"* {a}" in out and "rejected" in out
 
 
 def test_models_show(capsys, data, reg) -> None:
     a = _register(reg, 0.01)
     reg.gate(a)
-    rc, out, _ = _run(capsys, "models", "show", a, "--data", str(data), "--json")
+    rc, out, _ = run_cli(capsys, "models", "show", a, "--data", str(data), "--json")
     shown = json.loads(out)
     assert rc == 0 and shown["version"] == a and shown["status"] == "champion"
     assert shown["eval_split_hash"] == SPLIT and len(shown["champion_history"]) == 1
-    rc, out, _ = _run(capsys, "models", "show", a, "--data", str(data))
+    rc, out, _ = run_cli(capsys, "models", "show", a, "--data", str(data))
     assert rc == 0 and "h1_mse" in out and SPLIT in out
 
 
 def test_models_promote_and_rollback(capsys, data, reg) -> None:
     a, b = _register(reg, 0.01), _register(reg, 0.5)
     reg.gate(a)
-    rc, out, _ = _run(capsys, "models", "promote", b, "--data", str(data), "--json")
+    rc, out, _ = run_cli(capsys, "models", "promote", b, "--data", str(data), "--json")
     assert rc == 0 and json.loads(out)["promoted"] is True and reg.champion() == b
-    rc, out, _ = _run(capsys, "models", "rollback", "--data", str(data))
+    rc, out, _ = run_cli(capsys, "models", "rollback", "--data", str(data))
     assert rc == 0 and f"champion is now {a}" in out and reg.champion() == a
-    rc, _, err = _run(capsys, "models", "rollback", "--data", str(data))
+    rc, _, err = run_cli(capsys, "models", "rollback", "--data", str(data))
     assert rc == 1 and "no previous champion" in err and len(err.strip().splitlines()) == 1
 
 
 def test_models_promote_refuses_corrupt_and_wrong_split(capsys, data, reg) -> None:
     a, other = _register(reg, 0.01), _register(reg, 0.001, split="split-bbbb")
     reg.gate(a)
-    rc, _, err = _run(capsys, "models", "promote", other, "--data", str(data))
+    rc, _, err = run_cli(capsys, "models", "promote", other, "--data", str(data))
     assert rc == 1 and "evaluated on eval split split-bbbb" in err
     b = _register(reg, 0.005)
     path = reg.get(b).weights_path
     path.write_bytes(path.read_bytes()[:-1] + b"X")
-    rc, _, err = _run(capsys, "models", "promote", b, "--data", str(data))
+    rc, _, err = run_cli(capsys, "models", "promote", b, "--data", str(data))
     assert rc == 1 and "refusing to promote" in err and "sha256 mismatch" in err
     assert reg.champion() == a and reg.get(b).status is ModelStatus.CANDIDATE
 
@@ -105,12 +97,12 @@ def test_models_promote_refuses_corrupt_and_wrong_split(capsys, data, reg) -> No
     (("models", "promote", "nope"), "unknown model version"),
 ])
 def test_models_usage_errors_exit_2(capsys, data, reg, argv, words) -> None:
-    rc, out, err = _run(capsys, *argv, *(("--data", str(data)) if len(argv) > 2 else ()))
+    rc, out, err = run_cli(capsys, *argv, *(("--data", str(data)) if len(argv) > 2 else ()))
     assert rc == 2 and words in err and len(err.strip().splitlines()) == 1 and out == ""
 
 
 def test_missing_data_dir_is_a_usage_error(capsys, tmp_path) -> None:
-    rc, _, err = _run(capsys, "models", "ls", "--data", str(tmp_path / "nowhere"))
+    rc, _, err = run_cli(capsys, "models", "ls", "--data", str(tmp_path / "nowhere"))
     assert rc == 2 and "no data directory" in err
     assert not (tmp_path / "nowhere").exists()
 
@@ -166,7 +158,7 @@ def test_train_registers_and_promotes_the_first_model(trained, capsys) -> None:
 def test_train_json_and_warm_start(trained, capsys) -> None:
     data, _ = trained
     champion = ModelRegistry(data).champion()
-    rc, out, _ = _run(capsys, "train", "--data", str(data), "--members", "2", "--epochs", "1",
+    rc, out, _ = run_cli(capsys, "train", "--data", str(data), "--members", "2", "--epochs", "1",
                       "--device", "cpu", "--from-champion", "--seed", "3", "--json")
     result = json.loads(out)
     assert rc == 0 and set(result) >= {"version", "metrics", "decision", "champion"}
@@ -176,17 +168,17 @@ def test_train_json_and_warm_start(trained, capsys) -> None:
 
 def test_eval_and_score(trained, capsys) -> None:
     data, _ = trained
-    rc, out, _ = _run(capsys, "eval", "--data", str(data), "--device", "cpu", "--json")
+    rc, out, _ = run_cli(capsys, "eval", "--data", str(data), "--device", "cpu", "--json")
     evaluated = json.loads(out)
     assert rc == 0 and evaluated["version"] == ModelRegistry(data).champion()
     assert evaluated["metrics"]["eval_split_hash"] == Catalog(data).eval_split().hash
     row = Catalog(data).list(split="train")[0]
-    rc, out, _ = _run(capsys, "score", row.episode_id[:10], "--data", str(data), "--top", "2",
+    rc, out, _ = run_cli(capsys, "score", row.episode_id[:10], "--data", str(data), "--top", "2",
                       "--device", "cpu", "--json")
     scored = json.loads(out)
     assert rc == 0 and scored["episode_id"] == row.episode_id and len(scored["top"]) == 2
     assert len(scored["per_step"]) == row.frames
-    rc, out, _ = _run(capsys, "score", str(data / row.path), "--data", str(data), "--device", "cpu")
+    rc, out, _ = run_cli(capsys, "score", str(data / row.path), "--data", str(data), "--device", "cpu")
     assert rc == 0 and "mean disagreement" in out and "step" in out
 
 
@@ -195,14 +187,14 @@ def test_eval_score_without_champion_exit_1(capsys, tmp_path) -> None:
     catalog = Catalog(data)
     ep = catalog.add_episode(_episode(np.random.default_rng(1)))
     for argv in (("eval",), ("score", ep.episode_id)):
-        rc, _, err = _run(capsys, *argv, "--data", str(data))
+        rc, _, err = run_cli(capsys, *argv, "--data", str(data))
         assert rc == 1 and "no champion model yet" in err, err
 
 
 def test_train_without_data_exit_1(capsys, tmp_path) -> None:
     data = tmp_path / "data"
     Catalog(data)
-    rc, _, err = _run(capsys, "train", "--data", str(data), "--members", "2", "--epochs", "1")
+    rc, _, err = run_cli(capsys, "train", "--data", str(data), "--members", "2", "--epochs", "1")
     assert rc == 1 and "training failed" in err and len(err.strip().splitlines()) == 1
 
 
@@ -219,12 +211,12 @@ def test_train_without_data_exit_1(capsys, tmp_path) -> None:
     (("bench", "score", "--size", "12", "--seconds", "0.1"), "multiple of 8"),
 ])
 def test_usage_errors_exit_2(capsys, data, reg, argv, words) -> None:
-    rc, out, err = _run(capsys, *argv, *(("--data", str(data)) if argv[0] != "bench" else ()))
+    rc, out, err = run_cli(capsys, *argv, *(("--data", str(data)) if argv[0] != "bench" else ()))
     assert rc == 2 and words in err and len(err.strip().splitlines()) == 1, err
 
 
 def test_bench_score_json(capsys) -> None:
-    rc, out, _ = _run(capsys, "bench", "score", "--members", "2", "--size", "16", "--seconds", "0.3",
+    rc, out, _ = run_cli(capsys, "bench", "score", "--members", "2", "--size", "16", "--seconds", "0.3",
                       "--device", "cpu", "--json")
     figures = json.loads(out)
     assert rc == 0 and figures["fused_fps"] > 0 and figures["loop_fps"] > 0 and figures["speedup"] > 0
@@ -233,9 +225,9 @@ def test_bench_score_json(capsys) -> None:
 def test_eval_refuses_a_corrupt_or_foreign_champion(capsys, data, reg) -> None:
     version = _register(reg, 0.01)  # weights that are not a torch checkpoint
     reg.gate(version)
-    rc, _, err = _run(capsys, "eval", "--data", str(data), "--device", "cpu")
+    rc, _, err = run_cli(capsys, "eval", "--data", str(data), "--device", "cpu")
     assert rc == 1 and "cannot load the champion" in err and "checkpoint" in err
     path = reg.get(version).weights_path
     path.write_bytes(b"X" + path.read_bytes()[1:])
-    rc, _, err = _run(capsys, "eval", version, "--data", str(data), "--device", "cpu")
+    rc, _, err = run_cli(capsys, "eval", version, "--data", str(data), "--device", "cpu")
     assert rc == 1 and "sha256 mismatch" in err and len(err.strip().splitlines()) == 1
