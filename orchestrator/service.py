@@ -154,6 +154,7 @@ class Service:
         self.context: ServiceContext | None = None
         self.planner: Planner | None = None
         self._servers: list[transport.Server] = []
+        self._publishers: dict[EventKind, Any] = {}
         self._liveliness_sub: Any = None
         self._alive: set[str] = set()
         self._alive_lock = threading.Lock()
@@ -184,6 +185,9 @@ class Service:
             self.session = transport.open_session(cfg.mode, cfg.listen, cfg.connect, cfg.zenoh_config)
         except transport.TransportError as exc:
             raise ServiceError(str(exc)) from exc
+        # One declared publisher per event kind: a put on it skips resolving the key each time (every lease
+        # and every fail publishes).
+        self._publishers = {kind: self.session.declare_publisher(self.keys.events(kind)) for kind in EventKind}
         if cfg.planner is not None:
             self.planner = cfg.planner(self.context)
             self._seed_queue()
@@ -244,7 +248,7 @@ class Service:
         payload = protocol.encode({"v": protocol.PROTOCOL_VERSION, "kind": kind.value, "at": time.time(),
                                    "data": data})
         try:
-            self.session.put(self.keys.events(kind), payload)
+            self._publishers[kind].put(payload)
         except zenoh.ZError as exc:
             log.warning("cannot publish %s: %s", kind.value, exc)
 

@@ -23,8 +23,12 @@ per-thread writers re-read every page the other threads had changed). Reads use 
 SQLite specifics (the connection, pragmas, ``BEGIN IMMEDIATE``) stay inside
 ``RequestQueue``; its SQL is otherwise plain, so a PostgreSQL backend can take its place
 behind the same methods (``lease`` becomes ``SELECT ... FOR UPDATE SKIP LOCKED``).
-Durability: WAL with ``synchronous=NORMAL`` survives a crash of the process (SIGKILL);
-pass ``synchronous="FULL"`` to also survive a power loss, at the cost of an fsync per change.
+Durability: WAL with ``synchronous=NORMAL`` survives a crash of the process (SIGKILL).
+What a caller is told is stored -- an enqueue, an operator's cancel / retry / prioritize --
+is committed with ``synchronous=FULL`` (fsynced) and also survives a power loss; the
+lease transitions are not (an fsync each would halve dispatch): a power loss can forget the
+last leases and fails, which puts those requests back where they were -- the lease's worker
+id still fences its upload. ``synchronous="FULL"`` fsyncs every change.
 
 Speed: a lease-ending transition is one ``UPDATE ... WHERE <live lease> RETURNING`` inside its
 transaction (the stale-token message is built from a second read only when it matched nothing),
@@ -332,8 +336,12 @@ class RequestQueue:
         return conn
 
     @contextmanager
-    def _tx(self, conn: sqlite3.Connection | None = None) -> Iterator[sqlite3.Connection]:
-        """One write transaction; with ``conn``, join the caller's open transaction instead."""
+    def _tx(self, conn: sqlite3.Connection | None = None, durable: bool = False) -> Iterator[sqlite3.Connection]:
+        """One write transaction; with ``conn``, join the caller's open transaction instead.
+
+        ``durable``: the commit is fsynced (``synchronous=FULL`` for this transaction) even when the
+        queue runs with NORMAL -- for what a caller is told is stored (enqueue, operator actions).
+        """
         if conn is not None:
             yield conn
             return
@@ -341,7 +349,10 @@ class RequestQueue:
             if self._writer is None:
                 self._writer = self._open()
             own = self._writer
+            upgrade = durable and self._synchronous != "FULL"
             try:
+                if upgrade:
+                    own.execute("PRAGMA synchronous = FULL")
                 own.execute("BEGIN IMMEDIATE")
             except sqlite3.Error as exc:
                 raise QueueError(f"cannot start a transaction on {self.db_path}: {exc}") from exc
@@ -354,6 +365,9 @@ class RequestQueue:
             except BaseException:
                 self._rollback(own)
                 raise
+            finally:
+                if upgrade:
+                    own.execute(f"PRAGMA synchronous = {self._synchronous}")
         if self._checkpointer is not None:
             self._checkpointer.committed()
 
@@ -434,7 +448,7 @@ class RequestQueue:
         """Several enqueues in one transaction (a planner's batch)."""
         t = self._now(now)
         out = []
-        with self._tx() as conn:
+        with self._tx(durable=True) as conn:
             for new in news:
                 if new.idempotency_key is not None:
                     row = conn.execute(f"{_SELECT} WHERE idempotency_key = ?", (new.idempotency_key,)).fetchone()
@@ -580,7 +594,7 @@ class RequestQueue:
     def _operator(self, action: str, request_id: str, target: RequestStatus | None, sets: str,
                   args: tuple[Any, ...], now: float | None) -> Request:
         t = self._now(now)
-        with self._tx() as conn:
+        with self._tx(durable=True) as conn:
             request = self._fetch(conn, request_id)
             check_transition(action, request.status, target or request.status)
             rows = conn.execute(f"UPDATE requests SET {sets}, updated = ? WHERE id = ? RETURNING {_COLS}",

@@ -396,3 +396,32 @@ def test_background_checkpoint_moves_the_wal_into_the_database_and_stops_on_clos
         assert reopened.counts()["queued"] == 300
         assert reopened.get(stored[0][0].id).reason == {"note": "x" * 500}
         assert reopened.get(lease.request.id).attempts == 1
+
+
+def test_acknowledged_changes_are_fsynced_and_lease_transitions_are_not(queue: RequestQueue) -> None:
+    """Enqueue and operator actions commit with synchronous=FULL; leases keep the queue's NORMAL."""
+    queue.enqueue(new())  # opens the writer
+    writer = queue._writer
+    assert writer is not None
+    seen: list[tuple[str, int]] = []
+
+    def trace(statement: str) -> None:
+        if statement in ("BEGIN IMMEDIATE", "COMMIT"):
+            # The level in force for this statement (0 OFF, 1 NORMAL, 2 FULL), read on a second cursor.
+            seen.append((statement, writer.execute("PRAGMA synchronous").fetchone()[0]))
+
+    writer.set_trace_callback(trace)
+    try:
+        seen.clear()
+        r, _ = queue.enqueue(new())
+        assert seen == [("BEGIN IMMEDIATE", 2), ("COMMIT", 2)]
+        seen.clear()
+        lease = queue.lease("w1")
+        queue.fail(lease.request.id, lease.token, "boom", worker_id="w1")
+        assert {level for _, level in seen} == {1}
+        seen.clear()
+        queue.cancel(r.id)
+        assert seen == [("BEGIN IMMEDIATE", 2), ("COMMIT", 2)]
+    finally:
+        writer.set_trace_callback(None)
+    assert writer.execute("PRAGMA synchronous").fetchone()[0] == 1  # back to NORMAL
