@@ -35,13 +35,11 @@ from storage.episodes import (
     EpisodeInfo,
     encode_episode,
     inspect_episode,
-    publish,
     read_episode,
-    sha256_hex,
-    stage_bytes,
     verify_episode,
 )
 from storage.errors import CatalogError, CorruptEpisodeError, EpisodeError
+from storage.files import publish, sha256_hex, stage_bytes
 from storage.records import Episode, EpisodeMeta
 
 #: Splits an episode can belong to. ``eval`` episodes never enter a training snapshot.

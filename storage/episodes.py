@@ -30,11 +30,9 @@ and skips protobuf parsing for them; any other valid encoding of the same schema
 from __future__ import annotations
 
 import functools
-import hashlib
 import io
 import os
 import struct
-import tempfile
 import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -61,6 +59,7 @@ from storage.errors import (
     ForeignFileError,
     TruncatedEpisodeError,
 )
+from storage.files import sha256_hex, write_bytes_atomic
 from storage.records import ACTION_DIM, STATE_DIM, STATE_FIELDS, Episode, EpisodeMeta
 
 Source = Union[str, os.PathLike, bytes, bytearray, memoryview]
@@ -226,63 +225,6 @@ def encode_episode(ep: Episode) -> bytes:
         add(state, ns, states[t * s_len:(t + 1) * s_len], ns, t)
     writer.finish()
     return buf.getvalue()
-
-
-def sha256_hex(data: bytes) -> str:
-    return hashlib.sha256(data).hexdigest()
-
-
-def fsync_dir(directory: Path) -> None:
-    """Makes a rename in ``directory`` durable (no-op where directories cannot be opened)."""
-    try:
-        fd = os.open(directory, os.O_RDONLY)
-    except OSError:
-        return
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
-
-
-def stage_bytes(path: str | os.PathLike, data: bytes) -> Path:
-    """Writes ``data`` to a fresh temporary file next to ``path`` and fsyncs it; returns its path.
-
-    The name (``.<name>.*.tmp``) never matches ``*.mcap``, so a leftover from a crash is
-    never mistaken for an episode. On an exception the temporary file is removed.
-    """
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-            f.flush()
-            os.fsync(f.fileno())
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return Path(tmp)
-
-
-def publish(staged: Path, path: str | os.PathLike) -> None:
-    """Renames a staged file to its final name and makes the rename durable."""
-    path = Path(path)
-    os.replace(staged, path)
-    fsync_dir(path.parent)
-
-
-def write_bytes_atomic(path: str | os.PathLike, data: bytes) -> None:
-    """Writes ``data`` to a temporary name in the same directory, fsyncs, renames, fsyncs the dir.
-
-    A crash or an exception never leaves a partial file under ``path``, and the
-    temporary file is removed on an exception.
-    """
-    staged = stage_bytes(path, data)
-    try:
-        publish(staged, path)
-    except BaseException:
-        staged.unlink(missing_ok=True)
-        raise
 
 
 def write_episode(path: str | os.PathLike, ep: Episode) -> str:

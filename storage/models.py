@@ -30,14 +30,14 @@ from typing import Any
 
 from storage.catalog import DB_NAME, connect, ensure_schema, transaction
 from storage.errors import CorruptCheckpointError, RegistryError
+from storage.files import fsync_dir, write_synced
+from storage.gate import DEFAULT_METRIC, DEFAULT_MIN_REL_IMPROVEMENT, GateDecision, judge
 
 WEIGHTS_FILE = "weights.pt"
 CONFIG_FILE = "config.json"
 METRICS_FILE = "metrics.json"
 META_FILE = "meta.json"
 CHAMPION = "champion"
-DEFAULT_METRIC = "h1_mse"
-DEFAULT_MIN_REL_IMPROVEMENT = 0.02
 
 _MIGRATIONS: tuple[tuple[str, ...], ...] = (
     (
@@ -127,33 +127,6 @@ class ModelRecord:
 
 
 @dataclass(frozen=True)
-class GateDecision:
-    """What the promotion gate decided, and why, in words an operator can act on."""
-
-    promoted: bool
-    """True when the candidate is now the champion."""
-    reason: str
-    """One sentence: the comparison made, or the check that failed."""
-    version: str = ""
-    """The candidate."""
-    champion_before: str | None = None
-    """The champion when the gate ran (None for the first model)."""
-    metric: str = DEFAULT_METRIC
-    """The metric compared."""
-    candidate_value: float | None = None
-    """The candidate's value of ``metric`` (None when missing)."""
-    champion_value: float | None = None
-    """The champion's value of ``metric`` (None when there was no champion)."""
-
-    def to_json(self) -> dict[str, Any]:
-        return {
-            "promoted": self.promoted, "reason": self.reason, "version": self.version,
-            "champion_before": self.champion_before, "metric": self.metric,
-            "candidate_value": self.candidate_value, "champion_value": self.champion_value,
-        }
-
-
-@dataclass(frozen=True)
 class ChampionEntry:
     """One promotion in the champion history."""
 
@@ -178,42 +151,11 @@ def _now() -> str:
     return datetime.now(timezone.utc).isoformat(timespec="microseconds")
 
 
-def _fsync_dir(path: Path) -> None:
-    fd = os.open(path, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
-
-
-def _write_synced(path: Path, data: bytes) -> None:
-    with open(path, "wb") as f:
-        f.write(data)
-        f.flush()
-        os.fsync(f.fileno())
-
-
 def _dump(obj: Any, what: str) -> bytes:
     try:
         return json.dumps(obj, sort_keys=True, indent=2).encode()
     except (TypeError, ValueError) as exc:
         raise RegistryError(f"{what} must be JSON-serialisable: {exc}") from exc
-
-
-def _non_finite(metrics: dict[str, Any], metric: str) -> str | None:
-    """Name the first number that matters which is missing or not finite, or None if all are fine.
-
-    The numbers that matter are the gate metric and every horizon-1 metric (``h1_*``): a diverged
-    model is NaN there. Longer horizons may be NaN by construction (episodes too short to roll out).
-    """
-    value = metrics.get(metric)
-    if isinstance(value, bool) or not isinstance(value, (int, float)):
-        return f"{metric} is missing or not a number (found {value!r})"
-    for key in sorted(k for k in metrics if k == metric or k.startswith("h1_")):
-        v = metrics[key]
-        if isinstance(v, (int, float)) and not isinstance(v, bool) and not math.isfinite(v):
-            return f"{key} is not finite ({v})"
-    return None
 
 
 class ModelRegistry:
@@ -362,7 +304,7 @@ class ModelRegistry:
                 meta = {"version": version, "snapshot_id": snapshot_id, "eval_split_hash": eval_split_hash,
                         "parent": parent, "created": created, "weights_sha256": sha,
                         "size_bytes": len(weights), "weights_file": WEIGHTS_FILE}
-                _write_synced(tmp / META_FILE, _dump(meta, "meta"))
+                write_synced(tmp / META_FILE, _dump(meta, "meta"))
                 final = self._publish(tmp, version)
                 try:
                     conn.execute(
@@ -385,7 +327,7 @@ class ModelRegistry:
         tmp.mkdir()
         try:
             for name, data in files.items():
-                _write_synced(tmp / name, data)
+                write_synced(tmp / name, data)
         except OSError:
             shutil.rmtree(tmp, ignore_errors=True)
             raise
@@ -398,9 +340,9 @@ class ModelRegistry:
             # No row names this version (we hold the write lock and seq is new): a crash left it
             # between rename and commit. Nothing references it, so it can go.
             shutil.rmtree(final)
-        _fsync_dir(tmp)
+        fsync_dir(tmp)
         os.rename(tmp, final)
-        _fsync_dir(self.models_dir)
+        fsync_dir(self.models_dir)
         return final
 
     # -- the gate and the alias ----------------------------------------------------------------
@@ -429,8 +371,7 @@ class ModelRegistry:
                 return GateDecision(False, f"{version} is already the champion", version, current,
                                     metric)
             champ = self._get(conn, current) if current is not None else None
-            promoted, reason, champ_value = self._judge(rec, champ, metric, min_rel_improvement,
-                                                        eval_split_hash)
+            promoted, reason, champ_value = judge(rec, champ, metric, min_rel_improvement, eval_split_hash)
             if promoted:
                 self._switch(conn, version, reason)
             else:
@@ -438,35 +379,6 @@ class ModelRegistry:
         cand_value = rec.metrics.get(metric)
         return GateDecision(promoted, reason, version, current, metric,
                             cand_value if isinstance(cand_value, (int, float)) else None, champ_value)
-
-    def _judge(self, rec: ModelRecord, champ: ModelRecord | None, metric: str, min_rel: float,
-               split: str | None) -> tuple[bool, str, float | None]:
-        """(promote?, reason, champion's value) for ``rec`` against ``champ``; no side effects."""
-        expected = split if split is not None else (champ.eval_split_hash if champ else None)
-        if expected is not None and rec.eval_split_hash != expected:
-            return False, (f"wrong eval split: {rec.version} was evaluated on {rec.eval_split_hash}, "
-                           f"the current eval split is {expected}"), None
-        bad = _non_finite(rec.metrics, metric)
-        if bad is not None:
-            return False, f"metrics not finite: {bad}", None
-        value = float(rec.metrics[metric])
-        if champ is None:
-            return True, f"first champion: {metric} {value:.6g} on eval split {rec.eval_split_hash}", None
-        if champ.eval_split_hash != rec.eval_split_hash:
-            return False, (f"not comparable: champion {champ.version} was evaluated on "
-                           f"{champ.eval_split_hash}, {rec.version} on {rec.eval_split_hash}; "
-                           f"re-evaluate the champion or promote by hand"), None
-        champ_value = champ.metrics.get(metric)
-        if not isinstance(champ_value, (int, float)) or not math.isfinite(champ_value):
-            return True, (f"{metric} {value:.6g} replaces champion {champ.version}, whose {metric} "
-                          f"is not a finite number ({champ_value!r})"), None
-        bar = champ_value * (1 - min_rel)
-        rel = (champ_value - value) / champ_value if champ_value else 0.0
-        words = (f"{metric} {value:.6g} vs champion {champ.version} {champ_value:.6g} "
-                 f"({rel:+.1%} relative improvement; needs >= {min_rel:.1%}, i.e. < {bar:.6g})")
-        if value < bar:
-            return True, f"promoted: {words}", float(champ_value)
-        return False, f"not better enough: {words}", float(champ_value)
 
     def _refuse(self, rec: ModelRecord, reason: str, metric: str) -> GateDecision:
         with self._transaction() as conn:

@@ -16,7 +16,8 @@ from pathlib import Path
 import numpy as np
 
 from orchestrator.protocol import SHAPES
-from storage.episodes import encode_episode, write_bytes_atomic
+from storage.episodes import encode_episode
+from storage.files import write_bytes_atomic
 from workers.collect import collect_episode
 from workers.env import sample_state
 

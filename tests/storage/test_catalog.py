@@ -9,7 +9,7 @@ import threading
 import numpy as np
 import pytest
 
-from storage import episodes
+from storage import episodes, files
 from storage.catalog import Catalog, connect, ensure_schema, transaction
 from storage.errors import (
     CatalogError,
@@ -54,7 +54,7 @@ def test_add_and_load_round_trip(cat, rng):
     res = cat.add_episode(ep)
     assert not res.duplicate
     assert res.path == cat.data_dir / "episodes" / "2026-11-21" / f"{ep.meta.episode_id}.mcap"
-    assert res.sha256 == episodes.sha256_hex(res.path.read_bytes())
+    assert res.sha256 == files.sha256_hex(res.path.read_bytes())
     row = cat.get(ep.meta.episode_id)
     assert (row.frames, row.task, row.shape, row.split) == (5, "push", "T", "train")
     assert (row.request_id, row.worker_id, row.model_version) == ("req-1", "w-1", "v3")
@@ -115,7 +115,7 @@ def test_sha_mismatch_refused(cat, rng):
 def test_ingest_with_caller_verified_info_indexes_the_same_row(cat, rng, tmp_path):
     data = episodes.encode_episode(make_episode(rng))
     info = episodes.inspect_episode(data)  # what the service learns reading an upload once
-    res = cat.ingest_bytes(data, expected_sha256=episodes.sha256_hex(data), verified=info)
+    res = cat.ingest_bytes(data, expected_sha256=files.sha256_hex(data), verified=info)
     plain_cat = Catalog(tmp_path / "plain")
     plain = plain_cat.ingest_bytes(data)  # the catalog verifies on its own
     fields = ("episode_id", "sha256", "frames", "task", "shape", "request_id", "created", "size_bytes")

@@ -13,7 +13,7 @@ from mcap.reader import make_reader
 from mcap.writer import Writer
 from mcap_protobuf.decoder import DecoderFactory
 
-from storage import episodes
+from storage import episodes, files
 from storage.errors import (
     CorruptEpisodeError,
     EpisodeError,
@@ -72,7 +72,7 @@ def test_round_trip_bytes_and_path(ep, data, tmp_path):
     assert_same(episodes.read_episode(data), ep)
     path = tmp_path / "a" / "ep.mcap"
     sha = episodes.write_episode(path, ep)
-    assert sha == episodes.sha256_hex(path.read_bytes()) == episodes.sha256_hex(data)
+    assert sha == files.sha256_hex(path.read_bytes()) == files.sha256_hex(data)
     assert_same(episodes.read_episode(path), ep)
     assert_same(episodes.read_episode(str(path)), ep)
     assert episodes.verify_episode(path) == ep.meta
@@ -303,7 +303,7 @@ def test_missing_path_is_episode_error(tmp_path):
 def test_write_failure_leaves_no_file_and_no_temp(tmp_path):
     path = tmp_path / "ep.mcap"
     with pytest.raises(TypeError):
-        episodes.write_bytes_atomic(path, ["not", "bytes"])  # fails after the temp file exists
+        files.write_bytes_atomic(path, ["not", "bytes"])  # fails after the temp file exists
     assert os.listdir(tmp_path) == []
 
 
@@ -311,7 +311,7 @@ def test_failed_overwrite_keeps_old_file(ep, data, tmp_path):
     path = tmp_path / "ep.mcap"
     episodes.write_episode(path, ep)
     with pytest.raises(TypeError):
-        episodes.write_bytes_atomic(path, object())
+        files.write_bytes_atomic(path, object())
     assert path.read_bytes() == data
     assert os.listdir(tmp_path) == ["ep.mcap"]
 
