@@ -17,14 +17,8 @@ from typing import Any
 from orchestrator import protocol
 from orchestrator.protocol import AdminRequest, ErrorCode, Event, EventKind, ProtocolError, RequestSpec
 from storage.errors import QueueError, StaleLeaseError, StorageError
-from storage.queue import (
-    IllegalTransitionError,
-    NewRequest,
-    Request,
-    RequestQueue,
-    RequestStatus,
-    UnknownRequestError,
-)
+from storage.queue import RequestQueue
+from storage.requests import IllegalTransitionError, NewRequest, Request, RequestStatus, UnknownRequestError
 
 #: Most requests one ``queue.ls`` returns (keeps the reply under MAX_MESSAGE_BYTES).
 MAX_LIST = 200

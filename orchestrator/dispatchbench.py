@@ -62,7 +62,8 @@ from orchestrator.protocol import Keys
 from orchestrator.service import Service, ServiceConfig
 from storage.catalog import Catalog
 from storage.episodes import encode_episode
-from storage.queue import NewRequest, RequestQueue
+from storage.queue import RequestQueue
+from storage.requests import NewRequest
 from storage.records import Episode, EpisodeMeta
 
 _START = {"shape": "box", "agent": [100.0, 100.0], "agent_vel": [0.0, 0.0], "object": [256.0, 256.0, 0.0],

@@ -44,7 +44,7 @@ from typing import Callable, Protocol, Sequence
 import numpy as np
 
 from orchestrator import protocol
-from storage.queue import NewRequest
+from storage.requests import NewRequest
 from storage.records import STATE_FIELDS, Episode
 
 _COL = {name: i for i, name in enumerate(STATE_FIELDS)}

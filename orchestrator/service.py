@@ -43,7 +43,8 @@ from storage.catalog import Catalog
 from storage.episodes import EpisodeInfo, read_episode
 from storage.errors import EpisodeError, QueueError, StaleLeaseError, StorageError
 from storage.models import ModelRegistry
-from storage.queue import IllegalTransitionError, NewRequest, Request, RequestQueue, RequestStatus
+from storage.queue import RequestQueue
+from storage.requests import IllegalTransitionError, NewRequest, Request, RequestStatus
 from storage.records import Episode
 
 log = logging.getLogger(__name__)

@@ -11,7 +11,8 @@ from orchestrator import admin, protocol
 from orchestrator.protocol import ErrorCode, ProtocolError
 from storage.errors import QueueError, StaleLeaseError, StorageError
 from storage.models import ModelRegistry
-from storage.queue import IllegalTransitionError, NewRequest, RequestQueue, UnknownRequestError
+from storage.queue import RequestQueue
+from storage.requests import IllegalTransitionError, NewRequest, UnknownRequestError
 
 START = {"shape": "box", "agent": [100.0, 100.0], "object": [256.0, 256.0, 0.0]}
 SPEC = {"task": "push", "shape": "box", "start_state": START, "policy": "push", "steps": 20,

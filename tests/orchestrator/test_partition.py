@@ -24,7 +24,8 @@ import pytest
 
 from orchestrator.secure import SecureInitConfig, SecureSet, init_secure
 from storage.catalog import Catalog
-from storage.queue import NewRequest, RequestQueue, RequestStatus
+from storage.queue import RequestQueue
+from storage.requests import NewRequest, RequestStatus
 from workers.env import sample_state
 from tests.orchestrator.test_secure import Proc, start_router, stays_false
 from tests.conftest import wait_for

@@ -12,7 +12,8 @@ from orchestrator.planner import (
     ActivePlanner, ActivePlannerConfig, Candidate, PolicyMix, Scores, UniformPlanner, UniformPlannerConfig,
     AGENT_CLEARANCE, select_diverse, state_at, state_features,
 )
-from storage.queue import NewRequest, RequestQueue
+from storage.queue import RequestQueue
+from storage.requests import NewRequest
 from storage.records import STATE_FIELDS, Episode, EpisodeMeta
 from uncertainty.ensemble import Ensemble
 from uncertainty.model import PredictorConfig

@@ -16,7 +16,8 @@ from orchestrator import protocol, transport
 from orchestrator.protocol import ErrorCode, Keys, LeaseGrant, ProtocolError
 from storage.catalog import Catalog
 from storage.episodes import encode_episode
-from storage.queue import Request, RequestQueue, RequestStatus
+from storage.queue import RequestQueue
+from storage.requests import Request, RequestStatus
 from tests.conftest import wait_for
 from workers.collect import collect_episode
 

@@ -30,7 +30,7 @@ from orchestrator.secure import (CLIENT_ROLES, ROLES, SecureConfigError, SecureI
                                  build_acl, init_secure, private_mode_ok)
 from orchestrator.transport import validate_secure_config
 from orchestrator.service import Service, ServiceConfig
-from storage.queue import RequestStatus
+from storage.requests import RequestStatus
 from tests.conftest import wait_for
 
 REPO = Path(__file__).resolve().parents[2]

@@ -16,7 +16,8 @@ from orchestrator.protocol import ErrorCode, Keys, LeaseGrant, ProtocolError
 from orchestrator.service import Service, ServiceConfig, ServiceError, StoredEpisode
 from storage.catalog import Catalog
 from storage.episodes import encode_episode
-from storage.queue import NewRequest, RequestQueue, RequestStatus
+from storage.queue import RequestQueue
+from storage.requests import NewRequest, RequestStatus
 from tests.conftest import wait_for
 from workers.collect import collect_episode
 

@@ -12,7 +12,7 @@ from orchestrator import dispatchbench
 from orchestrator.cli import main
 from orchestrator.service import Service, ServiceConfig
 from storage.catalog import Catalog
-from storage.queue import RequestStatus
+from storage.requests import RequestStatus
 from tests.conftest import free_port, wait_for
 from tests.orchestrator.test_service import new_request
 from workers.agent import WorkerError, parse_capabilities

@@ -9,7 +9,7 @@ import pytest
 
 from orchestrator.service import Service, ServiceConfig
 from storage.catalog import Catalog
-from storage.queue import RequestStatus
+from storage.requests import RequestStatus
 from tests.conftest import wait_for
 from tests.orchestrator.test_service import new_request
 from workers.agent import WorkerConfig, WorkerError

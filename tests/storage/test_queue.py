@@ -12,11 +12,11 @@ from pathlib import Path
 import pytest
 
 from storage.errors import QueueError, StaleLeaseError
-from storage.queue import (
+from storage.queue import RequestQueue
+from storage.requests import (
     TRANSITIONS,
     IllegalTransitionError,
     NewRequest,
-    RequestQueue,
     RequestStatus,
     UnknownRequestError,
     check_transition,
@@ -337,7 +337,8 @@ def test_processes_never_lease_the_same_request(tmp_path: Path) -> None:
 
 _CHURN = """
 import sys
-from storage.queue import NewRequest, RequestQueue
+from storage.queue import RequestQueue
+from storage.requests import NewRequest
 q = RequestQueue(sys.argv[1])
 start = {"shape": "T", "agent": [100.0, 100.0], "object": [256.0, 256.0, 0.0]}
 i = 0
