@@ -13,8 +13,7 @@ the write lock is released, so no row ever points at a missing file and no other
 ingest can have claimed the name in between.
 
 Other components (``storage.queue``, ``storage.models``) keep their tables in the
-same file: open it with ``connect`` and create them with ``ensure_schema``, which
-records each component's schema version in the ``schema_versions`` table.
+same file (``storage.database``).
 """
 
 from __future__ import annotations
@@ -38,18 +37,15 @@ from storage.episodes import (
     read_episode,
     verify_episode,
 )
+from storage.database import DB_NAME, Migration, connect, ensure_schema, transaction
 from storage.errors import CatalogError, CorruptEpisodeError, EpisodeError
 from storage.files import publish, sha256_hex, stage_bytes
 from storage.records import Episode, EpisodeMeta
 
 #: Splits an episode can belong to. ``eval`` episodes never enter a training snapshot.
 SPLITS: tuple[str, ...] = ("train", "eval")
-DB_NAME = "catalog.sqlite"
 EPISODES_DIR = "episodes"
-BUSY_TIMEOUT_MS = 30_000
 _SAFE_ID = re.compile(r"^[A-Za-z0-9_-]{1,128}$")
-
-Migration = Sequence[str]
 
 _CATALOG_MIGRATIONS: tuple[Migration, ...] = (
     (
@@ -80,61 +76,6 @@ _CATALOG_MIGRATIONS: tuple[Migration, ...] = (
             episode_id TEXT PRIMARY KEY REFERENCES episodes(episode_id))""",
     ),
 )
-
-
-# ---------------------------------------------------------------------------------------------
-# the shared database file
-
-
-def connect(db_path: str | Path) -> sqlite3.Connection:
-    """Opens the catalog database: autocommit (explicit transactions), WAL, busy timeout.
-
-    One connection per thread: open one where you need it and close it after.
-    """
-    conn = sqlite3.connect(db_path, timeout=BUSY_TIMEOUT_MS / 1000, isolation_level=None)
-    conn.row_factory = sqlite3.Row
-    conn.execute(f"PRAGMA busy_timeout = {BUSY_TIMEOUT_MS}")
-    conn.execute("PRAGMA journal_mode = WAL")
-    conn.execute("PRAGMA synchronous = FULL")  # a committed ingest survives power loss
-    conn.execute("PRAGMA foreign_keys = ON")
-    return conn
-
-
-@contextmanager
-def transaction(conn: sqlite3.Connection) -> Iterator[sqlite3.Connection]:
-    """``BEGIN IMMEDIATE`` ... ``COMMIT``; ``ROLLBACK`` and re-raise on any exception."""
-    conn.execute("BEGIN IMMEDIATE")
-    try:
-        yield conn
-    except BaseException:
-        if conn.in_transaction:
-            conn.execute("ROLLBACK")
-        raise
-    conn.execute("COMMIT")
-
-
-def ensure_schema(conn: sqlite3.Connection, component: str, migrations: Sequence[Migration]) -> int:
-    """Applies ``migrations[v:]`` where ``v`` is ``component``'s recorded version; returns the new one.
-
-    Each migration is a sequence of SQL statements, applied in one transaction together
-    with the version bump. Raises ``CatalogError`` if the file is newer than this code.
-    """
-    with transaction(conn):
-        conn.execute("CREATE TABLE IF NOT EXISTS schema_versions ("
-                     "component TEXT PRIMARY KEY, version INTEGER NOT NULL, updated TEXT NOT NULL)")
-        row = conn.execute("SELECT version FROM schema_versions WHERE component = ?", (component,)).fetchone()
-        version = row["version"] if row else 0
-        if version > len(migrations):
-            raise CatalogError(f"{component} tables are at schema version {version}, this code knows "
-                               f"versions up to {len(migrations)}; upgrade activecollect")
-        for statements in migrations[version:]:
-            for sql in statements:
-                conn.execute(sql)
-        if version < len(migrations):
-            conn.execute("INSERT INTO schema_versions(component, version, updated) VALUES (?, ?, ?) "
-                         "ON CONFLICT(component) DO UPDATE SET version = excluded.version, "
-                         "updated = excluded.updated", (component, len(migrations), _now_iso()))
-    return len(migrations)
 
 
 def _now_iso() -> str:

@@ -28,7 +28,7 @@ from enum import Enum
 from pathlib import Path
 from typing import Any
 
-from storage.catalog import DB_NAME, connect, ensure_schema, transaction
+from storage.database import DB_NAME, connect, ensure_schema, transaction
 from storage.errors import CorruptCheckpointError, RegistryError
 from storage.files import fsync_dir, write_synced
 from storage.gate import DEFAULT_METRIC, DEFAULT_MIN_REL_IMPROVEMENT, GateDecision, judge

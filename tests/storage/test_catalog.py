@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 
 from storage import episodes, files
-from storage.catalog import Catalog, connect, ensure_schema, transaction
+from storage.catalog import Catalog
+from storage.database import connect, ensure_schema, transaction
 from storage.errors import (
     CatalogError,
     CorruptEpisodeError,

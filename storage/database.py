@@ -1,0 +1,78 @@
+"""The one SQLite file of a data directory (``DATA/catalog.sqlite``), shared by every component.
+
+The catalog (episodes, eval split), the model registry and the request queue keep their
+tables in it: open it with ``connect`` and create a component's tables with
+``ensure_schema``, which records each component's schema version in ``schema_versions``.
+"""
+
+from __future__ import annotations
+
+import sqlite3
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
+from datetime import datetime, timezone
+from pathlib import Path
+
+from storage.errors import CatalogError
+
+DB_NAME = "catalog.sqlite"
+BUSY_TIMEOUT_MS = 30_000
+
+#: One schema version of a component: the SQL statements that bring it there.
+Migration = Sequence[str]
+
+
+
+def connect(db_path: str | Path) -> sqlite3.Connection:
+    """Opens the catalog database: autocommit (explicit transactions), WAL, busy timeout.
+
+    One connection per thread: open one where you need it and close it after.
+    """
+    conn = sqlite3.connect(db_path, timeout=BUSY_TIMEOUT_MS / 1000, isolation_level=None)
+    conn.row_factory = sqlite3.Row
+    conn.execute(f"PRAGMA busy_timeout = {BUSY_TIMEOUT_MS}")
+    conn.execute("PRAGMA journal_mode = WAL")
+    conn.execute("PRAGMA synchronous = FULL")  # a committed ingest survives power loss
+    conn.execute("PRAGMA foreign_keys = ON")
+    return conn
+
+
+@contextmanager
+def transaction(conn: sqlite3.Connection) -> Iterator[sqlite3.Connection]:
+    """``BEGIN IMMEDIATE`` ... ``COMMIT``; ``ROLLBACK`` and re-raise on any exception."""
+    conn.execute("BEGIN IMMEDIATE")
+    try:
+        yield conn
+    except BaseException:
+        if conn.in_transaction:
+            conn.execute("ROLLBACK")
+        raise
+    conn.execute("COMMIT")
+
+
+def ensure_schema(conn: sqlite3.Connection, component: str, migrations: Sequence[Migration]) -> int:
+    """Applies ``migrations[v:]`` where ``v`` is ``component``'s recorded version; returns the new one.
+
+    Each migration is a sequence of SQL statements, applied in one transaction together
+    with the version bump. Raises ``CatalogError`` if the file is newer than this code.
+    """
+    with transaction(conn):
+        conn.execute("CREATE TABLE IF NOT EXISTS schema_versions ("
+                     "component TEXT PRIMARY KEY, version INTEGER NOT NULL, updated TEXT NOT NULL)")
+        row = conn.execute("SELECT version FROM schema_versions WHERE component = ?", (component,)).fetchone()
+        version = row["version"] if row else 0
+        if version > len(migrations):
+            raise CatalogError(f"{component} tables are at schema version {version}, this code knows "
+                               f"versions up to {len(migrations)}; upgrade activecollect")
+        for statements in migrations[version:]:
+            for sql in statements:
+                conn.execute(sql)
+        if version < len(migrations):
+            conn.execute("INSERT INTO schema_versions(component, version, updated) VALUES (?, ?, ?) "
+                         "ON CONFLICT(component) DO UPDATE SET version = excluded.version, "
+                         "updated = excluded.updated", (component, len(migrations), _now_iso()))
+    return len(migrations)
+
+
+def _now_iso() -> str:
+    return datetime.now(timezone.utc).isoformat(timespec="seconds")
