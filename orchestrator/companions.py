@@ -4,7 +4,8 @@
 a long-running ``serve`` instead retrains every N new training episodes and/or on a
 cron expression, one job at a time in a child process, so leasing never stalls. The
 champion scorer reloads a promoted model on its next call (hot swap), so a promotion
-only has to be announced.
+only has to be announced. Nothing here imports torch: retrains run in child processes,
+and the scorer loads it with the first champion.
 """
 
 from __future__ import annotations
@@ -12,8 +13,8 @@ from __future__ import annotations
 import logging
 from dataclasses import dataclass
 
+from orchestrator.champion import ChampionScorer, FramesSource
 from orchestrator.dashboard import Dashboard, DashboardConfig, DataSources
-from orchestrator.loop import ChampionScorer, FramesSource
 from orchestrator.protocol import EventKind
 from orchestrator.scheduler import RetrainRecord, RetrainScheduler, ScheduleConfig
 from orchestrator.service import Service

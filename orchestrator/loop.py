@@ -1,12 +1,11 @@
 """The closed loop on one machine: collect -> score -> plan -> retrain -> promote -> hot-swap.
 
-Parts, each usable alone:
+Parts, each usable alone (the champion scorer is ``orchestrator.champion``'s, the
+configuration ``orchestrator.loopconfig.RunConfig``):
 
-- ``ChampionScorer``: the ``planner.Scorer`` backed by the registry's champion; it
-  reloads (hot-swaps) when the champion changes, whoever promoted it.
 - ``RoundPlanner``: the service's planner in lockstep rounds: it keeps each round's
   episodes and plans the next round when a retrain has finished.
-- ``run_loop``: ``activecollect run``: the service, N worker processes over Zenoh on
+- ``LoopRun``: ``activecollect run``: the service, N worker processes over Zenoh on
   loopback, the eval split, the seed requests, the retrain scheduler, the dashboard
   and a progress line, until the episode budget is spent; then the report.
 """
@@ -26,81 +25,24 @@ from typing import Callable, Sequence
 import numpy as np
 from tqdm import tqdm
 
+from orchestrator.champion import ChampionScorer, FramesSource
 from orchestrator.dashboard import Dashboard, DashboardConfig, DataSources, learning_curve
+from orchestrator.loopconfig import RunConfig
 from orchestrator.metrics import ServiceMetrics
 from orchestrator.planner import (
-    ActivePlanner, ActivePlannerConfig, Planner, Scores, UniformPlanner, UniformPlannerConfig,
+    ActivePlanner, ActivePlannerConfig, Planner, UniformPlanner, UniformPlannerConfig,
 )
 from orchestrator.protocol import EventKind
-from orchestrator.report import ReportInputs, frames_png, write_report
+from orchestrator.report import ReportInputs, write_report
 from orchestrator.scheduler import RetrainRecord, RetrainScheduler, ScheduleConfig, die_with_parent
 from orchestrator.service import Service, ServiceConfig
 from storage.catalog import Catalog
-from storage.errors import RegistryError
 from storage.models import ModelRegistry
-from storage.queue import NewRequest, RequestQueue
+from storage.queue import RequestQueue
+from storage.requests import NewRequest
 from storage.records import Episode
-from uncertainty.checkpoint import load_ensemble
-from uncertainty.ensemble import Ensemble
 
 log = logging.getLogger(__name__)
-
-
-class ChampionScorer:
-    """Scores episodes with the current champion; None while there is none.
-
-    Every call compares the registry's champion with the loaded one and reloads on a
-    change, so a promotion by the scheduler, by ``activecollect retrain`` from cron or
-    by an operator's rollback is picked up without a restart. ``reload()`` forces it.
-    """
-
-    def __init__(self, data_dir: Path, device: str = "cpu",
-                 observe: Callable[[float], None] = lambda seconds: None) -> None:
-        self.data_dir = Path(data_dir)
-        self.device = device
-        self.observe = observe
-        self._lock = threading.Lock()
-        self._local = threading.local()
-        self.version: str | None = None
-        self.ensemble: Ensemble | None = None
-
-    def _registry(self) -> ModelRegistry:
-        if not hasattr(self._local, "registry"):
-            self._local.registry = ModelRegistry(self.data_dir)
-        return self._local.registry
-
-    def reload(self) -> str | None:
-        """Load the registry's champion if it is not the one loaded; returns its version."""
-        champion = self._registry().champion()
-        with self._lock:
-            if champion == self.version:
-                return champion
-            if champion is None:
-                self.version, self.ensemble = None, None
-                return None
-            try:
-                ensemble = load_ensemble(self._registry(), champion, self.device)
-            except RegistryError as exc:  # a corrupt checkpoint: keep scoring with the one we have
-                log.error("could not load champion %s, keeping %s: %s", champion, self.version, exc)
-                return self.version
-            self.version, self.ensemble = champion, ensemble
-            log.info("scorer now uses champion %s", champion)
-            return champion
-
-    def __call__(self, episode: Episode) -> Scores | None:
-        self.reload()
-        with self._lock:
-            ensemble, version = self.ensemble, self.version
-        if ensemble is None or version is None:
-            return None
-        if ensemble.config.image_size != episode.frames.shape[1]:
-            log.warning("episode %s has %dpx frames, champion %s predicts %dpx; not scored",
-                        episode.meta.episode_id, episode.frames.shape[1], version, ensemble.config.image_size)
-            return Scores(version, np.full(len(episode), np.nan))
-        start = time.perf_counter()
-        per_step = ensemble.disagreement(episode.frames, episode.actions)
-        self.observe(time.perf_counter() - start)
-        return Scores(version, per_step)
 
 
 class RoundPlanner:
@@ -154,79 +96,6 @@ class RoundPlanner:
             return []
         planned = self.inner.plan(episodes)[:room] if episodes else []
         return planned + self.inner.seed(room - len(planned))
-
-
-class FramesSource:
-    """The dashboard's predicted-vs-real PNG: the champion on a few eval episodes, redrawn per champion."""
-
-    def __init__(self, scorer: ChampionScorer, catalog: Catalog, samples: int = 3) -> None:
-        self.scorer = scorer
-        self.catalog = catalog
-        self.samples = samples
-        self._cache: tuple[str | None, bytes] = (None, b"")
-        self._lock = threading.Lock()
-
-    def __call__(self) -> bytes:
-        version = self.scorer.reload()
-        split = self.catalog.eval_split()
-        if version is None or split is None or self.scorer.ensemble is None:
-            return b""
-        with self._lock:
-            if self._cache[0] != version:
-                episodes = [self.catalog.load(i) for i in split.ids[:self.samples]]
-                self._cache = (version, frames_png(self.scorer.ensemble, episodes))
-            return self._cache[1]
-
-
-@dataclass
-class RunConfig:
-    """``activecollect run``: the whole loop on one machine (defaults finish in minutes on 2 CPU cores)."""
-
-    data_dir: Path
-    """Data directory (resumed when it already holds a catalog)."""
-    budget: int = 96
-    """Stop once the catalog holds this many training episodes."""
-    round_episodes: int = 24
-    """Retrain after every this many episodes; the next round is planned by the model it made."""
-    workers: int = 2
-    """Worker processes over Zenoh on loopback."""
-    planner: str = "active"
-    """``active`` (ensemble disagreement) or ``uniform`` (the control arm)."""
-    steps: int = 40
-    """Steps per episode."""
-    image_size: int = 32
-    """Frame size in pixels (workers render at this size)."""
-    eval_episodes: int = 16
-    """Episodes in the eval split (push policy, all shapes), made when missing."""
-    eval_seed: int = 1234
-    """Seed of the eval split."""
-    seed: int = 0
-    """Seeds the planner."""
-    retrain_args: tuple[str, ...] = ("--members", "4", "--epochs", "6", "--widths", "8,16,32", "--max-windows",
-                                     "1200", "--from-champion", "--device", "cpu", "--min-improvement", "0.005")
-    """Arguments of each ``activecollect retrain`` job."""
-    retrain_timeout_s: float = 600.0
-    """A retrain running longer is killed (the champion stays)."""
-    dashboard_port: int = 8765
-    """Dashboard port on 127.0.0.1 (0 = any free port, -1 = no dashboard)."""
-    namespace: str = "activecollect"
-    """Zenoh key prefix."""
-    zenoh_port: int = 0
-    """Loopback TCP port of the service (0 = a free one)."""
-    lease_s: float = 30.0
-    """Lease length handed to workers."""
-    progress: bool = True
-    """Show the live progress line."""
-
-    def __post_init__(self) -> None:
-        self.data_dir = Path(self.data_dir)
-        if self.planner not in ("active", "uniform"):
-            raise ValueError(f"planner must be active or uniform, found {self.planner!r}")
-        for name in ("budget", "round_episodes", "workers", "steps", "image_size", "eval_episodes"):
-            if getattr(self, name) < 1:
-                raise ValueError(f"{name} must be >= 1, found {getattr(self, name)}")
-        if self.dashboard_port < -1 or self.dashboard_port > 65535:
-            raise ValueError(f"dashboard_port must be -1 (off), 0 (any) or a port, found {self.dashboard_port}")
 
 
 #: Creates (or checks) the pinned eval split: (catalog, episodes, seed, steps, image size) -> its hash.

@@ -15,9 +15,11 @@ from the comparison (with asynchronous workers, how many episodes arrive while a
 retrain runs would differ between arms). The queue, catalog, registry, trainer
 and gate are the real ones.
 
-The active arm ranks steps by ``LoopBenchConfig.signal`` (see ``SIGNALS``); episodes are
-stored under ids that sort in collection order (``_bench_id``), so training reads them
-in the same order in every run and two runs of one configuration give the same numbers.
+The comparison is configured by ``orchestrator.loopconfig.LoopBenchConfig`` (torch-free,
+for the CLI's parser). The active arm ranks steps by its ``signal`` (see
+``loopconfig.SIGNALS``); episodes are stored under ids that sort in collection order
+(``_bench_id``), so training reads them in the same order in every run and two runs
+of one configuration give the same numbers.
 
 Headline: the episodes the uniform arm needs to reach the active arm's final eval
 error, divided by the active arm's budget (< 1: uniform is more efficient; > 1:
@@ -30,88 +32,28 @@ import dataclasses
 import json
 import math
 import time
-from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Callable, Sequence
 
 import numpy as np
 from matplotlib.figure import Figure
 
-from orchestrator.loop import ChampionScorer
-from orchestrator.planner import (
-    ActivePlanner, ActivePlannerConfig, Planner, PolicyMix, Scores, UniformPlanner, UniformPlannerConfig,
-)
-from orchestrator.scheduler import run_retrain
+from orchestrator.champion import ChampionScorer
+from orchestrator.loopconfig import LoopBenchConfig
+from orchestrator.planner import ActivePlanner, Planner, Scores, UniformPlanner
+from orchestrator.retrain import run_retrain
 from storage.catalog import Catalog
-from storage.queue import Request, RequestQueue
+from storage.queue import RequestQueue
+from storage.requests import Request
 from storage.records import Episode
+from uncertainty.config import TrainConfig
 from uncertainty.score import change_disagreement, object_moving
-from uncertainty.train import TrainConfig
 
 #: Collects the episode a request asks for: (request, policy seed, image size) -> Episode.
 Collect = Callable[[Request, int, int], Episode]
 #: Creates (or checks) the pinned eval split in a catalog: (catalog, episodes, seed, steps, image size) -> hash.
 MakeEvalSplit = Callable[[Catalog, int, int, int, int], str]
 ARMS = ("active", "uniform")
-#: What the active arm ranks steps by: ``disagreement`` (variance over all pixels, as the service's
-#: scorer), ``change`` (variance over the pixels that change), ``object`` (``change`` on the steps
-#: where the object moves, i.e. the pusher is in contact; other steps are not candidates).
-SIGNALS = ("disagreement", "change", "object")
-
-
-@dataclass
-class LoopBenchConfig:
-    """One comparison of the two planners."""
-
-    seeds: tuple[int, ...] = (0, 1, 2)
-    """One run of each arm per seed."""
-    budget: int = 48
-    """Training episodes per arm."""
-    round_episodes: int = 16
-    """Retrain after every this many episodes (the first round is the uniform seed)."""
-    steps: int = 40
-    """Steps per episode."""
-    image_size: int = 16
-    """Frame size in pixels (16: three seeds of both arms take ~25 min on a busy 2-core CPU)."""
-    eval_episodes: int = 16
-    """Episodes in the eval split (push policy, all shapes)."""
-    eval_seed: int = 1234
-    """Seed of the eval split (the same for every seed and arm)."""
-    train: TrainConfig = field(default_factory=lambda: TrainConfig(
-        members=4, epochs=6, batch_size=32, widths=(8, 16, 32), device="cpu", progress=False,
-        min_rel_improvement=0.0))
-    """Training settings (every retrain trains from scratch on all data so far)."""
-    active: ActivePlannerConfig = field(default_factory=lambda: ActivePlannerConfig(
-        budget_per_round=16, max_queue_depth=16, percentile=75.0, min_distance=0.15))
-    """The active arm's planner (its budget per round is set to ``round_episodes``)."""
-    policies: PolicyMix = field(default_factory=PolicyMix)
-    """The collection policies of both arms."""
-    signal: str = "disagreement"
-    """What the active arm ranks steps by (one of ``SIGNALS``)."""
-    signal_horizon: int = 1
-    """Prediction horizon of the signal."""
-
-    def __post_init__(self) -> None:
-        if not self.seeds:
-            raise ValueError("seeds must name at least one seed")
-        if self.round_episodes < 1 or self.budget < 2 * self.round_episodes:
-            raise ValueError(f"need round_episodes >= 1 and budget >= 2 rounds, found round_episodes="
-                             f"{self.round_episodes}, budget={self.budget}")
-        if self.signal not in SIGNALS or self.signal_horizon < 1:
-            raise ValueError(f"signal must be one of {SIGNALS} and signal_horizon >= 1, found "
-                             f"{self.signal!r} and {self.signal_horizon}")
-        self.active.budget_per_round = self.round_episodes
-        self.active.max_queue_depth = self.round_episodes
-        self.active.steps = self.steps
-        self.active.seed_uniform = self._uniform()
-
-    def _uniform(self) -> UniformPlannerConfig:
-        return UniformPlannerConfig(steps=self.steps, max_queue_depth=self.round_episodes, policies=self.policies)
-
-    def to_json(self) -> dict:
-        d = asdict(self)
-        d["train"] = self.train.to_dict()
-        return d
 
 
 class SignalScorer:
@@ -144,7 +86,7 @@ def make_planner(arm: str, cfg: LoopBenchConfig, scorer: ChampionScorer, rng: np
     if arm == "active":
         return ActivePlanner(cfg.active, SignalScorer(scorer, cfg.signal, cfg.signal_horizon), rng, depth)
     if arm == "uniform":
-        return UniformPlanner(cfg._uniform(), rng, depth)
+        return UniformPlanner(cfg.uniform_config(), rng, depth)
     raise ValueError(f"arm must be one of {ARMS}, found {arm!r}")
 
 

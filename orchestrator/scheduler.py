@@ -10,15 +10,17 @@ registry's gate. When a job promotes a new champion, ``on_promoted(version)`` le
 the service hot-swap its scorer.
 
 The lock that keeps two retrains from training at once is taken by the job
-itself (``retrain_lock``), so it also holds against ``activecollect retrain``
-started by system cron or by hand.
+itself (``retrain_lock``, held by ``orchestrator.retrain.run_retrain``), so it also
+holds against ``activecollect retrain`` started by system cron or by hand.
+
+This module imports no torch (the job does, in its own process), so ``serve`` and the
+CLI's parsers load it at no cost.
 """
 
 from __future__ import annotations
 
 import contextlib
 import ctypes
-import dataclasses
 import ctypes.util
 import fcntl
 import json
@@ -35,10 +37,6 @@ from pathlib import Path
 from typing import Callable, Iterator
 
 from croniter import croniter
-
-from storage.catalog import Catalog
-from storage.models import ModelRegistry
-from uncertainty.train import TrainConfig, train_candidate
 
 log = logging.getLogger(__name__)
 
@@ -175,31 +173,6 @@ def lock_held(data_dir: Path) -> bool:
     finally:
         os.close(fd)
     return False
-
-
-def run_retrain(data_dir: Path, cfg: TrainConfig, wait: bool = False) -> dict:
-    """One retrain job under the lock: train on the train snapshot, evaluate, register, gate.
-
-    With ``cfg.from_champion`` the champion's weights are fine-tuned on all the data (a
-    fresh model while there is no champion yet).
-
-    Returns ``{"version", "promoted", "reason", "metrics", "champion"}``. Raises
-    ``RetrainBusyError`` when another job holds the lock (and ``wait`` is False), and
-    whatever training raises (``uncertainty`` and ``storage`` errors); in every failure
-    the champion is untouched, because only the gate at the very end promotes.
-    """
-    data_dir = Path(data_dir)
-    with retrain_lock(data_dir, wait=wait):
-        catalog = Catalog(data_dir)
-        registry = ModelRegistry(data_dir)
-        if cfg.from_champion and registry.champion() is None:  # the first retrain has nothing to start from
-            cfg = dataclasses.replace(cfg, from_champion=False)
-        note_phase(data_dir, "training")
-        result = train_candidate(catalog, registry, cfg)
-        note_phase(data_dir, "done")
-        return {"version": result.version, "promoted": result.decision.promoted,
-                "reason": result.decision.reason, "champion": registry.champion(),
-                "metrics": {k: v for k, v in result.metrics.items() if not isinstance(v, (list, dict))}}
 
 
 _PR_SET_PDEATHSIG = 1  # linux/prctl.h

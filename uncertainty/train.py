@@ -11,17 +11,19 @@ from __future__ import annotations
 import math
 import sys
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from typing import Any, Callable, Sequence
 
 import numpy as np
 import torch
 from tqdm import tqdm
 
-from storage.models import GateDecision, ModelRegistry
+from storage.gate import GateDecision
+from storage.models import ModelRegistry
 from storage.records import Episode
 from uncertainty import metrics as M
 from uncertainty.checkpoint import load_ensemble, save_candidate
+from uncertainty.config import TrainConfig  # defined torch-free for the CLI; importable from here too
 from uncertainty.data import (CatalogLike, Windows, action_stats, build_windows, load_eval, load_train,
                               member_indices)
 from uncertainty.ensemble import Ensemble, default_device
@@ -29,71 +31,16 @@ from uncertainty.errors import ConfigError, DataError
 from uncertainty.model import PredictorConfig
 
 
-@dataclass
-class TrainConfig:
-    """One training run (``activecollect train`` builds it)."""
+def resolve_device(device: str) -> torch.device:
+    """The torch device a ``TrainConfig.device`` names ("auto": CUDA if available, else CPU).
 
-    members: int = 5
-    """Ensemble size K (ignored when warm-starting: the champion's K is kept)."""
-    epochs: int = 8
-    """Passes over the training windows."""
-    batch_size: int = 16
-    """Windows per member per step."""
-    lr: float = 1.5e-3
-    """Peak Adam learning rate (cosine-decayed to a tenth)."""
-    grad_clip: float | None = 1.0
-    """Per-member gradient norm cap (None: no clipping); keeps one bad batch from derailing a member."""
-    bootstrap: bool = False
-    """Train each member on a bootstrap resample of the episodes."""
-    seed: int = 0
-    """Seeds initialisation, shuffling and bootstrap draws."""
-    device: str = "auto"
-    """"auto" (CUDA if available), "cpu" or "cuda"."""
-    max_windows: int | None = None
-    """Cap on training windows (a seeded random subset); None uses all."""
-    max_episodes: int | None = None
-    """Cap on training episodes (the snapshot's first ones); None uses all."""
-    from_champion: bool = False
-    """Warm-start from the champion's weights (and keep its normalisation)."""
-    context: int = 2
-    """Context frames C of a fresh model."""
-    widths: tuple[int, int, int] = (16, 32, 64)
-    """Channel widths of a fresh model."""
-    min_rel_improvement: float = 0.02
-    """The gate's minimum relative improvement of h1_mse over the champion."""
-    eval_rollout_stride: int = 5
-    """Start every n-th eval step for the h5/h10 rollouts (h1 uses every step)."""
-    progress: bool | None = None
-    """Show a progress bar; None: only when stderr is a terminal."""
-
-    def __post_init__(self) -> None:
-        for name in ("members", "epochs", "batch_size", "context", "eval_rollout_stride"):
-            if int(getattr(self, name)) < 1:
-                raise ConfigError(f"{name} must be >= 1, found {getattr(self, name)}")
-        if not self.lr > 0 or not math.isfinite(self.lr):
-            raise ConfigError(f"lr must be a positive number, found {self.lr}")
-        if self.grad_clip is not None and not self.grad_clip > 0:
-            raise ConfigError(f"grad_clip must be a positive number or None, found {self.grad_clip}")
-        for name in ("max_windows", "max_episodes"):
-            if getattr(self, name) is not None and getattr(self, name) < 1:
-                raise ConfigError(f"{name} must be >= 1 or None, found {getattr(self, name)}")
-        if self.device not in ("auto", "cpu", "cuda"):
-            raise ConfigError(f"device must be auto, cpu or cuda, found {self.device!r}")
-        if not 0 <= self.min_rel_improvement < 1:
-            raise ConfigError(f"min_rel_improvement must be in [0, 1), found {self.min_rel_improvement}")
-        self.widths = tuple(int(w) for w in self.widths)
-
-    def torch_device(self) -> torch.device:
-        if self.device == "auto":
-            return default_device()
-        if self.device == "cuda" and not torch.cuda.is_available():
-            raise ConfigError("device cuda requested but torch sees no CUDA device")
-        return torch.device(self.device)
-
-    def to_dict(self) -> dict[str, Any]:
-        d = asdict(self)
-        d["widths"] = list(self.widths)
-        return d
+    Raises ``ConfigError`` when "cuda" is asked for and torch sees no CUDA device.
+    """
+    if device == "auto":
+        return default_device()
+    if device == "cuda" and not torch.cuda.is_available():
+        raise ConfigError("device cuda requested but torch sees no CUDA device")
+    return torch.device(device)
 
 
 @dataclass
@@ -251,7 +198,7 @@ def new_ensemble(cfg: TrainConfig, episodes: Sequence[Episode]) -> Ensemble:
     pcfg = PredictorConfig(image_size=int(episodes[0].frames.shape[1]), context=cfg.context, widths=cfg.widths)
     ens = Ensemble(pcfg, members=cfg.members, seed=cfg.seed)
     ens.set_action_stats(*action_stats(episodes))
-    return ens.to(cfg.torch_device())
+    return ens.to(resolve_device(cfg.device))
 
 
 def train_windows(episodes: Sequence[Episode], ensemble: Ensemble, cfg: TrainConfig) -> Windows:
@@ -277,7 +224,7 @@ def train_candidate(catalog: CatalogLike, registry: ModelRegistry, cfg: TrainCon
         parent = registry.champion()
         if parent is None:
             raise ConfigError("--from-champion given but there is no champion yet")
-        ensemble = load_ensemble(registry, parent, cfg.torch_device())
+        ensemble = load_ensemble(registry, parent, resolve_device(cfg.device))
         size = int(data.episodes[0].frames.shape[1])
         if ensemble.config.image_size != size:
             raise ConfigError(f"champion {parent} predicts {ensemble.config.image_size}px frames, "

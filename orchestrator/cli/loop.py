@@ -1,8 +1,13 @@
 """The closed loop's commands: ``run``, ``retrain``, ``dashboard`` and ``bench loop``.
 
 Argument parsing and printing only; each command is one call into
-``orchestrator.loop``, ``orchestrator.scheduler``, ``orchestrator.dashboard`` or
+``orchestrator.loop``, ``orchestrator.retrain``, ``orchestrator.dashboard`` or
 ``orchestrator.loopbench``.
+
+``run``, ``retrain`` and ``bench loop`` import their modules (and with them torch,
+about 2 s) when they run, so the parsers built here, and every other command,
+start without it; their settings come from the torch-free ``orchestrator.loopconfig``
+and ``uncertainty.config``.
 """
 
 from __future__ import annotations
@@ -14,20 +19,21 @@ import threading
 import time
 from pathlib import Path
 
-from orchestrator import loop, loopbench
+from orchestrator.champion import ChampionScorer, FramesSource
 from orchestrator.cli import common
 from orchestrator.dashboard import Dashboard, DashboardConfig, DataSources
-from orchestrator.scheduler import EXIT_BUSY, RetrainBusyError, run_retrain
+from orchestrator.loopconfig import SIGNALS, LoopBenchConfig, RunConfig
+from orchestrator.scheduler import EXIT_BUSY, RetrainBusyError
 from storage.catalog import Catalog
-from storage.queue import Request
+from storage.requests import Request
 from storage.records import Episode
-from uncertainty.train import TrainConfig
+from uncertainty.config import TrainConfig
 # The CLI is the composition root: it alone hands the simulator to the orchestrator's loops.
 from workers.collect import collect_episode, create_eval_split
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    d = loop.RunConfig(data_dir=common.DEFAULT_DATA)
+    d = RunConfig(data_dir=common.DEFAULT_DATA)
     p = sub.add_parser("run", help="the whole loop on this machine: service, workers, retrains, report")
     common.add_data_arg(p)
     common.add_json_arg(p)
@@ -69,7 +75,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def register_bench(bench: argparse._SubParsersAction) -> None:
-    d = loopbench.LoopBenchConfig()
+    d = LoopBenchConfig()
     p = bench.add_parser("loop", help="active vs uniform planner: eval error per episodes collected")
     common.add_json_arg(p)
     p.add_argument("--seeds", type=common.positive_int, default=len(d.seeds),
@@ -86,7 +92,7 @@ def register_bench(bench: argparse._SubParsersAction) -> None:
     p.add_argument("--members", type=common.positive_int, default=d.train.members,
                    help=f"ensemble size (default {d.train.members})")
     p.add_argument("--device", choices=("auto", "cpu", "cuda"), default=d.train.device, help="torch device")
-    p.add_argument("--signal", choices=loopbench.SIGNALS, default=d.signal,
+    p.add_argument("--signal", choices=SIGNALS, default=d.signal,
                    help=f"what the active arm ranks steps by (default {d.signal})")
     p.add_argument("--out", type=Path, default=None,
                    help="output directory (default ./activecollect-bench/loop-<timestamp>)")
@@ -107,20 +113,21 @@ def bench_eval_split(catalog: Catalog, episodes: int, seed: int, steps: int, ima
 
 
 def _bench_loop(args: argparse.Namespace) -> int:
-    d = loopbench.LoopBenchConfig()
+    from orchestrator.loopbench import run_bench  # torch: imported when the command runs (start-up cost)
+    d = LoopBenchConfig()
     train = TrainConfig(**{**d.train.to_dict(), "epochs": args.epochs, "members": args.members,
                            "device": args.device, "widths": d.train.widths})
     try:
-        cfg = loopbench.LoopBenchConfig(seeds=tuple(range(args.seeds)), budget=args.budget,
-                                        round_episodes=args.round_episodes, steps=args.steps,
-                                        image_size=args.image_size, train=train, signal=args.signal)
+        cfg = LoopBenchConfig(seeds=tuple(range(args.seeds)), budget=args.budget,
+                              round_episodes=args.round_episodes, steps=args.steps,
+                              image_size=args.image_size, train=train, signal=args.signal)
     except ValueError as exc:
         raise common.UsageError(str(exc)) from None
     out = args.out or Path("activecollect-bench") / time.strftime("loop-%Y%m%dT%H%M%S")
     if (out / "summary.json").exists():
         raise common.UsageError(f"{out} already holds a bench loop result; give a fresh --out")
     log = (lambda line: print(line, file=sys.stderr, flush=True))
-    summary = loopbench.run_bench(cfg, out, bench_collect, bench_eval_split, log=log)
+    summary = run_bench(cfg, out, bench_collect, bench_eval_split, log=log)
     if args.json:
         common.print_json(summary)
         return 0
@@ -175,15 +182,16 @@ def _widths(text: str) -> tuple[int, int, int]:
 
 
 def _run(args: argparse.Namespace) -> int:
+    from orchestrator.loop import LoopRun  # torch: imported when the command runs (start-up cost)
     try:
-        cfg = loop.RunConfig(data_dir=args.data, budget=args.budget, round_episodes=args.round_episodes,
-                             workers=args.workers, planner=args.planner, steps=args.steps,
-                             image_size=args.image_size, eval_episodes=args.eval_episodes, seed=args.seed,
-                             dashboard_port=args.dashboard_port, retrain_args=tuple(args.retrain_args.split()),
-                             progress=not args.no_progress)
+        cfg = RunConfig(data_dir=args.data, budget=args.budget, round_episodes=args.round_episodes,
+                        workers=args.workers, planner=args.planner, steps=args.steps,
+                        image_size=args.image_size, eval_episodes=args.eval_episodes, seed=args.seed,
+                        dashboard_port=args.dashboard_port, retrain_args=tuple(args.retrain_args.split()),
+                        progress=not args.no_progress)
     except ValueError as exc:
         raise common.UsageError(str(exc)) from None
-    run = loop.LoopRun(cfg, bench_eval_split)
+    run = LoopRun(cfg, bench_eval_split)
     result = run.run()
     if args.json:
         common.print_json(result.to_json())
@@ -197,6 +205,7 @@ def _run(args: argparse.Namespace) -> int:
 
 
 def _retrain(args: argparse.Namespace) -> int:
+    from orchestrator.retrain import run_retrain  # torch: imported when the command runs (start-up cost)
     try:
         result = run_retrain(args.data, train_config(args), wait=args.wait)
     except RetrainBusyError as exc:
@@ -216,7 +225,7 @@ def _retrain(args: argparse.Namespace) -> int:
 def _dashboard(args: argparse.Namespace) -> int:
     if not (args.data / "catalog.sqlite").exists():
         raise common.UsageError(f"no catalog in {args.data} (expected {args.data / 'catalog.sqlite'})")
-    frames = loop.FramesSource(loop.ChampionScorer(args.data), Catalog(args.data))
+    frames = FramesSource(ChampionScorer(args.data), Catalog(args.data))
     dash = Dashboard(DashboardConfig(host=args.host, port=args.port), DataSources(args.data, frames_png=frames).sources())
     try:
         dash.start()

@@ -2,6 +2,10 @@
 
 Argument parsing and printing only: every command is one call into ``uncertainty`` (training,
 evaluation, scoring, the scoring benchmark) or ``storage.models`` (the registry and its gate).
+
+The registry commands need no torch; the handlers that train, evaluate, score or
+benchmark import ``uncertainty``'s torch modules (about 2 s) when they run, so
+building the parser, and every other command, does not.
 """
 
 from __future__ import annotations
@@ -10,7 +14,7 @@ import argparse
 import math
 import sys
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from orchestrator.cli import common
 from storage.catalog import Catalog
@@ -18,12 +22,11 @@ from storage.episodes import read_episode
 from storage.errors import CatalogError, CorruptCheckpointError, EpisodeError, RegistryError, StorageError
 from storage.models import ModelRecord, ModelRegistry
 from storage.records import Episode
-from uncertainty.benchmark import run_score_bench
-from uncertainty.checkpoint import load_ensemble
-from uncertainty.ensemble import Ensemble
+from uncertainty.config import TrainConfig
 from uncertainty.errors import ConfigError, UncertaintyError
-from uncertainty.score import score_episode
-from uncertainty.train import TrainConfig, evaluate, train_candidate
+
+if TYPE_CHECKING:
+    from uncertainty.ensemble import Ensemble
 
 _DEVICES = ("auto", "cpu", "cuda")
 
@@ -224,6 +227,7 @@ def register_bench(bench_sub: argparse._SubParsersAction) -> None:
 
 
 def _train(args: argparse.Namespace) -> int:
+    from uncertainty.train import train_candidate  # torch: imported when the command runs (start-up cost)
     data = _data_dir(args)
     try:
         cfg = TrainConfig(members=args.members, epochs=args.epochs, from_champion=args.from_champion,
@@ -266,6 +270,7 @@ def _load(registry: ModelRegistry, version: str | None, device: str) -> Ensemble
     if version is None and registry.champion() is None:
         _fail("no champion model yet: train one first (activecollect train)")
         return None
+    from uncertainty.checkpoint import load_ensemble  # torch: imported when the command runs (start-up cost)
     try:
         return load_ensemble(registry, version, None if device == "auto" else device)
     except (CorruptCheckpointError, UncertaintyError) as exc:
@@ -274,6 +279,7 @@ def _load(registry: ModelRegistry, version: str | None, device: str) -> Ensemble
 
 
 def _eval(args: argparse.Namespace) -> int:
+    from uncertainty.train import evaluate  # torch: imported when the command runs (start-up cost)
     data = _data_dir(args)
     registry = ModelRegistry(data)
     if args.version is not None:
@@ -310,6 +316,7 @@ def _episode(arg: str, data: Path) -> Episode:
 
 
 def _score(args: argparse.Namespace) -> int:
+    from uncertainty.score import score_episode  # torch: imported when the command runs (start-up cost)
     try:
         episode = _episode(args.episode, Path(args.data))
     except EpisodeError as exc:
@@ -338,6 +345,7 @@ def _fmt_xy(values: Any) -> str:
 
 
 def _bench_score(args: argparse.Namespace) -> int:
+    from uncertainty.benchmark import run_score_bench  # torch: imported when the command runs (start-up cost)
     try:
         out = run_score_bench(members=args.members, image_size=args.size, seconds=args.seconds,
                               threads=args.threads, device=args.device)

@@ -2,6 +2,8 @@
 
 Operator commands (``queue``, ``workers``, ``stats``, ``watch``) are Zenoh queries to
 ``NS/admin/**``; when no service answers they say so in one line and exit 1.
+
+Nothing here imports torch: ``serve``'s champion scorer loads it with the first champion.
 """
 
 from __future__ import annotations
@@ -21,14 +23,14 @@ import numpy as np
 import zenoh
 
 from orchestrator import dispatchbench, protocol, transport
+from orchestrator.champion import ChampionScorer
 from orchestrator.cli import common
-from orchestrator.loop import ChampionScorer
+from orchestrator.companions import CompanionConfig, Companions
 from orchestrator.planner import ActivePlanner, ActivePlannerConfig, UniformPlanner, UniformPlannerConfig, \
     uniform_start_state
 from orchestrator.protocol import AdminRequest, Event, Keys, ProtocolError
-from orchestrator.companions import CompanionConfig, Companions
 from orchestrator.service import PlannerFactory, Service, ServiceConfig, ServiceContext, ServiceError
-from storage.queue import RequestStatus
+from storage.requests import RequestStatus
 from workers import agent
 
 PLANNERS = ("active", "uniform", "none")

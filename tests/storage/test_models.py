@@ -11,7 +11,8 @@ import threading
 import pytest
 
 from storage.errors import CorruptCheckpointError, RegistryError
-from storage.models import GateDecision, ModelRegistry, ModelStatus
+from storage.gate import GateDecision
+from storage.models import ModelRegistry, ModelStatus
 
 SPLIT = "split-aaaa"
 

@@ -1,0 +1,114 @@
+"""The registry's champion, loaded when needed: the planner's scorer and the dashboard's frames.
+
+``ChampionScorer`` is the ``planner.Scorer`` backed by the champion; it reloads
+(hot-swaps) when the champion changes, whoever promoted it. ``FramesSource`` draws
+the dashboard's predicted-vs-real picture with it.
+
+Torch (about 2 s and 350 MB) is imported when the first champion is loaded, not when
+this module is: ``serve`` and ``dashboard`` over a registry with no champion yet never
+load it. The two imports inside functions below are for that start-up cost, not to
+break a cycle (both point down: ``orchestrator`` -> ``uncertainty``).
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from pathlib import Path
+from typing import TYPE_CHECKING, Callable
+
+import numpy as np
+
+from orchestrator.planner import Scores
+from storage.catalog import Catalog
+from storage.errors import RegistryError
+from storage.models import ModelRegistry
+from storage.records import Episode
+
+if TYPE_CHECKING:
+    from uncertainty.ensemble import Ensemble
+
+log = logging.getLogger(__name__)
+
+
+class ChampionScorer:
+    """Scores episodes with the current champion; None while there is none.
+
+    Every call compares the registry's champion with the loaded one and reloads on a
+    change, so a promotion by the scheduler, by ``activecollect retrain`` from cron or
+    by an operator's rollback is picked up without a restart. ``reload()`` forces it.
+    """
+
+    def __init__(self, data_dir: Path, device: str = "cpu",
+                 observe: Callable[[float], None] = lambda seconds: None) -> None:
+        self.data_dir = Path(data_dir)
+        self.device = device
+        self.observe = observe
+        self._lock = threading.Lock()
+        self._local = threading.local()
+        self.version: str | None = None
+        self.ensemble: Ensemble | None = None
+
+    def _registry(self) -> ModelRegistry:
+        if not hasattr(self._local, "registry"):
+            self._local.registry = ModelRegistry(self.data_dir)
+        return self._local.registry
+
+    def reload(self) -> str | None:
+        """Load the registry's champion if it is not the one loaded; returns its version."""
+        champion = self._registry().champion()
+        with self._lock:
+            if champion == self.version:
+                return champion
+            if champion is None:
+                self.version, self.ensemble = None, None
+                return None
+            from uncertainty.checkpoint import load_ensemble  # torch: start-up cost, see the module docstring
+            try:
+                ensemble = load_ensemble(self._registry(), champion, self.device)
+            except RegistryError as exc:  # a corrupt checkpoint: keep scoring with the one we have
+                log.error("could not load champion %s, keeping %s: %s", champion, self.version, exc)
+                return self.version
+            self.version, self.ensemble = champion, ensemble
+            log.info("scorer now uses champion %s", champion)
+            return champion
+
+    def __call__(self, episode: Episode) -> Scores | None:
+        self.reload()
+        with self._lock:
+            ensemble, version = self.ensemble, self.version
+        if ensemble is None or version is None:
+            return None
+        if ensemble.config.image_size != episode.frames.shape[1]:
+            log.warning("episode %s has %dpx frames, champion %s predicts %dpx; not scored",
+                        episode.meta.episode_id, episode.frames.shape[1], version, ensemble.config.image_size)
+            return Scores(version, np.full(len(episode), np.nan))
+        start = time.perf_counter()
+        per_step = ensemble.disagreement(episode.frames, episode.actions)
+        self.observe(time.perf_counter() - start)
+        return Scores(version, per_step)
+
+
+class FramesSource:
+    """The dashboard's predicted-vs-real PNG: the champion on a few eval episodes, redrawn per champion."""
+
+    def __init__(self, scorer: ChampionScorer, catalog: Catalog, samples: int = 3) -> None:
+        self.scorer = scorer
+        self.catalog = catalog
+        self.samples = samples
+        self._cache: tuple[str | None, bytes] = (None, b"")
+        self._lock = threading.Lock()
+
+    def __call__(self) -> bytes:
+        version = self.scorer.reload()
+        split = self.catalog.eval_split()
+        ensemble = self.scorer.ensemble
+        if version is None or split is None or ensemble is None:
+            return b""
+        from orchestrator.report import frames_png  # torch: start-up cost, see the module docstring
+        with self._lock:
+            if self._cache[0] != version:
+                episodes = [self.catalog.load(i) for i in split.ids[:self.samples]]
+                self._cache = (version, frames_png(ensemble, episodes))
+            return self._cache[1]

@@ -1,0 +1,127 @@
+"""The closed loop's configurations: ``RunConfig`` (``activecollect run``) and
+``LoopBenchConfig`` (``activecollect bench loop``).
+
+Free of torch, so the CLI builds its parsers from these defaults without loading the
+models; ``orchestrator.loop`` and ``orchestrator.loopbench`` run them.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+from orchestrator.planner import ActivePlannerConfig, PolicyMix, UniformPlannerConfig
+from uncertainty.config import TrainConfig
+
+
+@dataclass
+class RunConfig:
+    """``activecollect run``: the whole loop on one machine (defaults finish in minutes on 2 CPU cores)."""
+
+    data_dir: Path
+    """Data directory (resumed when it already holds a catalog)."""
+    budget: int = 96
+    """Stop once the catalog holds this many training episodes."""
+    round_episodes: int = 24
+    """Retrain after every this many episodes; the next round is planned by the model it made."""
+    workers: int = 2
+    """Worker processes over Zenoh on loopback."""
+    planner: str = "active"
+    """``active`` (ensemble disagreement) or ``uniform`` (the control arm)."""
+    steps: int = 40
+    """Steps per episode."""
+    image_size: int = 32
+    """Frame size in pixels (workers render at this size)."""
+    eval_episodes: int = 16
+    """Episodes in the eval split (push policy, all shapes), made when missing."""
+    eval_seed: int = 1234
+    """Seed of the eval split."""
+    seed: int = 0
+    """Seeds the planner."""
+    retrain_args: tuple[str, ...] = ("--members", "4", "--epochs", "6", "--widths", "8,16,32", "--max-windows",
+                                     "1200", "--from-champion", "--device", "cpu", "--min-improvement", "0.005")
+    """Arguments of each ``activecollect retrain`` job."""
+    retrain_timeout_s: float = 600.0
+    """A retrain running longer is killed (the champion stays)."""
+    dashboard_port: int = 8765
+    """Dashboard port on 127.0.0.1 (0 = any free port, -1 = no dashboard)."""
+    namespace: str = "activecollect"
+    """Zenoh key prefix."""
+    zenoh_port: int = 0
+    """Loopback TCP port of the service (0 = a free one)."""
+    lease_s: float = 30.0
+    """Lease length handed to workers."""
+    progress: bool = True
+    """Show the live progress line."""
+
+    def __post_init__(self) -> None:
+        self.data_dir = Path(self.data_dir)
+        if self.planner not in ("active", "uniform"):
+            raise ValueError(f"planner must be active or uniform, found {self.planner!r}")
+        for name in ("budget", "round_episodes", "workers", "steps", "image_size", "eval_episodes"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name} must be >= 1, found {getattr(self, name)}")
+        if self.dashboard_port < -1 or self.dashboard_port > 65535:
+            raise ValueError(f"dashboard_port must be -1 (off), 0 (any) or a port, found {self.dashboard_port}")
+
+
+#: What the active arm ranks steps by: ``disagreement`` (variance over all pixels, as the service's
+#: scorer), ``change`` (variance over the pixels that change), ``object`` (``change`` on the steps
+#: where the object moves, i.e. the pusher is in contact; other steps are not candidates).
+SIGNALS = ("disagreement", "change", "object")
+
+
+@dataclass
+class LoopBenchConfig:
+    """One comparison of the two planners."""
+
+    seeds: tuple[int, ...] = (0, 1, 2)
+    """One run of each arm per seed."""
+    budget: int = 48
+    """Training episodes per arm."""
+    round_episodes: int = 16
+    """Retrain after every this many episodes (the first round is the uniform seed)."""
+    steps: int = 40
+    """Steps per episode."""
+    image_size: int = 16
+    """Frame size in pixels (16: three seeds of both arms take ~25 min on a busy 2-core CPU)."""
+    eval_episodes: int = 16
+    """Episodes in the eval split (push policy, all shapes)."""
+    eval_seed: int = 1234
+    """Seed of the eval split (the same for every seed and arm)."""
+    train: TrainConfig = field(default_factory=lambda: TrainConfig(
+        members=4, epochs=6, batch_size=32, widths=(8, 16, 32), device="cpu", progress=False,
+        min_rel_improvement=0.0))
+    """Training settings (every retrain trains from scratch on all data so far)."""
+    active: ActivePlannerConfig = field(default_factory=lambda: ActivePlannerConfig(
+        budget_per_round=16, max_queue_depth=16, percentile=75.0, min_distance=0.15))
+    """The active arm's planner (its budget per round is set to ``round_episodes``)."""
+    policies: PolicyMix = field(default_factory=PolicyMix)
+    """The collection policies of both arms."""
+    signal: str = "disagreement"
+    """What the active arm ranks steps by (one of ``SIGNALS``)."""
+    signal_horizon: int = 1
+    """Prediction horizon of the signal."""
+
+    def __post_init__(self) -> None:
+        if not self.seeds:
+            raise ValueError("seeds must name at least one seed")
+        if self.round_episodes < 1 or self.budget < 2 * self.round_episodes:
+            raise ValueError(f"need round_episodes >= 1 and budget >= 2 rounds, found round_episodes="
+                             f"{self.round_episodes}, budget={self.budget}")
+        if self.signal not in SIGNALS or self.signal_horizon < 1:
+            raise ValueError(f"signal must be one of {SIGNALS} and signal_horizon >= 1, found "
+                             f"{self.signal!r} and {self.signal_horizon}")
+        self.active.budget_per_round = self.round_episodes
+        self.active.max_queue_depth = self.round_episodes
+        self.active.steps = self.steps
+        self.active.seed_uniform = self.uniform_config()
+
+    def uniform_config(self) -> UniformPlannerConfig:
+        """The uniform arm's planner (and the seed rounds of both arms)."""
+        return UniformPlannerConfig(steps=self.steps, max_queue_depth=self.round_episodes, policies=self.policies)
+
+    def to_json(self) -> dict:
+        d = asdict(self)
+        d["train"] = self.train.to_dict()
+        return d
