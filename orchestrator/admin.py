@@ -15,7 +15,8 @@ from collections.abc import Callable, Iterable, Mapping
 from typing import Any
 
 from orchestrator import protocol
-from orchestrator.protocol import AdminRequest, ErrorCode, Event, EventKind, ProtocolError, RequestSpec
+from orchestrator.messages import AdminRequest, Event, RequestSpec
+from orchestrator.protocol import ErrorCode, EventKind, ProtocolError
 from storage.errors import QueueError, StaleLeaseError, StorageError
 from storage.queue import RequestQueue
 from storage.requests import IllegalTransitionError, NewRequest, Request, RequestStatus, UnknownRequestError

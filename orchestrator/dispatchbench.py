@@ -57,7 +57,7 @@ from typing import Any
 import numpy as np
 import zenoh
 
-from orchestrator import protocol, transport
+from orchestrator import messages, protocol, transport
 from orchestrator.protocol import Keys
 from orchestrator.service import Service, ServiceConfig
 from storage.catalog import Catalog
@@ -225,7 +225,7 @@ def _raw_server(endpoint: str) -> Iterator[tuple[zenoh.Session, Cycle]]:
     child = _Child("echo", "--listen", endpoint, "--key", key)
     session = transport.open_session(connect=[endpoint])
     try:
-        payload = protocol.LeaseRequest(worker_id="bench-0").to_json()
+        payload = messages.LeaseRequest(worker_id="bench-0").to_json()
         transport.query(session, key, payload, timeout=30)  # connected and routed before the clock starts
 
         def cycle(s: zenoh.Session, i: int, lats: dict[str, list[float]]) -> bool:
@@ -281,7 +281,7 @@ def _service(cfg: BenchConfig, endpoint: str, namespace: str, data_dir: Path) ->
 
 
 def _lease_messages(cfg: BenchConfig) -> list[bytes]:
-    return [protocol.LeaseRequest(worker_id=f"bench-{i}").to_json() for i in range(cfg.workers)]
+    return [messages.LeaseRequest(worker_id=f"bench-{i}").to_json() for i in range(cfg.workers)]
 
 
 @contextmanager
@@ -296,7 +296,7 @@ def _dispatch_server(cfg: BenchConfig, endpoint: str, data_dir: Path) -> Iterato
             grant = _lease(s, keys, lease_msgs[i], lats)
             if grant is None:
                 return False
-            msg = protocol.FailRequest(request_id=grant["request_id"], token=grant["token"],
+            msg = messages.FailRequest(request_id=grant["request_id"], token=grant["token"],
                                        worker_id=f"bench-{i}", error="bench: give back").to_json()
             protocol.parse_reply(_timed(lats, "fail", lambda: transport.query(s, keys.fail, msg, timeout=10)))
             lats.setdefault("cycle", []).append(time.perf_counter() - t0)
@@ -329,7 +329,7 @@ def _phase_upload(cfg: BenchConfig, endpoint: str, data_dir: Path) -> dict[str, 
             if grant is None:
                 return False
             data = episodes[grant["request_id"]]
-            header = protocol.UploadHeader.for_payload(data, request_id=grant["request_id"], token=grant["token"],
+            header = messages.UploadHeader.for_payload(data, request_id=grant["request_id"], token=grant["token"],
                                                        worker_id=f"bench-{i}").to_json()
             protocol.parse_reply(_timed(lats, "upload",
                                         lambda: transport.query(s, keys.upload, data, header, timeout=30)))

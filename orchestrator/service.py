@@ -2,7 +2,7 @@
 
 ``Service(ServiceConfig).start()`` opens a Zenoh session and answers:
 
-- ``NS/orch/lease | renew | upload | fail | release`` for workers (see ``orchestrator.protocol``);
+- ``NS/orch/lease | renew | upload | fail | release`` for workers (see ``orchestrator.messages``);
 - ``NS/admin/**`` for operators and dashboards (``orchestrator.admin``);
 
 it watches the liveliness tokens ``NS/workers/*`` (a lost worker's leases go
@@ -34,7 +34,7 @@ from typing import Any
 
 import zenoh
 
-from orchestrator import admin, protocol, transport
+from orchestrator import admin, messages, protocol, transport
 from orchestrator.metrics import ServiceMetrics
 from orchestrator.planner import Planner
 from orchestrator.protocol import ErrorCode, EventKind, Keys, ProtocolError
@@ -273,7 +273,7 @@ class Service:
         return transport.Server(self.session, key, answer, threads, error_body=crashed)
 
     def _lease(self, msg: Incoming) -> bytes:
-        req = protocol.LeaseRequest.from_json(msg.payload)
+        req = messages.LeaseRequest.from_json(msg.payload)
         lease_s = self.config.lease_s
         try:
             with self._writes:
@@ -290,14 +290,14 @@ class Service:
                  "policy": r.policy, "policy_params": r.policy_params, "action_prefix": r.action_prefix,
                  "steps": r.steps, "model_version": str(r.reason.get("model_version") or ""),
                  "token": lease.token, "expires_at": lease.expires_at, "lease_s": lease_s,
-                 "seed": protocol.request_seed(r.id, lease.token)}
+                 "seed": messages.request_seed(r.id, lease.token)}
         self.metrics.lease()
         self.publish(EventKind.REQUEST_LEASED, {"request_id": r.id, "worker_id": req.worker_id,
                                                 "token": lease.token, "shape": r.shape})
         return protocol.ok_reply(grant=grant)
 
     def _renew(self, msg: Incoming) -> bytes:
-        req = protocol.RenewRequest.from_json(msg.payload)
+        req = messages.RenewRequest.from_json(msg.payload)
         try:
             with self._writes:
                 expires = self.queue.renew(req.request_id, req.token, req.worker_id, self.config.lease_s)
@@ -306,7 +306,7 @@ class Service:
         return protocol.ok_reply(expires_at=expires)
 
     def _fail(self, msg: Incoming) -> bytes:
-        req = protocol.FailRequest.from_json(msg.payload)
+        req = messages.FailRequest.from_json(msg.payload)
         try:
             with self._writes:
                 request = self.queue.fail(req.request_id, req.token, req.error, worker_id=req.worker_id)
@@ -316,7 +316,7 @@ class Service:
         return protocol.ok_reply(status=request.status.value, attempts=request.attempts)
 
     def _release(self, msg: Incoming) -> bytes:
-        req = protocol.ReleaseRequest.from_json(msg.payload)
+        req = messages.ReleaseRequest.from_json(msg.payload)
         try:
             with self._writes:
                 request = self.queue.release(req.request_id, req.token, worker_id=req.worker_id)
@@ -328,7 +328,7 @@ class Service:
         return protocol.ok_reply(status=request.status.value, attempts=request.attempts)
 
     def _upload(self, msg: Incoming) -> bytes:
-        header = protocol.UploadHeader.from_json(msg.attachment)
+        header = messages.UploadHeader.from_json(msg.attachment)
         try:
             request = self.queue.get(header.request_id)
         except QueueError as exc:
@@ -373,14 +373,14 @@ class Service:
         self._stored.put(StoredEpisode(result.episode_id, header.request_id, header.worker_id, episode))
         return protocol.ok_reply(request_id=header.request_id, episode_id=result.episode_id)
 
-    def _is_duplicate(self, request: Request, header: protocol.UploadHeader) -> bool:
+    def _is_duplicate(self, request: Request, header: messages.UploadHeader) -> bool:
         """A repeat of the upload that completed ``request``: same token, same bytes."""
         if request.status != RequestStatus.DONE or request.token != header.token or not request.episode_id:
             return False
         row = self.catalog.find(request.episode_id)
         return row is not None and row.sha256 == header.sha256
 
-    def _check_live(self, request: Request, header: protocol.UploadHeader) -> None:
+    def _check_live(self, request: Request, header: messages.UploadHeader) -> None:
         if (request.status != RequestStatus.LEASED or request.token != header.token
                 or request.worker_id != header.worker_id):
             raise self._reject(ProtocolError(
@@ -388,7 +388,7 @@ class Service:
                 f"{header.token} from {header.worker_id} while the request is {request.status.value} "
                 f"with token {request.token} held by {request.worker_id}"), header)
 
-    def _decode(self, data: bytes, header: protocol.UploadHeader) -> Episode:
+    def _decode(self, data: bytes, header: messages.UploadHeader) -> Episode:
         try:
             episode = read_episode(data, name=f"upload for {header.request_id}")
         except EpisodeError as exc:
@@ -399,7 +399,7 @@ class Service:
                 f"found {episode.meta.request_id!r}"), header)
         return episode
 
-    def _reject(self, exc: ProtocolError, header: protocol.UploadHeader) -> ProtocolError:
+    def _reject(self, exc: ProtocolError, header: messages.UploadHeader) -> ProtocolError:
         self.metrics.upload("refused")
         self.publish(EventKind.EPISODE_REJECTED, {"request_id": header.request_id, "worker_id": header.worker_id,
                                                   "error": exc.code.value, "message": exc.message[:500]})
@@ -408,11 +408,11 @@ class Service:
     def _admin(self, msg: Incoming) -> bytes:
         op = self.keys.admin_op(msg.key)
         if msg.payload:
-            request = protocol.AdminRequest.from_json(msg.payload)
+            request = messages.AdminRequest.from_json(msg.payload)
             if request.op != op:
                 raise ProtocolError(ErrorCode.BAD_FIELD, f"op: expected {op!r} (the key's op), found {request.op!r}")
         else:
-            request = protocol.AdminRequest(op=op)
+            request = messages.AdminRequest(op=op)
         with self._writes:
             body = admin.handle(request.op, request.args, queue=self.queue, catalog=self.catalog,
                                 registry=self.context.registry, workers=self.workers)

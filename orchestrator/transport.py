@@ -2,7 +2,7 @@
 
 A leaf module: it imports nothing else of ours, so workers on any host can use
 it. It knows bytes, keys and endpoints, not the JSON messages riding on them
-(those are ``orchestrator.protocol``'s business).
+(those are the business of ``orchestrator.protocol`` and ``orchestrator.messages``).
 
 Two things about zenoh-python 1.x shape this module:
 

@@ -20,8 +20,8 @@ the worker exits; a second signal gives the current request back at once
 (``release``: queued again, no attempt counted -- the request did nothing wrong)
 and exits.
 
-Imports only ``storage``, ``workers``, ``orchestrator.protocol`` and
-``orchestrator.transport`` -- the wire contract -- so it runs on any host.
+Imports only ``storage``, ``workers``, ``orchestrator.protocol``, ``orchestrator.messages``
+and ``orchestrator.transport`` -- the wire contract -- so it runs on any host.
 """
 
 from __future__ import annotations
@@ -44,8 +44,9 @@ from typing import Any
 import numpy as np
 import zenoh
 
-from orchestrator import protocol, transport
-from orchestrator.protocol import ErrorCode, Keys, LeaseGrant, ProtocolError
+from orchestrator import messages, protocol, transport
+from orchestrator.messages import LeaseGrant
+from orchestrator.protocol import ErrorCode, Keys, ProtocolError
 from storage.episodes import encode_episode
 from workers.collect import collect_episode
 from workers.env import CONTROL_HZ
@@ -106,7 +107,7 @@ class WorkerConfig:
         try:
             self.keys = Keys(self.namespace)
             protocol.check_id("worker_id", self.worker_id)
-            protocol.LeaseRequest(worker_id=self.worker_id, tasks=list(self.tasks), shapes=list(self.shapes))
+            messages.LeaseRequest(worker_id=self.worker_id, tasks=list(self.tasks), shapes=list(self.shapes))
         except ProtocolError as exc:
             raise WorkerError(exc.message) from None
         if self.mode not in transport.MODES:
@@ -129,7 +130,7 @@ class _Renewer:
     def __init__(self, call: Callable[[str, bytes], dict[str, Any]], key: str, grant: LeaseGrant,
                  worker_id: str) -> None:
         self._call, self._key, self._grant = call, key, grant
-        self._msg = protocol.RenewRequest(request_id=grant.request_id, token=grant.token,
+        self._msg = messages.RenewRequest(request_id=grant.request_id, token=grant.token,
                                           worker_id=worker_id).to_json()
         self._stop = threading.Event()
         self.lost: str | None = None
@@ -254,7 +255,7 @@ class Worker:
 
     def _lease(self) -> LeaseGrant | None:
         cfg = self.config
-        msg = protocol.LeaseRequest(worker_id=cfg.worker_id, tasks=list(cfg.tasks),
+        msg = messages.LeaseRequest(worker_id=cfg.worker_id, tasks=list(cfg.tasks),
                                     shapes=list(cfg.shapes)).to_json()
         try:
             body = self._retrying("lease", lambda: self._call(self.keys.lease, msg), until_stopped=True)
@@ -280,7 +281,7 @@ class Worker:
 
     def _fail_raw(self, request_id: str, token: Any, error: str) -> None:
         try:
-            msg = protocol.FailRequest(request_id=request_id, token=token, worker_id=self.config.worker_id,
+            msg = messages.FailRequest(request_id=request_id, token=token, worker_id=self.config.worker_id,
                                        error=error[:protocol.MAX_ERROR_CHARS]).to_json()
             body = self._retrying("fail", lambda: self._call(self.keys.fail, msg), self.config.upload_attempts)
         except ProtocolError as exc:
@@ -293,7 +294,7 @@ class Worker:
 
     def _release(self, grant: LeaseGrant) -> None:
         """Give a lease back unharmed (a second stop signal): one try, the service may be going too."""
-        msg = protocol.ReleaseRequest(request_id=grant.request_id, token=grant.token,
+        msg = messages.ReleaseRequest(request_id=grant.request_id, token=grant.token,
                                       worker_id=self.config.worker_id).to_json()
         try:
             body = self._retrying("release", lambda: self._call(self.keys.release, msg), 1)
@@ -344,7 +345,7 @@ class Worker:
         return not (remaining > 0 and self._abort.wait(remaining)) and not self._abort.is_set()
 
     def _upload(self, grant: LeaseGrant, data: bytes) -> None:
-        header = protocol.UploadHeader.for_payload(data, request_id=grant.request_id, token=grant.token,
+        header = messages.UploadHeader.for_payload(data, request_id=grant.request_id, token=grant.token,
                                                    worker_id=self.config.worker_id).to_json()
         try:
             body = self._retrying("upload", lambda: self._call(self.keys.upload, data, header),

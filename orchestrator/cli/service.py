@@ -26,9 +26,10 @@ from orchestrator import dispatchbench, protocol, transport
 from orchestrator.champion import ChampionScorer
 from orchestrator.cli import common
 from orchestrator.companions import CompanionConfig, Companions
+from orchestrator.messages import AdminRequest, Event
 from orchestrator.planner import ActivePlanner, ActivePlannerConfig, UniformPlanner, UniformPlannerConfig, \
     uniform_start_state
-from orchestrator.protocol import AdminRequest, Event, Keys, ProtocolError
+from orchestrator.protocol import Keys, ProtocolError
 from orchestrator.service import PlannerFactory, Service, ServiceConfig, ServiceContext, ServiceError
 from storage.requests import RequestStatus
 from workers import agent

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from orchestrator import admin, protocol
+from orchestrator import admin, messages, protocol
 from orchestrator.protocol import ErrorCode, ProtocolError
 from storage.errors import QueueError, StaleLeaseError, StorageError
 from storage.models import ModelRegistry
@@ -68,7 +68,7 @@ def test_cancel_retry_prioritize(queue: RequestQueue) -> None:
     assert body["request"]["priority"] == 7.0
     event = admin.admin_event("queue.prioritize", body, at=5.0)
     assert event.kind == "request.prioritized" and event.data["request_id"] == rid
-    assert protocol.Event.from_json(event.to_json()) == event
+    assert messages.Event.from_json(event.to_json()) == event
     assert call("queue.cancel", {"id": rid}, queue=queue)["request"]["status"] == "cancelled"
     err = refused(ErrorCode.ILLEGAL_TRANSITION, "queue.cancel", {"id": rid}, queue=queue)
     assert "cancelled" in err.message
@@ -148,16 +148,16 @@ def test_models_ls(queue: RequestQueue, tmp_path: Path) -> None:
 
 
 def test_serve_bytes(queue: RequestQueue) -> None:
-    reply = admin.serve(protocol.AdminRequest(op="queue.add", args=SPEC).to_json(), op="queue.add", queue=queue)
+    reply = admin.serve(messages.AdminRequest(op="queue.add", args=SPEC).to_json(), op="queue.add", queue=queue)
     body = protocol.parse_reply(reply)
     assert body["created"] is True
     assert protocol.parse_reply(admin.serve(b"", op="stats", queue=queue))["requests"]["queued"] == 1
     for payload, op, code in [
         (b"{oops", "stats", "bad_json"),
         (b'{"v": 9, "op": "stats"}', "stats", "bad_version"),
-        (protocol.AdminRequest(op="stats").to_json(), "queue.ls", "bad_field"),  # op disagrees with the key
+        (messages.AdminRequest(op="stats").to_json(), "queue.ls", "bad_field"),  # op disagrees with the key
         (b"", None, "bad_json"),
-        (protocol.AdminRequest(op="queue.show", args={"id": "nope"}).to_json(), None, "unknown_request"),
+        (messages.AdminRequest(op="queue.show", args={"id": "nope"}).to_json(), None, "unknown_request"),
     ]:
         answer = json.loads(admin.serve(payload, op=op, queue=queue))
         assert answer["ok"] is False and answer["error"] == code, answer

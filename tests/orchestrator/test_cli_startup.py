@@ -2,7 +2,8 @@
 
 Every check runs a real ``python`` subprocess (a module imported by an earlier test in
 this process would hide the import), runs the command through ``orchestrator.cli.main``
-and reports afterwards whether ``torch`` is in ``sys.modules``.
+and reports afterwards whether ``torch`` (and ``matplotlib``, which only drawing needs)
+is in ``sys.modules``.
 """
 
 from __future__ import annotations
@@ -17,7 +18,7 @@ import pytest
 
 from tests.conftest import REPO, free_port, wait_for
 
-#: Runs ``activecollect ARGV`` and then writes one marker line saying whether torch was imported.
+#: Runs ``activecollect ARGV`` and then writes marker lines saying whether torch / matplotlib were imported.
 WRAPPER = """
 import sys
 from orchestrator.cli import main
@@ -26,15 +27,21 @@ try:
 except SystemExit as exc:
     rc = exc.code
 sys.stderr.write(f"\\nTORCH_IMPORTED={'torch' in sys.modules}\\n")
+sys.stderr.write(f"MATPLOTLIB_IMPORTED={'matplotlib' in sys.modules}\\n")
 sys.exit(rc)
 """
 ENV = dict(os.environ, PYTHONPATH=str(REPO), PYTHONUNBUFFERED="1")
 
 
+def _imported(stderr: str, module: str) -> bool:
+    mark = f"{module.upper()}_IMPORTED="
+    marks = [line for line in stderr.splitlines() if line.startswith(mark)]
+    assert marks, f"the wrapper wrote no {mark} line; stderr:\n{stderr[-2000:]}"
+    return marks[-1] == f"{mark}True"
+
+
 def _imported_torch(stderr: str) -> bool:
-    marks = [line for line in stderr.splitlines() if line.startswith("TORCH_IMPORTED=")]
-    assert marks, f"the wrapper wrote no marker line; stderr:\n{stderr[-2000:]}"
-    return marks[-1] == "TORCH_IMPORTED=True"
+    return _imported(stderr, "torch")
 
 
 def _cli(*argv: str, timeout: float = 120) -> subprocess.CompletedProcess:
@@ -55,11 +62,12 @@ def test_torch_free_modules_do_not_import_torch():
     assert json.loads(proc.stdout) == []
 
 
-def test_help_does_not_import_torch():
+def test_help_imports_neither_torch_nor_matplotlib():
     proc = _cli("--help")
     assert proc.returncode == 0, proc.stderr
     assert "COMMAND" in proc.stdout
     assert not _imported_torch(proc.stderr)
+    assert not _imported(proc.stderr, "matplotlib")  # only drawing a figure needs it (0.15-0.4 s to import)
 
 
 @pytest.mark.parametrize("argv", [

@@ -1,4 +1,5 @@
-"""The wire contract: every message round-trips, every malformed input is refused with the right code."""
+"""The wire contract (orchestrator.protocol, orchestrator.messages): every message round-trips, every malformed
+input is refused with the right code."""
 
 from __future__ import annotations
 
@@ -9,6 +10,7 @@ from pathlib import Path
 
 import pytest
 
+import orchestrator.messages as m
 import orchestrator.protocol as p
 from orchestrator.protocol import ErrorCode, ProtocolError
 
@@ -20,21 +22,21 @@ GRANT = dict(request_id="r1", task="push", shape="T", start_state=START, policy=
              steps=50, model_version="m3", token=2, expires_at=1700000000.5, lease_s=30.0, seed=7)
 
 MESSAGES = [
-    p.LeaseRequest(worker_id="w-1", tasks=["push"], shapes=["T", "disk"]),
-    p.LeaseRequest(worker_id="w.2"),
-    p.LeaseGrant(**GRANT),
-    p.RenewRequest(request_id="r1", token=2, worker_id="w-1"),
-    p.UploadHeader.for_payload(b"mcap bytes", request_id="r1", token=2, worker_id="w-1"),
-    p.FailRequest(request_id="r1", token=2, worker_id="w-1", error="pymunk exploded"),
-    p.ReleaseRequest(request_id="r1", token=2, worker_id="w-1"),
-    p.RequestSpec(task="push", shape="T", start_state=START, priority=2.5, idempotency_key="k",
+    m.LeaseRequest(worker_id="w-1", tasks=["push"], shapes=["T", "disk"]),
+    m.LeaseRequest(worker_id="w.2"),
+    m.LeaseGrant(**GRANT),
+    m.RenewRequest(request_id="r1", token=2, worker_id="w-1"),
+    m.UploadHeader.for_payload(b"mcap bytes", request_id="r1", token=2, worker_id="w-1"),
+    m.FailRequest(request_id="r1", token=2, worker_id="w-1", error="pymunk exploded"),
+    m.ReleaseRequest(request_id="r1", token=2, worker_id="w-1"),
+    m.RequestSpec(task="push", shape="T", start_state=START, priority=2.5, idempotency_key="k",
                   reason={"model_version": "m3", "score": 0.9, "source_episode": "e", "step": 4}),
-    p.AdminRequest(op="queue.ls", args={"status": "queued", "limit": 10}),
-    p.Event(kind="request.done", at=1.0, data={"request_id": "r1"}),
+    m.AdminRequest(op="queue.ls", args={"status": "queued", "limit": 10}),
+    m.Event(kind="request.done", at=1.0, data={"request_id": "r1"}),
 ]
 
 
-@pytest.mark.parametrize("msg", MESSAGES, ids=lambda m: type(m).__name__)
+@pytest.mark.parametrize("msg", MESSAGES, ids=lambda msg: type(msg).__name__)
 def test_round_trip(msg) -> None:
     data = msg.to_json()
     assert json.loads(data)["v"] == p.PROTOCOL_VERSION
@@ -43,7 +45,7 @@ def test_round_trip(msg) -> None:
 
 
 def test_ints_accepted_for_floats_and_normalised() -> None:
-    grant = p.LeaseGrant(**dict(GRANT, expires_at=5, lease_s=3))
+    grant = m.LeaseGrant(**dict(GRANT, expires_at=5, lease_s=3))
     assert isinstance(grant.expires_at, float) and isinstance(grant.lease_s, float)
 
 
@@ -57,68 +59,68 @@ def _start(**changes) -> bytes:
 
 BAD = [
     # (message class, raw input, expected code)
-    (p.LeaseRequest, None, ErrorCode.BAD_JSON),
-    (p.LeaseRequest, b"", ErrorCode.BAD_JSON),
-    (p.LeaseRequest, b"{not json", ErrorCode.BAD_JSON),
-    (p.LeaseRequest, b"\xff\xfe", ErrorCode.BAD_JSON),
-    (p.LeaseRequest, b"[1, 2]", ErrorCode.BAD_JSON),
-    (p.LeaseRequest, b'{"v": 1, "worker_id": "w", "tasks": NaN}', ErrorCode.BAD_JSON),
-    (p.LeaseRequest, b'{"worker_id": "w"}', ErrorCode.BAD_VERSION),
-    (p.LeaseRequest, b'{"v": 2, "worker_id": "w"}', ErrorCode.BAD_VERSION),
-    (p.LeaseRequest, b'{"v": "1", "worker_id": "w"}', ErrorCode.BAD_VERSION),
-    (p.LeaseRequest, b'{"v": true, "worker_id": "w"}', ErrorCode.BAD_VERSION),
-    (p.LeaseRequest, b'{"v": 1, "worker_id": "w", "extra": 1}', ErrorCode.BAD_FIELD),
-    (p.LeaseRequest, b'{"v": 1}', ErrorCode.BAD_FIELD),
-    (p.LeaseRequest, b'{"v": 1, "worker_id": ""}', ErrorCode.BAD_FIELD),
-    (p.LeaseRequest, b'{"v": 1, "worker_id": "a/b"}', ErrorCode.BAD_FIELD),
-    (p.LeaseRequest, b'{"v": 1, "worker_id": "a*"}', ErrorCode.BAD_FIELD),
-    (p.LeaseRequest, b'{"v": 1, "worker_id": 5}', ErrorCode.BAD_FIELD),
-    (p.LeaseRequest, b'{"v": 1, "worker_id": "w", "tasks": "push"}', ErrorCode.BAD_FIELD),
-    (p.LeaseRequest, b'{"v": 1, "worker_id": "w", "shapes": ["hexagon"]}', ErrorCode.BAD_FIELD),
-    (p.LeaseRequest, json.dumps({"v": 1, "worker_id": "w", "tasks": ["push"] * 40}).encode(), ErrorCode.BAD_FIELD),
-    (p.LeaseRequest, b'{"v": 1, "worker_id": "' + b"w" * p.MAX_MESSAGE_BYTES + b'"}', ErrorCode.TOO_LARGE),
-    (p.LeaseGrant, _grant(task="fly"), ErrorCode.BAD_FIELD),
-    (p.LeaseGrant, _grant(shape="hexagon"), ErrorCode.BAD_FIELD),
-    (p.LeaseGrant, _grant(policy="teleport"), ErrorCode.BAD_FIELD),
-    (p.LeaseGrant, _grant(steps=0), ErrorCode.BAD_FIELD),
-    (p.LeaseGrant, _grant(steps=p.MAX_EPISODE_STEPS + 1), ErrorCode.BAD_FIELD),
-    (p.LeaseGrant, _grant(steps=5.5), ErrorCode.BAD_FIELD),
-    (p.LeaseGrant, _grant(steps=True), ErrorCode.BAD_FIELD),
-    (p.LeaseGrant, _grant(token=0), ErrorCode.BAD_FIELD),
-    (p.LeaseGrant, _grant(lease_s=-1), ErrorCode.BAD_FIELD),
-    (p.LeaseGrant, _grant(policy_params=[1]), ErrorCode.BAD_FIELD),
-    (p.LeaseGrant, _grant(policy_params={"x": "y" * (p.MAX_OBJECT_BYTES + 1)}), ErrorCode.TOO_LARGE),
-    (p.LeaseGrant, _grant(action_prefix=[[1.0]]), ErrorCode.BAD_FIELD),
-    (p.LeaseGrant, _grant(action_prefix=[[1.0, 600.0]]), ErrorCode.BAD_FIELD),
-    (p.LeaseGrant, _grant(action_prefix=[[1.0, 2.0]] * (p.MAX_PREFIX_STEPS + 1)), ErrorCode.BAD_FIELD),
-    (p.LeaseGrant, _grant(start_state="T"), ErrorCode.BAD_FIELD),
-    (p.LeaseGrant, _start(shape="box"), ErrorCode.BAD_FIELD),  # disagrees with the request's shape
-    (p.LeaseGrant, _start(agent=[-1.0, 10.0]), ErrorCode.BAD_FIELD),
-    (p.LeaseGrant, _start(agent=[1.0, 10.0, 3.0]), ErrorCode.BAD_FIELD),
-    (p.LeaseGrant, _start(object=[256.0, 513.0, 0.0]), ErrorCode.BAD_FIELD),
-    (p.LeaseGrant, _start(object=[256.0, "x", 0.0]), ErrorCode.BAD_FIELD),
-    (p.LeaseGrant, _start(agent_vel=[1e9, 0.0]), ErrorCode.BAD_FIELD),
-    (p.LeaseGrant, _start(physics={"mass": 100.0}), ErrorCode.BAD_FIELD),
-    (p.LeaseGrant, _start(physics={"gravity": 1.0}), ErrorCode.BAD_FIELD),
-    (p.LeaseGrant, _start(colour="red"), ErrorCode.BAD_FIELD),
-    (p.LeaseGrant, _grant(start_state={"shape": "T", "agent": [1, 2]}), ErrorCode.BAD_FIELD),
-    (p.LeaseGrant, _grant(start_state=dict(START, agent=[1e400, 2.0])).replace(b"Infinity", b"1e400"),
+    (m.LeaseRequest, None, ErrorCode.BAD_JSON),
+    (m.LeaseRequest, b"", ErrorCode.BAD_JSON),
+    (m.LeaseRequest, b"{not json", ErrorCode.BAD_JSON),
+    (m.LeaseRequest, b"\xff\xfe", ErrorCode.BAD_JSON),
+    (m.LeaseRequest, b"[1, 2]", ErrorCode.BAD_JSON),
+    (m.LeaseRequest, b'{"v": 1, "worker_id": "w", "tasks": NaN}', ErrorCode.BAD_JSON),
+    (m.LeaseRequest, b'{"worker_id": "w"}', ErrorCode.BAD_VERSION),
+    (m.LeaseRequest, b'{"v": 2, "worker_id": "w"}', ErrorCode.BAD_VERSION),
+    (m.LeaseRequest, b'{"v": "1", "worker_id": "w"}', ErrorCode.BAD_VERSION),
+    (m.LeaseRequest, b'{"v": true, "worker_id": "w"}', ErrorCode.BAD_VERSION),
+    (m.LeaseRequest, b'{"v": 1, "worker_id": "w", "extra": 1}', ErrorCode.BAD_FIELD),
+    (m.LeaseRequest, b'{"v": 1}', ErrorCode.BAD_FIELD),
+    (m.LeaseRequest, b'{"v": 1, "worker_id": ""}', ErrorCode.BAD_FIELD),
+    (m.LeaseRequest, b'{"v": 1, "worker_id": "a/b"}', ErrorCode.BAD_FIELD),
+    (m.LeaseRequest, b'{"v": 1, "worker_id": "a*"}', ErrorCode.BAD_FIELD),
+    (m.LeaseRequest, b'{"v": 1, "worker_id": 5}', ErrorCode.BAD_FIELD),
+    (m.LeaseRequest, b'{"v": 1, "worker_id": "w", "tasks": "push"}', ErrorCode.BAD_FIELD),
+    (m.LeaseRequest, b'{"v": 1, "worker_id": "w", "shapes": ["hexagon"]}', ErrorCode.BAD_FIELD),
+    (m.LeaseRequest, json.dumps({"v": 1, "worker_id": "w", "tasks": ["push"] * 40}).encode(), ErrorCode.BAD_FIELD),
+    (m.LeaseRequest, b'{"v": 1, "worker_id": "' + b"w" * p.MAX_MESSAGE_BYTES + b'"}', ErrorCode.TOO_LARGE),
+    (m.LeaseGrant, _grant(task="fly"), ErrorCode.BAD_FIELD),
+    (m.LeaseGrant, _grant(shape="hexagon"), ErrorCode.BAD_FIELD),
+    (m.LeaseGrant, _grant(policy="teleport"), ErrorCode.BAD_FIELD),
+    (m.LeaseGrant, _grant(steps=0), ErrorCode.BAD_FIELD),
+    (m.LeaseGrant, _grant(steps=p.MAX_EPISODE_STEPS + 1), ErrorCode.BAD_FIELD),
+    (m.LeaseGrant, _grant(steps=5.5), ErrorCode.BAD_FIELD),
+    (m.LeaseGrant, _grant(steps=True), ErrorCode.BAD_FIELD),
+    (m.LeaseGrant, _grant(token=0), ErrorCode.BAD_FIELD),
+    (m.LeaseGrant, _grant(lease_s=-1), ErrorCode.BAD_FIELD),
+    (m.LeaseGrant, _grant(policy_params=[1]), ErrorCode.BAD_FIELD),
+    (m.LeaseGrant, _grant(policy_params={"x": "y" * (p.MAX_OBJECT_BYTES + 1)}), ErrorCode.TOO_LARGE),
+    (m.LeaseGrant, _grant(action_prefix=[[1.0]]), ErrorCode.BAD_FIELD),
+    (m.LeaseGrant, _grant(action_prefix=[[1.0, 600.0]]), ErrorCode.BAD_FIELD),
+    (m.LeaseGrant, _grant(action_prefix=[[1.0, 2.0]] * (p.MAX_PREFIX_STEPS + 1)), ErrorCode.BAD_FIELD),
+    (m.LeaseGrant, _grant(start_state="T"), ErrorCode.BAD_FIELD),
+    (m.LeaseGrant, _start(shape="box"), ErrorCode.BAD_FIELD),  # disagrees with the request's shape
+    (m.LeaseGrant, _start(agent=[-1.0, 10.0]), ErrorCode.BAD_FIELD),
+    (m.LeaseGrant, _start(agent=[1.0, 10.0, 3.0]), ErrorCode.BAD_FIELD),
+    (m.LeaseGrant, _start(object=[256.0, 513.0, 0.0]), ErrorCode.BAD_FIELD),
+    (m.LeaseGrant, _start(object=[256.0, "x", 0.0]), ErrorCode.BAD_FIELD),
+    (m.LeaseGrant, _start(agent_vel=[1e9, 0.0]), ErrorCode.BAD_FIELD),
+    (m.LeaseGrant, _start(physics={"mass": 100.0}), ErrorCode.BAD_FIELD),
+    (m.LeaseGrant, _start(physics={"gravity": 1.0}), ErrorCode.BAD_FIELD),
+    (m.LeaseGrant, _start(colour="red"), ErrorCode.BAD_FIELD),
+    (m.LeaseGrant, _grant(start_state={"shape": "T", "agent": [1, 2]}), ErrorCode.BAD_FIELD),
+    (m.LeaseGrant, _grant(start_state=dict(START, agent=[1e400, 2.0])).replace(b"Infinity", b"1e400"),
      ErrorCode.BAD_FIELD),
-    (p.RenewRequest, b'{"v": 1, "request_id": "r", "token": "1", "worker_id": "w"}', ErrorCode.BAD_FIELD),
-    (p.RenewRequest, b'{"v": 1, "request_id": "r", "token": -1, "worker_id": "w"}', ErrorCode.BAD_FIELD),
-    (p.UploadHeader, b'{"v": 1, "request_id": "r", "token": 1, "worker_id": "w", "sha256": "ab", "size": 3}',
+    (m.RenewRequest, b'{"v": 1, "request_id": "r", "token": "1", "worker_id": "w"}', ErrorCode.BAD_FIELD),
+    (m.RenewRequest, b'{"v": 1, "request_id": "r", "token": -1, "worker_id": "w"}', ErrorCode.BAD_FIELD),
+    (m.UploadHeader, b'{"v": 1, "request_id": "r", "token": 1, "worker_id": "w", "sha256": "ab", "size": 3}',
      ErrorCode.BAD_FIELD),
-    (p.UploadHeader, json.dumps({"v": 1, "request_id": "r", "token": 1, "worker_id": "w", "sha256": "a" * 64,
+    (m.UploadHeader, json.dumps({"v": 1, "request_id": "r", "token": 1, "worker_id": "w", "sha256": "a" * 64,
                                  "size": p.MAX_UPLOAD_BYTES + 1}).encode(), ErrorCode.TOO_LARGE),
-    (p.FailRequest, json.dumps({"v": 1, "request_id": "r", "token": 1, "worker_id": "w",
+    (m.FailRequest, json.dumps({"v": 1, "request_id": "r", "token": 1, "worker_id": "w",
                                 "error": "e" * (p.MAX_ERROR_CHARS + 1)}).encode(), ErrorCode.BAD_FIELD),
-    (p.RequestSpec, json.dumps({"v": 1, "task": "push", "shape": "T", "start_state": START,
+    (m.RequestSpec, json.dumps({"v": 1, "task": "push", "shape": "T", "start_state": START,
                                 "max_attempts": 0}).encode(), ErrorCode.BAD_FIELD),
-    (p.RequestSpec, json.dumps({"v": 1, "task": "push", "shape": "T", "start_state": START,
+    (m.RequestSpec, json.dumps({"v": 1, "task": "push", "shape": "T", "start_state": START,
                                 "priority": "high"}).encode(), ErrorCode.BAD_FIELD),
-    (p.AdminRequest, b'{"v": 1, "op": "queue.drop"}', ErrorCode.UNKNOWN_OP),
-    (p.AdminRequest, b'{"v": 1, "op": "queue.ls", "args": []}', ErrorCode.BAD_FIELD),
-    (p.Event, b'{"v": 1, "kind": "request.exploded", "at": 1.0}', ErrorCode.BAD_FIELD),
+    (m.AdminRequest, b'{"v": 1, "op": "queue.drop"}', ErrorCode.UNKNOWN_OP),
+    (m.AdminRequest, b'{"v": 1, "op": "queue.ls", "args": []}', ErrorCode.BAD_FIELD),
+    (m.Event, b'{"v": 1, "kind": "request.exploded", "at": 1.0}', ErrorCode.BAD_FIELD),
 ]
 
 
@@ -133,12 +135,12 @@ def test_malformed_input_refused(cls, raw, code) -> None:
 
 def test_construction_validates_too() -> None:
     with pytest.raises(ProtocolError, match="steps"):
-        p.LeaseGrant(**dict(GRANT, steps=-3))
+        m.LeaseGrant(**dict(GRANT, steps=-3))
 
 
 def test_upload_payload_checks() -> None:
     payload = b"\x89MCAP0\r\n" + bytes(100)
-    header = p.UploadHeader.for_payload(payload, request_id="r1", token=1, worker_id="w")
+    header = m.UploadHeader.for_payload(payload, request_id="r1", token=1, worker_id="w")
     assert header.sha256 == hashlib.sha256(payload).hexdigest() and header.size == len(payload)
     assert header.check_payload(memoryview(payload)) == payload
     with pytest.raises(ProtocolError) as info:
@@ -164,8 +166,8 @@ def test_replies() -> None:
     with pytest.raises(ProtocolError) as info:
         p.parse_reply(b'{"v": 1}')
     assert info.value.code == ErrorCode.BAD_FIELD
-    grant = p.LeaseGrant(**GRANT)
-    assert p.LeaseGrant.from_dict(p.parse_reply(p.ok_reply(grant=grant.to_dict()))["grant"]) == grant
+    grant = m.LeaseGrant(**GRANT)
+    assert m.LeaseGrant.from_dict(p.parse_reply(p.ok_reply(grant=grant.to_dict()))["grant"]) == grant
 
 
 def test_keys() -> None:
@@ -192,12 +194,21 @@ def test_keys() -> None:
 
 
 def test_request_seed_is_stable() -> None:
-    assert p.request_seed("r1", 1) == p.request_seed("r1", 1) != p.request_seed("r1", 2)
-    assert 0 <= p.request_seed("r1", 1) < 2**31
+    assert m.request_seed("r1", 1) == m.request_seed("r1", 1) != m.request_seed("r1", 2)
+    assert 0 <= m.request_seed("r1", 1) < 2**31
+
+
+def _imports(module) -> set[str]:
+    tree = ast.parse(Path(module.__file__).read_text())
+    imported = {a.name for n in ast.walk(tree) if isinstance(n, ast.Import) for a in n.names}
+    imported |= {n.module for n in ast.walk(tree) if isinstance(n, ast.ImportFrom) and n.module}
+    return imported
 
 
 def test_protocol_is_a_leaf_module() -> None:
-    tree = ast.parse(Path(p.__file__).read_text())
-    imported = {a.name.split(".")[0] for n in ast.walk(tree) if isinstance(n, ast.Import) for a in n.names}
-    imported |= {n.module.split(".")[0] for n in ast.walk(tree) if isinstance(n, ast.ImportFrom) and n.module}
-    assert not imported & {"storage", "workers", "uncertainty", "orchestrator"}
+    assert not {name.split(".")[0] for name in _imports(p)} & {"storage", "workers", "uncertainty", "orchestrator"}
+
+
+def test_messages_import_only_the_protocol() -> None:
+    ours = {name for name in _imports(m) if name.split(".")[0] in {"storage", "workers", "uncertainty", "orchestrator"}}
+    assert ours == {"orchestrator.protocol"}

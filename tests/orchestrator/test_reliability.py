@@ -12,8 +12,9 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from orchestrator import protocol, transport
-from orchestrator.protocol import ErrorCode, Keys, LeaseGrant, ProtocolError
+from orchestrator import messages, protocol, transport
+from orchestrator.messages import LeaseGrant
+from orchestrator.protocol import ErrorCode, Keys, ProtocolError
 from storage.catalog import Catalog
 from storage.episodes import encode_episode
 from storage.queue import RequestQueue
@@ -44,7 +45,7 @@ class Ops:
         return protocol.parse_reply(transport.query(self.session, key, payload, attachment, timeout=timeout))
 
     def admin(self, op: str, timeout: float = 10, **args: Any) -> dict:
-        return self.call(self.keys.admin(op), protocol.AdminRequest(op=op, args=args).to_json(), timeout=timeout)
+        return self.call(self.keys.admin(op), messages.AdminRequest(op=op, args=args).to_json(), timeout=timeout)
 
     def wait_up(self) -> None:
         self.admin("stats", timeout=90)  # the service process imports torch on the way up
@@ -153,7 +154,7 @@ def test_sigkilled_orchestrator_restarts_with_every_acknowledged_request(spawn_s
 
 
 def _lease(ops: Ops, worker: str) -> LeaseGrant:
-    return LeaseGrant.from_dict(ops.call(ops.keys.lease, protocol.LeaseRequest(worker_id=worker).to_json())["grant"])
+    return LeaseGrant.from_dict(ops.call(ops.keys.lease, messages.LeaseRequest(worker_id=worker).to_json())["grant"])
 
 
 def _episode(grant: LeaseGrant, worker: str) -> bytes:
@@ -165,14 +166,14 @@ def _episode(grant: LeaseGrant, worker: str) -> bytes:
 def _send(ops: Ops, kind: str, grant: LeaseGrant, worker: str, data: bytes = b"") -> str:
     """Send one worker message; 'ok', 'duplicate' or the refusal's error code."""
     if kind == "renew":
-        key, payload, att = ops.keys.renew, protocol.RenewRequest(
+        key, payload, att = ops.keys.renew, messages.RenewRequest(
             request_id=grant.request_id, token=grant.token, worker_id=worker).to_json(), None
     elif kind == "fail":
-        key, payload, att = ops.keys.fail, protocol.FailRequest(
+        key, payload, att = ops.keys.fail, messages.FailRequest(
             request_id=grant.request_id, token=grant.token, worker_id=worker, error="late").to_json(), None
     else:
         key, payload = ops.keys.upload, data
-        att = protocol.UploadHeader.for_payload(data, request_id=grant.request_id, token=grant.token,
+        att = messages.UploadHeader.for_payload(data, request_id=grant.request_id, token=grant.token,
                                                 worker_id=worker).to_json()
     try:
         body = ops.call(key, payload, att)

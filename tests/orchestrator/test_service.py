@@ -11,8 +11,9 @@ from typing import Any
 import pytest
 import zenoh
 
-from orchestrator import protocol, transport
-from orchestrator.protocol import ErrorCode, Keys, LeaseGrant, ProtocolError
+from orchestrator import messages, protocol, transport
+from orchestrator.messages import LeaseGrant
+from orchestrator.protocol import ErrorCode, Keys, ProtocolError
 from orchestrator.service import Service, ServiceConfig, ServiceError, StoredEpisode
 from storage.catalog import Catalog
 from storage.episodes import encode_episode
@@ -68,7 +69,7 @@ def call(client: zenoh.Session, key: str, payload: bytes = b"", attachment: byte
 
 
 def lease(client, keys, worker: str = "w1", **kw) -> LeaseGrant:
-    body = call(client, keys.lease, protocol.LeaseRequest(worker_id=worker, **kw).to_json())
+    body = call(client, keys.lease, messages.LeaseRequest(worker_id=worker, **kw).to_json())
     return LeaseGrant.from_dict(body["grant"])
 
 
@@ -80,7 +81,7 @@ def episode_bytes(grant: LeaseGrant, worker: str = "w1") -> bytes:
 
 
 def upload(client, keys, grant: LeaseGrant, data: bytes, worker: str = "w1", **header_kw: Any) -> dict:
-    header = protocol.UploadHeader.for_payload(data, request_id=grant.request_id, token=grant.token,
+    header = messages.UploadHeader.for_payload(data, request_id=grant.request_id, token=grant.token,
                                                worker_id=worker)
     raw = {**header.to_dict(), **header_kw}
     return call(client, keys.upload, data, protocol.encode({"v": 1, **raw}))
@@ -108,7 +109,7 @@ def test_lease_grants_the_best_matching_request_or_says_no_work(service, client,
     high, _ = service.queue.enqueue(new_request("T", priority=5.0))
     grant = lease(client, keys, shapes=["box"])
     assert (grant.request_id, grant.token, grant.shape) == (low.id, 1, "box")
-    assert grant.seed == protocol.request_seed(low.id, 1) and grant.lease_s == 30.0
+    assert grant.seed == messages.request_seed(low.id, 1) and grant.lease_s == 30.0
     assert lease(client, keys, worker="w2").request_id == high.id
     refused(ErrorCode.NO_WORK, lease, client, keys)
     r = service.queue.get(low.id)
@@ -150,7 +151,7 @@ def test_stale_token_upload_is_refused_before_anything_is_written(service, clien
     service.queue.enqueue(new_request())
     old = lease(client, keys, worker="slow")
     data = episode_bytes(old, worker="slow")
-    call(client, keys.fail, protocol.FailRequest(request_id=old.request_id, token=old.token, worker_id="slow",
+    call(client, keys.fail, messages.FailRequest(request_id=old.request_id, token=old.token, worker_id="slow",
                                                  error="boom").to_json())
     new = lease(client, keys, worker="fast")
     assert new.token == old.token + 1
@@ -204,11 +205,11 @@ def test_renew_extends_a_live_lease_and_refuses_a_stale_one(make_service, client
     service = make_service(lease_s=2.0)
     service.queue.enqueue(new_request())
     grant = lease(client, keys)
-    msg = protocol.RenewRequest(request_id=grant.request_id, token=grant.token, worker_id="w1").to_json()
+    msg = messages.RenewRequest(request_id=grant.request_id, token=grant.token, worker_id="w1").to_json()
     assert call(client, keys.renew, msg)["expires_at"] >= grant.expires_at
-    wrong = protocol.RenewRequest(request_id=grant.request_id, token=grant.token, worker_id="w2").to_json()
+    wrong = messages.RenewRequest(request_id=grant.request_id, token=grant.token, worker_id="w2").to_json()
     refused(ErrorCode.STALE_TOKEN, call, client, keys.renew, wrong)
-    unknown = protocol.RenewRequest(request_id="nope", token=1, worker_id="w1").to_json()
+    unknown = messages.RenewRequest(request_id="nope", token=1, worker_id="w1").to_json()
     refused(ErrorCode.UNKNOWN_REQUEST, call, client, keys.renew, unknown)
 
 
@@ -217,7 +218,7 @@ def test_fail_counts_attempts_until_dead(service, client, keys) -> None:
     statuses = []
     for _ in range(2):
         grant = lease(client, keys)
-        body = call(client, keys.fail, protocol.FailRequest(request_id=grant.request_id, token=grant.token,
+        body = call(client, keys.fail, messages.FailRequest(request_id=grant.request_id, token=grant.token,
                                                             worker_id="w1", error="sim exploded").to_json())
         statuses.append((body["status"], body["attempts"]))
     assert statuses == [("queued", 1), ("dead", 2)]
@@ -236,7 +237,7 @@ def test_release_gives_a_lease_back_without_an_attempt(service, client, keys) ->
     wait_for(subscribed, message="the event subscription is in place")
     request, _ = service.queue.enqueue(new_request(max_attempts=1))
     grant = lease(client, keys)
-    msg = protocol.ReleaseRequest(request_id=grant.request_id, token=grant.token, worker_id="w1").to_json()
+    msg = messages.ReleaseRequest(request_id=grant.request_id, token=grant.token, worker_id="w1").to_json()
     assert call(client, keys.release, msg) == {"status": "queued", "attempts": 0}
     wait_for(lambda: [e["data"] for e in events if e["kind"] == "request.released"] == [
         {"request_id": request.id, "worker_id": "w1", "token": 1, "status": "queued", "attempts": 0}],
@@ -247,9 +248,9 @@ def test_release_gives_a_lease_back_without_an_attempt(service, client, keys) ->
     assert (after.status, after.attempts, after.last_error) == (RequestStatus.QUEUED, 0, None)
     again = lease(client, keys, worker="w2")  # max_attempts=1 and still alive: nothing was counted
     assert (again.request_id, again.token) == (request.id, 2)
-    wrong = protocol.ReleaseRequest(request_id=again.request_id, token=again.token, worker_id="w1").to_json()
+    wrong = messages.ReleaseRequest(request_id=again.request_id, token=again.token, worker_id="w1").to_json()
     refused(ErrorCode.STALE_TOKEN, call, client, keys.release, wrong)
-    unknown = protocol.ReleaseRequest(request_id="nope", token=1, worker_id="w1").to_json()
+    unknown = messages.ReleaseRequest(request_id="nope", token=1, worker_id="w1").to_json()
     refused(ErrorCode.UNKNOWN_REQUEST, call, client, keys.release, unknown)
 
 
@@ -315,15 +316,15 @@ def test_admin_ops_and_events(service, client, keys, namespace) -> None:
     events: list[dict] = []
     sub = client.declare_subscriber(keys.events_all, lambda s: events.append(json.loads(s.payload.to_bytes())))
     spec = {"task": "push", "shape": "T", "start_state": {**START, "shape": "T"}, "idempotency_key": "k1"}
-    added = call(client, keys.admin("queue.add"), protocol.AdminRequest(op="queue.add", args=spec).to_json())
-    again = call(client, keys.admin("queue.add"), protocol.AdminRequest(op="queue.add", args=spec).to_json())
+    added = call(client, keys.admin("queue.add"), messages.AdminRequest(op="queue.add", args=spec).to_json())
+    again = call(client, keys.admin("queue.add"), messages.AdminRequest(op="queue.add", args=spec).to_json())
     assert added["created"] and not again["created"] and added["request"]["id"] == again["request"]["id"]
     rid = added["request"]["id"]
     listed = call(client, keys.admin("queue.ls"))  # empty payload: the key's op, no arguments
     assert [r["id"] for r in listed["requests"]] == [rid] and listed["counts"]["queued"] == 1
 
     def op(name: str, **args: Any) -> dict:
-        return call(client, keys.admin(name), protocol.AdminRequest(op=name, args=args).to_json())
+        return call(client, keys.admin(name), messages.AdminRequest(op=name, args=args).to_json())
 
     assert op("queue.prioritize", id=rid, priority=7.5)["request"]["priority"] == 7.5
     assert op("queue.cancel", id=rid)["request"]["status"] == "cancelled"
