@@ -181,6 +181,10 @@ def _models_ls(args: Mapping[str, Any], registry: Any) -> dict[str, Any]:
     return {"models": models, "champion": registry.champion()}
 
 
+#: The admin ops that change the queue; the rest only read.
+WRITE_OPS = frozenset({"queue.add", "queue.cancel", "queue.retry", "queue.prioritize"})
+
+
 def handle(op: str, args: Mapping[str, Any] | None = None, *, queue: RequestQueue, catalog: Any = None,
            registry: Any = None, workers: Callable[[], Iterable[str]] | None = None) -> dict[str, Any]:
     """Run one admin op; returns the reply body (pass it to ``protocol.ok_reply``).

@@ -23,6 +23,7 @@ fails validation gets an error reply and changes nothing.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import queue as queue_mod
 import threading
@@ -413,7 +414,9 @@ class Service:
                 raise ProtocolError(ErrorCode.BAD_FIELD, f"op: expected {op!r} (the key's op), found {request.op!r}")
         else:
             request = messages.AdminRequest(op=op)
-        with self._writes:
+        # Reads (queue ls, stats, ...) run on their own connections beside the writer: an operator's
+        # listing must not hold up leases.
+        with self._writes if request.op in admin.WRITE_OPS else contextlib.nullcontext():
             body = admin.handle(request.op, request.args, queue=self.queue, catalog=self.catalog,
                                 registry=self.context.registry, workers=self.workers)
         event = admin.admin_event(request.op, body)

@@ -3,12 +3,14 @@
 from __future__ import annotations
 
 import json
+import sqlite3
 from pathlib import Path
 
 import pytest
 
 from orchestrator import admin, messages, protocol
 from orchestrator.protocol import ErrorCode, ProtocolError
+from storage.catalog import Catalog
 from storage.errors import QueueError, StaleLeaseError, StorageError
 from storage.models import ModelRegistry
 from storage.queue import RequestQueue
@@ -172,3 +174,21 @@ def test_serve_bytes(queue: RequestQueue) -> None:
 ])
 def test_protocol_error_mapping(exc: StorageError, code: ErrorCode) -> None:
     assert admin.protocol_error(exc).code == code
+
+
+def test_only_write_ops_change_the_database(queue: RequestQueue, tmp_path: Path) -> None:
+    """The service lets every op outside WRITE_OPS run beside the writer: they must not write."""
+    assert admin.WRITE_OPS < set(protocol.ADMIN_OPS)
+    catalog, registry = Catalog(tmp_path), ModelRegistry(tmp_path)
+    created = call("queue.add", SPEC, queue=queue)["request"]["id"]
+    watcher = sqlite3.connect(tmp_path / "catalog.sqlite")
+    version = lambda: watcher.execute("PRAGMA data_version").fetchone()[0]  # moves on another connection's commit
+    args = {"queue.show": {"id": created}, "queue.cancel": {"id": created}, "queue.retry": {"id": created},
+            "queue.prioritize": {"id": created, "priority": 3.0}, "queue.add": dict(SPEC, idempotency_key="m-2")}
+    try:
+        for op in protocol.ADMIN_OPS:
+            before = version()
+            call(op, args.get(op), queue=queue, catalog=catalog, registry=registry, workers=lambda: ["w1"])
+            assert (version() != before) == (op in admin.WRITE_OPS), op
+    finally:
+        watcher.close()
