@@ -36,6 +36,12 @@ def frames_to_tensor(frames: np.ndarray, device: torch.device | str = "cpu") -> 
     return t.permute(0, 3, 1, 2).float().div_(255.0)              # (T, 3, H, W)
 
 
+#: On CPU the fused pass's activations are K times wider than one member's, so at an episode's batch
+#: (~48 windows) they fall out of cache: slices of 16 ran ~1.5x more frames/s than one call of 48 on
+#: the 2-core development machine (BENCHMARKS.md). Training (autograd) and CUDA take the whole batch.
+CPU_SLICE = 16
+
+
 class Ensemble(nn.Module):
     """K predictors with stacked parameters; ``forward`` returns every member's prediction (K,B,3,H,W)."""
 
@@ -48,6 +54,8 @@ class Ensemble(nn.Module):
         self.seed = seed
         self.version = ""
         """Registry version it was loaded from ('' for a fresh or unsaved ensemble)."""
+        self.cpu_slice = CPU_SLICE
+        """Windows per fused call on CPU in inference (0: the whole batch at once); see ``CPU_SLICE``."""
         gen = torch.Generator().manual_seed(seed)
         nets = []
         for _ in range(members):
@@ -111,9 +119,19 @@ class Ensemble(nn.Module):
 
         context: (B,C,3,H,W) shared by all members, or (K,B,C,3,H,W) one per member;
         action: (B,A) or (K,B,A), normalised. Returns (K,B,3,H,W).
+        On CPU without autograd the batch goes through in slices of ``cpu_slice`` windows (see there).
         """
-        return grouped_forward(dict(zip(self.names, self.params)), self._buffers_dict(),
-                               self.config, self.members, context, action)
+        params, buffers = dict(zip(self.names, self.params)), self._buffers_dict()
+        b = context.shape[-5]
+        step = self.cpu_slice
+        if step <= 0 or b <= step or context.device.type != "cpu" or torch.is_grad_enabled():
+            return grouped_forward(params, buffers, self.config, self.members, context, action)
+        outs = []
+        for lo in range(0, b, step):
+            ctx = context[lo:lo + step] if context.dim() == 5 else context[:, lo:lo + step]
+            act = action[lo:lo + step] if action.dim() == 2 else action[:, lo:lo + step]
+            outs.append(grouped_forward(params, buffers, self.config, self.members, ctx, act))  # (K, b', 3, H, W)
+        return torch.cat(outs, dim=1)                                                            # (K, B, 3, H, W)
 
     def forward_vmap(self, context: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
         """Fused pass via ``torch.vmap`` over ``functional_call`` (same result; slower on CPU)."""

@@ -37,6 +37,25 @@ def test_fused_forward_equals_members_one_by_one(per_member):
     assert (fused[0] - fused[1]).abs().max() > 1e-3  # members differ
 
 
+@pytest.mark.parametrize("per_member", [False, True])
+def test_cpu_slices_give_the_whole_batch_result(per_member):
+    """A batch larger than cpu_slice (with a short last slice) goes through in slices, same numbers."""
+    ens = _noisy(Ensemble(CFG, members=3, seed=2))
+    ens.cpu_slice = 8
+    g = torch.Generator().manual_seed(1)
+    shape = (3, 19) if per_member else (19,)
+    ctx = torch.rand(*shape, 2, 3, 16, 16, generator=g)
+    act = torch.randn(*shape, 2, generator=g)
+    with torch.no_grad():
+        sliced = ens(ctx, act)
+        loop = ens.forward_loop(ctx, act)
+        ens.cpu_slice = 0
+        whole = ens(ctx, act)
+    assert sliced.shape == (3, 19, 3, 16, 16)
+    torch.testing.assert_close(sliced, whole, atol=1e-6, rtol=0)
+    torch.testing.assert_close(sliced, loop, atol=1e-5, rtol=0)
+
+
 def test_fused_gradients_equal_per_member_gradients():
     ens = _noisy(Ensemble(CFG, members=2, seed=2))
     ctx, act = torch.rand(2, 4, 2, 3, 16, 16), torch.randn(2, 4, 2)
