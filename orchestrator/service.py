@@ -10,9 +10,9 @@ back to the queue at once), expires leases on a timer, and publishes what
 happens on ``NS/events/**``.
 
 Threads: lease / renew / fail / release are answered on Zenoh's callback threads (one
-short SQLite transaction each); uploads and admin queries are handed to a small pool per
-key (verification, fsync). The queue checkpoints its WAL on a thread of its own, so no
-transition waits for those fsyncs. A maintenance thread reaps
+short SQLite transaction each); uploads (``orchestrator.uploads``) and admin queries are
+handed to a small pool per key (verification, fsync). The queue checkpoints its WAL on a
+thread of its own, so no transition waits for those fsyncs. A maintenance thread reaps
 expired leases and handles liveliness changes. A background thread hands each
 stored episode to the planner and the ``on_episode`` callbacks, so scoring and
 planning never stall leasing.
@@ -40,33 +40,18 @@ from orchestrator.metrics import ServiceMetrics
 from orchestrator.planner import Planner
 from orchestrator.protocol import ErrorCode, EventKind, Keys, ProtocolError
 from orchestrator.transport import Incoming, Response
+from orchestrator.uploads import StoredEpisode, UploadHandler
 from storage.catalog import Catalog
-from storage.episodes import EpisodeInfo, read_episode
-from storage.errors import EpisodeError, QueueError, StaleLeaseError, StorageError
+from storage.errors import QueueError, StorageError
 from storage.models import ModelRegistry
 from storage.queue import RequestQueue
-from storage.requests import IllegalTransitionError, NewRequest, Request, RequestStatus
-from storage.records import Episode
+from storage.requests import NewRequest, Request, RequestStatus
 
 log = logging.getLogger(__name__)
 
 
 class ServiceError(Exception):
     """The service could not start (bad config, Zenoh or storage refused)."""
-
-
-@dataclass(frozen=True)
-class StoredEpisode:
-    """An episode a worker uploaded and the service stored, as the background callbacks get it."""
-
-    episode_id: str
-    """Catalog id of the episode."""
-    request_id: str
-    """The request it completed."""
-    worker_id: str
-    """The worker that collected it."""
-    episode: Episode
-    """The decoded episode (frames, actions, states, provenance)."""
 
 
 @dataclass
@@ -193,6 +178,8 @@ class Service:
         if cfg.planner is not None:
             self.planner = cfg.planner(self.context)
             self._seed_queue()
+        self._uploads = UploadHandler(self.queue, self.catalog, self.metrics, self.publish, self._writes,
+                                      cfg.max_upload_bytes, self._stored.put)
         self._threads = [threading.Thread(target=self._maintain, name="maintenance", daemon=True),
                          threading.Thread(target=self._after_episodes, name="episodes", daemon=True)]
         for t in self._threads:
@@ -200,7 +187,7 @@ class Service:
         k, fast = self.keys, 0 if cfg.inline_dispatch else cfg.handler_threads
         self._servers = [self._serve(k.lease, self._lease, fast), self._serve(k.renew, self._renew, fast),
                          self._serve(k.fail, self._fail, fast), self._serve(k.release, self._release, fast),
-                         self._serve(k.upload, self._upload, cfg.handler_threads),
+                         self._serve(k.upload, self._uploads.handle, cfg.handler_threads),
                          self._serve(k.admin_all, self._admin, 2)]
         self._liveliness_sub = self.session.liveliness().declare_subscriber(
             k.workers_all, self._on_liveliness, history=True)
@@ -327,84 +314,6 @@ class Service:
                                                   "token": req.token, "status": request.status.value,
                                                   "attempts": request.attempts})
         return protocol.ok_reply(status=request.status.value, attempts=request.attempts)
-
-    def _upload(self, msg: Incoming) -> bytes:
-        header = messages.UploadHeader.from_json(msg.attachment)
-        try:
-            request = self.queue.get(header.request_id)
-        except QueueError as exc:
-            raise admin.protocol_error(exc) from exc
-        if self._is_duplicate(request, header):
-            self.metrics.upload("duplicate")
-            return protocol.duplicate_reply(request_id=request.id, episode_id=request.episode_id)
-        self._check_live(request, header)  # before a byte is written
-        if header.size > self.config.max_upload_bytes or len(msg.payload) > self.config.max_upload_bytes:
-            raise ProtocolError(ErrorCode.TOO_LARGE, f"payload: expected at most {self.config.max_upload_bytes} "
-                                f"bytes, found {max(header.size, len(msg.payload))}")
-        data = header.check_payload(msg.payload)
-        episode = self._decode(data, header)  # the one full read of the bytes; ingest reuses it
-        try:
-            result = self.catalog.ingest_bytes(
-                data, expected_sha256=header.sha256, split="train",
-                in_transaction=lambda conn: self.queue.complete(
-                    header.request_id, header.token, episode.meta.episode_id, conn,
-                    worker_id=header.worker_id),
-                verified=EpisodeInfo(meta=episode.meta, frames=len(episode)), write_lock=self._writes)
-        except (StaleLeaseError, IllegalTransitionError) as exc:
-            request = self.queue.get(header.request_id)  # a racing identical upload may have won
-            if self._is_duplicate(request, header):
-                self.metrics.upload("duplicate")
-                return protocol.duplicate_reply(request_id=request.id, episode_id=request.episode_id)
-            raise self._reject(admin.protocol_error(exc), header) from exc
-        except EpisodeError as exc:
-            raise self._reject(ProtocolError(ErrorCode.CORRUPT_EPISODE, str(exc)), header) from exc
-        except StorageError as exc:  # CatalogError: the id is indexed with other bytes
-            raise self._reject(ProtocolError(ErrorCode.BAD_FIELD, str(exc)), header) from exc
-        if result.duplicate:  # indexed before: by a racing identical upload, or for another request
-            if self._is_duplicate(self.queue.get(header.request_id), header):
-                self.metrics.upload("duplicate")
-                return protocol.duplicate_reply(request_id=header.request_id, episode_id=result.episode_id)
-            raise self._reject(ProtocolError(ErrorCode.BAD_FIELD, f"episode {result.episode_id} is already "
-                               "in the catalog for another request"), header)
-        self.metrics.upload("stored")
-        self.publish(EventKind.REQUEST_DONE, {"request_id": header.request_id, "worker_id": header.worker_id,
-                                              "episode_id": result.episode_id})
-        self.publish(EventKind.EPISODE_STORED, {"episode_id": result.episode_id, "request_id": header.request_id,
-                                                "shape": episode.meta.shape, "frames": len(episode)})
-        self._stored.put(StoredEpisode(result.episode_id, header.request_id, header.worker_id, episode))
-        return protocol.ok_reply(request_id=header.request_id, episode_id=result.episode_id)
-
-    def _is_duplicate(self, request: Request, header: messages.UploadHeader) -> bool:
-        """A repeat of the upload that completed ``request``: same token, same bytes."""
-        if request.status != RequestStatus.DONE or request.token != header.token or not request.episode_id:
-            return False
-        row = self.catalog.find(request.episode_id)
-        return row is not None and row.sha256 == header.sha256
-
-    def _check_live(self, request: Request, header: messages.UploadHeader) -> None:
-        if (request.status != RequestStatus.LEASED or request.token != header.token
-                or request.worker_id != header.worker_id):
-            raise self._reject(ProtocolError(
-                ErrorCode.STALE_TOKEN, f"upload {request.id}: expected the live lease, found token "
-                f"{header.token} from {header.worker_id} while the request is {request.status.value} "
-                f"with token {request.token} held by {request.worker_id}"), header)
-
-    def _decode(self, data: bytes, header: messages.UploadHeader) -> Episode:
-        try:
-            episode = read_episode(data, name=f"upload for {header.request_id}")
-        except EpisodeError as exc:
-            raise self._reject(ProtocolError(ErrorCode.CORRUPT_EPISODE, str(exc)), header) from exc
-        if episode.meta.request_id != header.request_id:
-            raise self._reject(ProtocolError(
-                ErrorCode.BAD_FIELD, f"episode provenance: expected request_id {header.request_id}, "
-                f"found {episode.meta.request_id!r}"), header)
-        return episode
-
-    def _reject(self, exc: ProtocolError, header: messages.UploadHeader) -> ProtocolError:
-        self.metrics.upload("refused")
-        self.publish(EventKind.EPISODE_REJECTED, {"request_id": header.request_id, "worker_id": header.worker_id,
-                                                  "error": exc.code.value, "message": exc.message[:500]})
-        return exc
 
     def _admin(self, msg: Incoming) -> bytes:
         op = self.keys.admin_op(msg.key)

@@ -14,7 +14,8 @@ import zenoh
 from orchestrator import messages, protocol, transport
 from orchestrator.messages import LeaseGrant
 from orchestrator.protocol import ErrorCode, Keys, ProtocolError
-from orchestrator.service import Service, ServiceConfig, ServiceError, StoredEpisode
+from orchestrator.service import Service, ServiceConfig, ServiceError
+from orchestrator.uploads import StoredEpisode
 from storage.catalog import Catalog
 from storage.episodes import encode_episode
 from storage.queue import RequestQueue

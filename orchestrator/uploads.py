@@ -1,0 +1,137 @@
+"""The upload path of the service: verify an episode, store it once, complete its request.
+
+``UploadHandler.handle`` answers ``NS/orch/upload`` (an ``UploadHeader`` attachment and the
+MCAP bytes). It checks the lease (token and worker) before a byte is written, the size and
+the sha256, verifies the MCAP once, then writes the file atomically, indexes it and completes
+the request in one catalog transaction. A repeat of an upload that already completed its
+request is acknowledged as a duplicate; anything else that does not fit is refused with the
+reason, and nothing of it is indexed. Stored episodes are handed to ``on_stored`` (the
+service's background thread: scoring and planning never run on this path).
+"""
+
+from __future__ import annotations
+
+import threading
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+from orchestrator import admin, messages, protocol
+from orchestrator.metrics import ServiceMetrics
+from orchestrator.protocol import ErrorCode, EventKind, ProtocolError
+from orchestrator.transport import Incoming
+from storage.catalog import Catalog
+from storage.episodes import EpisodeInfo, read_episode
+from storage.errors import EpisodeError, QueueError, StaleLeaseError, StorageError
+from storage.queue import RequestQueue
+from storage.records import Episode
+from storage.requests import IllegalTransitionError, Request, RequestStatus
+
+
+@dataclass(frozen=True)
+class StoredEpisode:
+    """An episode a worker uploaded and the service stored, as the background callbacks get it."""
+
+    episode_id: str
+    """Catalog id of the episode."""
+    request_id: str
+    """The request it completed."""
+    worker_id: str
+    """The worker that collected it."""
+    episode: Episode
+    """The decoded episode (frames, actions, states, provenance)."""
+
+
+class UploadHandler:
+    """Stores uploaded episodes exactly once; see the module docstring."""
+
+    def __init__(self, queue: RequestQueue, catalog: Catalog, metrics: ServiceMetrics,
+                 publish: Callable[[EventKind, dict[str, Any]], None], write_lock: threading.Lock,
+                 max_upload_bytes: int, on_stored: Callable[[StoredEpisode], None]) -> None:
+        self.queue = queue
+        self.catalog = catalog
+        self.metrics = metrics
+        self.publish = publish
+        self.write_lock = write_lock
+        """The service's writer turn: the ingest transaction takes it like every queue transition."""
+        self.max_upload_bytes = max_upload_bytes
+        self.on_stored = on_stored
+
+    def handle(self, msg: Incoming) -> bytes:
+        """Answer one ``NS/orch/upload`` query: store the episode and complete its request, or refuse."""
+        header = messages.UploadHeader.from_json(msg.attachment)
+        try:
+            request = self.queue.get(header.request_id)
+        except QueueError as exc:
+            raise admin.protocol_error(exc) from exc
+        if self._is_duplicate(request, header):
+            self.metrics.upload("duplicate")
+            return protocol.duplicate_reply(request_id=request.id, episode_id=request.episode_id)
+        self._check_live(request, header)  # before a byte is written
+        if header.size > self.max_upload_bytes or len(msg.payload) > self.max_upload_bytes:
+            raise ProtocolError(ErrorCode.TOO_LARGE, f"payload: expected at most {self.max_upload_bytes} "
+                                f"bytes, found {max(header.size, len(msg.payload))}")
+        data = header.check_payload(msg.payload)
+        episode = self._decode(data, header)  # the one full read of the bytes; ingest reuses it
+        try:
+            result = self.catalog.ingest_bytes(
+                data, expected_sha256=header.sha256, split="train",
+                in_transaction=lambda conn: self.queue.complete(
+                    header.request_id, header.token, episode.meta.episode_id, conn,
+                    worker_id=header.worker_id),
+                verified=EpisodeInfo(meta=episode.meta, frames=len(episode)), write_lock=self.write_lock)
+        except (StaleLeaseError, IllegalTransitionError) as exc:
+            request = self.queue.get(header.request_id)  # a racing identical upload may have won
+            if self._is_duplicate(request, header):
+                self.metrics.upload("duplicate")
+                return protocol.duplicate_reply(request_id=request.id, episode_id=request.episode_id)
+            raise self._reject(admin.protocol_error(exc), header) from exc
+        except EpisodeError as exc:
+            raise self._reject(ProtocolError(ErrorCode.CORRUPT_EPISODE, str(exc)), header) from exc
+        except StorageError as exc:  # CatalogError: the id is indexed with other bytes
+            raise self._reject(ProtocolError(ErrorCode.BAD_FIELD, str(exc)), header) from exc
+        if result.duplicate:  # indexed before: by a racing identical upload, or for another request
+            if self._is_duplicate(self.queue.get(header.request_id), header):
+                self.metrics.upload("duplicate")
+                return protocol.duplicate_reply(request_id=header.request_id, episode_id=result.episode_id)
+            raise self._reject(ProtocolError(ErrorCode.BAD_FIELD, f"episode {result.episode_id} is already "
+                               "in the catalog for another request"), header)
+        self.metrics.upload("stored")
+        self.publish(EventKind.REQUEST_DONE, {"request_id": header.request_id, "worker_id": header.worker_id,
+                                              "episode_id": result.episode_id})
+        self.publish(EventKind.EPISODE_STORED, {"episode_id": result.episode_id, "request_id": header.request_id,
+                                                "shape": episode.meta.shape, "frames": len(episode)})
+        self.on_stored(StoredEpisode(result.episode_id, header.request_id, header.worker_id, episode))
+        return protocol.ok_reply(request_id=header.request_id, episode_id=result.episode_id)
+
+    def _is_duplicate(self, request: Request, header: messages.UploadHeader) -> bool:
+        """A repeat of the upload that completed ``request``: same token, same bytes."""
+        if request.status != RequestStatus.DONE or request.token != header.token or not request.episode_id:
+            return False
+        row = self.catalog.find(request.episode_id)
+        return row is not None and row.sha256 == header.sha256
+
+    def _check_live(self, request: Request, header: messages.UploadHeader) -> None:
+        if (request.status != RequestStatus.LEASED or request.token != header.token
+                or request.worker_id != header.worker_id):
+            raise self._reject(ProtocolError(
+                ErrorCode.STALE_TOKEN, f"upload {request.id}: expected the live lease, found token "
+                f"{header.token} from {header.worker_id} while the request is {request.status.value} "
+                f"with token {request.token} held by {request.worker_id}"), header)
+
+    def _decode(self, data: bytes, header: messages.UploadHeader) -> Episode:
+        try:
+            episode = read_episode(data, name=f"upload for {header.request_id}")
+        except EpisodeError as exc:
+            raise self._reject(ProtocolError(ErrorCode.CORRUPT_EPISODE, str(exc)), header) from exc
+        if episode.meta.request_id != header.request_id:
+            raise self._reject(ProtocolError(
+                ErrorCode.BAD_FIELD, f"episode provenance: expected request_id {header.request_id}, "
+                f"found {episode.meta.request_id!r}"), header)
+        return episode
+
+    def _reject(self, exc: ProtocolError, header: messages.UploadHeader) -> ProtocolError:
+        self.metrics.upload("refused")
+        self.publish(EventKind.EPISODE_REJECTED, {"request_id": header.request_id, "worker_id": header.worker_id,
+                                                  "error": exc.code.value, "message": exc.message[:500]})
+        return exc
