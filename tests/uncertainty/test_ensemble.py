@@ -17,13 +17,17 @@ def _noisy(ens: Ensemble) -> Ensemble:
     return ens
 
 
+def _inputs(batch: int, per_member: bool, seed: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Contexts (B,2,3,16,16) and actions (B,2), or one set per member (3,B,...), seeded."""
+    g = torch.Generator().manual_seed(seed)
+    shape = (3, batch) if per_member else (batch,)
+    return torch.rand(*shape, 2, 3, 16, 16, generator=g), torch.randn(*shape, 2, generator=g)
+
+
 @pytest.mark.parametrize("per_member", [False, True])
 def test_fused_forward_equals_members_one_by_one(per_member):
     ens = _noisy(Ensemble(CFG, members=3, seed=1))
-    g = torch.Generator().manual_seed(0)
-    shape = (3, 5) if per_member else (5,)
-    ctx = torch.rand(*shape, 2, 3, 16, 16, generator=g)
-    act = torch.randn(*shape, 2, generator=g)
+    ctx, act = _inputs(5, per_member, seed=0)
     with torch.no_grad():
         fused = ens(ctx, act)
         loop = ens.forward_loop(ctx, act)
@@ -42,10 +46,7 @@ def test_cpu_slices_give_the_whole_batch_result(per_member):
     """A batch larger than cpu_slice (with a short last slice) goes through in slices, same numbers."""
     ens = _noisy(Ensemble(CFG, members=3, seed=2))
     ens.cpu_slice = 8
-    g = torch.Generator().manual_seed(1)
-    shape = (3, 19) if per_member else (19,)
-    ctx = torch.rand(*shape, 2, 3, 16, 16, generator=g)
-    act = torch.randn(*shape, 2, generator=g)
+    ctx, act = _inputs(19, per_member, seed=1)
     with torch.no_grad():
         sliced = ens(ctx, act)
         loop = ens.forward_loop(ctx, act)
