@@ -215,27 +215,41 @@ class RequestQueue:
             if self._writer is None:
                 self._writer = self._open()
             own = self._writer
-            upgrade = durable and self._synchronous != "FULL"
-            try:
-                if upgrade:
-                    own.execute("PRAGMA synchronous = FULL")
-                own.execute("BEGIN IMMEDIATE")
-            except sqlite3.Error as exc:
-                raise QueueError(f"cannot start a transaction on {self.db_path}: {exc}") from exc
-            try:
-                yield own
-                own.execute("COMMIT")
-            except sqlite3.Error as exc:
-                self._rollback(own)
-                raise QueueError(f"queue transaction on {self.db_path} failed: {exc}") from exc
-            except BaseException:
-                self._rollback(own)
-                raise
-            finally:
-                if upgrade:
-                    own.execute(f"PRAGMA synchronous = {self._synchronous}")
+            if durable and self._synchronous != "FULL":
+                with self._synchronous_full(own):
+                    yield from self._transaction(own)
+            else:
+                yield from self._transaction(own)
         if self._checkpointer is not None:
             self._checkpointer.committed()
+
+    def _transaction(self, own: sqlite3.Connection) -> Iterator[sqlite3.Connection]:
+        """BEGIN IMMEDIATE, yield, COMMIT; ROLLBACK on any exception (SQLite's become QueueError)."""
+        try:
+            own.execute("BEGIN IMMEDIATE")
+        except sqlite3.Error as exc:
+            raise QueueError(f"cannot start a transaction on {self.db_path}: {exc}") from exc
+        try:
+            yield own
+            own.execute("COMMIT")
+        except sqlite3.Error as exc:
+            self._rollback(own)
+            raise QueueError(f"queue transaction on {self.db_path} failed: {exc}") from exc
+        except BaseException:
+            self._rollback(own)
+            raise
+
+    @contextmanager
+    def _synchronous_full(self, own: sqlite3.Connection) -> Iterator[None]:
+        """``synchronous=FULL`` on the writer for one transaction, the queue's own level after it."""
+        try:
+            own.execute("PRAGMA synchronous = FULL")
+        except sqlite3.Error as exc:
+            raise QueueError(f"cannot make the commit durable on {self.db_path}: {exc}") from exc
+        try:
+            yield
+        finally:
+            own.execute(f"PRAGMA synchronous = {self._synchronous}")
 
     @staticmethod
     def _rollback(conn: sqlite3.Connection) -> None:
