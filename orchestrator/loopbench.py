@@ -101,6 +101,7 @@ def run_arm(arm: str, seed: int, cfg: LoopBenchConfig, data_dir: Path, collect: 
     points: list[dict] = []
     round_eps: list[Episode] = []
     reasons: list[str] = []
+    policies: list[str] = []
     collected = catalog.count(split="train")
     while collected < cfg.budget:
         missing = cfg.round_episodes - len(round_eps) - queue.counts().get("queued", 0)
@@ -112,15 +113,16 @@ def run_arm(arm: str, seed: int, cfg: LoopBenchConfig, data_dir: Path, collect: 
         queue.complete(lease.request.id, lease.token, stored.episode_id)
         round_eps.append(ep)
         reasons.append(str(lease.request.reason.get("planner", "")))
+        policies.append(lease.request.policy)
         collected += 1
         if len(round_eps) == cfg.round_episodes or collected == cfg.budget:
             start = time.perf_counter()
             result = run_retrain(data_dir, train)
-            points.append(_point(arm, seed, collected, result, time.perf_counter() - start, reasons))
+            points.append(_point(arm, seed, collected, result, time.perf_counter() - start, reasons, policies))
             log(f"  {arm:7s} seed {seed} {collected:4d} ep: h1 {points[-1]['h1_mse']:.3e} "
                 f"h5 {points[-1]['h5_mse']:.3e} ({points[-1]['train_s']:.0f} s)")
             queue.enqueue_many(planner.plan(round_eps))
-            round_eps, reasons = [], []
+            round_eps, reasons, policies = [], [], []
     queue.close()
     return points
 
@@ -135,12 +137,14 @@ def _bench_id(ep: Episode, seed: int, index: int) -> Episode:
     return dataclasses.replace(ep, meta=meta)
 
 
-def _point(arm: str, seed: int, episodes: int, result: dict, seconds: float, reasons: list[str]) -> dict:
+def _point(arm: str, seed: int, episodes: int, result: dict, seconds: float, reasons: list[str],
+           policies: list[str]) -> dict:
     m = result["metrics"]
     return {"arm": arm, "seed": seed, "episodes": episodes, "version": result["version"],
             "h1_mse": m.get("h1_mse"), "h5_mse": m.get("h5_mse"), "promoted": result["promoted"],
             "champion": result["champion"], "train_s": round(seconds, 1),
-            "round_planners": {k: reasons.count(k) for k in sorted(set(reasons))}}
+            "round_planners": {k: reasons.count(k) for k in sorted(set(reasons))},
+            "round_policies": {k: policies.count(k) for k in sorted(set(policies))}}
 
 
 def episodes_to_reach(curve: Sequence[tuple[int, float]], target: float) -> float:

@@ -102,6 +102,9 @@ class LoopBenchConfig:
     """What the active arm ranks steps by (one of ``SIGNALS``)."""
     signal_horizon: int = 1
     """Prediction horizon of the signal."""
+    active_policy: bool = False
+    """The active arm also chooses each request's collection policy by its episodes' disagreement
+    (``ActivePlannerConfig.choose_policy``); the uniform arm keeps the mix."""
 
     def __post_init__(self) -> None:
         if not self.seeds:
@@ -115,6 +118,7 @@ class LoopBenchConfig:
         self.active.budget_per_round = self.round_episodes
         self.active.max_queue_depth = self.round_episodes
         self.active.steps = self.steps
+        self.active.choose_policy = self.active_policy
         self.active.seed_uniform = self.uniform_config()
 
     def uniform_config(self) -> UniformPlannerConfig:

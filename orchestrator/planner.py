@@ -12,7 +12,9 @@ interface so every comparison has its control arm:
   before any model exists.
 
 Both draw the collection policy from the same ``PolicyMix``: only where the
-episodes start differs between the arms.
+episodes start differs between the arms. With ``ActivePlannerConfig.choose_policy``
+the active planner also chooses the policy, favouring the one whose recent episodes
+the champion disagrees on most (an experiment; off by default).
 
 Where an active request starts: directly at the uncertain state (the object's and the
 agent's pose at that step, the episode's shape and physics), at rest, with no action
@@ -50,6 +52,8 @@ from storage.records import STATE_FIELDS, Episode
 _COL = {name: i for i, name in enumerate(STATE_FIELDS)}
 #: Push sides the "push" policy may be given.
 PUSH_SIDES: tuple[str, ...] = ("left", "right", "top", "bottom")
+#: The policies a ``PolicyMix`` draws from (and an active planner that chooses the policy chooses among).
+MIX_POLICIES: tuple[str, ...] = ("push", "random_waypoints")
 #: Clearance (world units) between a sampled agent and the object's centre: the largest shape's
 #: bounding radius (the L, ~124) plus the agent's (15), so a uniform start never overlaps the object.
 AGENT_CLEARANCE = 140.0
@@ -96,9 +100,16 @@ class PolicyMix:
 
     def draw(self, rng: np.random.Generator) -> tuple[str, dict]:
         """One (policy name, params) pair."""
-        if rng.random() < self.push_weight:
-            return "push", {"side": str(rng.choice(PUSH_SIDES)), "noise": self.push_noise}
-        return "random_waypoints", {}
+        name = "push" if rng.random() < self.push_weight else "random_waypoints"
+        return name, self.params_for(name, rng)
+
+    def params_for(self, name: str, rng: np.random.Generator) -> dict:
+        """The params this mix gives policy ``name`` (a push draws its side); raises ValueError if unknown."""
+        if name == "push":
+            return {"side": str(rng.choice(PUSH_SIDES)), "noise": self.push_noise}
+        if name == "random_waypoints":
+            return {}
+        raise ValueError(f"policy must be one of {MIX_POLICIES}, found {name!r}")
 
 
 @dataclass
@@ -222,6 +233,16 @@ class ActivePlannerConfig:
     """At most this share of a round's requests may be of one shape (no collapse onto one shape)."""
     seed_uniform: UniformPlannerConfig = field(default_factory=UniformPlannerConfig)
     """How seeds (before any model) and exploration requests are drawn; its policy mix is shared."""
+    choose_policy: bool = False
+    """Also choose each request's collection policy by uncertainty instead of drawing it from the shared
+    mix: per policy, the mean disagreement of the recent episodes collected with it (scored by the current
+    champion); a policy is drawn with probability ~ score ** ``policy_sharpness``, at least ``policy_floor``."""
+    policy_sharpness: float = 4.0
+    """Exponent on the policies' scores relative to the best (0: each equally likely; large: greedy)."""
+    policy_floor: float = 0.1
+    """Least probability of each policy when ``choose_policy`` (exploration), at most 1 / number of policies."""
+    policy_window: int = 64
+    """How many recent episodes per policy its score is the mean over."""
 
     def __post_init__(self) -> None:
         if not 0.0 <= self.percentile < 100.0:
@@ -236,6 +257,11 @@ class ActivePlannerConfig:
                              f"{self.min_distance} and {self.explore_fraction}")
         if not 1 <= self.steps <= protocol.MAX_EPISODE_STEPS:
             raise ValueError(f"steps must be in [1, {protocol.MAX_EPISODE_STEPS}], found {self.steps}")
+        if (self.policy_sharpness < 0 or self.policy_window < 1
+                or not 0.0 <= self.policy_floor <= 1.0 / len(MIX_POLICIES)):
+            raise ValueError(f"policy_sharpness >= 0, policy_window >= 1 and policy_floor in [0, "
+                             f"{1.0 / len(MIX_POLICIES)}] expected, found {self.policy_sharpness}, "
+                             f"{self.policy_window} and {self.policy_floor}")
 
 
 def state_features(shape: str, agent: Sequence[float], obj: Sequence[float],
@@ -304,6 +330,8 @@ class ActivePlanner:
         self._requested: deque[np.ndarray] = deque(maxlen=cfg.memory)
         self._requested_steps: set[tuple[str, int]] = set()
         self.threshold = math.nan
+        self._policy_scores = {name: deque(maxlen=cfg.policy_window) for name in MIX_POLICIES}
+        self._policy_version = ""
 
     def seed(self, n: int) -> list[NewRequest]:
         """Uniform requests: before any model exists there is nothing to be uncertain about."""
@@ -324,6 +352,8 @@ class ActivePlanner:
         scored = [(ep, self.scorer(ep)) for ep in new_episodes]
         if any(s is None for _, s in scored):
             return [self.uniform.draw_request("seed") for _ in range(min(budget, len(new_episodes)))]
+        if self.cfg.choose_policy:
+            self._update_policy_scores(scored)
         n_explore = int(round(budget * self.cfg.explore_fraction))
         versions = {id(ep): s.model_version for ep, s in scored}
         fresh = [c for c in self._candidates(scored)
@@ -357,6 +387,41 @@ class ActivePlanner:
                     out.append(Candidate(float(value), ep, step, _episode_features(ep, step)))
         return out
 
+    def _update_policy_scores(self, scored: list[tuple[Episode, Scores]]) -> None:
+        """Each new episode's mean score goes to its policy's recent scores (reset on a new champion)."""
+        version = scored[-1][1].model_version
+        if version != self._policy_version:  # another champion's scores are on another scale
+            for recent in self._policy_scores.values():
+                recent.clear()
+            self._policy_version = version
+        for ep, s in scored:
+            finite = s.per_step[np.isfinite(s.per_step)]
+            if ep.meta.policy in self._policy_scores and finite.size:
+                self._policy_scores[ep.meta.policy].append(float(finite.mean()))
+
+    def policy_weights(self) -> dict[str, float]:
+        """Probability of each policy for the next active request (the shared mix's while nothing is scored).
+
+        A policy not yet scored under the current champion counts as the best scored one, so it is tried.
+        """
+        means = {n: float(np.mean(r)) for n, r in self._policy_scores.items() if r}
+        if not self.cfg.choose_policy or not means or max(means.values()) <= 0:
+            w = self.cfg.seed_uniform.policies.push_weight
+            return {"push": w, "random_waypoints": 1.0 - w}
+        best = max(means.values())
+        raw = np.array([max(means.get(n, best), 0.0) / best for n in MIX_POLICIES]) ** self.cfg.policy_sharpness
+        floor = self.cfg.policy_floor
+        probs = floor + (1.0 - floor * len(MIX_POLICIES)) * raw / raw.sum()
+        return {n: float(p) for n, p in zip(MIX_POLICIES, probs)}
+
+    def _draw_policy(self) -> tuple[str, dict]:
+        mix = self.cfg.seed_uniform.policies
+        if not self.cfg.choose_policy:
+            return mix.draw(self.rng)
+        weights = self.policy_weights()
+        name = str(self.rng.choice(MIX_POLICIES, p=[weights[n] for n in MIX_POLICIES]))
+        return name, mix.params_for(name, self.rng)
+
     def _admissible(self, ep: Episode, step: int) -> bool:
         if not self.cfg.task_space_only:
             return True
@@ -367,7 +432,7 @@ class ActivePlanner:
 
     def _request(self, cand: Candidate, model_version: str) -> NewRequest:
         ep, step = cand.episode, cand.step
-        policy, params = self.cfg.seed_uniform.policies.draw(self.rng)
+        policy, params = self._draw_policy()
         if self.cfg.replay_prefix:
             start, prefix = dict(ep.meta.start_state), ep.actions[:step].astype(float).tolist()
         else:
@@ -377,15 +442,16 @@ class ActivePlanner:
             if self.cfg.redraw_agent:
                 start["agent"] = list(agent_away_from(self.rng, start["object"]))
         scale = self.threshold if self.threshold > 0 else 1.0
+        reason = {"model_version": model_version, "score": cand.score, "source_episode": ep.meta.episode_id,
+                  "step": step, "planner": "active", "threshold": self.threshold}
+        if self.cfg.choose_policy:
+            reason["policy_weights"] = {n: round(w, 4) for n, w in self.policy_weights().items()}
         return NewRequest(
             task=ep.meta.task, shape=ep.meta.shape, start_state=start,
             policy=policy, policy_params=params, action_prefix=prefix, steps=self.cfg.steps,
             # relative to the threshold, so requests from different champions compare
             priority=round(cand.score / scale, 6),
-            reason={"model_version": model_version, "score": cand.score,
-                    "source_episode": ep.meta.episode_id, "step": step, "planner": "active",
-                    "threshold": self.threshold},
-            idempotency_key=f"active:{ep.meta.episode_id}:{step}",
+            reason=reason, idempotency_key=f"active:{ep.meta.episode_id}:{step}",
         )
 
 

@@ -94,6 +94,10 @@ def register_bench(bench: argparse._SubParsersAction) -> None:
     p.add_argument("--device", choices=("auto", "cpu", "cuda"), default=d.train.device, help="torch device")
     p.add_argument("--signal", choices=SIGNALS, default=d.signal,
                    help=f"what the active arm ranks steps by (default {d.signal})")
+    p.add_argument("--active-policy", action="store_true", default=d.active_policy,
+                   help="let the active arm also choose each episode's collection policy (push or random "
+                        "waypoints), favouring the one whose recent episodes the champion disagrees on most "
+                        f"(at least {d.active.policy_floor:.0%}% each); the uniform arm keeps the mix")
     p.add_argument("--out", type=Path, default=None,
                    help="output directory (default ./activecollect-bench/loop-<timestamp>)")
     p.set_defaults(func=_bench_loop)
@@ -120,7 +124,8 @@ def _bench_loop(args: argparse.Namespace) -> int:
     try:
         cfg = LoopBenchConfig(seeds=tuple(range(args.seeds)), budget=args.budget,
                               round_episodes=args.round_episodes, steps=args.steps,
-                              image_size=args.image_size, train=train, signal=args.signal)
+                              image_size=args.image_size, train=train, signal=args.signal,
+                              active_policy=args.active_policy)
     except ValueError as exc:
         raise common.UsageError(str(exc)) from None
     out = args.out or Path("activecollect-bench") / time.strftime("loop-%Y%m%dT%H%M%S")

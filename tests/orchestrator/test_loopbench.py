@@ -59,3 +59,10 @@ def test_object_moving_marks_the_steps_before_the_object_moves_or_turns():
     states[4, 6] = 0.1            # obj_theta turns between steps 3 and 4
     assert object_moving(states).tolist() == [False, True, False, True, False]
     assert object_moving(states, horizon=2).tolist() == [True, True, True, False, False]
+
+
+def test_active_policy_reaches_only_the_active_arms_planner():
+    assert not LoopBenchConfig().active.choose_policy
+    cfg = LoopBenchConfig(active_policy=True)
+    assert cfg.active.choose_policy and cfg.to_json()["active"]["choose_policy"]
+    assert cfg.uniform_config().policies == cfg.policies  # the uniform arm keeps the mix

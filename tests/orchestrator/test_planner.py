@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -10,7 +11,7 @@ import pytest
 from orchestrator import protocol
 from orchestrator.planner import (
     ActivePlanner, ActivePlannerConfig, Candidate, PolicyMix, Scores, UniformPlanner, UniformPlannerConfig,
-    AGENT_CLEARANCE, select_diverse, state_at, state_features,
+    AGENT_CLEARANCE, MIX_POLICIES, select_diverse, state_at, state_features,
 )
 from storage.queue import RequestQueue
 from storage.requests import NewRequest
@@ -244,3 +245,47 @@ def test_requests_stay_in_the_task_space_start_at_rest_away_from_the_object_and_
         assert math.dist(s["agent"], s["object"][:2]) >= AGENT_CLEARANCE
     # T scores ten times higher, yet at most half the round is T
     assert sum(r.shape == "T" for r in reqs) <= 4
+
+
+def with_policy(ep: Episode, policy: str) -> Episode:
+    return dataclasses.replace(ep, meta=dataclasses.replace(ep.meta, policy=policy))
+
+
+def test_choose_policy_favours_the_policy_whose_episodes_the_champion_disagrees_on_most():
+    rng = np.random.default_rng(13)
+    champion = {"version": "m1", "level": {"push": 1.0, "random_waypoints": 3.0}}
+    # a real scorer: every step of an episode scores its policy's level (plus a ramp, so steps differ)
+    def scorer(ep: Episode) -> Scores:
+        return Scores(champion["version"], champion["level"][ep.meta.policy] * (1 + np.arange(len(ep)) / 100))
+    cfg = acfg(choose_policy=True, policy_sharpness=4.0, policy_floor=0.1, percentile=0.0,
+               budget_per_round=300, max_queue_depth=1000, min_distance=0.0)
+    planner = ActivePlanner(cfg, scorer, rng)
+    assert planner.policy_weights() == {"push": 0.5, "random_waypoints": 0.5}  # nothing scored: the mix
+    # only push episodes scored so far: the untried policy counts as the best, so both are equally likely
+    planner.plan([with_policy(make_episode(rng, steps=30), "push")])
+    assert planner.policy_weights() == pytest.approx({"push": 0.5, "random_waypoints": 0.5})
+    eps = [with_policy(make_episode(rng, steps=40), p) for p in MIX_POLICIES * 4]
+    reqs = planner.plan(eps)
+    mean = {"push": 1.0 * 1.195, "random_waypoints": 3.0 * 1.195}  # the ramp's mean over 40 steps is 1.195
+    raw = {p: (m / mean["random_waypoints"]) ** 4 for p, m in mean.items()}
+    expected = {p: 0.1 + 0.8 * r / sum(raw.values()) for p, r in raw.items()}
+    assert planner.policy_weights() == pytest.approx(expected, abs=2e-3)  # ~0.11 push, ~0.89 waypoints
+    assert len(reqs) > 200
+    share = sum(r.policy == "random_waypoints" for r in reqs) / len(reqs)
+    assert 0.8 < share < 0.97
+    assert all(r.reason["policy_weights"] == pytest.approx(expected, abs=2e-3) for r in reqs)
+    assert all(r.policy_params == {} for r in reqs if r.policy == "random_waypoints")
+    assert all(set(r.policy_params) == {"side", "noise"} for r in reqs if r.policy == "push")
+    # a new champion that disagrees most on pushes: the old scores are dropped and the choice flips
+    champion.update(version="m2", level={"push": 0.02, "random_waypoints": 0.01})
+    planner.plan([with_policy(make_episode(rng, steps=40), p) for p in MIX_POLICIES])
+    weights = planner.policy_weights()
+    assert weights["push"] == pytest.approx(0.1 + 0.8 * 1 / (1 + 0.5 ** 4)) and weights["push"] > 0.8
+
+
+def test_choose_policy_is_off_by_default_and_its_settings_are_checked():
+    assert not ActivePlannerConfig().choose_policy
+    with pytest.raises(ValueError, match="policy_floor"):
+        ActivePlannerConfig(choose_policy=True, policy_floor=0.6)
+    with pytest.raises(ValueError, match="policy_sharpness"):
+        ActivePlannerConfig(policy_sharpness=-1.0)
