@@ -280,8 +280,24 @@ def _service(cfg: BenchConfig, endpoint: str, namespace: str, data_dir: Path) ->
         child.stop()
 
 
-def _lease_messages(cfg: BenchConfig) -> list[bytes]:
-    return [messages.LeaseRequest(worker_id=f"bench-{i}").to_json() for i in range(cfg.workers)]
+#: What a cycle does with a grant: (session, worker index, grant, latencies) -> None.
+AfterLease = Callable[[zenoh.Session, int, dict[str, Any], dict[str, list[float]]], None]
+
+
+def _lease_cycle(cfg: BenchConfig, keys: Keys, after: AfterLease) -> Cycle:
+    """One timed cycle per call: lease as worker ``bench-i``, then ``after``; False when the queue is empty."""
+    lease_msgs = [messages.LeaseRequest(worker_id=f"bench-{i}").to_json() for i in range(cfg.workers)]
+
+    def cycle(s: zenoh.Session, i: int, lats: dict[str, list[float]]) -> bool:
+        t0 = time.perf_counter()
+        grant = _lease(s, keys, lease_msgs[i], lats)
+        if grant is None:
+            return False
+        after(s, i, grant, lats)
+        lats.setdefault("cycle", []).append(time.perf_counter() - t0)
+        return True
+
+    return cycle
 
 
 @contextmanager
@@ -289,20 +305,12 @@ def _dispatch_server(cfg: BenchConfig, endpoint: str, data_dir: Path) -> Iterato
     """The real service in a child process and a connected client: (session, one lease -> fail cycle)."""
     _fill(data_dir, cfg.dispatch_requests, protocol.MAX_ATTEMPTS)
     with _service(cfg, endpoint, "bench", data_dir) as (session, keys):
-        lease_msgs = _lease_messages(cfg)
-
-        def cycle(s: zenoh.Session, i: int, lats: dict[str, list[float]]) -> bool:
-            t0 = time.perf_counter()
-            grant = _lease(s, keys, lease_msgs[i], lats)
-            if grant is None:
-                return False
+        def give_back(s: zenoh.Session, i: int, grant: dict[str, Any], lats: dict[str, list[float]]) -> None:
             msg = messages.FailRequest(request_id=grant["request_id"], token=grant["token"],
                                        worker_id=f"bench-{i}", error="bench: give back").to_json()
             protocol.parse_reply(_timed(lats, "fail", lambda: transport.query(s, keys.fail, msg, timeout=10)))
-            lats.setdefault("cycle", []).append(time.perf_counter() - t0)
-            return True
 
-        yield session, cycle
+        yield session, _lease_cycle(cfg, keys, give_back)
 
 
 def _phases_raw_and_dispatch(cfg: BenchConfig, data_dir: Path) -> tuple[dict[str, Any], dict[str, Any]]:
@@ -321,22 +329,14 @@ def _phase_upload(cfg: BenchConfig, endpoint: str, data_dir: Path) -> dict[str, 
     ids = _fill(data_dir, cfg.upload_requests, 3)
     episodes = {rid: _tiny_episode(rid) for rid in ids}
     with _service(cfg, endpoint, "benchup", data_dir) as (session, keys):
-        lease_msgs = _lease_messages(cfg)
-
-        def cycle(s: zenoh.Session, i: int, lats: dict[str, list[float]]) -> bool:
-            t0 = time.perf_counter()
-            grant = _lease(s, keys, lease_msgs[i], lats)
-            if grant is None:
-                return False
+        def upload(s: zenoh.Session, i: int, grant: dict[str, Any], lats: dict[str, list[float]]) -> None:
             data = episodes[grant["request_id"]]
             header = messages.UploadHeader.for_payload(data, request_id=grant["request_id"], token=grant["token"],
                                                        worker_id=f"bench-{i}").to_json()
             protocol.parse_reply(_timed(lats, "upload",
                                         lambda: transport.query(s, keys.upload, data, header, timeout=30)))
-            lats.setdefault("cycle", []).append(time.perf_counter() - t0)
-            return True
 
-        result = _summary([_drive(cfg.workers, cfg.seconds, cycle, session)])
+        result = _summary([_drive(cfg.workers, cfg.seconds, _lease_cycle(cfg, keys, upload), session)])
         result["episode_bytes"] = len(next(iter(episodes.values())))
         return result
 

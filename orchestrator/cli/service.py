@@ -246,15 +246,20 @@ def _run_op(args: argparse.Namespace, op: str, op_args: dict[str, Any]) -> dict[
         return admin_call(session, keys, op, op_args, args.timeout)
 
 
+def _failed(exc: Exception, op: str) -> int:
+    """One line on stderr for a service that did not answer or refused ``op``; the exit status 1."""
+    if isinstance(exc, ProtocolError):
+        print(f"activecollect: {op} refused: {exc.code.value}: {exc.message}", file=sys.stderr)
+    else:
+        print(f"activecollect: {exc}", file=sys.stderr)
+    return 1
+
+
 def _print_op(args: argparse.Namespace, op: str, op_args: dict[str, Any], show) -> int:
     try:
         body = _run_op(args, op, op_args)
-    except _NoService as exc:
-        print(f"activecollect: {exc}", file=sys.stderr)
-        return 1
-    except ProtocolError as exc:
-        print(f"activecollect: {op} refused: {exc.code.value}: {exc.message}", file=sys.stderr)
-        return 1
+    except (_NoService, ProtocolError) as exc:
+        return _failed(exc, op)
     if args.json:
         common.print_json(body)
     else:
@@ -345,12 +350,8 @@ def cmd_watch(args: argparse.Namespace) -> int:
                     seen.acquire()
             finally:
                 sub.undeclare()
-    except _NoService as exc:
-        print(f"activecollect: {exc}", file=sys.stderr)
-        return 1
-    except ProtocolError as exc:
-        print(f"activecollect: stats refused: {exc.code.value}: {exc.message}", file=sys.stderr)
-        return 1
+    except (_NoService, ProtocolError) as exc:
+        return _failed(exc, "stats")
     return 0
 
 

@@ -28,20 +28,12 @@ def client(*connect: str) -> zenoh.Session:
 
 def start(*args: str) -> Proc:
     """``activecollect router ARGS`` as its own process, once it listens."""
-    proc = Proc(activecollect("router", *args))
-    try:
-        proc.wait_line("listening on")
-    except AssertionError:
-        proc.stop()
-        raise
-    return proc
+    return Proc(activecollect("router", *args)).started()
 
 
 def start_plain_router(listen: tuple[str, ...]) -> Proc:
     """A router without the CLI around it (cheaper to start; the CLI is tested on the other end)."""
-    proc = Proc([sys.executable, "-c", PLAIN_ROUTER, json.dumps(listen)])
-    proc.wait_line("listening on")
-    return proc
+    return Proc([sys.executable, "-c", PLAIN_ROUTER, json.dumps(listen)]).started()
 
 
 PLAIN_ROUTER = """

@@ -84,6 +84,15 @@ class Proc:
             return hit
         return wait_for(found, timeout, f"{needle!r} from {' '.join(self.argv)[-120:]}")
 
+    def started(self, needle: str = "listening on") -> Proc:
+        """Wait for ``needle`` in the output; stop the process if it never comes. Returns self."""
+        try:
+            self.wait_line(needle)
+        except AssertionError:
+            self.stop()
+            raise
+        return self
+
     def output(self) -> str:
         return "\n".join(self.lines)[-2000:]
 
@@ -115,13 +124,7 @@ sys.exit(run_router(cfg, out=sys.stdout))
 
 def start_router(config: Path, listen: tuple[str, ...] = (), connect: tuple[str, ...] = (),
                  prefix: tuple[str, ...] = ()) -> Proc:
-    proc = Proc([*prefix, sys.executable, "-c", ROUTER, str(config), json.dumps(listen), json.dumps(connect)])
-    try:
-        proc.wait_line("listening on")
-    except AssertionError:
-        proc.stop()
-        raise
-    return proc
+    return Proc([*prefix, sys.executable, "-c", ROUTER, str(config), json.dumps(listen), json.dumps(connect)]).started()
 
 
 def role_config(secure: SecureSet, role: str, mutate: Callable[[dict], None] | None = None) -> zenoh.Config:
