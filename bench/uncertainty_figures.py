@@ -71,13 +71,14 @@ def prepare(data: Path, n_train: int, steps: int, size: int) -> Catalog:
 def main_figure(cat: Catalog, data: Path, args) -> dict:
     cfg = TrainConfig(members=args.members, epochs=args.epochs, batch_size=args.batch_size, lr=args.lr,
                       seed=args.seed, device="cpu", max_episodes=args.train_episodes, progress=True,
-                      bootstrap=args.bootstrap)
+                      bootstrap=args.bootstrap, variance_head=args.variance_head)
     t0 = time.perf_counter()
     registry = ModelRegistry(data)
     result = train_candidate(cat, registry, cfg)
     m = result.metrics
     keys = ["train_episodes", "train_windows", "epochs", "train_seconds", "eval_episodes", "eval_windows",
-            "spearman", "sparsification_error"]
+            "spearman", "sparsification_error", "spearman_total", "spearman_predicted_variance",
+            "sparsification_error_total", "h1_total_variance_ratio", "h1_predicted_variance"]
     for h in (1, 5, 10):
         keys += [f"h{h}_mse", f"h{h}_psnr", f"h{h}_ssim", f"baseline_h{h}_mse", f"baseline_h{h}_psnr",
                  f"baseline_h{h}_ssim", f"h{h}_psnr_gain_db"]
@@ -85,7 +86,7 @@ def main_figure(cat: Catalog, data: Path, args) -> dict:
     out.update(version=result.version, promoted=result.decision.promoted, members=args.members,
                batch_size=args.batch_size, total_seconds=round(time.perf_counter() - t0, 1),
                losses=result.losses, sparsification=m["sparsification"], bootstrap=args.bootstrap,
-               image_size=args.image_size)
+               image_size=args.image_size, variance_head=args.variance_head)
     out["calibration_variants"] = calibration_variants(load_ensemble(registry, result.version, "cpu"), cat)
     return out
 
@@ -229,6 +230,8 @@ def main(argv=None) -> int:
     p.add_argument("--lr", type=float, default=1.5e-3)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--bootstrap", action="store_true", help="main figure: members train on bootstrap resamples")
+    p.add_argument("--variance-head", action="store_true",
+                   help="main figure: members also predict their error variance (total-variance calibration)")
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--ood-train-episodes", type=int, default=80)
     p.add_argument("--ood-epochs", type=int, default=40)

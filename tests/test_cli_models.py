@@ -231,3 +231,16 @@ def test_eval_refuses_a_corrupt_or_foreign_champion(capsys, data, reg) -> None:
     path.write_bytes(b"X" + path.read_bytes()[1:])
     rc, _, err = run_cli(capsys, "eval", version, "--data", str(data), "--device", "cpu")
     assert rc == 1 and "sha256 mismatch" in err and len(err.strip().splitlines()) == 1
+
+
+def test_train_with_a_variance_head_reports_both_calibrations(trained, capsys, tmp_path) -> None:
+    import shutil
+    data = tmp_path / "data"
+    shutil.copytree(trained[0], data)
+    rc, _, err = run_cli(capsys, "train", "--data", str(data), "--members", "2", "--epochs", "1",
+                         "--device", "cpu", "--from-champion", "--variance-head")
+    assert rc == 1 and "no variance head to warm-start" in err and len(err.strip().splitlines()) == 1
+    rc, out, _ = run_cli(capsys, "train", "--data", str(data), "--members", "2", "--epochs", "1",
+                         "--device", "cpu", "--variance-head", "--min-improvement", "0")
+    assert rc == 0
+    assert "spearman(disagreement, error)" in out and "spearman(total predictive variance, error)" in out

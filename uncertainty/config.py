@@ -43,6 +43,9 @@ class TrainConfig:
     """Context frames C of a fresh model."""
     widths: tuple[int, int, int] = (16, 32, 64)
     """Channel widths of a fresh model."""
+    variance_head: bool = False
+    """A fresh model's members also predict a per-pixel variance of their error (beta-NLL);
+    ``eval`` then reports the calibration of the total predictive variance too."""
     min_rel_improvement: float = 0.02
     """The gate's minimum relative improvement of h1_mse over the champion."""
     eval_rollout_stride: int = 5

@@ -7,7 +7,8 @@ layer on channels-last activations whose channels are grouped by member
 built in one NHWC copy each. ``forward_vmap`` does the same through
 ``torch.vmap`` over ``torch.func.functional_call``; ``forward_loop`` runs the
 same weights member by member, as K ordinary ``Predictor`` calls. Both exist to
-check the fused pass and to benchmark it.
+check the fused pass and to benchmark it. ``forward_dist`` adds the members'
+predicted log-variances when they have a variance head (``predict_variance``).
 """
 
 from __future__ import annotations
@@ -22,7 +23,8 @@ from torch.func import functional_call
 from torch.nn import functional as F
 
 from uncertainty.errors import ConfigError, DataError
-from uncertainty.model import Predictor, PredictorConfig
+from uncertainty import model
+from uncertainty.model import Predictor, PredictorConfig, squash_logvar
 
 
 def default_device() -> torch.device:
@@ -111,8 +113,9 @@ class Ensemble(nn.Module):
         return self.action_mean.device
 
     # -- forward passes ---------------------------------------------------------------------------
-    def _one(self, params: dict, context: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
-        return functional_call(self.template, (params, self._buffers_dict()), (context, action))
+    def _one(self, params: dict, context: torch.Tensor, action: torch.Tensor, with_variance: bool = False):
+        return functional_call(self.template, (params, self._buffers_dict()), (context, action),
+                               {"with_variance": with_variance})
 
     def forward(self, context: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
         """Fused pass over all members as grouped convolutions (one call per layer for all K).
@@ -121,17 +124,31 @@ class Ensemble(nn.Module):
         action: (B,A) or (K,B,A), normalised. Returns (K,B,3,H,W).
         On CPU without autograd the batch goes through in slices of ``cpu_slice`` windows (see there).
         """
+        return self._fused(context, action, with_variance=False)
+
+    def forward_dist(self, context: torch.Tensor, action: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """``forward`` plus each member's predicted log-variance: two (K,B,3,H,W) tensors.
+
+        Raises ``ConfigError`` unless the members have a variance head (``predict_variance``).
+        """
+        if not self.config.predict_variance:
+            raise ConfigError("this ensemble has no variance head (predict_variance is false)")
+        return self._fused(context, action, with_variance=True)
+
+    def _fused(self, context: torch.Tensor, action: torch.Tensor, with_variance: bool):
         params, buffers = dict(zip(self.names, self.params)), self._buffers_dict()
         b = context.shape[-5]
         step = self.cpu_slice
         if step <= 0 or b <= step or context.device.type != "cpu" or torch.is_grad_enabled():
-            return grouped_forward(params, buffers, self.config, self.members, context, action)
+            return grouped_forward(params, buffers, self.config, self.members, context, action, with_variance)
         outs = []
         for lo in range(0, b, step):
             ctx = context[lo:lo + step] if context.dim() == 5 else context[:, lo:lo + step]
             act = action[lo:lo + step] if action.dim() == 2 else action[:, lo:lo + step]
-            outs.append(grouped_forward(params, buffers, self.config, self.members, ctx, act))  # (K, b', 3, H, W)
-        return torch.cat(outs, dim=1)                                                            # (K, B, 3, H, W)
+            out = grouped_forward(params, buffers, self.config, self.members, ctx, act, with_variance)
+            outs.append(out if with_variance else (out,))                              # (K, b', 3, H, W) each
+        cat = tuple(torch.cat(parts, dim=1) for parts in zip(*outs))                   # (K, B, 3, H, W) each
+        return cat if with_variance else cat[0]
 
     def forward_vmap(self, context: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
         """Fused pass via ``torch.vmap`` over ``functional_call`` (same result; slower on CPU)."""
@@ -140,14 +157,19 @@ class Ensemble(nn.Module):
         act_dim = 0 if action.dim() == 3 else None
         return torch.vmap(self._one, in_dims=(0, ctx_dim, act_dim))(params, context, action)
 
-    def forward_loop(self, context: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
-        """The same predictions as ``forward``, one member at a time (for tests and benchmarks)."""
+    def forward_loop(self, context: torch.Tensor, action: torch.Tensor, with_variance: bool = False):
+        """The same predictions as ``forward`` (``forward_dist`` with ``with_variance``), one member at a time.
+
+        For tests and benchmarks.
+        """
         outs = []
         for k in range(self.members):
             ctx = context[k] if context.dim() == 6 else context
             act = action[k] if action.dim() == 3 else action
-            outs.append(self._one(self.member_params(k), ctx, act))  # (B, 3, H, W)
-        return torch.stack(outs)  # (K, B, 3, H, W)
+            out = self._one(self.member_params(k), ctx, act, with_variance)  # (B, 3, H, W), or two
+            outs.append(out if with_variance else (out,))
+        stacked = tuple(torch.stack(parts) for parts in zip(*outs))           # (K, B, 3, H, W) each
+        return stacked if with_variance else stacked[0]
 
     def rollout(self, context: torch.Tensor, actions: torch.Tensor, fused: bool | str = True) -> torch.Tensor:
         """Each member rolls out on its own predictions.
@@ -288,8 +310,12 @@ def _silu(x: torch.Tensor) -> torch.Tensor:
 
 
 def grouped_forward(p: dict, buffers: dict, config: PredictorConfig, k: int,
-                    context: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
-    """``Predictor.forward`` for K stacked members at once; see ``Ensemble.forward`` for shapes."""
+                    context: torch.Tensor, action: torch.Tensor, with_variance: bool = False):
+    """``Predictor.forward`` for K stacked members at once; see ``Ensemble.forward`` for shapes.
+
+    ``with_variance``: returns (frames, log-variances), both (K,B,3,H,W); without it a variance
+    head is not run at all.
+    """
     if context.dim() == 5 and action.dim() == 3:
         context = context.expand(k, *context.shape)                  # (K, B, C, 3, H, W)
     shared = context.dim() == 5
@@ -329,7 +355,23 @@ def grouped_forward(p: dict, buffers: dict, config: PredictorConfig, k: int,
     d = _silu(_gconv(_upsample_cat_members(z, e2, k), p, "dec2", k))  # (B, K*w1, H/4, W/4)
     d = _silu(_gconv(_upsample_cat_members(d, e1, k), p, "dec1", k))  # (B, K*w0, H/2, W/2)
     out = _to_cl(_gconv(d, p, "out", k)).permute(0, 2, 3, 1)        # (B, H/2, W/2, K*12)
-    # pixel_shuffle semantics: channel j*4 + 2*i + jj of a member goes to colour j, offset (i, jj).
-    delta = out.reshape(b, h // 2, w // 2, k, 3, 2, 2).permute(3, 0, 4, 1, 5, 2, 6)  # (K, B, 3, H/2, 2, W/2, 2)
-    last = last.unflatten(3, (h // 2, 2)).unflatten(5, (w // 2, 2))  # (K or 1, B, 3, H/2, 2, W/2, 2)
-    return (last + delta).reshape(k, b, 3, h, w)                    # (K, B, 3, H, W)
+    frames = _add_shuffled(last, out, k)                             # (K, B, 3, H, W)
+    if not with_variance:
+        return frames
+    v = _silu(_gconv(model.share_grad(d, model.HEAD_GRAD_SHARE), p, "var1", k))  # (B, K*w0, H/2, W/2)
+    raw = _add_shuffled(None, _to_cl(_gconv(v, p, "var_out", k)).permute(0, 2, 3, 1), k)  # (K, B, 3, H, W)
+    return frames, squash_logvar(raw)                                # (K, B, 3, H, W) each
+
+
+def _add_shuffled(base: torch.Tensor | None, out: torch.Tensor, k: int) -> torch.Tensor:
+    """Each member's pixel-shuffled 12 output channels (plus ``base``): (B, h, w, K*12) -> (K, B, 3, 2h, 2w).
+
+    ``base`` is (K or 1, B, 3, 2h, 2w) or None. pixel_shuffle semantics: channel j*4 + 2*i + jj of a
+    member goes to colour j, offset (i, jj).
+    """
+    b, h, w = out.shape[:3]
+    shuffled = out.reshape(b, h, w, k, 3, 2, 2).permute(3, 0, 4, 1, 5, 2, 6)  # (K, B, 3, h, 2, w, 2)
+    if base is None:
+        return shuffled.reshape(k, b, 3, 2 * h, 2 * w)
+    base = base.unflatten(3, (h, 2)).unflatten(5, (w, 2))                    # (K or 1, B, 3, h, 2, w, 2)
+    return (base + shuffled).reshape(k, b, 3, 2 * h, 2 * w)

@@ -37,6 +37,8 @@ class PredictorConfig:
     """Channels at 1/2, 1/4 and 1/8 of the image size."""
     action_hidden: int = 64
     """Hidden units of the action MLP that produces the FiLM scale and shift."""
+    predict_variance: bool = False
+    """Also predict a per-pixel log-variance of the next frame (see ``Predictor.forward``)."""
 
     def __post_init__(self) -> None:
         if self.image_size < 8 or self.image_size % 8:
@@ -49,17 +51,20 @@ class PredictorConfig:
         if len(widths) != 3 or min(widths) < 1:
             raise ConfigError(f"widths must be three positive channel counts, found {self.widths}")
         object.__setattr__(self, "widths", widths)
+        if not isinstance(self.predict_variance, bool):
+            raise ConfigError(f"predict_variance must be true or false, found {self.predict_variance!r}")
         if self.action_hidden < 1:
             raise ConfigError(f"action_hidden must be >= 1, found {self.action_hidden}")
 
     def to_dict(self) -> dict:
         return {"image_size": self.image_size, "context": self.context, "action_dim": self.action_dim,
-                "widths": list(self.widths), "action_hidden": self.action_hidden}
+                "widths": list(self.widths), "action_hidden": self.action_hidden,
+                "predict_variance": self.predict_variance}
 
     @classmethod
     def from_dict(cls, d: dict) -> "PredictorConfig":
         """Rebuild from ``to_dict``; raises ``ConfigError`` on unknown or bad fields."""
-        known = {"image_size", "context", "action_dim", "widths", "action_hidden"}
+        known = {"image_size", "context", "action_dim", "widths", "action_hidden", "predict_variance"}
         unknown = set(d) - known
         if unknown:
             raise ConfigError(f"unknown predictor config fields {sorted(unknown)}")
@@ -67,6 +72,29 @@ class PredictorConfig:
         if "widths" in d:
             d["widths"] = tuple(d["widths"])
         return cls(**d)
+
+
+#: Range of the predicted log-variance: ``LOGVAR_MID +- LOGVAR_HALF_RANGE`` (a tanh squashes the raw output),
+#: i.e. standard deviations from ~1e-3 to 1 of a [0, 1] pixel; it starts at the middle.
+LOGVAR_MID = -7.0
+LOGVAR_HALF_RANGE = 7.0
+
+
+#: Share of the variance head's gradient that reaches the layers it shares with the frame prediction.
+#: At 1 the trunk serves the head too much (h1 PSNR gain 2.3-2.9 dB instead of 3.0), at 0 (detached) the
+#: head has only features made for the frame and ranks the error poorly (Spearman 0.04-0.36); at 0.3 the
+#: trunk learns from the error too and both gain (+3.44 / +3.55 dB, Spearman 0.52 / 0.59; BENCHMARKS.md).
+HEAD_GRAD_SHARE = 0.3
+
+
+def share_grad(x: torch.Tensor, share: float) -> torch.Tensor:
+    """``x`` in the forward pass; in the backward pass only ``share`` of the gradient flows into it."""
+    return x.detach() if share == 0 else x * share + x.detach() * (1 - share)
+
+
+def squash_logvar(raw: torch.Tensor) -> torch.Tensor:
+    """Raw variance-head output -> log-variance in ``LOGVAR_MID +- LOGVAR_HALF_RANGE``, smoothly."""
+    return LOGVAR_MID + LOGVAR_HALF_RANGE * torch.tanh(raw / LOGVAR_HALF_RANGE)
 
 
 def coord_grid(size: int, device=None, dtype=torch.float32) -> torch.Tensor:
@@ -96,6 +124,10 @@ class Predictor(nn.Module):
         self.dec2 = nn.Conv2d(w2 + w1, w1, 3, padding=1)  # at S/4, with the enc2 skip
         self.dec1 = nn.Conv2d(w1 + w0, w0, 3, padding=1)  # at S/2, with the enc1 skip
         self.out = nn.Conv2d(w0, 3 * 4, 3, padding=1)     # at S/2, pixel-shuffled to S
+        if c.predict_variance:
+            # Reads the decoder's features (passing back HEAD_GRAD_SHARE of its gradient) to predict the error.
+            self.var1 = nn.Conv2d(w0, w0, 3, padding=1)
+            self.var_out = nn.Conv2d(w0, 3 * 4, 3, padding=1)  # raw log-variance, pixel-shuffled to S
         self.reset_parameters(None)
 
     def reset_parameters(self, generator: torch.Generator | None) -> None:
@@ -107,12 +139,24 @@ class Predictor(nn.Module):
                 bound = 1 / math.sqrt(fan_in)
                 nn.init.uniform_(m.bias, -bound, bound, generator=generator)
         # Start as copy-last-frame-ish with small random output: members still differ.
+        # A variance head likewise starts near LOGVAR_MID everywhere.
         with torch.no_grad():
-            self.out.weight.mul_(0.1)
-            self.out.bias.zero_()
+            for out in (self.out, getattr(self, "var_out", None)):
+                if out is not None:
+                    out.weight.mul_(0.1)
+                    out.bias.zero_()
 
-    def forward(self, context: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
-        """context (B,C,3,H,W) in [0,1], action (B,A) normalised -> predicted next frame (B,3,H,W)."""
+    def forward(self, context: torch.Tensor, action: torch.Tensor,
+                with_variance: bool = False) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor]:
+        """context (B,C,3,H,W) in [0,1], action (B,A) normalised -> predicted next frame (B,3,H,W).
+
+        ``with_variance`` (needs ``config.predict_variance``): returns (next frame, log-variance), both
+        (B,3,H,W): the model's own estimate of its squared error per pixel, trained by a Gaussian NLL.
+        The head reads the decoder's features and passes ``HEAD_GRAD_SHARE`` of its gradient back into
+        them; asking for it changes no predicted frame.
+        """
+        if with_variance and not self.config.predict_variance:
+            raise ConfigError("this predictor has no variance head (predict_variance is false)")
         b, c, _, h, w = context.shape
         if c != self.config.context or h != self.config.image_size or w != self.config.image_size:
             raise ConfigError(f"context must be (B,{self.config.context},3,{self.config.image_size},"
@@ -136,7 +180,10 @@ class Predictor(nn.Module):
         d = F.interpolate(d, scale_factor=2.0, mode="nearest")  # (B, w1, H/2, W/2)
         d = F.silu(self.dec1(torch.cat([d, e1], dim=1)))        # (B, w0, H/2, W/2)
         delta = F.pixel_shuffle(self.out(d), 2)                 # (B, 12, H/2, W/2) -> (B, 3, H, W)
-        return last + delta
+        if not with_variance:
+            return last + delta
+        v = F.silu(self.var1(share_grad(d, HEAD_GRAD_SHARE)))   # (B, w0, H/2, W/2)
+        return last + delta, squash_logvar(F.pixel_shuffle(self.var_out(v), 2))  # (B, 3, H, W) each
 
     def rollout(self, context: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
         """Autoregressive prediction: context (B,C,3,H,W), actions (B,H,A) -> frames (B,H,3,H,W).

@@ -66,17 +66,33 @@ def _clip_per_member(params: list[torch.Tensor], max_norm: float) -> None:
         p.grad.mul_(scale.view(-1, *([1] * (p.dim() - 1))))
 
 
+def variance_loss(mean: torch.Tensor, logvar: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """Per-member loss of a variance head: (K,B,3,H,W) each -> (K,).
+
+    The beta-NLL of Seitzer et al. (2022) with beta = 1: the Gaussian NLL of the target, each pixel
+    weighted by its (constant) predicted variance, so its gradient, (variance - squared error) / 2
+    per pixel, is on the scale of the squared error and lets no pixel dominate. The mean is detached:
+    it learns from the squared error alone, the head learns to predict that error.
+    """
+    sq = (mean.detach() - target).pow(2)                                   # (K, B, 3, H, W)
+    nll = 0.5 * (logvar + sq * torch.exp(-logvar))                         # (K, B, 3, H, W)
+    return (torch.exp(logvar).detach() * nll).mean(dim=(1, 2, 3, 4))      # (K,)
+
+
 def fit(ensemble: Ensemble, windows: Windows, cfg: TrainConfig,
         on_epoch: Callable[[int, float], None] | None = None) -> list[float]:
     """Train all members in place on ``windows`` (horizon 1); returns the mean loss of each epoch.
 
     Every step draws, for each member, its own batch from its own seeded order
     (the same seed gives the same weights), and runs one fused forward/backward.
+    The returned losses are the squared error alone, also with a variance head
+    (whose ``variance_loss`` is added to what is minimised).
     """
     if windows.horizon != 1:
         raise DataError(f"training needs horizon-1 windows, found horizon {windows.horizon}")
     rng = np.random.default_rng(cfg.seed)
     k, b, device = ensemble.members, cfg.batch_size, ensemble.device
+    variance = ensemble.config.predict_variance
     pools = member_indices(windows, k, cfg.bootstrap, rng)
     steps = max(1, math.ceil(max(len(p) for p in pools) / b))
     opt = torch.optim.Adam(ensemble.params.parameters(), lr=cfg.lr)
@@ -92,16 +108,21 @@ def fit(ensemble: Ensemble, windows: Windows, cfg: TrainConfig,
             total = 0.0
             for s in range(steps):
                 ctx, act, tgt = windows.batch(order[:, s], device)  # (K,B,C,3,H,W), (K,B,1,A), (K,B,1,3,H,W)
-                pred = ensemble(ctx, ensemble.normalize_actions(act[:, :, 0]))     # (K, B, 3, H, W)
+                a = ensemble.normalize_actions(act[:, :, 0])                       # (K, B, A)
+                if variance:
+                    pred, logvar = ensemble.forward_dist(ctx, a)                   # (K, B, 3, H, W) each
+                else:
+                    pred = ensemble(ctx, a)                                        # (K, B, 3, H, W)
                 # Sum over members of each member's mean loss: every member learns as if alone.
-                loss = (pred - tgt[:, :, 0]).pow(2).mean(dim=(1, 2, 3, 4)).sum()
+                mse = (pred - tgt[:, :, 0]).pow(2).mean(dim=(1, 2, 3, 4)).sum()
+                loss = mse + variance_loss(pred, logvar, tgt[:, :, 0]).sum() if variance else mse
                 opt.zero_grad(set_to_none=True)
                 loss.backward()
                 if cfg.grad_clip is not None:
                     _clip_per_member(list(ensemble.params), cfg.grad_clip)
                 opt.step()
                 sched.step()
-                total += loss.item() / k
+                total += mse.item() / k
                 bar.update(1)
                 bar.set_postfix(epoch=epoch + 1, loss=f"{total / (s + 1):.2e}")
             losses.append(total / steps)
@@ -115,16 +136,26 @@ def fit(ensemble: Ensemble, windows: Windows, cfg: TrainConfig,
 
 @torch.inference_mode()
 def _rollout_stats(ensemble: Ensemble, windows: Windows, batch_size: int) -> dict[str, np.ndarray]:
-    """Per-window, per-horizon-step arrays (N, H): mean's mse/ssim, copy-last mse/ssim, disagreement."""
+    """Per-window, per-horizon-step arrays (N, H): mean's mse/ssim, copy-last mse/ssim, disagreement.
+
+    With a variance head also "predicted" (N,): the members' mean predicted variance of the first step.
+    """
+    variance = ensemble.config.predict_variance
     out: dict[str, list] = {"mse": [], "ssim": [], "base_mse": [], "base_ssim": [], "var": []}
+    if variance:
+        out["predicted"] = []
     for lo in range(0, len(windows), batch_size):
         idx = torch.arange(lo, min(lo + batch_size, len(windows)))
         ctx, act, tgt = windows.batch(idx, ensemble.device)  # (B,C,3,H,W), (B,H,A), (B,H,3,H,W)
-        preds = ensemble.rollout(ctx, ensemble.normalize_actions(act))  # (K, B, H, 3, H, W)
+        a = ensemble.normalize_actions(act)                              # (B, H, A)
+        preds = ensemble.rollout(ctx, a)                                 # (K, B, H, 3, H, W)
+        if variance:
+            logvar = ensemble.forward_dist(ctx, a[:, 0])[1]              # (K, B, 3, H, W)
+            out["predicted"].append(logvar.exp().mean(dim=(0, 2, 3, 4)).double().cpu().numpy())  # (B,)
         mean = preds.mean(dim=0)                                         # (B, H, 3, H, W)
         var = preds.var(dim=0, unbiased=False).mean(dim=(2, 3, 4))      # (B, H)
         last = ctx[:, -1]                                                # (B, 3, H, W)
-        cols: dict[str, list] = {key: [] for key in out if key != "var"}
+        cols: dict[str, list] = {key: [] for key in out if key not in ("var", "predicted")}
         for h in range(windows.horizon):
             cols["mse"].append(M.mse(mean[:, h], tgt[:, h]))
             cols["ssim"].append(M.ssim(mean[:, h], tgt[:, h]))
@@ -156,7 +187,10 @@ def evaluate_episodes(ensemble: Ensemble, episodes: Sequence[Episode], eval_hash
     short). PSNR is computed from the mean MSE (a copy-last baseline can have zero
     error on a static frame, which would make per-frame PSNR infinite).
     Calibration: Spearman between per-window disagreement and the mean's error at
-    horizon 1, and the sparsification curve with its oracle.
+    horizon 1, and the sparsification curve with its oracle. With a variance head
+    also the same for the total predictive variance (disagreement plus the members'
+    mean predicted variance: the variance of the mixture), and the ratio of its
+    mean to the mean error (1 when its scale is right).
     """
     cfg = ensemble.config
     w1 = build_windows(episodes, cfg, horizon=1)
@@ -179,6 +213,14 @@ def evaluate_episodes(ensemble: Ensemble, episodes: Sequence[Episode], eval_hash
     curve = M.sparsification(var, err)
     out["sparsification"] = curve
     out["sparsification_error"] = M.sparsification_error(curve)
+    if "predicted" in s1:
+        total = var + s1["predicted"]
+        out["h1_predicted_variance"] = float(s1["predicted"].mean())
+        out["spearman_predicted_variance"] = M.spearman(s1["predicted"], err)
+        out["spearman_total"] = M.spearman(total, err)
+        out["sparsification_total"] = M.sparsification(total, err)
+        out["sparsification_error_total"] = M.sparsification_error(out["sparsification_total"])
+        out["h1_total_variance_ratio"] = float(total.mean() / err.mean()) if err.mean() > 0 else float("nan")
     return out
 
 
@@ -195,7 +237,8 @@ def new_ensemble(cfg: TrainConfig, episodes: Sequence[Episode]) -> Ensemble:
     """A fresh ensemble shaped for ``episodes`` (image size from their frames), normalised on their actions."""
     if not episodes:
         raise DataError("cannot build an ensemble for zero episodes")
-    pcfg = PredictorConfig(image_size=int(episodes[0].frames.shape[1]), context=cfg.context, widths=cfg.widths)
+    pcfg = PredictorConfig(image_size=int(episodes[0].frames.shape[1]), context=cfg.context, widths=cfg.widths,
+                           predict_variance=cfg.variance_head)
     ens = Ensemble(pcfg, members=cfg.members, seed=cfg.seed)
     ens.set_action_stats(*action_stats(episodes))
     return ens.to(resolve_device(cfg.device))
@@ -214,8 +257,8 @@ def train_candidate(catalog: CatalogLike, registry: ModelRegistry, cfg: TrainCon
     """Train on the train snapshot, evaluate on the eval split, register, and run the gate.
 
     Raises ``DataError`` (no train data, no eval split, eval episodes in the
-    snapshot), ``ConfigError`` (warm start without a champion, or one shaped for
-    other images) and the registry's errors.
+    snapshot), ``ConfigError`` (warm start without a champion, or from one shaped
+    for other images or without the variance head asked for) and the registry's errors.
     """
     data = load_train(catalog, cfg.max_episodes)
     eval_episodes, eval_hash = load_eval(catalog)
@@ -229,6 +272,9 @@ def train_candidate(catalog: CatalogLike, registry: ModelRegistry, cfg: TrainCon
         if ensemble.config.image_size != size:
             raise ConfigError(f"champion {parent} predicts {ensemble.config.image_size}px frames, "
                               f"the train snapshot has {size}px")
+        if cfg.variance_head and not ensemble.config.predict_variance:
+            raise ConfigError(f"champion {parent} has no variance head to warm-start: "
+                              "train a fresh model for one (without --from-champion)")
     else:
         ensemble = new_ensemble(cfg, data.episodes)
     windows = train_windows(data.episodes, ensemble, cfg)

@@ -165,6 +165,9 @@ def add_train_args(p: argparse.ArgumentParser, defaults: TrainConfig | None = No
     p.add_argument("--device", choices=("auto", "cpu", "cuda"), default=d.device, help="torch device")
     p.add_argument("--from-champion", action="store_true", default=d.from_champion,
                    help="warm-start from the champion's weights")
+    p.add_argument("--variance-head", action="store_true", default=d.variance_head,
+                   help="a fresh model's members also predict the variance of their own error "
+                        "(eval reports its calibration; scoring still uses the disagreement)")
     p.add_argument("--min-improvement", type=float, default=d.min_rel_improvement,
                    help=f"the gate's minimum relative h1 MSE improvement (default {d.min_rel_improvement})")
 
@@ -173,7 +176,7 @@ def train_config(args: argparse.Namespace) -> TrainConfig:
     return TrainConfig(members=args.members, epochs=args.epochs, batch_size=args.batch_size, lr=args.lr,
                        widths=args.widths, max_windows=args.max_windows, seed=args.seed, device=args.device,
                        from_champion=args.from_champion, min_rel_improvement=args.min_improvement,
-                       progress=False)
+                       variance_head=args.variance_head, progress=False)
 
 
 def _widths(text: str) -> tuple[int, int, int]:

@@ -39,6 +39,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--epochs", type=common.positive_int, default=TrainConfig.epochs, metavar="E",
                    help=f"passes over the training windows (default {TrainConfig.epochs})")
     p.add_argument("--from-champion", action="store_true", help="warm-start from the champion's weights")
+    p.add_argument("--variance-head", action="store_true",
+                   help="members also predict the variance of their own error (a fresh model only); eval then "
+                        "reports the calibration of the total predictive variance next to the disagreement's")
     p.add_argument("--seed", type=common.non_negative_int, default=TrainConfig.seed, metavar="S")
     p.add_argument("--device", choices=_DEVICES, default="auto")
     p.add_argument("--min-improvement", type=float, default=TrainConfig.min_rel_improvement, metavar="FRAC",
@@ -227,13 +230,15 @@ def register_bench(bench_sub: argparse._SubParsersAction) -> None:
 
 
 def _train(args: argparse.Namespace) -> int:
-    from uncertainty.train import train_candidate  # torch: imported when the command runs (start-up cost)
     data = _data_dir(args)
     try:
         cfg = TrainConfig(members=args.members, epochs=args.epochs, from_champion=args.from_champion,
-                          seed=args.seed, device=args.device, min_rel_improvement=args.min_improvement)
+                          seed=args.seed, device=args.device, min_rel_improvement=args.min_improvement,
+                          variance_head=args.variance_head)
     except ConfigError as exc:
         raise common.UsageError(str(exc)) from None
+    # torch: imported once the arguments are known good (start-up cost, not a cycle)
+    from uncertainty.train import train_candidate
     registry = ModelRegistry(data)
     try:
         result = train_candidate(Catalog(data), registry, cfg)
@@ -263,6 +268,9 @@ def _print_eval(m: dict[str, Any]) -> None:
                   f"{_num(m.get(f'baseline_h{h}_mse')):>10}  psnr {_num(m.get(f'baseline_h{h}_psnr'), '.2f'):>6} dB")
     print(f"calibration: spearman(disagreement, error) {_num(m.get('spearman'), '.3f')}, "
           f"on {m.get('eval_episodes')} eval episodes ({m.get('eval_windows')} windows)")
+    if "spearman_total" in m:
+        print(f"calibration: spearman(total predictive variance, error) {_num(m.get('spearman_total'), '.3f')}, "
+              f"its mean / mean error {_num(m.get('h1_total_variance_ratio'), '.2f')}")
 
 
 def _load(registry: ModelRegistry, version: str | None, device: str) -> Ensemble | None:
@@ -279,7 +287,6 @@ def _load(registry: ModelRegistry, version: str | None, device: str) -> Ensemble
 
 
 def _eval(args: argparse.Namespace) -> int:
-    from uncertainty.train import evaluate  # torch: imported when the command runs (start-up cost)
     data = _data_dir(args)
     registry = ModelRegistry(data)
     if args.version is not None:
@@ -287,6 +294,7 @@ def _eval(args: argparse.Namespace) -> int:
     ensemble = _load(registry, args.version, args.device)
     if ensemble is None:
         return 1
+    from uncertainty.train import evaluate  # torch (already loaded by _load): start-up cost, not a cycle
     try:
         metrics = evaluate(ensemble, Catalog(data))
     except (UncertaintyError, StorageError) as exc:
@@ -316,7 +324,6 @@ def _episode(arg: str, data: Path) -> Episode:
 
 
 def _score(args: argparse.Namespace) -> int:
-    from uncertainty.score import score_episode  # torch: imported when the command runs (start-up cost)
     try:
         episode = _episode(args.episode, Path(args.data))
     except EpisodeError as exc:
@@ -325,6 +332,7 @@ def _score(args: argparse.Namespace) -> int:
     ensemble = _load(registry, None, args.device)
     if ensemble is None:
         return 1
+    from uncertainty.score import score_episode  # torch (already loaded by _load): start-up cost, not a cycle
     try:
         score = score_episode(ensemble, episode, top_k=args.top, horizon=args.horizon)
     except UncertaintyError as exc:

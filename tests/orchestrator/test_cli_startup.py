@@ -127,3 +127,18 @@ def test_training_commands_still_load_torch(tmp_path):
     assert "training failed" in proc.stderr
     assert _imported_torch(proc.stderr)
 
+
+
+@pytest.mark.parametrize("argv, rc, words", [
+    (("train", "--min-improvement", "2"), 2, "min_rel_improvement"),
+    (("eval",), 1, "no champion model yet"),
+    (("score", "nosuchepisode"), 2, "no episode 'nosuchepisode'"),
+])
+def test_model_commands_refuse_bad_requests_before_loading_torch(tmp_path, argv, rc, words):
+    """A mistake in what was asked is told without paying for the torch import."""
+    data = tmp_path / "data"
+    data.mkdir()
+    proc = _cli(*argv, "--data", str(data))
+    assert proc.returncode == rc, proc.stderr
+    assert words in proc.stderr
+    assert not _imported_torch(proc.stderr), proc.stderr

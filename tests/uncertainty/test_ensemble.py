@@ -3,7 +3,9 @@ import pytest
 import torch
 
 from tests.uncertainty.synth import make_episode
+from uncertainty import model
 from uncertainty.ensemble import Ensemble
+from uncertainty.errors import ConfigError
 from uncertainty.model import PredictorConfig
 
 CFG = PredictorConfig(image_size=16, widths=(4, 8, 8), action_hidden=8)
@@ -57,6 +59,41 @@ def test_cpu_slices_give_the_whole_batch_result(per_member):
     torch.testing.assert_close(sliced, loop, atol=1e-5, rtol=0)
 
 
+VAR_CFG = PredictorConfig(image_size=16, widths=(4, 8, 8), action_hidden=8, predict_variance=True)
+
+
+@pytest.mark.parametrize("per_member", [False, True])
+def test_fused_variance_head_equals_members_one_by_one(per_member):
+    """forward_dist (fused, sliced and whole) gives every member's frame and log-variance as one by one."""
+    ens = _noisy(Ensemble(VAR_CFG, members=3, seed=3))
+    ens.cpu_slice = 4
+    ctx, act = _inputs(9, per_member, seed=2)
+    with torch.no_grad():
+        frames, logvar = ens.forward_dist(ctx, act)
+        loop_frames, loop_logvar = ens.forward_loop(ctx, act, with_variance=True)
+        ens.cpu_slice = 0
+        whole_frames, whole_logvar = ens.forward_dist(ctx, act)
+        plain = ens(ctx, act)
+        by_module = [ens.member(k)(ctx[k] if per_member else ctx, act[k] if per_member else act, with_variance=True)
+                     for k in range(3)]
+    assert frames.shape == logvar.shape == (3, 9, 3, 16, 16)
+    for f, lv in ((loop_frames, loop_logvar), (whole_frames, whole_logvar),
+                  (torch.stack([m for m, _ in by_module]), torch.stack([v for _, v in by_module]))):
+        torch.testing.assert_close(frames, f, atol=1e-5, rtol=0)
+        torch.testing.assert_close(logvar, lv, atol=1e-5, rtol=0)
+    torch.testing.assert_close(plain, frames, atol=1e-6, rtol=0)  # asking for the variance changes no frame
+    assert (logvar[0] - logvar[1]).abs().max() > 1e-3
+
+
+def test_variance_is_refused_without_a_head():
+    ens = Ensemble(CFG, members=2)
+    ctx, act = _inputs(2, False, seed=0)
+    with pytest.raises(ConfigError, match="no variance head"):
+        ens.forward_dist(ctx, act)
+    with pytest.raises(ConfigError, match="no variance head"):
+        ens.member(0)(ctx, act, with_variance=True)
+
+
 def test_fused_gradients_equal_per_member_gradients():
     ens = _noisy(Ensemble(CFG, members=2, seed=2))
     ctx, act = torch.rand(2, 4, 2, 3, 16, 16), torch.randn(2, 4, 2)
@@ -66,6 +103,42 @@ def test_fused_gradients_equal_per_member_gradients():
     ens.forward_loop(ctx, act).pow(2).sum().backward()
     for a, b in zip(fused, [p.grad for p in ens.params]):
         torch.testing.assert_close(a, b, atol=1e-4, rtol=1e-4)
+
+
+def test_fused_variance_head_gradients_equal_per_member_gradients():
+    ens = _noisy(Ensemble(VAR_CFG, members=2, seed=4))
+    ctx, act = torch.rand(2, 4, 2, 3, 16, 16), torch.randn(2, 4, 2)
+
+    def grads(frames_and_logvar):
+        ens.zero_grad()
+        frames, logvar = frames_and_logvar
+        (frames.pow(2).sum() + logvar.sin().sum()).backward()
+        return [p.grad.clone() for p in ens.params]
+
+    for a, b in zip(grads(ens.forward_dist(ctx, act)), grads(ens.forward_loop(ctx, act, with_variance=True))):
+        torch.testing.assert_close(a, b, atol=1e-4, rtol=1e-4)
+
+
+@pytest.mark.parametrize("fused", [True, False])
+def test_only_a_share_of_the_heads_gradient_reaches_the_shared_layers(monkeypatch, fused):
+    """The head's gradient into the trunk scales with HEAD_GRAD_SHARE; its own layers get all of theirs."""
+    ens = _noisy(Ensemble(VAR_CFG, members=2, seed=5))
+    ctx, act = _inputs(3, False, seed=3)
+
+    def head_grads(share):
+        monkeypatch.setattr(model, "HEAD_GRAD_SHARE", share)
+        ens.zero_grad()
+        out = ens.forward_dist(ctx, act) if fused else ens.forward_loop(ctx, act, with_variance=True)
+        out[1].sum().backward()
+        return {n: torch.zeros_like(p) if p.grad is None else p.grad.clone() for n, p in zip(ens.names, ens.params)}
+
+    full, part, none = head_grads(1.0), head_grads(0.3), head_grads(0.0)
+    for name in ("enc1.weight", "dec1.weight"):
+        assert full[name].abs().max() > 0
+        torch.testing.assert_close(part[name], 0.3 * full[name], atol=1e-6, rtol=1e-4)
+        assert not none[name].any()
+    assert not full["out.weight"].any()                         # the frame's own output layer: untouched
+    torch.testing.assert_close(part["var_out.weight"], full["var_out.weight"])
 
 
 def test_same_seed_same_weights_other_seed_other_weights():

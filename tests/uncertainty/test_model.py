@@ -26,7 +26,8 @@ def test_rollout_feeds_predictions_back():
     torch.testing.assert_close(out[:, 1], step2)
 
 
-@pytest.mark.parametrize("kwargs", [{"image_size": 20}, {"context": 0}, {"widths": (8, 8)}, {"action_hidden": 0}])
+@pytest.mark.parametrize("kwargs", [{"image_size": 20}, {"context": 0}, {"widths": (8, 8)}, {"action_hidden": 0},
+                                    {"predict_variance": "yes"}])
 def test_config_refuses_bad_values(kwargs):
     with pytest.raises(ConfigError):
         PredictorConfig(**kwargs)
@@ -37,6 +38,20 @@ def test_config_round_trips_and_refuses_unknown_fields():
     assert PredictorConfig.from_dict(cfg.to_dict()) == cfg
     with pytest.raises(ConfigError, match="unknown"):
         PredictorConfig.from_dict({**cfg.to_dict(), "depth": 3})
+    with_head = PredictorConfig(image_size=32, predict_variance=True)
+    assert PredictorConfig.from_dict(with_head.to_dict()) == with_head
+    # a checkpoint written before the variance head existed has no such field: no head
+    old = {k: v for k, v in cfg.to_dict().items() if k != "predict_variance"}
+    assert PredictorConfig.from_dict(old) == cfg and not cfg.predict_variance
+
+
+def test_variance_head_predicts_a_bounded_log_variance_and_the_same_kind_of_frame():
+    net = Predictor(PredictorConfig(image_size=16, widths=(4, 8, 8), predict_variance=True))
+    ctx, act = torch.rand(2, 2, 3, 16, 16), torch.randn(2, 2)
+    frame, logvar = net(ctx, act, with_variance=True)
+    assert frame.shape == logvar.shape == (2, 3, 16, 16)
+    torch.testing.assert_close(frame, net(ctx, act))
+    assert torch.all((logvar > -14) & (logvar < 0))
 
 
 def test_wrong_context_shape_is_refused():

@@ -1,5 +1,6 @@
 import numpy as np
 import pytest
+import torch
 
 from storage.catalog import Catalog
 from storage.models import ModelRegistry, ModelStatus
@@ -8,7 +9,8 @@ from tests.uncertainty.synth import make_episode
 from uncertainty.checkpoint import load_ensemble
 from uncertainty.data import load_train
 from uncertainty.errors import ConfigError, DataError
-from uncertainty.train import TrainConfig, evaluate, evaluate_episodes, fit, new_ensemble, train_candidate, train_windows
+from uncertainty.train import (TrainConfig, evaluate, evaluate_episodes, fit, new_ensemble, train_candidate,
+                               train_windows, variance_loss)
 
 
 def test_tiny_model_overfits_a_tiny_dataset(trained, t_episodes):
@@ -48,6 +50,62 @@ def test_evaluate_reports_accuracy_next_to_baseline_and_calibration(trained):
     assert -1 <= m["spearman"] <= 1
     assert len(m["sparsification"]["curve"]) == 10
     assert m["eval_split_hash"] == "hash" and m["eval_windows"] == 3 * 10
+
+
+def test_variance_loss_is_minimised_by_the_true_error_variance():
+    """Minimising variance_loss over a free log-variance finds the squared error's mean, pixel by pixel."""
+    g = torch.Generator().manual_seed(0)
+    scale = torch.tensor([0.003, 0.03, 0.3]).reshape(1, 1, 3, 1, 1)                  # three noise levels
+    target = torch.randn(1, 4096, 3, 2, 2, generator=g) * scale                         # (K, B, 3, H, W)
+    mean = torch.zeros_like(target)
+    logvar = torch.full((1, 1, 3, 2, 2), -7.0, requires_grad=True)
+    opt = torch.optim.Adam([logvar], lr=0.05)
+    for _ in range(1500):
+        opt.zero_grad()
+        variance_loss(mean, logvar.expand_as(target), target).sum().backward()
+        opt.step()
+    found = logvar.detach().exp().sqrt().reshape(3, 4).mean(dim=1)
+    torch.testing.assert_close(found, scale.flatten(), rtol=0.1, atol=0)
+
+
+def test_variance_loss_leaves_the_mean_to_the_squared_error():
+    target = torch.rand(2, 3, 3, 4, 4)
+    mean = torch.zeros_like(target, requires_grad=True)
+    logvar = torch.zeros_like(target, requires_grad=True)
+    variance_loss(mean, logvar, target).sum().backward()
+    assert logvar.grad.abs().sum() > 0
+    assert mean.grad is None
+
+
+def test_variance_head_learns_where_the_error_is_and_reports_total_calibration(t_episodes):
+    """Trained with a variance head: the frames are as good, the predicted variance ranks the error."""
+    cfg = TrainConfig(epochs=60, seed=0, variance_head=True, **TINY)
+    ens = new_ensemble(cfg, t_episodes)
+    losses = fit(ens, train_windows(t_episodes, ens, cfg), cfg)
+    assert losses[-1] < baseline_mse(t_episodes) / 5
+    eps = [make_episode(seed, "T", steps=12) for seed in range(200, 203)]
+    m = evaluate_episodes(ens, eps, "hash", horizons=(1,))
+    assert m["h1_mse"] < m["baseline_h1_mse"]
+    assert m["spearman_predicted_variance"] > 0.5 and m["h1_predicted_variance"] > 0
+    assert m["spearman_total"] > m["spearman"]
+    assert 0.1 < m["h1_total_variance_ratio"] < 10
+    assert len(m["sparsification_total"]["curve"]) == 10
+
+
+def test_a_variance_head_survives_the_registry_and_gates_like_any_model(tmp_path):
+    cat, eval_ids = _catalog(tmp_path)
+    cat.pin_eval_split(eval_ids)
+    registry = ModelRegistry(tmp_path)
+    result = train_candidate(cat, registry, TrainConfig(epochs=2, variance_head=True, eval_rollout_stride=3, **TINY))
+    assert result.decision.promoted and "spearman_total" in result.metrics
+    loaded = load_ensemble(registry, result.version, "cpu")
+    assert loaded.config.predict_variance
+    again = evaluate(loaded, cat)
+    assert again["spearman_total"] == pytest.approx(result.metrics["spearman_total"])
+    # warm starts keep the head; asking a head-less champion for one is refused
+    warm = train_candidate(cat, registry, TrainConfig(epochs=1, from_champion=True, **TINY))
+    assert load_ensemble(registry, warm.version, "cpu").config.predict_variance
+    assert again["h1_predicted_variance"] == pytest.approx(result.metrics["h1_predicted_variance"], rel=1e-5)
 
 
 def _catalog(tmp_path, n_train=4, n_eval=2):
@@ -91,6 +149,10 @@ def test_warm_start_without_champion_is_refused(tmp_path):
     cat.pin_eval_split(ids)
     with pytest.raises(ConfigError, match="no champion"):
         train_candidate(cat, ModelRegistry(tmp_path), TrainConfig(epochs=1, from_champion=True, **TINY))
+    registry = ModelRegistry(tmp_path)
+    train_candidate(cat, registry, TrainConfig(epochs=1, **TINY))
+    with pytest.raises(ConfigError, match="no variance head"):
+        train_candidate(cat, registry, TrainConfig(epochs=1, from_champion=True, variance_head=True, **TINY))
 
 
 @pytest.mark.parametrize("kwargs", [{"epochs": 0}, {"lr": -1.0}, {"device": "tpu"}, {"max_windows": 0}])
