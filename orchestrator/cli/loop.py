@@ -98,6 +98,9 @@ def register_bench(bench: argparse._SubParsersAction) -> None:
                    help="let the active arm also choose each episode's collection policy (push or random "
                         "waypoints), favouring the one whose recent episodes the champion disagrees on most "
                         f"(at least {d.active.policy_floor:.0%}% each); the uniform arm keeps the mix")
+    p.add_argument("--variance-head", action="store_true", default=d.train.variance_head,
+                   help="both arms train members that also predict their own error (the active arm "
+                        "still scores by disagreement)")
     p.add_argument("--out", type=Path, default=None,
                    help="output directory (default ./activecollect-bench/loop-<timestamp>)")
     p.set_defaults(func=_bench_loop)
@@ -120,7 +123,8 @@ def _bench_loop(args: argparse.Namespace) -> int:
     from orchestrator.loopbench import run_bench  # torch: imported when the command runs (start-up cost)
     d = LoopBenchConfig()
     train = TrainConfig(**{**d.train.to_dict(), "epochs": args.epochs, "members": args.members,
-                           "device": args.device, "widths": d.train.widths})
+                           "device": args.device, "widths": d.train.widths,
+                           "variance_head": args.variance_head})
     try:
         cfg = LoopBenchConfig(seeds=tuple(range(args.seeds)), budget=args.budget,
                               round_episodes=args.round_episodes, steps=args.steps,
