@@ -23,8 +23,7 @@ from torch.func import functional_call
 from torch.nn import functional as F
 
 from uncertainty.errors import ConfigError, DataError
-from uncertainty import model
-from uncertainty.model import Predictor, PredictorConfig, squash_logvar
+from uncertainty.model import Predictor, PredictorConfig, head_input, squash_logvar
 
 
 def default_device() -> torch.device:
@@ -358,7 +357,7 @@ def grouped_forward(p: dict, buffers: dict, config: PredictorConfig, k: int,
     frames = _add_shuffled(last, out, k)                             # (K, B, 3, H, W)
     if not with_variance:
         return frames
-    v = _silu(_gconv(model.share_grad(d, model.HEAD_GRAD_SHARE), p, "var1", k))  # (B, K*w0, H/2, W/2)
+    v = _silu(_gconv(head_input(d), p, "var1", k))                  # (B, K*w0, H/2, W/2)
     raw = _add_shuffled(None, _to_cl(_gconv(v, p, "var_out", k)).permute(0, 2, 3, 1), k)  # (K, B, 3, H, W)
     return frames, squash_logvar(raw)                                # (K, B, 3, H, W) each
 

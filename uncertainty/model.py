@@ -87,9 +87,10 @@ LOGVAR_HALF_RANGE = 7.0
 HEAD_GRAD_SHARE = 0.3
 
 
-def share_grad(x: torch.Tensor, share: float) -> torch.Tensor:
-    """``x`` in the forward pass; in the backward pass only ``share`` of the gradient flows into it."""
-    return x.detach() if share == 0 else x * share + x.detach() * (1 - share)
+def head_input(features: torch.Tensor) -> torch.Tensor:
+    """``features`` in the forward pass; in the backward pass only ``HEAD_GRAD_SHARE`` of the gradient
+    flows into them (read at call time)."""
+    return features * HEAD_GRAD_SHARE + features.detach() * (1 - HEAD_GRAD_SHARE)
 
 
 def squash_logvar(raw: torch.Tensor) -> torch.Tensor:
@@ -182,7 +183,7 @@ class Predictor(nn.Module):
         delta = F.pixel_shuffle(self.out(d), 2)                 # (B, 12, H/2, W/2) -> (B, 3, H, W)
         if not with_variance:
             return last + delta
-        v = F.silu(self.var1(share_grad(d, HEAD_GRAD_SHARE)))   # (B, w0, H/2, W/2)
+        v = F.silu(self.var1(head_input(d)))                    # (B, w0, H/2, W/2)
         return last + delta, squash_logvar(F.pixel_shuffle(self.var_out(v), 2))  # (B, 3, H, W) each
 
     def rollout(self, context: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:

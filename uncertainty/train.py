@@ -135,23 +135,28 @@ def fit(ensemble: Ensemble, windows: Windows, cfg: TrainConfig,
 
 
 @torch.inference_mode()
-def _rollout_stats(ensemble: Ensemble, windows: Windows, batch_size: int) -> dict[str, np.ndarray]:
+def _rollout_stats(ensemble: Ensemble, windows: Windows, batch_size: int,
+                   predicted: bool = False) -> dict[str, np.ndarray]:
     """Per-window, per-horizon-step arrays (N, H): mean's mse/ssim, copy-last mse/ssim, disagreement.
 
-    With a variance head also "predicted" (N,): the members' mean predicted variance of the first step.
+    ``predicted`` (horizon-1 windows, a variance head): also "predicted" (N,), the members' mean
+    predicted variance, from the same forward pass as the frames.
     """
-    variance = ensemble.config.predict_variance
+    if predicted and windows.horizon != 1:
+        raise DataError(f"predicted variances are taken on horizon-1 windows, found horizon {windows.horizon}")
     out: dict[str, list] = {"mse": [], "ssim": [], "base_mse": [], "base_ssim": [], "var": []}
-    if variance:
+    if predicted:
         out["predicted"] = []
     for lo in range(0, len(windows), batch_size):
         idx = torch.arange(lo, min(lo + batch_size, len(windows)))
         ctx, act, tgt = windows.batch(idx, ensemble.device)  # (B,C,3,H,W), (B,H,A), (B,H,3,H,W)
         a = ensemble.normalize_actions(act)                              # (B, H, A)
-        preds = ensemble.rollout(ctx, a)                                 # (K, B, H, 3, H, W)
-        if variance:
-            logvar = ensemble.forward_dist(ctx, a[:, 0])[1]              # (K, B, 3, H, W)
+        if predicted:  # the one step of a horizon-1 rollout, with the log-variances
+            frames, logvar = ensemble.forward_dist(ctx, a[:, 0])         # (K, B, 3, H, W) each
+            preds = frames.clamp(0.0, 1.0)[:, :, None]                   # (K, B, 1, 3, H, W)
             out["predicted"].append(logvar.exp().mean(dim=(0, 2, 3, 4)).double().cpu().numpy())  # (B,)
+        else:
+            preds = ensemble.rollout(ctx, a)                             # (K, B, H, 3, H, W)
         mean = preds.mean(dim=0)                                         # (B, H, 3, H, W)
         var = preds.var(dim=0, unbiased=False).mean(dim=(2, 3, 4))      # (B, H)
         last = ctx[:, -1]                                                # (B, 3, H, W)
@@ -194,7 +199,7 @@ def evaluate_episodes(ensemble: Ensemble, episodes: Sequence[Episode], eval_hash
     """
     cfg = ensemble.config
     w1 = build_windows(episodes, cfg, horizon=1)
-    s1 = _rollout_stats(ensemble, w1, batch_size)
+    s1 = _rollout_stats(ensemble, w1, batch_size, predicted=cfg.predict_variance)
     out: dict[str, Any] = {"eval_split_hash": eval_hash, "eval_episodes": len(episodes), "eval_windows": len(w1)}
     out.update(_horizon_metrics(s1, 0, 1))
     longer = sorted(h for h in horizons if h > 1)
