@@ -209,6 +209,7 @@ def test_train_without_data_exit_1(capsys, tmp_path) -> None:
     (("eval", "m999999-deadbeef"), "unknown model version"),
     (("bench", "score", "--seconds", "0"), "positive number"),
     (("bench", "score", "--size", "12", "--seconds", "0.1"), "multiple of 8"),
+    (("bench", "score", "--batch", "0"), "positive integer"),
 ])
 def test_usage_errors_exit_2(capsys, data, reg, argv, words) -> None:
     rc, out, err = run_cli(capsys, *argv, *(("--data", str(data)) if argv[0] != "bench" else ()))
@@ -220,6 +221,12 @@ def test_bench_score_json(capsys) -> None:
                       "--device", "cpu", "--json")
     figures = json.loads(out)
     assert rc == 0 and figures["fused_fps"] > 0 and figures["loop_fps"] > 0 and figures["speedup"] > 0
+
+
+def test_bench_score_text_names_the_batch_and_the_arithmetic_ceiling(capsys) -> None:
+    rc, out, _ = run_cli(capsys, "bench", "score", "--members", "2", "--size", "16", "--seconds", "0.3",
+                         "--batch", "1", "--threads", "1", "--device", "cpu")
+    assert rc == 0 and "batch 1," in out and "GFLOP/frame" in out and "wide convolution" in out, out
 
 
 def test_eval_refuses_a_corrupt_or_foreign_champion(capsys, data, reg) -> None:

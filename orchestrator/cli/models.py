@@ -217,6 +217,8 @@ def register_bench(bench_sub: argparse._SubParsersAction) -> None:
     p = bench_sub.add_parser("score", help="frames/s of the fused ensemble and of the per-member loop")
     p.add_argument("--members", type=common.positive_int, default=5, metavar="K", help="ensemble size (default 5)")
     p.add_argument("--size", type=common.positive_int, default=64, metavar="PX", help="frame size (default 64)")
+    p.add_argument("--batch", type=common.positive_int, default=48, metavar="B",
+                   help="windows per forward (default 48: one 50-step episode; 1: online, one step at a time)")
     p.add_argument("--seconds", type=common.positive_float, default=10.0, metavar="S",
                    help="rough total measuring time (default 10)")
     p.add_argument("--threads", type=common.positive_int, default=None, metavar="N",
@@ -353,16 +355,20 @@ def _fmt_xy(values: Any) -> str:
 
 
 def _bench_score(args: argparse.Namespace) -> int:
-    from uncertainty.benchmark import run_score_bench  # torch: imported when the command runs (start-up cost)
+    from uncertainty.benchmark import CEILING_CONV, run_score_bench  # torch: imported when the command runs (start-up cost)
     try:
         out = run_score_bench(members=args.members, image_size=args.size, seconds=args.seconds,
-                              threads=args.threads, device=args.device)
+                              batch=args.batch, threads=args.threads, device=args.device)
     except ConfigError as exc:
         raise common.UsageError(str(exc)) from None
     if args.json:
         common.print_json(_strict(out))
         return 0
     print(f"fused {out['fused_fps']:.0f} frames/s, per-member loop {out['loop_fps']:.0f} frames/s: "
-          f"{out['speedup']:.2f}x (K={args.members}, {args.size}px, {out['device']}, {out['threads']} threads; "
-          f"max |fused - loop| {out['max_abs_diff']:.1e})")
+          f"{out['speedup']:.2f}x (K={args.members}, {args.size}px, batch {args.batch}, {out['device']}, "
+          f"{out['threads']} threads; max |fused - loop| {out['max_abs_diff']:.1e})")
+    print(f"arithmetic: {out['gflop_per_frame']:.3f} GFLOP/frame; fused {out['fused_gflops']:.0f}, loop "
+          f"{out['loop_gflops']:.0f} GFLOP/s; a wide convolution ({CEILING_CONV['channels']} channels) ran "
+          f"{out['ceiling_gflops']:.0f} GFLOP/s in the same run ({out['fused_share_of_ceiling']:.0%} / "
+          f"{out['loop_share_of_ceiling']:.0%} of it)")
     return 0
