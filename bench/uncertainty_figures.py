@@ -38,12 +38,12 @@ from uncertainty.checkpoint import load_ensemble
 from uncertainty.data import build_windows, load_eval
 from uncertainty.train import TrainConfig, fit, new_ensemble, train_candidate, train_windows
 from workers.collect import collect_episode, create_eval_split
-from workers.env import sample_state
+from workers.env import SHAPE_PALETTE, sample_state
 
 SHAPES = ("T", "box", "L", "disk")
 
 
-def collect(shapes, n: int, seed: int, steps: int, size: int, random_physics: bool = False):
+def collect(shapes, n: int, seed: int, steps: int, size: int, random_physics: bool = False, palette=None):
     """n episodes cycling over ``shapes``; two thirds push policy, one third random waypoints."""
     rng = np.random.default_rng(seed)
     out = []
@@ -51,7 +51,7 @@ def collect(shapes, n: int, seed: int, steps: int, size: int, random_physics: bo
         policy = "random_waypoints" if i % 3 == 2 else "push"
         start = sample_state(rng, shape=shapes[i % len(shapes)], random_physics=random_physics)
         out.append(collect_episode(start_state=start, policy=policy, seed=int(rng.integers(2**31)),
-                                   steps=steps, image_size=size))
+                                   steps=steps, image_size=size, palette=palette))
     return out
 
 
@@ -132,10 +132,11 @@ def ood_figure(args) -> dict:
     """Disagreement of a T-only ensemble on held-out T against box, L and disk (same policies and steps)."""
     t0 = time.perf_counter()
     size = args.ood_image_size
+    palette = SHAPE_PALETTE if args.ood_palette == "per-shape" else None
     train = collect(("T",), args.ood_train_episodes, seed=5000, steps=args.steps, size=size,
-                    random_physics=args.ood_random_physics)
+                    random_physics=args.ood_random_physics, palette=palette)
     groups = {shape: collect((shape,), args.ood_test_episodes, seed=6000 + i, steps=args.steps, size=size,
-                             random_physics=args.ood_random_physics)
+                             random_physics=args.ood_random_physics, palette=palette)
               for i, shape in enumerate(SHAPES)}
     cfg = TrainConfig(members=args.members, epochs=args.ood_epochs, batch_size=args.ood_batch_size,
                       lr=args.ood_lr, seed=args.seed, device="cpu", bootstrap=args.ood_bootstrap, progress=True)
@@ -155,7 +156,7 @@ def ood_figure(args) -> dict:
     per_shape = {s: ood_scores(ens, eps, args.ood_horizon) for s, eps in groups.items()}
     out = {"train": f"{len(train)} T episodes", "image_size": size, "epochs": args.ood_epochs,
            "batch_size": args.ood_batch_size, "lr": args.ood_lr, "bootstrap": args.ood_bootstrap,
-           "random_physics": args.ood_random_physics, "train_losses": losses,
+           "random_physics": args.ood_random_physics, "palette": args.ood_palette, "train_losses": losses,
            "test_episodes_per_shape": args.ood_test_episodes, "steps": args.steps, "horizon": args.ood_horizon}
     for key in next(iter(per_shape.values())):
         out[key] = {s: per_shape[s][key] for s in per_shape}
@@ -241,6 +242,8 @@ def main(argv=None) -> int:
     p.add_argument("--ood-lr", type=float, default=2e-3)
     p.add_argument("--ood-bootstrap", action="store_true", help="members train on bootstrap resamples")
     p.add_argument("--ood-random-physics", action="store_true", help="draw mass and frictions per episode")
+    p.add_argument("--ood-palette", choices=("uniform", "per-shape"), default="uniform",
+                   help="object colours of the OOD check: all alike (the service's world) or one per shape")
     p.add_argument("--ood-horizon", type=int, default=1, help="disagreement horizon of the OOD check")
     p.add_argument("--ood-cache", type=Path,
                    help="save the trained OOD ensemble here; reuse it if present (pass the same OOD flags)")

@@ -59,7 +59,8 @@ def _check_prefix(action_prefix: Any) -> np.ndarray:
 def collect_episode(*, start_state: SimState | Mapping[str, Any], policy: str,
                     policy_params: Mapping[str, Any] | None = None, seed: int, steps: int = 50,
                     image_size: int = 64, action_prefix: np.ndarray | None = None,
-                    request_id: str = "", worker_id: str = "", model_version: str = "") -> Episode:
+                    request_id: str = "", worker_id: str = "", model_version: str = "",
+                    palette: Mapping[str, tuple[int, int, int]] | None = None) -> Episode:
     """Records one episode: reset to ``start_state``, replay ``action_prefix``, then run ``policy``.
 
     The episode has ``len(action_prefix) + steps`` steps; its leading actions are the prefix
@@ -67,6 +68,8 @@ def collect_episode(*, start_state: SimState | Mapping[str, Any], policy: str,
     along with the context before it. The policy is seeded with ``seed`` and starts at the
     state the prefix leaves. Actions are stored as float32 and the simulator is stepped with
     exactly the stored values, so replaying an episode's actions reproduces it bit for bit.
+    ``palette`` recolours the objects (``PushSim``; experiments only: the episode's metadata
+    does not record it).
 
     Raises ValueError for a bad state, policy, parameters, step count, image size or prefix.
     """
@@ -77,7 +80,7 @@ def collect_episode(*, start_state: SimState | Mapping[str, Any], policy: str,
         raise ValueError(f"seed: expected a non-negative int, found {seed!r}")
     prefix = _check_prefix(action_prefix)
     pol = make_policy(policy, policy_params, np.random.default_rng(int(seed)))
-    sim = PushSim(image_size)
+    sim = PushSim(image_size, palette)
     sim.reset(state)
 
     n_prefix = len(prefix)

@@ -66,6 +66,10 @@ WALL_RGB = (52, 54, 60)
 OBJECT_RGB = (86, 110, 150)
 MARKER_RGB = (46, 62, 92)
 AGENT_RGB = (222, 92, 48)
+#: A world where the objects also differ in colour (``PushSim(palette=SHAPE_PALETTE)``): used by the
+#: out-of-distribution experiment in bench/uncertainty_figures.py; the service draws every object in
+#: ``OBJECT_RGB``.
+SHAPE_PALETTE = {"T": OBJECT_RGB, "L": (64, 140, 84), "box": (146, 92, 160), "disk": (184, 142, 48)}
 _SHIFT = 4  # sub-pixel bits for cv2 drawing
 _ONE = 1 << _SHIFT
 
@@ -203,6 +207,19 @@ def sample_state(rng: np.random.Generator, shape: str | None = None,
                     physics=chosen)
 
 
+def _check_palette(palette: Mapping[str, tuple[int, int, int]] | None) -> dict[str, tuple[int, int, int]]:
+    """Every shape's object colour: ``palette``'s where it names one, ``OBJECT_RGB`` elsewhere."""
+    out = dict.fromkeys(SHAPES, OBJECT_RGB)
+    for shape, rgb in (palette or {}).items():
+        if shape not in SHAPES:
+            raise ValueError(f"palette: unknown shape {shape!r}, expected some of {list(SHAPES)}")
+        if (not isinstance(rgb, (tuple, list)) or len(rgb) != 3
+                or not all(isinstance(v, int) and not isinstance(v, bool) and 0 <= v <= 255 for v in rgb)):
+            raise ValueError(f"palette[{shape!r}]: expected three ints in [0, 255], found {rgb!r}")
+        out[shape] = tuple(rgb)
+    return out
+
+
 @functools.lru_cache(maxsize=8)
 def _background(size: int) -> np.ndarray:
     """Table and walls, drawn at 8x and area-averaged so the wall edges are anti-aliased."""
@@ -224,10 +241,12 @@ class PushSim:
     about 1 us per access, which was a third of a recorded frame.
     """
 
-    def __init__(self, image_size: int = 64) -> None:
+    def __init__(self, image_size: int = 64, palette: Mapping[str, tuple[int, int, int]] | None = None) -> None:
+        """``palette``: object colour (RGB) per shape; shapes it leaves out are drawn in ``OBJECT_RGB``."""
         if isinstance(image_size, bool) or not isinstance(image_size, int) or not 8 <= image_size <= 1024:
             raise ValueError(f"image_size: expected an int in [8, 1024], found {image_size!r}")
         self.image_size = image_size
+        self._palette = _check_palette(palette)
         self._bg = _background(image_size)
         self._k = image_size / WORLD_SIZE * _ONE  # world units -> fixed-point pixels
         self._space: pymunk.Space | None = None
@@ -366,9 +385,10 @@ class PushSim:
             # Row vectors (lx, ly) @ rot: world rotation, scaling and the y flip in one product.
             rot = np.array(((c * k, -s * k), (-s * k, -c * k)))
             pts = np.rint(geom.outline @ rot + (bx, by)).astype(np.int32)
-            cv2.fillPoly(out, (pts,), OBJECT_RGB, cv2.LINE_AA, _SHIFT)
+            cv2.fillPoly(out, (pts,), self._palette[self._state.shape], cv2.LINE_AA, _SHIFT)
         else:
-            cv2.circle(out, (round(bx), round(by)), round(geom.radius * k), OBJECT_RGB, -1, cv2.LINE_AA, _SHIFT)
+            cv2.circle(out, (round(bx), round(by)), round(geom.radius * k), self._palette[self._state.shape], -1,
+                       cv2.LINE_AA, _SHIFT)
             # A mark near the rim makes the disk's rotation visible.
             r = 0.6 * geom.radius * k
             cv2.circle(out, (round(bx + c * r), round(by - s * r)), round(0.22 * geom.radius * k),

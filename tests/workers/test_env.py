@@ -11,7 +11,7 @@ from gymnasium.utils.env_checker import check_env
 
 from orchestrator.protocol import PHYSICS_RANGES, SHAPES, WALL, WORLD_SIZE
 from storage.records import STATE_DIM
-from workers.env import (AGENT_RGB, OBJECT_RGB, PushEnv, PushSim, SimState, resolve_physics,
+from workers.env import (AGENT_RGB, OBJECT_RGB, SHAPE_PALETTE, PushEnv, PushSim, SimState, resolve_physics,
                          sample_state)
 from workers.shapes import AGENT_RADIUS, get_shape
 
@@ -198,3 +198,26 @@ def test_env_reset_with_state_option_and_state_accessors():
     assert isinstance(env.in_contact(), bool)
     with pytest.raises(ValueError, match="action"):
         env.step([math.nan, 1.0])
+
+
+def test_a_palette_recolours_only_the_shapes_it_names():
+    state = SimState(shape="L", agent=(100.0, 100.0), obj=(300.0, 300.0, 0.3))
+    plain, coloured = PushSim(64), PushSim(64, palette={"L": SHAPE_PALETTE["L"]})
+    plain.reset(state)
+    coloured.reset(state)
+    a, b = plain.render(), coloured.render()
+    assert (a == np.array(OBJECT_RGB, np.uint8)).all(-1).any() and not (b == OBJECT_RGB).all(-1).any()
+    assert (b == np.array(SHAPE_PALETTE["L"], np.uint8)).all(-1).any()
+    agent = (a == np.array(AGENT_RGB, np.uint8)).all(-1)
+    assert agent.any() and (b[agent] == AGENT_RGB).all()  # the pusher keeps its colour
+    t = SimState(shape="T", agent=(100.0, 100.0), obj=(300.0, 300.0, 0.3))
+    plain.reset(t)
+    coloured.reset(t)
+    assert np.array_equal(plain.render(), coloured.render())
+
+
+@pytest.mark.parametrize("palette, message", [({"star": (1, 2, 3)}, "unknown shape"),
+                                              ({"T": (1, 2)}, "three ints"), ({"T": (1, 2, 300)}, "three ints")])
+def test_a_bad_palette_is_refused(palette, message):
+    with pytest.raises(ValueError, match=message):
+        PushSim(16, palette=palette)
