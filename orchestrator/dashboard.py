@@ -12,6 +12,7 @@ champion), ``/metrics``.
 
 from __future__ import annotations
 
+import functools
 import io
 import json
 import logging
@@ -157,19 +158,15 @@ def _finite(obj: Any) -> Any:
     return obj
 
 
-_PLACEHOLDER: list[bytes] = []
-
-
+@functools.cache  # thread-safe: two first requests at once may both draw it, both get the same bytes
 def _placeholder_png() -> bytes:
     """A small 'no champion yet' image, so the page's <img> never 404s."""
-    if not _PLACEHOLDER:
-        from matplotlib.figure import Figure  # start-up cost (0.15-0.4 s for every command), not a cycle
-        fig = Figure(figsize=(3, 0.6), dpi=80)
-        fig.text(0.5, 0.5, "no champion yet", ha="center", va="center", color="#888")
-        buf = io.BytesIO()
-        fig.savefig(buf, format="png")
-        _PLACEHOLDER.append(buf.getvalue())
-    return _PLACEHOLDER[0]
+    from matplotlib.figure import Figure  # start-up cost (0.15-0.4 s for every command), not a cycle
+    fig = Figure(figsize=(3, 0.6), dpi=80)
+    fig.text(0.5, 0.5, "no champion yet", ha="center", va="center", color="#888")
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png")
+    return buf.getvalue()
 
 
 # -- sources over a data directory ------------------------------------------------------------
