@@ -55,13 +55,13 @@ def collect(shapes, n: int, seed: int, steps: int, size: int, random_physics: bo
     return out
 
 
-def prepare(data: Path, n_train: int, steps: int, size: int) -> Catalog:
+def prepare(data: Path, n_train: int, steps: int, size: int, palette=None) -> Catalog:
     cat = Catalog(data)
     t0 = time.perf_counter()
-    create_eval_split(cat, episodes=24, seed=1234, steps=steps, image_size=size)
+    create_eval_split(cat, episodes=24, seed=1234, steps=steps, image_size=size, palette=palette)
     have = cat.count(split="train")
     if have < n_train:
-        for ep in collect(SHAPES, n_train - have, seed=100 + have, steps=steps, size=size):
+        for ep in collect(SHAPES, n_train - have, seed=100 + have, steps=steps, size=size, palette=palette):
             cat.add_episode(ep)
     print(f"data: {cat.count(split='train')} train / {cat.count(split='eval')} eval episodes "
           f"({time.perf_counter() - t0:.1f}s to collect)", file=sys.stderr)
@@ -86,7 +86,7 @@ def main_figure(cat: Catalog, data: Path, args) -> dict:
     out.update(version=result.version, promoted=result.decision.promoted, members=args.members,
                batch_size=args.batch_size, total_seconds=round(time.perf_counter() - t0, 1),
                losses=result.losses, sparsification=m["sparsification"], bootstrap=args.bootstrap,
-               image_size=args.image_size, variance_head=args.variance_head)
+               image_size=args.image_size, variance_head=args.variance_head, palette=args.palette)
     out["calibration_variants"] = calibration_variants(load_ensemble(registry, result.version, "cpu"), cat)
     return out
 
@@ -128,11 +128,15 @@ def _frame_change(ep) -> np.ndarray:
     return np.append(np.mean((f[1:] - f[:-1]) ** 2, axis=(1, 2, 3)), np.nan)
 
 
+def _palette(args):
+    return SHAPE_PALETTE if args.palette == "per-shape" else None
+
+
 def ood_figure(args) -> dict:
     """Disagreement of a T-only ensemble on held-out T against box, L and disk (same policies and steps)."""
     t0 = time.perf_counter()
     size = args.ood_image_size
-    palette = SHAPE_PALETTE if args.ood_palette == "per-shape" else None
+    palette = _palette(args)
     train = collect(("T",), args.ood_train_episodes, seed=5000, steps=args.steps, size=size,
                     random_physics=args.ood_random_physics, palette=palette)
     groups = {shape: collect((shape,), args.ood_test_episodes, seed=6000 + i, steps=args.steps, size=size,
@@ -156,7 +160,7 @@ def ood_figure(args) -> dict:
     per_shape = {s: ood_scores(ens, eps, args.ood_horizon) for s, eps in groups.items()}
     out = {"train": f"{len(train)} T episodes", "image_size": size, "epochs": args.ood_epochs,
            "batch_size": args.ood_batch_size, "lr": args.ood_lr, "bootstrap": args.ood_bootstrap,
-           "random_physics": args.ood_random_physics, "palette": args.ood_palette, "train_losses": losses,
+           "random_physics": args.ood_random_physics, "palette": args.palette, "train_losses": losses,
            "test_episodes_per_shape": args.ood_test_episodes, "steps": args.steps, "horizon": args.ood_horizon}
     for key in next(iter(per_shape.values())):
         out[key] = {s: per_shape[s][key] for s in per_shape}
@@ -233,6 +237,9 @@ def main(argv=None) -> int:
     p.add_argument("--bootstrap", action="store_true", help="main figure: members train on bootstrap resamples")
     p.add_argument("--variance-head", action="store_true",
                    help="main figure: members also predict their error variance (total-variance calibration)")
+    p.add_argument("--palette", choices=("uniform", "per-shape"), default="uniform",
+                   help="object colours: all alike (the service's world) or one per shape (workers.env.SHAPE_PALETTE);"
+                        " (a data directory collected with the other one is refused: its eval split is pinned)")
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--ood-train-episodes", type=int, default=80)
     p.add_argument("--ood-epochs", type=int, default=40)
@@ -242,8 +249,6 @@ def main(argv=None) -> int:
     p.add_argument("--ood-lr", type=float, default=2e-3)
     p.add_argument("--ood-bootstrap", action="store_true", help="members train on bootstrap resamples")
     p.add_argument("--ood-random-physics", action="store_true", help="draw mass and frictions per episode")
-    p.add_argument("--ood-palette", choices=("uniform", "per-shape"), default="uniform",
-                   help="object colours of the OOD check: all alike (the service's world) or one per shape")
     p.add_argument("--ood-horizon", type=int, default=1, help="disagreement horizon of the OOD check")
     p.add_argument("--ood-cache", type=Path,
                    help="save the trained OOD ensemble here; reuse it if present (pass the same OOD flags)")
@@ -256,7 +261,7 @@ def main(argv=None) -> int:
     skip = set(filter(None, args.skip.split(",")))
     figures: dict = {"threads": args.threads}
     if "main" not in skip:
-        figures["main"] = main_figure(prepare(args.data, args.train_episodes, args.steps, args.image_size),
+        figures["main"] = main_figure(prepare(args.data, args.train_episodes, args.steps, args.image_size, _palette(args)),
                                       args.data, args)
         print(json.dumps(figures["main"], indent=1, default=str), file=sys.stderr)
     if "ood" not in skip:

@@ -121,17 +121,20 @@ def eval_split_plan(episodes: int = 24, seed: int = 1234) -> list[tuple[int, Sim
 
 
 def create_eval_split(catalog, episodes: int = 24, seed: int = 1234, steps: int = 50,
-                      image_size: int = 64) -> str:
+                      image_size: int = 64, palette: Mapping[str, tuple[int, int, int]] | None = None) -> str:
     """Collects the evaluation split with the ``push`` policy, indexes it (split "eval"), pins it.
 
     ``catalog`` is a ``storage.catalog.Catalog``. Shapes take turns, physics are the defaults,
-    start states and policy seeds come from ``seed``. Returns the split's hash. When a split
+    start states and policy seeds come from ``seed``; ``palette`` (experiments) recolours the
+    objects and is pinned with the other parameters. Returns the split's hash. When a split
     is already pinned, returns its hash if it was made with the same parameters and raises
     ``EvalSplitConflict`` (a ValueError) otherwise.
     """
     plan = eval_split_plan(episodes, seed)
     params = {"episodes": episodes, "seed": seed, "steps": steps, "image_size": image_size,
               "policy": EVAL_POLICY}
+    if palette:
+        params["palette"] = {shape: list(rgb) for shape, rgb in sorted(palette.items())}
     existing = catalog.eval_split()
     if existing is not None:
         _check_same_split(catalog, existing, params, plan)
@@ -139,7 +142,7 @@ def create_eval_split(catalog, episodes: int = 24, seed: int = 1234, steps: int 
     ids = []
     for policy_seed, start in plan:
         ep = collect_episode(start_state=start, policy=EVAL_POLICY, seed=policy_seed, steps=steps,
-                             image_size=image_size)
+                             image_size=image_size, palette=palette)
         ids.append(catalog.add_episode(ep, split="eval").episode_id)
     return catalog.pin_eval_split(ids, params=params)
 

@@ -15,7 +15,7 @@ from storage.catalog import Catalog
 from storage.episodes import encode_episode, read_episode
 from storage.records import STATE_DIM
 from workers.collect import EvalSplitConflict, collect_episode, create_eval_split
-from workers.env import PushSim, SimState, sample_state
+from workers.env import SHAPE_PALETTE, PushSim, SimState, sample_state
 from workers.simbench import run_sim_bench
 
 
@@ -112,6 +112,8 @@ def test_eval_split_is_pinned_idempotent_and_guarded(tmp_path):
     assert catalog.count(split="eval") == 4
     with pytest.raises(EvalSplitConflict, match="already pinned"):
         create_eval_split(catalog, episodes=4, seed=8, steps=6, image_size=16)
+    with pytest.raises(EvalSplitConflict, match="palette"):  # a recoloured world is another split
+        create_eval_split(catalog, episodes=4, seed=7, steps=6, image_size=16, palette=SHAPE_PALETTE)
 
 
 def test_sim_bench_writes_episodes_and_reports_figures(tmp_path):
