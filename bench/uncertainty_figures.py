@@ -165,7 +165,8 @@ def ood_figure(args) -> dict:
     for key in next(iter(per_shape.values())):
         out[key] = {s: per_shape[s][key] for s in per_shape}
         if key.startswith("disagreement") or key.startswith("error"):
-            out[key + "_ratio_to_heldout_T"] = {s: per_shape[s][key] / per_shape["T"][key]
+            base = per_shape["T"][key]  # 0 when held-out T has no such steps (e.g. no contact): no ratio
+            out[key + "_ratio_to_heldout_T"] = {s: per_shape[s][key] / base if base else None
                                                 for s in per_shape if s != "T"}
     out["seconds"] = round(time.perf_counter() - t0, 1)
     out["train_seconds"] = round(train_s, 1)
@@ -261,8 +262,8 @@ def main(argv=None) -> int:
     skip = set(filter(None, args.skip.split(",")))
     figures: dict = {"threads": args.threads}
     if "main" not in skip:
-        figures["main"] = main_figure(prepare(args.data, args.train_episodes, args.steps, args.image_size, _palette(args)),
-                                      args.data, args)
+        cat = prepare(args.data, args.train_episodes, args.steps, args.image_size, _palette(args))
+        figures["main"] = main_figure(cat, args.data, args)
         print(json.dumps(figures["main"], indent=1, default=str), file=sys.stderr)
     if "ood" not in skip:
         figures["ood"] = ood_figure(args)

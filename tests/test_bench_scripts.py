@@ -1,0 +1,25 @@
+"""The figure scripts under bench/ still run end to end (tiny sizes; the figures themselves are in BENCHMARKS.md)."""
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+from storage.catalog import Catalog
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def test_uncertainty_figures_run_in_the_per_shape_palette_world(tmp_path):
+    data, out = tmp_path / "data", tmp_path / "figures.json"
+    argv = [sys.executable, str(ROOT / "bench" / "uncertainty_figures.py"), "--data", str(data),
+            "--train-episodes", "4", "--steps", "14", "--image-size", "16", "--members", "2", "--epochs", "1",
+            "--ood-train-episodes", "2", "--ood-test-episodes", "1", "--ood-epochs", "1", "--ood-image-size", "16",
+            "--palette", "per-shape", "--threads", "1", "--skip", "bench", "--json", str(out)]
+    proc = subprocess.run(argv, cwd=ROOT, capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    figures = json.loads(out.read_text())
+    assert figures["main"]["palette"] == figures["ood"]["palette"] == "per-shape"
+    assert figures["main"]["h1_mse"] > 0 and -1 <= figures["main"]["spearman"] <= 1
+    assert set(figures["ood"]["disagreement_ratio_to_heldout_T"]) == {"box", "L", "disk", "T_train"}
+    assert "palette" in Catalog(data).eval_split().params  # the recoloured world is pinned with the split
