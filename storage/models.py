@@ -355,7 +355,8 @@ class ModelRegistry:
         eval split (``eval_split_hash`` if given, else the champion's); the gate metric and every
         ``h1_*`` metric are finite; and ``metric`` < champion's ``metric * (1 - min_rel_improvement)``.
         The first model needs only the first three. A refused candidate is kept with status
-        ``rejected`` and the reason. Raises ``RegistryError`` for an unknown version or a bad
+        ``rejected`` and the reason; a version that is no longer a candidate (rejected, retired) is
+        refused without any change. Raises ``RegistryError`` for an unknown version or a bad
         ``min_rel_improvement``.
         """
         if not 0 <= min_rel_improvement < 1:
@@ -370,6 +371,10 @@ class ModelRegistry:
             if current == version:
                 return GateDecision(False, f"{version} is already the champion", version, current,
                                     metric)
+            status = self._get(conn, version).status
+            if status != ModelStatus.CANDIDATE:  # a rolled-back or refused model is not re-judged
+                return GateDecision(False, f"{version} is {status.value}, not a candidate: only a new candidate "
+                                    "goes through the gate (models promote overrides it)", version, current, metric)
             champ = self._get(conn, current) if current is not None else None
             promoted, reason, champ_value = judge(rec, champ, metric, min_rel_improvement, eval_split_hash)
             if promoted:

@@ -55,8 +55,8 @@ def ensemble_from_bytes(data: bytes, device: torch.device | str | None = None) -
     try:
         config = PredictorConfig.from_dict(payload["predictor"])
         ensemble = Ensemble(config, members=int(payload["members"]), seed=int(payload["seed"]))
-    except (KeyError, TypeError, ConfigError) as exc:
-        raise CheckpointError(f"checkpoint config is invalid: {exc}") from exc
+    except (KeyError, TypeError, ValueError, OverflowError, ConfigError) as exc:
+        raise CheckpointError(f"checkpoint config is invalid: {type(exc).__name__}: {exc}") from exc
     _load_tensors(ensemble, payload)
     return ensemble.to(device if device is not None else default_device())
 
@@ -72,11 +72,14 @@ def _load_tensors(ensemble: Ensemble, payload: dict[str, Any]) -> None:
             if not isinstance(t, torch.Tensor) or t.shape != p.shape:
                 shape = tuple(t.shape) if isinstance(t, torch.Tensor) else type(t).__name__
                 raise CheckpointError(f"checkpoint parameter {name} must have shape {tuple(p.shape)}, found {shape}")
+            if not bool(torch.isfinite(t).all()):
+                raise CheckpointError(f"checkpoint parameter {name} has non-finite values")
             p.copy_(t)
         for key in ("action_mean", "action_std"):
             t = payload.get(key)
-            if not isinstance(t, torch.Tensor) or t.shape != (ensemble.config.action_dim,):
-                raise CheckpointError(f"checkpoint {key} must be a tensor of shape "
+            if (not isinstance(t, torch.Tensor) or t.shape != (ensemble.config.action_dim,)
+                    or not bool(torch.isfinite(t).all())):
+                raise CheckpointError(f"checkpoint {key} must be a finite tensor of shape "
                                       f"({ensemble.config.action_dim},), found {t!r}")
         try:
             ensemble.set_action_stats(payload["action_mean"].numpy(), payload["action_std"].numpy())

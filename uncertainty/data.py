@@ -120,13 +120,15 @@ def member_indices(windows: Windows, members: int, bootstrap: bool,
                    rng: np.random.Generator) -> list[np.ndarray]:
     """Window indices each member trains on: all of them, or a bootstrap resample of the episodes.
 
-    A bootstrap member sees each drawn episode's windows once per time it was drawn.
+    A bootstrap member sees each drawn episode's windows once per time it was drawn; only
+    episodes with at least one window are drawn, so no member's pool is empty.
     """
     everything = np.arange(len(windows))
     if not bootstrap:
         return [everything for _ in range(members)]
-    n_eps = len(windows.episode_ids)
-    by_episode = [np.flatnonzero(windows.episode == e) for e in range(n_eps)]
+    by_episode = [np.flatnonzero(windows.episode == e) for e in range(len(windows.episode_ids))]
+    by_episode = [w for w in by_episode if len(w)]  # episodes too short for a window are not drawn
+    n_eps = len(by_episode)
     out = []
     for _ in range(members):
         drawn = rng.integers(0, n_eps, size=n_eps)

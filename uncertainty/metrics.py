@@ -83,11 +83,17 @@ def sparsification(uncertainty: np.ndarray, error: np.ndarray,
 
     Returns {"fractions", "curve", "oracle"}; the oracle removes by the true error,
     so the gap between the two (its area, ``sparsification_error``) measures how
-    well the uncertainty ranks the errors. Raises ``ValueError`` on mismatched or empty input.
+    well the uncertainty ranks the errors. NaN curves when the uncertainty ranks nothing (all
+    equal, or no finite pair). Raises ``ValueError`` on mismatched or empty input.
     """
     u, e = np.asarray(uncertainty, np.float64), np.asarray(error, np.float64)
     if u.shape != e.shape or u.ndim != 1 or len(u) == 0:
         raise ValueError(f"sparsification expects two equal non-empty 1-D arrays, found {u.shape} and {e.shape}")
+    finite = np.isfinite(u) & np.isfinite(e)  # as spearman: pairs with a NaN are left out
+    u, e = u[finite], e[finite]
+    if len(u) == 0 or np.ptp(u) == 0:  # nothing to rank by (e.g. one member: no disagreement)
+        nan = [float("nan")] * len(fractions)
+        return {"fractions": [float(f) for f in fractions], "curve": nan, "oracle": nan}
     by_u = e[np.argsort(-u, kind="stable")]                      # errors, most uncertain first
     by_e = np.sort(e)[::-1]                                      # errors, largest first
     curve, oracle = [], []

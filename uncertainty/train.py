@@ -258,11 +258,25 @@ def train_windows(episodes: Sequence[Episode], ensemble: Ensemble, cfg: TrainCon
     return windows
 
 
+def check_evaluable(config: PredictorConfig, eval_episodes: Sequence[Episode]) -> None:
+    """Raises ``DataError`` unless a model of ``config`` can be evaluated on ``eval_episodes``.
+
+    Their frames must have the model's size, and that size must hold one SSIM window.
+    """
+    sizes = sorted({int(ep.frames.shape[1]) for ep in eval_episodes})
+    if sizes != [config.image_size]:
+        raise DataError(f"the eval split has {'/'.join(map(str, sizes))}px frames, the model {config.image_size}px: "
+                        "train on episodes of the eval split's size (or pin a new eval split)")
+    if config.image_size < M.SSIM_WINDOW:
+        raise DataError(f"{config.image_size}px frames are too small to evaluate: SSIM needs at least "
+                        f"{M.SSIM_WINDOW}x{M.SSIM_WINDOW}")
+
+
 def train_candidate(catalog: CatalogLike, registry: ModelRegistry, cfg: TrainConfig) -> TrainResult:
     """Train on the train snapshot, evaluate on the eval split, register, and run the gate.
 
     Raises ``DataError`` (no train data, no eval split, eval episodes in the
-    snapshot), ``ConfigError`` (warm start without a champion, or from one shaped
+    snapshot, an eval split the model cannot be evaluated on), ``ConfigError`` (warm start without a champion, or from one shaped
     for other images or without the variance head asked for) and the registry's errors.
     """
     data = load_train(catalog, cfg.max_episodes)
@@ -282,6 +296,7 @@ def train_candidate(catalog: CatalogLike, registry: ModelRegistry, cfg: TrainCon
                               "train a fresh model for one (without --from-champion)")
     else:
         ensemble = new_ensemble(cfg, data.episodes)
+    check_evaluable(ensemble.config, eval_episodes)  # before training, not after it
     windows = train_windows(data.episodes, ensemble, cfg)
     start = time.perf_counter()
     losses = fit(ensemble, windows, cfg)
@@ -289,7 +304,11 @@ def train_candidate(catalog: CatalogLike, registry: ModelRegistry, cfg: TrainCon
     metrics = evaluate_episodes(ensemble, eval_episodes, eval_hash, rollout_stride=cfg.eval_rollout_stride)
     metrics.update({"train_episodes": len(data.episodes), "train_windows": len(windows),
                     "train_seconds": round(train_s, 2), "train_loss": losses[-1], "epochs": cfg.epochs})
+    # A warm start keeps the champion's shape: record what was trained, not what was asked for.
+    used = cfg.to_dict() | {"members": ensemble.members, "context": ensemble.config.context,
+                            "widths": list(ensemble.config.widths),
+                            "variance_head": ensemble.config.predict_variance}
     version = save_candidate(registry, ensemble, metrics, data.snapshot_id, eval_hash, parent=parent,
-                             train_config=cfg.to_dict())
+                             train_config=used)
     decision = registry.gate(version, cfg.min_rel_improvement, eval_split_hash=eval_hash)
     return TrainResult(version, metrics, decision, losses)

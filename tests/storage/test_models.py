@@ -196,6 +196,19 @@ def test_rollback_restores_the_previous_champion(reg: ModelRegistry) -> None:
     assert [e.rolled_back_at is None for e in reg.history()] == [True, False, False]
 
 
+def test_gate_does_not_rejudge_a_rolled_back_or_rejected_model(reg: ModelRegistry) -> None:
+    a, b = _register(reg, 0.010), _register(reg, 0.008)
+    assert reg.gate(a).promoted and reg.gate(b).promoted
+    assert reg.rollback() == a  # b was taken out of service: its better metric must not bring it back
+    decision = reg.gate(b)
+    assert not decision.promoted and "retired, not a candidate" in decision.reason
+    assert reg.champion() == a and reg.get(b).status is ModelStatus.RETIRED and "rolled back" in reg.get(b).reason
+    worse = _register(reg, 0.5)
+    assert not reg.gate(worse).promoted and reg.get(worse).status is ModelStatus.REJECTED
+    assert "rejected, not a candidate" in reg.gate(worse).reason
+    assert reg.promote(b).promoted  # the operator's override still can
+
+
 def test_rollback_skips_a_corrupt_previous_champion(reg: ModelRegistry) -> None:
     a, b, c = (_register(reg, mse) for mse in (0.010, 0.008, 0.006))
     for v in (a, b, c):

@@ -71,6 +71,11 @@ def test_registered_bytes_that_are_not_an_ensemble_are_refused(tmp_path):
     (lambda p: p["params"].update({"enc1.weight": torch.zeros(1)}), "shape"),
     (lambda p: p.update(predictor={"image_size": 12}), "config is invalid"),
     (lambda p: p.update(action_std=torch.zeros(2)), "normalisation"),
+    (lambda p: p.update(members="x"), "config is invalid"),
+    (lambda p: p.update(seed=2 ** 70), "config is invalid"),
+    (lambda p: p["predictor"].update(widths="abc"), "config is invalid"),
+    (lambda p: p.update(action_mean=torch.tensor([float("nan"), 0.0])), "finite"),
+    (lambda p: p["params"]["out.bias"].fill_(float("inf")), "non-finite"),
 ])
 def test_inconsistent_checkpoints_are_refused(change, message):
     payload = torch.load(io.BytesIO(ensemble_to_bytes(_ensemble())), weights_only=True)

@@ -41,6 +41,14 @@ def test_bootstrap_draws_whole_episodes_and_is_seeded():
     assert all(len(i) == len(w) for i in member_indices(w, 2, False, np.random.default_rng(0)))
 
 
+def test_bootstrap_never_leaves_a_member_without_windows():
+    """Episodes too short for a window are not drawn: a member's pool is never empty (it trained on window 0)."""
+    w = build_windows([make_episode(0, steps=12)] + [make_episode(s, steps=2) for s in range(1, 6)], CFG)
+    for seed in range(20):
+        pools = member_indices(w, 3, True, np.random.default_rng(seed))
+        assert all(len(p) == len(w) for p in pools)  # the one episode with windows, drawn every time
+
+
 def test_action_stats():
     mean, std = action_stats([make_episode(s) for s in range(3)])
     assert mean.shape == std.shape == (2,) and np.all(std > 1)

@@ -60,6 +60,15 @@ def test_spearman():
     assert M.spearman(with_nan, np.append(a, 3.0)) == pytest.approx(1.0)
 
 
+def test_sparsification_needs_an_uncertainty_that_ranks_something():
+    err = np.array([5.0, 1.0, 4.0, 2.0])
+    flat = M.sparsification(np.zeros(4), err)  # one member: no disagreement anywhere
+    assert np.isnan(flat["curve"]).all() and np.isnan(M.sparsification_error(flat))
+    # Pairs with a NaN are left out, as spearman leaves them out: the rest still ranks perfectly.
+    with_nan = M.sparsification(np.array([5.0, np.nan, 4.0, 2.0]), err)
+    assert M.sparsification_error(with_nan) == pytest.approx(0.0)
+
+
 def test_sparsification_curve_and_oracle():
     err = np.array([5.0, 1.0, 4.0, 2.0, 3.0, 0.0, 9.0, 7.0, 6.0, 8.0])
     perfect = M.sparsification(err, err)

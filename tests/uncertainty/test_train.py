@@ -155,6 +155,28 @@ def test_warm_start_without_champion_is_refused(tmp_path):
         train_candidate(cat, registry, TrainConfig(epochs=1, from_champion=True, variance_head=True, **TINY))
 
 
+def test_a_model_the_eval_split_cannot_evaluate_is_refused_before_training(tmp_path):
+    cat = Catalog(tmp_path)
+    cat.add_episode(make_episode(0, "T", steps=8, size=16))
+    cat.pin_eval_split([cat.add_episode(make_episode(50, "T", steps=8, size=32), split="eval").episode_id])
+    registry = ModelRegistry(tmp_path)
+    cfg = TrainConfig(epochs=1, **TINY)
+    with pytest.raises(DataError, match="32px frames, the model 16px"):
+        train_candidate(cat, registry, cfg)
+    assert registry.list() == []  # refused before any training or registration
+
+
+def test_a_warm_start_records_the_shape_it_trained_not_the_one_asked_for(tmp_path):
+    cat, ids = _catalog(tmp_path, n_train=2, n_eval=1)
+    cat.pin_eval_split(ids)
+    registry = ModelRegistry(tmp_path)
+    train_candidate(cat, registry, TrainConfig(epochs=1, **TINY))
+    asked = dict(TINY, members=3)
+    result = train_candidate(cat, registry, TrainConfig(epochs=1, from_champion=True, context=3, **asked))
+    recorded = registry.get(result.version).config["train"]
+    assert recorded["members"] == 2 and recorded["context"] == 2 and recorded["from_champion"]
+
+
 @pytest.mark.parametrize("kwargs", [{"epochs": 0}, {"lr": -1.0}, {"device": "tpu"}, {"max_windows": 0}])
 def test_train_config_refuses_bad_values(kwargs):
     with pytest.raises(ConfigError):
