@@ -23,8 +23,8 @@ import json
 import re
 import sqlite3
 import time
-from collections.abc import Callable, Iterator, Sequence
-from contextlib import AbstractContextManager, contextmanager, nullcontext
+from collections.abc import Callable, Sequence
+from contextlib import AbstractContextManager, nullcontext
 from dataclasses import asdict, dataclass, field
 from datetime import datetime, timezone
 from pathlib import Path
@@ -37,7 +37,7 @@ from storage.episodes import (
     read_episode,
     verify_episode,
 )
-from storage.database import DB_NAME, Migration, connect, ensure_schema, transaction
+from storage.database import DB_NAME, Migration, connection, ensure_schema, transaction
 from storage.errors import CatalogError, CorruptEpisodeError, EpisodeError
 from storage.files import publish, sha256_hex, stage_bytes
 from storage.records import Episode, EpisodeMeta
@@ -160,7 +160,10 @@ def _episode_date(created: str) -> str:
         when = datetime.now(timezone.utc)
     if when.tzinfo is None:
         when = when.replace(tzinfo=timezone.utc)
-    return when.astimezone(timezone.utc).strftime("%Y-%m-%d")
+    try:
+        return when.astimezone(timezone.utc).strftime("%Y-%m-%d")
+    except OverflowError:  # e.g. 9999-12-31T23:00-05:00 is past the last representable UTC day
+        return datetime.now(timezone.utc).strftime("%Y-%m-%d")
 
 
 def _check_split(split: str) -> None:
@@ -194,13 +197,8 @@ class Catalog:
     def db_path(self) -> Path:
         return self._db_path
 
-    @contextmanager
-    def _connect(self) -> Iterator[sqlite3.Connection]:
-        conn = connect(self._db_path)
-        try:
-            yield conn
-        finally:
-            conn.close()
+    def _connect(self) -> AbstractContextManager[sqlite3.Connection]:
+        return connection(self._db_path, CatalogError)
 
     def _row(self, r: sqlite3.Row) -> EpisodeRow:
         return EpisodeRow(

@@ -13,7 +13,7 @@ from contextlib import contextmanager
 from datetime import datetime, timezone
 from pathlib import Path
 
-from storage.errors import CatalogError
+from storage.errors import CatalogError, StorageError
 
 DB_NAME = "catalog.sqlite"
 BUSY_TIMEOUT_MS = 30_000
@@ -29,12 +29,36 @@ def connect(db_path: str | Path) -> sqlite3.Connection:
     One connection per thread: open one where you need it and close it after.
     """
     conn = sqlite3.connect(db_path, timeout=BUSY_TIMEOUT_MS / 1000, isolation_level=None)
-    conn.row_factory = sqlite3.Row
-    conn.execute(f"PRAGMA busy_timeout = {BUSY_TIMEOUT_MS}")
-    conn.execute("PRAGMA journal_mode = WAL")
-    conn.execute("PRAGMA synchronous = FULL")  # a committed ingest survives power loss
-    conn.execute("PRAGMA foreign_keys = ON")
+    try:
+        conn.row_factory = sqlite3.Row
+        conn.execute(f"PRAGMA busy_timeout = {BUSY_TIMEOUT_MS}")
+        conn.execute("PRAGMA journal_mode = WAL")  # the first statement to read the file: not a database?
+        conn.execute("PRAGMA synchronous = FULL")  # a committed ingest survives power loss
+        conn.execute("PRAGMA foreign_keys = ON")
+    except BaseException:
+        conn.close()
+        raise
     return conn
+
+
+@contextmanager
+def connection(db_path: str | Path, error: type[StorageError]) -> Iterator[sqlite3.Connection]:
+    """``connect`` for the length of a ``with`` block, closed after it.
+
+    SQLite's own errors, from opening the file or from any statement in the block (a damaged
+    file, "database is locked" past the busy timeout, a full disk), come out as ``error``
+    naming the file, so callers handle one family of exceptions (``StorageError``).
+    """
+    try:
+        conn = connect(db_path)
+    except sqlite3.Error as exc:
+        raise error(f"cannot open the database {db_path}: {exc}") from exc
+    try:
+        yield conn
+    except sqlite3.Error as exc:
+        raise error(f"database {db_path}: {exc}") from exc
+    finally:
+        conn.close()
 
 
 @contextmanager

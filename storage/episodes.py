@@ -416,8 +416,13 @@ def _examine(source: Source, name: str | None) -> tuple[_Scan, EpisodeMeta, dict
 
 
 def _decode_frames(msgs: list[Message], size: int, name: str) -> np.ndarray:
+    pixels = 3 * size * size
+    short = next((t for t, m in enumerate(msgs) if len(m.data) < pixels), None)
+    if short is not None:  # checked before allocating: a hostile image_size must not cost memory
+        raise CorruptEpisodeError(f"{name}: /camera step {short}: {len(msgs[short].data)} bytes cannot hold "
+                                  f"a {size}x{size} rgb8 image (metadata image_size {size})")
     out = np.empty((len(msgs), size, size, 3), np.uint8)
-    prefix, pixels = _image_prefix(size, size), 3 * size * size
+    prefix = _image_prefix(size, size)
     image = RawImage()
     for t, msg in enumerate(msgs):
         buf = msg.data
@@ -468,7 +473,8 @@ def read_episode(source: Source, *, name: str | None = None) -> Episode:
     ``name`` labels the source in error messages (default: the path, or ``<bytes>``).
 
     Raises ``TruncatedEpisodeError`` (the file ends early), ``CorruptEpisodeError``
-    (CRC mismatch, undecodable record, counts that disagree), ``ForeignFileError``
+    (CRC mismatch, undecodable record, counts that disagree, non-finite actions or
+    states, images too small for the metadata's size), ``ForeignFileError``
     (not MCAP, or MCAP without our channels/metadata) or ``EpisodeError`` (unreadable path).
     """
     scan, meta, ids, name = _examine(source, name)
@@ -477,6 +483,10 @@ def read_episode(source: Source, *, name: str | None = None) -> Episode:
                               TOPIC_ACTION, name)
     states = _decode_numeric(scan.messages[ids[TOPIC_STATE]], StateMessage, STATE_FIELDS, _STATE_SCALAR,
                              TOPIC_STATE, name)
+    for topic, values in ((TOPIC_ACTION, actions), (TOPIC_STATE, states)):  # as encode_episode demands
+        bad = np.flatnonzero(~np.isfinite(values).all(axis=1))
+        if len(bad):
+            raise CorruptEpisodeError(f"{name}: {topic} step {bad[0]}: non-finite values ({len(bad)} steps)")
     return Episode(meta=meta, frames=frames, actions=actions.astype(np.float32), states=states)
 
 

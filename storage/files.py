@@ -29,6 +29,22 @@ def fsync_dir(directory: Path) -> None:
         os.close(fd)
 
 
+def ensure_dir(path: str | os.PathLike) -> None:
+    """``mkdir -p`` made durable: the parent of every directory it creates is fsynced.
+
+    Without that, a file fsynced into a new directory (the first episode of a day) can
+    survive a power loss while the directory's own entry does not.
+    """
+    path = Path(path)
+    created, p = [], path
+    while not p.exists():
+        created.append(p)
+        p = p.parent
+    path.mkdir(parents=True, exist_ok=True)
+    for d in reversed(created):
+        fsync_dir(d.parent)
+
+
 def stage_bytes(path: str | os.PathLike, data: bytes) -> Path:
     """Writes ``data`` to a fresh temporary file next to ``path`` and fsyncs it; returns its path.
 
@@ -36,7 +52,7 @@ def stage_bytes(path: str | os.PathLike, data: bytes) -> Path:
     never mistaken for an episode. On an exception the temporary file is removed.
     """
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
+    ensure_dir(path.parent)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     try:
         with os.fdopen(fd, "wb") as f:

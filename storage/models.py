@@ -21,14 +21,14 @@ import shutil
 import sqlite3
 import uuid
 from collections.abc import Iterator
-from contextlib import contextmanager
+from contextlib import AbstractContextManager, contextmanager
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
 from enum import Enum
 from pathlib import Path
 from typing import Any
 
-from storage.database import DB_NAME, connect, ensure_schema, transaction
+from storage.database import DB_NAME, connection, ensure_schema, transaction
 from storage.errors import CorruptCheckpointError, RegistryError
 from storage.files import fsync_dir, write_synced
 from storage.gate import DEFAULT_METRIC, DEFAULT_MIN_REL_IMPROVEMENT, GateDecision, judge
@@ -175,13 +175,8 @@ class ModelRegistry:
 
     # -- connections ---------------------------------------------------------------------------
 
-    @contextmanager
-    def _connect(self) -> Iterator[sqlite3.Connection]:
-        conn = connect(self.db_path)  # the catalog's settings: WAL, busy timeout, synchronous=FULL
-        try:
-            yield conn
-        finally:
-            conn.close()
+    def _connect(self) -> AbstractContextManager[sqlite3.Connection]:
+        return connection(self.db_path, RegistryError)  # the catalog's settings: WAL, busy timeout, FULL sync
 
     @contextmanager
     def _transaction(self) -> Iterator[sqlite3.Connection]:

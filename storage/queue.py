@@ -50,7 +50,8 @@ from pathlib import Path
 from typing import Any
 
 from storage.errors import QueueError, StaleLeaseError
-from storage.requests import Lease, NewRequest, Request, RequestStatus, UnknownRequestError, check_transition
+from storage.requests import (Lease, NewRequest, Request, RequestStatus, UnknownRequestError, check_transition,
+                              finite_number)
 from storage.wal import Checkpointer
 
 _Q, _L, _D, _X, _C = (RequestStatus.QUEUED, RequestStatus.LEASED, RequestStatus.DONE,
@@ -185,6 +186,14 @@ class RequestQueue:
             conn = self._local.conn = self._open()
         return conn
 
+    @contextmanager
+    def _reading(self) -> Iterator[sqlite3.Connection]:
+        """This thread's reading connection for a block; SQLite's errors become ``QueueError``."""
+        try:
+            yield self._conn()
+        except sqlite3.Error as exc:
+            raise QueueError(f"cannot read the queue on {self.db_path}: {exc}") from exc
+
     def _open(self) -> sqlite3.Connection:
         if self._closed:
             raise QueueError(f"the queue on {self.db_path} is closed")
@@ -288,7 +297,8 @@ class RequestQueue:
 
     def get(self, request_id: str) -> Request:
         """The request with this id; UnknownRequestError if none."""
-        return self._fetch(self._conn(), request_id)
+        with self._reading() as conn:
+            return self._fetch(conn, request_id)
 
     def list(self, status: RequestStatus | str | None = None, limit: int | None = None) -> list[Request]:
         """Requests, newest change first; queued ones in the order they will be leased."""
@@ -309,13 +319,15 @@ class RequestQueue:
         if limit is not None:
             sql += " LIMIT ?"
             args.append(int(limit))
-        return [_row_to_request(r) for r in self._conn().execute(sql, args)]
+        with self._reading() as conn:
+            return [_row_to_request(r) for r in conn.execute(sql, args)]
 
     def counts(self) -> dict[str, int]:
         """Number of requests in every status (zeros included)."""
         out = {s.value: 0 for s in RequestStatus}
-        for status, n in self._conn().execute(_COUNTS_SQL):
-            out[status] = n
+        with self._reading() as conn:
+            for status, n in conn.execute(_COUNTS_SQL):
+                out[status] = n
         return out
 
     # --- enqueue ---------------------------------------------------------
@@ -361,8 +373,7 @@ class RequestQueue:
         """
         if not worker_id:
             raise QueueError("worker_id: expected a non-empty string, found ''")
-        if lease_s <= 0:
-            raise QueueError(f"lease_s: expected > 0, found {lease_s}")
+        lease_s = finite_number("lease_s", lease_s, positive=True)
         t = self._now(now)
         sql = self._lease_statement(len(tasks), len(shapes))
         check_transition("lease", _Q, _L)
@@ -386,6 +397,7 @@ class RequestQueue:
     def renew(self, request_id: str, token: int, worker_id: str | None = None, lease_s: float = 30.0,
               now: float | None = None) -> float:
         """Extend a live lease to now + lease_s; returns the new expiry. StaleLeaseError if not live."""
+        lease_s = finite_number("lease_s", lease_s, positive=True)
         t = self._now(now)
         check_transition("renew", _L, _L)
         with self._tx() as conn:
@@ -491,7 +503,7 @@ class RequestQueue:
 
     def prioritize(self, request_id: str, priority: float, now: float | None = None) -> Request:
         """Set a request's priority (any status but done)."""
-        return self._operator("prioritize", request_id, None, "priority = ?", (float(priority),), now)
+        return self._operator("prioritize", request_id, None, "priority = ?", (finite_number("priority", priority),), now)
 
 
 _ENCODER = json.JSONEncoder(allow_nan=False, separators=(",", ":"))

@@ -7,6 +7,7 @@ legal moves are listed there (see the queue's docstring for the diagram).
 
 from __future__ import annotations
 
+import math
 from dataclasses import asdict, dataclass, field
 from enum import Enum
 from typing import Any
@@ -62,6 +63,21 @@ def check_transition(action: str, current: RequestStatus, target: RequestStatus)
             f"found {current.value}")
 
 
+def finite_number(name: str, value: Any, positive: bool = False) -> float:
+    """``value`` as a float; ``QueueError`` unless it is a finite number (and > 0 when ``positive``).
+
+    SQLite stores NaN as NULL: a NaN priority or lease expiry would fail far from its cause
+    (a NOT NULL constraint) or, worse, never compare as expired.
+    """
+    try:
+        number = float(value) if not isinstance(value, (bool, str, bytes)) else math.nan
+    except (TypeError, ValueError):
+        number = math.nan
+    if not math.isfinite(number) or (positive and number <= 0):
+        raise QueueError(f"{name}: expected a finite number{' > 0' if positive else ''}, found {value!r}")
+    return number
+
+
 @dataclass
 class NewRequest:
     """What a planner or an operator asks to be collected (task-space checks live in orchestrator.protocol)."""
@@ -100,7 +116,7 @@ class NewRequest:
             raise QueueError(f"steps: expected an integer >= 1, found {self.steps!r}")
         if not isinstance(self.max_attempts, int) or self.max_attempts < 1:
             raise QueueError(f"max_attempts: expected an integer >= 1, found {self.max_attempts!r}")
-        self.priority = float(self.priority)
+        self.priority = finite_number("priority", self.priority)
         if self.idempotency_key is not None and not isinstance(self.idempotency_key, str):
             raise QueueError(f"idempotency_key: expected a string or None, found {self.idempotency_key!r}")
 

@@ -11,12 +11,14 @@ import pytest
 
 from storage import episodes, files
 from storage.catalog import Catalog
+from storage.models import ModelRegistry
 from storage.database import connect, ensure_schema, transaction
 from storage.errors import (
     CatalogError,
     CorruptEpisodeError,
     EpisodeError,
     ForeignFileError,
+    RegistryError,
     TruncatedEpisodeError,
 )
 from tests.storage.test_episodes import assert_same, make_episode
@@ -348,3 +350,32 @@ def test_catalog_files_are_plain(cat, rng):
     names = set(os.listdir(cat.data_dir))
     assert {"catalog.sqlite", "episodes"} <= names
     assert names <= {"catalog.sqlite", "catalog.sqlite-wal", "catalog.sqlite-shm", "episodes"}
+
+
+def test_a_damaged_database_file_is_a_storage_error_naming_the_file(tmp_path, rng):
+    cat = Catalog(tmp_path)
+    cat.add_episode(make_episode(rng))
+    (tmp_path / "catalog.sqlite").write_bytes(b"this is not an SQLite file" * 100)
+    for path in tmp_path.glob("catalog.sqlite-*"):  # WAL and shared-memory files of the old database
+        path.unlink()
+    with pytest.raises(CatalogError, match="catalog.sqlite.*not a database"):
+        Catalog(tmp_path)
+    with pytest.raises(CatalogError, match="not a database"):
+        cat.count()
+    with pytest.raises(RegistryError, match="catalog.sqlite.*not a database"):
+        ModelRegistry(tmp_path)
+
+
+def test_a_new_day_folder_is_made_durable_with_its_first_episode(tmp_path, rng, monkeypatch):
+    synced: list[str] = []
+    real = files.fsync_dir
+    monkeypatch.setattr(files, "fsync_dir", lambda d: (synced.append(os.fspath(d)), real(d)))
+    cat = Catalog(tmp_path / "data")
+    res = cat.ingest_bytes(episodes.encode_episode(make_episode(rng, created="2031-05-05T10:00:00+00:00")))
+    day = res.path.parent
+    assert day.name == "2031-05-05"
+    # The file's folder (for the rename) and the folder holding the new day's entry.
+    assert os.fspath(day) in synced and os.fspath(day.parent) in synced
+    synced.clear()
+    cat.ingest_bytes(episodes.encode_episode(make_episode(rng, created="2031-05-05T11:00:00+00:00")))
+    assert synced == [os.fspath(day)]  # the day exists now: only the rename is synced

@@ -14,6 +14,7 @@ from mcap.writer import Writer
 from mcap_protobuf.decoder import DecoderFactory
 
 from storage import episodes, files
+from storage.catalog import Catalog
 from storage.errors import (
     CorruptEpisodeError,
     EpisodeError,
@@ -332,3 +333,38 @@ def test_unwritable_episode_refused_before_any_file(rng, tmp_path):
     with pytest.raises(EpisodeError, match="field seed is str '7', expected int"):
         episodes.encode_episode(ep)
     assert os.listdir(tmp_path) == []
+
+
+def _encode_unchecked(ep: Episode, monkeypatch) -> bytes:
+    """The bytes a writer that skips our checks would produce (all CRCs valid)."""
+    with monkeypatch.context() as m:
+        m.setattr(episodes, "_check_writable", lambda ep: None)
+        return episodes.encode_episode(ep)
+
+
+@pytest.mark.parametrize("size", [10**6, 2**40])
+def test_a_metadata_image_size_the_images_cannot_hold_is_refused_before_allocating(rng, monkeypatch, size):
+    ep = make_episode(rng)
+    ep.meta.image_size = size
+    with pytest.raises(CorruptEpisodeError, match="cannot hold"):
+        episodes.read_episode(_encode_unchecked(ep, monkeypatch))
+
+
+def test_non_finite_actions_or_states_are_refused_on_read_as_on_write(rng, monkeypatch, tmp_path):
+    ep = make_episode(rng)
+    ep.states[1, 0] = float("nan")
+    with pytest.raises(EpisodeError, match="finite"):
+        episodes.encode_episode(ep)
+    data = _encode_unchecked(ep, monkeypatch)
+    with pytest.raises(CorruptEpisodeError, match="/state step 1: non-finite"):
+        episodes.read_episode(data)
+    cat = Catalog(tmp_path)
+    with pytest.raises(CorruptEpisodeError):
+        cat.ingest_bytes(data)
+    assert cat.count() == 0
+
+
+def test_a_creation_time_past_the_last_utc_day_is_still_ingested(rng, tmp_path):
+    ep = make_episode(rng, created="9999-12-31T23:00:00-05:00")
+    result = Catalog(tmp_path).ingest_bytes(episodes.encode_episode(ep))
+    assert result.path.is_file()

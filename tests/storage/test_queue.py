@@ -426,3 +426,35 @@ def test_acknowledged_changes_are_fsynced_and_lease_transitions_are_not(queue: R
     finally:
         writer.set_trace_callback(None)
     assert writer.execute("PRAGMA synchronous").fetchone()[0] == 1  # back to NORMAL
+
+
+@pytest.mark.parametrize("bad", [float("nan"), float("inf"), 0, -1, "10"])
+def test_a_lease_time_must_be_a_finite_positive_number(queue: RequestQueue, bad) -> None:
+    """SQLite stores NaN as NULL: a NaN lease would never expire."""
+    req, _ = queue.enqueue(new())
+    with pytest.raises(QueueError, match="lease_s: expected a finite number > 0"):
+        queue.lease("w1", lease_s=bad, now=0.0)
+    lease = queue.lease("w1", lease_s=10, now=0.0)
+    with pytest.raises(QueueError, match="lease_s"):
+        queue.renew(req.id, lease.token, "w1", lease_s=bad, now=1.0)
+    assert [r.id for r in queue.expire_leases(now=11.0)] == [req.id]  # the lease kept its finite expiry
+
+
+@pytest.mark.parametrize("bad", [float("nan"), float("-inf"), "high", None])
+def test_a_priority_must_be_a_finite_number(queue: RequestQueue, bad) -> None:
+    with pytest.raises(QueueError, match="priority: expected a finite number"):
+        new(priority=bad)
+    req, _ = queue.enqueue(new())
+    with pytest.raises(QueueError, match="priority"):
+        queue.prioritize(req.id, bad)
+    assert queue.get(req.id).priority == 0.0
+
+
+def test_sqlite_errors_on_reads_are_queue_errors(queue: RequestQueue) -> None:
+    """The service's maintenance loop handles QueueError; a raw sqlite3 error would end it."""
+    req, _ = queue.enqueue(new())
+    with sqlite3.connect(queue.db_path) as other:
+        other.execute("ALTER TABLE requests RENAME TO requests_elsewhere")  # what a damaged file can look like
+    for read in (queue.counts, lambda: queue.get(req.id), queue.list):
+        with pytest.raises(QueueError, match="cannot read the queue"):
+            read()
