@@ -272,7 +272,10 @@ class RetrainScheduler:
     # -- internals --------------------------------------------------------------
     def _run(self) -> None:
         while not self._stop.wait(self.cfg.poll_s):
-            self.tick()
+            try:
+                self.tick()
+            except Exception:  # noqa: BLE001 -- one failure must not end scheduled retraining
+                log.exception("retrain scheduler: tick failed; will try again")
 
     def _cron_after(self, t: float) -> float | None:
         return croniter(self.cfg.cron, t).get_next(float) if self.cfg.cron else None
@@ -293,12 +296,21 @@ class RetrainScheduler:
         episodes = self.count_episodes()
         self._last_count = episodes
         logs = self.data_dir / "logs"
-        logs.mkdir(parents=True, exist_ok=True)
         rec = RetrainRecord(trigger=trigger, started=time.time(), episodes=episodes)
         rec.log_path = str(logs / f"retrain-{time.strftime('%Y%m%dT%H%M%S')}-{len(self.history)}.log")
-        with open(rec.log_path + ".out", "wb") as out, open(rec.log_path, "wb") as err:
-            proc = subprocess.Popen(self.command(self.data_dir, self.cfg.retrain_args),
-                                    stdout=out, stderr=err, stdin=subprocess.DEVNULL)
+        try:
+            logs.mkdir(parents=True, exist_ok=True)
+            with open(rec.log_path + ".out", "wb") as out, open(rec.log_path, "wb") as err:
+                proc = subprocess.Popen(self.command(self.data_dir, self.cfg.retrain_args),
+                                        stdout=out, stderr=err, stdin=subprocess.DEVNULL)
+        except OSError as exc:  # no log folder, no such program, no processes left: a failed job, recorded
+            rec.finished, rec.status = time.time(), RetrainStatus.failed
+            rec.reason = f"could not start the retrain job: {exc}"
+            with self._lock:
+                self.history.append(rec)
+            log.error("retrain failed: %s", rec.reason)
+            self.on_finished(rec)
+            return rec
         with self._lock:
             self._proc, self._current = proc, rec
             self.history.append(rec)
@@ -352,7 +364,7 @@ class RetrainScheduler:
             rec.status, rec.reason = RetrainStatus.busy, _tail(Path(rec.log_path))
         elif rc < 0:
             rec.status = RetrainStatus.killed
-            rec.reason = f"killed by {signal.Signals(-rc).name}"
+            rec.reason = f"killed by {_signal_name(-rc)}"
         else:
             rec.status = RetrainStatus.failed
             rec.reason = f"exit status {rc}: {_tail(Path(rec.log_path))}"
@@ -389,3 +401,11 @@ def _tail(path: Path, n: int = 300) -> str:
         return "no log"
     lines = text.splitlines()
     return lines[-1][-n:] if lines else "no output"
+
+
+def _signal_name(number: int) -> str:
+    """SIGTERM for 15; "signal 35" for a number with no name (real-time signals)."""
+    try:
+        return signal.Signals(number).name
+    except ValueError:
+        return f"signal {number}"

@@ -381,7 +381,7 @@ class Service:
                 return
             try:
                 task()
-            except StorageError:
+            except Exception:  # noqa: BLE001 -- lease expiry must outlive any one failure
                 log.exception("maintenance task failed; will try again")
 
     def _reap(self) -> None:

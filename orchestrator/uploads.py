@@ -11,10 +11,13 @@ service's background thread: scoring and planning never run on this path).
 
 from __future__ import annotations
 
+import math
 import threading
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
+
+import numpy as np
 
 from orchestrator import admin, messages, protocol
 from orchestrator.metrics import ServiceMetrics
@@ -72,7 +75,7 @@ class UploadHandler:
             raise ProtocolError(ErrorCode.TOO_LARGE, f"payload: expected at most {self.max_upload_bytes} "
                                 f"bytes, found {max(header.size, len(msg.payload))}")
         data = header.check_payload(msg.payload)
-        episode = self._decode(data, header)  # the one full read of the bytes; ingest reuses it
+        episode = self._decode(data, header, request)  # the one full read of the bytes; ingest reuses it
         try:
             result = self.catalog.ingest_bytes(
                 data, expected_sha256=header.sha256, split="train",
@@ -119,15 +122,14 @@ class UploadHandler:
                 f"{header.token} from {header.worker_id} while the request is {request.status.value} "
                 f"with token {request.token} held by {request.worker_id}"), header)
 
-    def _decode(self, data: bytes, header: messages.UploadHeader) -> Episode:
+    def _decode(self, data: bytes, header: messages.UploadHeader, request: Request) -> Episode:
         try:
             episode = read_episode(data, name=f"upload for {header.request_id}")
         except EpisodeError as exc:
             raise self._reject(ProtocolError(ErrorCode.CORRUPT_EPISODE, str(exc)), header) from exc
-        if episode.meta.request_id != header.request_id:
-            raise self._reject(ProtocolError(
-                ErrorCode.BAD_FIELD, f"episode provenance: expected request_id {header.request_id}, "
-                f"found {episode.meta.request_id!r}"), header)
+        mismatch = provenance_mismatch(episode, request, header.worker_id)
+        if mismatch:
+            raise self._reject(ProtocolError(ErrorCode.BAD_FIELD, f"episode provenance: {mismatch}"), header)
         return episode
 
     def _reject(self, exc: ProtocolError, header: messages.UploadHeader) -> ProtocolError:
@@ -135,3 +137,47 @@ class UploadHandler:
         self.publish(EventKind.EPISODE_REJECTED, {"request_id": header.request_id, "worker_id": header.worker_id,
                                                   "error": exc.code.value, "message": exc.message[:500]})
         return exc
+
+
+def provenance_mismatch(episode: Episode, request: Request, worker_id: str) -> str:
+    """Why ``episode`` is not what ``request`` asked ``worker_id`` for ('' when it is).
+
+    An upload completes its request and enters the catalog (and the planner's view) with its
+    metadata, so the metadata must say what was asked: the request, the worker, the task,
+    shape and policy, the start state and policy parameters the request gave (the worker may
+    add the defaults it filled in), the action prefix and the number of steps.
+    """
+    meta, prefix = episode.meta, request.action_prefix
+    expected = {"request_id": request.id, "worker_id": worker_id, "task": request.task, "shape": request.shape,
+                "policy": request.policy, "action_prefix_len": len(prefix)}
+    for key, want in expected.items():
+        if getattr(meta, key) != want:
+            return f"expected {key} {want!r}, found {getattr(meta, key)!r}"
+    if len(episode) != len(prefix) + request.steps:
+        return f"expected {len(prefix)} prefix + {request.steps} steps, found {len(episode)} frames"
+    if prefix and not np.allclose(episode.actions[:len(prefix)], np.asarray(prefix, np.float64),
+                                  rtol=1e-6, atol=1e-3):  # stored as float32
+        return "the episode's first actions are not the request's action prefix"
+    for name, asked, found in (("start_state", request.start_state, meta.start_state),
+                               ("policy_params", request.policy_params, meta.policy_params)):
+        where = _differs(asked, found, name)
+        if where:
+            return f"{where} differs from the request's"
+    return ""
+
+
+def _differs(asked: Any, found: Any, path: str) -> str:
+    """The first place where ``found`` does not hold ``asked`` (dicts: asked's keys only; numbers: close)."""
+    if isinstance(asked, dict):
+        if not isinstance(found, dict):
+            return path
+        return next((w for k, v in asked.items() if (w := _differs(v, found.get(k), f"{path}.{k}"))), "")
+    if isinstance(asked, (list, tuple)):
+        if not isinstance(found, (list, tuple)) or len(found) != len(asked):
+            return path
+        return next((w for i, (a, f) in enumerate(zip(asked, found)) if (w := _differs(a, f, f"{path}[{i}]"))), "")
+    if isinstance(asked, (int, float)) and not isinstance(asked, bool):
+        ok = isinstance(found, (int, float)) and not isinstance(found, bool) and math.isclose(
+            asked, found, rel_tol=1e-9, abs_tol=1e-9)
+        return "" if ok else path
+    return "" if asked == found else path

@@ -106,6 +106,50 @@ def test_a_killed_job_is_recorded_as_killed(tmp_path):
     assert rec.status is RetrainStatus.killed and rec.reason == "killed by SIGKILL"
 
 
+def test_a_job_killed_by_a_signal_without_a_name_is_recorded(tmp_path):
+    finished = []
+    code = "import os; os.kill(os.getpid(), 35)"  # a real-time signal: signal.Signals(35) has no member
+    sched = RetrainScheduler(ScheduleConfig(), tmp_path, Counter(), on_finished=finished.append,
+                             command=script_command(code))
+    sched.request()
+    rec = sched.tick()
+    assert sched.wait_idle(timeout=30)
+    assert rec.status is RetrainStatus.killed and rec.reason == "killed by signal 35" and finished == [rec]
+
+
+def test_a_job_that_cannot_start_is_a_failed_record_and_the_next_one_runs(tmp_path):
+    finished = []
+    commands = iter([lambda d, extra: [str(tmp_path / "no-such-program")], script_command(PROMOTES)])
+    sched = RetrainScheduler(ScheduleConfig(), tmp_path, Counter(), on_finished=finished.append,
+                             command=lambda d, extra: next(commands)(d, extra))
+    sched.request()
+    rec = sched.tick()
+    assert rec.status is RetrainStatus.failed and "could not start the retrain job" in rec.reason
+    assert finished == [rec] and not sched.running
+    sched.request()
+    assert sched.tick() is not None and sched.wait_idle(timeout=60)
+    assert [r.status for r in sched.history] == [RetrainStatus.failed, RetrainStatus.promoted]
+
+
+def test_the_scheduler_thread_outlives_a_failing_tick(tmp_path):
+    calls = []
+
+    def count() -> int:  # 0 at start-up, then briefly unreadable, then 10
+        calls.append(1)
+        if len(calls) == 2:
+            raise RuntimeError("database is locked")
+        return 0 if len(calls) == 1 else 10
+
+    sched = RetrainScheduler(ScheduleConfig(every_episodes=5, poll_s=0.05), tmp_path, count,
+                             command=script_command(PROMOTES))
+    sched.start()
+    try:
+        wait_for(lambda: len(sched.history) == 1, timeout=60, message="a job after the failed tick")
+    finally:
+        sched.stop()
+    assert len(calls) >= 3
+
+
 def test_a_job_past_its_timeout_is_killed(tmp_path):
     sched = RetrainScheduler(ScheduleConfig(timeout_s=0.5), tmp_path, Counter(), command=script_command(HANGS))
     sched.request()

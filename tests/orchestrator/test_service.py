@@ -194,6 +194,28 @@ def test_hash_size_and_provenance_mismatches_are_refused(service, client, keys, 
     assert Catalog(data_dir).count() == 0
 
 
+@pytest.mark.parametrize("change, words", [
+    (lambda g: {"shape": "L", "start_state": {**g.start_state, "shape": "L"}}, "found 'L'"),
+    (lambda g: {"steps": g.steps + 1}, "steps, found"),
+    (lambda g: {"policy": "random_waypoints", "policy_params": {}}, "expected policy 'push'"),
+    (lambda g: {"start_state": {**g.start_state, "agent": [101.0, 100.0]}}, "start_state.agent[0] differs"),
+    (lambda g: {"worker": "someone-else"}, "expected worker_id 'w1'"),
+])
+def test_an_upload_that_is_not_what_the_request_asked_for_is_refused(service, client, keys, data_dir,
+                                                                     change, words) -> None:
+    service.queue.enqueue(new_request())
+    grant = lease(client, keys)
+    asked = change(grant)
+    worker = asked.pop("worker", "w1")
+    wrong = episode_bytes(LeaseGrant.from_dict({**grant.to_dict(), **asked}), worker=worker)
+    message = refused(ErrorCode.BAD_FIELD, upload, client, keys, grant, wrong)
+    assert "provenance" in message and words in message, message
+    assert Catalog(data_dir).count() == 0
+    assert service.queue.get(grant.request_id).status == RequestStatus.LEASED
+    assert "duplicate" not in upload(client, keys, grant, episode_bytes(grant))  # the right one still goes in
+    assert service.queue.get(grant.request_id).status == RequestStatus.DONE
+
+
 def test_oversized_upload_is_refused(make_service, client, keys, data_dir) -> None:
     service = make_service(max_upload_bytes=1000)
     service.queue.enqueue(new_request())
@@ -263,6 +285,24 @@ def test_expired_leases_are_reaped(make_service, client, keys) -> None:
              message="the expired lease goes back to the queue")
     assert service.queue.get(request.id).attempts == 1
     assert lease(client, keys, worker="w2").token == 2
+
+
+def test_lease_expiry_outlives_an_unexpected_failure_in_maintenance(make_service, client, keys) -> None:
+    service = make_service(lease_s=0.3)
+    real, failed = service.catalog.count, []
+
+    def count_once_failing(*args, **kw):  # one failure of a kind nobody planned for
+        if not failed:
+            failed.append(1)
+            raise RuntimeError("something unexpected")
+        return real(*args, **kw)
+
+    service.catalog.count = count_once_failing
+    wait_for(lambda: failed, message="the maintenance task to fail once")
+    request, _ = service.queue.enqueue(new_request())
+    lease(client, keys)
+    wait_for(lambda: service.queue.get(request.id).status == RequestStatus.QUEUED, timeout=10,
+             message="leases still expire after the failure")
 
 
 def test_lost_worker_releases_its_leases_at_once(service, client, keys, endpoint) -> None:
