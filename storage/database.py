@@ -78,8 +78,11 @@ def ensure_schema(conn: sqlite3.Connection, component: str, migrations: Sequence
     """Applies ``migrations[v:]`` where ``v`` is ``component``'s recorded version; returns the new one.
 
     Each migration is a sequence of SQL statements, applied in one transaction together
-    with the version bump. Raises ``CatalogError`` if the file is newer than this code.
+    with the version bump. Raises ``CatalogError`` if the file is newer than this code. A file
+    already at this code's version is only read: opening a catalog does not wait for writers.
     """
+    if _recorded_version(conn, component) == len(migrations):
+        return len(migrations)
     with transaction(conn):
         conn.execute("CREATE TABLE IF NOT EXISTS schema_versions ("
                      "component TEXT PRIMARY KEY, version INTEGER NOT NULL, updated TEXT NOT NULL)")
@@ -96,6 +99,14 @@ def ensure_schema(conn: sqlite3.Connection, component: str, migrations: Sequence
                          "ON CONFLICT(component) DO UPDATE SET version = excluded.version, "
                          "updated = excluded.updated", (component, len(migrations), _now_iso()))
     return len(migrations)
+
+
+def _recorded_version(conn: sqlite3.Connection, component: str) -> int | None:
+    """``component``'s schema version in the file, read without a write lock (None: not recorded)."""
+    if conn.execute("SELECT 1 FROM sqlite_master WHERE type = 'table' AND name = 'schema_versions'").fetchone():
+        row = conn.execute("SELECT version FROM schema_versions WHERE component = ?", (component,)).fetchone()
+        return None if row is None else row["version"]
+    return None
 
 
 def _now_iso() -> str:

@@ -102,6 +102,8 @@ _SCHEMA = (
     "CREATE INDEX IF NOT EXISTS requests_finished ON requests (status, updated) WHERE status IN "
     + _TERMINAL_SQL,
 )
+_SCHEMA_OBJECTS = {"requests", "requests_queued", "requests_leased", "requests_finished"}
+_DROPPED_INDEXES = {"requests_ready", "requests_expiry", "requests_worker", "requests_status"}
 
 # Each transition is one statement (prepared once per connection by sqlite3's statement cache).
 _LIVE = "id = ? AND status = 'leased' AND token = ? AND (? IS NULL OR worker_id = ?)"
@@ -171,11 +173,18 @@ class RequestQueue:
         self._lease_sql: dict[tuple[int, int], str] = {}
         self._background_checkpoint = background_checkpoint
         self._checkpointer: Checkpointer | None = None
-        with self._tx() as conn:
-            for statement in _SCHEMA:
-                conn.execute(statement)
+        if not self._schema_current():  # a read first: opening a current file takes no write lock
+            with self._tx() as conn:
+                for statement in _SCHEMA:
+                    conn.execute(statement)
         if background_checkpoint:
             self._checkpointer = Checkpointer(self.db_path, self._busy_timeout_ms, checkpoint_every)
+
+    def _schema_current(self) -> bool:
+        """Whether the file already has exactly ``_SCHEMA``'s table and indexes."""
+        with self._reading() as conn:
+            names = {r[0] for r in conn.execute("SELECT name FROM sqlite_master WHERE tbl_name = 'requests'")}
+        return _SCHEMA_OBJECTS <= names and not names & _DROPPED_INDEXES
 
     # --- connections -----------------------------------------------------
 

@@ -12,6 +12,7 @@ import pytest
 from storage import episodes, files
 from storage.catalog import Catalog
 from storage.models import ModelRegistry
+from storage.queue import RequestQueue
 from storage.database import connect, ensure_schema, transaction
 from storage.errors import (
     CatalogError,
@@ -21,6 +22,7 @@ from storage.errors import (
     RegistryError,
     TruncatedEpisodeError,
 )
+from tests.conftest import wait_for
 from tests.storage.test_episodes import assert_same, make_episode
 
 
@@ -379,3 +381,23 @@ def test_a_new_day_folder_is_made_durable_with_its_first_episode(tmp_path, rng, 
     synced.clear()
     cat.ingest_bytes(episodes.encode_episode(make_episode(rng, created="2031-05-05T11:00:00+00:00")))
     assert synced == [os.fspath(day)]  # the day exists now: only the rename is synced
+
+
+def test_opening_current_stores_takes_no_write_lock(tmp_path, rng):
+    """The dashboard opens the stores per request: it must not queue behind the service's writers."""
+    cat = Catalog(tmp_path)
+    ModelRegistry(tmp_path)
+    RequestQueue(cat.db_path).close()
+    writer = sqlite3.connect(cat.db_path, isolation_level=None)
+    writer.execute("BEGIN IMMEDIATE")  # a writer holds the lock, as an ingest does
+    opened: list[object] = []
+    worker = threading.Thread(target=lambda: opened.extend(
+        [Catalog(tmp_path).count(), ModelRegistry(tmp_path).champion(), RequestQueue(cat.db_path).counts()]))
+    worker.start()
+    try:
+        wait_for(lambda: len(opened) == 3, timeout=10, message="the stores to open while the lock is held")
+    finally:
+        writer.execute("ROLLBACK")
+        writer.close()
+        worker.join()
+    assert opened[0] == 0 and opened[1] is None
