@@ -18,11 +18,17 @@ from orchestrator import protocol
 from orchestrator.messages import AdminRequest, Event, RequestSpec
 from orchestrator.protocol import ErrorCode, EventKind, ProtocolError
 from storage.errors import QueueError, StaleLeaseError, StorageError
+from storage.models import ModelStatus
 from storage.queue import RequestQueue
 from storage.requests import IllegalTransitionError, NewRequest, Request, RequestStatus, UnknownRequestError
 
-#: Most requests one ``queue.ls`` returns (keeps the reply under MAX_MESSAGE_BYTES).
+#: Most requests one ``queue.ls`` may ask for.
 MAX_LIST = 200
+#: Encoded bytes the rows of one ``queue.ls`` / ``models.ls`` reply may take: a request summary may
+#: carry 16 KB each of reason, policy_params and start_state, so MAX_LIST of them would not fit in
+#: MAX_MESSAGE_BYTES. What is left is for the counts and the envelope; rows past it are left out
+#: and the reply says ``"truncated": true``.
+LIST_BUDGET_BYTES = protocol.MAX_MESSAGE_BYTES - 16 * 1024
 #: Splits ``stats`` counts episodes of.
 SPLITS: tuple[str, ...] = ("train", "eval")
 
@@ -107,10 +113,7 @@ def _int_arg(op: str, name: str, value: Any, lo: int, hi: int) -> int:
 
 
 def _priority_arg(op: str, value: Any) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) \
-            or abs(value) > 1e12:
-        raise ProtocolError(ErrorCode.BAD_FIELD, f"{op}: priority expected a finite number, found {value!r:.40}")
-    return float(value)
+    return protocol.check_float(f"{op}: priority", value, -1e12, 1e12)
 
 
 def _status_arg(op: str, value: Any, choices: Iterable[str]) -> str | None:
@@ -123,6 +126,18 @@ def _status_arg(op: str, value: Any, choices: Iterable[str]) -> str | None:
     return value
 
 
+def _fit(rows: Iterable[dict[str, Any]], budget: int = LIST_BUDGET_BYTES) -> tuple[list[dict[str, Any]], bool]:
+    """The leading ``rows`` whose JSON list stays within ``budget`` bytes; True when some were left out."""
+    out: list[dict[str, Any]] = []
+    used = 2  # the list's brackets
+    for row in rows:
+        used += len(protocol.encode(row)) + 1  # and its comma
+        if used > budget:
+            return out, True
+        out.append(row)
+    return out, False
+
+
 def _worker_ids(workers: Callable[[], Iterable[str]] | None) -> list[str]:
     return sorted(set(workers())) if workers is not None else []
 
@@ -131,8 +146,11 @@ def _queue_op(op: str, args: Mapping[str, Any], queue: RequestQueue) -> dict[str
     if op == "queue.ls":
         status = _status_arg(op, args.get("status"), (s.value for s in RequestStatus))
         limit = _int_arg(op, "limit", args.get("limit", 50), 1, MAX_LIST)
-        return {"requests": [request_summary(r) for r in queue.list(status=status, limit=limit)],
-                "counts": queue.counts()}
+        rows, truncated = _fit(request_summary(r) for r in queue.list(status=status, limit=limit))
+        counts = queue.counts()
+        # total: how many match the status (limit aside); truncated: the byte budget cut the list short
+        return {"requests": rows, "counts": counts, "truncated": truncated,
+                "total": counts[status] if status is not None else sum(counts.values())}
     if op == "queue.add":
         spec = RequestSpec.from_dict({"reason": dict(_MANUAL_REASON), **args})
         request, created = queue.enqueue(NewRequest(**spec.to_dict()))
@@ -171,14 +189,16 @@ def _stats(queue: RequestQueue, catalog: Any, registry: Any,
 def _models_ls(args: Mapping[str, Any], registry: Any) -> dict[str, Any]:
     if registry is None:
         raise ProtocolError(ErrorCode.UNAVAILABLE, "models.ls: this service has no model registry")
-    status = args.get("status")
+    status = _status_arg("models.ls", args.get("status"), (s.value for s in ModelStatus))
     records = registry.list(status) if status is not None else registry.list()
-    models = []
+    rows = []
     for rec in records:
         row = rec.to_json()
         row.pop("config", None)
-        models.append(finite(row))
-    return {"models": models, "champion": registry.champion()}
+        rows.append(finite(row))
+    newest, truncated = _fit(reversed(rows))  # when they do not all fit, the newest do
+    return {"models": newest[::-1], "champion": registry.champion(), "truncated": truncated,
+            "total": len(rows)}
 
 
 #: The admin ops that change the queue; the rest only read.

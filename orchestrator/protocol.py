@@ -60,6 +60,9 @@ MAX_MESSAGE_BYTES = 256 * 1024
 MAX_UPLOAD_BYTES = 64 * 1024 * 1024
 #: Largest encoded ``policy_params`` / ``reason`` / admin ``args`` / event ``data`` object, in bytes.
 MAX_OBJECT_BYTES = 16 * 1024
+#: Deepest nesting of lists / objects a ``policy_params`` / ``reason`` / admin ``args`` / event ``data``
+#: object may have (deeper ones break recursive copies and encoders further on).
+MAX_OBJECT_DEPTH = 32
 #: Largest error text a worker may report.
 MAX_ERROR_CHARS = 4096
 #: Largest |velocity| in a start state (world units/s) and |angular velocity| (rad/s).
@@ -270,7 +273,11 @@ def check_float(name: str, value: Any, lo: float = -math.inf, hi: float = math.i
     """A finite number (int or float, not a bool) in [lo, hi], returned as a float."""
     if isinstance(value, bool) or not isinstance(value, (int, float)):
         raise bad_field(f"{name}: expected a number, found {type(value).__name__}")
-    value = float(value)
+    try:
+        value = float(value)
+    except OverflowError:  # an integer literal of hundreds of digits
+        raise bad_field(f"{name}: expected a finite number in [{lo:g}, {hi:g}], found an integer of "
+                        f"{value.bit_length()} bits") from None
     if not math.isfinite(value) or not lo <= value <= hi:
         raise bad_field(f"{name}: expected a finite number in [{lo:g}, {hi:g}], found {value!r}")
     return value
@@ -283,10 +290,27 @@ def check_vec(name: str, value: Any, bounds: list[tuple[float, float]]) -> list[
     return [check_float(f"{name}[{i}]", v, lo, hi) for i, (v, (lo, hi)) in enumerate(zip(value, bounds))]
 
 
+def _nests_deeper(value: Any, limit: int) -> bool:
+    """Whether lists / dicts nest more than ``limit`` deep in ``value``: depth first, without recursion,
+    stopping at the first branch past the limit (so a cycle ends too)."""
+    stack = [(value, 1)]
+    while stack:
+        item, depth = stack.pop()
+        if not isinstance(item, (dict, list, tuple)):
+            continue
+        if depth > limit:
+            return True
+        stack.extend((child, depth + 1) for child in (item.values() if isinstance(item, dict) else item))
+    return False
+
+
 def check_obj(name: str, value: Any, max_bytes: int = MAX_OBJECT_BYTES) -> dict[str, Any]:
-    """A JSON object with string keys and finite values, at most ``max_bytes`` encoded (else too_large)."""
+    """A JSON object with string keys and finite values, at most ``max_bytes`` encoded (else too_large)
+    and nested at most MAX_OBJECT_DEPTH deep."""
     if not isinstance(value, dict) or not all(isinstance(k, str) for k in value):
         raise bad_field(f"{name}: expected a JSON object with string keys, found {type(value).__name__}")
+    if _nests_deeper(value, MAX_OBJECT_DEPTH):
+        raise bad_field(f"{name}: expected lists / objects nested at most {MAX_OBJECT_DEPTH} deep, found deeper")
     try:
         size = len(json.dumps(value, allow_nan=False, separators=(",", ":")))
     except (TypeError, ValueError) as exc:
@@ -383,6 +407,9 @@ def decode(data: bytes | bytearray | memoryview | str | None, max_bytes: int = M
         obj = _DECODER.decode(raw.decode(json.detect_encoding(raw), "surrogatepass"))
     except (UnicodeDecodeError, ValueError) as exc:
         raise ProtocolError(ErrorCode.BAD_JSON, f"expected a JSON object: {exc}") from None
+    except RecursionError:  # a few thousand brackets fit well under max_bytes
+        raise ProtocolError(ErrorCode.BAD_JSON, "expected a JSON object, found lists / objects nested "
+                            "too deeply to parse") from None
     if not isinstance(obj, dict):
         raise ProtocolError(ErrorCode.BAD_JSON, f"expected a JSON object, found {type(obj).__name__}")
     version = obj.pop("v", None)

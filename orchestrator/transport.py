@@ -23,6 +23,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import math
 import os
 import queue as queue_mod
 import threading
@@ -372,6 +373,19 @@ class Server:
 
 #: Where ``serve`` listens and everyone else connects when no endpoint or config file is given.
 DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
+#: Longest ``--timeout`` (a day): Zenoh refuses durations past about 1e19 s, and no one waits longer.
+MAX_TIMEOUT_S = 86400.0
+
+
+def timeout_seconds(text: str) -> float:
+    """A ``--timeout``: seconds in (0, MAX_TIMEOUT_S]; nan and inf are refused (argparse exits 2)."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected seconds, found {text!r}") from None
+    if not (math.isfinite(value) and 0 < value <= MAX_TIMEOUT_S):
+        raise argparse.ArgumentTypeError(f"expected seconds in (0, {MAX_TIMEOUT_S:g}], found {text!r}")
+    return value
 
 
 def add_connection_args(parser: argparse.ArgumentParser, *, listen: bool = False, timeout: float = 5.0) -> None:
@@ -392,7 +406,7 @@ def add_connection_args(parser: argparse.ArgumentParser, *, listen: bool = False
                         help="Zenoh mode when no config file is given (default peer)")
     parser.add_argument("--namespace", default="activecollect",
                         help="key prefix of the deployment (default activecollect)")
-    parser.add_argument("--timeout", type=float, default=timeout, metavar="S",
+    parser.add_argument("--timeout", type=timeout_seconds, default=timeout, metavar="S",
                         help=f"seconds to wait for a reply (default {timeout:g})")
 
 

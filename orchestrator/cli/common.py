@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 from pathlib import Path
 from typing import Any, NoReturn
@@ -22,8 +23,28 @@ class Parser(argparse.ArgumentParser):
         self.exit(2, f"{self.prog}: error: {message}\n")
 
 
+def data_dir(text: str) -> Path:
+    """A ``--data`` path: a directory, or a path where one can be made (no file on the way).
+
+    Checks only; nothing is created. Raises ArgumentTypeError (exit 2) for a file in the way.
+    """
+    path = Path(text)
+    for step in (path, *path.parents):
+        try:
+            if not step.exists():
+                continue
+        except OSError as exc:  # e.g. a parent that cannot be searched
+            raise argparse.ArgumentTypeError(f"cannot look at {step}: {exc.strerror}") from None
+        if not step.is_dir():
+            where = "" if step == path else f" on the way to {path}"
+            raise argparse.ArgumentTypeError(f"expected a data directory, found a file at {step}{where}")
+        break
+    return path
+
+
 def add_data_arg(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--data", type=Path, default=DEFAULT_DATA,
+    # a str default, so argparse runs data_dir on it too
+    p.add_argument("--data", type=data_dir, default=str(DEFAULT_DATA),
                    help=f"data directory (catalog, episodes, models, reports); default ./{DEFAULT_DATA}")
 
 
@@ -56,11 +77,23 @@ def non_negative_int(text: str) -> int:
     return value
 
 
+def finite_float(text: str) -> float:
+    """A number other than nan / inf (argparse's float takes both)."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, found {text!r}") from None
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"expected a finite number, found {text!r}")
+    return value
+
+
 def positive_float(text: str) -> float:
+    """A finite number > 0 (a time, a rate): nan and inf are refused too."""
     try:
         value = float(text)
     except ValueError:
         raise argparse.ArgumentTypeError(f"expected a positive number, found {text!r}") from None
-    if not value > 0:
-        raise argparse.ArgumentTypeError(f"expected a positive number, found {value}")
+    if not (value > 0 and math.isfinite(value)):
+        raise argparse.ArgumentTypeError(f"expected a positive number, found {text!r}")
     return value

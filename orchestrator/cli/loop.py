@@ -25,9 +25,11 @@ from orchestrator.dashboard import Dashboard, DashboardConfig, DataSources
 from orchestrator.loopconfig import SIGNALS, LoopBenchConfig, RunConfig
 from orchestrator.scheduler import EXIT_BUSY, RetrainBusyError
 from storage.catalog import Catalog
+from storage.errors import StorageError
 from storage.requests import Request
 from storage.records import Episode
 from uncertainty.config import TrainConfig
+from uncertainty.errors import ConfigError, UncertaintyError
 # The CLI is the composition root: it alone hands the simulator to the orchestrator's loops.
 from workers.collect import collect_episode, create_eval_split
 
@@ -51,7 +53,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help=f"frame size in pixels (default {d.image_size})")
     p.add_argument("--eval-episodes", type=common.positive_int, default=d.eval_episodes,
                    help=f"episodes in the eval split, made when missing (default {d.eval_episodes})")
-    p.add_argument("--seed", type=int, default=d.seed, help=f"planner seed (default {d.seed})")
+    p.add_argument("--seed", type=common.non_negative_int, default=d.seed, help=f"planner seed (default {d.seed})")
     p.add_argument("--dashboard-port", type=int, default=d.dashboard_port,
                    help=f"dashboard port on 127.0.0.1 (default {d.dashboard_port}; 0 any, -1 off)")
     p.add_argument("--retrain-args", default=" ".join(d.retrain_args),
@@ -165,14 +167,14 @@ def add_train_args(p: argparse.ArgumentParser, defaults: TrainConfig | None = No
                    help=f"channel widths A,B,C of a fresh model (default {','.join(map(str, d.widths))})")
     p.add_argument("--max-windows", type=common.positive_int, default=d.max_windows,
                    help="cap on training windows (a seeded subset; default all)")
-    p.add_argument("--seed", type=int, default=d.seed, help=f"training seed (default {d.seed})")
+    p.add_argument("--seed", type=common.non_negative_int, default=d.seed, help=f"training seed (default {d.seed})")
     p.add_argument("--device", choices=("auto", "cpu", "cuda"), default=d.device, help="torch device")
     p.add_argument("--from-champion", action="store_true", default=d.from_champion,
                    help="warm-start from the champion's weights")
     p.add_argument("--variance-head", action="store_true", default=d.variance_head,
                    help="a fresh model's members also predict the variance of their own error "
                         "(eval reports its calibration; scoring still uses the disagreement)")
-    p.add_argument("--min-improvement", type=float, default=d.min_rel_improvement,
+    p.add_argument("--min-improvement", type=common.finite_float, default=d.min_rel_improvement,
                    help=f"the gate's minimum relative h1 MSE improvement (default {d.min_rel_improvement})")
 
 
@@ -217,12 +219,21 @@ def _run(args: argparse.Namespace) -> int:
 
 
 def _retrain(args: argparse.Namespace) -> int:
-    from orchestrator.retrain import run_retrain  # torch: imported when the command runs (start-up cost)
     try:
-        result = run_retrain(args.data, train_config(args), wait=args.wait)
+        cfg = train_config(args)
+    except ConfigError as exc:
+        raise common.UsageError(str(exc)) from None
+    if not (args.data / "catalog.sqlite").is_file():  # checked before the retrain lock would make the directory
+        raise common.UsageError(f"no catalog at {args.data} (give --data DIR, or collect episodes first)")
+    from orchestrator.retrain import run_retrain  # torch: imported once the arguments are known good (start-up cost)
+    try:
+        result = run_retrain(args.data, cfg, wait=args.wait)
     except RetrainBusyError as exc:
         print(f"activecollect retrain: {exc}", file=sys.stderr)
         return EXIT_BUSY
+    except (UncertaintyError, StorageError) as exc:
+        print(f"activecollect retrain: failed: {exc}", file=sys.stderr)
+        return 1
     if args.json:
         # one line, so a scheduler reading the job's stdout finds it whatever was printed before
         print(json.dumps(result, default=str, allow_nan=True))

@@ -44,7 +44,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "reports the calibration of the total predictive variance next to the disagreement's")
     p.add_argument("--seed", type=common.non_negative_int, default=TrainConfig.seed, metavar="S")
     p.add_argument("--device", choices=_DEVICES, default="auto")
-    p.add_argument("--min-improvement", type=float, default=TrainConfig.min_rel_improvement, metavar="FRAC",
+    p.add_argument("--min-improvement", type=common.finite_float, default=TrainConfig.min_rel_improvement,
+                   metavar="FRAC",
                    help="the gate's minimum relative improvement of h1_mse over the champion "
                         f"(default {TrainConfig.min_rel_improvement})")
     p.set_defaults(func=_train)

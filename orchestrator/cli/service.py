@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 import zenoh
 
-from orchestrator import dispatchbench, protocol, transport
+from orchestrator import admin, dispatchbench, protocol, transport
 from orchestrator.champion import ChampionScorer
 from orchestrator.cli import common
 from orchestrator.companions import CompanionConfig, Companions
@@ -50,7 +50,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--seed-requests", type=common.non_negative_int, default=0, metavar="N",
                    help="uniform requests to seed an empty queue with at start (default 0)")
     p.add_argument("--steps", type=common.positive_int, default=50, help="steps per planned episode (default 50)")
-    p.add_argument("--seed", type=int, default=0, help="seed of the planner's generator (default 0)")
+    p.add_argument("--seed", type=common.non_negative_int, default=0,
+                   help="seed of the planner's generator (default 0)")
     d = CompanionConfig()
     p.add_argument("--dashboard-port", type=int, default=d.dashboard_port, metavar="PORT",
                    help=f"dashboard on 127.0.0.1:PORT (0 = any free port, -1 = none; default {d.dashboard_port})")
@@ -89,7 +90,8 @@ def _register_queue(sub: argparse._SubParsersAction) -> None:
     p = qsub.add_parser("ls", help="requests, newest change first (queued: in lease order)")
     _operator_args(p)
     p.add_argument("--status", choices=[s.value for s in RequestStatus], default=None)
-    p.add_argument("--limit", type=common.positive_int, default=50)
+    p.add_argument("--limit", type=_list_limit, default=50,
+                   help=f"most requests to list, at most {admin.MAX_LIST} (default 50)")
     p.set_defaults(func=cmd_queue_ls)
     p = qsub.add_parser("show", help="one request in full")
     _operator_args(p)
@@ -103,9 +105,10 @@ def _register_queue(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--policy-params", type=_json_object, default={}, metavar="JSON")
     p.add_argument("--start-state", type=_json_object, default=None, metavar="JSON",
                    help="start state in SimState.to_dict form (default: drawn uniformly with --seed)")
-    p.add_argument("--seed", type=int, default=None, help="seed of the uniform start state (default: random)")
+    p.add_argument("--seed", type=common.non_negative_int, default=None,
+                   help="seed of the uniform start state (default: random)")
     p.add_argument("--steps", type=common.positive_int, default=50)
-    p.add_argument("--priority", type=float, default=0.0)
+    p.add_argument("--priority", type=common.finite_float, default=0.0)
     p.add_argument("--max-attempts", type=common.positive_int, default=3)
     p.add_argument("--idempotency-key", default=None, metavar="K")
     p.set_defaults(func=cmd_queue_add)
@@ -118,7 +121,7 @@ def _register_queue(sub: argparse._SubParsersAction) -> None:
     p = qsub.add_parser("prioritize", help="set a request's priority (higher is leased first)")
     _operator_args(p)
     p.add_argument("id")
-    p.add_argument("priority", type=float)
+    p.add_argument("priority", type=common.finite_float)
     p.set_defaults(func=lambda a: _print_op(a, "queue.prioritize", {"id": a.id, "priority": a.priority},
                                             _print_request))
 
@@ -127,7 +130,7 @@ def register_bench(bench_sub: argparse._SubParsersAction) -> None:
     p = bench_sub.add_parser("dispatch", help="lease->complete round trips/s and latency vs raw Zenoh queries")
     p.add_argument("--workers", type=common.positive_int, default=8, help="concurrent dispatch clients (default 8)")
     p.add_argument("--seconds", type=common.positive_float, default=5.0, help="measuring time per phase")
-    p.add_argument("--data", default=None, help="data directory (default: a temporary one)")
+    p.add_argument("--data", type=common.data_dir, default=None, help="data directory (default: a temporary one)")
     common.add_json_arg(p)
     p.set_defaults(func=cmd_bench_dispatch)
 
@@ -137,11 +140,24 @@ def _operator_args(p: argparse.ArgumentParser) -> None:
     common.add_json_arg(p)
 
 
+def _list_limit(text: str) -> int:
+    value = common.positive_int(text)
+    if value > admin.MAX_LIST:
+        raise argparse.ArgumentTypeError(f"expected at most {admin.MAX_LIST}, found {value}")
+    return value
+
+
+def _no_constant(name: str) -> None:
+    raise ValueError(f"{name} is not a JSON number")
+
+
 def _json_object(text: str) -> dict:
     try:
-        value = json.loads(text)
-    except json.JSONDecodeError as exc:
+        value = json.loads(text, parse_constant=_no_constant)
+    except ValueError as exc:
         raise argparse.ArgumentTypeError(f"expected a JSON object, found {text!r:.60} ({exc})") from None
+    except RecursionError:
+        raise argparse.ArgumentTypeError(f"expected a JSON object, found {text!r:.60} (nested too deeply)") from None
     if not isinstance(value, dict):
         raise argparse.ArgumentTypeError(f"expected a JSON object, found {type(value).__name__}")
     return value
@@ -296,6 +312,12 @@ def cmd_queue_ls(args: argparse.Namespace) -> int:
             tries = f"{r['attempts']}/{r['max_attempts']}"
             print(f"{r['id']:32}  {r['status']:9} {r['priority']:7.3g} {r['shape']:5} {r['policy']:16} "
                   f"{tries:>5} {(r['worker_id'] or '-')[:16]:16} {_fmt_time(r['updated'])}")
+        shown, total = len(body["requests"]), body.get("total")  # total: absent from older services
+        if body.get("truncated"):
+            print(f"list cut at {shown} of {total} requests to fit in one reply: narrow it with --status; "
+                  "`queue show ID` shows one in full")
+        elif total is not None and shown < total:
+            print(f"{shown} of {total} requests (--limit N shows up to {admin.MAX_LIST})")
     op_args: dict[str, Any] = {"limit": args.limit}
     if args.status:
         op_args["status"] = args.status

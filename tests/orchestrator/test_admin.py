@@ -103,6 +103,8 @@ def test_retry_a_dead_request(queue: RequestQueue) -> None:
     ("queue.prioritize", {"id": "x"}, ErrorCode.BAD_FIELD),
     ("queue.prioritize", {"id": "x", "priority": "high"}, ErrorCode.BAD_FIELD),
     ("queue.prioritize", {"id": "x", "priority": True}, ErrorCode.BAD_FIELD),
+    ("queue.prioritize", {"id": "x", "priority": 10 ** 400}, ErrorCode.BAD_FIELD),  # too large for a float
+    ("queue.add", dict(SPEC, priority=10 ** 400), ErrorCode.BAD_FIELD),
     ("stats", {"x": 1}, ErrorCode.BAD_FIELD),
     ("models.ls", {}, ErrorCode.UNAVAILABLE),
 ])
@@ -138,7 +140,8 @@ def test_stats_with_a_catalog(queue: RequestQueue, tmp_path: Path) -> None:
 
 def test_models_ls(queue: RequestQueue, tmp_path: Path) -> None:
     registry = ModelRegistry(tmp_path)
-    assert call("models.ls", queue=queue, registry=registry) == {"models": [], "champion": None}
+    assert call("models.ls", queue=queue, registry=registry) == {"models": [], "champion": None,
+                                                                 "truncated": False, "total": 0}
     version = registry.register(b"weights" * 10, {"members": 2}, {"h1_mse": 0.01, "spearman": float("nan")},
                                 snapshot_id="snap-1", eval_split_hash="split-1")
     registry.promote(version)
@@ -147,6 +150,47 @@ def test_models_ls(queue: RequestQueue, tmp_path: Path) -> None:
     assert body["models"][0]["metrics"] == {"h1_mse": 0.01, "spearman": None}  # NaN made JSON-safe
     protocol.ok_reply(**body)  # strict JSON (no NaN) must accept it
     assert call("models.ls", {"status": "candidate"}, queue=queue, registry=registry)["models"] == []
+
+
+@pytest.mark.parametrize("status", [[], {}, "bogus", 3, "CHAMPION"])
+def test_models_ls_refuses_a_bad_status_naming_the_choices(queue: RequestQueue, tmp_path: Path, status) -> None:
+    err = refused(ErrorCode.BAD_FIELD, "models.ls", {"status": status}, queue=queue, registry=ModelRegistry(tmp_path))
+    assert "candidate, champion, retired, rejected" in err.message
+
+
+def _big(n: int) -> dict:
+    """A reason / policy_params of about ``n`` encoded bytes (each may be up to MAX_OBJECT_BYTES)."""
+    return {"note": "x" * (n - 20)}
+
+
+def test_queue_ls_fits_in_one_message_and_says_when_cut(queue: RequestQueue) -> None:
+    for _ in range(20):  # as a planner queues them (an admin queue.add's args stop at 16 KB in all)
+        queue.enqueue(NewRequest(task="push", shape="box", start_state=START, reason=_big(15_000),
+                                 policy_params=_big(15_000)))
+    queue.enqueue(NewRequest(task="push", shape="box", start_state=START, priority=-1.0))  # a small one, last
+    body = call("queue.ls", {"limit": admin.MAX_LIST}, queue=queue)
+    reply = protocol.ok_reply(**body)
+    assert len(reply) <= protocol.MAX_MESSAGE_BYTES
+    assert protocol.parse_reply(reply)["truncated"] is True  # what every client reads back
+    assert body["total"] == 21 and 0 < len(body["requests"]) < 21
+    everything = [r.id for r in queue.list(limit=admin.MAX_LIST)]
+    assert [r["id"] for r in body["requests"]] == everything[:len(body["requests"])]  # the leading rows, in order
+    small = call("queue.ls", {"limit": 3}, queue=queue)
+    assert small["truncated"] is False and len(small["requests"]) == 3 and small["total"] == 21
+    only = call("queue.ls", {"status": "done"}, queue=queue)
+    assert only == {"requests": [], "counts": queue.counts(), "truncated": False, "total": 0}
+
+
+def test_models_ls_keeps_the_newest_models_that_fit(queue: RequestQueue, tmp_path: Path) -> None:
+    registry = ModelRegistry(tmp_path)
+    versions = [registry.register(b"w%d" % i, {"members": 2}, {"h1_mse": 0.1, "curve": [0.5] * 6000},
+                                  snapshot_id="snap", eval_split_hash="split") for i in range(12)]
+    body = call("models.ls", queue=queue, registry=registry)
+    assert len(protocol.ok_reply(**body)) <= protocol.MAX_MESSAGE_BYTES
+    assert body["truncated"] is True and body["total"] == 12
+    kept = [row["version"] for row in body["models"]]
+    assert kept and kept == versions[-len(kept):]  # the newest, still in registration order
+    assert call("models.ls", {"status": "champion"}, queue=queue, registry=registry)["truncated"] is False
 
 
 def test_serve_bytes(queue: RequestQueue) -> None:
@@ -159,6 +203,7 @@ def test_serve_bytes(queue: RequestQueue) -> None:
         (b'{"v": 9, "op": "stats"}', "stats", "bad_version"),
         (messages.AdminRequest(op="stats").to_json(), "queue.ls", "bad_field"),  # op disagrees with the key
         (b"", None, "bad_json"),
+        (b'{"v": 1, "op": "stats", "args": {"a": ' + b"[" * 5000 + b"]" * 5000 + b"}}", "stats", "bad_json"),
         (messages.AdminRequest(op="queue.show", args={"id": "nope"}).to_json(), None, "unknown_request"),
     ]:
         answer = json.loads(admin.serve(payload, op=op, queue=queue))

@@ -57,6 +57,14 @@ def _start(**changes) -> bytes:
     return _grant(start_state=dict(START, **changes))
 
 
+def _nested(depth: int) -> dict:
+    """An object ``depth`` levels deep: {"a": {"a": ... {} }}."""
+    obj: dict = {}
+    for _ in range(depth - 1):
+        obj = {"a": obj}
+    return obj
+
+
 BAD = [
     # (message class, raw input, expected code)
     (m.LeaseRequest, None, ErrorCode.BAD_JSON),
@@ -118,6 +126,19 @@ BAD = [
                                 "max_attempts": 0}).encode(), ErrorCode.BAD_FIELD),
     (m.RequestSpec, json.dumps({"v": 1, "task": "push", "shape": "T", "start_state": START,
                                 "priority": "high"}).encode(), ErrorCode.BAD_FIELD),
+    # nested deeper than the parser recurses, yet well under MAX_MESSAGE_BYTES: refused, not a crash
+    (m.LeaseRequest, b'{"v": 1, "worker_id": ' + b"[" * 1000 + b"]" * 1000 + b"}", ErrorCode.BAD_JSON),
+    (m.LeaseRequest, b'{"v": 1, "worker_id": ' + b"[" * 100_000 + b"]" * 100_000 + b"}", ErrorCode.BAD_JSON),
+    (m.AdminRequest, b'{"v": 1, "op": "stats", "args": {"a": ' + b"[" * 990 + b"]" * 990 + b"}}", ErrorCode.BAD_JSON),
+    # parsed, but nested past MAX_OBJECT_DEPTH: later copies (dataclasses.asdict) would recurse too deep
+    (m.RequestSpec, json.dumps({"v": 1, "task": "push", "shape": "T", "start_state": START,
+                                "reason": _nested(p.MAX_OBJECT_DEPTH + 1)}).encode(), ErrorCode.BAD_FIELD),
+    (m.AdminRequest, json.dumps({"v": 1, "op": "queue.add", "args": {"reason": _nested(600)}}).encode(),
+     ErrorCode.BAD_FIELD),
+    # an integer literal too large for a float
+    (m.RequestSpec, json.dumps({"v": 1, "task": "push", "shape": "T", "start_state": START,
+                                "priority": 10 ** 400}).encode(), ErrorCode.BAD_FIELD),
+    (m.LeaseGrant, _grant(expires_at=10 ** 400), ErrorCode.BAD_FIELD),
     (m.AdminRequest, b'{"v": 1, "op": "queue.drop"}', ErrorCode.UNKNOWN_OP),
     (m.AdminRequest, b'{"v": 1, "op": "queue.ls", "args": []}', ErrorCode.BAD_FIELD),
     (m.Event, b'{"v": 1, "kind": "request.exploded", "at": 1.0}', ErrorCode.BAD_FIELD),
@@ -131,6 +152,17 @@ def test_malformed_input_refused(cls, raw, code) -> None:
     assert info.value.code == code, info.value
     reply = json.loads(info.value.reply())
     assert reply == {"v": 1, "ok": False, "error": code.value, "message": info.value.message}
+
+
+def test_objects_nested_up_to_the_limit_pass_and_cycles_end() -> None:
+    spec = m.RequestSpec(task="push", shape="T", start_state=START, reason=_nested(p.MAX_OBJECT_DEPTH))
+    assert m.RequestSpec.from_json(spec.to_json()) == spec
+    cycle: dict = {}
+    cycle["a"] = cycle
+    cycle["b"] = [cycle]
+    with pytest.raises(ProtocolError, match="nested at most") as info:
+        p.check_obj("reason", cycle)
+    assert info.value.code == ErrorCode.BAD_FIELD
 
 
 def test_construction_validates_too() -> None:
