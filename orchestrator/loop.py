@@ -87,11 +87,14 @@ class RoundPlanner:
     def _room(self) -> int:
         return max(0, min(self.round_episodes, self.budget - self.collected() - self.outstanding()))
 
-    def release(self) -> list[NewRequest]:
-        """The next round's requests: planned from the buffered episodes, topped up uniformly."""
+    def release(self, limit: int | None = None) -> list[NewRequest]:
+        """The next round's requests: planned from the buffered episodes, topped up uniformly.
+
+        ``limit``: at most this many (the rest of a round that a dead or cancelled request left short).
+        """
         with self._lock:
             episodes, self._buffer = self._buffer, []
-        room = self._room()
+        room = self._room() if limit is None else min(self._room(), max(0, limit))
         if room == 0:
             return []
         planned = self.inner.plan(episodes)[:room] if episodes else []
@@ -257,26 +260,26 @@ class LoopRun:
                         if asked_for != count:  # the round is complete: retrain, then plan the next
                             self.scheduler.request("round")
                             asked_for = count
-                    else:  # mid-round and nothing outstanding (a request died): fill the round
-                        self._release()
+                    else:  # mid-round and nothing outstanding (a request died): fill this round only
+                        self._release(cfg.round_episodes - count % cfg.round_episodes)
                 self._check_workers()
                 time.sleep(0.5)  # the progress line's refresh period, not a synchronisation
         finally:
             self._show(bar, self._count())
             bar.close()
 
-    def _release(self) -> None:
+    def _release(self, limit: int | None = None) -> None:
         if not self.planner.has_episodes():
             latest = self.catalog.list(split="train", limit=self.cfg.round_episodes, newest_first=True)[::-1]
             self.planner.remember([self.catalog.load(r.episode_id) for r in latest])
         made = 0
-        for request, created in self.queue.enqueue_many(self.planner.release()):
+        for request, created in self.queue.enqueue_many(self.planner.release(limit)):
             made += created
             if created:
                 self.service.publish(EventKind.REQUEST_QUEUED, {
                     "request_id": request.id, "status": request.status.value, "priority": request.priority,
                     "shape": request.shape, "source": request.reason.get("planner", self.planner.name)})
-        log.info("released a round of %d requests", made)
+        log.info("released %s of %d requests", "a round" if limit is None else "the rest of a round", made)
 
     def _check_workers(self) -> None:
         dead = [p for p in self.procs if p.poll() is not None]
@@ -323,13 +326,20 @@ class LoopRun:
             self.service.stop()
 
     def _finish(self, start: float, interrupted: bool) -> RunResult:
+        if not hasattr(self, "scheduler"):  # interrupted during set-up: open what it had not opened yet
+            if hasattr(self, "queue"):
+                self.queue.close()
+            self.catalog = Catalog(self.cfg.data_dir)
+            self.queue = RequestQueue(self.catalog.db_path)
+            self.registry = ModelRegistry(self.cfg.data_dir)
         champion = self.registry.champion()
+        scorer: ChampionScorer | None = getattr(self, "scorer", None)
         ensemble = None
-        if champion is not None:
-            self.scorer.reload()
-            ensemble = self.scorer.ensemble
+        if champion is not None and scorer is not None:
+            scorer.reload()
+            ensemble = scorer.ensemble
         h1 = self.registry.get(champion).metrics.get("h1_mse") if champion else None
-        retrains = [r.to_json() for r in self.scheduler.history]
+        retrains = [r.to_json() for r in self.scheduler.history] if hasattr(self, "scheduler") else []
         count = self._count()
         summary = {"planner": self.cfg.planner, "episodes": count, "budget": self.cfg.budget,
                    "round_episodes": self.cfg.round_episodes, "workers": self.cfg.workers,

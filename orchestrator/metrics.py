@@ -64,6 +64,7 @@ class ServiceMetrics:
                                      namespace=ns, registry=r)
         self.champion_info = Gauge("champion_info", "The champion's version (value 1; label version).",
                                    ["version"], namespace=ns, registry=r)
+        self.set_champion(None)  # NaN until there is one, not a perfect 0.0
         for status in QUEUE_STATUSES:
             self.queue_depth.labels(status=status).set(0)
         for result in UPLOAD_RESULTS:

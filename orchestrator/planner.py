@@ -352,6 +352,7 @@ class ActivePlanner:
         scored = [(ep, self.scorer(ep)) for ep in new_episodes]
         if any(s is None for _, s in scored):
             return [self.uniform.draw_request("seed") for _ in range(min(budget, len(new_episodes)))]
+        scored = self._one_version(scored)
         if self.cfg.choose_policy:
             self._update_policy_scores(scored)
         n_explore = int(round(budget * self.cfg.explore_fraction))
@@ -368,6 +369,16 @@ class ActivePlanner:
             requests.append(self._request(cand, versions[id(cand.episode)]))
         requests += [self.uniform.draw_request("explore") for _ in range(n_explore)]
         return requests
+
+    def _one_version(self, scored: list[tuple[Episode, Scores]]) -> list[tuple[Episode, Scores]]:
+        """Scores of one champion only (each lives on its own scale): when a promotion happened while the
+        batch was scored, the episodes the old champion scored are scored again by the new one (and
+        dropped if yet another promotion beats that)."""
+        latest = scored[-1][1].model_version
+        if all(s.model_version == latest for _, s in scored):
+            return scored
+        again = [(ep, s if s.model_version == latest else self.scorer(ep)) for ep, s in scored]
+        return [(ep, s) for ep, s in again if s is not None and s.model_version == latest]
 
     def _candidates(self, scored: list[tuple[Episode, Scores]]) -> list[Candidate]:
         """Update the running threshold with the new scores, then keep the steps above it."""

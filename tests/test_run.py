@@ -17,6 +17,8 @@ from pathlib import Path
 
 import pytest
 
+from orchestrator.loop import LoopRun
+from orchestrator.loopconfig import RunConfig
 from storage.catalog import Catalog
 from storage.models import ModelRegistry
 from storage.queue import RequestQueue
@@ -99,3 +101,14 @@ def test_run_collects_retrains_promotes_reports_and_resumes_after_ctrl_c(tmp_pat
     assert summary["summary"]["episodes"] == result["episodes"] and summary["curve"]
     with sqlite3.connect(data / "catalog.sqlite") as conn:
         assert conn.execute("PRAGMA integrity_check").fetchone()[0] == "ok"
+
+
+def test_ctrl_c_during_set_up_ends_the_run_with_a_report(tmp_path):
+    """A Ctrl-C while the eval split is collected (set-up's slow part): no traceback, a result saying so."""
+    def interrupted_eval_split(catalog, episodes, seed, steps, size):
+        raise KeyboardInterrupt
+
+    run = LoopRun(RunConfig(data_dir=tmp_path / "data", budget=4, round_episodes=2, image_size=16, steps=8,
+                            eval_episodes=2, dashboard_port=-1, progress=False), interrupted_eval_split)
+    result = run.run()
+    assert result.interrupted and result.episodes == 0 and result.retrains == [] and result.report.is_file()

@@ -70,6 +70,10 @@ def test_queue_depth_and_champion_are_replaced_not_accumulated() -> None:
     assert math.isnan(s[("activecollect_champion_h1_mse", ())])
 
 
+def test_no_champion_is_nan_not_a_perfect_zero() -> None:
+    assert math.isnan(_samples(ServiceMetrics().render())[("activecollect_champion_h1_mse", ())])
+
+
 def test_instances_do_not_share_state() -> None:
     a, b = ServiceMetrics(), ServiceMetrics()
     a.lease()

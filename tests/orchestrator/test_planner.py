@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from orchestrator import protocol
+from orchestrator.loop import RoundPlanner
 from orchestrator.planner import (
     ActivePlanner, ActivePlannerConfig, Candidate, PolicyMix, Scores, UniformPlanner, UniformPlannerConfig,
     AGENT_CLEARANCE, MIX_POLICIES, select_diverse, state_at, state_features,
@@ -289,3 +290,32 @@ def test_choose_policy_is_off_by_default_and_its_settings_are_checked():
         ActivePlannerConfig(choose_policy=True, policy_floor=0.6)
     with pytest.raises(ValueError, match="policy_sharpness"):
         ActivePlannerConfig(policy_sharpness=-1.0)
+
+
+def test_a_round_left_short_is_filled_to_its_end_not_by_a_whole_round():
+    """A dead request leaves round 2 at 47 of 48: one more request, so the retrain lands on 48 again."""
+    collected = [47]
+    rounds = RoundPlanner(UniformPlanner(UniformPlannerConfig(max_queue_depth=1000), np.random.default_rng(0)),
+                          round_episodes=24, budget=96, collected=lambda: collected[0], outstanding=lambda: 0)
+    assert len(rounds.release(24 - collected[0] % 24)) == 1
+    collected[0] = 48
+    assert len(rounds.release()) == 24  # a whole round after the retrain
+    collected[0] = 90
+    assert len(rounds.release()) == 6   # never past the budget
+
+
+def test_a_promotion_while_a_batch_is_scored_leaves_scores_of_one_champion():
+    rng = np.random.default_rng(0)
+    calls = []
+
+    def scorer(ep):  # the champion changes from m1 (scores ~1) to m2 (~1e-3) after the batch's first episode
+        calls.append(1)
+        if len(calls) <= 1:
+            return Scores("m1", rng.uniform(0.5, 1.5, len(ep)))
+        return Scores("m2", rng.uniform(0, 1e-3, len(ep)))
+
+    planner = ActivePlanner(acfg(budget_per_round=4, min_distance=0.0, explore_fraction=0.0), scorer, rng)
+    requests = planner.plan([make_episode(rng) for _ in range(3)])
+    assert len(calls) == 4  # the first episode was scored again by m2
+    assert {r.reason["model_version"] for r in requests} == {"m2"} and planner.threshold < 1e-3
+    assert len(planner.plan([make_episode(rng) for _ in range(2)])) == 4  # m2's uncertain states get requests

@@ -17,6 +17,7 @@ from orchestrator.protocol import ErrorCode, Keys, ProtocolError
 from orchestrator.service import Service, ServiceConfig, ServiceError
 from orchestrator.uploads import StoredEpisode
 from storage.catalog import Catalog
+from storage.models import ModelRegistry
 from storage.episodes import encode_episode
 from storage.queue import RequestQueue
 from storage.requests import NewRequest, RequestStatus
@@ -303,6 +304,17 @@ def test_lease_expiry_outlives_an_unexpected_failure_in_maintenance(make_service
     lease(client, keys)
     wait_for(lambda: service.queue.get(request.id).status == RequestStatus.QUEUED, timeout=10,
              message="leases still expire after the failure")
+
+
+def test_the_champion_gauges_follow_the_registry_whoever_promotes(service, data_dir) -> None:
+    """A champion promoted by another process (train, models promote) shows in /metrics."""
+    assert "activecollect_champion_h1_mse NaN" in service.metrics.render()
+    registry = ModelRegistry(data_dir)
+    version = registry.register(b"weights", {}, {"h1_mse": 0.004}, "snap", "evalhash")
+    registry.promote(version)
+    wait_for(lambda: "activecollect_champion_h1_mse 0.004" in service.metrics.render(),
+             message="the maintenance task to read the new champion")
+    assert f'activecollect_champion_info{{version="{version}"}} 1.0' in service.metrics.render()
 
 
 def test_lost_worker_releases_its_leases_at_once(service, client, keys, endpoint) -> None:
