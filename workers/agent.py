@@ -6,8 +6,10 @@ Loop (``Worker.run``)::
           -> encode MCAP (the request id in its provenance) -> upload -> next
 
 While an episode is being collected a background timer renews the lease every
-``lease_s / 3``. Transient failures (nobody answers: the service is restarting
-or unreachable) are retried with exponential backoff. Real failures are
+``lease_s / 3`` (by the clock; one renewal waits at most that long). Transient
+failures (nobody answers: the service is restarting or unreachable; an upload
+answered ``internal`` or ``unavailable``) are retried with exponential backoff,
+an upload until it is acknowledged or the lease is lost. Real failures are
 reported with ``fail``, which counts an attempt: the collection raised (for
 instance the request names a policy parameter this worker does not know --
 ``policy_params: {"fail": true}`` is such a request, the documented way to
@@ -97,8 +99,10 @@ class WorkerConfig:
     """Wait between lease attempts while the queue has no work for this worker."""
     max_backoff_s: float = 5.0
     """Longest wait between retries of a query nobody answered."""
-    upload_attempts: int = 8
-    """Uploads of one episode tried before giving up (the lease then expires on its own)."""
+    report_attempts: int = 8
+    """Tries of a failure report nobody answers before giving up (the lease then expires on its own).
+    An upload has no such limit: it is retried until the service answers, the lease is lost, or a
+    second stop signal gives the request back."""
 
     def __post_init__(self) -> None:
         self.worker_id = self.worker_id or default_worker_id()
@@ -120,14 +124,14 @@ class WorkerConfig:
             value = getattr(self, name)
             if not value >= 0 or (name != "realtime" and value == 0):
                 raise WorkerError(f"{name}: expected a positive number, found {value!r}")
-        if self.upload_attempts < 1:
-            raise WorkerError(f"upload_attempts: expected >= 1, found {self.upload_attempts}")
+        if self.report_attempts < 1:
+            raise WorkerError(f"report_attempts: expected >= 1, found {self.report_attempts}")
 
 
 class _Renewer:
     """Renews one lease every lease_s / 3 on its own thread until stopped; notes when it is lost."""
 
-    def __init__(self, call: Callable[[str, bytes], dict[str, Any]], key: str, grant: LeaseGrant,
+    def __init__(self, call: Callable[[str, bytes, float], dict[str, Any]], key: str, grant: LeaseGrant,
                  worker_id: str) -> None:
         self._call, self._key, self._grant = call, key, grant
         self._msg = messages.RenewRequest(request_id=grant.request_id, token=grant.token,
@@ -138,10 +142,14 @@ class _Renewer:
         self._thread.start()
 
     def _run(self) -> None:
+        # By the clock, not after each call: a renewal nobody answered must not push the next one
+        # back; and one call waits at most one interval, so two more tries fit in the lease.
         interval = max(self._grant.lease_s / 3.0, 0.01)
-        while not self._stop.wait(interval):
+        due = time.monotonic() + interval
+        while not self._stop.wait(max(0.0, due - time.monotonic())):
+            due = max(due + interval, time.monotonic())
             try:
-                self._call(self._key, self._msg)
+                self._call(self._key, self._msg, interval)
             except transport.TransportError as exc:  # transient: try again next tick
                 log.warning("renew %s: %s", self._grant.request_id, exc)
             except ProtocolError as exc:
@@ -226,25 +234,29 @@ class Worker:
 
     # --- talking to the service ----------------------------------------------------------------
 
-    def _call(self, key: str, payload: bytes, attachment: bytes | None = None) -> dict[str, Any]:
+    def _call(self, key: str, payload: bytes, attachment: bytes | None = None,
+              timeout: float | None = None) -> dict[str, Any]:
         """One query; the reply body. Raises TransportError (nobody answered) or ProtocolError (refused)."""
-        reply = transport.query(self.session, key, payload, attachment, timeout=self.config.timeout_s)
+        reply = transport.query(self.session, key, payload, attachment, timeout=timeout or self.config.timeout_s)
         return protocol.parse_reply(reply)
 
     def _retrying(self, what: str, fn: Callable[[], dict[str, Any]], attempts: int | None = None,
-                  until_stopped: bool = False) -> dict[str, Any] | None:
-        """``fn()`` retried with exponential backoff while nobody answers.
+                  until_stopped: bool = False, give_up: Callable[[], bool] = lambda: False,
+                  transient: tuple[ErrorCode, ...] = ()) -> dict[str, Any] | None:
+        """``fn()`` retried with exponential backoff while nobody answers (or refuses with a ``transient`` code).
 
-        None when out of ``attempts``, when told to give the request back, or (``until_stopped``)
-        when told to drain. ProtocolError (a refusal) propagates.
+        None when out of ``attempts``, when ``give_up()`` says so, when told to give the request back,
+        or (``until_stopped``) when told to drain. Any other ProtocolError (a refusal) propagates.
         """
         delay, n = 0.1, 0
         while True:
             try:
                 return fn()
-            except transport.TransportError as exc:
+            except (transport.TransportError, ProtocolError) as exc:
+                if isinstance(exc, ProtocolError) and exc.code not in transient:
+                    raise
                 n += 1
-                if attempts is not None and n >= attempts:
+                if give_up() or (attempts is not None and n >= attempts):
                     log.warning("%s: giving up after %d attempts: %s", what, n, exc)
                     return None
                 wait = min(delay, self.config.max_backoff_s) * (0.5 + self._rng.random())
@@ -283,7 +295,7 @@ class Worker:
         try:
             msg = messages.FailRequest(request_id=request_id, token=token, worker_id=self.config.worker_id,
                                        error=error[:protocol.MAX_ERROR_CHARS]).to_json()
-            body = self._retrying("fail", lambda: self._call(self.keys.fail, msg), self.config.upload_attempts)
+            body = self._retrying("fail", lambda: self._call(self.keys.fail, msg), self.config.report_attempts)
         except ProtocolError as exc:
             log.warning("fail %s refused: %s", request_id, exc)
             return
@@ -311,7 +323,8 @@ class Worker:
     # --- one request -----------------------------------------------------------------------------
 
     def _handle(self, grant: LeaseGrant) -> None:
-        renewer = _Renewer(lambda k, m: self._call(k, m), self.keys.renew, grant, self.config.worker_id)
+        renewer = _Renewer(lambda k, m, t: self._call(k, m, timeout=min(t, self.config.timeout_s)), self.keys.renew,
+                           grant, self.config.worker_id)
         try:
             started = time.monotonic()
             try:
@@ -327,7 +340,7 @@ class Worker:
             if renewer.lost is not None:
                 log.warning("dropping the episode of %s: the lease is no longer ours", grant.request_id)
                 return
-            self._upload(grant, data)
+            self._upload(grant, data, renewer)
         finally:
             renewer.stop()
 
@@ -344,12 +357,19 @@ class Worker:
         remaining = started + self.config.realtime * frames / CONTROL_HZ - time.monotonic()
         return not (remaining > 0 and self._abort.wait(remaining)) and not self._abort.is_set()
 
-    def _upload(self, grant: LeaseGrant, data: bytes) -> None:
+    def _upload(self, grant: LeaseGrant, data: bytes, renewer: "_Renewer") -> None:
+        """Upload until the service acknowledges it, refuses the data, or the lease is lost.
+
+        No reply, ``internal`` and ``unavailable`` (a full disk, a busy database, a service going
+        down) are retried with the same bytes: a collected episode is not dropped while its lease
+        is ours. A second stop signal gives the request back instead.
+        """
         header = messages.UploadHeader.for_payload(data, request_id=grant.request_id, token=grant.token,
                                                    worker_id=self.config.worker_id).to_json()
         try:
             body = self._retrying("upload", lambda: self._call(self.keys.upload, data, header),
-                                  self.config.upload_attempts)
+                                  give_up=lambda: renewer.lost is not None,
+                                  transient=(ErrorCode.INTERNAL, ErrorCode.UNAVAILABLE))
         except ProtocolError as exc:
             if exc.code in (ErrorCode.STALE_TOKEN, ErrorCode.UNKNOWN_REQUEST):
                 log.warning("upload of %s refused (%s): the lease is no longer ours", grant.request_id, exc)
@@ -361,6 +381,10 @@ class Worker:
             self.uploaded += 1
             log.info("uploaded %s: episode %s%s", grant.request_id, body.get("episode_id"),
                      " (duplicate)" if body.get("duplicate") else "")
+        elif self._abort.is_set():
+            self._release(grant)
+        else:
+            log.warning("dropping the episode of %s: the lease is no longer ours (%s)", grant.request_id, renewer.lost)
 
 
 # --- command line (shared by ``activecollect worker`` and ``python -m workers.agent``) -----------

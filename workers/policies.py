@@ -51,6 +51,14 @@ def _number(policy: str, key: str, value: Any, low: float, high: float) -> float
     return float(value)
 
 
+def _integer(policy: str, key: str, value: Any, low: int, high: int) -> int:
+    """A whole number (2 or 2.0; not 2.5, which would be recorded as something it was not asked)."""
+    number = _number(policy, key, value, low, high)
+    if number != int(number):
+        raise ValueError(f"policy {policy!r}: {key} must be a whole number, found {value}")
+    return int(number)
+
+
 def _target(x: float, y: float) -> np.ndarray:
     return np.array((min(max(x, 0.0), WORLD_SIZE), min(max(y, 0.0), WORLD_SIZE)), np.float32)
 
@@ -67,7 +75,7 @@ class RandomWaypoints:
 
     def __init__(self, params: Mapping[str, Any] | None, rng: np.random.Generator) -> None:
         p = _params("random_waypoints", params, self.DEFAULTS)
-        self.hold = int(_number("random_waypoints", "hold", p["hold"], 1, 1000))
+        self.hold = _integer("random_waypoints", "hold", p["hold"], 1, 1000)
         self.dwell = _number("random_waypoints", "dwell", p["dwell"], 0.0, 1.0)
         self.object_bias = _number("random_waypoints", "object_bias", p["object_bias"], 0.0, 1.0)
         self.params = {"hold": self.hold, "dwell": self.dwell, "object_bias": self.object_bias}
@@ -108,7 +116,9 @@ class Push:
     when the pusher has been more than 10 units off it for three steps; the next push
     direction points roughly at the table's centre (within ~35 degrees, drawn).
 
-    Params: ``side`` (left/right/top/bottom: the first push comes from there; None draws it),
+    Params: ``side`` (left/right/top/bottom: the first push comes from there when the pusher fits
+    behind the object on that side; with the object against that wall the first direction is
+    drawn as for None, and the recorded params still say what was asked; None draws it),
     ``noise`` (world units, >= 0), ``stride`` (world units), ``push_steps`` (max steps per push).
     """
 
@@ -122,7 +132,7 @@ class Push:
         self.side = p["side"]
         self.noise = _number("push", "noise", p["noise"], 0.0, 200.0)
         self.stride = _number("push", "stride", p["stride"], 1.0, 200.0)
-        self.push_steps = int(_number("push", "push_steps", p["push_steps"], 1, 1000))
+        self.push_steps = _integer("push", "push_steps", p["push_steps"], 1, 1000)
         self.params = {"side": self.side, "noise": self.noise, "stride": self.stride,
                        "push_steps": self.push_steps}
         self.rng = rng

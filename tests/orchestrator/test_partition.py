@@ -178,7 +178,7 @@ def test_zenoh_across_the_veth_pair_survives_a_cut(site):
 
 
 #: A worker process: the real agent, its config checked with validate_secure_config first,
-#: and patient: it keeps retrying an upload nobody answers. argv: CONFIG WORKER_ID REALTIME
+#: and patient: it retries an upload nobody answers until the lease is lost. argv: CONFIG WORKER_ID REALTIME
 WORKER = """
 import logging, sys
 from pathlib import Path
@@ -188,7 +188,7 @@ logging.basicConfig(level=logging.INFO, stream=sys.stdout, format="%(name)s %(le
 validate_secure_config(sys.argv[1])
 worker = Worker(WorkerConfig(worker_id=sys.argv[2], zenoh_config=Path(sys.argv[1]), realtime=float(sys.argv[3]),
                              max_episodes=1, timeout_s=2.0, idle_poll_s=0.2, max_backoff_s=0.5,
-                             upload_attempts=1000))
+                             ))
 worker.install_signal_handlers()
 print("worker done, uploaded", worker.run(), flush=True)
 """

@@ -50,6 +50,26 @@ def test_renewals_keep_a_lease_alive_past_lease_s(start_service, spawn_worker) -
     assert (done.status, done.attempts, done.token) == (RequestStatus.DONE, 0, 1)
 
 
+def test_an_upload_the_service_could_not_store_is_retried_not_failed(start_service, spawn_worker, data_dir) -> None:
+    """``internal`` (a full disk, a busy database) is transient: the same bytes again, no attempt spent."""
+    service = start_service()
+    request, _ = service.queue.enqueue(new_request())
+    real, refused = service.catalog.ingest_bytes, []
+
+    def full_disk_once(*args, **kw):
+        if not refused:
+            refused.append(1)
+            raise OSError(28, "No space left on device")
+        return real(*args, **kw)
+
+    service.catalog.ingest_bytes = full_disk_once
+    w = spawn_worker("U", "--once")
+    assert w.wait(60) == 0, w.log()
+    done = service.queue.get(request.id)
+    assert refused and (done.status, done.attempts) == (RequestStatus.DONE, 0), w.log()
+    assert Catalog(data_dir).count() == 1
+
+
 def test_sigterm_drains_the_current_request(start_service, spawn_worker, data_dir) -> None:
     service = start_service()
     request, _ = service.queue.enqueue(new_request(steps=20))

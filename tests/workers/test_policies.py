@@ -93,3 +93,12 @@ def test_policies_work_with_the_gymnasium_env():
 def test_bad_policy_names_and_params_are_refused(name, params, match):
     with pytest.raises(ValueError, match=match):
         make_policy(name, params, np.random.default_rng(0))
+
+
+@pytest.mark.parametrize("policy, params", [("random_waypoints", {"hold": 2.5}), ("push", {"push_steps": 7.5})])
+def test_a_whole_number_parameter_refuses_a_fraction(policy, params):
+    """2.5 would run as 2 and be recorded as 2: the episode would not be what its request asked for."""
+    with pytest.raises(ValueError, match="whole number"):
+        make_policy(policy, params, np.random.default_rng(0))
+    whole = {k: float(int(v)) for k, v in params.items()}  # 2.0 (JSON may carry it so) is fine
+    assert make_policy(policy, whole, np.random.default_rng(0)).params[next(iter(params))] == int(next(iter(whole.values())))
