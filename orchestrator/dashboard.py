@@ -47,10 +47,14 @@ class DashboardConfig:
     """How often the page re-reads the numbers."""
     queue_rows: int = 50
     """How many of the latest requests the queue table shows."""
+    request_timeout_s: float = 10.0
+    """How long a client may take to send its request: a stalled one does not hold a thread longer."""
 
     def __post_init__(self) -> None:
         if not 0 <= self.port <= 65535:
             raise ValueError(f"port must be in [0, 65535], found {self.port}")
+        if not self.request_timeout_s > 0:
+            raise ValueError(f"request_timeout_s must be > 0, found {self.request_timeout_s}")
         if self.refresh_s <= 0 or self.queue_rows < 1:
             raise ValueError(f"refresh_s > 0 and queue_rows >= 1 expected, found {self.refresh_s}, {self.queue_rows}")
 
@@ -85,7 +89,7 @@ class Dashboard:
         return f"http://{host}:{port}/"
 
     def start(self) -> None:
-        handler = type("Handler", (_Handler,), {"dashboard": self})
+        handler = type("Handler", (_Handler,), {"dashboard": self, "timeout": self.cfg.request_timeout_s})
         self._server = ThreadingHTTPServer((self.cfg.host, self.cfg.port), handler)
         self._server.daemon_threads = True
         self._thread = threading.Thread(target=self._server.serve_forever, name="dashboard", daemon=True)
@@ -126,12 +130,19 @@ class _Handler(BaseHTTPRequestHandler):
     server_version = "activecollect-dashboard"
 
     def do_GET(self) -> None:  # noqa: N802 (http.server's naming)
-        path = urlsplit(self.path).path
+        try:
+            path = urlsplit(self.path).path
+        except ValueError as exc:  # e.g. "GET http://[x/": not a URL
+            self._send(400, "text/plain; charset=utf-8", f"bad request path: {exc}\n".encode())
+            return
         try:
             status, ctype, body = self.dashboard.route(path)
         except Exception as exc:  # one broken source must not take the page down; it is logged
             log.exception("dashboard %s failed", path)
             status, ctype, body = 500, "text/plain; charset=utf-8", f"{type(exc).__name__}: {exc}\n".encode()
+        self._send(status, ctype, body)
+
+    def _send(self, status: int, ctype: str, body: bytes) -> None:
         self.send_response(status)
         self.send_header("Content-Type", ctype)
         self.send_header("Content-Length", str(len(body)))

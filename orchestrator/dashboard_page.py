@@ -58,7 +58,9 @@ function fmt(x) { return (x === null || x === undefined || Number.isNaN(x)) ? "-
 function cell(tr, value, cls) { const td = document.createElement("td"); td.textContent = value;
   if (cls) td.className = cls; tr.appendChild(td); }
 function fill(tableId, rows, build) { const body = document.querySelector("#" + tableId + " tbody");
-  body.replaceChildren(); for (const r of rows) { const tr = document.createElement("tr"); build(tr, r); body.appendChild(tr); } }
+  body.replaceChildren(); for (const r of rows) { const tr = document.createElement("tr");
+    try { build(tr, r); } catch (err) { tr.replaceChildren(); cell(tr, "unreadable row: " + err.message); }
+    body.appendChild(tr); } }
 async function getJSON(path) { const r = await fetch(path, {cache: "no-store"});
   if (!r.ok) throw new Error(path + " answered " + r.status); return r.json(); }
 let lastChampion = null;
@@ -98,7 +100,7 @@ async function refresh() {
     text("last-retrain-reason", last ? (last.version || "") + " " + (last.reason || "") : "");
     fill("queue", queue.requests, (tr, q) => { const r = q.reason || {};
       for (const v of [q.id, q.status, fmt(q.priority), q.shape, q.policy, r.planner || "", fmt(r.score),
-        (r.source_episode || "").slice(0, 8) + (r.step === null || r.step === undefined ? "" : " @" + r.step),
+        String(r.source_episode ?? "").slice(0, 8) + (r.step === null || r.step === undefined ? "" : " @" + r.step),
         r.model_version || "", q.attempts, q.last_error || ""]) cell(tr, v); });
     fill("models", models.models, (tr, m) => { const cls = m.version === models.champion ? "champion" : "";
       for (const v of [m.version, m.status, fmt(m.metrics.h1_mse), fmt(m.metrics.h5_mse), m.created, m.reason])

@@ -35,9 +35,11 @@ class RouterConfig:
     """What ``activecollect router`` runs."""
 
     listen: tuple[str, ...] = ()
-    """Endpoints to listen on (proto/HOST:PORT); added to those of zenoh_config."""
+    """Endpoints to listen on (proto/HOST:PORT); given, they replace zenoh_config's (so one profile
+    serves several routers)."""
     connect: tuple[str, ...] = ()
-    """Other routers to link to (one router per site, linked to each other)."""
+    """Other routers to link to (one router per site, linked to each other); given, they replace
+    zenoh_config's."""
     zenoh_config: Path | None = None
     """Zenoh JSON5 config passed through unchanged (the secure profile's router.json5)."""
 
@@ -76,6 +78,8 @@ def build_router_config(cfg: RouterConfig) -> zenoh.Config:
         raise RouterError(f"{cfg.zenoh_config} is a TLS-only profile; refusing plaintext endpoint {plain[0]}")
     try:
         config.insert_json5("mode", json.dumps("router"))
+        # Given endpoints replace the file's (one profile serves several routers); without a file they
+        # are exactly ours (Zenoh's own default listens on every interface).
         listen = cfg.listen or (() if cfg.zenoh_config is not None else (DEFAULT_LISTEN,))
         if listen:
             config.insert_json5("listen/endpoints", json.dumps(list(listen)))

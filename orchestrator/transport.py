@@ -210,6 +210,7 @@ def make_config(mode: str = "peer", listen: Sequence[str] = (), connect: Sequenc
     try:
         config.insert_json5("mode", json.dumps(mode))
         config.insert_json5("scouting/multicast/enabled", "false")
+        config.insert_json5("scouting/gossip/enabled", "false")  # peers learn no endpoints from each other
         config.insert_json5("listen/endpoints", json.dumps(list(listen)))
         config.insert_json5("connect/endpoints", json.dumps(list(connect)))
     except zenoh.ZError as exc:
@@ -218,6 +219,8 @@ def make_config(mode: str = "peer", listen: Sequence[str] = (), connect: Sequenc
 
 
 def _add_endpoints(config: zenoh.Config, section: str, endpoints: Sequence[str]) -> None:
+    """Adds ``endpoints`` to ``config``'s ``section`` ("listen" or "connect"), keeping those it has
+    (also in the per-mode form); raises TransportError for one Zenoh refuses."""
     if not endpoints:
         return
     current = json.loads(config.get_json(f"{section}/endpoints") or "null")
@@ -355,6 +358,12 @@ class Server:
             q.reply(key, response.payload, attachment=response.attachment)
         except zenoh.ZError as exc:  # the querier left or the session is closing
             log.debug("cannot reply on %s: %s", q.key_expr, exc)
+        except Exception as exc:  # noqa: BLE001 -- a query that reached us is answered, and the thread lives
+            log.exception("cannot answer %s", q.key_expr)
+            try:  # an error reply: request() must not take silence for "nobody serving" and send it again
+                q.reply_err(self._error_body("internal", f"{type(exc).__name__}: {exc}"), encoding=ERROR_ENCODING)
+            except zenoh.ZError:
+                pass
         finally:
             q.drop()  # sends the final reply now, not whenever Python collects it
 

@@ -16,10 +16,10 @@ def register(sub) -> None:
     """Adds ``router`` and ``secure``."""
     p = sub.add_parser("router", help="run a Zenoh router that orchestrator, workers and operators connect to")
     p.add_argument("--listen", action="append", default=[], metavar="EP",
-                   help="endpoint to listen on, e.g. tls/0.0.0.0:7447 (repeatable; default "
-                        "tcp/127.0.0.1:7447 without --zenoh-config)")
+                   help="endpoint to listen on, e.g. tls/0.0.0.0:7447 (repeatable; replaces the config "
+                        "file's; default tcp/127.0.0.1:7447 without --zenoh-config)")
     p.add_argument("--connect", action="append", default=[], metavar="EP",
-                   help="another site's router to link to (repeatable)")
+                   help="another site's router to link to (repeatable; replaces the config file's)")
     p.add_argument("--zenoh-config", type=Path, metavar="FILE",
                    help="Zenoh JSON5 config, e.g. router.json5 from `secure init`")
     p.set_defaults(func=_router)

@@ -9,10 +9,12 @@ from __future__ import annotations
 import json
 import os
 import shutil
+import socket
 import subprocess
 import urllib.error
 import urllib.request
 from pathlib import Path
+from urllib.parse import urlsplit
 
 import numpy as np
 import pytest
@@ -65,6 +67,30 @@ def dashboard(stores):
 def enqueue_uniform(queue: RequestQueue, n: int, seed: int = 0) -> None:
     for req in UniformPlanner(UniformPlannerConfig(), np.random.default_rng(seed)).seed(n):
         queue.enqueue(req)
+
+
+def _raw_http(url: str, request: bytes) -> socket.socket:
+    host, port = urlsplit(url).hostname, urlsplit(url).port
+    conn = socket.create_connection((host, port), timeout=30)
+    conn.sendall(request)
+    return conn
+
+
+def test_a_request_line_that_is_not_a_url_gets_400(dashboard):
+    dash, _, _ = dashboard
+    with _raw_http(dash.url, b"GET http://[x/ HTTP/1.0\r\n\r\n") as conn:
+        assert conn.recv(4096).startswith(b"HTTP/1.0 400")
+
+
+def test_a_stalled_client_is_let_go(stores):
+    data_dir = stores[0]
+    dash = Dashboard(DashboardConfig(port=0, request_timeout_s=0.3), DataSources(data_dir).sources())
+    dash.start()
+    try:
+        with _raw_http(dash.url, b"GET /api/stats HTTP/1.1\r\n") as conn:  # the headers never end
+            assert conn.recv(4096) == b""  # closed by the server, not held until this client gives up
+    finally:
+        dash.stop()
 
 
 def test_api_endpoints_answer_json(dashboard):
@@ -213,5 +239,12 @@ def test_page_shows_live_queue_numbers_without_console_errors(dashboard, browser
              message="the champion card")
     wait_for(lambda: browser.evaluate("document.querySelectorAll('#curve circle').length") == 1,
              message="the learning curve point")
+    assert browser.evaluate("document.getElementById('updated').textContent").startswith("updated")
+    # an operator's request whose reason holds odd types (any JSON object is allowed) still shows
+    odd = UniformPlanner(UniformPlannerConfig(), np.random.default_rng(2)).seed(1)[0]
+    odd.reason = {"source_episode": 7, "score": "high", "step": [1]}
+    queue.enqueue(odd)
+    wait_for(lambda: browser.evaluate("document.querySelectorAll('#queue tbody tr').length") == 4,
+             message="the queue table with the odd request")
     assert browser.evaluate("document.getElementById('updated').textContent").startswith("updated")
     assert browser.errors() == []

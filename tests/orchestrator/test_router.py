@@ -117,4 +117,6 @@ def test_router_config_defaults_to_loopback_and_keeps_file_endpoints(tmp_path):
     secure = init_secure(SecureInitConfig(tmp_path / "p", router_endpoint="tls/127.0.0.1:7999"))
     config = build_router_config(RouterConfig(zenoh_config=secure.configs["router"]))
     assert listen_endpoints(config) == ["tls/127.0.0.1:7999"]
+    more = build_router_config(RouterConfig(zenoh_config=secure.configs["router"], listen=("tls/127.0.0.1:7998",)))
+    assert listen_endpoints(more) == ["tls/127.0.0.1:7998"]  # replaces the file's: one profile, two routers
     assert json.loads(config.get_json("mode")) == "router"

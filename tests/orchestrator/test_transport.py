@@ -28,6 +28,7 @@ def test_make_config_is_explicit_peer_without_multicast(endpoint: str) -> None:
     config = transport.make_config(listen=[endpoint], connect=["tcp/127.0.0.1:1"])
     assert json.loads(config.get_json("mode")) == "peer"
     assert json.loads(config.get_json("scouting/multicast/enabled")) is False
+    assert json.loads(config.get_json("scouting/gossip/enabled")) is False  # nor learnt from other peers
     assert json.loads(config.get_json("listen/endpoints")) == [endpoint]
     assert json.loads(config.get_json("connect/endpoints")) == ["tcp/127.0.0.1:1"]
 
@@ -128,6 +129,25 @@ def test_handler_crashes_get_an_internal_error_reply_and_the_server_stays_up(pai
         body = json.loads(transport.query(client, "t/h", b"crash"))
         assert body["ok"] is False and body["error"] == "internal" and "ZeroDivisionError" in body["message"]
         assert transport.query(client, "t/h", b"ok") == b"fine"
+    finally:
+        server.close()
+
+
+def test_a_reply_that_cannot_be_sent_is_an_internal_error_and_the_query_is_not_sent_again(pair) -> None:
+    """A handler bug after the handler ran (a reply Zenoh cannot send): answered once, never re-run."""
+    server_session, client = pair
+    runs = []
+
+    def handler(msg: Incoming) -> Response:
+        runs.append(msg.payload)
+        return "not a Response" if msg.payload == b"bad" else Response(b"fine")  # type: ignore[return-value]
+
+    server = Server(server_session, "t/r", handler, threads=1)
+    try:
+        with pytest.raises(transport.RemoteError, match="internal"):
+            transport.query(client, "t/r", b"bad")
+        assert runs == [b"bad"]  # request() did not take silence for "nobody serving" and send it again
+        assert transport.query(client, "t/r", b"ok") == b"fine"  # the one server thread lives
     finally:
         server.close()
 
