@@ -15,6 +15,7 @@ from collections.abc import Callable, Iterable, Mapping
 from typing import Any
 
 from orchestrator import protocol
+from orchestrator.metrics import SPLITS  # the splits ``stats`` counts episodes of
 from orchestrator.messages import AdminRequest, Event, RequestSpec
 from orchestrator.protocol import ErrorCode, EventKind, ProtocolError
 from storage.errors import QueueError, StaleLeaseError, StorageError
@@ -29,8 +30,6 @@ MAX_LIST = 200
 #: MAX_MESSAGE_BYTES. What is left is for the counts and the envelope; rows past it are left out
 #: and the reply says ``"truncated": true``.
 LIST_BUDGET_BYTES = protocol.MAX_MESSAGE_BYTES - 16 * 1024
-#: Splits ``stats`` counts episodes of.
-SPLITS: tuple[str, ...] = ("train", "eval")
 
 _ARGS: dict[str, tuple[set[str], set[str]]] = {
     # op: (required args, optional args)

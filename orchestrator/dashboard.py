@@ -26,6 +26,7 @@ from typing import Any, Callable
 from urllib.parse import urlsplit
 
 from orchestrator.dashboard_page import render_page
+from orchestrator.metrics import ServiceMetrics
 from storage.catalog import Catalog
 from storage.models import ModelRegistry
 from storage.queue import RequestQueue
@@ -187,12 +188,14 @@ class DataSources:
     """``DashboardSources`` read from a data directory (one SQLite connection set per thread).
 
     ``workers``, ``metrics_text``, ``retrains`` and ``frames_png`` come from the running
-    service when there is one; ``budget`` is the run's episode budget (0 = none).
+    service when there is one; ``budget`` is the run's episode budget (0 = none). Without a
+    service's ``metrics_text``, ``/metrics`` gives the gauges the data directory holds (queue
+    depth, episodes, champion); its counters are this process's, so zero.
     """
 
     data_dir: Path
     workers: Callable[[], list[dict]] = lambda: []
-    metrics_text: Callable[[], str] = lambda: ""
+    metrics_text: Callable[[], str] | None = None
     retrains: Callable[[], list[dict]] = lambda: []
     frames_png: Callable[[], bytes] = lambda: b""
     budget: int = 0
@@ -207,7 +210,15 @@ class DataSources:
 
     def sources(self) -> DashboardSources:
         return DashboardSources(stats=self.stats, queue=self.queue, workers=self.workers, models=self.models,
-                                curve=self.curve, metrics_text=self.metrics_text, frames_png=self.frames_png)
+                                curve=self.curve, metrics_text=self.metrics_text or self.data_metrics,
+                                frames_png=self.frames_png)
+
+    def data_metrics(self) -> str:
+        """Prometheus text of the gauges read from the data directory (a dashboard without a service)."""
+        catalog, queue, registry = self._stores()
+        metrics = ServiceMetrics()
+        metrics.read_stores(queue, catalog, registry)
+        return metrics.render()
 
     def stats(self) -> dict:
         catalog, queue, registry = self._stores()

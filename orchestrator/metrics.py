@@ -12,6 +12,7 @@ from __future__ import annotations
 import time
 from collections.abc import Iterable, Iterator, Mapping
 from contextlib import contextmanager
+from typing import Any
 
 from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram
 from prometheus_client.exposition import CONTENT_TYPE_PLAIN_0_0_4, generate_latest
@@ -23,6 +24,8 @@ NAMESPACE = "activecollect"
 
 #: Request statuses always exported (0 when empty), so a dashboard's series never vanish.
 QUEUE_STATUSES: tuple[str, ...] = ("queued", "leased", "done", "dead", "cancelled")
+#: Catalog splits the episode gauge (and ``stats``) count.
+SPLITS: tuple[str, ...] = ("train", "eval")
 UPLOAD_RESULTS: tuple[str, ...] = ("stored", "duplicate", "refused")
 RETRAIN_OUTCOMES: tuple[str, ...] = ("promoted", "rejected", "failed")
 #: Scoring one episode takes milliseconds (tiny CPU model) to seconds (big model, slow host).
@@ -122,6 +125,18 @@ class ServiceMetrics:
         if version is not None:
             self.champion_info.labels(version=version).set(1)
         self.champion_h1_mse.set(float("nan") if h1_mse is None else h1_mse)
+
+    def read_stores(self, queue: Any, catalog: Any, registry: Any) -> None:
+        """Set the gauges the data directory holds: queue depth, episodes per split, the champion.
+
+        ``queue``, ``catalog`` and ``registry`` are a RequestQueue, Catalog and ModelRegistry (any
+        process may have changed them: a retrain job, ``train``, ``models promote``).
+        """
+        self.set_queue_depth(queue.counts())
+        self.set_episodes({split: catalog.count(split=split) for split in SPLITS})
+        champion = registry.champion()
+        h1 = registry.get(champion).metrics.get("h1_mse") if champion is not None else None
+        self.set_champion(champion, h1 if isinstance(h1, (int, float)) else None)
 
     def render(self) -> str:
         """Every metric in Prometheus text exposition format 0.0.4 (HELP and TYPE lines, escaped labels)."""

@@ -390,17 +390,7 @@ class Service:
         for request in expired:
             log.info("lease of %s expired (attempt %d)", request.id, request.attempts)
             self._publish_lease_end(request, "lease expired")
-        self.metrics.set_queue_depth(self.queue.counts())
-        self.metrics.set_episodes({split: self.catalog.count(split=split) for split in admin.SPLITS})
-        self._refresh_champion()
-
-    def _refresh_champion(self) -> None:
-        """The champion gauges from the registry (a promotion may come from any process: a retrain job,
-        ``train``, ``models promote``); NaN while there is none."""
-        registry = self.context.registry
-        champion = registry.champion()
-        h1 = registry.get(champion).metrics.get("h1_mse") if champion is not None else None
-        self.metrics.set_champion(champion, h1 if isinstance(h1, (int, float)) else None)
+        self.metrics.read_stores(self.queue, self.catalog, self.context.registry)
 
     def _seed_queue(self) -> None:
         counts = self.queue.counts()

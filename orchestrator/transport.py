@@ -135,8 +135,9 @@ def validate_secure_config(path: str | os.PathLike[str]) -> list[Path]:
         raise SecureConfigError(f"{config_path} is not valid JSON5: {first}") from exc
     if not isinstance(config, dict):
         raise SecureConfigError(f"{config_path}: expected a JSON5 object, found {type(config).__name__}")
-    return [_check_file(config_path, key, value) for key in FILE_KEYS
-            if (value := lookup_key(config, key)) is not None]
+    checked = [_check_file(config_path, key, value) for key in FILE_KEYS
+               if (value := lookup_key(config, key)) is not None]
+    return list(dict.fromkeys(checked))  # a file named twice (listen and connect TLS) is one file
 
 
 

@@ -7,6 +7,8 @@ for benchmarks, ``register_bench(bench_subparsers)``; every sub-parser sets
 
 from __future__ import annotations
 
+import os
+import signal
 import sys
 
 from orchestrator import transport
@@ -44,6 +46,9 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("activecollect: interrupted", file=sys.stderr)
         return 130
+    except BrokenPipeError:  # the reader went away (`... | head`): stop quietly, as `yes | head` does
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # no second error at exit's flush
+        return 128 + signal.SIGPIPE
 
 
 if __name__ == "__main__":

@@ -142,3 +142,15 @@ def test_model_commands_refuse_bad_requests_before_loading_torch(tmp_path, argv,
     assert proc.returncode == rc, proc.stderr
     assert words in proc.stderr
     assert not _imported_torch(proc.stderr), proc.stderr
+
+
+def test_a_reader_that_goes_away_ends_the_command_quietly(tmp_path):
+    """`activecollect models ls | head -0`: no BrokenPipeError traceback, the shell's SIGPIPE status."""
+    read_end, write_end = os.pipe()
+    os.close(read_end)  # the reader is gone before the command writes a byte
+    try:
+        proc = subprocess.run([sys.executable, "-m", "orchestrator", "models", "ls", "--data", str(tmp_path)],
+                              stdout=write_end, stderr=subprocess.PIPE, text=True, cwd=REPO, env=ENV, timeout=120)
+    finally:
+        os.close(write_end)
+    assert proc.returncode == 141 and "Traceback" not in proc.stderr, proc.stderr

@@ -127,6 +127,24 @@ def test_metrics_parse_as_prometheus_text(dashboard):
     assert depth["queued"] == 2.0 and depth["done"] == 0.0
 
 
+def test_a_dashboard_without_a_service_reads_its_metrics_from_the_data_directory(stores):
+    data_dir, _, queue, registry = stores
+    enqueue_uniform(queue, 3)
+    version = registry.register(b"weights", {}, {"h1_mse": 0.02}, snapshot_id="snap", eval_split_hash="hash")
+    registry.promote(version)
+    dash = Dashboard(DashboardConfig(port=0), DataSources(data_dir).sources())  # as `activecollect dashboard`
+    dash.start()
+    try:
+        status, _, body = get(dash.url + "metrics")
+    finally:
+        dash.stop()
+    families = {f.name: f for f in text_string_to_metric_families(body.decode())}
+    depth = {s.labels["status"]: s.value for s in families["activecollect_queue_depth"].samples}
+    assert status == 200 and depth["queued"] == 3.0
+    assert families["activecollect_champion_h1_mse"].samples[0].value == 0.02
+    assert families["activecollect_champion_info"].samples[0].labels["version"] == version
+
+
 # -- the real browser --------------------------------------------------------------------------
 
 def chromium_path() -> str:
