@@ -41,7 +41,7 @@ from orchestrator.planner import Planner
 from orchestrator.protocol import ErrorCode, EventKind, Keys, ProtocolError
 from orchestrator.transport import Incoming, Response
 from orchestrator.uploads import StoredEpisode, UploadHandler
-from storage.catalog import Catalog
+from storage.catalog import ORPHANS_DIR, Catalog
 from storage.errors import QueueError, StorageError
 from storage.models import ModelRegistry
 from storage.queue import RequestQueue
@@ -162,6 +162,11 @@ class Service:
         try:
             cfg.data_dir.mkdir(parents=True, exist_ok=True)
             self.catalog = Catalog(cfg.data_dir)
+            swept = self.catalog.sweep_strays()  # before any upload is answered
+            if swept:
+                log.warning("moved %d unindexed episode file(s) to %s/ and deleted %d staging file(s) left "
+                            "by a crash (none was acknowledged)", len(swept.unindexed), ORPHANS_DIR,
+                            len(swept.staging))
             self.queue = RequestQueue(self.catalog.db_path, background_checkpoint=True)
             registry = ModelRegistry(cfg.data_dir)
         except (StorageError, OSError) as exc:

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
 import re
 import sqlite3
 import time
@@ -151,6 +152,32 @@ class Snapshot:
 
 # ---------------------------------------------------------------------------------------------
 # the catalog
+
+
+#: Where ``sweep_strays`` moves episode files that have no catalog row.
+ORPHANS_DIR = "orphans"
+#: A staging file older than this belongs to no live ingest (an ingest stages, then commits, in seconds).
+STAGING_MAX_AGE_S = 300.0
+
+
+@dataclass
+class Strays:
+    """Files a crashed ingest left under ``episodes/``."""
+
+    staging: list[Path]
+    """``.<id>.mcap.*.tmp`` files: written before a crash, never renamed into place."""
+    unindexed: list[Path]
+    """Episode files with no catalog row: renamed into place, then a crash before the commit."""
+
+    def __bool__(self) -> bool:
+        return bool(self.staging or self.unindexed)
+
+
+def _age(path: Path, now: float) -> float:
+    try:
+        return now - path.stat().st_mtime
+    except FileNotFoundError:  # finished (renamed or removed) while we looked
+        return 0.0
 
 
 def _episode_date(created: str) -> str:
@@ -433,6 +460,38 @@ class Catalog:
         """Reads an indexed episode, checking its sha256 and CRCs."""
         row = self.get(episode_id)
         return read_episode(self._read_checked(row), name=str(row.path))
+
+    def strays(self, min_tmp_age_s: float = STAGING_MAX_AGE_S, now: float | None = None) -> Strays:
+        """Files under ``episodes/`` a crashed ingest left: staging files older than ``min_tmp_age_s``
+        and episode files with no catalog row.
+
+        Looked for under the write lock: an ingest renames its file into place inside its write
+        transaction, so no file seen here is between its rename and its commit. (Staging happens
+        before that transaction, hence the age for those.)
+        """
+        now = time.time() if now is None else now
+        with self._connect() as conn, transaction(conn):
+            indexed = {r["path"] for r in conn.execute("SELECT path FROM episodes")}
+            files = sorted(p for p in self.episodes_dir.rglob("*.mcap") if not p.name.startswith("."))
+            unindexed = [p for p in files if p.relative_to(self.data_dir).as_posix() not in indexed]
+        staging = sorted(p for p in self.episodes_dir.rglob(".*.mcap.*.tmp") if _age(p, now) > min_tmp_age_s)
+        return Strays(staging=staging, unindexed=unindexed)
+
+    def sweep_strays(self, min_tmp_age_s: float = STAGING_MAX_AGE_S, now: float | None = None) -> Strays:
+        """``strays`` cleaned up: staging files deleted, unindexed episode files moved to ``DATA/orphans/``.
+
+        Neither was ever acknowledged (the catalog row is the one commit point); a worker that still
+        holds the lease uploads the same bytes again. Orphans are kept, not deleted, for the operator.
+        Run at service start-up, before any upload is answered.
+        """
+        found = self.strays(min_tmp_age_s, now)
+        for path in found.staging:
+            path.unlink(missing_ok=True)
+        for path in found.unindexed:
+            target = self.data_dir / ORPHANS_DIR / path.relative_to(self.episodes_dir)
+            target.parent.mkdir(parents=True, exist_ok=True)
+            os.replace(path, target)
+        return found
 
     def verify(self, episode_id: str) -> EpisodeMeta:
         """Re-hashes and re-verifies an indexed episode's file; raises a ``StorageError`` if bad."""

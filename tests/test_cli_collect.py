@@ -9,9 +9,10 @@ import sys
 import numpy as np
 import pytest
 
-from tests.conftest import run_cli
+from orchestrator.service import Service, ServiceConfig
 from storage import episodes
 from storage.catalog import Catalog
+from tests.conftest import free_port, run_cli
 from tests.storage.test_episodes import make_episode
 
 
@@ -159,3 +160,18 @@ def test_console_script_usage_error(tmp_path):
                            "--data", str(tmp_path)], capture_output=True, text=True, timeout=120)
     assert proc.returncode == 2
     assert proc.stderr.strip().count("\n") == 0 and "invalid choice: 'hexagon'" in proc.stderr
+
+
+def test_verify_reports_files_a_crashed_ingest_left_and_serve_moves_them_aside(capsys, data, rng, tmp_path):
+    cat = Catalog(data)
+    kept = cat.add_episode(make_episode(rng))
+    orphan = kept.path.parent / "orphan.mcap"  # renamed into place, then a crash before the commit
+    orphan.write_bytes(episodes.encode_episode(make_episode(rng)))
+    rc, out, _ = run_cli(capsys, "episodes", "verify", "--data", str(data))
+    assert rc == 0 and "1 ok, 0 bad" in out and "left by a crashed ingest" in out and str(orphan) in out
+    service = Service(ServiceConfig(data_dir=data, listen=(f"tcp/127.0.0.1:{free_port()}",)))
+    service.start()
+    service.stop()
+    assert not orphan.exists() and (data / "orphans" / orphan.parent.name / orphan.name).is_file()
+    rc, out, _ = run_cli(capsys, "episodes", "verify", "--data", str(data), "--json")
+    assert rc == 0 and json.loads(out)["strays"] == []

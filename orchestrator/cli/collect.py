@@ -14,7 +14,7 @@ from tqdm import tqdm
 
 from orchestrator.cli import common
 from orchestrator.protocol import MAX_EPISODE_STEPS, POLICIES, SHAPES
-from storage.catalog import SPLITS, Catalog, EpisodeRow
+from storage.catalog import ORPHANS_DIR, SPLITS, Catalog, EpisodeRow
 from storage.errors import CatalogError, StorageError
 from workers import simbench
 from workers.collect import EvalSplitConflict, collect_episode, create_eval_split
@@ -204,12 +204,19 @@ def _episodes_verify(args: argparse.Namespace) -> int:
             report.append({"episode_id": row.episode_id, "ok": False,
                            "error": f"{type(exc).__name__}: {exc}"})
     bad = [r for r in report if not r["ok"]]
+    strays = cat.strays() if not args.episode_ids else None
+    stray_paths = [str(p) for p in (strays.staging + strays.unindexed)] if strays else []
     if args.json:
-        common.print_json({"checked": len(report), "bad": len(bad), "episodes": report})
+        common.print_json({"checked": len(report), "bad": len(bad), "episodes": report, "strays": stray_paths})
     else:
         for r in bad:
             print(f"BAD {r['episode_id']}: {r['error']}")
         print(f"verified {len(report)} episodes: {len(report) - len(bad)} ok, {len(bad)} bad")
+        if stray_paths:  # never acknowledged, so not an error; `serve` moves them aside when it starts
+            print(f"{len(stray_paths)} file(s) left by a crashed ingest, not in the catalog "
+                  f"(`serve` moves them to {ORPHANS_DIR}/ at start-up):")
+            for path in stray_paths:
+                print(f"  {path}")
     return 1 if bad else 0
 
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 import os
 import sqlite3
 import threading
+import time
 
 import numpy as np
 import pytest
@@ -401,3 +402,21 @@ def test_opening_current_stores_takes_no_write_lock(tmp_path, rng):
         writer.close()
         worker.join()
     assert opened[0] == 0 and opened[1] is None
+
+
+def test_files_a_crashed_ingest_left_are_found_and_swept(tmp_path, rng):
+    """A SIGKILL after staging leaves a .tmp; one between rename and commit, an unindexed .mcap."""
+    cat = Catalog(tmp_path)
+    kept = cat.add_episode(make_episode(rng))
+    day = kept.path.parent
+    staged = files.stage_bytes(day / "lost.mcap", b"staged bytes")  # never renamed into place
+    orphan = day / "orphan.mcap"
+    orphan.write_bytes(episodes.encode_episode(make_episode(rng)))  # renamed into place, never committed
+    assert cat.strays().staging == []  # a fresh staging file may belong to a live ingest: left alone
+    later = time.time() + 3600
+    found = cat.strays(now=later)
+    assert found.staging == [staged] and found.unindexed == [orphan]
+    cat.sweep_strays(now=later)
+    assert not staged.exists() and not orphan.exists() and kept.path.is_file()
+    assert (tmp_path / "orphans" / day.name / "orphan.mcap").is_file()  # kept for the operator
+    assert cat.count() == 1 and not cat.strays(now=later)
