@@ -41,7 +41,7 @@ from orchestrator.planner import Planner
 from orchestrator.protocol import ErrorCode, EventKind, Keys, ProtocolError
 from orchestrator.transport import Incoming, Response
 from orchestrator.uploads import StoredEpisode, UploadHandler
-from storage.catalog import ORPHANS_DIR, Catalog
+from storage.catalog import ORPHANS_DIR, STAGING_MAX_AGE_S, Catalog
 from storage.errors import QueueError, StorageError
 from storage.models import ModelRegistry
 from storage.queue import RequestQueue
@@ -162,11 +162,7 @@ class Service:
         try:
             cfg.data_dir.mkdir(parents=True, exist_ok=True)
             self.catalog = Catalog(cfg.data_dir)
-            swept = self.catalog.sweep_strays()  # before any upload is answered
-            if swept:
-                log.warning("moved %d unindexed episode file(s) to %s/ and deleted %d staging file(s) left "
-                            "by a crash (none was acknowledged)", len(swept.unindexed), ORPHANS_DIR,
-                            len(swept.staging))
+            self._sweep()  # before any upload is answered
             self.queue = RequestQueue(self.catalog.db_path, background_checkpoint=True)
             registry = ModelRegistry(cfg.data_dir)
         except (StorageError, OSError) as exc:
@@ -373,21 +369,33 @@ class Service:
                             "attempts": request.attempts, "why": why, "error": (request.last_error or "")[:500]})
 
     def _maintain(self) -> None:
-        """Reap expired leases every reap_interval_s; run liveliness tasks as they come."""
+        """Reap expired leases every reap_interval_s, sweep crash leftovers every STAGING_MAX_AGE_S;
+        run liveliness tasks as they come."""
         interval = self.config.reap_interval_s
         next_reap = time.monotonic()
+        next_sweep = next_reap + STAGING_MAX_AGE_S
         while True:
             try:
                 task = self._tasks.get(timeout=max(0.0, next_reap - time.monotonic()))
             except queue_mod.Empty:
                 task = self._reap
                 next_reap = time.monotonic() + interval
+                if next_reap >= next_sweep:  # a crash's staging files live at most two of these periods
+                    task, next_sweep = self._sweep, next_reap + STAGING_MAX_AGE_S
             if task is None:
                 return
             try:
                 task()
             except Exception:  # noqa: BLE001 -- lease expiry must outlive any one failure
                 log.exception("maintenance task failed; will try again")
+
+    def _sweep(self) -> None:
+        """Files crashed ingests left: unindexed episodes to orphans/, staging files older than
+        STAGING_MAX_AGE_S deleted (younger ones may be a live ingest's: the next sweep takes them)."""
+        swept = self.catalog.sweep_strays()
+        if swept:
+            log.warning("moved %d unindexed episode file(s) to %s/ and deleted %d staging file(s) left by a "
+                        "crash (none was acknowledged)", len(swept.unindexed), ORPHANS_DIR, len(swept.staging))
 
     def _reap(self) -> None:
         with self._writes:

@@ -465,33 +465,38 @@ class Catalog:
         """Files under ``episodes/`` a crashed ingest left: staging files older than ``min_tmp_age_s``
         and episode files with no catalog row.
 
-        Looked for under the write lock: an ingest renames its file into place inside its write
-        transaction, so no file seen here is between its rename and its commit. (Staging happens
-        before that transaction, hence the age for those.)
+        Files are listed first, then checked under the write lock: an ingest renames its file into
+        place inside its write transaction, so by the time the lock is ours every listed file's
+        ingest has committed (a row) or rolled back (the file removed). Staging happens before that
+        transaction, hence the age for those.
         """
-        now = time.time() if now is None else now
-        with self._connect() as conn, transaction(conn):
-            indexed = {r["path"] for r in conn.execute("SELECT path FROM episodes")}
-            files = sorted(p for p in self.episodes_dir.rglob("*.mcap") if not p.name.startswith("."))
-            unindexed = [p for p in files if p.relative_to(self.data_dir).as_posix() not in indexed]
-        staging = sorted(p for p in self.episodes_dir.rglob(".*.mcap.*.tmp") if _age(p, now) > min_tmp_age_s)
-        return Strays(staging=staging, unindexed=unindexed)
+        return self._strays(min_tmp_age_s, now, move_to=None)
 
     def sweep_strays(self, min_tmp_age_s: float = STAGING_MAX_AGE_S, now: float | None = None) -> Strays:
         """``strays`` cleaned up: staging files deleted, unindexed episode files moved to ``DATA/orphans/``.
 
         Neither was ever acknowledged (the catalog row is the one commit point); a worker that still
         holds the lease uploads the same bytes again. Orphans are kept, not deleted, for the operator.
-        Run at service start-up, before any upload is answered.
+        The moves happen under the write lock, so an upload of the same episode cannot slip in between.
         """
-        found = self.strays(min_tmp_age_s, now)
+        found = self._strays(min_tmp_age_s, now, move_to=self.data_dir / ORPHANS_DIR)
         for path in found.staging:
             path.unlink(missing_ok=True)
-        for path in found.unindexed:
-            target = self.data_dir / ORPHANS_DIR / path.relative_to(self.episodes_dir)
-            target.parent.mkdir(parents=True, exist_ok=True)
-            os.replace(path, target)
         return found
+
+    def _strays(self, min_tmp_age_s: float, now: float | None, move_to: Path | None) -> Strays:
+        now = time.time() if now is None else now
+        files = sorted(p for p in self.episodes_dir.rglob("*.mcap") if not p.name.startswith("."))
+        with self._connect() as conn, transaction(conn):  # held briefly: no directory walk inside
+            indexed = {r["path"] for r in conn.execute("SELECT path FROM episodes")}
+            unindexed = [p for p in files
+                         if p.relative_to(self.data_dir).as_posix() not in indexed and p.exists()]
+            for path in unindexed if move_to is not None else ():
+                target = move_to / path.relative_to(self.episodes_dir)
+                target.parent.mkdir(parents=True, exist_ok=True)
+                os.replace(path, target)
+        staging = sorted(p for p in self.episodes_dir.rglob(".*.mcap.*.tmp") if _age(p, now) > min_tmp_age_s)
+        return Strays(staging=staging, unindexed=unindexed)
 
     def verify(self, episode_id: str) -> EpisodeMeta:
         """Re-hashes and re-verifies an indexed episode's file; raises a ``StorageError`` if bad."""
