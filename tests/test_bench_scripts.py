@@ -23,3 +23,24 @@ def test_uncertainty_figures_run_in_the_per_shape_palette_world(tmp_path):
     assert figures["main"]["h1_mse"] > 0 and -1 <= figures["main"]["spearman"] <= 1
     assert set(figures["ood"]["disagreement_ratio_to_heldout_T"]) == {"box", "L", "disk", "T_train"}
     assert "palette" in Catalog(data).eval_split().params  # the recoloured world is pinned with the split
+
+
+def test_chaos_loses_nothing_acknowledged_through_service_and_worker_kills(tmp_path):
+    data, out = tmp_path / "data", tmp_path / "chaos.json"
+    argv = [sys.executable, str(ROOT / "bench" / "chaos.py"), "--data", str(data), "--requests", "12",
+            "--kills", "2", "--worker-kills", "1", "--steps", "5", "--realtime", "4", "--seed", "1",
+            "--json", str(out)]
+    proc = subprocess.run(argv, cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    summary = json.loads(out.read_text())
+    assert summary["problems"] == []
+    assert summary["by_status"] == {"done": 12}
+    assert summary["episodes"] == summary["requests"] == 12
+    assert summary["service_starts"] >= 2 and summary["worker_kills"] == 1
+
+
+def test_chaos_refuses_a_non_empty_data_directory(tmp_path):
+    (tmp_path / "something").write_text("")
+    proc = subprocess.run([sys.executable, str(ROOT / "bench" / "chaos.py"), "--data", str(tmp_path)],
+                          cwd=ROOT, capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 2 and "not an empty directory" in proc.stderr
