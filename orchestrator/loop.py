@@ -207,8 +207,7 @@ class LoopRun:
 
     def _promoted(self, version: str) -> None:
         self.scorer.reload()
-        h1 = self.registry.get(version).metrics.get("h1_mse")
-        self.metrics.set_champion(version, h1)
+        h1 = self.registry.get(version).metrics.get("h1_mse")  # the service's gauges read the registry themselves
         self.service.publish(EventKind.MODEL_PROMOTED, {"version": version, "h1_mse": h1})
 
     def _retrained(self, rec: RetrainRecord) -> None:

@@ -40,6 +40,7 @@ thread of their own (``storage.wal``) instead of inside whichever transition cro
 from __future__ import annotations
 
 import json
+import re
 import sqlite3
 import threading
 import time
@@ -102,8 +103,9 @@ _SCHEMA = (
     "CREATE INDEX IF NOT EXISTS requests_finished ON requests (status, updated) WHERE status IN "
     + _TERMINAL_SQL,
 )
-_SCHEMA_OBJECTS = {"requests", "requests_queued", "requests_leased", "requests_finished"}
-_DROPPED_INDEXES = {"requests_ready", "requests_expiry", "requests_worker", "requests_status"}
+# What a current file has and must not have, read off _SCHEMA (so the two cannot drift apart).
+_SCHEMA_OBJECTS = {m[1] for sql in _SCHEMA if (m := re.match(r"CREATE \w+ IF NOT EXISTS (\w+)", sql))}
+_DROPPED_INDEXES = {m[1] for sql in _SCHEMA if (m := re.match(r"DROP INDEX IF EXISTS (\w+)", sql))}
 
 # Each transition is one statement (prepared once per connection by sqlite3's statement cache).
 _LIVE = "id = ? AND status = 'leased' AND token = ? AND (? IS NULL OR worker_id = ?)"

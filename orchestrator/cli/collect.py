@@ -108,8 +108,7 @@ def register_bench(bench_sub: argparse._SubParsersAction) -> None:
 
 def _existing_catalog(args: argparse.Namespace) -> Catalog:
     data = Path(args.data)
-    if not (data / "catalog.sqlite").is_file():
-        raise common.UsageError(f"no catalog at {data} (give --data DIR, or collect episodes first)")
+    common.require_catalog(data)
     return Catalog(data)
 
 

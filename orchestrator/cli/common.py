@@ -9,6 +9,8 @@ import sys
 from pathlib import Path
 from typing import Any, NoReturn
 
+from storage.database import DB_NAME
+
 DEFAULT_DATA = Path("activecollect-data")
 
 
@@ -91,9 +93,15 @@ def finite_float(text: str) -> float:
 def positive_float(text: str) -> float:
     """A finite number > 0 (a time, a rate): nan and inf are refused too."""
     try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a positive number, found {text!r}") from None
-    if not (value > 0 and math.isfinite(value)):
+        value = finite_float(text)
+    except argparse.ArgumentTypeError:
+        value = math.nan
+    if not value > 0:
         raise argparse.ArgumentTypeError(f"expected a positive number, found {text!r}")
     return value
+
+
+def require_catalog(data: Path) -> None:
+    """UsageError (exit 2) unless ``data`` holds a catalog; nothing is created."""
+    if not (data / DB_NAME).is_file():
+        raise UsageError(f"no catalog at {data} (give --data DIR, or collect episodes first)")

@@ -223,8 +223,7 @@ def _retrain(args: argparse.Namespace) -> int:
         cfg = train_config(args)
     except ConfigError as exc:
         raise common.UsageError(str(exc)) from None
-    if not (args.data / "catalog.sqlite").is_file():  # checked before the retrain lock would make the directory
-        raise common.UsageError(f"no catalog at {args.data} (give --data DIR, or collect episodes first)")
+    common.require_catalog(args.data)  # checked before the retrain lock would make the directory
     from orchestrator.retrain import run_retrain  # torch: imported once the arguments are known good (start-up cost)
     try:
         result = run_retrain(args.data, cfg, wait=args.wait)
@@ -246,8 +245,7 @@ def _retrain(args: argparse.Namespace) -> int:
 
 
 def _dashboard(args: argparse.Namespace) -> int:
-    if not (args.data / "catalog.sqlite").exists():
-        raise common.UsageError(f"no catalog in {args.data} (expected {args.data / 'catalog.sqlite'})")
+    common.require_catalog(args.data)
     frames = FramesSource(ChampionScorer(args.data), Catalog(args.data))
     dash = Dashboard(DashboardConfig(host=args.host, port=args.port), DataSources(args.data, frames_png=frames).sources())
     try:
