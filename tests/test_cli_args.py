@@ -84,6 +84,13 @@ def _connect() -> list[str]:
     (["retrain", "--min-improvement", "nan", "--data", "DATA"], "expected a finite number"),
     (["train", "--min-improvement", "inf", "--data", "DATA"], "expected a finite number"),
     (["run", "--seed", "-1", "--data", "DATA"], "expected an integer >= 0"),
+    # --retrain-args is checked by the retrain job's parser up front, not at every retrain
+    (["run", "--retrain-args=--epochs x", "--data", "DATA"], "argument --epochs: expected a positive integer"),
+    (["run", "--retrain-args=--bogus 1", "--data", "DATA"], "unrecognized arguments: --bogus"),
+    (["run", "--retrain-args=--data /elsewhere", "--data", "DATA"], "--data is set by the scheduler"),
+    (["run", "--retrain-args=--json", "--data", "DATA"], "--json is set by the scheduler"),
+    (["run", "--retrain-args='unclosed", "--data", "DATA"], "No closing quotation"),
+    (["serve", "--retrain-args=--members 0", "--data", "DATA"], "argument --members: expected a positive integer"),
 ])
 def test_bad_arguments_exit_2_in_one_line(capsys, tmp_path, argv, words) -> None:
     data = tmp_path / "data"
@@ -93,6 +100,12 @@ def test_bad_arguments_exit_2_in_one_line(capsys, tmp_path, argv, words) -> None
     rc, out, err = run_cli(capsys, *argv)
     assert rc == 2 and words in err and err.count("\n") == 1, err
     assert out == "" and not data.exists()
+
+
+def test_retrain_args_are_split_like_a_shell_and_kept_for_the_jobs() -> None:
+    args = build_parser().parse_args(["serve", "--retrain-args", "--members 2 --widths '4,4,4' --from-champion"])
+    assert args.retrain_args == ("--members", "2", "--widths", "4,4,4", "--from-champion")
+    assert build_parser().parse_args(["serve"]).retrain_args == ()  # the job's own defaults
 
 
 def test_retrain_without_a_catalog_is_a_usage_error_and_makes_nothing(capsys, tmp_path) -> None:

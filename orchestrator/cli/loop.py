@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import shlex
 import sys
 import threading
 import time
@@ -56,8 +57,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--seed", type=common.non_negative_int, default=d.seed, help=f"planner seed (default {d.seed})")
     p.add_argument("--dashboard-port", type=int, default=d.dashboard_port,
                    help=f"dashboard port on 127.0.0.1 (default {d.dashboard_port}; 0 any, -1 off)")
-    p.add_argument("--retrain-args", default=" ".join(d.retrain_args),
-                   help=f"arguments of each retrain job (default '{' '.join(d.retrain_args)}')")
+    add_retrain_args_arg(p, d.retrain_args)
     p.add_argument("--no-progress", action="store_true", help="no live progress line")
     p.set_defaults(func=_run)
 
@@ -178,6 +178,41 @@ def add_train_args(p: argparse.ArgumentParser, defaults: TrainConfig | None = No
                    help=f"the gate's minimum relative h1 MSE improvement (default {d.min_rel_improvement})")
 
 
+class _RetrainArgsParser(common.Parser):
+    """The retrain job's own parser, checking a ``--retrain-args`` string: a usage error is raised, not exited."""
+
+    def error(self, message: str):
+        raise argparse.ArgumentTypeError(message)
+
+
+#: Set by the scheduler itself (``scheduler.retrain_command``): in --retrain-args they would train elsewhere
+#: or change what the scheduler reads back.
+_SCHEDULER_OWNS = ("--data", "--json", "--wait")
+
+
+def retrain_args(text: str) -> tuple[str, ...]:
+    """A ``--retrain-args`` value: shell-split, and checked now by the retrain job's parser, so a bad one
+    is a usage error of the command that was given it (exit 2) instead of a failed job at every retrain."""
+    try:
+        args = tuple(shlex.split(text))
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(f"cannot split {text!r}: {exc}") from None
+    parser = _RetrainArgsParser(prog="retrain", add_help=False)
+    add_train_args(parser)
+    owned = [a for a in args if a.split("=", 1)[0] in _SCHEDULER_OWNS]
+    if owned:
+        raise argparse.ArgumentTypeError(f"{owned[0].split('=', 1)[0]} is set by the scheduler, not in --retrain-args")
+    parser.parse_args(list(args))
+    return args
+
+
+def add_retrain_args_arg(p: argparse.ArgumentParser, default: tuple[str, ...]) -> None:
+    shown = " ".join(default) or "retrain's own defaults"
+    p.add_argument("--retrain-args", type=retrain_args, default=default, metavar="'ARGS'",
+                   help=f"arguments of each retrain job, as one string (see 'activecollect retrain --help'; "
+                        f"default: {shown}); one option alone needs '=': --retrain-args=--from-champion")
+
+
 def train_config(args: argparse.Namespace) -> TrainConfig:
     return TrainConfig(members=args.members, epochs=args.epochs, batch_size=args.batch_size, lr=args.lr,
                        widths=args.widths, max_windows=args.max_windows, seed=args.seed, device=args.device,
@@ -201,7 +236,7 @@ def _run(args: argparse.Namespace) -> int:
         cfg = RunConfig(data_dir=args.data, budget=args.budget, round_episodes=args.round_episodes,
                         workers=args.workers, planner=args.planner, steps=args.steps,
                         image_size=args.image_size, eval_episodes=args.eval_episodes, seed=args.seed,
-                        dashboard_port=args.dashboard_port, retrain_args=tuple(args.retrain_args.split()),
+                        dashboard_port=args.dashboard_port, retrain_args=args.retrain_args,
                         progress=not args.no_progress)
     except ValueError as exc:
         raise common.UsageError(str(exc)) from None

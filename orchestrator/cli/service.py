@@ -25,6 +25,7 @@ import zenoh
 from orchestrator import admin, dispatchbench, protocol, transport
 from orchestrator.champion import ChampionScorer
 from orchestrator.cli import common
+from orchestrator.cli.loop import add_retrain_args_arg
 from orchestrator.companions import CompanionConfig, Companions
 from orchestrator.messages import AdminRequest, Event
 from orchestrator.planner import ActivePlanner, ActivePlannerConfig, UniformPlanner, UniformPlannerConfig, \
@@ -60,6 +61,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "(default 0 = not on count)")
     p.add_argument("--retrain-cron", default=d.retrain_cron, metavar="EXPR",
                    help="also retrain on this cron expression, e.g. '0 * * * *' (default: not on time)")
+    add_retrain_args_arg(p, d.retrain_args)
     p.add_argument("--log-level", default="INFO", choices=("DEBUG", "INFO", "WARNING", "ERROR"))
     p.set_defaults(func=cmd_serve)
 
@@ -187,7 +189,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
     listen, connect = transport.endpoints_from_args(args)
     try:
         extras = CompanionConfig(dashboard_port=args.dashboard_port, retrain_every=args.retrain_every,
-                                 retrain_cron=args.retrain_cron)
+                                 retrain_cron=args.retrain_cron, retrain_args=args.retrain_args)
     except ValueError as exc:
         raise common.UsageError(str(exc)) from None
     try:
