@@ -98,8 +98,11 @@ def request_counts(data: Path) -> Counter:
 class Cluster:
     """The service and the workers as subprocesses, each start with its own log file."""
 
-    def __init__(self, data: Path, realtime: float, n_workers: int = 3) -> None:
+    def __init__(self, data: Path, realtime: float, n_workers: int = 3,
+                 service_args: tuple[str, ...] = ("--planner", "none", "--dashboard-port", "-1"),
+                 worker_size: int = 16) -> None:
         self.data, self.realtime = data, realtime
+        self.service_args, self.worker_size = service_args, worker_size
         self.logs = data / LOGS
         self.logs.mkdir(parents=True)
         self.endpoint = f"tcp/127.0.0.1:{free_port()}"
@@ -117,7 +120,7 @@ class Cluster:
         """Starts ``serve`` and returns once ``stats`` answers (after its start-up sweep)."""
         self.service_starts += 1
         self.service = self._spawn([ACTIVECOLLECT, "serve", "--data", str(self.data), "--listen", self.endpoint,
-                                    "--planner", "none", "--dashboard-port", "-1", "--log-level", "INFO"],
+                                    *self.service_args, "--log-level", "INFO"],
                                    f"service.{self.service_starts}", self.data)
         deadline = time.monotonic() + timeout
         while time.monotonic() < deadline:
@@ -135,7 +138,7 @@ class Cluster:
     def start_worker(self, wid: str) -> None:
         self.worker_starts[wid] += 1
         self.workers[wid] = self._spawn([sys.executable, "-m", "workers.agent", "--connect", self.endpoint,
-                                         "--size", "16", "--id", wid, "--realtime", str(self.realtime)],
+                                         "--size", str(self.worker_size), "--id", wid, "--realtime", str(self.realtime)],
                                         f"worker.{wid}.{self.worker_starts[wid]}", REPO)
 
     def kill(self, proc: subprocess.Popen, what: str) -> None:
@@ -299,6 +302,13 @@ def check_requests(reqs: dict[str, dict], eps: list[dict], acked: dict[str, str]
     for status in ("queued", "leased"):
         if stuck := sum(r["status"] == status for r in reqs.values()):
             problems.append(f"{stuck} requests still {status}")
+    return problems + check_episode_rows(reqs, eps)
+
+
+def check_episode_rows(reqs: dict[str, dict], eps: list[dict]) -> list[str]:
+    """Invariant 3: a done request has exactly the one episode it names, any other request none, and every
+    train episode names a done request."""
+    problems = []
     by_req: dict[str, list[dict]] = {}
     for e in eps:
         by_req.setdefault(e["request_id"], []).append(e)

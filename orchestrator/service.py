@@ -97,6 +97,11 @@ class ServiceConfig:
     """Builds the planner from the service context; None plans nothing (manual requests only)."""
     seed_requests: int = 0
     """Requests the planner seeds an empty queue with at start."""
+    min_queued: int = 0
+    """While a planner runs, keep at least this many requests queued: whenever fewer are, the planner's
+    ``seed`` (uniform draws) tops the queue up. An active planner asks only for states above its threshold
+    and away from what it asked before, so its requests can run out; once the queue is empty no episode
+    comes in to plan from, and without this floor collection stops for good. 0: no floor."""
     on_episode: tuple[EpisodeCallback, ...] = ()
     """Called in the background thread for every stored episode (after the planner)."""
     handler_threads: int = 4
@@ -120,7 +125,8 @@ class ServiceConfig:
             raise ServiceError(f"mode: expected one of {transport.MODES}, found {self.mode!r}")
         checks = [("lease_s", self.lease_s, 0.05, 86400.0), ("reap_interval_s", self.reap_interval_s, 0.01, 3600.0),
                   ("max_upload_bytes", self.max_upload_bytes, 1, protocol.MAX_UPLOAD_BYTES),
-                  ("seed_requests", self.seed_requests, 0, 10_000), ("handler_threads", self.handler_threads, 1, 64)]
+                  ("seed_requests", self.seed_requests, 0, 10_000), ("min_queued", self.min_queued, 0, 10_000),
+                  ("handler_threads", self.handler_threads, 1, 64)]
         for name, value, lo, hi in checks:
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not lo <= value <= hi:
                 raise ServiceError(f"{name}: expected a number in [{lo}, {hi}], found {value!r}")
@@ -424,7 +430,11 @@ class Service:
     def _after_episodes(self) -> None:
         """Background thread: the planner and on_episode callbacks, one batch of stored episodes at a time."""
         while True:
-            batch = [self._stored.get()]
+            try:
+                batch = [self._stored.get(timeout=self.config.reap_interval_s)]
+            except queue_mod.Empty:
+                self._top_up()
+                continue
             while not self._stored.empty():
                 batch.append(self._stored.get_nowait())
             done = None in batch
@@ -433,6 +443,18 @@ class Service:
                 self._handle_stored(batch)
             if done:
                 return
+            self._top_up()
+
+    def _top_up(self) -> None:
+        """Tops the queue up to ``min_queued`` with the planner's seed draws (in the planner's own thread)."""
+        if self.planner is None or not self.config.min_queued:
+            return
+        try:
+            missing = self.config.min_queued - self.queue.counts()["queued"]
+            if missing > 0:
+                self._enqueue(self.planner.seed(missing), "top-up")
+        except Exception:  # noqa: BLE001 -- a failed top-up is tried again at the next interval; it is logged
+            log.exception("topping the queue up to %d failed", self.config.min_queued)
 
     def _handle_stored(self, batch: list[StoredEpisode]) -> None:
         if self.planner is not None:

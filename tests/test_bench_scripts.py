@@ -5,6 +5,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 from storage.catalog import Catalog
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -44,3 +46,20 @@ def test_chaos_refuses_a_non_empty_data_directory(tmp_path):
     proc = subprocess.run([sys.executable, str(ROOT / "bench" / "chaos.py"), "--data", str(tmp_path)],
                           cwd=ROOT, capture_output=True, text=True, timeout=60)
     assert proc.returncode == 2 and "not an empty directory" in proc.stderr
+
+
+@pytest.mark.timeout(300)
+def test_soak_keeps_collecting_and_retraining_and_sees_no_leak(tmp_path):
+    data, out = tmp_path / "data", tmp_path / "soak.json"
+    argv = [sys.executable, str(ROOT / "bench" / "soak.py"), "--data", str(data), "--minutes", "1",
+            "--warmup-minutes", "0.3", "--interval", "3", "--size", "16", "--steps", "10", "--eval-episodes", "4",
+            "--realtime", "2", "--retrain-every", "8", "--retrain-args",
+            "--members 2 --epochs 1 --widths 4,4,4 --batch-size 8 --from-champion --device cpu --min-improvement 0",
+            "--json", str(out)]
+    proc = subprocess.run(argv, cwd=ROOT, capture_output=True, text=True, timeout=280)
+    summary = json.loads(out.read_text())
+    assert proc.returncode == 0, (summary["problems"], proc.stderr[-3000:])
+    assert summary["problems"] == [] and summary["retrain_jobs"] >= 1 and summary["models"].get("champion") == 1
+    # after the first champion the active planner chose states (the seeds and top-ups are uniform draws)
+    assert summary["requests_by_planner"].get("active", 0) >= 1
+    assert summary["requests"].get("leased", 0) == 0

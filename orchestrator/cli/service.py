@@ -36,6 +36,8 @@ from storage.requests import RequestStatus
 from workers import agent
 
 PLANNERS = ("active", "uniform", "none")
+#: ``serve``'s queue floor: an idle worker of two finds work at once while the planner catches up.
+MIN_QUEUED = 2
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -50,6 +52,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="what turns stored episodes into requests (default active)")
     p.add_argument("--seed-requests", type=common.non_negative_int, default=0, metavar="N",
                    help="uniform requests to seed an empty queue with at start (default 0)")
+    p.add_argument("--min-queued", type=common.non_negative_int, default=MIN_QUEUED, metavar="N",
+                   help=f"keep at least N requests queued: when the planner's own requests run out, uniform "
+                        f"draws top the queue up so collection never stops (default {MIN_QUEUED}; 0 = no floor)")
     p.add_argument("--steps", type=common.positive_int, default=50, help="steps per planned episode (default 50)")
     p.add_argument("--seed", type=common.non_negative_int, default=0,
                    help="seed of the planner's generator (default 0)")
@@ -196,6 +201,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
         config = ServiceConfig(data_dir=args.data, namespace=args.namespace, mode=args.mode, listen=listen,
                                connect=connect, zenoh_config=args.zenoh_config, lease_s=args.lease_s,
                                reap_interval_s=args.reap_interval_s, seed_requests=args.seed_requests,
+                               min_queued=args.min_queued,
                                planner=planner_factory(args.planner, args.steps, args.seed))
     except ServiceError as exc:
         raise common.UsageError(str(exc)) from None

@@ -8,11 +8,13 @@ import threading
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
 import zenoh
 
 from orchestrator import messages, protocol, transport
 from orchestrator.messages import LeaseGrant
+from orchestrator.planner import UniformPlanner, UniformPlannerConfig
 from orchestrator.protocol import ErrorCode, Keys, ProtocolError
 from orchestrator.service import Service, ServiceConfig, ServiceError
 from orchestrator.uploads import StoredEpisode
@@ -419,6 +421,27 @@ def test_planner_and_callbacks_run_off_the_query_path(make_service, client, keys
     assert seen[0].request_id == grant.request_id and seen[0].episode.frames.shape[1:] == (16, 16, 3)
     wait_for(lambda: service.queue.counts()["queued"] == 1, message="the planner's request is queued")
     assert lease(client, keys).shape == "L"
+
+
+def test_the_queue_is_topped_up_when_the_planner_asks_for_nothing(make_service, client, keys) -> None:
+    # A real planner that plans nothing from new episodes (as an active planner does when no state
+    # passes its threshold): without the floor the queue runs dry and collection stops for good.
+    planner = lambda ctx: UniformPlanner(UniformPlannerConfig(per_episode=0, steps=5), np.random.default_rng(0))
+    service = make_service(planner=planner, min_queued=2)
+    wait_for(lambda: service.queue.counts()["queued"] == 2, message="the floor reached")
+    for _ in range(3):
+        grant = lease(client, keys)
+        upload(client, keys, grant, episode_bytes(grant))
+        wait_for(lambda: service.queue.counts()["queued"] == 2, message="topped up again")
+    counts = service.queue.counts()
+    assert counts["done"] == 3 and counts["queued"] == 2 and counts["leased"] == 0
+    reasons = {r.reason["planner"] for r in service.queue.list(status="queued")}
+    assert reasons == {"seed"}  # uniform draws, as the planner seeds
+
+
+def test_min_queued_is_validated(data_dir) -> None:
+    with pytest.raises(ServiceError, match="min_queued"):
+        ServiceConfig(data_dir=data_dir, min_queued=-1)
 
 
 def test_restart_keeps_everything_acknowledged(make_service, client, keys, data_dir) -> None:
