@@ -20,7 +20,7 @@ Growth is judged after a warm-up (--warmup-minutes: imports, the first champion,
 the median of the first three and of the last three samples after it. The run fails (exit 1) when
 the service's file descriptors grow by more than 16 or its threads by more than 8, a worker's RSS
 by more than 25 %, the service's RSS by more than --rss-growth (default 25 %), the WAL passes 64 MiB,
-a zombie is seen, the dashboard or the admin plane stops answering, nothing is collected after the
+a zombie child outlives a sampling interval, the dashboard or the admin plane stops answering, nothing is collected after the
 warm-up, or an audit check fails. Exit 2 for a usage error. Process logs go to DATA/chaos-logs/.
 
 Usage: .venv/bin/python bench/soak.py --data /tmp/soak1 [--minutes 30] [--workers 2]
@@ -62,9 +62,9 @@ def proc_stats(pid: int) -> dict | None:
     return {"rss_mib": int(fields["VmRSS"].split()[0]) / 1024, "threads": int(fields["Threads"]), "fds": fds}
 
 
-def children(pid: int) -> tuple[int, int]:
-    """(child processes, zombies among them) of ``pid``."""
-    n = zombies = 0
+def children(pid: int) -> tuple[int, list[int]]:
+    """(child processes, the pids of the zombies among them) of ``pid``."""
+    n, zombies = 0, []
     for entry in os.scandir("/proc"):
         if not entry.name.isdigit():
             continue
@@ -75,7 +75,8 @@ def children(pid: int) -> tuple[int, int]:
         state, ppid = stat.rsplit(")", 1)[1].split()[:2]  # the command name may hold spaces and ')'
         if int(ppid) == pid:
             n += 1
-            zombies += state == "Z"
+            if state == "Z":
+                zombies.append(int(entry.name))
     return n, zombies
 
 
@@ -91,6 +92,17 @@ def catalog_counts(data: Path) -> dict:
         return {}
     models = data / "models"
     return {"episodes": eps, "models": sum(1 for p in models.iterdir() if p.is_dir()) if models.is_dir() else 0}
+
+
+def disk_mib(data: Path) -> dict[str, float]:
+    """MiB on disk under each of the data directory's parts (what grows with running time)."""
+    parts = {"episodes": data / "episodes", "models": data / "models", "logs": data / "logs",
+             "catalog": data / DB_NAME}
+    out = {}
+    for name, path in parts.items():
+        files = [path] if path.is_file() else list(path.rglob("*")) if path.is_dir() else []
+        out[name] = round(sum(f.stat().st_size for f in files if f.is_file()) / 2**20, 2)
+    return out
 
 
 def answers(url: str) -> bool:
@@ -185,8 +197,11 @@ def summarize(soak: Soak, elapsed: float) -> dict:
         first_eps = sum((warm[0].get("episodes") or {}).values())
         if sum((warm[-1].get("episodes") or {}).values()) <= first_eps:
             problems.append("no episode was collected after the warm-up")
-    if any(s["zombies"] for s in soak.samples):
-        problems.append(f"zombie children seen in {sum(1 for s in soak.samples if s['zombies'])} samples")
+    # A child that has just exited is a zombie until the scheduler reaps it (it looks every 0.5 s):
+    # one left unreaped is the same pid in two samples in a row.
+    lingering = {z for a, b in zip(soak.samples, soak.samples[1:]) for z in set(a["zombies"]) & set(b["zombies"])}
+    if lingering:
+        problems.append(f"zombie children never reaped: {sorted(lingering)}")
     if (wal := max((s["wal_mib"] for s in soak.samples), default=0.0)) > WAL_LIMIT / 2**20:
         problems.append(f"the WAL reached {wal:.0f} MiB")
     for what in ("dashboard_ok", "admin_ok"):
@@ -214,7 +229,7 @@ def summarize(soak: Soak, elapsed: float) -> dict:
         "requests_by_planner": dict(Counter(json.loads(r["reason"]).get("planner") for r in reqs.values())),
         "models": dict(Counter(m["status"] for m in models)), "retrain_jobs": len(retrain_logs),
         "service_errors_logged": slogs.count(" ERROR "), "service": svc, "worker_rss_mib": workers,
-        "wal_mib_max": round(wal, 2), "samples": len(soak.samples), "warm_samples": len(warm),
+        "wal_mib_max": round(wal, 2), "disk_mib": disk_mib(data), "samples": len(soak.samples), "warm_samples": len(warm),
         "problems": problems + file_problems, "notes": notes, "series": soak.samples,
     }
 
