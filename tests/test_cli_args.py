@@ -87,8 +87,12 @@ def _connect() -> list[str]:
     # --retrain-args is checked by the retrain job's parser up front, not at every retrain
     (["run", "--retrain-args=--epochs x", "--data", "DATA"], "argument --epochs: expected a positive integer"),
     (["run", "--retrain-args=--bogus 1", "--data", "DATA"], "unrecognized arguments: --bogus"),
-    (["run", "--retrain-args=--data /elsewhere", "--data", "DATA"], "--data is set by the scheduler"),
-    (["run", "--retrain-args=--json", "--data", "DATA"], "--json is set by the scheduler"),
+    (["run", "--retrain-args=--data /elsewhere", "--data", "DATA"], "--data is decided by the scheduler"),
+    (["run", "--retrain-args=--json", "--data", "DATA"], "--json is decided by the scheduler"),
+    (["run", "--retrain-args=--dat /elsewhere", "--data", "DATA"], "--data is decided by the scheduler"),
+    # abbreviations the job's own parser finds ambiguous (it also has --data and --wait)
+    (["run", "--retrain-args=--d cpu", "--data", "DATA"], "ambiguous option: --d"),
+    (["serve", "--retrain-args=--w 8,16,32", "--data", "DATA"], "ambiguous option: --w"),
     (["run", "--retrain-args='unclosed", "--data", "DATA"], "No closing quotation"),
     (["serve", "--retrain-args=--members 0", "--data", "DATA"], "argument --members: expected a positive integer"),
 ])

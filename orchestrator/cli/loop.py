@@ -62,11 +62,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=_run)
 
     p = sub.add_parser("retrain", help="one retrain job (train, evaluate, gate) under DATA/retrain.lock, then exit")
-    common.add_data_arg(p)
-    common.add_json_arg(p)
-    add_train_args(p)
-    p.add_argument("--wait", action="store_true",
-                   help=f"wait for a running retrain to finish instead of exiting {EXIT_BUSY} at once")
+    _retrain_options(p)
     p.set_defaults(func=_retrain)
 
     p = sub.add_parser("dashboard", help="serve the read-only dashboard over a data directory")
@@ -178,6 +174,15 @@ def add_train_args(p: argparse.ArgumentParser, defaults: TrainConfig | None = No
                    help=f"the gate's minimum relative h1 MSE improvement (default {d.min_rel_improvement})")
 
 
+def _retrain_options(p: argparse.ArgumentParser) -> None:
+    """Every option of ``retrain`` (also what checks ``--retrain-args``)."""
+    common.add_data_arg(p)
+    common.add_json_arg(p)
+    add_train_args(p)
+    p.add_argument("--wait", action="store_true",
+                   help=f"wait for a running retrain to finish instead of exiting {EXIT_BUSY} at once")
+
+
 class _RetrainArgsParser(common.Parser):
     """The retrain job's own parser, checking a ``--retrain-args`` string: a usage error is raised, not exited."""
 
@@ -187,22 +192,25 @@ class _RetrainArgsParser(common.Parser):
 
 #: Set by the scheduler itself (``scheduler.retrain_command``): in --retrain-args they would train elsewhere
 #: or change what the scheduler reads back.
-_SCHEDULER_OWNS = ("--data", "--json", "--wait")
+_SCHEDULER_OWNS = ("data", "json", "wait")
 
 
 def retrain_args(text: str) -> tuple[str, ...]:
-    """A ``--retrain-args`` value: shell-split, and checked now by the retrain job's parser, so a bad one
-    is a usage error of the command that was given it (exit 2) instead of a failed job at every retrain."""
+    """A ``--retrain-args`` value: shell-split, and checked now by a parser with the retrain job's options
+    (abbreviations resolve as they will there), so a bad one is a usage error of the command that was
+    given it (exit 2) instead of a failed job at every retrain."""
     try:
         args = tuple(shlex.split(text))
     except ValueError as exc:
         raise argparse.ArgumentTypeError(f"cannot split {text!r}: {exc}") from None
     parser = _RetrainArgsParser(prog="retrain", add_help=False)
-    add_train_args(parser)
-    owned = [a for a in args if a.split("=", 1)[0] in _SCHEDULER_OWNS]
-    if owned:
-        raise argparse.ArgumentTypeError(f"{owned[0].split('=', 1)[0]} is set by the scheduler, not in --retrain-args")
-    parser.parse_args(list(args))
+    _retrain_options(parser)
+    unset = object()
+    parser.set_defaults(**{dest: unset for dest in _SCHEDULER_OWNS})
+    given = vars(parser.parse_args(list(args)))
+    for dest in _SCHEDULER_OWNS:
+        if given[dest] is not unset:
+            raise argparse.ArgumentTypeError(f"--{dest} is decided by the scheduler, not by --retrain-args")
     return args
 
 
