@@ -20,8 +20,9 @@ Growth is judged after a warm-up (--warmup-minutes: imports, the first champion,
 the median of the first three and of the last three samples after it. The run fails (exit 1) when
 the service's file descriptors grow by more than 16 or its threads by more than 8, a worker's RSS
 by more than 25 %, the service's RSS by more than --rss-growth (default 25 %), the WAL passes 64 MiB,
-a zombie child outlives a sampling interval, the dashboard or the admin plane stops answering, nothing is collected after the
-warm-up, or an audit check fails. Exit 2 for a usage error. Process logs go to DATA/chaos-logs/.
+a zombie child outlives a sampling interval, the dashboard or the admin plane stops answering, no
+episode comes in for --stall-minutes, the service logs an error (a failed retrain does) or exits, or
+an audit check fails. Exit 2 for a usage error. Process logs go to DATA/chaos-logs/.
 
 Usage: .venv/bin/python bench/soak.py --data /tmp/soak1 [--minutes 30] [--workers 2]
        [--retrain-every 96] [--interval 15] [--json summary.json]
@@ -59,6 +60,8 @@ def proc_stats(pid: int) -> dict | None:
         fds = len(os.listdir(f"/proc/{pid}/fd"))
     except (FileNotFoundError, ProcessLookupError):
         return None
+    if "VmRSS" not in fields:  # a zombie: exited, not yet waited for
+        return None
     return {"rss_mib": int(fields["VmRSS"].split()[0]) / 1024, "threads": int(fields["Threads"]), "fds": fds}
 
 
@@ -91,7 +94,8 @@ def catalog_counts(data: Path) -> dict:
     except sqlite3.Error:
         return {}
     models = data / "models"
-    return {"episodes": eps, "models": sum(1 for p in models.iterdir() if p.is_dir()) if models.is_dir() else 0}
+    versions = [p for p in models.iterdir() if p.is_dir() and not p.name.startswith(".")] if models.is_dir() else []
+    return {"episodes": eps, "models": len(versions)}  # (a retrain stages its checkpoint in a dot folder)
 
 
 def disk_mib(data: Path) -> dict[str, float]:
@@ -122,6 +126,8 @@ class Soak:
                         "--dashboard-port", str(self.port))
         self.cluster = Cluster(args.data, args.realtime, args.workers, service_args, args.size)
         self.samples: list[dict] = []
+        self.failure = ""
+        """Why the run ended early ('' when it ran its time)."""
 
     def sample(self, t: float) -> dict:
         c = self.cluster
@@ -156,7 +162,8 @@ class Soak:
         while (t := time.monotonic() - t0) < a.minutes * 60:
             for name, p in [("service", self.cluster.service), *self.cluster.workers.items()]:
                 if p.poll() is not None:
-                    raise SystemExit(f"{name} exited with {p.returncode} at {t / 60:.1f} min; see {self.cluster.logs}")
+                    self.failure = f"{name} exited with {p.returncode} at {t / 60:.1f} min; see {self.cluster.logs}"
+                    return
             self.sample(t)
             time.sleep(max(0.0, a.interval - (time.monotonic() - t0 - t)))
         self.cluster.stop()
@@ -175,10 +182,23 @@ def growth(samples: list[dict], get) -> dict:
             "max": round(max(values), 2)}
 
 
+def longest_stall(samples: list[dict]) -> tuple[float, float] | None:
+    """(from, to) minutes of the longest stretch without a new episode (samples without counts skipped)."""
+    counted = [(s["t_min"], sum(s["episodes"].values())) for s in samples if s.get("episodes")]
+    best, since = None, None
+    for (t0, n0), (t1, n1) in zip(counted, counted[1:]):
+        since = t0 if since is None else since
+        if n1 > n0:
+            since = None
+        elif best is None or t1 - since > best[1] - best[0]:
+            best = (since, t1)
+    return best
+
+
 def summarize(soak: Soak, elapsed: float) -> dict:
     a, data = soak.args, soak.args.data
     warm = [s for s in soak.samples if s["t_min"] >= a.warmup_minutes]
-    problems = []
+    problems = [soak.failure] if soak.failure else []
     if len(warm) < 6:
         problems.append(f"only {len(warm)} samples after the warm-up; run longer or sample more often")
     svc = {k: growth(warm, lambda s, k=k: (s["service"] or {}).get(k)) for k in ("rss_mib", "fds", "threads")}
@@ -194,9 +214,8 @@ def summarize(soak: Soak, elapsed: float) -> dict:
         for w, g in workers.items():
             if g["first"] and g["last"] > g["first"] * (1 + WORKER_RSS_GROWTH):
                 problems.append(f"worker {w} RSS grew {g['first']} -> {g['last']} MiB")
-        first_eps = sum((warm[0].get("episodes") or {}).values())
-        if sum((warm[-1].get("episodes") or {}).values()) <= first_eps:
-            problems.append("no episode was collected after the warm-up")
+    if (stall := longest_stall(soak.samples)) and stall[1] - stall[0] > a.stall_minutes:
+        problems.append(f"no episode was collected from {stall[0]:.1f} to {stall[1]:.1f} min")
     # A child that has just exited is a zombie until the scheduler reaps it (it looks every 0.5 s):
     # one left unreaped is the same pid in two samples in a row.
     lingering = {z for a, b in zip(soak.samples, soak.samples[1:]) for z in set(a["zombies"]) & set(b["zombies"])}
@@ -221,6 +240,8 @@ def summarize(soak: Soak, elapsed: float) -> dict:
         problems.append(f"{leased} requests still leased after the workers finished")
     file_problems, notes = check_files(data, eps)
     slogs = "".join(p.read_text(errors="replace") for p in soak.cluster.logs.glob("service.*.log"))
+    if errors := [line for line in slogs.splitlines() if " ERROR " in line]:  # failed retrains log one too
+        problems.append(f"{len(errors)} errors in the service log, the first: {errors[0][:300]}")
     retrain_logs = sorted((data / "logs").glob("retrain-*.log")) if (data / "logs").is_dir() else []
     return {
         "minutes": a.minutes, "interval_s": a.interval, "workers": a.workers, "size": a.size, "steps": a.steps,
@@ -228,7 +249,7 @@ def summarize(soak: Soak, elapsed: float) -> dict:
         "episodes": Counter(e["split"] for e in eps), "requests": dict(Counter(r["status"] for r in reqs.values())),
         "requests_by_planner": dict(Counter(json.loads(r["reason"]).get("planner") for r in reqs.values())),
         "models": dict(Counter(m["status"] for m in models)), "retrain_jobs": len(retrain_logs),
-        "service_errors_logged": slogs.count(" ERROR "), "service": svc, "worker_rss_mib": workers,
+        "service_errors_logged": len(errors), "service": svc, "worker_rss_mib": workers,
         "wal_mib_max": round(wal, 2), "disk_mib": disk_mib(data), "samples": len(soak.samples), "warm_samples": len(warm),
         "problems": problems + file_problems, "notes": notes, "series": soak.samples,
     }
@@ -252,6 +273,8 @@ def main(argv=None) -> int:
                    help="retrain each time N more episodes are stored (default 96)")
     p.add_argument("--retrain-args", default=RETRAIN_ARGS, metavar="'ARGS'",
                    help=f"serve's --retrain-args (default '{RETRAIN_ARGS}')")
+    p.add_argument("--stall-minutes", type=float, default=3.0, metavar="M",
+                   help="longest allowed stretch without a new episode (default 3)")
     p.add_argument("--rss-growth", type=float, default=0.25, metavar="F",
                    help="largest allowed relative growth of the service's RSS after the warm-up (default 0.25)")
     p.add_argument("--json", type=Path, metavar="FILE", help="also write the summary (with every sample) here")

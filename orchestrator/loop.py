@@ -67,8 +67,8 @@ class RoundPlanner:
         self._buffer: list[Episode] = []
         self._lock = threading.Lock()
 
-    def seed(self, n: int) -> list[NewRequest]:
-        return self.inner.seed(min(n, self._room()))
+    def seed(self, n: int, why: str = "seed") -> list[NewRequest]:
+        return self.inner.seed(min(n, self._room()), why)
 
     def plan(self, new_episodes: Sequence[Episode]) -> list[NewRequest]:
         with self._lock:

@@ -66,7 +66,7 @@ class Planner(Protocol):
 
     def plan(self, new_episodes: Sequence[Episode]) -> list[NewRequest]: ...
 
-    def seed(self, n: int) -> list[NewRequest]: ...
+    def seed(self, n: int, why: str = "seed") -> list[NewRequest]: ...
 
 
 @dataclass(frozen=True)
@@ -173,10 +173,10 @@ class UniformPlanner:
         self.rng = rng
         self.queue_depth = queue_depth
 
-    def seed(self, n: int) -> list[NewRequest]:
-        """``n`` uniform requests (capped by the queue depth)."""
+    def seed(self, n: int, why: str = "seed") -> list[NewRequest]:
+        """``n`` uniform requests (capped by the queue depth); ``why`` names them in their reason."""
         room = max(0, self.cfg.max_queue_depth - self.queue_depth())
-        return [self.draw_request("seed") for _ in range(min(n, room))]
+        return [self.draw_request(why) for _ in range(min(n, room))]
 
     def plan(self, new_episodes: Sequence[Episode]) -> list[NewRequest]:
         """``per_episode`` uniform requests per new episode, capped by the queue depth."""
@@ -333,10 +333,11 @@ class ActivePlanner:
         self._policy_scores = {name: deque(maxlen=cfg.policy_window) for name in MIX_POLICIES}
         self._policy_version = ""
 
-    def seed(self, n: int) -> list[NewRequest]:
-        """Uniform requests: before any model exists there is nothing to be uncertain about."""
+    def seed(self, n: int, why: str = "seed") -> list[NewRequest]:
+        """Uniform requests: before any model exists there is nothing to be uncertain about (and when
+        the service tops its queue up, ``why`` = "top-up", its candidates have run out)."""
         room = max(0, self.cfg.max_queue_depth - self.queue_depth())
-        return [self.uniform.draw_request("seed") for _ in range(min(n, room))]
+        return [self.uniform.draw_request(why) for _ in range(min(n, room))]
 
     def plan(self, new_episodes: Sequence[Episode]) -> list[NewRequest]:
         """Score the new episodes and request their most uncertain, mutually distant states.

@@ -99,7 +99,7 @@ class ServiceConfig:
     """Requests the planner seeds an empty queue with at start."""
     min_queued: int = 0
     """While a planner runs, keep at least this many requests queued: whenever fewer are, the planner's
-    ``seed`` (uniform draws) tops the queue up. An active planner asks only for states above its threshold
+    ``seed`` (uniform draws, reason ``top-up``) tops the queue up. An active planner asks only for states above its threshold
     and away from what it asked before, so its requests can run out; once the queue is empty no episode
     comes in to plan from, and without this floor collection stops for good. 0: no floor."""
     on_episode: tuple[EpisodeCallback, ...] = ()
@@ -127,9 +127,12 @@ class ServiceConfig:
                   ("max_upload_bytes", self.max_upload_bytes, 1, protocol.MAX_UPLOAD_BYTES),
                   ("seed_requests", self.seed_requests, 0, 10_000), ("min_queued", self.min_queued, 0, 10_000),
                   ("handler_threads", self.handler_threads, 1, 64)]
+        counts = {"max_upload_bytes", "seed_requests", "min_queued", "handler_threads"}
         for name, value, lo, hi in checks:
-            if isinstance(value, bool) or not isinstance(value, (int, float)) or not lo <= value <= hi:
-                raise ServiceError(f"{name}: expected a number in [{lo}, {hi}], found {value!r}")
+            kinds = int if name in counts else (int, float)
+            if isinstance(value, bool) or not isinstance(value, kinds) or not lo <= value <= hi:
+                what = "a whole number" if name in counts else "a number"
+                raise ServiceError(f"{name}: expected {what} in [{lo}, {hi}], found {value!r}")
         if not all(callable(cb) for cb in self.on_episode):
             raise ServiceError("on_episode: expected callables")
 
@@ -452,7 +455,7 @@ class Service:
         try:
             missing = self.config.min_queued - self.queue.counts()["queued"]
             if missing > 0:
-                self._enqueue(self.planner.seed(missing), "top-up")
+                self._enqueue(self.planner.seed(missing, "top-up"), "top-up")
         except Exception:  # noqa: BLE001 -- a failed top-up is tried again at the next interval; it is logged
             log.exception("topping the queue up to %d failed", self.config.min_queued)
 

@@ -53,7 +53,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--seed-requests", type=common.non_negative_int, default=0, metavar="N",
                    help="uniform requests to seed an empty queue with at start (default 0)")
     p.add_argument("--min-queued", type=common.non_negative_int, default=MIN_QUEUED, metavar="N",
-                   help=f"keep at least N requests queued: when the planner's own requests run out, uniform "
+                   help=f"with a planner, keep at least N requests queued: when its own requests run out, uniform "
                         f"draws top the queue up so collection never stops (default {MIN_QUEUED}; 0 = no floor)")
     p.add_argument("--steps", type=common.positive_int, default=50, help="steps per planned episode (default 50)")
     p.add_argument("--seed", type=common.non_negative_int, default=0,

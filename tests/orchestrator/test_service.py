@@ -436,12 +436,13 @@ def test_the_queue_is_topped_up_when_the_planner_asks_for_nothing(make_service, 
     counts = service.queue.counts()
     assert counts["done"] == 3 and counts["queued"] == 2 and counts["leased"] == 0
     reasons = {r.reason["planner"] for r in service.queue.list(status="queued")}
-    assert reasons == {"seed"}  # uniform draws, as the planner seeds
+    assert reasons == {"top-up"}  # the planner's uniform seed draws, named for why they exist
 
 
 def test_min_queued_is_validated(data_dir) -> None:
-    with pytest.raises(ServiceError, match="min_queued"):
-        ServiceConfig(data_dir=data_dir, min_queued=-1)
+    for bad in (-1, 2.5, True):
+        with pytest.raises(ServiceError, match="min_queued"):
+            ServiceConfig(data_dir=data_dir, min_queued=bad)
 
 
 def test_restart_keeps_everything_acknowledged(make_service, client, keys, data_dir) -> None:
