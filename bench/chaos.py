@@ -286,6 +286,17 @@ class Chaos:
         log(f"drained: {dict(request_counts(self.args.data))}")
 
 
+def read_rows(data: Path) -> tuple[dict[str, dict], list[dict]]:
+    """Every request (by id) and every episode row of the catalog, once the processes have stopped."""
+    con = sqlite3.connect(data / DB_NAME)
+    con.row_factory = sqlite3.Row
+    try:
+        return ({r["id"]: dict(r) for r in con.execute("SELECT * FROM requests")},
+                [dict(r) for r in con.execute("SELECT * FROM episodes")])
+    finally:
+        con.close()
+
+
 def check_requests(reqs: dict[str, dict], eps: list[dict], acked: dict[str, str], n: int) -> list[str]:
     """Invariants 1-3 (catalog rows against the acknowledgements)."""
     problems = []
@@ -363,11 +374,7 @@ def check_files(data: Path, eps: list[dict]) -> tuple[list[str], list[str]]:
 def summarize(chaos: Chaos) -> dict:
     """Checks every invariant and gathers the counts of the run."""
     a, data = chaos.args, chaos.args.data
-    con = sqlite3.connect(data / DB_NAME)
-    con.row_factory = sqlite3.Row
-    reqs = {r["id"]: dict(r) for r in con.execute("SELECT * FROM requests")}
-    eps = [dict(r) for r in con.execute("SELECT * FROM episodes")]
-    con.close()
+    reqs, eps = read_rows(data)
     problems = check_requests(reqs, eps, chaos.acked, a.requests)
     file_problems, notes = check_files(data, eps)
     logs = chaos.cluster.logs

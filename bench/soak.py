@@ -43,7 +43,7 @@ from pathlib import Path
 
 import numpy as np
 
-from chaos import ACTIVECOLLECT, Cluster, check_episode_rows, check_files, free_port, log, request_counts
+from chaos import ACTIVECOLLECT, Cluster, check_episode_rows, check_files, free_port, log, read_rows, request_counts
 from storage.database import DB_NAME
 
 RETRAIN_ARGS = ("--members 3 --epochs 2 --widths 8,16,32 --batch-size 16 --max-windows 1500 --from-champion "
@@ -169,16 +169,12 @@ class Soak:
         self.cluster.stop()
 
 
-def _median(xs: list[float]) -> float:
-    return float(np.median(xs)) if xs else float("nan")
-
-
 def growth(samples: list[dict], get) -> dict:
     """First (median of three), last (median of three) and max of ``get(sample)`` over ``samples``."""
     values = [v for v in map(get, samples) if v is not None]
     if not values:
         return {"first": None, "last": None, "max": None}
-    return {"first": round(_median(values[:3]), 2), "last": round(_median(values[-3:]), 2),
+    return {"first": round(float(np.median(values[:3])), 2), "last": round(float(np.median(values[-3:])), 2),
             "max": round(max(values), 2)}
 
 
@@ -204,7 +200,7 @@ def summarize(soak: Soak, elapsed: float) -> dict:
     svc = {k: growth(warm, lambda s, k=k: (s["service"] or {}).get(k)) for k in ("rss_mib", "fds", "threads")}
     workers = {w: growth(warm, lambda s, w=w: (s["workers"].get(w) or {}).get("rss_mib"))
                for w in soak.cluster.worker_ids}
-    if warm and len(warm) >= 6:
+    if len(warm) >= 6:
         if svc["fds"]["last"] - svc["fds"]["first"] > FD_GROWTH:
             problems.append(f"service file descriptors grew {svc['fds']['first']} -> {svc['fds']['last']}")
         if svc["threads"]["last"] - svc["threads"]["first"] > THREAD_GROWTH:
@@ -218,7 +214,7 @@ def summarize(soak: Soak, elapsed: float) -> dict:
         problems.append(f"no episode was collected from {stall[0]:.1f} to {stall[1]:.1f} min")
     # A child that has just exited is a zombie until the scheduler reaps it (it looks every 0.5 s):
     # one left unreaped is the same pid in two samples in a row.
-    lingering = {z for a, b in zip(soak.samples, soak.samples[1:]) for z in set(a["zombies"]) & set(b["zombies"])}
+    lingering = {z for s0, s1 in zip(soak.samples, soak.samples[1:]) for z in set(s0["zombies"]) & set(s1["zombies"])}
     if lingering:
         problems.append(f"zombie children never reaped: {sorted(lingering)}")
     if (wal := max((s["wal_mib"] for s in soak.samples), default=0.0)) > WAL_LIMIT / 2**20:
@@ -226,15 +222,14 @@ def summarize(soak: Soak, elapsed: float) -> dict:
     for what in ("dashboard_ok", "admin_ok"):
         if failed := sum(not s[what] for s in soak.samples):
             problems.append(f"{what.split('_')[0]} did not answer in {failed} of {len(soak.samples)} samples")
+    reqs, eps = read_rows(data)
     con = sqlite3.connect(data / DB_NAME)
-    con.row_factory = sqlite3.Row
-    reqs = {r["id"]: dict(r) for r in con.execute("SELECT * FROM requests")}
-    eps = [dict(r) for r in con.execute("SELECT * FROM episodes")]
     try:
-        models = [dict(r) for r in con.execute("SELECT version, status FROM models")]
+        models = [status for (status,) in con.execute("SELECT status FROM models")]
     except sqlite3.OperationalError:  # no retrain ever opened the registry
         models = []
-    con.close()
+    finally:
+        con.close()
     problems += check_episode_rows(reqs, eps)
     if leased := sum(r["status"] == "leased" for r in reqs.values()):
         problems.append(f"{leased} requests still leased after the workers finished")
@@ -248,7 +243,7 @@ def summarize(soak: Soak, elapsed: float) -> dict:
         "retrain_every": a.retrain_every, "retrain_args": a.retrain_args, "elapsed_s": round(elapsed, 1),
         "episodes": Counter(e["split"] for e in eps), "requests": dict(Counter(r["status"] for r in reqs.values())),
         "requests_by_planner": dict(Counter(json.loads(r["reason"]).get("planner") for r in reqs.values())),
-        "models": dict(Counter(m["status"] for m in models)), "retrain_jobs": len(retrain_logs),
+        "models": dict(Counter(models)), "retrain_jobs": len(retrain_logs),
         "service_errors_logged": len(errors), "service": svc, "worker_rss_mib": workers,
         "wal_mib_max": round(wal, 2), "disk_mib": disk_mib(data), "samples": len(soak.samples), "warm_samples": len(warm),
         "problems": problems + file_problems, "notes": notes, "series": soak.samples,

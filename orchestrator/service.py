@@ -123,16 +123,14 @@ class ServiceConfig:
             raise ServiceError(f"namespace: {exc.message}") from None
         if self.mode not in transport.MODES:
             raise ServiceError(f"mode: expected one of {transport.MODES}, found {self.mode!r}")
-        checks = [("lease_s", self.lease_s, 0.05, 86400.0), ("reap_interval_s", self.reap_interval_s, 0.01, 3600.0),
-                  ("max_upload_bytes", self.max_upload_bytes, 1, protocol.MAX_UPLOAD_BYTES),
+        numbers = [("lease_s", self.lease_s, 0.05, 86400.0), ("reap_interval_s", self.reap_interval_s, 0.01, 3600.0)]
+        counts = [("max_upload_bytes", self.max_upload_bytes, 1, protocol.MAX_UPLOAD_BYTES),
                   ("seed_requests", self.seed_requests, 0, 10_000), ("min_queued", self.min_queued, 0, 10_000),
                   ("handler_threads", self.handler_threads, 1, 64)]
-        counts = {"max_upload_bytes", "seed_requests", "min_queued", "handler_threads"}
-        for name, value, lo, hi in checks:
-            kinds = int if name in counts else (int, float)
-            if isinstance(value, bool) or not isinstance(value, kinds) or not lo <= value <= hi:
-                what = "a whole number" if name in counts else "a number"
-                raise ServiceError(f"{name}: expected {what} in [{lo}, {hi}], found {value!r}")
+        for kinds, what, checks in (((int, float), "a number", numbers), (int, "a whole number", counts)):
+            for name, value, lo, hi in checks:
+                if isinstance(value, bool) or not isinstance(value, kinds) or not lo <= value <= hi:
+                    raise ServiceError(f"{name}: expected {what} in [{lo}, {hi}], found {value!r}")
         if not all(callable(cb) for cb in self.on_episode):
             raise ServiceError("on_episode: expected callables")
 
@@ -431,10 +429,13 @@ class Service:
                                                         "source": source})
 
     def _after_episodes(self) -> None:
-        """Background thread: the planner and on_episode callbacks, one batch of stored episodes at a time."""
+        """Background thread: the planner and on_episode callbacks, one batch of stored episodes at a time;
+        with a queue floor, also the top-ups (after each batch and after ``reap_interval_s`` without one)."""
+        floor = self.planner is not None and self.config.min_queued > 0
+        wait = self.config.reap_interval_s if floor else None  # no floor: nothing to wake up for
         while True:
             try:
-                batch = [self._stored.get(timeout=self.config.reap_interval_s)]
+                batch = [self._stored.get(timeout=wait)]
             except queue_mod.Empty:
                 self._top_up()
                 continue
