@@ -103,7 +103,7 @@ async function refresh() {
         String(r.source_episode ?? "").slice(0, 8) + (r.step === null || r.step === undefined ? "" : " @" + r.step),
         r.model_version || "", q.attempts, q.last_error || ""]) cell(tr, v); });
     fill("models", models.models, (tr, m) => { const cls = m.version === models.champion ? "champion" : "";
-      for (const v of [m.version, m.status, fmt(m.metrics.h1_mse), fmt(m.metrics.h5_mse), m.created, m.reason])
+      for (const v of [m.version, m.status + (m.pruned_at ? " (pruned)" : ""), fmt(m.metrics.h1_mse), fmt(m.metrics.h5_mse), m.created, m.reason])
         cell(tr, v, cls); });
     fill("workers", workers.workers, (tr, w) => { cell(tr, w.id); cell(tr, JSON.stringify(w.info || {})); });
     drawCurve(curve.points);

@@ -17,13 +17,14 @@ from uncertainty.config import TrainConfig
 from uncertainty.train import train_candidate
 
 
-def run_retrain(data_dir: Path, cfg: TrainConfig, wait: bool = False) -> dict:
+def run_retrain(data_dir: Path, cfg: TrainConfig, wait: bool = False, keep_models: int | None = None) -> dict:
     """One retrain job under the lock: train on the train snapshot, evaluate, register, gate.
 
     With ``cfg.from_champion`` the champion's weights are fine-tuned on all the data (a
-    fresh model while there is no champion yet).
+    fresh model while there is no champion yet). With ``keep_models`` the registry is then
+    pruned to the champion's rollback chain of that many (``ModelRegistry.prune``).
 
-    Returns ``{"version", "promoted", "reason", "metrics", "champion"}``. Raises
+    Returns ``{"version", "promoted", "reason", "metrics", "champion", "pruned"}``. Raises
     ``orchestrator.scheduler.RetrainBusyError`` when another job holds the lock (and ``wait`` is False), and
     whatever training raises (``uncertainty`` and ``storage`` errors); in every failure
     the champion is untouched, because only the gate at the very end promotes.
@@ -36,7 +37,8 @@ def run_retrain(data_dir: Path, cfg: TrainConfig, wait: bool = False) -> dict:
             cfg = dataclasses.replace(cfg, from_champion=False)
         note_phase(data_dir, "training")
         result = train_candidate(catalog, registry, cfg)
+        pruned = registry.prune(keep_models).pruned if keep_models is not None else []
         note_phase(data_dir, "done")
         return {"version": result.version, "promoted": result.decision.promoted,
-                "reason": result.decision.reason, "champion": registry.champion(),
+                "reason": result.decision.reason, "champion": registry.champion(), "pruned": pruned,
                 "metrics": {k: v for k, v in result.metrics.items() if not isinstance(v, (list, dict))}}

@@ -369,7 +369,9 @@ class RetrainScheduler:
             rec.status = RetrainStatus.failed
             rec.reason = f"exit status {rc}: {_tail(Path(rec.log_path))}"
         level = logging.INFO if rec.status in (RetrainStatus.promoted, RetrainStatus.rejected) else logging.WARNING
-        log.log(level, "retrain %s: %s %s", rec.status.value, rec.version or "-", rec.reason)
+        pruned = (result.get("pruned") or []) if rc == 0 else []
+        log.log(level, "retrain %s: %s %s%s", rec.status.value, rec.version or "-", rec.reason,
+                f" (pruned the files of {len(pruned)} older models)" if pruned else "")
         if rec.status is RetrainStatus.promoted:
             self.on_promoted(rec.version)
         self.on_finished(rec)

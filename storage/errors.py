@@ -38,4 +38,9 @@ class RegistryError(StorageError):
 
 
 class CorruptCheckpointError(RegistryError):
-    """A checkpoint's weights do not match their recorded sha256, or its files are unreadable."""
+    """A checkpoint's weights cannot be used: they do not match their recorded sha256, its files are
+    unreadable, or (``PrunedCheckpointError``) they were deleted on purpose."""
+
+
+class PrunedCheckpointError(CorruptCheckpointError):
+    """The checkpoint's weights were deleted by ``ModelRegistry.prune``; its row and metrics remain."""

@@ -9,6 +9,10 @@ the model in service and ``champion_history`` remembers every promotion, so a ro
 Versions are ``m<6-digit sequence>-<8 hex of the weights' sha256>``: unique, and they sort in
 registration order. Every change is one ``BEGIN IMMEDIATE`` transaction, so the alias switch is atomic.
 The tables are created through the catalog's ``ensure_schema`` (component ``models``).
+
+Retention: nothing is deleted unless asked. ``prune(keep=N)`` deletes the files of retired and
+rejected models outside the champion's rollback chain of N; their rows stay (``pruned_at`` set), so
+``models ls`` and the dashboard still show every model's metrics and history.
 """
 
 from __future__ import annotations
@@ -29,7 +33,7 @@ from pathlib import Path
 from typing import Any
 
 from storage.database import DB_NAME, connection, ensure_schema, transaction
-from storage.errors import CorruptCheckpointError, RegistryError
+from storage.errors import CorruptCheckpointError, PrunedCheckpointError, RegistryError
 from storage.files import fsync_dir, write_synced
 from storage.gate import DEFAULT_METRIC, DEFAULT_MIN_REL_IMPROVEMENT, GateDecision, judge
 
@@ -66,6 +70,7 @@ _MIGRATIONS: tuple[tuple[str, ...], ...] = (
             reason TEXT NOT NULL,
             rolled_back_at TEXT)""",
     ),
+    ("ALTER TABLE models ADD COLUMN pruned_at TEXT",),
 )
 
 
@@ -110,6 +115,8 @@ class ModelRecord:
     """Model / training configuration, as the trainer gave it."""
     path: Path
     """The checkpoint directory."""
+    pruned_at: str | None = None
+    """When ``prune`` deleted its files (ISO 8601 UTC); None while they are kept."""
 
     @property
     def weights_path(self) -> Path:
@@ -122,7 +129,7 @@ class ModelRecord:
             "parent": self.parent, "snapshot_id": self.snapshot_id,
             "eval_split_hash": self.eval_split_hash, "weights_sha256": self.weights_sha256,
             "size_bytes": self.size_bytes, "created": self.created, "metrics": _finite(self.metrics),
-            "config": self.config, "path": str(self.path),
+            "config": self.config, "path": str(self.path), "pruned_at": self.pruned_at,
         }
 
 
@@ -134,6 +141,19 @@ class ChampionEntry:
     promoted_at: str
     reason: str
     rolled_back_at: str | None = field(default=None)
+
+
+@dataclass(frozen=True)
+class PruneResult:
+    """What ``ModelRegistry.prune`` deleted (or, with ``dry_run``, would delete)."""
+
+    pruned: list[str]
+    """Versions whose files were deleted, in registration order."""
+    kept: list[str]
+    """The rollback chain kept: the champion first, then the earlier champions rollback returns to."""
+    freed_bytes: int
+    """Bytes the deleted files took on disk."""
+    dry_run: bool = False
 
 
 def _finite(obj: Any) -> Any:
@@ -149,6 +169,11 @@ def _finite(obj: Any) -> Any:
 
 def _now() -> str:
     return datetime.now(timezone.utc).isoformat(timespec="microseconds")
+
+
+def _tree_size(path: Path) -> int:
+    """Bytes of the files under ``path`` (0 when it is gone)."""
+    return sum(f.stat().st_size for f in path.rglob("*") if f.is_file()) if path.exists() else 0
 
 
 def _dump(obj: Any, what: str) -> bytes:
@@ -192,7 +217,7 @@ class ModelRegistry:
             eval_split_hash=row["eval_split_hash"], weights_sha256=row["weights_sha256"],
             size_bytes=row["size_bytes"], created=row["created"],
             metrics=json.loads(row["metrics"]), config=json.loads(row["config"]),
-            path=self.models_dir / row["version"],
+            path=self.models_dir / row["version"], pruned_at=row["pruned_at"],
         )
 
     def _get(self, conn: sqlite3.Connection, version: str) -> ModelRecord:
@@ -250,6 +275,9 @@ class ModelRegistry:
         self.load_weights(version)
 
     def _read_verified(self, rec: ModelRecord) -> bytes:
+        if rec.pruned_at is not None:
+            raise PrunedCheckpointError(f"checkpoint {rec.version}: weights pruned at {rec.pruned_at} "
+                                        "(models prune); its metrics and history remain")
         try:
             data = rec.weights_path.read_bytes()
         except FileNotFoundError:
@@ -403,6 +431,7 @@ class ModelRegistry:
             current = self._champion(conn)
             if current == version:
                 return GateDecision(False, f"{version} is already the champion", version, current)
+            self._check_not_pruned(conn, version)  # a prune may have landed since the sha256 check
             champ = self._get(conn, current) if current is not None else None
             expected = eval_split_hash if eval_split_hash is not None else (
                 champ.eval_split_hash if champ else None)
@@ -442,7 +471,8 @@ class ModelRegistry:
             why = f"; skipped corrupt: {'; '.join(skipped)}" if skipped else ""
             raise RegistryError(f"no previous champion to roll back to from {current}{why}")
         with self._transaction() as conn:
-            if self._champion(conn) != current or self._live_history(conn) != entries:
+            if (self._champion(conn) != current or self._live_history(conn) != entries
+                    or self._get(conn, target).pruned_at is not None):
                 raise RegistryError("the champion changed while rolling back; run rollback again")
             now = _now()
             last_of_target = max(eid for eid, v in entries if v == target)
@@ -454,6 +484,60 @@ class ModelRegistry:
             conn.execute("INSERT OR REPLACE INTO model_aliases (alias, version) VALUES (?, ?)",
                          (CHAMPION, target))
         return target
+
+    # -- retention -----------------------------------------------------------------------------
+
+    def _rollback_chain(self, conn: sqlite3.Connection) -> list[str]:
+        """The champion, then the earlier champions not rolled back, newest first (what ``rollback``
+        walks, returning to the first whose weights are intact)."""
+        current = self._champion(conn)
+        chain = [] if current is None else [current]
+        for _, version in reversed(self._live_history(conn)):
+            if version not in chain:
+                chain.append(version)
+        return chain
+
+    def prune(self, keep: int, dry_run: bool = False) -> PruneResult:
+        """Delete the files of retired and rejected models, except the ``keep`` newest of the rollback chain.
+
+        Kept always: the champion (``keep`` counts it), the ``keep - 1`` earlier champions that
+        ``rollback`` walks back to, and every candidate (a retrain job may be about to gate it).
+        Pruned rows stay, with ``pruned_at`` set: their metrics and history remain, their weights
+        are refused with ``PrunedCheckpointError`` and ``rollback`` skips them. The rows are marked
+        in one transaction before any file is deleted, so a crash between leaves marked rows whose
+        files the next ``prune`` deletes. Raises ``RegistryError`` for a ``keep`` below 1.
+        """
+        if isinstance(keep, bool) or not isinstance(keep, int) or keep < 1:
+            raise RegistryError(f"keep must be a whole number of at least 1 (the champion), found {keep!r}")
+        with self._transaction() as conn:
+            pruned = {r[0] for r in conn.execute("SELECT version FROM models WHERE pruned_at IS NOT NULL")}
+            kept = [v for v in self._rollback_chain(conn) if v not in pruned][:keep]
+            marks = ",".join("?" * len(kept))
+            chosen = [r[0] for r in conn.execute(
+                f"SELECT version FROM models WHERE status IN (?, ?) AND pruned_at IS NULL "
+                f"AND version NOT IN ({marks}) ORDER BY seq",
+                (ModelStatus.RETIRED.value, ModelStatus.REJECTED.value, *kept))]
+            if not dry_run:
+                now = _now()
+                conn.executemany("UPDATE models SET pruned_at = ?, updated = ? WHERE version = ?",
+                                 [(now, now, v) for v in chosen])
+            # this prune's, and any an earlier prune marked but died before deleting
+            leftover = [r[0] for r in conn.execute(
+                "SELECT version FROM models WHERE pruned_at IS NOT NULL ORDER BY seq")]
+        gone = chosen if dry_run else [v for v in leftover if (self.models_dir / v).exists()]
+        freed = sum(_tree_size(self.models_dir / v) for v in gone)
+        if not dry_run:
+            for version in gone:
+                shutil.rmtree(self.models_dir / version)
+            if gone:
+                fsync_dir(self.models_dir)
+        return PruneResult(pruned=chosen if dry_run else sorted(set(chosen) | set(gone)),
+                           kept=kept, freed_bytes=freed, dry_run=dry_run)
+
+    def _check_not_pruned(self, conn: sqlite3.Connection, version: str) -> None:
+        rec = self._get(conn, version)
+        if rec.pruned_at is not None:
+            self._read_verified(rec)  # raises PrunedCheckpointError with the reason
 
     def _live_history(self, conn: sqlite3.Connection | None = None) -> list[tuple[int, str]]:
         """(id, version) of promotions not rolled back, oldest first."""

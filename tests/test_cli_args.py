@@ -76,6 +76,10 @@ def _connect() -> list[str]:
     (["serve", "--lease-s", "inf", "--data", "DATA"], "expected a positive number"),
     (["serve", "--reap-interval-s", "inf", "--data", "DATA"], "expected a positive number"),
     (["serve", "--seed", "-1", "--data", "DATA"], "expected an integer >= 0"),
+    (["serve", "--min-queued", "65", "--data", "DATA"], "--min-queued 65 is above the planner's queue depth cap of 64"),
+    (["serve", "--planner", "none", "--min-queued", "3", "--data", "DATA"],
+     "--min-queued needs a planner to draw requests from"),
+    (["retrain", "--keep-models", "0", "--data", "DATA"], "expected a positive integer"),
     (["bench", "sim", "--seconds", "inf"], "expected a positive number"),
     (["bench", "dispatch", "--seconds", "inf"], "expected a positive number"),
     (["retrain", "--lr", "inf", "--data", "DATA"], "expected a positive number"),
@@ -110,6 +114,8 @@ def test_retrain_args_are_split_like_a_shell_and_kept_for_the_jobs() -> None:
     args = build_parser().parse_args(["serve", "--retrain-args", "--members 2 --widths '4,4,4' --from-champion"])
     assert args.retrain_args == ("--members", "2", "--widths", "4,4,4", "--from-champion")
     assert build_parser().parse_args(["serve"]).retrain_args == ()  # the job's own defaults
+    args = build_parser().parse_args(["serve", "--retrain-args", "--keep-models 3"])
+    assert args.retrain_args == ("--keep-models", "3")
 
 
 def test_retrain_without_a_catalog_is_a_usage_error_and_makes_nothing(capsys, tmp_path) -> None:

@@ -89,12 +89,37 @@ def test_models_promote_refuses_corrupt_and_wrong_split(capsys, data, reg) -> No
     assert reg.champion() == a and reg.get(b).status is ModelStatus.CANDIDATE
 
 
+def test_models_prune_dry_run_then_prune(capsys, data, reg) -> None:
+    a, b, c = _register(reg, 0.01), _register(reg, 0.008), _register(reg, 0.006)
+    for v in (a, b, c):
+        reg.gate(v)
+    worse = _register(reg, 0.5)
+    reg.gate(worse)
+    rc, out, _ = run_cli(capsys, "models", "prune", "--keep", "2", "--dry-run", "--data", str(data))
+    assert rc == 0 and "would delete 2 models" in out and a in out and worse in out
+    assert reg.get(a).weights_path.exists()
+    rc, out, _ = run_cli(capsys, "models", "prune", "--keep", "2", "--data", str(data), "--json")
+    result = json.loads(out)
+    assert rc == 0 and result["pruned"] == [a, worse] and result["kept"] == [c, b] and result["freed_bytes"] > 0
+    assert not reg.get(a).path.exists() and reg.get(b).weights_path.exists()
+    rc, out, _ = run_cli(capsys, "models", "ls", "--data", str(data))
+    assert rc == 0 and "retired (pruned)" in out and "rejected (pruned)" in out
+    rc, out, _ = run_cli(capsys, "models", "show", a, "--data", str(data))
+    assert rc == 0 and "weights          pruned at" in out
+    rc, _, err = run_cli(capsys, "models", "promote", a, "--data", str(data))
+    assert rc == 1 and "refusing to promote" in err and "weights pruned" in err
+    rc, out, _ = run_cli(capsys, "models", "prune", "--keep", "2", "--data", str(data))
+    assert rc == 0 and "nothing to delete" in out
+
+
 @pytest.mark.parametrize("argv, words", [
     (("models",), "required"),
     (("models", "frobnicate"), "invalid choice"),
     (("models", "show"), "VERSION"),
     (("models", "show", "m999999-deadbeef"), "unknown model version"),
     (("models", "promote", "nope"), "unknown model version"),
+    (("models", "prune"), "--keep"),
+    (("models", "prune", "--keep", "0"), "positive integer"),
 ])
 def test_models_usage_errors_exit_2(capsys, data, reg, argv, words) -> None:
     rc, out, err = run_cli(capsys, *argv, *(("--data", str(data)) if len(argv) > 2 else ()))

@@ -181,6 +181,9 @@ def _retrain_options(p: argparse.ArgumentParser) -> None:
     add_train_args(p)
     p.add_argument("--wait", action="store_true",
                    help=f"wait for a running retrain to finish instead of exiting {EXIT_BUSY} at once")
+    p.add_argument("--keep-models", type=common.positive_int, default=None, metavar="N",
+                   help="after the gate, delete the files of retired and rejected models except the champion's "
+                        "rollback chain of N (as 'models prune --keep N'; default: keep every model)")
 
 
 class _RetrainArgsParser(common.Parser):
@@ -269,7 +272,7 @@ def _retrain(args: argparse.Namespace) -> int:
     common.require_catalog(args.data)  # checked before the retrain lock would make the directory
     from orchestrator.retrain import run_retrain  # torch: imported once the arguments are known good (start-up cost)
     try:
-        result = run_retrain(args.data, cfg, wait=args.wait)
+        result = run_retrain(args.data, cfg, wait=args.wait, keep_models=args.keep_models)
     except RetrainBusyError as exc:
         print(f"activecollect retrain: {exc}", file=sys.stderr)
         return EXIT_BUSY
@@ -284,6 +287,8 @@ def _retrain(args: argparse.Namespace) -> int:
         print(f"{result['version']}: {verdict}: {result['reason']}")
         print(f"  h1_mse {result['metrics'].get('h1_mse')}  h5_mse {result['metrics'].get('h5_mse')}  "
               f"champion {result['champion']}")
+        if result["pruned"]:
+            print(f"  pruned {len(result['pruned'])} models' files: {', '.join(result['pruned'])}")
     return 0
 
 

@@ -1,4 +1,4 @@
-"""CLI: ``train``, ``eval``, ``score``, ``models ls|show|promote|rollback`` and ``bench score``.
+"""CLI: ``train``, ``eval``, ``score``, ``models ls|show|promote|rollback|prune`` and ``bench score``.
 
 Argument parsing and printing only: every command is one call into ``uncertainty`` (training,
 evaluation, scoring, the scoring benchmark) or ``storage.models`` (the registry and its gate).
@@ -11,6 +11,7 @@ building the parser, and every other command, does not.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import math
 import sys
 from pathlib import Path
@@ -20,7 +21,7 @@ from orchestrator.cli import common
 from storage.catalog import Catalog
 from storage.episodes import read_episode
 from storage.errors import CatalogError, CorruptCheckpointError, EpisodeError, RegistryError, StorageError
-from storage.models import ModelRecord, ModelRegistry
+from storage.models import ModelRecord, ModelRegistry, PruneResult
 from storage.records import Episode
 from uncertainty.config import TrainConfig
 from uncertainty.errors import ConfigError, UncertaintyError
@@ -66,7 +67,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         common.add_data_arg(p)
         common.add_json_arg(p)
 
-    models = sub.add_parser("models", help="the model registry: list, show, promote, roll back")
+    models = sub.add_parser("models", help="the model registry: list, show, promote, roll back, prune")
     msub = models.add_subparsers(dest="models_command", metavar="ACTION", parser_class=common.Parser)
     msub.required = True
     p = msub.add_parser("ls", help="list registered models, champion marked")
@@ -79,6 +80,16 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=_models_promote)
     p = msub.add_parser("rollback", help="return to the previous champion whose weights are intact")
     p.set_defaults(func=_models_rollback)
+    p = msub.add_parser("prune", help="delete the weights of old retired and rejected models (rows and metrics stay)",
+                        description="Delete the files of retired and rejected models, except the champion and the "
+                                    "KEEP-1 earlier champions 'models rollback' returns to. Candidates are never "
+                                    "touched. The rows stay: 'models ls' and 'models show' still list every model, "
+                                    "marked pruned. 'retrain --keep-models N' does the same after each retrain.")
+    p.add_argument("--keep", type=common.positive_int, required=True, metavar="N",
+                   help="how many models of the rollback chain keep their weights, the champion included "
+                        "(1: only the champion; rollback can then go back N-1 times)")
+    p.add_argument("--dry-run", action="store_true", help="say what would be deleted, delete nothing")
+    p.set_defaults(func=_models_prune)
     for p in msub.choices.values():
         common.add_data_arg(p)
         common.add_json_arg(p)
@@ -138,10 +149,11 @@ def _models_ls(args: argparse.Namespace) -> int:
     if not records:
         print(f"no models registered in {registry.models_dir} (run: activecollect train)")
         return 0
-    print(f"{'':2}{'VERSION':18} {'STATUS':9} {'H1_MSE':>10} {'H1_PSNR':>8} {'PARENT':18} CREATED")
+    print(f"{'':2}{'VERSION':18} {'STATUS':17} {'H1_MSE':>10} {'H1_PSNR':>8} {'PARENT':18} CREATED")
     for r in records:
         mark = "* " if r.version == champion else "  "
-        print(f"{mark}{r.version:18} {r.status.value:9} {_num(r.metrics.get('h1_mse')):>10} "
+        status = r.status.value + (" (pruned)" if r.pruned_at else "")
+        print(f"{mark}{r.version:18} {status:17} {_num(r.metrics.get('h1_mse')):>10} "
               f"{_num(r.metrics.get('h1_psnr'), '.2f'):>8} {r.parent or '-':18} {r.created[:19]}")
     return 0
 
@@ -161,7 +173,10 @@ def _models_show(args: argparse.Namespace) -> int:
     print(f"parent           {rec.parent or '-'}")
     print(f"data snapshot    {rec.snapshot_id}")
     print(f"eval split       {rec.eval_split_hash}")
-    print(f"weights          {rec.weights_path} ({rec.size_bytes} bytes, sha256 {rec.weights_sha256})")
+    if rec.pruned_at:
+        print(f"weights          pruned at {rec.pruned_at} (were {rec.size_bytes} bytes, sha256 {rec.weights_sha256})")
+    else:
+        print(f"weights          {rec.weights_path} ({rec.size_bytes} bytes, sha256 {rec.weights_sha256})")
     for e in history:
         back = f", rolled back {e.rolled_back_at}" if e.rolled_back_at else ""
         print(f"champion since   {e.promoted_at}{back}")
@@ -205,6 +220,26 @@ def _models_rollback(args: argparse.Namespace) -> int:
     else:
         print(f"champion is now {version} (rolled back from {before})")
     return 0
+
+
+def _models_prune(args: argparse.Namespace) -> int:
+    registry = _registry(args)
+    result = registry.prune(args.keep, dry_run=args.dry_run)
+    if args.json:
+        common.print_json(dataclasses.asdict(result))
+        return 0
+    print(prune_summary(result))
+    return 0
+
+
+def prune_summary(result: PruneResult) -> str:
+    """One line on what a prune deleted (or would delete) and what it kept."""
+    kept = f"kept {', '.join(result.kept)}" if result.kept else "no champion yet"
+    if not result.pruned:
+        return f"nothing to delete ({kept})"
+    verb = "would delete" if result.dry_run else "deleted"
+    return (f"{verb} {len(result.pruned)} models' files ({result.freed_bytes / 2**20:.1f} MiB): "
+            f"{', '.join(result.pruned)}; {kept}")
 
 
 def _current_split(data: Path) -> str | None:

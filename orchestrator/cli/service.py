@@ -38,6 +38,8 @@ from workers import agent
 PLANNERS = ("active", "uniform", "none")
 #: ``serve``'s queue floor: an idle worker of two finds work at once while the planner catches up.
 MIN_QUEUED = 2
+#: The planners ``serve`` builds stop adding requests once this many are queued (their configs' default).
+QUEUE_DEPTH_CAP = min(UniformPlannerConfig.max_queue_depth, ActivePlannerConfig.max_queue_depth)
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -52,9 +54,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="what turns stored episodes into requests (default active)")
     p.add_argument("--seed-requests", type=common.non_negative_int, default=0, metavar="N",
                    help="uniform requests to seed an empty queue with at start (default 0)")
-    p.add_argument("--min-queued", type=common.non_negative_int, default=MIN_QUEUED, metavar="N",
+    p.add_argument("--min-queued", type=common.non_negative_int, default=None, metavar="N",
                    help=f"with a planner, keep at least N requests queued: when its own requests run out, uniform "
-                        f"draws top the queue up so collection never stops (default {MIN_QUEUED}; 0 = no floor)")
+                        f"draws top the queue up so collection never stops (at most the planner's queue depth "
+                        f"cap, {QUEUE_DEPTH_CAP}; default {MIN_QUEUED}, 0 with --planner none; 0 = no floor)")
     p.add_argument("--steps", type=common.positive_int, default=50, help="steps per planned episode (default 50)")
     p.add_argument("--seed", type=common.non_negative_int, default=0,
                    help="seed of the planner's generator (default 0)")
@@ -189,7 +192,21 @@ def planner_factory(name: str, steps: int, seed: int) -> PlannerFactory | None:
     return build
 
 
+def _min_queued(args: argparse.Namespace) -> int:
+    """``--min-queued`` checked against the planner that would have to keep it."""
+    if args.min_queued is None:
+        return 0 if args.planner == "none" else MIN_QUEUED
+    if args.min_queued and args.planner == "none":
+        raise common.UsageError("--min-queued needs a planner to draw requests from; with --planner none "
+                                "nothing tops the queue up (use --planner uniform or active)")
+    if args.min_queued > QUEUE_DEPTH_CAP:
+        raise common.UsageError(f"--min-queued {args.min_queued} is above the planner's queue depth cap of "
+                                f"{QUEUE_DEPTH_CAP}: the floor could never be reached")
+    return args.min_queued
+
+
 def cmd_serve(args: argparse.Namespace) -> int:
+    min_queued = _min_queued(args)
     logging.basicConfig(level=args.log_level, format="%(asctime)s %(name)s %(levelname)s %(message)s")
     listen, connect = transport.endpoints_from_args(args)
     try:
@@ -201,7 +218,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
         config = ServiceConfig(data_dir=args.data, namespace=args.namespace, mode=args.mode, listen=listen,
                                connect=connect, zenoh_config=args.zenoh_config, lease_s=args.lease_s,
                                reap_interval_s=args.reap_interval_s, seed_requests=args.seed_requests,
-                               min_queued=args.min_queued,
+                               min_queued=min_queued,
                                planner=planner_factory(args.planner, args.steps, args.seed))
     except ServiceError as exc:
         raise common.UsageError(str(exc)) from None

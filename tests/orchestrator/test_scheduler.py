@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -268,3 +269,20 @@ def test_two_retrains_at_once_train_once(trained):
             first.wait()
     assert first.returncode == 0, err
     assert len(models(trained)) == len(versions) + 1 and json.loads(out)["version"] not in versions
+
+
+def test_a_retrain_with_keep_models_prunes_after_its_gate(trained, tmp_path):
+    data = tmp_path / "copy"
+    shutil.copytree(trained, data)
+    registry = ModelRegistry(data)
+    bad = registry.register(b"junk weights", {}, {"h1_mse": float("nan")}, "snap", "another-split")
+    assert not registry.gate(bad).promoted
+    done = retrain(data, "--epochs", "1", "--keep-models", "1")
+    assert done.returncode == 0, done.stderr
+    result = json.loads(done.stdout)
+    assert bad in result["pruned"] and not (data / "models" / bad).exists()
+    champ = ModelRegistry(data).champion()
+    assert champ == result["champion"] and ModelRegistry(data).load_weights(champ)
+    for rec in ModelRegistry(data).list():
+        assert (rec.pruned_at is None) == (rec.version == champ), rec
+
