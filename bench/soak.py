@@ -225,7 +225,8 @@ def summarize(soak: Soak, elapsed: float) -> dict:
     reqs, eps = read_rows(data)
     con = sqlite3.connect(data / DB_NAME)
     try:
-        models = [status for (status,) in con.execute("SELECT status FROM models")]
+        models = [status + (" (pruned)" if pruned else "") for status, pruned in
+                  con.execute("SELECT status, pruned_at IS NOT NULL FROM models")]
     except sqlite3.OperationalError:  # no retrain ever opened the registry
         models = []
     finally:

@@ -12,6 +12,7 @@ from pathlib import Path
 
 from orchestrator.scheduler import note_phase, retrain_lock
 from storage.catalog import Catalog
+from storage.errors import StorageError
 from storage.models import ModelRegistry
 from uncertainty.config import TrainConfig
 from uncertainty.train import train_candidate
@@ -24,7 +25,8 @@ def run_retrain(data_dir: Path, cfg: TrainConfig, wait: bool = False, keep_model
     fresh model while there is no champion yet). With ``keep_models`` the registry is then
     pruned to the champion's rollback chain of that many (``ModelRegistry.prune``).
 
-    Returns ``{"version", "promoted", "reason", "metrics", "champion", "pruned"}``. Raises
+    Returns ``{"version", "promoted", "reason", "metrics", "champion", "pruned", "prune_error"}``; a
+    prune that fails does not fail the job (the gate has decided by then): ``prune_error`` says why. Raises
     ``orchestrator.scheduler.RetrainBusyError`` when another job holds the lock (and ``wait`` is False), and
     whatever training raises (``uncertainty`` and ``storage`` errors); in every failure
     the champion is untouched, because only the gate at the very end promotes.
@@ -37,8 +39,14 @@ def run_retrain(data_dir: Path, cfg: TrainConfig, wait: bool = False, keep_model
             cfg = dataclasses.replace(cfg, from_champion=False)
         note_phase(data_dir, "training")
         result = train_candidate(catalog, registry, cfg)
-        pruned = registry.prune(keep_models).pruned if keep_models is not None else []
+        pruned, prune_error = [], None
+        if keep_models is not None:
+            try:
+                pruned = registry.prune(keep_models).pruned
+            except (StorageError, OSError) as exc:
+                prune_error = f"pruning the registry failed: {exc}"
         note_phase(data_dir, "done")
         return {"version": result.version, "promoted": result.decision.promoted,
                 "reason": result.decision.reason, "champion": registry.champion(), "pruned": pruned,
+                "prune_error": prune_error,
                 "metrics": {k: v for k, v in result.metrics.items() if not isinstance(v, (list, dict))}}

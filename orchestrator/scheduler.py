@@ -372,6 +372,8 @@ class RetrainScheduler:
         pruned = (result.get("pruned") or []) if rc == 0 else []
         log.log(level, "retrain %s: %s %s%s", rec.status.value, rec.version or "-", rec.reason,
                 f" (pruned the files of {len(pruned)} older models)" if pruned else "")
+        if rc == 0 and result.get("prune_error"):
+            log.warning("retrain %s: %s", rec.version or "-", result["prune_error"])
         if rec.status is RetrainStatus.promoted:
             self.on_promoted(rec.version)
         self.on_finished(rec)

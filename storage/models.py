@@ -23,6 +23,7 @@ import math
 import os
 import shutil
 import sqlite3
+import time
 import uuid
 from collections.abc import Iterator
 from contextlib import AbstractContextManager, contextmanager
@@ -42,6 +43,8 @@ CONFIG_FILE = "config.json"
 METRICS_FILE = "metrics.json"
 META_FILE = "meta.json"
 CHAMPION = "champion"
+#: A staging or deleting dot folder under ``models/`` this old belongs to no live call (they take seconds).
+STALE_AGE_S = 3600.0
 
 _MIGRATIONS: tuple[tuple[str, ...], ...] = (
     (
@@ -152,7 +155,7 @@ class PruneResult:
     kept: list[str]
     """The rollback chain kept: the champion first, then the earlier champions rollback returns to."""
     freed_bytes: int
-    """Bytes the deleted files took on disk."""
+    """Total size of the files this call deleted (or would delete)."""
     dry_run: bool = False
 
 
@@ -172,8 +175,14 @@ def _now() -> str:
 
 
 def _tree_size(path: Path) -> int:
-    """Bytes of the files under ``path`` (0 when it is gone)."""
-    return sum(f.stat().st_size for f in path.rglob("*") if f.is_file()) if path.exists() else 0
+    """Bytes of the files under ``path`` (files that vanish meanwhile count 0)."""
+    total = 0
+    for f in path.rglob("*"):
+        try:
+            total += f.stat().st_size if f.is_file() else 0
+        except FileNotFoundError:
+            continue
+    return total
 
 
 def _dump(obj: Any, what: str) -> bytes:
@@ -385,6 +394,8 @@ class ModelRegistry:
         if not 0 <= min_rel_improvement < 1:
             raise RegistryError(f"min_rel_improvement must be in [0, 1), found {min_rel_improvement}")
         rec = self.get(version)
+        if rec.status not in (ModelStatus.CANDIDATE, ModelStatus.CHAMPION):
+            return self._not_a_candidate(rec, self.champion(), metric)
         try:
             self._read_verified(rec)
         except CorruptCheckpointError as exc:
@@ -394,10 +405,9 @@ class ModelRegistry:
             if current == version:
                 return GateDecision(False, f"{version} is already the champion", version, current,
                                     metric)
-            status = self._get(conn, version).status
-            if status != ModelStatus.CANDIDATE:  # a rolled-back or refused model is not re-judged
-                return GateDecision(False, f"{version} is {status.value}, not a candidate: only a new candidate "
-                                    "goes through the gate (models promote overrides it)", version, current, metric)
+            now = self._get(conn, version)
+            if now.status != ModelStatus.CANDIDATE:  # a rolled-back or refused model is not re-judged
+                return self._not_a_candidate(now, current, metric)
             champ = self._get(conn, current) if current is not None else None
             promoted, reason, champ_value = judge(rec, champ, metric, min_rel_improvement, eval_split_hash)
             if promoted:
@@ -407,6 +417,11 @@ class ModelRegistry:
         cand_value = rec.metrics.get(metric)
         return GateDecision(promoted, reason, version, current, metric,
                             cand_value if isinstance(cand_value, (int, float)) else None, champ_value)
+
+    @staticmethod
+    def _not_a_candidate(rec: ModelRecord, current: str | None, metric: str) -> GateDecision:
+        return GateDecision(False, f"{rec.version} is {rec.status.value}, not a candidate: only a new candidate "
+                            "goes through the gate (models promote overrides it)", rec.version, current, metric)
 
     def _refuse(self, rec: ModelRecord, reason: str, metric: str) -> GateDecision:
         with self._transaction() as conn:
@@ -468,7 +483,7 @@ class ModelRegistry:
             target = version
             break
         if target is None:
-            why = f"; skipped corrupt: {'; '.join(skipped)}" if skipped else ""
+            why = f"; skipped, weights unusable: {'; '.join(skipped)}" if skipped else ""
             raise RegistryError(f"no previous champion to roll back to from {current}{why}")
         with self._transaction() as conn:
             if (self._champion(conn) != current or self._live_history(conn) != entries
@@ -501,17 +516,33 @@ class ModelRegistry:
         """Delete the files of retired and rejected models, except the ``keep`` newest of the rollback chain.
 
         Kept always: the champion (``keep`` counts it), the ``keep - 1`` earlier champions that
-        ``rollback`` walks back to, and every candidate (a retrain job may be about to gate it).
-        Pruned rows stay, with ``pruned_at`` set: their metrics and history remain, their weights
-        are refused with ``PrunedCheckpointError`` and ``rollback`` skips them. The rows are marked
-        in one transaction before any file is deleted, so a crash between leaves marked rows whose
-        files the next ``prune`` deletes. Raises ``RegistryError`` for a ``keep`` below 1.
+        ``rollback`` walks back to (one whose weights fail their sha256 does not count: rollback
+        would skip it), and every candidate (a retrain job may be about to gate it). Pruned rows
+        stay, with ``pruned_at`` set: their metrics and history remain, their weights are refused
+        with ``PrunedCheckpointError`` and ``rollback`` skips them. The rows are marked in one
+        transaction before any file is deleted, so a crash between leaves marked rows whose files
+        the next ``prune`` deletes; each directory is claimed by a rename before it is deleted, so
+        two prunes at once delete (and count) it once. Also sweeps the dot folders crashed calls
+        left. Raises ``RegistryError`` for a ``keep`` below 1.
         """
         if isinstance(keep, bool) or not isinstance(keep, int) or keep < 1:
             raise RegistryError(f"keep must be a whole number of at least 1 (the champion), found {keep!r}")
+        # Which of the chain rollback could return to: checking sha256 reads files, so before the lock
+        # (a model promoted meanwhile is not in `unusable` and is kept).
+        unusable, intact = set(), 0
+        with self._connect() as conn:
+            chain = self._rollback_chain(conn)
+        for version in chain:
+            if intact == keep:
+                break
+            try:
+                self.verify(version)
+                intact += 1
+            except CorruptCheckpointError:
+                unusable.add(version)
         with self._transaction() as conn:
             pruned = {r[0] for r in conn.execute("SELECT version FROM models WHERE pruned_at IS NOT NULL")}
-            kept = [v for v in self._rollback_chain(conn) if v not in pruned][:keep]
+            kept = [v for v in self._rollback_chain(conn) if v not in pruned and v not in unusable][:keep]
             marks = ",".join("?" * len(kept))
             chosen = [r[0] for r in conn.execute(
                 f"SELECT version FROM models WHERE status IN (?, ?) AND pruned_at IS NULL "
@@ -521,18 +552,38 @@ class ModelRegistry:
                 now = _now()
                 conn.executemany("UPDATE models SET pruned_at = ?, updated = ? WHERE version = ?",
                                  [(now, now, v) for v in chosen])
-            # this prune's, and any an earlier prune marked but died before deleting
-            leftover = [r[0] for r in conn.execute(
-                "SELECT version FROM models WHERE pruned_at IS NOT NULL ORDER BY seq")]
-        gone = chosen if dry_run else [v for v in leftover if (self.models_dir / v).exists()]
-        freed = sum(_tree_size(self.models_dir / v) for v in gone)
-        if not dry_run:
-            for version in gone:
-                shutil.rmtree(self.models_dir / version)
-            if gone:
-                fsync_dir(self.models_dir)
-        return PruneResult(pruned=chosen if dry_run else sorted(set(chosen) | set(gone)),
-                           kept=kept, freed_bytes=freed, dry_run=dry_run)
+            # and any an earlier prune marked but died before deleting
+            marked = [r[0] for r in conn.execute("SELECT version FROM models WHERE pruned_at IS NOT NULL")]
+        leftover = [v for v in marked if v not in chosen and (self.models_dir / v).exists()]
+        if dry_run:
+            return PruneResult(pruned=sorted(chosen + leftover), kept=kept, dry_run=True,
+                               freed_bytes=sum(_tree_size(self.models_dir / v) for v in chosen + leftover))
+        deleted, freed = [], 0
+        for version in chosen + leftover:
+            # Claimed by an atomic rename: of two prunes at once, one deletes and counts each directory.
+            claimed = self.models_dir / f".prune-{version}-{uuid.uuid4().hex[:8]}"
+            try:
+                os.rename(self.models_dir / version, claimed)
+            except FileNotFoundError:
+                continue
+            freed += _tree_size(claimed)
+            shutil.rmtree(claimed)
+            deleted.append(version)
+        self._sweep_stale()
+        if deleted:
+            fsync_dir(self.models_dir)
+        return PruneResult(pruned=sorted(set(chosen) | set(deleted)), kept=kept, freed_bytes=freed)
+
+    def _sweep_stale(self) -> None:
+        """Delete the dot folders a crashed ``register`` (``.tmp-*``) or ``prune`` (``.prune-*``) left, once
+        older than ``STALE_AGE_S`` (a younger one may be a live call's)."""
+        now = time.time()
+        for stale in (*self.models_dir.glob(".tmp-*"), *self.models_dir.glob(".prune-*")):
+            try:
+                if now - stale.stat().st_mtime > STALE_AGE_S:
+                    shutil.rmtree(stale, ignore_errors=True)
+            except FileNotFoundError:
+                continue
 
     def _check_not_pruned(self, conn: sqlite3.Connection, version: str) -> None:
         rec = self._get(conn, version)

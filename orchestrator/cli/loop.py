@@ -289,6 +289,8 @@ def _retrain(args: argparse.Namespace) -> int:
               f"champion {result['champion']}")
         if result["pruned"]:
             print(f"  pruned {len(result['pruned'])} models' files: {', '.join(result['pruned'])}")
+    if result["prune_error"]:
+        print(f"activecollect retrain: warning: {result['prune_error']}", file=sys.stderr)
     return 0
 
 

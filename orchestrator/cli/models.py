@@ -82,7 +82,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=_models_rollback)
     p = msub.add_parser("prune", help="delete the weights of old retired and rejected models (rows and metrics stay)",
                         description="Delete the files of retired and rejected models, except the champion and the "
-                                    "KEEP-1 earlier champions 'models rollback' returns to. Candidates are never "
+                                    "N-1 earlier champions 'models rollback' returns to (models whose weights fail their sha256 do not count). Candidates are never "
                                     "touched. The rows stay: 'models ls' and 'models show' still list every model, "
                                     "marked pruned. 'retrain --keep-models N' does the same after each retrain.")
     p.add_argument("--keep", type=common.positive_int, required=True, metavar="N",
@@ -224,7 +224,10 @@ def _models_rollback(args: argparse.Namespace) -> int:
 
 def _models_prune(args: argparse.Namespace) -> int:
     registry = _registry(args)
-    result = registry.prune(args.keep, dry_run=args.dry_run)
+    try:
+        result = registry.prune(args.keep, dry_run=args.dry_run)
+    except (RegistryError, OSError) as exc:
+        return _fail(f"cannot prune: {exc}")
     if args.json:
         common.print_json(dataclasses.asdict(result))
         return 0

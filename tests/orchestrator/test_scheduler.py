@@ -286,3 +286,21 @@ def test_a_retrain_with_keep_models_prunes_after_its_gate(trained, tmp_path):
     for rec in ModelRegistry(data).list():
         assert (rec.pruned_at is None) == (rec.version == champ), rec
 
+
+
+def test_a_failing_prune_does_not_fail_the_retrain(trained, tmp_path, monkeypatch):
+    from orchestrator.retrain import run_retrain
+    from uncertainty.config import TrainConfig
+    data = tmp_path / "copy"
+    shutil.copytree(trained, data)
+
+    def broken(self, keep, dry_run=False):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(ModelRegistry, "prune", broken)
+    cfg = TrainConfig(members=2, widths=(4, 4, 4), batch_size=8, epochs=1, device="cpu", min_rel_improvement=0,
+                      progress=False)
+    result = run_retrain(data, cfg, keep_models=1)
+    assert result["pruned"] == [] and "No space left on device" in result["prune_error"]
+    assert result["version"] in [m.version for m in ModelRegistry(data).list()]
+    assert ModelRegistry(data).champion() == result["champion"]

@@ -215,7 +215,7 @@ def test_rollback_skips_a_corrupt_previous_champion(reg: ModelRegistry) -> None:
         reg.gate(v)
     _flip_byte(reg, b)
     _flip_byte(reg, a)
-    with pytest.raises(RegistryError, match=r"no previous champion.*skipped corrupt.*sha256 mismatch"):
+    with pytest.raises(RegistryError, match=r"no previous champion.*skipped, weights unusable.*sha256 mismatch"):
         reg.rollback()
     assert reg.champion() == c  # nothing changed
     reg.get(a).weights_path.write_bytes(f"weights {0.010} {{}}".encode() * 10)  # repaired
@@ -392,3 +392,89 @@ def test_a_registry_made_before_pruning_existed_is_migrated(tmp_path) -> None:
     reg = ModelRegistry(data)
     assert reg.get("m000001-00000000").pruned_at is None
     assert reg.prune(keep=1).pruned == ["m000001-00000000"]
+
+
+def test_promote_stops_when_a_prune_lands_after_its_check(reg: ModelRegistry, monkeypatch) -> None:
+    a, b, c, d, e, rejected, candidate = _history_of_five(reg)
+    read = reg._read_verified
+    calls = []
+
+    def read_then_prune(rec):  # promote checked b's weights; then a prune (another process) removes them
+        data = read(rec)
+        if not calls:
+            calls.append(rec.version)
+            ModelRegistry(reg.data_dir).prune(keep=1)
+            return data
+        return read(reg.get(rec.version))
+
+    monkeypatch.setattr(reg, "_read_verified", read_then_prune)
+    with pytest.raises(PrunedCheckpointError, match="weights pruned"):
+        reg.promote(b)
+    assert calls == [b] and reg.champion() == e and reg.get(b).status is ModelStatus.RETIRED
+
+
+def test_a_corrupt_model_of_the_chain_does_not_use_up_a_keep_slot(reg: ModelRegistry) -> None:
+    a, b, c = (_register(reg, mse) for mse in (0.010, 0.008, 0.006))
+    for v in (a, b, c):
+        reg.gate(v)
+    _flip_byte(reg, b)
+    result = reg.prune(keep=2)
+    assert result.kept == [c, a] and result.pruned == [b]  # b could never be rolled back to
+    assert reg.rollback() == a
+
+
+def test_two_prunes_at_once_both_finish(reg: ModelRegistry) -> None:
+    a, b, c, d, e, rejected, candidate = _history_of_five(reg)
+    total = sum(f.stat().st_size for v in (a, b, c, d, rejected) for f in reg.get(v).path.iterdir())
+    results, errors = [], []
+
+    def work() -> None:
+        try:
+            results.append(ModelRegistry(reg.data_dir).prune(keep=1))
+        except BaseException as exc:  # noqa: BLE001 - reported by the assert below
+            errors.append(exc)
+
+    threads = [threading.Thread(target=work) for _ in range(4)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert errors == []
+    assert set().union(*(r.pruned for r in results)) == {a, b, c, d, rejected}
+    assert sum(r.freed_bytes for r in results) == total  # each directory deleted, and counted, once
+    assert sorted(p.name for p in reg.models_dir.iterdir()) == sorted([e, candidate])
+
+
+def test_a_dry_run_also_shows_what_a_crashed_prune_left(reg: ModelRegistry) -> None:
+    a, b, c, d, e, rejected, candidate = _history_of_five(reg)
+    with sqlite3.connect(reg.db_path) as conn:
+        conn.execute("UPDATE models SET pruned_at = '2026-11-21T00:00:00+00:00' WHERE version = ?", (a,))
+    dry = reg.prune(keep=5, dry_run=True)
+    real = reg.prune(keep=5)
+    assert dry.pruned == real.pruned == [a, rejected] and dry.freed_bytes == real.freed_bytes > 0
+
+
+def test_gating_a_pruned_model_changes_nothing(reg: ModelRegistry) -> None:
+    a, b, c, d, e, rejected, candidate = _history_of_five(reg)
+    reg.prune(keep=1)
+    before = reg.get(a)
+    decision = reg.gate(a)
+    assert not decision.promoted and "not a candidate" in decision.reason
+    assert reg.get(a) == before
+
+
+
+def test_prune_sweeps_the_dot_folders_crashed_calls_left(reg: ModelRegistry) -> None:
+    import os
+    import time
+    _history_of_five(reg)
+    old, fresh = reg.models_dir / ".tmp-crashed", reg.models_dir / ".tmp-live"
+    half_deleted = reg.models_dir / ".prune-m000001-abcdef12-0a0b0c0d"
+    for d in (old, fresh, half_deleted):
+        d.mkdir()
+        (d / "weights.pt").write_bytes(b"x" * 100)
+    hours_ago = time.time() - 2 * 3600
+    for d in (old, half_deleted):
+        os.utime(d, (hours_ago, hours_ago))
+    reg.prune(keep=5)
+    assert not old.exists() and not half_deleted.exists() and fresh.exists()
