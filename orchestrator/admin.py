@@ -155,6 +155,8 @@ def _queue_op(op: str, args: Mapping[str, Any], queue: RequestQueue) -> dict[str
         request, created = queue.enqueue(NewRequest(**spec.to_dict()))
         return {"request": request_summary(request), "created": created}
     request_id = protocol.check_id("id", args["id"])
+    priority = _priority_arg(op, args["priority"]) if op == "queue.prioritize" else None
+    request_id = queue.resolve(request_id)  # the arguments are good: now a unique prefix will do
     if op == "queue.show":
         return {"request": finite(queue.get(request_id).to_dict())}
     if op == "queue.cancel":
@@ -162,7 +164,7 @@ def _queue_op(op: str, args: Mapping[str, Any], queue: RequestQueue) -> dict[str
     if op == "queue.retry":
         return {"request": request_summary(queue.retry(request_id))}
     if op == "queue.prioritize":
-        return {"request": request_summary(queue.prioritize(request_id, _priority_arg(op, args["priority"])))}
+        return {"request": request_summary(queue.prioritize(request_id, priority))}
     raise ProtocolError(ErrorCode.UNKNOWN_OP, f"expected a queue op, found {op!r}")  # pragma: no cover
 
 

@@ -137,10 +137,13 @@ class LoopRun:
     """``activecollect run``: see the module docstring. ``run()`` blocks until done or Ctrl-C."""
 
     def __init__(self, cfg: RunConfig, make_eval_split: MakeEvalSplit,
-                 worker_cmd: Callable[[str, str, str, int], list[str]] = worker_command) -> None:
+                 worker_cmd: Callable[[str, str, str, int], list[str]] = worker_command,
+                 announce: Callable[[str], None] = lambda line: None) -> None:
         self.cfg = cfg
         self.make_eval_split = make_eval_split
         self.worker_cmd = worker_cmd
+        self.announce = announce
+        """Told one-line news for the operator (where the dashboard is)."""
         self.metrics = ServiceMetrics()
         self.procs: list[subprocess.Popen] = []
         self.service: Service | None = None
@@ -196,6 +199,7 @@ class LoopRun:
             log.warning("no dashboard: cannot bind 127.0.0.1:%d: %s", self.cfg.dashboard_port, exc)
             return
         self.dashboard = dash
+        self.announce(f"dashboard at {dash.url}")
 
     # -- callbacks ------------------------------------------------------------------------------
     def _count(self) -> int:

@@ -133,7 +133,10 @@ def retrain_lock(data_dir: Path, wait: bool = False) -> Iterator[Path]:
             raise RetrainBusyError(f"another retrain holds {path} (pid {holder.get('pid', '?')}, "
                                    f"phase {holder.get('phase', '?')}); not training") from None
         note_phase(data_dir, "locked", fd=fd)
-        yield path
+        try:
+            yield path
+        finally:
+            note_phase(data_dir, "released", fd=fd)  # not "training" for good after a failed job
     finally:
         os.close(fd)  # closing releases the flock
 

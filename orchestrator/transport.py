@@ -398,16 +398,44 @@ def timeout_seconds(text: str) -> float:
     return value
 
 
+#: Zenoh's link protocols; the first group's addresses are HOST:PORT.
+_INET_PROTOCOLS = ("tcp", "udp", "tls", "quic", "ws")
+_OTHER_PROTOCOLS = ("unixsock-stream", "unixpipe", "serial", "vsock")
+
+
+def endpoint(text: str) -> str:
+    """A ``--listen`` / ``--connect`` endpoint, checked in shape before Zenoh sees it (argparse exits 2).
+
+    ``PROTOCOL/ADDRESS[?metadata][#config]``; for tcp, udp, tls, quic and ws the address is
+    ``HOST:PORT`` (an IPv6 host in brackets) with a port in 0-65535. Zenoh would refuse the rest
+    only when the session opens, with a message from its Rust internals.
+    """
+    proto, slash, rest = text.partition("/")
+    if not slash or not proto or not rest:
+        raise argparse.ArgumentTypeError(f"expected PROTOCOL/ADDRESS like tcp/10.0.0.5:7447, found {text!r}")
+    if proto not in _INET_PROTOCOLS + _OTHER_PROTOCOLS:
+        raise argparse.ArgumentTypeError(f"unknown protocol {proto!r} in {text!r}; expected one of "
+                                         f"{', '.join(_INET_PROTOCOLS + _OTHER_PROTOCOLS)}")
+    if proto in _INET_PROTOCOLS:
+        address = rest.split("#", 1)[0].split("?", 1)[0]
+        host, colon, port = address.rpartition(":")
+        if not colon or not host or host in ("[", "[]"):
+            raise argparse.ArgumentTypeError(f"expected HOST:PORT after {proto}/, found {text!r}")
+        if not (port.isdigit() and int(port) <= 65535):
+            raise argparse.ArgumentTypeError(f"port must be 0-65535, found {port!r} in {text!r}")
+    return text
+
+
 def add_connection_args(parser: argparse.ArgumentParser, *, listen: bool = False, timeout: float = 5.0) -> None:
     """The flags every process that talks Zenoh shares: endpoints, config file, namespace, timeout.
 
     ``listen=True`` (the service) adds ``--listen``; ``--connect`` is always there.
     """
     if listen:
-        parser.add_argument("--listen", action="append", default=[], metavar="EP",
+        parser.add_argument("--listen", action="append", default=[], metavar="EP", type=endpoint,
                             help=f"Zenoh endpoint to listen on (repeatable; default {DEFAULT_ENDPOINT} "
                                  "when no --connect or --zenoh-config is given)")
-    parser.add_argument("--connect", action="append", default=[], metavar="EP",
+    parser.add_argument("--connect", action="append", default=[], metavar="EP", type=endpoint,
                         help="Zenoh endpoint to connect to, e.g. tcp/10.0.0.5:7447 (repeatable"
                              + ("" if listen else f"; default {DEFAULT_ENDPOINT} without --zenoh-config") + ")")
     parser.add_argument("--zenoh-config", type=Path, default=None, metavar="FILE",

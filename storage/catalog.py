@@ -193,6 +193,17 @@ def _episode_date(created: str) -> str:
         return datetime.now(timezone.utc).strftime("%Y-%m-%d")
 
 
+def _check_frame_size(conn: sqlite3.Connection, meta: EpisodeMeta) -> None:
+    """Every episode of a catalog has the frame size of its first: the models train on, and score,
+    one size, so one other episode would fail every retrain. Raises ``CatalogError``."""
+    first = conn.execute("SELECT episode_id, json_extract(meta, '$.image_size') FROM episodes "
+                         "ORDER BY rowid LIMIT 1").fetchone()
+    if first is not None and first[1] is not None and int(first[1]) != meta.image_size:
+        raise CatalogError(f"episode {meta.episode_id} has {meta.image_size}px frames; this catalog holds "
+                           f"{first[1]}px episodes (the first, {first[0]}): collect at that size (worker or "
+                           f"collect --size {first[1]}) or use another data directory")
+
+
 def _check_split(split: str) -> None:
     if split not in SPLITS:
         raise CatalogError(f"unknown split {split!r}; expected one of {', '.join(SPLITS)}")
@@ -324,6 +335,7 @@ class Catalog:
             if r is not None:
                 conn.execute("ROLLBACK")
                 return self._duplicate(self._row(r), sha, split, data)
+            _check_frame_size(conn, meta)
             publish(staged, final)
             published = True
             conn.execute(

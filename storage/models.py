@@ -517,7 +517,9 @@ class ModelRegistry:
 
         Kept always: the champion (``keep`` counts it), the ``keep - 1`` earlier champions that
         ``rollback`` walks back to (one whose weights fail their sha256 does not count: rollback
-        would skip it), and every candidate (a retrain job may be about to gate it). Pruned rows
+        would skip it), and every candidate (a retrain job may be about to gate it). Slots the chain
+        leaves go to the latest champions a rollback took out of service (so they can be promoted
+        again). Pruned rows
         stay, with ``pruned_at`` set: their metrics and history remain, their weights are refused
         with ``PrunedCheckpointError`` and ``rollback`` skips them. The rows are marked in one
         transaction before any file is deleted, so a crash between leaves marked rows whose files
@@ -543,6 +545,9 @@ class ModelRegistry:
         with self._transaction() as conn:
             pruned = {r[0] for r in conn.execute("SELECT version FROM models WHERE pruned_at IS NOT NULL")}
             kept = [v for v in self._rollback_chain(conn) if v not in pruned and v not in unusable][:keep]
+            for (version,) in conn.execute("SELECT version FROM champion_history ORDER BY id DESC"):
+                if len(kept) < keep and version not in kept and version not in pruned | unusable:
+                    kept.append(version)  # slots left: the latest champions a rollback took out of service
             marks = ",".join("?" * len(kept))
             chosen = [r[0] for r in conn.execute(
                 f"SELECT version FROM models WHERE status IN (?, ?) AND pruned_at IS NULL "

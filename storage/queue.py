@@ -311,6 +311,21 @@ class RequestQueue:
         with self._reading() as conn:
             return self._fetch(conn, request_id)
 
+    def resolve(self, id_or_prefix: str) -> str:
+        """The id of the request whose id is ``id_or_prefix`` or uniquely starts with it (for operators);
+        UnknownRequestError when none does or several do."""
+        pattern = id_or_prefix.replace("\\", "\\\\").replace("%", "\\%").replace("_", "\\_") + "%"
+        with self._reading() as conn:
+            if conn.execute("SELECT 1 FROM requests WHERE id = ?", (id_or_prefix,)).fetchone():
+                return id_or_prefix
+            ids = [r[0] for r in conn.execute("SELECT id FROM requests WHERE id LIKE ? ESCAPE '\\' LIMIT 3",
+                                              (pattern,))]
+        if len(ids) == 1 and id_or_prefix:
+            return ids[0]
+        if ids and id_or_prefix:
+            raise UnknownRequestError(f"request id prefix {id_or_prefix!r} is ambiguous ({', '.join(ids[:2])}, ...)")
+        raise UnknownRequestError(f"no request {id_or_prefix!r}: expected a known request id or a unique prefix")
+
     def list(self, status: RequestStatus | str | None = None, limit: int | None = None) -> list[Request]:
         """Requests, newest change first; queued ones in the order they will be leased."""
         sql, args = _SELECT, []

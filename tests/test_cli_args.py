@@ -6,6 +6,7 @@ import argparse
 
 import pytest
 
+from orchestrator import transport
 from orchestrator.cli import build_parser, common
 from storage.catalog import Catalog
 from tests.conftest import free_port, run_cli
@@ -67,6 +68,12 @@ def _connect() -> list[str]:
     (["queue", "show", "r1", "--timeout", "inf"], "expected seconds"),
     (["worker", "--timeout", "nan"], "expected seconds"),
     (["queue", "ls", "--limit", "201"], "expected at most 200"),
+    (["queue", "ls", "--connect", "garbage"], "expected PROTOCOL/ADDRESS like tcp/10.0.0.5:7447, found 'garbage'"),
+    (["stats", "--connect", "foo/1.2.3.4:7447"], "unknown protocol 'foo'"),
+    (["worker", "--connect", "tcp/10.0.0.5"], "expected HOST:PORT after tcp/"),
+    (["serve", "--listen", "tcp/127.0.0.1:notaport", "--data", "DATA"], "port must be 0-65535, found 'notaport'"),
+    (["serve", "--listen", "tcp/127.0.0.1:70000", "--data", "DATA"], "port must be 0-65535, found '70000'"),
+    (["router", "--listen", "tls/0.0.0.0"], "expected HOST:PORT after tls/"),
     (["queue", "add", "--shape", "T", "--seed", "-1"], "expected an integer >= 0"),
     (["queue", "add", "--shape", "T", "--priority", "nan"], "expected a finite number"),
     (["queue", "add", "--shape", "T", "--priority", "inf"], "expected a finite number"),
@@ -134,3 +141,12 @@ def test_retrain_without_train_episodes_fails_in_one_line(capsys, tmp_path) -> N
                            "--device", "cpu")
     assert rc == 1 and out == "" and err.count("\n") == 1, err
     assert "retrain: failed: " in err and "no train episodes" in err
+
+
+@pytest.mark.parametrize("text", ["tcp/127.0.0.1:7447", "tcp/127.0.0.1:0", "tcp/[::1]:7447", "tls/host.example:7447",
+                                  "udp/10.0.0.5:7447", "quic/10.0.0.5:7447", "ws/10.0.0.5:7448",
+                                  "tcp/10.0.0.5:7447#iface=eth0", "tcp/10.0.0.5:7447?prio=1-7",
+                                  "unixsock-stream//tmp/zenoh.sock"])
+def test_zenoh_endpoints_zenoh_accepts_pass_the_check(text) -> None:
+    assert transport.endpoint(text) == text
+

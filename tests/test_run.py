@@ -72,6 +72,7 @@ def test_run_collects_retrains_promotes_reports_and_resumes_after_ctrl_c(tmp_pat
     # 2. the next run resumes from the catalog and finishes the budget
     second = subprocess.run(run_cmd(data, 12), capture_output=True, text=True, timeout=540)
     assert second.returncode == 0, second.stderr[-3000:]
+    assert "dashboard at http://127.0.0.1:" in second.stderr  # --dashboard-port 0: the operator must learn where
     result = json.loads(second.stdout)
     assert result["interrupted"] is False
     assert 12 <= result["episodes"] <= 12 + 2 and result["episodes"] >= kept

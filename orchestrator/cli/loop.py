@@ -18,6 +18,7 @@ import shlex
 import sys
 import threading
 import time
+from collections import Counter
 from pathlib import Path
 
 from orchestrator.champion import ChampionScorer, FramesSource
@@ -251,14 +252,16 @@ def _run(args: argparse.Namespace) -> int:
                         progress=not args.no_progress)
     except ValueError as exc:
         raise common.UsageError(str(exc)) from None
-    run = LoopRun(cfg, bench_eval_split)
+    run = LoopRun(cfg, bench_eval_split, announce=lambda line: print(line, file=sys.stderr, flush=True))
     result = run.run()
     if args.json:
         common.print_json(result.to_json())
     else:
         h1 = "-" if result.champion_h1_mse is None else f"{result.champion_h1_mse:.4e}"
+        outcomes = Counter(r["status"] for r in result.retrains)
+        how = f" ({', '.join(f'{n} {status}' for status, n in outcomes.items())})" if outcomes else ""
         print(f"{'interrupted' if result.interrupted else 'done'}: {result.episodes} episodes, "
-              f"{len(result.retrains)} retrains, champion {result.champion or '-'} (eval h1 MSE {h1}), "
+              f"{len(result.retrains)} retrains{how}, champion {result.champion or '-'} (eval h1 MSE {h1}), "
               f"{result.seconds:.0f} s")
         print(f"report: {result.report}")
     return 130 if result.interrupted else 0
@@ -288,7 +291,7 @@ def _retrain(args: argparse.Namespace) -> int:
         print(f"  h1_mse {result['metrics'].get('h1_mse')}  h5_mse {result['metrics'].get('h5_mse')}  "
               f"champion {result['champion']}")
         if result["pruned"]:
-            print(f"  pruned {len(result['pruned'])} models' files: {', '.join(result['pruned'])}")
+            print(f"  pruned the files of {', '.join(result['pruned'])}")
     if result["prune_error"]:
         print(f"activecollect retrain: warning: {result['prune_error']}", file=sys.stderr)
     return 0

@@ -43,16 +43,17 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--variance-head", action="store_true",
                    help="members also predict the variance of their own error (a fresh model only); eval then "
                         "reports the calibration of the total predictive variance next to the disagreement's")
-    p.add_argument("--seed", type=common.non_negative_int, default=TrainConfig.seed, metavar="S")
-    p.add_argument("--device", choices=_DEVICES, default="auto")
+    p.add_argument("--seed", type=common.non_negative_int, default=TrainConfig.seed, metavar="S",
+                   help=f"seed of the initialisation and the shuffling (default {TrainConfig.seed})")
+    p.add_argument("--device", choices=_DEVICES, default="auto", help="torch device (default auto: cuda when there is one)")
     p.add_argument("--min-improvement", type=common.finite_float, default=TrainConfig.min_rel_improvement,
                    metavar="FRAC",
                    help="the gate's minimum relative improvement of h1_mse over the champion "
                         f"(default {TrainConfig.min_rel_improvement})")
     p.set_defaults(func=_train)
     p = sub.add_parser("eval", help="evaluate a model (default: the champion) on the pinned eval split")
-    p.add_argument("version", nargs="?", metavar="VERSION")
-    p.add_argument("--device", choices=_DEVICES, default="auto")
+    p.add_argument("version", nargs="?", metavar="VERSION", help="a registered version (default: the champion)")
+    p.add_argument("--device", choices=_DEVICES, default="auto", help="torch device (default auto: cuda when there is one)")
     p.set_defaults(func=_eval)
     p = sub.add_parser("score", help="per-step disagreement of an episode and its most uncertain states")
     p.add_argument("episode", metavar="EPISODE", help="an episode id (or unique prefix) in the catalog, "
@@ -61,7 +62,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="how many top states to show (default 5)")
     p.add_argument("--horizon", type=common.positive_int, default=1, metavar="H",
                    help="roll each member out H steps (default 1)")
-    p.add_argument("--device", choices=_DEVICES, default="auto")
+    p.add_argument("--device", choices=_DEVICES, default="auto", help="torch device (default auto: cuda when there is one)")
     p.set_defaults(func=_score)
     for p in (sub.choices["train"], sub.choices["eval"], sub.choices["score"]):
         common.add_data_arg(p)
@@ -82,7 +83,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=_models_rollback)
     p = msub.add_parser("prune", help="delete the weights of old retired and rejected models (rows and metrics stay)",
                         description="Delete the files of retired and rejected models, except the champion and the "
-                                    "N-1 earlier champions 'models rollback' returns to (models whose weights fail their sha256 do not count). Candidates are never "
+                                    "N-1 earlier champions 'models rollback' returns to (models whose weights fail their sha256 do not count), then, while slots remain, the "
+                                    "latest champions a rollback took out of service. Candidates are never "
                                     "touched. The rows stay: 'models ls' and 'models show' still list every model, "
                                     "marked pruned. 'retrain --keep-models N' does the same after each retrain.")
     p.add_argument("--keep", type=common.positive_int, required=True, metavar="N",
@@ -241,7 +243,8 @@ def prune_summary(result: PruneResult) -> str:
     if not result.pruned:
         return f"nothing to delete ({kept})"
     verb = "would delete" if result.dry_run else "deleted"
-    return (f"{verb} {len(result.pruned)} models' files ({result.freed_bytes / 2**20:.1f} MiB): "
+    what = "1 model's files" if len(result.pruned) == 1 else f"{len(result.pruned)} models' files"
+    return (f"{verb} {what} ({result.freed_bytes / 2**20:.1f} MiB): "
             f"{', '.join(result.pruned)}; {kept}")
 
 
@@ -262,7 +265,7 @@ def register_bench(bench_sub: argparse._SubParsersAction) -> None:
                    help="rough total measuring time (default 10)")
     p.add_argument("--threads", type=common.positive_int, default=None, metavar="N",
                    help="torch intra-op threads (default: torch's)")
-    p.add_argument("--device", choices=_DEVICES, default="auto")
+    p.add_argument("--device", choices=_DEVICES, default="auto", help="torch device (default auto: cuda when there is one)")
     common.add_json_arg(p)
     p.set_defaults(func=_bench_score)
 

@@ -9,16 +9,16 @@ from pathlib import Path
 from orchestrator.cli.common import Parser, UsageError, add_json_arg, print_json, positive_int
 from orchestrator.router import RouterConfig, RouterError, run_router
 from orchestrator.secure import DEFAULT_NAMESPACE, DEFAULT_ROUTER_ENDPOINT, SecureInitConfig, init_secure
-from orchestrator.transport import SecureConfigError, validate_secure_config
+from orchestrator.transport import SecureConfigError, endpoint, validate_secure_config
 
 
 def register(sub) -> None:
     """Adds ``router`` and ``secure``."""
     p = sub.add_parser("router", help="run a Zenoh router that orchestrator, workers and operators connect to")
-    p.add_argument("--listen", action="append", default=[], metavar="EP",
+    p.add_argument("--listen", action="append", default=[], metavar="EP", type=endpoint,
                    help="endpoint to listen on, e.g. tls/0.0.0.0:7447 (repeatable; replaces the config "
                         "file's; default tcp/127.0.0.1:7447 without --zenoh-config)")
-    p.add_argument("--connect", action="append", default=[], metavar="EP",
+    p.add_argument("--connect", action="append", default=[], metavar="EP", type=endpoint,
                    help="another site's router to link to (repeatable; replaces the config file's)")
     p.add_argument("--zenoh-config", type=Path, metavar="FILE",
                    help="Zenoh JSON5 config, e.g. router.json5 from `secure init`")
@@ -30,14 +30,15 @@ def register(sub) -> None:
     init = ssub.add_parser("init", help="write a CA, per-role certificates and passwords, and "
                                         "router/orchestrator/worker/operator Zenoh configs")
     init.add_argument("directory", type=Path, metavar="DIR")
-    init.add_argument("--namespace", default=DEFAULT_NAMESPACE, help="key namespace the ACL protects")
+    init.add_argument("--namespace", default=DEFAULT_NAMESPACE, help=f"key namespace the ACL protects (default {DEFAULT_NAMESPACE})")
     init.add_argument("--router-endpoint", default=DEFAULT_ROUTER_ENDPOINT, metavar="tls/HOST:PORT",
                       help=f"where clients reach the router (default {DEFAULT_ROUTER_ENDPOINT})")
     init.add_argument("--router-listen", metavar="tls/ADDR:PORT",
                       help="what the router binds, e.g. tls/0.0.0.0:7447 (default: --router-endpoint)")
     init.add_argument("--host", action="append", default=[], dest="hosts", metavar="NAME",
                       help="another name or address of the router for its certificate (repeatable)")
-    init.add_argument("--valid-days", type=positive_int, default=825, help="certificate lifetime")
+    init.add_argument("--valid-days", type=positive_int, default=825, metavar="DAYS",
+                      help="certificate lifetime in days (default 825)")
     init.add_argument("--force", action="store_true", help="replace an existing profile in DIR")
     add_json_arg(init)
     init.set_defaults(func=_init)

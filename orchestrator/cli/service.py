@@ -105,32 +105,37 @@ def _register_queue(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=cmd_queue_ls)
     p = qsub.add_parser("show", help="one request in full")
     _operator_args(p)
-    p.add_argument("id")
+    p.add_argument("id", metavar="ID", help="a request id, or a unique prefix of one")
     p.set_defaults(func=lambda a: _print_op(a, "queue.show", {"id": a.id}, _print_request))
     p = qsub.add_parser("add", help="queue a manual request (a uniform start state unless --start-state)")
     _operator_args(p)
-    p.add_argument("--shape", required=True, choices=protocol.SHAPES)
-    p.add_argument("--task", default="push", choices=protocol.TASKS)
-    p.add_argument("--policy", default="push", choices=protocol.POLICIES)
-    p.add_argument("--policy-params", type=_json_object, default={}, metavar="JSON")
+    p.add_argument("--shape", required=True, choices=protocol.SHAPES, help="the object to push (required)")
+    p.add_argument("--task", default="push", choices=protocol.TASKS, help="the task (default push)")
+    p.add_argument("--policy", default="push", choices=protocol.POLICIES,
+                   help="the scripted policy the worker runs (default push)")
+    p.add_argument("--policy-params", type=_json_object, default={}, metavar="JSON",
+                   help="the policy's parameters as a JSON object, e.g. '{\"side\": \"left\"}' (default: its defaults)")
     p.add_argument("--start-state", type=_json_object, default=None, metavar="JSON",
                    help="start state in SimState.to_dict form (default: drawn uniformly with --seed)")
     p.add_argument("--seed", type=common.non_negative_int, default=None,
                    help="seed of the uniform start state (default: random)")
-    p.add_argument("--steps", type=common.positive_int, default=50)
-    p.add_argument("--priority", type=common.finite_float, default=0.0)
-    p.add_argument("--max-attempts", type=common.positive_int, default=3)
-    p.add_argument("--idempotency-key", default=None, metavar="K")
+    p.add_argument("--steps", type=common.positive_int, default=50, help="steps to record (default 50)")
+    p.add_argument("--priority", type=common.finite_float, default=0.0,
+                   help="higher is leased first (default 0; planned requests carry their score)")
+    p.add_argument("--max-attempts", type=common.positive_int, default=3,
+                   help="leases that may fail or expire before the request is dead (default 3)")
+    p.add_argument("--idempotency-key", default=None, metavar="K",
+                   help="a repeated add with the same key returns the first request instead of a new one")
     p.set_defaults(func=cmd_queue_add)
     for name, op, help_text in (("cancel", "queue.cancel", "cancel a queued or leased request"),
                                 ("retry", "queue.retry", "put a dead or cancelled request back in the queue")):
         p = qsub.add_parser(name, help=help_text)
         _operator_args(p)
-        p.add_argument("id")
+        p.add_argument("id", metavar="ID", help="a request id, or a unique prefix of one")
         p.set_defaults(func=lambda a, op=op: _print_op(a, op, {"id": a.id}, _print_request))
     p = qsub.add_parser("prioritize", help="set a request's priority (higher is leased first)")
     _operator_args(p)
-    p.add_argument("id")
+    p.add_argument("id", metavar="ID", help="a request id, or a unique prefix of one")
     p.add_argument("priority", type=common.finite_float)
     p.set_defaults(func=lambda a: _print_op(a, "queue.prioritize", {"id": a.id, "priority": a.priority},
                                             _print_request))
@@ -320,7 +325,9 @@ def _print_request(body: dict[str, Any]) -> None:
     for k in ("id", "status", "priority", "task", "shape", "policy", "steps", "attempts", "max_attempts",
               "worker_id", "token", "episode_id", "last_error", "idempotency_key"):
         if k in r:
-            print(f"{k:>16}: {r[k] if r[k] is not None else '-'}")
+            value = r[k]
+            shown = "-" if value is None else format(value, "g") if k == "priority" else value
+            print(f"{k:>16}: {shown}")
     for k in ("created", "updated", "lease_expires"):
         if k in r:
             print(f"{k:>16}: {_fmt_time(r[k])}")
@@ -332,7 +339,7 @@ def _print_request(body: dict[str, Any]) -> None:
 def cmd_queue_ls(args: argparse.Namespace) -> int:
     def show(body: dict[str, Any]) -> None:
         print(" ".join(f"{k}={v}" for k, v in body["counts"].items()))
-        print(f"{'ID':32}  {'STATUS':9} {'PRIO':>7} {'SHAPE':5} {'POLICY':16} {'TRY':>5} {'WORKER':16} UPDATED")
+        print(f"{'ID':32}  {'STATUS':9} {'PRIO':>7} {'SHAPE':5} {'POLICY':16} {'FAILS':>5} {'WORKER':16} UPDATED")
         for r in body["requests"]:
             tries = f"{r['attempts']}/{r['max_attempts']}"
             print(f"{r['id']:32}  {r['status']:9} {r['priority']:7.3g} {r['shape']:5} {r['policy']:16} "

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import sqlite3
+from collections import Counter
 from pathlib import Path
 
 import pytest
@@ -78,6 +79,22 @@ def test_cancel_retry_prioritize(queue: RequestQueue) -> None:
     refused(ErrorCode.ILLEGAL_TRANSITION, "queue.retry", {"id": rid}, queue=queue)
     refused(ErrorCode.UNKNOWN_REQUEST, "queue.show", {"id": "nope"}, queue=queue)
     refused(ErrorCode.UNKNOWN_REQUEST, "queue.cancel", {"id": "nope"}, queue=queue)
+
+
+def test_a_unique_id_prefix_names_a_request(queue: RequestQueue) -> None:
+    ids = [call("queue.add", dict(SPEC, idempotency_key=f"k{i}"), queue=queue)["request"]["id"] for i in range(17)]
+    first_chars = Counter(i[0] for i in ids)  # 17 hex ids: two share a first character
+    shared = next(c for c, n in first_chars.items() if n > 1)
+    err = refused(ErrorCode.UNKNOWN_REQUEST, "queue.cancel", {"id": shared}, queue=queue)
+    assert "ambiguous" in err.message
+    one = ids[0]
+    prefix = next(one[:n] for n in range(1, len(one) + 1) if sum(i.startswith(one[:n]) for i in ids) == 1)
+    assert call("queue.show", {"id": prefix}, queue=queue)["request"]["id"] == one
+    assert call("queue.prioritize", {"id": prefix, "priority": 4}, queue=queue)["request"]["id"] == one
+    assert call("queue.cancel", {"id": prefix}, queue=queue)["request"]["id"] == one
+    err = refused(ErrorCode.UNKNOWN_REQUEST, "queue.show", {"id": "zz"}, queue=queue)
+    assert "no request" in err.message
+    assert queue.get(one).priority == 4.0 and [queue.get(i).status.value for i in ids].count("cancelled") == 1
 
 
 def test_retry_a_dead_request(queue: RequestQueue) -> None:

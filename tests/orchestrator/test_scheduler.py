@@ -17,7 +17,7 @@ import pytest
 from orchestrator.planner import UniformPlanner, UniformPlannerConfig
 from orchestrator.scheduler import (
     EXIT_BUSY, RetrainBusyError, RetrainScheduler, RetrainStatus, ScheduleConfig, lock_held, read_lock_info,
-    retrain_lock,
+    note_phase, retrain_lock,
 )
 from storage.catalog import Catalog
 from storage.models import ModelRegistry
@@ -192,8 +192,12 @@ def test_the_lock_admits_one_holder_across_processes(tmp_path):
         holder.wait()
     # the kernel dropped the dead holder's lock: no stale lock file to clean up
     assert not lock_held(tmp_path)
-    with retrain_lock(tmp_path):
-        assert lock_held(tmp_path)
+    with pytest.raises(RuntimeError):
+        with retrain_lock(tmp_path):
+            assert lock_held(tmp_path)
+            note_phase(tmp_path, "training")
+            raise RuntimeError("the job failed")
+    assert read_lock_info(tmp_path)["phase"] == "released" and not lock_held(tmp_path)
     assert EXIT_BUSY == 3
 
 

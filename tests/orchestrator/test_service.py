@@ -77,9 +77,9 @@ def lease(client, keys, worker: str = "w1", **kw) -> LeaseGrant:
     return LeaseGrant.from_dict(body["grant"])
 
 
-def episode_bytes(grant: LeaseGrant, worker: str = "w1") -> bytes:
+def episode_bytes(grant: LeaseGrant, worker: str = "w1", size: int = 16) -> bytes:
     ep = collect_episode(start_state=grant.start_state, policy=grant.policy, policy_params=grant.policy_params,
-                         seed=grant.seed, steps=grant.steps, image_size=16, request_id=grant.request_id,
+                         seed=grant.seed, steps=grant.steps, image_size=size, request_id=grant.request_id,
                          worker_id=worker)
     return encode_episode(ep)
 
@@ -217,6 +217,17 @@ def test_an_upload_that_is_not_what_the_request_asked_for_is_refused(service, cl
     assert service.queue.get(grant.request_id).status == RequestStatus.LEASED
     assert "duplicate" not in upload(client, keys, grant, episode_bytes(grant))  # the right one still goes in
     assert service.queue.get(grant.request_id).status == RequestStatus.DONE
+
+
+def test_an_upload_of_another_frame_size_than_the_catalogs_is_refused(service, client, keys, data_dir) -> None:
+    service.queue.enqueue(new_request())
+    service.queue.enqueue(new_request())
+    first = lease(client, keys)
+    upload(client, keys, first, episode_bytes(first))  # the catalog's frames are 16 px from now on
+    grant = lease(client, keys)
+    message = refused(ErrorCode.BAD_FIELD, upload, client, keys, grant, episode_bytes(grant, size=24))
+    assert "24px frames; this catalog holds 16px episodes" in message and "--size 16" in message
+    assert Catalog(data_dir).count() == 1 and service.queue.get(grant.request_id).status == RequestStatus.LEASED
 
 
 def test_oversized_upload_is_refused(make_service, client, keys, data_dir) -> None:

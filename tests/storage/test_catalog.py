@@ -420,3 +420,17 @@ def test_files_a_crashed_ingest_left_are_found_and_swept(tmp_path, rng):
     assert not staged.exists() and not orphan.exists() and kept.path.is_file()
     assert (tmp_path / "orphans" / day.name / "orphan.mcap").is_file()  # kept for the operator
     assert cat.count() == 1 and not cat.strays(now=later)
+
+
+def test_an_episode_of_another_frame_size_is_refused_and_changes_nothing(cat, rng, tmp_path):
+    first = cat.add_episode(make_episode(rng, size=8))
+    other = make_episode(rng, size=16)
+    with pytest.raises(CatalogError, match=rf"16px frames; this catalog holds 8px episodes \(the first, "
+                                           rf"{first.episode_id}\)"):
+        cat.add_episode(other)
+    path = tmp_path / "other.mcap"
+    path.write_bytes(episodes.encode_episode(other))
+    with pytest.raises(CatalogError, match="16px frames"):
+        cat.ingest_file(path)
+    assert [r.episode_id for r in cat.list()] == [first.episode_id] and len(mcap_files(cat)) == 1
+    assert not cat.add_episode(make_episode(rng, size=8)).duplicate  # the catalog's own size still goes in

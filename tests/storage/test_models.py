@@ -478,3 +478,14 @@ def test_prune_sweeps_the_dot_folders_crashed_calls_left(reg: ModelRegistry) -> 
         os.utime(d, (hours_ago, hours_ago))
     reg.prune(keep=5)
     assert not old.exists() and not half_deleted.exists() and fresh.exists()
+
+
+def test_after_a_rollback_prune_keeps_the_model_rolled_back_from_while_slots_remain(reg: ModelRegistry) -> None:
+    a, b, c, d = (_register(reg, mse) for mse in (0.010, 0.008, 0.006, 0.004))
+    for v in (a, b, c, d):
+        reg.gate(v)
+    assert reg.prune(keep=2).kept == [d, c]
+    assert reg.rollback() == c  # the chain is now c alone (a and b were pruned)
+    result = reg.prune(keep=2)
+    assert result.kept == [c, d] and result.pruned == []  # d can still be promoted again by hand
+    assert reg.promote(d).promoted

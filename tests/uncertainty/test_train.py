@@ -155,7 +155,9 @@ def test_warm_start_without_champion_is_refused(tmp_path):
         train_candidate(cat, registry, TrainConfig(epochs=1, from_champion=True, variance_head=True, **TINY))
 
 
-def test_a_model_the_eval_split_cannot_evaluate_is_refused_before_training(tmp_path):
+def test_a_model_the_eval_split_cannot_evaluate_is_refused_before_training(tmp_path, monkeypatch):
+    import storage.catalog
+    monkeypatch.setattr(storage.catalog, "_check_frame_size", lambda conn, meta: None)  # a catalog from before it
     cat = Catalog(tmp_path)
     cat.add_episode(make_episode(0, "T", steps=8, size=16))
     cat.pin_eval_split([cat.add_episode(make_episode(50, "T", steps=8, size=32), split="eval").episode_id])
