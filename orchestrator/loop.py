@@ -353,7 +353,9 @@ class LoopRun:
         split = self.catalog.eval_split()
         inputs = ReportInputs(curve=learning_curve(self.catalog, self.registry), summary=summary,
                               retrains=retrains, champion=ensemble,
-                              train_sample=[self.catalog.load(r.episode_id) for r in train_rows],
+                              # (a catalog older than the one-frame-size rule may hold other sizes)
+                              train_sample=[ep for ep in (self.catalog.load(r.episode_id) for r in train_rows)
+                                            if ep.frames.shape[1] == self.cfg.image_size],
                               eval_sample=[self.catalog.load(i) for i in (split.ids[:3] if split else [])])
         report = write_report(self.cfg.data_dir, inputs)
         self.queue.close()

@@ -113,3 +113,29 @@ def test_ctrl_c_during_set_up_ends_the_run_with_a_report(tmp_path):
                             eval_episodes=2, dashboard_port=-1, progress=False), interrupted_eval_split)
     result = run.run()
     assert result.interrupted and result.episodes == 0 and result.retrains == [] and result.report.is_file()
+
+
+def test_a_catalog_with_episodes_of_another_size_still_gets_its_report(tmp_path, monkeypatch):
+    """Catalogs from before the one-frame-size rule may mix sizes: the report shows the run's own."""
+    import numpy as np
+    import storage.catalog
+    from orchestrator.planner import UniformPlanner, UniformPlannerConfig
+    from uncertainty.config import TrainConfig
+    from uncertainty.train import train_candidate
+    from workers.collect import collect_episode, create_eval_split
+    monkeypatch.setattr(storage.catalog, "_check_frame_size", lambda conn, meta: None)
+    data = tmp_path / "data"
+    catalog = Catalog(data)
+    create_eval_split(catalog, episodes=2, seed=RunConfig.eval_seed, steps=8, image_size=16)
+    planner = UniformPlanner(UniformPlannerConfig(steps=8), np.random.default_rng(0))
+    for i, (r, size) in enumerate(zip(planner.seed(3), (16, 16, 24))):
+        if size == 24:  # a champion first (the trainer refuses a mixed catalog), whose report scores episodes
+            train_candidate(catalog, ModelRegistry(data), TrainConfig(members=2, widths=(4, 4, 4), batch_size=8,
+                                                                      epochs=1, device="cpu", progress=False))
+        catalog.add_episode(collect_episode(start_state=r.start_state, policy=r.policy, policy_params=r.policy_params,
+                                            seed=i, steps=8, image_size=size))
+    run = LoopRun(RunConfig(data_dir=data, budget=3, round_episodes=3, image_size=16, steps=8, eval_episodes=2,
+                            dashboard_port=-1, progress=False),
+                  lambda catalog, episodes, seed, steps, size: create_eval_split(catalog, episodes, seed, steps, size))
+    result = run.run()
+    assert not result.interrupted and result.episodes == 3 and result.report.is_file()
