@@ -106,6 +106,10 @@ def request_seed(request_id: str, token: int) -> int:
     return int.from_bytes(digest[:4], "big") & 0x7FFFFFFF
 
 
+#: Frame sizes a grant may ask for (the worker's own limits).
+MIN_IMAGE_SIZE, MAX_IMAGE_SIZE = 8, 1024
+
+
 @dataclass
 class LeaseGrant(Message):
     """Orchestrator -> worker (the ``grant`` of a lease reply): what to collect and the lease."""
@@ -128,6 +132,9 @@ class LeaseGrant(Message):
     """Lease length; renew well before it runs out (e.g. every lease_s / 3)."""
     seed: int = 0
     """Seed of the collection policy's generator (see :func:`request_seed`)."""
+    image_size: int = 0
+    """Frame size the service's catalog holds, which the episode must have; 0 while it holds none
+    (the worker's own size then)."""
 
     def validate(self) -> None:
         check_id("request_id", self.request_id)
@@ -137,6 +144,9 @@ class LeaseGrant(Message):
         self.expires_at = check_float("expires_at", self.expires_at, 0.0)
         self.lease_s = check_float("lease_s", self.lease_s, 0.001, 86400.0)
         self.seed = check_int("seed", self.seed, 0, 2**32 - 1)
+        self.image_size = check_int("image_size", self.image_size, 0, MAX_IMAGE_SIZE)
+        if 0 < self.image_size < MIN_IMAGE_SIZE:
+            raise bad_field(f"image_size: expected 0 or {MIN_IMAGE_SIZE}..{MAX_IMAGE_SIZE}, found {self.image_size}")
 
 
 def _check_collection(msg: Any) -> None:

@@ -135,8 +135,12 @@ def retrain_lock(data_dir: Path, wait: bool = False) -> Iterator[Path]:
         note_phase(data_dir, "locked", fd=fd)
         try:
             yield path
-        finally:
-            note_phase(data_dir, "released", fd=fd)  # not "training" for good after a failed job
+        except BaseException:
+            try:
+                note_phase(data_dir, "failed", fd=fd)  # not "training" for good after a failed job
+            except OSError:
+                pass  # the job's own error is the one to report
+            raise
     finally:
         os.close(fd)  # closing releases the flock
 

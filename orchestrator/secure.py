@@ -20,6 +20,7 @@ import json
 import os
 import secrets
 import stat
+from argparse import ArgumentTypeError
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -31,7 +32,7 @@ from cryptography.hazmat.primitives.asymmetric import ec
 from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 
 from orchestrator.protocol import Keys, ProtocolError
-from orchestrator.transport import SecureConfigError, lookup_key
+from orchestrator.transport import SecureConfigError, endpoint, lookup_key
 
 #: Roles that get a config, a certificate and a password. The router is the only listener.
 CLIENT_ROLES: tuple[str, ...] = ("orchestrator", "worker", "operator")
@@ -70,9 +71,14 @@ class SecureInitConfig:
         except ProtocolError as exc:
             raise SecureConfigError(exc.message) from exc
         self.router_host()  # validates router_endpoint
-        if self.router_listen is not None and not self.router_listen.startswith("tls/"):
-            raise SecureConfigError(f"expected the router to listen on a tls/ endpoint, "
-                                    f"found {self.router_listen!r}")
+        if self.router_listen is not None:
+            if not self.router_listen.startswith("tls/"):
+                raise SecureConfigError(f"expected the router to listen on a tls/ endpoint, "
+                                        f"found {self.router_listen!r}")
+            try:
+                endpoint(self.router_listen)
+            except ArgumentTypeError as exc:
+                raise SecureConfigError(f"router listen endpoint: {exc}") from None
         if self.valid_days <= 0:
             raise SecureConfigError(f"expected valid_days > 0, found {self.valid_days}")
 

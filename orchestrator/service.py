@@ -145,6 +145,8 @@ class Service:
         self.session: zenoh.Session | None = None
         self.queue: RequestQueue | None = None
         self.catalog: Catalog | None = None
+        self._frame_size_known = 0
+        self._frame_size_next = 0.0
         self.context: ServiceContext | None = None
         self.planner: Planner | None = None
         self._servers: list[transport.Server] = []
@@ -187,7 +189,7 @@ class Service:
             self.planner = cfg.planner(self.context)
             self._seed_queue()
         self._uploads = UploadHandler(self.queue, self.catalog, self.metrics, self.publish, self._writes,
-                                      cfg.max_upload_bytes, self._stored.put)
+                                      cfg.max_upload_bytes, self._episode_stored)
         self._threads = [threading.Thread(target=self._maintain, name="maintenance", daemon=True),
                          threading.Thread(target=self._after_episodes, name="episodes", daemon=True)]
         for t in self._threads:
@@ -286,11 +288,26 @@ class Service:
                  "policy": r.policy, "policy_params": r.policy_params, "action_prefix": r.action_prefix,
                  "steps": r.steps, "model_version": str(r.reason.get("model_version") or ""),
                  "token": lease.token, "expires_at": lease.expires_at, "lease_s": lease_s,
-                 "seed": messages.request_seed(r.id, lease.token)}
+                 "seed": messages.request_seed(r.id, lease.token), "image_size": self._frame_size()}
         self.metrics.lease()
         self.publish(EventKind.REQUEST_LEASED, {"request_id": r.id, "worker_id": req.worker_id,
                                                 "token": lease.token, "shape": r.shape})
         return protocol.ok_reply(grant=grant)
+
+    def _episode_stored(self, stored: StoredEpisode) -> None:
+        """An upload was indexed: its frame size is the catalog's now (if it was not already)."""
+        if not self._frame_size_known:
+            self._frame_size_known = int(stored.episode.frames.shape[1])
+        self._stored.put(stored)
+
+    def _frame_size(self) -> int:
+        """The catalog's frame size for grants (0 while it holds no episode). Fixed once known, so cached;
+        while unknown, asked at most once a second (leases are the hot path; other processes may add the
+        first episode)."""
+        if not self._frame_size_known and time.monotonic() >= self._frame_size_next:
+            self._frame_size_next = time.monotonic() + 1.0
+            self._frame_size_known = self.catalog.frame_size() or 0
+        return self._frame_size_known
 
     def _renew(self, msg: Incoming) -> bytes:
         req = messages.RenewRequest.from_json(msg.payload)

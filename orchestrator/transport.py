@@ -400,7 +400,7 @@ def timeout_seconds(text: str) -> float:
 
 #: Zenoh's link protocols; the first group's addresses are HOST:PORT.
 _INET_PROTOCOLS = ("tcp", "udp", "tls", "quic", "ws")
-_OTHER_PROTOCOLS = ("unixsock-stream", "unixpipe", "serial", "vsock")
+_OTHER_PROTOCOLS = ("unixsock-stream",)  # (this build of Zenoh has no unixpipe, serial or vsock links)
 
 
 def endpoint(text: str) -> str:
@@ -419,9 +419,9 @@ def endpoint(text: str) -> str:
     if proto in _INET_PROTOCOLS:
         address = rest.split("#", 1)[0].split("?", 1)[0]
         host, colon, port = address.rpartition(":")
-        if not colon or not host or host in ("[", "[]"):
+        if not colon or not host or host in ("[", "[]") or (address.startswith("[") and not host.endswith("]")):
             raise argparse.ArgumentTypeError(f"expected HOST:PORT after {proto}/, found {text!r}")
-        if not (port.isdigit() and int(port) <= 65535):
+        if not (port.isascii() and port.isdigit() and int(port) <= 65535):
             raise argparse.ArgumentTypeError(f"port must be 0-65535, found {port!r} in {text!r}")
     return text
 

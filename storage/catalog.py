@@ -193,15 +193,26 @@ def _episode_date(created: str) -> str:
         return datetime.now(timezone.utc).strftime("%Y-%m-%d")
 
 
-def _check_frame_size(conn: sqlite3.Connection, meta: EpisodeMeta) -> None:
-    """Every episode of a catalog has the frame size of its first: the models train on, and score,
-    one size, so one other episode would fail every retrain. Raises ``CatalogError``."""
+def _frame_size(conn: sqlite3.Connection) -> tuple[int, str] | None:
+    """(frame size, what fixed it) of a catalog: its pinned eval split's, else its first episode's; None
+    while it holds no episode."""
+    row = conn.execute("SELECT json_extract(params, '$.image_size') FROM eval_split WHERE id = 1").fetchone()
+    if row is not None and isinstance(row[0], int):
+        return row[0], "its eval split"
     first = conn.execute("SELECT episode_id, json_extract(meta, '$.image_size') FROM episodes "
                          "ORDER BY rowid LIMIT 1").fetchone()
-    if first is not None and first[1] is not None and int(first[1]) != meta.image_size:
+    if first is not None and isinstance(first[1], int):
+        return first[1], f"its first episode, {first[0]}"
+    return None
+
+
+def _check_frame_size(conn: sqlite3.Connection, meta: EpisodeMeta) -> None:
+    """Every episode of a catalog has one frame size (``_frame_size``): the models train on, and score,
+    one size, so one other episode would fail every retrain. Raises ``CatalogError``."""
+    fixed = _frame_size(conn)
+    if fixed is not None and fixed[0] != meta.image_size:
         raise CatalogError(f"episode {meta.episode_id} has {meta.image_size}px frames; this catalog holds "
-                           f"{first[1]}px episodes (the first, {first[0]}): collect at that size (worker or "
-                           f"collect --size {first[1]}) or use another data directory")
+                           f"{fixed[0]}px episodes ({fixed[1]}): its models train and score one size")
 
 
 def _check_split(split: str) -> None:
@@ -369,7 +380,14 @@ class Catalog:
             publish(staged, known.path)
         return IngestResult(known.episode_id, known.path, sha, duplicate=True)
 
-    # --- queries --------------------------------------------------------------------------------
+    # --- queries ---------------------------------------------------------------------------------
+
+    def frame_size(self) -> int | None:
+        """The frame size every episode here has (its eval split's, else its first episode's); None
+        while it holds none."""
+        with self._connect() as conn:
+            fixed = _frame_size(conn)
+        return None if fixed is None else fixed[0]
 
     def find(self, episode_id: str) -> EpisodeRow | None:
         with self._connect() as conn:

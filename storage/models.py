@@ -153,7 +153,8 @@ class PruneResult:
     pruned: list[str]
     """Versions whose files were deleted, in registration order."""
     kept: list[str]
-    """The rollback chain kept: the champion first, then the earlier champions rollback returns to."""
+    """Models whose files are kept for going back: the champion, the earlier champions rollback returns
+    to, then the latest champions a rollback took out of service (candidates are kept too, not listed)."""
     freed_bytes: int
     """Total size of the files this call deleted (or would delete)."""
     dry_run: bool = False
@@ -533,8 +534,8 @@ class ModelRegistry:
         # (a model promoted meanwhile is not in `unusable` and is kept).
         unusable, intact = set(), 0
         with self._connect() as conn:
-            chain = self._rollback_chain(conn)
-        for version in chain:
+            wanted = self._keep_order(conn)
+        for version in wanted:
             if intact == keep:
                 break
             try:
@@ -543,11 +544,7 @@ class ModelRegistry:
             except CorruptCheckpointError:
                 unusable.add(version)
         with self._transaction() as conn:
-            pruned = {r[0] for r in conn.execute("SELECT version FROM models WHERE pruned_at IS NOT NULL")}
-            kept = [v for v in self._rollback_chain(conn) if v not in pruned and v not in unusable][:keep]
-            for (version,) in conn.execute("SELECT version FROM champion_history ORDER BY id DESC"):
-                if len(kept) < keep and version not in kept and version not in pruned | unusable:
-                    kept.append(version)  # slots left: the latest champions a rollback took out of service
+            kept = [v for v in self._keep_order(conn) if v not in unusable][:keep]
             marks = ",".join("?" * len(kept))
             chosen = [r[0] for r in conn.execute(
                 f"SELECT version FROM models WHERE status IN (?, ?) AND pruned_at IS NULL "
@@ -578,6 +575,16 @@ class ModelRegistry:
         if deleted:
             fsync_dir(self.models_dir)
         return PruneResult(pruned=sorted(set(chosen) | set(deleted)), kept=kept, freed_bytes=freed)
+
+    def _keep_order(self, conn: sqlite3.Connection) -> list[str]:
+        """What ``prune`` keeps first, unpruned: the rollback chain, then the latest champions a rollback
+        took out of service (so they can be promoted again)."""
+        pruned = {r[0] for r in conn.execute("SELECT version FROM models WHERE pruned_at IS NOT NULL")}
+        order = self._rollback_chain(conn)
+        for (version,) in conn.execute("SELECT version FROM champion_history ORDER BY id DESC"):
+            if version not in order:
+                order.append(version)
+        return [v for v in order if v not in pruned]
 
     def _sweep_stale(self) -> None:
         """Delete the dot folders a crashed ``register`` (``.tmp-*``) or ``prune`` (``.prune-*``) left, once

@@ -313,17 +313,21 @@ class RequestQueue:
 
     def resolve(self, id_or_prefix: str) -> str:
         """The id of the request whose id is ``id_or_prefix`` or uniquely starts with it (for operators);
-        UnknownRequestError when none does or several do."""
-        pattern = id_or_prefix.replace("\\", "\\\\").replace("%", "\\%").replace("_", "\\_") + "%"
+        UnknownRequestError when none does or several do. Case-sensitive; a range on the primary key."""
         with self._reading() as conn:
-            if conn.execute("SELECT 1 FROM requests WHERE id = ?", (id_or_prefix,)).fetchone():
+            if not id_or_prefix:
+                ids = []
+            elif conn.execute("SELECT 1 FROM requests WHERE id = ?", (id_or_prefix,)).fetchone():
                 return id_or_prefix
-            ids = [r[0] for r in conn.execute("SELECT id FROM requests WHERE id LIKE ? ESCAPE '\\' LIMIT 3",
-                                              (pattern,))]
-        if len(ids) == 1 and id_or_prefix:
+            else:
+                after = id_or_prefix[:-1] + chr(ord(id_or_prefix[-1]) + 1)  # the first string past the prefix
+                ids = [r[0] for r in conn.execute("SELECT id FROM requests WHERE id >= ? AND id < ? ORDER BY id "
+                                                  "LIMIT 3", (id_or_prefix, after))]
+        if len(ids) == 1:
             return ids[0]
-        if ids and id_or_prefix:
-            raise UnknownRequestError(f"request id prefix {id_or_prefix!r} is ambiguous ({', '.join(ids[:2])}, ...)")
+        if ids:
+            more = ", ..." if len(ids) > 2 else ""
+            raise UnknownRequestError(f"request id prefix {id_or_prefix!r} is ambiguous ({', '.join(ids[:2])}{more})")
         raise UnknownRequestError(f"no request {id_or_prefix!r}: expected a known request id or a unique prefix")
 
     def list(self, status: RequestStatus | str | None = None, limit: int | None = None) -> list[Request]:

@@ -71,6 +71,9 @@ def _connect() -> list[str]:
     (["queue", "ls", "--connect", "garbage"], "expected PROTOCOL/ADDRESS like tcp/10.0.0.5:7447, found 'garbage'"),
     (["stats", "--connect", "foo/1.2.3.4:7447"], "unknown protocol 'foo'"),
     (["worker", "--connect", "tcp/10.0.0.5"], "expected HOST:PORT after tcp/"),
+    (["worker", "--connect", "tcp/[::1]"], "expected HOST:PORT after tcp/"),
+    (["stats", "--connect", "tcp/127.0.0.1:\u0667\u0664"], "port must be 0-65535"),
+    (["secure", "init", "DATA", "--router-listen", "tls/0.0.0.0"], "expected HOST:PORT after tls/"),
     (["serve", "--listen", "tcp/127.0.0.1:notaport", "--data", "DATA"], "port must be 0-65535, found 'notaport'"),
     (["serve", "--listen", "tcp/127.0.0.1:70000", "--data", "DATA"], "port must be 0-65535, found '70000'"),
     (["router", "--listen", "tls/0.0.0.0"], "expected HOST:PORT after tls/"),
@@ -150,3 +153,25 @@ def test_retrain_without_train_episodes_fails_in_one_line(capsys, tmp_path) -> N
 def test_zenoh_endpoints_zenoh_accepts_pass_the_check(text) -> None:
     assert transport.endpoint(text) == text
 
+
+
+def test_collect_and_run_refuse_another_frame_size_than_the_directory_holds(capsys, tmp_path) -> None:
+    data = tmp_path / "data"
+    rc, _, err = run_cli(capsys, "collect", "--episodes", "1", "--steps", "3", "--size", "16", "--data", str(data))
+    assert rc == 0, err
+    files = sorted(p.name for p in data.rglob("*.mcap"))
+    for argv, flag in ((["collect", "--episodes", "1", "--steps", "3", "--size", "24"], "--size 16"),
+                       (["run", "--budget", "1", "--image-size", "24"], "--image-size 16")):
+        rc, out, err = run_cli(capsys, *argv, "--data", str(data))
+        assert rc == 2 and err.count("\n") == 1 and "holds 16px episodes" in err and flag in err, err
+    assert sorted(p.name for p in data.rglob("*.mcap")) == files
+
+
+def test_run_refuses_an_eval_split_made_with_other_settings_in_one_line(capsys, tmp_path) -> None:
+    from orchestrator.loopconfig import RunConfig
+    from workers.collect import create_eval_split
+    data = tmp_path / "data"
+    create_eval_split(Catalog(data), episodes=2, seed=RunConfig.eval_seed, steps=8, image_size=16)
+    rc, out, err = run_cli(capsys, "run", "--budget", "1", "--image-size", "16", "--steps", "8", "--eval-episodes", "3",
+                           "--dashboard-port", "-1", "--no-progress", "--data", str(data))
+    assert rc == 2 and err.count("\n") == 1 and "already pinned" in err and "another --data" in err, err

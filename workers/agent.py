@@ -86,7 +86,7 @@ class WorkerConfig:
     shapes: tuple[str, ...] = ()
     """Object shapes this worker can do; empty means any."""
     image_size: int = 64
-    """Camera frame side in pixels."""
+    """Camera frame side in pixels when the grant names none (the service's catalog is still empty)."""
     max_episodes: int | None = None
     """Exit after uploading this many episodes (None: run until stopped)."""
     once: bool = False
@@ -348,7 +348,7 @@ class Worker:
         prefix = np.asarray(grant.action_prefix, np.float32).reshape(-1, 2) if grant.action_prefix else None
         return collect_episode(start_state=grant.start_state, policy=grant.policy,
                                policy_params=grant.policy_params, seed=grant.seed, steps=grant.steps,
-                               image_size=self.config.image_size, action_prefix=prefix,
+                               image_size=grant.image_size or self.config.image_size, action_prefix=prefix,
                                request_id=grant.request_id, worker_id=self.config.worker_id,
                                model_version=grant.model_version)
 
@@ -421,7 +421,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help='what it can collect: "push:T,box", "T,box" or "push" (default: anything)')
     parser.add_argument("--once", action="store_true", help="handle at most one request, then exit")
     parser.add_argument("--max-episodes", type=int, default=None, metavar="N", help="exit after N uploads")
-    parser.add_argument("--size", type=int, default=64, metavar="PX", help="frame side in pixels (default 64)")
+    parser.add_argument("--size", type=int, default=64, metavar="PX",
+                        help="frame side in pixels while the service's catalog holds no episode yet (default 64); "
+                             "after that every grant names the catalog's size, which the worker records at")
     parser.add_argument("--realtime", type=float, default=0.0, metavar="X",
                         help="pace episodes to X times real time (1.0 = steps / 10 Hz seconds; default 0 = flat out)")
     parser.add_argument("--log-level", default="INFO", choices=("DEBUG", "INFO", "WARNING", "ERROR"))

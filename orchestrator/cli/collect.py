@@ -127,6 +127,7 @@ def _megabytes(n: int) -> str:
 
 
 def _collect(args: argparse.Namespace) -> int:
+    common.require_frame_size(args.data, args.size, "--size")
     cat = Catalog(args.data)
     rng = np.random.default_rng(args.seed)
     results, frames, size = [], 0, 0

@@ -9,6 +9,7 @@ import sys
 from pathlib import Path
 from typing import Any, NoReturn
 
+from storage.catalog import Catalog
 from storage.database import DB_NAME
 
 DEFAULT_DATA = Path("activecollect-data")
@@ -97,6 +98,17 @@ def positive_float(text: str) -> float:
     if not value > 0:
         raise argparse.ArgumentTypeError(f"expected a positive number, found {text!r}")
     return value
+
+
+def require_frame_size(data: Path, size: int, flag: str) -> None:
+    """UsageError (exit 2) when ``data`` holds a catalog of another frame size than ``size`` (given as
+    ``flag``): one other episode would fail every retrain there. Nothing is created."""
+    if not (Path(data) / DB_NAME).is_file():
+        return
+    held = Catalog(data).frame_size()
+    if held is not None and held != size:
+        raise UsageError(f"{data} holds {held}px episodes and its models predict {held}px frames: "
+                         f"give {flag} {held}, or another --data")
 
 
 def require_catalog(data: Path) -> None:

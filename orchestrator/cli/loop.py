@@ -33,7 +33,7 @@ from storage.records import Episode
 from uncertainty.config import TrainConfig
 from uncertainty.errors import ConfigError, UncertaintyError
 # The CLI is the composition root: it alone hands the simulator to the orchestrator's loops.
-from workers.collect import collect_episode, create_eval_split
+from workers.collect import EvalSplitConflict, collect_episode, create_eval_split
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -252,8 +252,12 @@ def _run(args: argparse.Namespace) -> int:
                         progress=not args.no_progress)
     except ValueError as exc:
         raise common.UsageError(str(exc)) from None
+    common.require_frame_size(args.data, args.image_size, "--image-size")
     run = LoopRun(cfg, bench_eval_split, announce=lambda line: print(line, file=sys.stderr, flush=True))
-    result = run.run()
+    try:
+        result = run.run()
+    except EvalSplitConflict as exc:  # this directory's split was made with other --steps / --eval-episodes
+        raise common.UsageError(f"{exc}; give the same settings, or another --data") from None
     if args.json:
         common.print_json(result.to_json())
     else:

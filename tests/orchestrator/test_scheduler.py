@@ -197,7 +197,7 @@ def test_the_lock_admits_one_holder_across_processes(tmp_path):
             assert lock_held(tmp_path)
             note_phase(tmp_path, "training")
             raise RuntimeError("the job failed")
-    assert read_lock_info(tmp_path)["phase"] == "released" and not lock_held(tmp_path)
+    assert read_lock_info(tmp_path)["phase"] == "failed" and not lock_held(tmp_path)
     assert EXIT_BUSY == 3
 
 

@@ -107,3 +107,17 @@ def test_worker_started_before_the_service_waits_and_then_works(start_service, s
     request, _ = service.queue.enqueue(new_request(steps=5))
     assert w.wait(60) == 0, w.log()
     assert service.queue.get(request.id).status == RequestStatus.DONE
+
+
+def test_a_worker_records_at_the_frame_size_the_service_holds(start_service, spawn_worker, data_dir) -> None:
+    """A worker started with another --size still records what the catalog holds (its grant says so)."""
+    service = start_service()
+    service.queue.enqueue(new_request())
+    first = spawn_worker("F", "--once")  # 16 px: the catalog's first episode fixes its size
+    assert first.wait(60) == 0, first.log()
+    request, _ = service.queue.enqueue(new_request())
+    other = spawn_worker("S", "--size", "24", "--once")
+    assert other.wait(60) == 0, other.log()
+    done = service.queue.get(request.id)
+    assert (done.status, done.attempts) == (RequestStatus.DONE, 0), other.log()
+    assert Catalog(data_dir).load(done.episode_id).frames.shape[1:3] == (16, 16)

@@ -425,7 +425,8 @@ def test_files_a_crashed_ingest_left_are_found_and_swept(tmp_path, rng):
 def test_an_episode_of_another_frame_size_is_refused_and_changes_nothing(cat, rng, tmp_path):
     first = cat.add_episode(make_episode(rng, size=8))
     other = make_episode(rng, size=16)
-    with pytest.raises(CatalogError, match=rf"16px frames; this catalog holds 8px episodes \(the first, "
+    assert cat.frame_size() == 8
+    with pytest.raises(CatalogError, match=rf"16px frames; this catalog holds 8px episodes \(its first episode, "
                                            rf"{first.episode_id}\)"):
         cat.add_episode(other)
     path = tmp_path / "other.mcap"
@@ -434,3 +435,19 @@ def test_an_episode_of_another_frame_size_is_refused_and_changes_nothing(cat, rn
         cat.ingest_file(path)
     assert [r.episode_id for r in cat.list()] == [first.episode_id] and len(mcap_files(cat)) == 1
     assert not cat.add_episode(make_episode(rng, size=8)).duplicate  # the catalog's own size still goes in
+
+
+def test_a_pinned_eval_split_fixes_the_frame_size(tmp_path, rng, monkeypatch):
+    import storage.catalog
+    cat = Catalog(tmp_path / "data")
+    assert cat.frame_size() is None
+    with monkeypatch.context() as m:  # a catalog from before the rule: a 16 px episode first, then an 8 px split
+        m.setattr(storage.catalog, "_check_frame_size", lambda conn, meta: None)
+        cat.add_episode(make_episode(rng, size=16))
+        cat.pin_eval_split([cat.add_episode(make_episode(rng, size=8), split="eval").episode_id],
+                           params={"image_size": 8})
+    assert cat.frame_size() == 8  # what the models are evaluated on
+    with pytest.raises(CatalogError, match=r"16px frames; this catalog holds 8px episodes \(its eval split\)"):
+        cat.add_episode(make_episode(rng, size=16))
+    cat.add_episode(make_episode(rng, size=8))
+

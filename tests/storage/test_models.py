@@ -489,3 +489,13 @@ def test_after_a_rollback_prune_keeps_the_model_rolled_back_from_while_slots_rem
     result = reg.prune(keep=2)
     assert result.kept == [c, d] and result.pruned == []  # d can still be promoted again by hand
     assert reg.promote(d).promoted
+
+
+def test_a_corrupt_rolled_back_champion_does_not_take_a_slot_either(reg: ModelRegistry) -> None:
+    a, b, c = (_register(reg, mse) for mse in (0.010, 0.008, 0.006))
+    for v in (a, b, c):
+        reg.gate(v)
+    assert reg.rollback() == b  # c out of service
+    _flip_byte(reg, c)
+    result = reg.prune(keep=3)
+    assert result.kept == [b, a] and result.pruned == [c]
