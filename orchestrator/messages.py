@@ -24,9 +24,9 @@ import re
 from dataclasses import dataclass, field
 from typing import Any
 
-from orchestrator.protocol import (ADMIN_OPS, MAX_ATTEMPTS, MAX_EPISODE_STEPS, MAX_ERROR_CHARS,
-                                   MAX_UPLOAD_BYTES, POLICIES, PROTOCOL_VERSION, SHAPES, TASKS, ErrorCode,
-                                   EventKind, ProtocolError, bad_field, check_float, check_id, check_int,
+from orchestrator.protocol import (ADMIN_OPS, MAX_ATTEMPTS, MAX_EPISODE_STEPS, MAX_ERROR_CHARS, MAX_FRAME_SIZE,
+                                   MAX_UPLOAD_BYTES, MIN_FRAME_SIZE, POLICIES, PROTOCOL_VERSION, SHAPES, TASKS,
+                                   ErrorCode, EventKind, ProtocolError, bad_field, check_float, check_id, check_int,
                                    check_obj, check_str, check_str_list, decode, encode,
                                    validate_action_prefix, validate_start_state)
 
@@ -93,21 +93,21 @@ class LeaseRequest(Message):
     worker_id: str
     tasks: list[str] = field(default_factory=list)
     shapes: list[str] = field(default_factory=list)
+    image_size: int = 0
+    """The worker's own frame size. A worker that sends it records at the grant's ``image_size``, and only
+    to such a worker does the service send that field (older workers refuse unknown fields); 0: not sent."""
 
     def validate(self) -> None:
         check_id("worker_id", self.worker_id)
         self.tasks = check_str_list("tasks", self.tasks, TASKS)
         self.shapes = check_str_list("shapes", self.shapes, SHAPES)
+        self.image_size = _check_frame_size(self.image_size)
 
 
 def request_seed(request_id: str, token: int) -> int:
     """The collection seed of one lease: stable per (request, attempt), 31 bits."""
     digest = hashlib.sha256(f"{request_id}:{token}".encode()).digest()
     return int.from_bytes(digest[:4], "big") & 0x7FFFFFFF
-
-
-#: Frame sizes a grant may ask for (the worker's own limits).
-MIN_IMAGE_SIZE, MAX_IMAGE_SIZE = 8, 1024
 
 
 @dataclass
@@ -134,7 +134,7 @@ class LeaseGrant(Message):
     """Seed of the collection policy's generator (see :func:`request_seed`)."""
     image_size: int = 0
     """Frame size the service's catalog holds, which the episode must have; 0 while it holds none
-    (the worker's own size then)."""
+    (the worker's own size then). Sent only to workers whose lease request gave theirs."""
 
     def validate(self) -> None:
         check_id("request_id", self.request_id)
@@ -144,9 +144,15 @@ class LeaseGrant(Message):
         self.expires_at = check_float("expires_at", self.expires_at, 0.0)
         self.lease_s = check_float("lease_s", self.lease_s, 0.001, 86400.0)
         self.seed = check_int("seed", self.seed, 0, 2**32 - 1)
-        self.image_size = check_int("image_size", self.image_size, 0, MAX_IMAGE_SIZE)
-        if 0 < self.image_size < MIN_IMAGE_SIZE:
-            raise bad_field(f"image_size: expected 0 or {MIN_IMAGE_SIZE}..{MAX_IMAGE_SIZE}, found {self.image_size}")
+        self.image_size = _check_frame_size(self.image_size)
+
+
+def _check_frame_size(value: Any) -> int:
+    """An ``image_size`` field: 0 (none) or a frame size episodes may have."""
+    value = check_int("image_size", value, 0, MAX_FRAME_SIZE)
+    if 0 < value < MIN_FRAME_SIZE:
+        raise bad_field(f"image_size: expected 0 or {MIN_FRAME_SIZE}..{MAX_FRAME_SIZE}, found {value}")
+    return value
 
 
 def _check_collection(msg: Any) -> None:

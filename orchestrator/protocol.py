@@ -41,6 +41,8 @@ PHYSICS_RANGES: dict[str, tuple[float, float, float]] = {
 POLICIES: tuple[str, ...] = ("random_waypoints", "push")
 #: Hard caps used by validation.
 MAX_EPISODE_STEPS = 1000
+#: Frame sizes an episode may have (what the simulator renders; storage.records holds the same limits).
+MIN_FRAME_SIZE, MAX_FRAME_SIZE = 8, 1024
 MAX_PREFIX_STEPS = 1000
 
 # ---------------------------------------------------------------------------

@@ -273,6 +273,7 @@ class Service:
     def _lease(self, msg: Incoming) -> bytes:
         req = messages.LeaseRequest.from_json(msg.payload)
         lease_s = self.config.lease_s
+        frame_size = self._frame_size() if req.image_size else 0  # before the lease: it must not fail after
         try:
             with self._writes:
                 lease = self.queue.lease(req.worker_id, req.tasks, req.shapes, lease_s)
@@ -288,7 +289,9 @@ class Service:
                  "policy": r.policy, "policy_params": r.policy_params, "action_prefix": r.action_prefix,
                  "steps": r.steps, "model_version": str(r.reason.get("model_version") or ""),
                  "token": lease.token, "expires_at": lease.expires_at, "lease_s": lease_s,
-                 "seed": messages.request_seed(r.id, lease.token), "image_size": self._frame_size()}
+                 "seed": messages.request_seed(r.id, lease.token)}
+        if req.image_size:  # a worker that records at the catalog's size (older ones refuse the field)
+            grant["image_size"] = frame_size
         self.metrics.lease()
         self.publish(EventKind.REQUEST_LEASED, {"request_id": r.id, "worker_id": req.worker_id,
                                                 "token": lease.token, "shape": r.shape})
@@ -306,7 +309,13 @@ class Service:
         first episode)."""
         if not self._frame_size_known and time.monotonic() >= self._frame_size_next:
             self._frame_size_next = time.monotonic() + 1.0
-            self._frame_size_known = self.catalog.frame_size() or 0
+            try:
+                size = self.catalog.frame_size()
+            except StorageError as exc:  # a busy or damaged catalog: the worker's own size this time
+                log.warning("cannot read the catalog's frame size: %s", exc)
+                size = None
+            if size:  # never overwrites what an upload on another thread just set
+                self._frame_size_known = size
         return self._frame_size_known
 
     def _renew(self, msg: Incoming) -> bytes:

@@ -41,7 +41,7 @@ from storage.episodes import (
 from storage.database import DB_NAME, Migration, connection, ensure_schema, transaction
 from storage.errors import CatalogError, CorruptEpisodeError, EpisodeError
 from storage.files import publish, sha256_hex, stage_bytes
-from storage.records import Episode, EpisodeMeta
+from storage.records import MAX_FRAME_SIZE, MIN_FRAME_SIZE, Episode, EpisodeMeta
 
 #: Splits an episode can belong to. ``eval`` episodes never enter a training snapshot.
 SPLITS: tuple[str, ...] = ("train", "eval")
@@ -196,8 +196,9 @@ def _episode_date(created: str) -> str:
 def _frame_size(conn: sqlite3.Connection) -> tuple[int, str] | None:
     """(frame size, what fixed it) of a catalog: its pinned eval split's, else its first episode's; None
     while it holds no episode."""
-    row = conn.execute("SELECT json_extract(params, '$.image_size') FROM eval_split WHERE id = 1").fetchone()
-    if row is not None and isinstance(row[0], int):
+    row = conn.execute("SELECT json_extract(params, '$.image_size'), json_type(params, '$.image_size') "
+                       "FROM eval_split WHERE id = 1").fetchone()
+    if row is not None and row[1] == "integer":
         return row[0], "its eval split"
     first = conn.execute("SELECT episode_id, json_extract(meta, '$.image_size') FROM episodes "
                          "ORDER BY rowid LIMIT 1").fetchone()
@@ -209,6 +210,9 @@ def _frame_size(conn: sqlite3.Connection) -> tuple[int, str] | None:
 def _check_frame_size(conn: sqlite3.Connection, meta: EpisodeMeta) -> None:
     """Every episode of a catalog has one frame size (``_frame_size``): the models train on, and score,
     one size, so one other episode would fail every retrain. Raises ``CatalogError``."""
+    if not MIN_FRAME_SIZE <= meta.image_size <= MAX_FRAME_SIZE:
+        raise CatalogError(f"episode {meta.episode_id} has {meta.image_size}px frames; expected "
+                           f"{MIN_FRAME_SIZE}..{MAX_FRAME_SIZE} (what the simulator renders and workers record)")
     fixed = _frame_size(conn)
     if fixed is not None and fixed[0] != meta.image_size:
         raise CatalogError(f"episode {meta.episode_id} has {meta.image_size}px frames; this catalog holds "
@@ -560,6 +564,12 @@ class Catalog:
             if wrong:
                 raise CatalogError(f"episodes {', '.join(wrong[:5])} are in split 'train'; only episodes "
                                    "added with split='eval' can be pinned")
+            sizes = {r[0] for r in conn.execute(f"SELECT DISTINCT json_extract(meta, '$.image_size') FROM episodes "
+                                                f"WHERE episode_id IN ({marks})", ids)}
+            said = (params or {}).get("image_size")
+            if said is not None and ({said} != sizes or isinstance(said, bool)):
+                raise CatalogError(f"params say image_size {said!r}, the episodes have "
+                                   f"{', '.join(map(str, sorted(sizes)))}px frames")
             digest = _content_hash([(r["episode_id"], r["sha256"]) for r in rows])
             current = conn.execute("SELECT hash FROM eval_split WHERE id = 1").fetchone()
             if current is not None:

@@ -28,6 +28,11 @@ STATE_DIM = len(STATE_FIELDS)
 ACTION_DIM = 2
 
 
+#: Frame sizes an episode may have: what the simulator renders and workers record (the wire layer's
+#: orchestrator.protocol holds the same limits; storage imports nothing above it).
+MIN_FRAME_SIZE, MAX_FRAME_SIZE = 8, 1024
+
+
 @dataclass
 class EpisodeMeta:
     """Provenance of one episode; stored as the MCAP metadata record ``episode``."""

@@ -116,8 +116,9 @@ class WorkerConfig:
             raise WorkerError(exc.message) from None
         if self.mode not in transport.MODES:
             raise WorkerError(f"mode: expected one of {transport.MODES}, found {self.mode!r}")
-        if not 8 <= self.image_size <= 1024:
-            raise WorkerError(f"image_size: expected 8..1024 pixels, found {self.image_size}")
+        if not protocol.MIN_FRAME_SIZE <= self.image_size <= protocol.MAX_FRAME_SIZE:
+            raise WorkerError(f"image_size: expected {protocol.MIN_FRAME_SIZE}..{protocol.MAX_FRAME_SIZE} pixels, "
+                              f"found {self.image_size}")
         if self.max_episodes is not None and self.max_episodes < 1:
             raise WorkerError(f"max_episodes: expected >= 1 or None, found {self.max_episodes}")
         for name in ("realtime", "timeout_s", "idle_poll_s", "max_backoff_s"):
@@ -267,8 +268,8 @@ class Worker:
 
     def _lease(self) -> LeaseGrant | None:
         cfg = self.config
-        msg = messages.LeaseRequest(worker_id=cfg.worker_id, tasks=list(cfg.tasks),
-                                    shapes=list(cfg.shapes)).to_json()
+        msg = messages.LeaseRequest(worker_id=cfg.worker_id, tasks=list(cfg.tasks), shapes=list(cfg.shapes),
+                                    image_size=cfg.image_size).to_json()  # "I record at the grant's size"
         try:
             body = self._retrying("lease", lambda: self._call(self.keys.lease, msg), until_stopped=True)
         except ProtocolError as exc:

@@ -96,6 +96,7 @@ BAD = [
     (m.LeaseGrant, _grant(steps=True), ErrorCode.BAD_FIELD),
     (m.LeaseGrant, _grant(token=0), ErrorCode.BAD_FIELD),
     (m.LeaseGrant, _grant(image_size=4), ErrorCode.BAD_FIELD),
+    (m.LeaseRequest, json.dumps({"v": 1, "worker_id": "w", "image_size": 2}).encode(), ErrorCode.BAD_FIELD),
     (m.LeaseGrant, _grant(image_size=2048), ErrorCode.BAD_FIELD),
     (m.LeaseGrant, _grant(lease_s=-1), ErrorCode.BAD_FIELD),
     (m.LeaseGrant, _grant(policy_params=[1]), ErrorCode.BAD_FIELD),

@@ -220,13 +220,15 @@ def test_an_upload_that_is_not_what_the_request_asked_for_is_refused(service, cl
 
 
 def test_an_upload_of_another_frame_size_than_the_catalogs_is_refused(service, client, keys, data_dir) -> None:
-    service.queue.enqueue(new_request())
-    service.queue.enqueue(new_request())
-    first = lease(client, keys)
+    for _ in range(3):
+        service.queue.enqueue(new_request())
+    first = lease(client, keys, image_size=24)
     assert first.image_size == 0  # an empty catalog: the worker's own size
     upload(client, keys, first, episode_bytes(first))  # the catalog's frames are 16 px from now on
-    grant = lease(client, keys)
-    assert grant.image_size == 16
+    grant = lease(client, keys, image_size=24)
+    assert grant.image_size == 16  # what a worker that says its own size records at
+    older = call(client, keys.lease, messages.LeaseRequest(worker_id="w2").to_json())["grant"]
+    assert "image_size" not in older  # workers from before the field refuse unknown fields: not sent to them
     message = refused(ErrorCode.BAD_FIELD, upload, client, keys, grant, episode_bytes(grant, size=24))
     assert "24px frames; this catalog holds 16px episodes" in message
     assert Catalog(data_dir).count() == 1 and service.queue.get(grant.request_id).status == RequestStatus.LEASED

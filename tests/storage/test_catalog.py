@@ -451,3 +451,15 @@ def test_a_pinned_eval_split_fixes_the_frame_size(tmp_path, rng, monkeypatch):
         cat.add_episode(make_episode(rng, size=16))
     cat.add_episode(make_episode(rng, size=8))
 
+
+def test_pinning_refuses_params_that_misstate_the_frame_size_and_odd_sizes_are_refused(cat, rng):
+    ep = cat.add_episode(make_episode(rng, size=16), split="eval").episode_id
+    for said in (24, True, "16"):
+        with pytest.raises(CatalogError, match=f"params say image_size {said!r}, the episodes have 16px"):
+            cat.pin_eval_split([ep], params={"image_size": said})
+    assert cat.eval_split() is None
+    cat.pin_eval_split([ep], params={"image_size": 16})
+    tiny = make_episode(rng, size=4)
+    with pytest.raises(CatalogError, match="4px frames; expected 8..1024"):
+        cat.add_episode(tiny)
+
