@@ -12,7 +12,6 @@ from __future__ import annotations
 import json
 import signal
 import threading
-from argparse import ArgumentTypeError
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, TextIO
@@ -20,7 +19,7 @@ from typing import Callable, TextIO
 import zenoh
 
 from orchestrator.secure import is_secure_profile
-from orchestrator.transport import SecureConfigError, endpoint, validate_secure_config
+from orchestrator.transport import SecureConfigError, endpoint_problem, validate_secure_config
 
 #: Where a router listens when given neither --listen nor a config: loopback only, so an
 #: unconfigured router is never reachable (in plaintext) from other hosts.
@@ -47,10 +46,8 @@ class RouterConfig:
     def __post_init__(self) -> None:
         self.listen, self.connect = tuple(self.listen), tuple(self.connect)
         for ep in (*self.listen, *self.connect):
-            try:
-                endpoint(ep)
-            except ArgumentTypeError as exc:
-                raise RouterError(str(exc)) from None
+            if problem := endpoint_problem(ep):
+                raise RouterError(problem)
         if self.zenoh_config is not None:
             self.zenoh_config = Path(self.zenoh_config)
 

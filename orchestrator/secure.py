@@ -20,7 +20,6 @@ import json
 import os
 import secrets
 import stat
-from argparse import ArgumentTypeError
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -32,7 +31,7 @@ from cryptography.hazmat.primitives.asymmetric import ec
 from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 
 from orchestrator.protocol import Keys, ProtocolError
-from orchestrator.transport import SecureConfigError, endpoint, lookup_key
+from orchestrator.transport import SecureConfigError, endpoint_problem, lookup_key
 
 #: Roles that get a config, a certificate and a password. The router is the only listener.
 CLIENT_ROLES: tuple[str, ...] = ("orchestrator", "worker", "operator")
@@ -75,10 +74,8 @@ class SecureInitConfig:
             if not self.router_listen.startswith("tls/"):
                 raise SecureConfigError(f"expected the router to listen on a tls/ endpoint, "
                                         f"found {self.router_listen!r}")
-            try:
-                endpoint(self.router_listen)
-            except ArgumentTypeError as exc:
-                raise SecureConfigError(f"router listen endpoint: {exc}") from None
+            if problem := endpoint_problem(self.router_listen):
+                raise SecureConfigError(f"router listen endpoint: {problem}")
         if self.valid_days <= 0:
             raise SecureConfigError(f"expected valid_days > 0, found {self.valid_days}")
 

@@ -403,8 +403,8 @@ _INET_PROTOCOLS = ("tcp", "udp", "tls", "quic", "ws")
 _OTHER_PROTOCOLS = ("unixsock-stream",)  # (this build of Zenoh has no unixpipe, serial or vsock links)
 
 
-def endpoint(text: str) -> str:
-    """A ``--listen`` / ``--connect`` endpoint, checked in shape before Zenoh sees it (argparse exits 2).
+def endpoint_problem(text: str) -> str:
+    """What is wrong with a Zenoh endpoint's shape ('' when nothing), checked before Zenoh sees it.
 
     ``PROTOCOL/ADDRESS[?metadata][#config]``; for tcp, udp, tls, quic and ws the address is
     ``HOST:PORT`` (an IPv6 host in brackets) with a port in 0-65535. Zenoh would refuse the rest
@@ -412,17 +412,25 @@ def endpoint(text: str) -> str:
     """
     proto, slash, rest = text.partition("/")
     if not slash or not proto or not rest:
-        raise argparse.ArgumentTypeError(f"expected PROTOCOL/ADDRESS like tcp/10.0.0.5:7447, found {text!r}")
-    if proto not in _INET_PROTOCOLS + _OTHER_PROTOCOLS:
-        raise argparse.ArgumentTypeError(f"unknown protocol {proto!r} in {text!r}; expected one of "
-                                         f"{', '.join(_INET_PROTOCOLS + _OTHER_PROTOCOLS)}")
+        return f"expected PROTOCOL/ADDRESS like tcp/10.0.0.5:7447, found {text!r}"
+    known = _INET_PROTOCOLS + _OTHER_PROTOCOLS
+    if proto not in known:
+        return f"unknown protocol {proto!r} in {text!r}; expected one of {', '.join(known)}"
     if proto in _INET_PROTOCOLS:
         address = rest.split("#", 1)[0].split("?", 1)[0]
         host, colon, port = address.rpartition(":")
         if not colon or not host or host in ("[", "[]") or (address.startswith("[") and not host.endswith("]")):
-            raise argparse.ArgumentTypeError(f"expected HOST:PORT after {proto}/, found {text!r}")
+            return f"expected HOST:PORT after {proto}/, found {text!r}"
         if not (port.isascii() and port.isdigit() and int(port) <= 65535):
-            raise argparse.ArgumentTypeError(f"port must be 0-65535, found {port!r} in {text!r}")
+            return f"port must be 0-65535, found {port!r} in {text!r}"
+    return ""
+
+
+def endpoint(text: str) -> str:
+    """A ``--listen`` / ``--connect`` value (argparse type): a bad shape exits 2 saying what is wrong."""
+    problem = endpoint_problem(text)
+    if problem:
+        raise argparse.ArgumentTypeError(problem)
     return text
 
 

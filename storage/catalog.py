@@ -40,7 +40,7 @@ from storage.episodes import (
 )
 from storage.database import DB_NAME, Migration, connection, ensure_schema, transaction
 from storage.errors import CatalogError, CorruptEpisodeError, EpisodeError
-from storage.files import publish, sha256_hex, stage_bytes
+from storage.files import age_s, publish, sha256_hex, stage_bytes
 from storage.records import MAX_FRAME_SIZE, MIN_FRAME_SIZE, Episode, EpisodeMeta
 
 #: Splits an episode can belong to. ``eval`` episodes never enter a training snapshot.
@@ -171,13 +171,6 @@ class Strays:
 
     def __bool__(self) -> bool:
         return bool(self.staging or self.unindexed)
-
-
-def _age(path: Path, now: float) -> float:
-    try:
-        return now - path.stat().st_mtime
-    except FileNotFoundError:  # finished (renamed or removed) while we looked
-        return 0.0
 
 
 def _episode_date(created: str) -> str:
@@ -529,7 +522,7 @@ class Catalog:
                 target = move_to / path.relative_to(self.episodes_dir)
                 target.parent.mkdir(parents=True, exist_ok=True)
                 os.replace(path, target)
-        staging = sorted(p for p in self.episodes_dir.rglob(".*.mcap.*.tmp") if _age(p, now) > min_tmp_age_s)
+        staging = sorted(p for p in self.episodes_dir.rglob(".*.mcap.*.tmp") if age_s(p, now) > min_tmp_age_s)
         return Strays(staging=staging, unindexed=unindexed)
 
     def verify(self, episode_id: str) -> EpisodeMeta:

@@ -13,6 +13,15 @@ import tempfile
 from pathlib import Path
 
 
+def age_s(path: Path, now: float) -> float:
+    """Seconds since ``path`` was last modified; 0 when it is gone (a live call finished with it while we
+    looked). What the sweeps of files a crash left go by: a younger file may be a live call's."""
+    try:
+        return now - path.stat().st_mtime
+    except FileNotFoundError:
+        return 0.0
+
+
 def sha256_hex(data: bytes) -> str:
     return hashlib.sha256(data).hexdigest()
 

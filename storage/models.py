@@ -35,7 +35,7 @@ from typing import Any
 
 from storage.database import DB_NAME, connection, ensure_schema, transaction
 from storage.errors import CorruptCheckpointError, PrunedCheckpointError, RegistryError
-from storage.files import fsync_dir, write_synced
+from storage.files import age_s, fsync_dir, write_synced
 from storage.gate import DEFAULT_METRIC, DEFAULT_MIN_REL_IMPROVEMENT, GateDecision, judge
 
 WEIGHTS_FILE = "weights.pt"
@@ -284,10 +284,14 @@ class ModelRegistry:
         """Raise ``CorruptCheckpointError`` unless the weights of ``version`` match their sha256."""
         self.load_weights(version)
 
-    def _read_verified(self, rec: ModelRecord) -> bytes:
+    @staticmethod
+    def _refuse_pruned(rec: ModelRecord) -> None:
         if rec.pruned_at is not None:
             raise PrunedCheckpointError(f"checkpoint {rec.version}: weights pruned at {rec.pruned_at} "
                                         "(models prune); its metrics and history remain")
+
+    def _read_verified(self, rec: ModelRecord) -> bytes:
+        self._refuse_pruned(rec)
         try:
             data = rec.weights_path.read_bytes()
         except FileNotFoundError:
@@ -447,7 +451,7 @@ class ModelRegistry:
             current = self._champion(conn)
             if current == version:
                 return GateDecision(False, f"{version} is already the champion", version, current)
-            self._check_not_pruned(conn, version)  # a prune may have landed since the sha256 check
+            self._refuse_pruned(self._get(conn, version))  # a prune may have landed since the sha256 check
             champ = self._get(conn, current) if current is not None else None
             expected = eval_split_hash if eval_split_hash is not None else (
                 champ.eval_split_hash if champ else None)
@@ -502,16 +506,6 @@ class ModelRegistry:
         return target
 
     # -- retention -----------------------------------------------------------------------------
-
-    def _rollback_chain(self, conn: sqlite3.Connection) -> list[str]:
-        """The champion, then the earlier champions not rolled back, newest first (what ``rollback``
-        walks, returning to the first whose weights are intact)."""
-        current = self._champion(conn)
-        chain = [] if current is None else [current]
-        for _, version in reversed(self._live_history(conn)):
-            if version not in chain:
-                chain.append(version)
-        return chain
 
     def prune(self, keep: int, dry_run: bool = False) -> PruneResult:
         """Delete the files of retired and rejected models, except the ``keep`` newest of the rollback chain.
@@ -580,10 +574,10 @@ class ModelRegistry:
         """What ``prune`` keeps first, unpruned: the rollback chain, then the latest champions a rollback
         took out of service (so they can be promoted again)."""
         pruned = {r[0] for r in conn.execute("SELECT version FROM models WHERE pruned_at IS NOT NULL")}
-        order = self._rollback_chain(conn)
-        for (version,) in conn.execute("SELECT version FROM champion_history ORDER BY id DESC"):
-            if version not in order:
-                order.append(version)
+        current = self._champion(conn)
+        chain = [v for _, v in reversed(self._live_history(conn))]  # what rollback walks, newest first
+        every = [r[0] for r in conn.execute("SELECT version FROM champion_history ORDER BY id DESC")]
+        order = dict.fromkeys(([current] if current else []) + chain + every)  # first place of each
         return [v for v in order if v not in pruned]
 
     def _sweep_stale(self) -> None:
@@ -591,16 +585,8 @@ class ModelRegistry:
         older than ``STALE_AGE_S`` (a younger one may be a live call's)."""
         now = time.time()
         for stale in (*self.models_dir.glob(".tmp-*"), *self.models_dir.glob(".prune-*")):
-            try:
-                if now - stale.stat().st_mtime > STALE_AGE_S:
-                    shutil.rmtree(stale, ignore_errors=True)
-            except FileNotFoundError:
-                continue
-
-    def _check_not_pruned(self, conn: sqlite3.Connection, version: str) -> None:
-        rec = self._get(conn, version)
-        if rec.pruned_at is not None:
-            self._read_verified(rec)  # raises PrunedCheckpointError with the reason
+            if age_s(stale, now) > STALE_AGE_S:
+                shutil.rmtree(stale, ignore_errors=True)
 
     def _live_history(self, conn: sqlite3.Connection | None = None) -> list[tuple[int, str]]:
         """(id, version) of promotions not rolled back, oldest first."""

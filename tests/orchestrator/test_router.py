@@ -13,8 +13,8 @@ import zenoh
 from orchestrator.cli import main
 from orchestrator.router import DEFAULT_LISTEN, RouterConfig, RouterError, build_router_config, listen_endpoints
 from orchestrator.secure import SecureInitConfig, init_secure
-from tests.orchestrator.test_secure import Proc, activecollect, free_port, get_payloads
-from tests.conftest import wait_for
+from tests.conftest import free_port, wait_for
+from tests.orchestrator.test_secure import Proc, activecollect, get_payloads
 
 
 def client(*connect: str) -> zenoh.Session:

@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import json
 import os
-import socket
 import stat
 import subprocess
 import sys
@@ -31,7 +30,7 @@ from orchestrator.secure import (CLIENT_ROLES, ROLES, SecureConfigError, SecureI
 from orchestrator.transport import validate_secure_config
 from orchestrator.service import Service, ServiceConfig
 from storage.requests import RequestStatus
-from tests.conftest import wait_for
+from tests.conftest import free_port, wait_for
 
 REPO = Path(__file__).resolve().parents[2]
 NS = "activecollect"
@@ -41,13 +40,6 @@ ABSENT_WINDOW = 1.0  # how long a denied message gets to (not) show up, after a 
 
 # ---------------------------------------------------------------- helpers (also used by the router
 # and partition tests)
-
-def free_port(host: str = "127.0.0.1") -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind((host, 0))
-        return s.getsockname()[1]
-
-
 
 
 def stays_false(predicate: Callable[[], object], window: float = ABSENT_WINDOW) -> bool:
