@@ -71,7 +71,7 @@ def prepare(data: Path, n_train: int, steps: int, size: int, palette=None) -> Ca
 def main_figure(cat: Catalog, data: Path, args) -> dict:
     cfg = TrainConfig(members=args.members, epochs=args.epochs, batch_size=args.batch_size, lr=args.lr,
                       seed=args.seed, device="cpu", max_episodes=args.train_episodes, progress=True,
-                      bootstrap=args.bootstrap, variance_head=args.variance_head)
+                      bootstrap=args.bootstrap, variance_head=args.variance_head, context=args.context)
     t0 = time.perf_counter()
     registry = ModelRegistry(data)
     result = train_candidate(cat, registry, cfg)
@@ -86,7 +86,8 @@ def main_figure(cat: Catalog, data: Path, args) -> dict:
     out.update(version=result.version, promoted=result.decision.promoted, members=args.members,
                batch_size=args.batch_size, total_seconds=round(time.perf_counter() - t0, 1),
                losses=result.losses, sparsification=m["sparsification"], bootstrap=args.bootstrap,
-               image_size=args.image_size, variance_head=args.variance_head, palette=args.palette)
+               image_size=args.image_size, variance_head=args.variance_head, palette=args.palette,
+               context=args.context)
     out["calibration_variants"] = calibration_variants(load_ensemble(registry, result.version, "cpu"), cat)
     return out
 
@@ -235,6 +236,7 @@ def main(argv=None) -> int:
     p.add_argument("--batch-size", type=int, default=16)
     p.add_argument("--lr", type=float, default=1.5e-3)
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--context", type=int, default=2, help="main figure: context frames per prediction")
     p.add_argument("--bootstrap", action="store_true", help="main figure: members train on bootstrap resamples")
     p.add_argument("--variance-head", action="store_true",
                    help="main figure: members also predict their error variance (total-variance calibration)")
