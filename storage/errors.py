@@ -44,3 +44,7 @@ class CorruptCheckpointError(RegistryError):
 
 class PrunedCheckpointError(CorruptCheckpointError):
     """The checkpoint's weights were deleted by ``ModelRegistry.prune``; its row and metrics remain."""
+
+
+class BackupError(StorageError):
+    """A backup could not be made (no catalog to copy, a destination in the way, a failed write)."""

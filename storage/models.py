@@ -43,6 +43,7 @@ CONFIG_FILE = "config.json"
 METRICS_FILE = "metrics.json"
 META_FILE = "meta.json"
 CHAMPION = "champion"
+MODELS_DIR = "models"
 #: A staging or deleting dot folder under ``models/`` this old belongs to no live call (they take seconds).
 STALE_AGE_S = 3600.0
 
@@ -202,7 +203,7 @@ class ModelRegistry:
 
     def __init__(self, data_dir: str | os.PathLike[str]) -> None:
         self.data_dir = Path(data_dir)
-        self.models_dir = self.data_dir / "models"
+        self.models_dir = self.data_dir / MODELS_DIR
         self.models_dir.mkdir(parents=True, exist_ok=True)
         self.db_path = self.data_dir / DB_NAME
         with self._connect() as conn:

@@ -1,4 +1,4 @@
-"""CLI: ``collect``, ``episodes ls|show|verify``, ``ingest``, ``eval-split create|show``, ``bench sim``."""
+"""CLI: ``collect``, ``episodes ls|show|verify``, ``ingest``, ``eval-split create|show``, ``backup``, ``bench sim``."""
 
 from __future__ import annotations
 
@@ -14,8 +14,9 @@ from tqdm import tqdm
 
 from orchestrator.cli import common
 from orchestrator.protocol import MAX_EPISODE_STEPS, POLICIES, SHAPES
+from storage.backup import backup, check_dest
 from storage.catalog import ORPHANS_DIR, SPLITS, Catalog, EpisodeRow
-from storage.errors import CatalogError, StorageError
+from storage.errors import BackupError, CatalogError, StorageError
 from workers import simbench
 from workers.collect import EvalSplitConflict, collect_episode, create_eval_split
 from workers.env import sample_state
@@ -38,7 +39,7 @@ def episode_steps(text: str) -> int:
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    """Adds ``collect``, ``episodes``, ``ingest`` and ``eval-split``."""
+    """Adds ``collect``, ``episodes``, ``ingest``, ``eval-split`` and ``backup``."""
     p = sub.add_parser("collect", help="record pushing episodes locally and index them")
     p.add_argument("--episodes", type=common.positive_int, default=10, metavar="N", help="how many (default 10)")
     p.add_argument("--shape", choices=(*SHAPES, "all"), default="all",
@@ -91,6 +92,19 @@ def register(sub: argparse._SubParsersAction) -> None:
     for p in ssub.choices.values():
         common.add_data_arg(p)
         common.add_json_arg(p)
+
+    p = sub.add_parser(
+        "backup", help="copy the data directory to a new directory, consistently, while the service runs",
+        description="Copy the catalog, queue and model registry (one SQLite snapshot, taken while "
+                    "writers go on), every indexed episode and every kept checkpoint to DEST, checking "
+                    "each file's sha256 as it is read. DEST appears only once complete. Restore: stop "
+                    "the service and serve from DEST (--data DEST), or move it into place. Exit 1 when "
+                    "a file could not be copied intact (the rest is backed up and the files are named).")
+    p.add_argument("dest", type=Path, metavar="DEST",
+                   help="a new (or empty) directory outside the data directory, ideally on another disk")
+    common.add_data_arg(p)
+    common.add_json_arg(p)
+    p.set_defaults(func=_backup)
 
 
 def register_bench(bench_sub: argparse._SubParsersAction) -> None:
@@ -299,6 +313,39 @@ def _eval_split_show(args: argparse.Namespace) -> int:
     print(f"created   {split.created}")
     print(f"episodes  {len(split.ids)} ({', '.join(f'{k}: {v}' for k, v in sorted(shapes.items()))})")
     return 0
+
+
+# -- backup ------------------------------------------------------------------------------------
+
+
+def _backup(args: argparse.Namespace) -> int:
+    common.require_catalog(args.data)
+    try:
+        check_dest(args.data, args.dest)
+    except BackupError as exc:
+        raise common.UsageError(str(exc)) from None
+    with tqdm(unit="file", desc="backup", file=sys.stderr, disable=None) as bar:
+        def progress(done: int, total: int) -> None:
+            bar.total = total
+            bar.update(done - bar.n)
+        try:
+            result = backup(args.data, args.dest, progress=progress)
+        except BackupError as exc:
+            bar.close()
+            print(f"activecollect: backup failed, nothing written at {args.dest}: {exc}", file=sys.stderr)
+            return 1
+    if args.json:
+        common.print_json({"dest": str(result.dest), "episodes": result.episodes, "models": result.models,
+                           "bytes": result.bytes, "seconds": result.seconds, "problems": result.problems})
+    else:
+        print(f"backed up {result.episodes} episodes and {result.models} checkpoints "
+              f"({_megabytes(result.bytes)}) to {result.dest} in {result.seconds:.1f} s")
+        for line in result.problems:
+            print(f"NOT COPIED {line}")
+    if result.problems:
+        print(f"activecollect: {len(result.problems)} file(s) could not be copied intact (above); "
+              "see `activecollect episodes verify`", file=sys.stderr)
+    return 1 if result.problems else 0
 
 
 # -- bench -------------------------------------------------------------------------------------

@@ -1,0 +1,200 @@
+"""Backups of a data directory: a consistent copy while writers go on, damaged files named, nothing half-made."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import threading
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from storage.backup import backup, check_dest
+from storage.catalog import Catalog
+from storage.database import DB_NAME
+from storage.errors import BackupError, EpisodeError, PrunedCheckpointError
+from storage.models import ModelRegistry
+from storage.queue import NewRequest, RequestQueue
+from tests.conftest import REPO, run_cli, wait_for
+from tests.storage.test_episodes import make_episode
+
+SPLIT_PARAMS = {"image_size": 8}
+
+
+@pytest.fixture
+def rng() -> np.random.Generator:
+    return np.random.default_rng(23)
+
+
+def _filled(data: Path, rng: np.random.Generator) -> dict:
+    """A data directory with train and eval episodes, a pinned split, three models (one pruned) and
+    a queued request; returns what to compare a backup with."""
+    cat = Catalog(data)
+    train = [cat.add_episode(make_episode(rng)).episode_id for _ in range(3)]
+    evals = [cat.add_episode(make_episode(rng), split="eval").episode_id for _ in range(2)]
+    split_hash = cat.pin_eval_split(evals, SPLIT_PARAMS)
+    reg = ModelRegistry(data)
+    versions = []
+    for mse in (0.04, 0.03, 0.02):
+        v = reg.register(f"weights {mse}".encode() * 50, {"members": 2}, {"h1_mse": mse},
+                         snapshot_id="snap", eval_split_hash=split_hash)
+        reg.gate(v)
+        versions.append(v)
+    reg.prune(keep=2)
+    queue = RequestQueue(data / DB_NAME)
+    queue.enqueue(NewRequest(task="push", shape="T", start_state={"shape": "T", "agent": [1.0, 2.0]}))
+    queue.close()
+    return {"train": train, "eval": evals, "split": split_hash, "versions": versions}
+
+
+def test_a_backup_is_a_data_directory_with_everything_in_it(tmp_path, rng) -> None:
+    data, dest = tmp_path / "data", tmp_path / "backups" / "b1"
+    want = _filled(data, rng)
+
+    result = backup(data, dest)
+
+    assert result.problems == [] and result.episodes == 5 and result.models == 2
+    assert result.bytes == sum(p.stat().st_size for p in dest.rglob("*") if p.is_file())
+    assert not [p for p in dest.parent.iterdir() if p.name.startswith(".")]  # no staging left
+    cat = Catalog(dest)
+    assert sorted(r.episode_id for r in cat.list()) == sorted(want["train"] + want["eval"])
+    for row in cat.list():
+        cat.verify(row.episode_id)
+    assert cat.eval_split().hash == want["split"]
+    reg = ModelRegistry(dest)
+    first, second, third = want["versions"]
+    assert reg.champion() == third and reg.load_weights(second) == b"weights 0.03" * 50
+    with pytest.raises(PrunedCheckpointError):
+        reg.load_weights(first)
+    assert not (dest / "models" / first).exists()
+    assert RequestQueue(dest / DB_NAME).counts()["queued"] == 1
+
+
+def test_a_backup_taken_while_episodes_arrive_is_consistent(tmp_path, rng) -> None:
+    data, dest = tmp_path / "data", tmp_path / "b"
+    cat = Catalog(data)
+    episodes = [make_episode(rng) for _ in range(60)]
+    for ep in episodes[:20]:
+        cat.add_episode(ep)
+    added, stop = [20], threading.Event()
+
+    def writer() -> None:
+        for ep in episodes[20:]:
+            if stop.is_set():
+                return
+            cat.add_episode(ep)
+            added[0] += 1
+
+    started = threading.Event()
+
+    def progress(done: int, total: int) -> None:
+        started.set()
+        wait_for(lambda: added[0] > 20 or added[0] == len(episodes), message="an episode added mid-backup")
+
+    thread = threading.Thread(target=writer)
+    thread.start()
+    try:
+        result = backup(data, dest, progress=progress)
+    finally:
+        stop.set()
+        thread.join()
+    assert started.is_set() and result.problems == []
+    copy = Catalog(dest)
+    rows = copy.list()
+    assert 20 <= len(rows) == result.episodes
+    for row in rows:
+        copy.verify(row.episode_id)
+    on_disk = {p.relative_to(dest).as_posix() for p in (dest / "episodes").rglob("*.mcap")}
+    assert on_disk == {r.path.relative_to(dest).as_posix() for r in rows}  # every file indexed, no stray
+    assert not copy.strays().unindexed
+
+
+def test_a_damaged_file_is_named_and_the_rest_is_backed_up(tmp_path, rng, capsys) -> None:
+    data = tmp_path / "data"
+    want = _filled(data, rng)
+    bad = Catalog(data).get(want["train"][1]).path
+    raw = bytearray(bad.read_bytes())
+    raw[len(raw) // 2] ^= 0xFF
+    bad.write_bytes(bytes(raw))
+    weights = data / "models" / want["versions"][2] / "weights.pt"
+    weights.write_bytes(weights.read_bytes()[:-1])
+
+    rc, out, err = run_cli(capsys, "backup", str(tmp_path / "b"), "--data", str(data), "--json")
+
+    assert rc == 1 and "could not be copied intact" in err
+    report = json.loads(out)
+    assert report["episodes"] == 4 and report["models"] == 1 and len(report["problems"]) == 2
+    assert want["train"][1] in report["problems"][0] and "sha256" in report["problems"][0]
+    assert want["versions"][2] in report["problems"][1]
+    copy = Catalog(tmp_path / "b")
+    with pytest.raises(EpisodeError, match="missing"):
+        copy.verify(want["train"][1])
+    copy.verify(want["train"][0])
+    assert not (tmp_path / "b" / "models" / want["versions"][2]).exists()
+
+
+def test_a_model_pruned_during_the_backup_is_pruned_in_it(tmp_path, rng) -> None:
+    data, dest = tmp_path / "data", tmp_path / "b"
+    want = _filled(data, rng)
+    reg = ModelRegistry(data)
+
+    def prune_once(done: int, total: int) -> None:  # after the snapshot, before the models are copied
+        if done == 1:
+            assert reg.prune(keep=1).pruned == [want["versions"][1]]
+
+    result = backup(data, dest, progress=prune_once)
+
+    assert result.problems == [] and result.models == 1
+    copy = ModelRegistry(dest)
+    assert copy.get(want["versions"][1]).pruned_at is not None
+    assert copy.load_weights(want["versions"][2])
+
+
+def test_the_destination_must_be_new_and_outside(tmp_path, rng, capsys) -> None:
+    data = tmp_path / "data"
+    _filled(data, rng)
+    (tmp_path / "full").mkdir()
+    (tmp_path / "full" / "x").write_text("keep me")
+    (tmp_path / "afile").write_text("keep me")
+    for dest, why in ((tmp_path / "full", "not empty"), (tmp_path / "afile", "is a file"),
+                      (data / "inside", "inside the data directory")):
+        with pytest.raises(BackupError, match=why):
+            check_dest(data, dest)
+        rc, out, err = run_cli(capsys, "backup", str(dest), "--data", str(data))
+        assert rc == 2 and why in err and err.count("\n") == 1
+    assert (tmp_path / "full" / "x").read_text() == "keep me" and (tmp_path / "afile").read_text() == "keep me"
+    assert not (data / "inside").exists()
+    rc, _, err = run_cli(capsys, "backup", str(tmp_path / "b"), "--data", str(tmp_path / "nothing"))
+    assert rc == 2 and "no catalog" in err and not (tmp_path / "b").exists()
+    (tmp_path / "empty").mkdir()
+    rc, out, _ = run_cli(capsys, "backup", str(tmp_path / "empty"), "--data", str(data))
+    assert rc == 0 and "backed up 5 episodes and 2 checkpoints" in out
+    assert Catalog(tmp_path / "empty").count() == 5
+
+
+def _limit_file_size() -> None:  # in the child: writes past 64 KiB fail with EFBIG, as on a full disk
+    import resource
+    signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+    resource.setrlimit(resource.RLIMIT_FSIZE, (64 * 1024, 64 * 1024))
+
+
+def test_a_backup_that_cannot_be_written_leaves_nothing(tmp_path, rng) -> None:
+    data = tmp_path / "data"
+    cat = Catalog(data)
+    for _ in range(3):
+        cat.add_episode(make_episode(rng, steps=40, size=32))  # ~120 KiB each: past the child's limit
+    dest = tmp_path / "b"
+
+    proc = subprocess.run([sys.executable, "-m", "orchestrator", "backup", str(dest), "--data", str(data)],
+                          capture_output=True, text=True, timeout=120, preexec_fn=_limit_file_size,
+                          env={**os.environ, "PYTHONPATH": str(REPO)})
+
+    assert proc.returncode == 1, proc.stderr
+    assert "backup failed, nothing written" in proc.stderr and "Traceback" not in proc.stderr
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["data"]
+    for row in cat.list():
+        cat.verify(row.episode_id)
