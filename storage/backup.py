@@ -26,9 +26,10 @@ from datetime import datetime, timezone
 from pathlib import Path
 
 from storage.database import DB_NAME, connection
-from storage.errors import BackupError
+from storage.catalog import Catalog
+from storage.errors import BackupError, StorageError
 from storage.files import ensure_dir, fsync_dir, sha256_hex, write_synced
-from storage.models import MODELS_DIR, WEIGHTS_FILE
+from storage.models import MODELS_DIR, WEIGHTS_FILE, ModelRegistry
 
 
 @dataclass(frozen=True)
@@ -106,14 +107,10 @@ def _copy_checked(src: Path, dst: Path, sha256: str | None, dirs: set[Path]) -> 
     return len(data)
 
 
-def _tables(conn: sqlite3.Connection) -> set[str]:
-    return {r[0] for r in conn.execute("SELECT name FROM sqlite_master WHERE type = 'table'")}
-
-
 def _pruned_in_source(source_db: Path, version: str) -> bool:
     with connection(source_db, BackupError) as conn:
-        row = conn.execute("SELECT pruned_at FROM models WHERE version = ?", (version,)).fetchone()
-    return row is not None and row[0] is not None
+        row = conn.execute("SELECT * FROM models WHERE version = ?", (version,)).fetchone()
+    return row is not None and "pruned_at" in row.keys() and row["pruned_at"] is not None
 
 
 def backup(data_dir: str | os.PathLike[str], dest: str | os.PathLike[str],
@@ -143,6 +140,11 @@ def backup(data_dir: str | os.PathLike[str], dest: str | os.PathLike[str],
     except OSError as exc:
         shutil.rmtree(work, ignore_errors=True)
         raise BackupError(f"cannot write the backup at {dest}: {exc.strerror or exc}") from exc
+    except StorageError as exc:  # e.g. a catalog newer than this code
+        shutil.rmtree(work, ignore_errors=True)
+        if isinstance(exc, BackupError):
+            raise
+        raise BackupError(f"cannot back up {data_dir}: {exc}") from exc
     except BaseException:
         shutil.rmtree(work, ignore_errors=True)
         raise
@@ -157,14 +159,12 @@ def _fill(data_dir: Path, work: Path, progress: Callable[[int, int], None] | Non
     source_db = data_dir / DB_NAME
     db = work / DB_NAME
     _snapshot_db(source_db, db)
-    size = db.stat().st_size
-    conn = sqlite3.connect(db, isolation_level=None)
-    try:
-        tables = _tables(conn)
-        episodes = conn.execute("SELECT episode_id, path, sha256 FROM episodes ORDER BY path").fetchall() \
-            if "episodes" in tables else []
+    Catalog(work), ModelRegistry(work)  # the copy at this code's schema (an older source has fewer columns)
+    size = 0
+    with connection(db, BackupError) as conn:
+        episodes = conn.execute("SELECT episode_id, path, sha256 FROM episodes ORDER BY path").fetchall()
         models = conn.execute("SELECT version, weights_sha256 FROM models WHERE pruned_at IS NULL "
-                              "ORDER BY seq").fetchall() if "models" in tables else []
+                              "ORDER BY seq").fetchall()
         total, done, problems, n_episodes, n_models = len(episodes) + len(models), 0, [], 0, 0
         dirs: set[Path] = set()
         for episode_id, rel, sha in episodes:
@@ -198,8 +198,8 @@ def _fill(data_dir: Path, work: Path, progress: Callable[[int, int], None] | Non
             done += 1
             if progress is not None:
                 progress(done, total)
-    finally:
-        conn.close()
+    # closed: the copy's WAL is checkpointed into the file and removed
+    size += sum(p.stat().st_size for p in work.glob(f"{DB_NAME}*"))
     for d in sorted(dirs | {work}):
         fsync_dir(d)
     return n_episodes, n_models, size, problems

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import signal
@@ -198,3 +199,27 @@ def test_a_backup_that_cannot_be_written_leaves_nothing(tmp_path, rng) -> None:
     assert sorted(p.name for p in tmp_path.iterdir()) == ["data"]
     for row in cat.list():
         cat.verify(row.episode_id)
+
+
+def test_a_data_directory_from_before_pruning_is_backed_up_at_the_current_schema(tmp_path, rng) -> None:
+    from storage.database import connection, ensure_schema
+    from storage.errors import RegistryError
+    from storage.models import _MIGRATIONS
+    data = tmp_path / "old"
+    Catalog(data).add_episode(make_episode(rng))
+    weights = b"old weights" * 20
+    (data / "models" / "m000001-00000000").mkdir(parents=True)
+    (data / "models" / "m000001-00000000" / "weights.pt").write_bytes(weights)
+    with connection(data / DB_NAME, RegistryError) as conn:  # the registry's tables as the first release made them
+        ensure_schema(conn, "models", _MIGRATIONS[:1])
+        conn.execute("INSERT INTO models (version, seq, status, reason, parent, snapshot_id, eval_split_hash, "
+                     "weights_sha256, size_bytes, created, updated, metrics, config) VALUES "
+                     "('m000001-00000000', 1, 'candidate', '', NULL, 's', 'h', ?, ?, 't', 't', '{}', '{}')",
+                     (hashlib.sha256(weights).hexdigest(), len(weights)))
+
+    result = backup(data, tmp_path / "b")
+
+    assert result.problems == [] and (result.episodes, result.models) == (1, 1)
+    assert ModelRegistry(tmp_path / "b").load_weights("m000001-00000000") == weights
+    with connection(data / DB_NAME, RegistryError) as conn:  # the source itself is left as it was
+        assert "pruned_at" not in {r["name"] for r in conn.execute("PRAGMA table_info(models)")}
