@@ -18,7 +18,7 @@ from orchestrator import protocol
 from orchestrator.metrics import SPLITS  # the splits ``stats`` counts episodes of
 from orchestrator.messages import AdminRequest, Event, RequestSpec
 from orchestrator.protocol import ErrorCode, EventKind, ProtocolError
-from storage.errors import QueueError, StaleLeaseError, StorageError
+from storage.errors import QueueError, StaleLeaseError, StorageError, StorageUnavailableError
 from storage.models import ModelStatus
 from storage.queue import RequestQueue
 from storage.requests import IllegalTransitionError, NewRequest, Request, RequestStatus, UnknownRequestError
@@ -61,7 +61,9 @@ _EVENTS: dict[str, EventKind] = {
 
 def protocol_error(exc: StorageError) -> ProtocolError:
     """The wire error for a refused queue operation (also used by the service's lease / renew / fail)."""
-    if isinstance(exc, StaleLeaseError):
+    if isinstance(exc, StorageUnavailableError):  # a full disk, a busy database: ask again later
+        code = ErrorCode.UNAVAILABLE
+    elif isinstance(exc, StaleLeaseError):
         code = ErrorCode.STALE_TOKEN
     elif isinstance(exc, UnknownRequestError):
         code = ErrorCode.UNKNOWN_REQUEST

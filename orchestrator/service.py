@@ -42,7 +42,7 @@ from orchestrator.protocol import ErrorCode, EventKind, Keys, ProtocolError
 from orchestrator.transport import Incoming, Response
 from orchestrator.uploads import StoredEpisode, UploadHandler
 from storage.catalog import ORPHANS_DIR, STAGING_MAX_AGE_S, Catalog
-from storage.errors import QueueError, StorageError
+from storage.errors import QueueError, StorageError, StorageUnavailableError
 from storage.models import ModelRegistry
 from storage.queue import RequestQueue
 from storage.requests import NewRequest, Request, RequestStatus
@@ -162,6 +162,8 @@ class Service:
         # transaction) take turns here instead of inside SQLite, whose busy handler sleeps in
         # steps of up to 100 ms: that was the p99 of a lease under load.
         self._writes = threading.Lock()
+        #: When a write first failed with the storage unavailable (monotonic); None while it works.
+        self._storage_down_since: float | None = None
 
     # --- lifecycle -----------------------------------------------------------------------------
 
@@ -324,6 +326,8 @@ class Service:
             with self._writes:
                 expires = self.queue.renew(req.request_id, req.token, req.worker_id, self.config.lease_s)
         except QueueError as exc:
+            if isinstance(exc, StorageUnavailableError):  # the lease cannot be kept alive: no expiry until back
+                self._storage_down(exc)
             raise admin.protocol_error(exc) from exc
         return protocol.ok_reply(expires_at=expires)
 
@@ -419,8 +423,18 @@ class Service:
                 return
             try:
                 task()
+            except StorageUnavailableError as exc:  # said once per outage, not once a second
+                self._storage_down(exc)
             except Exception:  # noqa: BLE001 -- lease expiry must outlive any one failure
                 log.exception("maintenance task failed; will try again")
+
+    def _storage_down(self, exc: StorageUnavailableError) -> None:
+        """The storage refused a write for a reason that passes (a full disk): no lease expires until it
+        is back, and then every live lease gets a full term first (no worker could renew meanwhile)."""
+        if self._storage_down_since is None:
+            self._storage_down_since = time.monotonic()
+            log.error("storage unavailable: %s; leases will not expire and uploads are refused as "
+                      "'unavailable' (workers keep their episodes and retry) until it is back", exc)
 
     def _sweep(self) -> None:
         """Files crashed ingests left: unindexed episodes to orphans/, staging files older than
@@ -432,6 +446,12 @@ class Service:
 
     def _reap(self) -> None:
         with self._writes:
+            if self._storage_down_since is not None:
+                extended = self.queue.extend_leases(self.config.lease_s)
+                log.warning("storage available again after %.0f s; %d live lease(s) extended by %.0f s so their "
+                            "workers can renew", time.monotonic() - self._storage_down_since, extended,
+                            self.config.lease_s)
+                self._storage_down_since = None
             expired = self.queue.expire_leases()
         for request in expired:
             log.info("lease of %s expired (attempt %d)", request.id, request.attempts)

@@ -25,7 +25,7 @@ from orchestrator.protocol import ErrorCode, EventKind, ProtocolError
 from orchestrator.transport import Incoming
 from storage.catalog import Catalog
 from storage.episodes import EpisodeInfo, read_episode
-from storage.errors import EpisodeError, QueueError, StaleLeaseError, StorageError
+from storage.errors import EpisodeError, QueueError, StaleLeaseError, StorageError, StorageUnavailableError
 from storage.queue import RequestQueue
 from storage.records import Episode
 from storage.requests import IllegalTransitionError, Request, RequestStatus
@@ -91,6 +91,8 @@ class UploadHandler:
             raise self._reject(admin.protocol_error(exc), header) from exc
         except EpisodeError as exc:
             raise self._reject(ProtocolError(ErrorCode.CORRUPT_EPISODE, str(exc)), header) from exc
+        except StorageUnavailableError as exc:  # a full disk: nothing stored; the worker sends the same bytes again
+            raise self._reject(ProtocolError(ErrorCode.UNAVAILABLE, str(exc)), header) from exc
         except StorageError as exc:  # CatalogError: the id is indexed with other bytes
             raise self._reject(ProtocolError(ErrorCode.BAD_FIELD, str(exc)), header) from exc
         if result.duplicate:  # indexed before: by a racing identical upload, or for another request

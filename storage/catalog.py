@@ -38,7 +38,7 @@ from storage.episodes import (
     read_episode,
     verify_episode,
 )
-from storage.database import DB_NAME, Migration, connection, ensure_schema, transaction
+from storage.database import DB_NAME, Migration, connection, ensure_schema, storage_error, transaction
 from storage.errors import CatalogError, CorruptEpisodeError, EpisodeError
 from storage.files import age_s, publish, sha256_hex, stage_bytes
 from storage.records import MAX_FRAME_SIZE, MIN_FRAME_SIZE, Episode, EpisodeMeta
@@ -325,11 +325,18 @@ class Catalog:
         known = self.find(meta.episode_id)
         if known is not None:  # fast path; re-checked under the lock below
             return self._duplicate(known, sha, split, data)
-        staged = stage_bytes(final, data)  # the slow part (write + fsync), outside the write lock
+        try:
+            staged = stage_bytes(final, data)  # the slow part (write + fsync), outside the write lock
+        except OSError as exc:  # a full disk: nothing written, nothing indexed
+            raise storage_error(exc, CatalogError, f"cannot store episode {meta.episode_id} at {final}: "
+                                f"{exc.strerror or exc}", final) from exc
         try:
             with self._connect() as conn:
                 with write_lock if write_lock is not None else nullcontext():
                     return self._insert(conn, staged, final, rel, data, sha, meta, frames, split, in_transaction)
+        except OSError as exc:  # the rename into place; rolled back
+            raise storage_error(exc, CatalogError, f"cannot store episode {meta.episode_id} at {final}: "
+                                f"{exc.strerror or exc}", final) from exc
         finally:
             staged.unlink(missing_ok=True)
 

@@ -7,13 +7,23 @@ tables in it: open it with ``connect`` and create a component's tables with
 
 from __future__ import annotations
 
+import errno
+import shutil
 import sqlite3
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from datetime import datetime, timezone
 from pathlib import Path
 
-from storage.errors import CatalogError, StorageError
+from storage.errors import (
+    CatalogError,
+    CatalogUnavailableError,
+    QueueError,
+    QueueUnavailableError,
+    RegistryError,
+    RegistryUnavailableError,
+    StorageError,
+)
 
 DB_NAME = "catalog.sqlite"
 BUSY_TIMEOUT_MS = 30_000
@@ -21,6 +31,47 @@ BUSY_TIMEOUT_MS = 30_000
 #: One schema version of a component: the SQL statements that bring it there.
 Migration = Sequence[str]
 
+
+
+#: SQLite's primary result codes for a condition that passes: BUSY, LOCKED, NOMEM, IOERR (also how a full
+#: disk shows when the WAL's shared-memory file cannot be made), FULL, PROTOCOL.
+_TRANSIENT_SQLITE = {5, 6, 7, 10, 13, 15}
+_TRANSIENT_ERRNO = {errno.ENOSPC, errno.EDQUOT, errno.EIO}
+_UNAVAILABLE: dict[type[StorageError], type[StorageError]] = {
+    CatalogError: CatalogUnavailableError, QueueError: QueueUnavailableError,
+    RegistryError: RegistryUnavailableError}
+#: Below this many free bytes a failure says how full the disk is.
+LOW_SPACE_BYTES = 16 << 20
+
+
+def is_transient(exc: BaseException) -> bool:
+    """Whether ``exc`` (an ``sqlite3.Error`` or ``OSError``) is a condition that passes: a full disk, an
+    I/O error, a busy database."""
+    if isinstance(exc, sqlite3.Error):
+        code = getattr(exc, "sqlite_errorcode", None)
+        return code is not None and (code & 0xFF) in _TRANSIENT_SQLITE
+    return isinstance(exc, OSError) and exc.errno in _TRANSIENT_ERRNO
+
+
+def space_note(path: str | Path) -> str:
+    """``" (the device holding DIR has N bytes free)"`` when that is little, else ``""``."""
+    directory = Path(path)
+    while not directory.is_dir() and directory != directory.parent:
+        directory = directory.parent
+    try:
+        free = shutil.disk_usage(directory).free
+    except OSError:
+        return ""
+    return f" (the device holding {directory} has {free} bytes free)" if free < LOW_SPACE_BYTES else ""
+
+
+def storage_error(exc: sqlite3.Error | OSError, error: type[StorageError], message: str,
+                  path: str | Path) -> StorageError:
+    """``error(message)``, or its ``...UnavailableError`` subclass when ``exc`` is a condition that passes
+    (then with how full the disk holding ``path`` is, when that is the likely cause)."""
+    if not is_transient(exc):
+        return error(message)
+    return _UNAVAILABLE.get(error, error)(message + space_note(path))
 
 
 def connect(db_path: str | Path) -> sqlite3.Connection:
@@ -47,16 +98,17 @@ def connection(db_path: str | Path, error: type[StorageError]) -> Iterator[sqlit
 
     SQLite's own errors, from opening the file or from any statement in the block (a damaged
     file, "database is locked" past the busy timeout, a full disk), come out as ``error``
-    naming the file, so callers handle one family of exceptions (``StorageError``).
+    naming the file, so callers handle one family of exceptions (``StorageError``); those that
+    pass (a full disk, a busy database) as its ``...UnavailableError`` subclass.
     """
     try:
         conn = connect(db_path)
     except sqlite3.Error as exc:
-        raise error(f"cannot open the database {db_path}: {exc}") from exc
+        raise storage_error(exc, error, f"cannot open the database {db_path}: {exc}", db_path) from exc
     try:
         yield conn
     except sqlite3.Error as exc:
-        raise error(f"database {db_path}: {exc}") from exc
+        raise storage_error(exc, error, f"database {db_path}: {exc}", db_path) from exc
     finally:
         conn.close()
 

@@ -25,8 +25,23 @@ class CatalogError(StorageError):
     """The catalog refused an operation (unknown id, conflicting row, bad split)."""
 
 
+class StorageUnavailableError(StorageError):
+    """The disk or the database could not be used for a reason that passes (no space left, an I/O error,
+    a lock held past the busy timeout): nothing was changed, and the same call can succeed later. Each
+    component raises its own subclass (``CatalogUnavailableError`` ...), so it is also that component's
+    error."""
+
+
+class CatalogUnavailableError(CatalogError, StorageUnavailableError):
+    """The catalog's disk or database is unavailable for now (see ``StorageUnavailableError``)."""
+
+
 class QueueError(StorageError):
     """A request-queue operation was refused (unknown id, illegal transition)."""
+
+
+class QueueUnavailableError(QueueError, StorageUnavailableError):
+    """The queue's database is unavailable for now (see ``StorageUnavailableError``)."""
 
 
 class StaleLeaseError(QueueError):
@@ -35,6 +50,10 @@ class StaleLeaseError(QueueError):
 
 class RegistryError(StorageError):
     """The model registry refused an operation (unknown version, no champion to roll back to)."""
+
+
+class RegistryUnavailableError(RegistryError, StorageUnavailableError):
+    """The registry's disk or database is unavailable for now (see ``StorageUnavailableError``)."""
 
 
 class CorruptCheckpointError(RegistryError):

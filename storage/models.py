@@ -33,7 +33,7 @@ from enum import Enum
 from pathlib import Path
 from typing import Any
 
-from storage.database import DB_NAME, connection, ensure_schema, transaction
+from storage.database import DB_NAME, connection, ensure_schema, storage_error, transaction
 from storage.errors import CorruptCheckpointError, PrunedCheckpointError, RegistryError
 from storage.files import age_s, fsync_dir, write_synced
 from storage.gate import DEFAULT_METRIC, DEFAULT_MIN_REL_IMPROVEMENT, GateDecision, judge
@@ -332,8 +332,9 @@ class ModelRegistry:
         config_bytes, metrics_bytes = _dump(config, "config"), _dump(metrics, "metrics")
         created = _now()
         # The big writes and their fsyncs happen before taking the write lock (leases wait on it).
-        tmp = self._stage({WEIGHTS_FILE: weights, CONFIG_FILE: config_bytes, METRICS_FILE: metrics_bytes})
+        tmp = final = None
         try:
+            tmp = self._stage({WEIGHTS_FILE: weights, CONFIG_FILE: config_bytes, METRICS_FILE: metrics_bytes})
             with self._transaction() as conn:
                 if parent is not None:
                     self._get(conn, parent)
@@ -344,18 +345,21 @@ class ModelRegistry:
                         "size_bytes": len(weights), "weights_file": WEIGHTS_FILE}
                 write_synced(tmp / META_FILE, _dump(meta, "meta"))
                 final = self._publish(tmp, version)
-                try:
-                    conn.execute(
-                        "INSERT INTO models (version, seq, status, reason, parent, snapshot_id, "
-                        "eval_split_hash, weights_sha256, size_bytes, created, updated, metrics, config) "
-                        "VALUES (?, ?, ?, '', ?, ?, ?, ?, ?, ?, ?, ?, ?)",
-                        (version, seq, ModelStatus.CANDIDATE.value, parent, snapshot_id, eval_split_hash,
-                         sha, len(weights), created, created, metrics_bytes.decode(), config_bytes.decode()))
-                except sqlite3.Error:
-                    shutil.rmtree(final, ignore_errors=True)
-                    raise
+                conn.execute(
+                    "INSERT INTO models (version, seq, status, reason, parent, snapshot_id, "
+                    "eval_split_hash, weights_sha256, size_bytes, created, updated, metrics, config) "
+                    "VALUES (?, ?, ?, '', ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                    (version, seq, ModelStatus.CANDIDATE.value, parent, snapshot_id, eval_split_hash,
+                     sha, len(weights), created, created, metrics_bytes.decode(), config_bytes.decode()))
+        except BaseException as exc:
+            if final is not None:  # published, but the INSERT or the COMMIT failed: no row names it
+                shutil.rmtree(final, ignore_errors=True)
+            if isinstance(exc, OSError):  # a full disk: nothing registered
+                raise storage_error(exc, RegistryError, f"cannot store a checkpoint in {self.models_dir}: "
+                                    f"{exc.strerror or exc}", self.models_dir) from exc
+            raise
         finally:
-            if tmp.exists():
+            if tmp is not None and tmp.exists():
                 shutil.rmtree(tmp, ignore_errors=True)
         return version
 

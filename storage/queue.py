@@ -50,6 +50,7 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
+from storage.database import storage_error
 from storage.errors import QueueError, StaleLeaseError
 from storage.requests import (Lease, NewRequest, Request, RequestStatus, UnknownRequestError, check_transition,
                               finite_number)
@@ -203,7 +204,8 @@ class RequestQueue:
         try:
             yield self._conn()
         except sqlite3.Error as exc:
-            raise QueueError(f"cannot read the queue on {self.db_path}: {exc}") from exc
+            raise storage_error(exc, QueueError, f"cannot read the queue on {self.db_path}: {exc}",
+                                self.db_path) from exc
 
     def _open(self) -> sqlite3.Connection:
         if self._closed:
@@ -216,7 +218,8 @@ class RequestQueue:
             if self._background_checkpoint:
                 conn.execute("PRAGMA wal_autocheckpoint = 0")  # the checkpointer thread does it
         except sqlite3.Error as exc:
-            raise QueueError(f"cannot open the queue database {self.db_path}: {exc}") from exc
+            raise storage_error(exc, QueueError, f"cannot open the queue database {self.db_path}: {exc}",
+                                self.db_path) from exc
         with self._lock:
             self._all.append(conn)
         return conn
@@ -248,13 +251,15 @@ class RequestQueue:
         try:
             own.execute("BEGIN IMMEDIATE")
         except sqlite3.Error as exc:
-            raise QueueError(f"cannot start a transaction on {self.db_path}: {exc}") from exc
+            raise storage_error(exc, QueueError, f"cannot start a transaction on {self.db_path}: {exc}",
+                                self.db_path) from exc
         try:
             yield own
             own.execute("COMMIT")
         except sqlite3.Error as exc:
             self._rollback(own)
-            raise QueueError(f"queue transaction on {self.db_path} failed: {exc}") from exc
+            raise storage_error(exc, QueueError, f"queue transaction on {self.db_path} failed: {exc}",
+                                self.db_path) from exc
         except BaseException:
             self._rollback(own)
             raise
@@ -265,7 +270,8 @@ class RequestQueue:
         try:
             own.execute("PRAGMA synchronous = FULL")
         except sqlite3.Error as exc:
-            raise QueueError(f"cannot make the commit durable on {self.db_path}: {exc}") from exc
+            raise storage_error(exc, QueueError, f"cannot make the commit durable on {self.db_path}: {exc}",
+                                self.db_path) from exc
         try:
             yield
         finally:
@@ -494,6 +500,16 @@ class RequestQueue:
             rows = conn.execute(f"{_SELECT} WHERE status = 'leased' AND lease_expires <= ?", (t,)).fetchall()
             return self._end_leases(conn, [_row_to_request(r) for r in rows], "expire",
                                     lambda r: f"lease expired (worker {r.worker_id}, token {r.token})", t)
+
+    def extend_leases(self, lease_s: float, now: float | None = None) -> int:
+        """Give every live lease at least ``lease_s`` more from now (never less than it had); the number
+        extended. For after an outage of the storage, when no worker could renew."""
+        lease_s = finite_number("lease_s", lease_s, positive=True)
+        t = self._now(now)
+        with self._tx() as conn:
+            return len(conn.execute("UPDATE requests SET lease_expires = ?, updated = ? "
+                                    "WHERE status = 'leased' AND lease_expires < ? RETURNING id",
+                                    (t + lease_s, t, t + lease_s)).fetchall())
 
     def reap_expired(self, now: float | None = None) -> int:
         """End every lease past its expiry; the number ended."""

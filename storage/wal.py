@@ -42,6 +42,7 @@ class Checkpointer:
         except sqlite3.Error as exc:
             log.error("WAL checkpointer for %s cannot open the database: %s", self._db_path, exc)
             return
+        failing = ""  # the error of the failing streak, said once (a full disk lasts, the wake-ups do not)
         try:
             while not self._stopping:
                 self._wake.wait(self._period_s)
@@ -49,7 +50,13 @@ class Checkpointer:
                 try:
                     conn.execute("PRAGMA wal_checkpoint(PASSIVE)").fetchall()
                 except sqlite3.Error as exc:  # e.g. disk full: the next wake-up tries again
-                    log.warning("WAL checkpoint of %s failed: %s", self._db_path, exc)
+                    if str(exc) != failing:
+                        log.warning("WAL checkpoint of %s failed: %s (retrying quietly)", self._db_path, exc)
+                    failing = str(exc)
+                    continue
+                if failing:
+                    log.warning("WAL checkpoint of %s works again", self._db_path)
+                    failing = ""
         finally:
             conn.close()
 

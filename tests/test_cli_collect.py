@@ -175,3 +175,11 @@ def test_verify_reports_files_a_crashed_ingest_left_and_serve_moves_them_aside(c
     assert not orphan.exists() and (data / "orphans" / orphan.parent.name / orphan.name).is_file()
     rc, out, _ = run_cli(capsys, "episodes", "verify", "--data", str(data), "--json")
     assert rc == 0 and json.loads(out)["strays"] == []
+
+
+@pytest.mark.parametrize("argv", [("episodes", "ls"), ("models", "ls"), ("models", "prune", "--keep", "1")])
+def test_a_damaged_catalog_is_one_line_and_exit_1(capsys, data, argv):
+    data.mkdir()
+    (data / "catalog.sqlite").write_bytes(b"not a database, but a file that was overwritten " * 100)
+    rc, out, err = run_cli(capsys, *argv, "--data", str(data))
+    assert rc == 1 and err.count("\n") == 1 and "catalog.sqlite" in err and "Traceback" not in err

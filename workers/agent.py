@@ -260,7 +260,7 @@ class Worker:
                 if give_up() or (attempts is not None and n >= attempts):
                     log.warning("%s: giving up after %d attempts: %s", what, n, exc)
                     return None
-                wait = min(delay, self.config.max_backoff_s) * (0.5 + self._rng.random())
+                wait = min(delay * (0.5 + self._rng.random()), self.config.max_backoff_s)
                 log.warning("%s: %s; retrying in %.2f s", what, exc, wait)
                 if self._abort.wait(wait) or (until_stopped and self._stop.is_set()):
                     return None
@@ -271,7 +271,8 @@ class Worker:
         msg = messages.LeaseRequest(worker_id=cfg.worker_id, tasks=list(cfg.tasks), shapes=list(cfg.shapes),
                                     image_size=cfg.image_size).to_json()  # "I record at the grant's size"
         try:
-            body = self._retrying("lease", lambda: self._call(self.keys.lease, msg), until_stopped=True)
+            body = self._retrying("lease", lambda: self._call(self.keys.lease, msg), until_stopped=True,
+                                  transient=(ErrorCode.UNAVAILABLE,))  # e.g. its disk is full: back off
         except ProtocolError as exc:
             if exc.code != ErrorCode.NO_WORK:
                 log.warning("lease refused: %s", exc)

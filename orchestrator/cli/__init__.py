@@ -13,6 +13,8 @@ import sys
 
 from orchestrator import transport
 from orchestrator.cli import collect, common, loop, models, secure, service
+from storage.database import space_note
+from storage.errors import StorageError
 
 _MODULES = (collect, models, service, loop, secure)
 
@@ -49,6 +51,10 @@ def main(argv: list[str] | None = None) -> int:
     except BrokenPipeError:  # the reader went away (`... | head`): stop quietly, as `yes | head` does
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # no second error at exit's flush
         return 128 + signal.SIGPIPE
+    except (StorageError, OSError) as exc:  # a full disk, a damaged catalog: one line, not a traceback
+        detail = str(exc) if isinstance(exc, StorageError) else f"{exc}{space_note(exc.filename or '.')}"
+        print(f"activecollect: {detail}", file=sys.stderr)
+        return 1
 
 
 if __name__ == "__main__":

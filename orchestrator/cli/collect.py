@@ -16,7 +16,7 @@ from orchestrator.cli import common
 from orchestrator.protocol import MAX_EPISODE_STEPS, POLICIES, SHAPES
 from storage.backup import backup, check_dest
 from storage.catalog import ORPHANS_DIR, SPLITS, Catalog, EpisodeRow
-from storage.errors import BackupError, CatalogError, StorageError
+from storage.errors import BackupError, CatalogError, StorageError, StorageUnavailableError
 from workers import simbench
 from workers.collect import EvalSplitConflict, collect_episode, create_eval_split
 from workers.env import sample_state
@@ -258,7 +258,11 @@ def _ingest(args: argparse.Namespace) -> int:
             res = cat.ingest_file(path, split=args.split)
         except StorageError as exc:
             report.append({"path": str(path), "ok": False, "error": f"{type(exc).__name__}: {exc}"})
-            print(f"activecollect: refused {path}: {exc}", file=sys.stderr)
+            if isinstance(exc, StorageUnavailableError):  # not the file's fault: a full disk, a busy catalog
+                print(f"activecollect: cannot store {path} now (nothing changed; run it again): {exc}",
+                      file=sys.stderr)
+            else:
+                print(f"activecollect: refused {path}: {exc}", file=sys.stderr)
             continue
         report.append({"path": str(path), "ok": True, "episode_id": res.episode_id,
                        "duplicate": res.duplicate, "stored": str(res.path)})

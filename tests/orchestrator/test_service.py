@@ -5,6 +5,7 @@ from __future__ import annotations
 import hashlib
 import json
 import threading
+import time
 from pathlib import Path
 from typing import Any
 
@@ -22,6 +23,7 @@ from storage.catalog import Catalog
 from storage.models import ModelRegistry
 from storage.episodes import encode_episode
 from storage.queue import RequestQueue
+from storage.errors import QueueUnavailableError
 from storage.requests import NewRequest, RequestStatus
 from tests.conftest import wait_for
 from workers.collect import collect_episode
@@ -472,3 +474,17 @@ def test_restart_keeps_everything_acknowledged(make_service, client, keys, data_
     q = RequestQueue(Catalog(data_dir).db_path)
     assert q.counts()["done"] == 1
     q.close()
+
+
+def test_after_a_storage_outage_live_leases_get_a_full_term_before_any_expires(make_service) -> None:
+    """While the disk was full no worker could renew: when writes work again, leases are extended first
+    (a worker retrying its upload would otherwise find its lease expired and lose the episode)."""
+    service = make_service(lease_s=30.0)
+    request, _ = service.queue.enqueue(new_request())
+    with service._writes:  # the reaper waits while the outage is set up
+        lease = service.queue.lease("w1", lease_s=1.0, now=time.time() - 10)  # ran out during the outage
+        service._storage_down(QueueUnavailableError("queue transaction failed: database or disk is full"))
+    wait_for(lambda: service._storage_down_since is None, message="the reaper to see the storage back")
+    after = service.queue.get(request.id)
+    assert (after.status, after.token, after.attempts) == (RequestStatus.LEASED, lease.token, 0)
+    assert after.lease_expires > time.time() + 20

@@ -9,6 +9,7 @@ import pytest
 
 from orchestrator.service import Service, ServiceConfig
 from storage.catalog import Catalog
+from storage.errors import CatalogUnavailableError
 from storage.requests import RequestStatus
 from tests.conftest import wait_for
 from tests.orchestrator.test_service import new_request
@@ -50,8 +51,14 @@ def test_renewals_keep_a_lease_alive_past_lease_s(start_service, spawn_worker) -
     assert (done.status, done.attempts, done.token) == (RequestStatus.DONE, 0, 1)
 
 
-def test_an_upload_the_service_could_not_store_is_retried_not_failed(start_service, spawn_worker, data_dir) -> None:
-    """``internal`` (a full disk, a busy database) is transient: the same bytes again, no attempt spent."""
+@pytest.mark.parametrize("error", [
+    CatalogUnavailableError("database catalog.sqlite: database or disk is full"),  # what a full disk gives now
+    OSError(28, "No space left on device"),  # anything unforeseen: `internal`
+], ids=["unavailable", "internal"])
+def test_an_upload_the_service_could_not_store_is_retried_not_failed(start_service, spawn_worker, data_dir,
+                                                                     error) -> None:
+    """``unavailable`` (a full disk, a busy database) and ``internal`` are transient: the same bytes again,
+    no attempt spent."""
     service = start_service()
     request, _ = service.queue.enqueue(new_request())
     real, refused = service.catalog.ingest_bytes, []
@@ -59,7 +66,7 @@ def test_an_upload_the_service_could_not_store_is_retried_not_failed(start_servi
     def full_disk_once(*args, **kw):
         if not refused:
             refused.append(1)
-            raise OSError(28, "No space left on device")
+            raise error
         return real(*args, **kw)
 
     service.catalog.ingest_bytes = full_disk_once
