@@ -503,6 +503,8 @@ class Service:
             missing = self.config.min_queued - self.queue.counts()["queued"]
             if missing > 0:
                 self._enqueue(self.planner.seed(missing, "top-up"), "top-up")
+        except StorageUnavailableError as exc:  # tried again at the next interval
+            self._storage_down(exc)
         except Exception:  # noqa: BLE001 -- a failed top-up is tried again at the next interval; it is logged
             log.exception("topping the queue up to %d failed", self.config.min_queued)
 
@@ -510,6 +512,10 @@ class Service:
         if self.planner is not None:
             try:
                 self._enqueue(self.planner.plan([b.episode for b in batch]), self.planner.name)
+            except StorageUnavailableError as exc:  # its requests are lost; the queue floor tops up later
+                self._storage_down(exc)
+                log.warning("planner %s: %d episode(s) planned, but their requests could not be queued: %s",
+                            self.planner.name, len(batch), exc)
             except Exception:  # noqa: BLE001 -- a planner bug must not stop ingest; it is logged
                 log.exception("planner %s failed on %d episode(s)", self.planner.name, len(batch))
         for stored in batch:
