@@ -448,9 +448,10 @@ class Service:
         with self._writes:
             if self._storage_down_since is not None:
                 extended = self.queue.extend_leases(self.config.lease_s)
-                log.warning("storage available again after %.0f s; %d live lease(s) extended by %.0f s so their "
-                            "workers can renew", time.monotonic() - self._storage_down_since, extended,
-                            self.config.lease_s)
+                if extended:  # (with no live lease this write changed nothing, so it proves little: no line)
+                    log.warning("storage writable again after %.0f s; %d live lease(s) extended by %.0f s so "
+                                "their workers can renew", time.monotonic() - self._storage_down_since, extended,
+                                self.config.lease_s)
                 self._storage_down_since = None
             expired = self.queue.expire_leases()
         for request in expired:
