@@ -52,7 +52,10 @@ class BackupResult:
     the same."""
 
 
-def _refuse_dest(data_dir: Path, dest: Path) -> None:
+def check_dest(data_dir: str | os.PathLike[str], dest: str | os.PathLike[str]) -> None:
+    """Raise ``BackupError`` unless ``dest`` can take a backup of ``data_dir``: outside it, and absent
+    or an empty directory. Changes nothing."""
+    data_dir, dest = Path(data_dir), Path(dest)
     try:
         inside = dest.resolve().is_relative_to(data_dir.resolve())
     except OSError as exc:
@@ -64,12 +67,6 @@ def _refuse_dest(data_dir: Path, dest: Path) -> None:
         raise BackupError(f"{dest} already exists and is not empty; choose a new directory")
     if dest.exists() and not dest.is_dir():
         raise BackupError(f"{dest} is a file; choose a new directory")
-
-
-def check_dest(data_dir: str | os.PathLike[str], dest: str | os.PathLike[str]) -> None:
-    """Raise ``BackupError`` unless ``dest`` can take a backup of ``data_dir``: outside it, and absent
-    or an empty directory. Changes nothing."""
-    _refuse_dest(Path(data_dir), Path(dest))
 
 
 def _snapshot_db(source: Path, target: Path) -> None:
@@ -99,8 +96,9 @@ def _copy_checked(src: Path, dst: Path, sha256: str | None, dirs: set[Path]) -> 
         raise _Unusable(f"{src} is missing") from None
     except OSError as exc:
         raise _Unusable(f"cannot read {src}: {exc.strerror or exc}") from exc
-    if sha256 is not None and sha256_hex(data) != sha256:
-        raise _Unusable(f"{src}: sha256 is {sha256_hex(data)}, recorded {sha256}")
+    found = sha256_hex(data) if sha256 is not None else None
+    if found != sha256:
+        raise _Unusable(f"{src}: sha256 is {found}, recorded {sha256}")
     ensure_dir(dst.parent)
     write_synced(dst, data)
     dirs.add(dst.parent)
@@ -127,7 +125,7 @@ def backup(data_dir: str | os.PathLike[str], dest: str | os.PathLike[str],
     source_db = data_dir / DB_NAME
     if not source_db.is_file():
         raise BackupError(f"no catalog at {source_db}: nothing to back up")
-    _refuse_dest(data_dir, dest)
+    check_dest(data_dir, dest)
     ensure_dir(dest.parent)
     work = dest.parent / f".{dest.name}.backup-{uuid.uuid4().hex[:8]}"
     try:
@@ -137,16 +135,12 @@ def backup(data_dir: str | os.PathLike[str], dest: str | os.PathLike[str],
             dest.rmdir()  # empty (checked): the rename below takes its place
         os.rename(work, dest)
         fsync_dir(dest.parent)
-    except OSError as exc:
+    except BaseException as exc:
         shutil.rmtree(work, ignore_errors=True)
-        raise BackupError(f"cannot write the backup at {dest}: {exc.strerror or exc}") from exc
-    except StorageError as exc:  # e.g. a catalog newer than this code
-        shutil.rmtree(work, ignore_errors=True)
-        if isinstance(exc, BackupError):
-            raise
-        raise BackupError(f"cannot back up {data_dir}: {exc}") from exc
-    except BaseException:
-        shutil.rmtree(work, ignore_errors=True)
+        if isinstance(exc, OSError):  # a full disk
+            raise BackupError(f"cannot write the backup at {dest}: {exc.strerror or exc}") from exc
+        if isinstance(exc, StorageError) and not isinstance(exc, BackupError):  # e.g. a catalog newer than this code
+            raise BackupError(f"cannot back up {data_dir}: {exc}") from exc
         raise
     episodes, models, size, problems = result
     return BackupResult(dest=dest, episodes=episodes, models=models, bytes=size, problems=problems,
@@ -159,7 +153,8 @@ def _fill(data_dir: Path, work: Path, progress: Callable[[int, int], None] | Non
     source_db = data_dir / DB_NAME
     db = work / DB_NAME
     _snapshot_db(source_db, db)
-    Catalog(work), ModelRegistry(work)  # the copy at this code's schema (an older source has fewer columns)
+    Catalog(work)  # the copy at this code's schema (an older source has fewer columns)
+    ModelRegistry(work)
     size = 0
     with connection(db, BackupError) as conn:
         episodes = conn.execute("SELECT episode_id, path, sha256 FROM episodes ORDER BY path").fetchall()

@@ -325,20 +325,18 @@ class Catalog:
         known = self.find(meta.episode_id)
         if known is not None:  # fast path; re-checked under the lock below
             return self._duplicate(known, sha, split, data)
+        staged = None
         try:
             staged = stage_bytes(final, data)  # the slow part (write + fsync), outside the write lock
-        except OSError as exc:  # a full disk: nothing written, nothing indexed
-            raise storage_error(exc, CatalogError, f"cannot store episode {meta.episode_id} at {final}: "
-                                f"{exc.strerror or exc}", final) from exc
-        try:
             with self._connect() as conn:
                 with write_lock if write_lock is not None else nullcontext():
                     return self._insert(conn, staged, final, rel, data, sha, meta, frames, split, in_transaction)
-        except OSError as exc:  # the rename into place; rolled back
+        except OSError as exc:  # a full disk, staging or renaming into place: nothing indexed (rolled back)
             raise storage_error(exc, CatalogError, f"cannot store episode {meta.episode_id} at {final}: "
                                 f"{exc.strerror or exc}", final) from exc
         finally:
-            staged.unlink(missing_ok=True)
+            if staged is not None:
+                staged.unlink(missing_ok=True)
 
     def _insert(self, conn: sqlite3.Connection, staged: Path, final: Path, rel: str, data: bytes,
                 sha: str, meta: EpisodeMeta, frames: int, split: str,
