@@ -7,7 +7,9 @@ the scheduler, which only starts and watches jobs, does not.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
+from collections.abc import Iterator
 from pathlib import Path
 
 from orchestrator.scheduler import note_phase, retrain_lock
@@ -17,6 +19,32 @@ from storage.models import ModelRegistry
 from uncertainty.config import TrainConfig
 from uncertainty.train import train_candidate
 
+#: The reason a candidate left by an earlier job gets when the next job finds it.
+ABANDONED = "abandoned: the job that registered it ended before its gate (rejected by the next training job)"
+
+
+def abandoned_note(versions: list[str]) -> str:
+    """One line for the operator on the candidates ``training_job`` rejected."""
+    return f"rejected {', '.join(versions)}: left as candidates by a job that ended before its gate"
+
+
+@contextlib.contextmanager
+def training_job(data_dir: Path, wait: bool = False) -> Iterator[tuple[Catalog, ModelRegistry, list[str]]]:
+    """Hold the retrain lock for one training job (``retrain`` and ``train`` alike).
+
+    Every job registers and gates its candidate under this lock, so a ``candidate`` found
+    now was left by a job that died (or whose gate failed) in between: it is rejected with
+    ``ABANDONED`` first, so that ``prune`` may free it. Yields the catalog, the registry and
+    the versions so rejected. Raises ``RetrainBusyError`` like ``retrain_lock``.
+    """
+    data_dir = Path(data_dir)
+    with retrain_lock(data_dir, wait=wait):
+        registry = ModelRegistry(data_dir)
+        abandoned = registry.reject_candidates(ABANDONED)
+        note_phase(data_dir, "training")
+        yield Catalog(data_dir), registry, abandoned
+        note_phase(data_dir, "done")
+
 
 def run_retrain(data_dir: Path, cfg: TrainConfig, wait: bool = False, keep_models: int | None = None) -> dict:
     """One retrain job under the lock: train on the train snapshot, evaluate, register, gate.
@@ -25,19 +53,16 @@ def run_retrain(data_dir: Path, cfg: TrainConfig, wait: bool = False, keep_model
     fresh model while there is no champion yet). With ``keep_models`` the registry is then
     pruned to the champion's rollback chain of that many (``ModelRegistry.prune``).
 
-    Returns ``{"version", "promoted", "reason", "metrics", "champion", "pruned", "prune_error"}``; a
+    Returns ``{"version", "promoted", "reason", "metrics", "champion", "pruned", "prune_error", "abandoned"}``
+    (``abandoned``: candidates earlier jobs left, rejected first, see ``training_job``); a
     prune that fails does not fail the job (the gate has decided by then): ``prune_error`` says why. Raises
     ``orchestrator.scheduler.RetrainBusyError`` when another job holds the lock (and ``wait`` is False), and
     whatever training raises (``uncertainty`` and ``storage`` errors); in every failure
     the champion is untouched, because only the gate at the very end promotes.
     """
-    data_dir = Path(data_dir)
-    with retrain_lock(data_dir, wait=wait):
-        catalog = Catalog(data_dir)
-        registry = ModelRegistry(data_dir)
+    with training_job(data_dir, wait=wait) as (catalog, registry, abandoned):
         if cfg.from_champion and registry.champion() is None:  # the first retrain has nothing to start from
             cfg = dataclasses.replace(cfg, from_champion=False)
-        note_phase(data_dir, "training")
         result = train_candidate(catalog, registry, cfg)
         pruned, prune_error = [], None
         if keep_models is not None:
@@ -45,8 +70,7 @@ def run_retrain(data_dir: Path, cfg: TrainConfig, wait: bool = False, keep_model
                 pruned = registry.prune(keep_models).pruned
             except (StorageError, OSError) as exc:
                 prune_error = f"pruning the registry failed: {exc}"
-        note_phase(data_dir, "done")
         return {"version": result.version, "promoted": result.decision.promoted,
                 "reason": result.decision.reason, "champion": registry.champion(), "pruned": pruned,
-                "prune_error": prune_error,
+                "prune_error": prune_error, "abandoned": abandoned,
                 "metrics": {k: v for k, v in result.metrics.items() if not isinstance(v, (list, dict))}}

@@ -510,6 +510,21 @@ class ModelRegistry:
                          (CHAMPION, target))
         return target
 
+    def reject_candidates(self, reason: str) -> list[str]:
+        """Mark every ``candidate`` rejected with ``reason``, in one transaction; return their versions.
+
+        For the one job that may register and gate (the retrain lock's holder): at its start a
+        candidate can only be one an earlier job registered and never gated (killed, or its gate's
+        transaction failed). Rejected, it is kept with the reason and ``prune`` may delete its files;
+        ``promote`` still takes it.
+        """
+        with self._transaction() as conn:
+            left = [r[0] for r in conn.execute("SELECT version FROM models WHERE status = ? ORDER BY seq",
+                                               (ModelStatus.CANDIDATE.value,))]
+            for version in left:
+                self._set_status(conn, version, ModelStatus.REJECTED, reason)
+        return left
+
     # -- retention -----------------------------------------------------------------------------
 
     def prune(self, keep: int, dry_run: bool = False) -> PruneResult:

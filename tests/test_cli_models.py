@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+import shutil
 import subprocess
 import sys
 
@@ -13,6 +14,7 @@ import numpy as np
 import pytest
 
 from orchestrator.cli import main
+from orchestrator.scheduler import EXIT_BUSY, retrain_lock
 from tests.conftest import run_cli
 from storage.catalog import Catalog
 from storage.models import ModelRegistry, ModelStatus
@@ -189,6 +191,25 @@ def test_train_json_and_warm_start(trained, capsys) -> None:
     assert rc == 0 and set(result) >= {"version", "metrics", "decision", "champion"}
     assert ModelRegistry(data).get(result["version"]).parent == champion
     assert isinstance(result["decision"]["promoted"], bool) and result["decision"]["reason"]
+
+
+def test_train_waits_its_turn_and_rejects_what_a_dead_job_left(trained, capsys, tmp_path) -> None:
+    from orchestrator.retrain import ABANDONED, abandoned_note
+    data = tmp_path / "copy"
+    shutil.copytree(trained[0], data)
+    reg = ModelRegistry(data)
+    # what a job killed between its register and its gate leaves: a candidate no job will gate
+    left = reg.register(b"weights of a job that died", {"members": 2}, {"h1_mse": 1.0}, "snap", SPLIT)
+    argv = ("train", "--data", str(data), "--members", "2", "--epochs", "1", "--device", "cpu", "--json")
+    with retrain_lock(data):  # a retrain job is running
+        rc, out, err = run_cli(capsys, *argv)
+    assert rc == EXIT_BUSY and out == "" and "another retrain holds" in err and len(err.strip().splitlines()) == 1
+    assert [m.version for m in reg.list()] == [m.version for m in ModelRegistry(trained[0]).list()] + [left]
+    assert reg.get(left).status is ModelStatus.CANDIDATE
+    rc, out, _ = run_cli(capsys, *argv[:-1])
+    assert rc == 0 and abandoned_note([left]) in out.splitlines() and "gate: " in out
+    assert (reg.get(left).status, reg.get(left).reason) == (ModelStatus.REJECTED, ABANDONED)
+    assert reg.list(status=ModelStatus.CANDIDATE) == []  # its own candidate went through the gate
 
 
 def test_eval_and_score(trained, capsys) -> None:

@@ -277,7 +277,7 @@ def _retrain(args: argparse.Namespace) -> int:
     except ConfigError as exc:
         raise common.UsageError(str(exc)) from None
     common.require_catalog(args.data)  # checked before the retrain lock would make the directory
-    from orchestrator.retrain import run_retrain  # torch: imported once the arguments are known good (start-up cost)
+    from orchestrator.retrain import abandoned_note, run_retrain  # torch: imported once the arguments are known good (start-up cost)
     try:
         result = run_retrain(args.data, cfg, wait=args.wait, keep_models=args.keep_models)
     except RetrainBusyError as exc:
@@ -294,6 +294,8 @@ def _retrain(args: argparse.Namespace) -> int:
         print(f"{result['version']}: {verdict}: {result['reason']}")
         print(f"  h1_mse {result['metrics'].get('h1_mse')}  h5_mse {result['metrics'].get('h5_mse')}  "
               f"champion {result['champion']}")
+        if result["abandoned"]:
+            print(f"  {abandoned_note(result['abandoned'])}")
         if result["pruned"]:
             print(f"  pruned the files of {', '.join(result['pruned'])}")
     if result["prune_error"]:

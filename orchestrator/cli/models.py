@@ -18,6 +18,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from orchestrator.cli import common
+from orchestrator.scheduler import EXIT_BUSY, RetrainBusyError
 from storage.catalog import Catalog
 from storage.episodes import read_episode
 from storage.errors import CatalogError, CorruptCheckpointError, EpisodeError, RegistryError, StorageError
@@ -50,6 +51,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    metavar="FRAC",
                    help="the gate's minimum relative improvement of h1_mse over the champion "
                         f"(default {TrainConfig.min_rel_improvement})")
+    p.add_argument("--wait", action="store_true",
+                   help="wait for a running retrain (DATA/retrain.lock) to finish instead of exiting "
+                        f"{EXIT_BUSY} at once")
     p.set_defaults(func=_train)
     p = sub.add_parser("eval", help="evaluate a model (default: the champion) on the pinned eval split")
     p.add_argument("version", nargs="?", metavar="VERSION", help="a registered version (default: the champion)")
@@ -281,19 +285,26 @@ def _train(args: argparse.Namespace) -> int:
                           variance_head=args.variance_head)
     except ConfigError as exc:
         raise common.UsageError(str(exc)) from None
+    common.require_catalog(data)  # checked before the retrain lock would make a file there
     # torch: imported once the arguments are known good (start-up cost, not a cycle)
+    from orchestrator.retrain import abandoned_note, training_job
     from uncertainty.train import train_candidate
-    registry = ModelRegistry(data)
     try:
-        result = train_candidate(Catalog(data), registry, cfg)
+        with training_job(data, wait=args.wait) as (catalog, registry, abandoned):
+            result = train_candidate(catalog, registry, cfg)
+            champion = registry.champion()
+    except RetrainBusyError as exc:
+        print(f"activecollect train: {exc}", file=sys.stderr)
+        return EXIT_BUSY
     except (UncertaintyError, StorageError) as exc:
         return _fail(f"training failed: {exc}")
-    champion = registry.champion()
     if args.json:
         common.print_json(_strict({"version": result.version, "metrics": result.metrics,
                                    "decision": result.decision.to_json(), "losses": result.losses,
-                                   "champion": champion}))
+                                   "champion": champion, "abandoned": abandoned}))
         return 0
+    if abandoned:
+        print(abandoned_note(abandoned))
     m = result.metrics
     print(f"trained {result.version}: {m.get('train_episodes')} episodes, {m.get('train_windows')} windows, "
           f"{cfg.epochs} epochs in {_num(m.get('train_seconds'), '.1f')} s (final loss {_num(m.get('train_loss'))})")

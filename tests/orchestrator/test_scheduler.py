@@ -276,15 +276,20 @@ def test_two_retrains_at_once_train_once(trained):
 
 
 def test_a_retrain_with_keep_models_prunes_after_its_gate(trained, tmp_path):
+    from orchestrator.retrain import ABANDONED
     data = tmp_path / "copy"
     shutil.copytree(trained, data)
     registry = ModelRegistry(data)
     bad = registry.register(b"junk weights", {}, {"h1_mse": float("nan")}, "snap", "another-split")
     assert not registry.gate(bad).promoted
+    # what a job killed between its register and its gate leaves: a candidate no job will gate
+    left = registry.register(b"weights of a job that died", {}, {"h1_mse": 1.0}, "snap", "another-split")
     done = retrain(data, "--epochs", "1", "--keep-models", "1")
     assert done.returncode == 0, done.stderr
     result = json.loads(done.stdout)
-    assert bad in result["pruned"] and not (data / "models" / bad).exists()
+    assert result["abandoned"] == [left] and registry.get(left).reason == ABANDONED
+    assert {bad, left} <= set(result["pruned"]) and not (data / "models" / bad).exists()
+    assert not (data / "models" / left).exists()
     champ = ModelRegistry(data).champion()
     assert champ == result["champion"] and ModelRegistry(data).load_weights(champ)
     for rec in ModelRegistry(data).list():

@@ -209,6 +209,20 @@ def test_gate_does_not_rejudge_a_rolled_back_or_rejected_model(reg: ModelRegistr
     assert reg.promote(b).promoted  # the operator's override still can
 
 
+def test_reject_candidates_marks_only_the_candidates(reg: ModelRegistry) -> None:
+    champ = _register(reg, 0.5)
+    assert reg.gate(champ).promoted
+    worse = _register(reg, 0.9)
+    assert not reg.gate(worse).promoted
+    left = [_register(reg, 0.1), _register(reg, 0.2)]
+    assert reg.reject_candidates("abandoned") == left
+    for version in left:
+        assert (reg.get(version).status, reg.get(version).reason) == (ModelStatus.REJECTED, "abandoned")
+    assert reg.get(champ).status is ModelStatus.CHAMPION and reg.get(worse).reason != "abandoned"
+    assert reg.reject_candidates("again") == [] and reg.champion() == champ
+    assert reg.promote(left[0]).promoted  # the operator may still take one
+
+
 def test_rollback_skips_a_corrupt_previous_champion(reg: ModelRegistry) -> None:
     a, b, c = (_register(reg, mse) for mse in (0.010, 0.008, 0.006))
     for v in (a, b, c):
