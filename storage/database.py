@@ -27,6 +27,10 @@ from storage.errors import (
 
 DB_NAME = "catalog.sqlite"
 BUSY_TIMEOUT_MS = 30_000
+#: What the WAL file is cut back to once a checkpoint has emptied it. SQLite reuses the file instead of
+#: shrinking it, so without a limit one burst (or a long backup, during which it cannot be reset) would
+#: hold its high-water size for as long as any connection stays open -- the service's always does.
+JOURNAL_SIZE_LIMIT = 1 << 20
 
 #: One schema version of a component: the SQL statements that bring it there.
 Migration = Sequence[str]
@@ -86,6 +90,7 @@ def connect(db_path: str | Path) -> sqlite3.Connection:
         conn.execute("PRAGMA journal_mode = WAL")  # the first statement to read the file: not a database?
         conn.execute("PRAGMA synchronous = FULL")  # a committed ingest survives power loss
         conn.execute("PRAGMA foreign_keys = ON")
+        conn.execute(f"PRAGMA journal_size_limit = {JOURNAL_SIZE_LIMIT}")
     except BaseException:
         conn.close()
         raise
