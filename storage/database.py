@@ -86,15 +86,21 @@ def connect(db_path: str | Path) -> sqlite3.Connection:
     conn = sqlite3.connect(db_path, timeout=BUSY_TIMEOUT_MS / 1000, isolation_level=None)
     try:
         conn.row_factory = sqlite3.Row
-        conn.execute(f"PRAGMA busy_timeout = {BUSY_TIMEOUT_MS}")
-        conn.execute("PRAGMA journal_mode = WAL")  # the first statement to read the file: not a database?
-        conn.execute("PRAGMA synchronous = FULL")  # a committed ingest survives power loss
+        configure(conn, BUSY_TIMEOUT_MS, "FULL")  # FULL: a committed ingest survives power loss
         conn.execute("PRAGMA foreign_keys = ON")
-        conn.execute(f"PRAGMA journal_size_limit = {JOURNAL_SIZE_LIMIT}")
     except BaseException:
         conn.close()
         raise
     return conn
+
+
+def configure(conn: sqlite3.Connection, busy_timeout_ms: int, synchronous: str) -> None:
+    """The settings every connection that may write the file needs: busy timeout, WAL, ``synchronous``,
+    and ``JOURNAL_SIZE_LIMIT`` (the writer that starts the WAL over is the one that cuts it back)."""
+    conn.execute(f"PRAGMA busy_timeout = {busy_timeout_ms}")
+    conn.execute("PRAGMA journal_mode = WAL")  # the first statement to read the file: not a database?
+    conn.execute(f"PRAGMA synchronous = {synchronous}")
+    conn.execute(f"PRAGMA journal_size_limit = {JOURNAL_SIZE_LIMIT}")
 
 
 @contextmanager

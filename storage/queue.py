@@ -50,7 +50,7 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
-from storage.database import storage_error
+from storage.database import configure, storage_error
 from storage.errors import QueueError, StaleLeaseError
 from storage.requests import (Lease, NewRequest, Request, RequestStatus, UnknownRequestError, check_transition,
                               finite_number)
@@ -212,9 +212,7 @@ class RequestQueue:
             raise QueueError(f"the queue on {self.db_path} is closed")
         try:
             conn = sqlite3.connect(self.db_path, isolation_level=None, check_same_thread=False)
-            conn.execute(f"PRAGMA busy_timeout = {self._busy_timeout_ms}")
-            conn.execute("PRAGMA journal_mode = WAL")
-            conn.execute(f"PRAGMA synchronous = {self._synchronous}")
+            configure(conn, self._busy_timeout_ms, self._synchronous)
             if self._background_checkpoint:
                 conn.execute("PRAGMA wal_autocheckpoint = 0")  # the checkpointer thread does it
         except sqlite3.Error as exc:

@@ -6,6 +6,8 @@ import os
 import sqlite3
 
 from storage.database import JOURNAL_SIZE_LIMIT, connect
+from storage.queue import RequestQueue
+from storage.requests import NewRequest
 
 
 def test_the_wal_shrinks_back_after_a_burst(tmp_path) -> None:
@@ -30,3 +32,24 @@ def test_the_wal_shrinks_back_after_a_burst(tmp_path) -> None:
         assert conn.execute("SELECT count(*) FROM t").fetchone()[0] == 41
     finally:
         conn.close()
+
+
+def test_the_queues_writer_cuts_the_wal_back_too(tmp_path) -> None:
+    db = tmp_path / "catalog.sqlite"
+    queue = RequestQueue(db)  # its own connections, kept open for its life
+    try:
+        big = {"note": "x" * 200_000}
+        queue.enqueue_many([NewRequest("push", "box", {}, reason=big) for _ in range(12)])
+        wal = tmp_path / "catalog.sqlite-wal"
+        assert wal.stat().st_size > 2 * JOURNAL_SIZE_LIMIT
+        other = sqlite3.connect(db)
+        try:
+            busy, frames, done = other.execute("PRAGMA wal_checkpoint(PASSIVE)").fetchone()
+        finally:
+            other.close()
+        assert busy == 0 and frames == done
+        queue.enqueue(NewRequest("push", "disk", {}))
+        assert wal.stat().st_size <= JOURNAL_SIZE_LIMIT
+        assert len(queue.list()) == 13
+    finally:
+        queue.close()
