@@ -18,6 +18,7 @@ from orchestrator import protocol
 from orchestrator.metrics import SPLITS  # the splits ``stats`` counts episodes of
 from orchestrator.messages import AdminRequest, Event, RequestSpec
 from orchestrator.protocol import ErrorCode, EventKind, ProtocolError
+from storage.database import disk_json
 from storage.errors import QueueError, StaleLeaseError, StorageError, StorageUnavailableError
 from storage.models import ModelStatus
 from storage.queue import RequestQueue
@@ -180,13 +181,14 @@ def _workers_ls(queue: RequestQueue, workers: Callable[[], Iterable[str]] | None
 
 def _stats(queue: RequestQueue, catalog: Any, registry: Any,
            workers: Callable[[], Iterable[str]] | None) -> dict[str, Any]:
-    episodes = None
+    episodes = disk = None
     if catalog is not None:
         episodes = {split: catalog.count(split=split) for split in SPLITS}
         episodes["total"] = catalog.count()
+        disk = disk_json(catalog.data_dir)
     return {"requests": queue.counts(), "episodes": episodes,
             "champion": registry.champion() if registry is not None else None,
-            "workers": len(_worker_ids(workers))}
+            "workers": len(_worker_ids(workers)), "disk": disk}
 
 
 def _models_ls(args: Mapping[str, Any], registry: Any) -> dict[str, Any]:

@@ -27,6 +27,7 @@ from urllib.parse import urlsplit
 
 from orchestrator.dashboard_page import render_page
 from orchestrator.metrics import ServiceMetrics
+from storage.database import disk_json
 from storage.catalog import Catalog
 from storage.models import ModelRegistry
 from storage.queue import RequestQueue
@@ -227,7 +228,7 @@ class DataSources:
         retrains = self.retrains()
         return {"episodes": {"train": catalog.count(split="train"), "eval": catalog.count(split="eval")},
                 "budget": self.budget, "queue": queue.counts(), "workers_alive": len(self.workers()),
-                "champion": champion, "champion_h1_mse": h1,
+                "champion": champion, "champion_h1_mse": h1, "disk": disk_json(self.data_dir),
                 "retrains": len(retrains), "last_retrain": retrains[-1] if retrains else None}
 
     def queue(self, rows: int) -> dict:

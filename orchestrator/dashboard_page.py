@@ -35,6 +35,7 @@ PAGE = """<!doctype html>
  <div class="card">workers alive<b id="workers-alive">-</b></div>
  <div class="card">champion<b id="champion">-</b><span id="champion-error" class="muted"></span></div>
  <div class="card">last retrain<b id="last-retrain">-</b><span id="last-retrain-reason" class="muted"></span></div>
+ <div class="card">disk free<b id="disk-free">-</b><span id="disk-size" class="muted"></span></div>
 </div>
 <h2>Learning curve (champion eval h1 MSE per training episodes)</h2>
 <svg id="curve" width="560" height="220" viewBox="0 0 560 220"></svg>
@@ -95,6 +96,9 @@ async function refresh() {
     text("workers-alive", workers.workers.length);
     text("champion", models.champion || "none");
     text("champion-error", stats.champion_h1_mse === null ? "" : "h1 MSE " + fmt(stats.champion_h1_mse));
+    const disk = stats.disk, gib = (b) => (b / 2 ** 30).toFixed(1) + " GiB";
+    text("disk-free", disk ? gib(disk.free_bytes) : "-");
+    text("disk-size", disk ? "of " + gib(disk.size_bytes) : "");
     const last = stats.last_retrain;
     text("last-retrain", last ? last.status : "none");
     text("last-retrain-reason", last ? (last.version || "") + " " + (last.reason || "") : "");

@@ -17,6 +17,8 @@ from typing import Any
 from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram
 from prometheus_client.exposition import CONTENT_TYPE_PLAIN_0_0_4, generate_latest
 
+from storage.database import disk_json
+
 #: The Content-Type header to send with ``render()``'s text (names are legacy-valid, so the 0.0.4
 #: text format is exact; prometheus_client's "latest" would announce 1.0.0).
 CONTENT_TYPE = CONTENT_TYPE_PLAIN_0_0_4
@@ -67,6 +69,11 @@ class ServiceMetrics:
                                      namespace=ns, registry=r)
         self.champion_info = Gauge("champion_info", "The champion's version (value 1; label version).",
                                    ["version"], namespace=ns, registry=r)
+        self.disk_free_bytes = Gauge("data_disk_free_bytes", "Free bytes on the file system of the data directory.",
+                                     namespace=ns, registry=r)
+        self.disk_size_bytes = Gauge("data_disk_size_bytes", "Size in bytes of the file system of the data "
+                                     "directory.", namespace=ns, registry=r)
+        self.set_disk(None)
         self.set_champion(None)  # NaN until there is one, not a perfect 0.0
         for status in QUEUE_STATUSES:
             self.queue_depth.labels(status=status).set(0)
@@ -126,14 +133,21 @@ class ServiceMetrics:
             self.champion_info.labels(version=version).set(1)
         self.champion_h1_mse.set(float("nan") if h1_mse is None else h1_mse)
 
+    def set_disk(self, disk: Mapping[str, int] | None) -> None:
+        """Set the disk gauges from ``storage.database.disk_json`` (None: unknown, NaN)."""
+        self.disk_free_bytes.set(float("nan") if disk is None else disk["free_bytes"])
+        self.disk_size_bytes.set(float("nan") if disk is None else disk["size_bytes"])
+
     def read_stores(self, queue: Any, catalog: Any, registry: Any) -> None:
-        """Set the gauges the data directory holds: queue depth, episodes per split, the champion.
+        """Set the gauges the data directory holds: queue depth, episodes per split, the champion, and the
+        free space of its disk.
 
         ``queue``, ``catalog`` and ``registry`` are a RequestQueue, Catalog and ModelRegistry (any
         process may have changed them: a retrain job, ``train``, ``models promote``).
         """
         self.set_queue_depth(queue.counts())
         self.set_episodes({split: catalog.count(split=split) for split in SPLITS})
+        self.set_disk(disk_json(catalog.data_dir))
         champion = registry.champion()
         h1 = registry.get(champion).metrics.get("h1_mse") if champion is not None else None
         self.set_champion(champion, h1 if isinstance(h1, (int, float)) else None)

@@ -57,16 +57,32 @@ def is_transient(exc: BaseException) -> bool:
     return isinstance(exc, OSError) and exc.errno in _TRANSIENT_ERRNO
 
 
-def space_note(path: str | Path) -> str:
-    """``" (the device holding DIR has N bytes free)"`` when that is little, else ``""``."""
+def disk_space(path: str | Path) -> tuple[Path, int, int] | None:
+    """``(directory, free bytes, size bytes)`` of the file system holding ``path`` (its nearest existing
+    directory), or None when that cannot be read."""
     directory = Path(path)
     while not directory.is_dir() and directory != directory.parent:
         directory = directory.parent
     try:
-        free = shutil.disk_usage(directory).free
+        usage = shutil.disk_usage(directory)
     except OSError:
+        return None
+    return directory, usage.free, usage.total
+
+
+def space_note(path: str | Path) -> str:
+    """``" (the device holding DIR has N bytes free)"`` when that is little, else ``""``."""
+    space = disk_space(path)
+    if space is None or space[1] >= LOW_SPACE_BYTES:
         return ""
-    return f" (the device holding {directory} has {free} bytes free)" if free < LOW_SPACE_BYTES else ""
+    return f" (the device holding {space[0]} has {space[1]} bytes free)"
+
+
+def disk_json(path: str | Path) -> dict[str, int] | None:
+    """``{"free_bytes", "size_bytes"}`` of the file system holding ``path`` (None when unreadable): what
+    ``stats``, the dashboard and ``/metrics`` report so that an operator sees a disk fill before it is full."""
+    space = disk_space(path)
+    return None if space is None else {"free_bytes": space[1], "size_bytes": space[2]}
 
 
 def storage_error(exc: sqlite3.Error | OSError, error: type[StorageError], message: str,

@@ -383,7 +383,16 @@ def cmd_stats(args: argparse.Namespace) -> int:
         print("episodes: " + (" ".join(f"{k}={v}" for k, v in episodes.items()) or "-"))
         print(f"champion: {body.get('champion') or '-'}")
         print(f"workers:  {body.get('workers', 0)} alive")
+        print(f"disk:     {disk_line(body.get('disk'))}")
     return _print_op(args, "stats", {}, show)
+
+
+def disk_line(disk: dict[str, int] | None) -> str:
+    """``12.3 GiB free of 50.0 GiB (25 %)`` for a ``storage.database.disk_json`` value; '-' when unknown."""
+    if not disk or not disk.get("size_bytes"):
+        return "-"
+    free, size = disk["free_bytes"], disk["size_bytes"]
+    return f"{free / 2**30:.1f} GiB free of {size / 2**30:.1f} GiB ({100 * free / size:.0f} %)"
 
 
 def cmd_watch(args: argparse.Namespace) -> int:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import shutil
 import sqlite3
 from collections import Counter
 from pathlib import Path
@@ -145,7 +146,7 @@ def test_workers_and_stats(queue: RequestQueue, tmp_path: Path) -> None:
     registry = ModelRegistry(tmp_path)
     stats = call("stats", queue=queue, registry=registry, workers=lambda: ["w1"])
     assert stats == {"requests": {"queued": 1, "leased": 2, "done": 0, "dead": 0, "cancelled": 0},
-                     "episodes": None, "champion": None, "workers": 1}
+                     "episodes": None, "champion": None, "workers": 1, "disk": None}
 
 
 def test_stats_with_a_catalog(queue: RequestQueue, tmp_path: Path) -> None:
@@ -153,6 +154,7 @@ def test_stats_with_a_catalog(queue: RequestQueue, tmp_path: Path) -> None:
     catalog = catalog_mod.Catalog(tmp_path)
     stats = call("stats", queue=queue, catalog=catalog)
     assert stats["episodes"] == {"train": 0, "eval": 0, "total": 0}
+    assert stats["disk"]["size_bytes"] == shutil.disk_usage(tmp_path).total and stats["disk"]["free_bytes"] > 0
 
 
 def test_models_ls(queue: RequestQueue, tmp_path: Path) -> None:

@@ -93,7 +93,7 @@ def test_a_stalled_client_is_let_go(stores):
         dash.stop()
 
 
-def test_api_endpoints_answer_json(dashboard):
+def test_api_endpoints_answer_json(dashboard, tmp_path):
     dash, queue, registry = dashboard
     enqueue_uniform(queue, 3)
     version = registry.register(b"weights", {"image_size": 16}, {"h1_mse": 0.02, "h5_mse": 0.05},
@@ -108,7 +108,7 @@ def test_api_endpoints_answer_json(dashboard):
     assert models["champion"] == version and models["models"][0]["metrics"]["h1_mse"] == 0.02
     stats = json.loads(get(dash.url + "api/stats")[2])
     assert stats["champion"] == version and stats["champion_h1_mse"] == 0.02 and stats["budget"] == 40
-    assert stats["workers_alive"] == 1
+    assert stats["workers_alive"] == 1 and stats["disk"]["size_bytes"] == shutil.disk_usage(tmp_path).total
     assert json.loads(get(dash.url + "api/workers")[2])["workers"][0]["id"] == "w1"
     [point] = json.loads(get(dash.url + "api/curve")[2])["points"]
     assert point["version"] == version and point["episodes"] == 0 and point["status"] == "champion"
@@ -143,6 +143,8 @@ def test_a_dashboard_without_a_service_reads_its_metrics_from_the_data_directory
     assert status == 200 and depth["queued"] == 3.0
     assert families["activecollect_champion_h1_mse"].samples[0].value == 0.02
     assert families["activecollect_champion_info"].samples[0].labels["version"] == version
+    size = families["activecollect_data_disk_size_bytes"].samples[0].value
+    assert size == shutil.disk_usage(data_dir).total and families["activecollect_data_disk_free_bytes"].samples[0].value > 0
 
 
 # -- the real browser --------------------------------------------------------------------------

@@ -106,3 +106,13 @@ def test_counting_from_threads_loses_nothing() -> None:
     s = _samples(m.render())
     assert s[("activecollect_leases_total", ())] == 2000
     assert s[("activecollect_uploads_total", (("result", "stored"),))] == 2000
+
+
+def test_the_disk_gauges_say_unknown_until_read() -> None:
+    m = ServiceMetrics()
+    s = _samples(m.render())
+    assert math.isnan(s[("activecollect_data_disk_free_bytes", ())])
+    m.set_disk({"free_bytes": 5 << 30, "size_bytes": 20 << 30})
+    s = _samples(m.render())
+    assert s[("activecollect_data_disk_free_bytes", ())] == 5 << 30
+    assert s[("activecollect_data_disk_size_bytes", ())] == 20 << 30

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 import threading
 from pathlib import Path
 
@@ -74,6 +75,7 @@ def test_refusals_and_usage_errors(service, cli) -> None:
 def test_stats_workers_and_watch(service, cli, endpoint, namespace, capsys) -> None:
     rc, out, _ = cli("stats")
     assert rc == 0 and "requests: queued=0" in out and "episodes: " in out
+    assert re.search(r"^disk: +[\d.]+ GiB free of [\d.]+ GiB \(\d+ %\)$", out, re.M), out
     rc, out, _ = cli("workers", "ls", "--json")
     assert rc == 0 and json.loads(out) == {"workers": []}
 
