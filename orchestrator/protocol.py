@@ -344,6 +344,16 @@ def validate_physics(value: Any, name: str = "physics") -> dict[str, float]:
     return {k: check_float(f"{name}.{k}", v, *PHYSICS_RANGES[k][:2]) for k, v in value.items()}
 
 
+def physics_problem(physics: Any) -> str:
+    """Why an episode's physics are outside the task space ('' when inside): the planner turns an
+    episode's physics into new requests, which workers must be able to take."""
+    try:
+        validate_physics(physics)
+    except ProtocolError as exc:
+        return f"{exc.message} (outside the task space)"
+    return ""
+
+
 def validate_start_state(value: Any, name: str = "start_state") -> dict[str, Any]:
     """A simulator state in ``SimState.to_dict`` form, inside the task space; returns a clean copy.
 

@@ -147,7 +147,8 @@ def provenance_mismatch(episode: Episode, request: Request, worker_id: str) -> s
     An upload completes its request and enters the catalog (and the planner's view) with its
     metadata, so the metadata must say what was asked: the request, the worker, the task,
     shape and policy, the start state and policy parameters the request gave (the worker may
-    add the defaults it filled in), the action prefix and the number of steps.
+    add the defaults it filled in), the action prefix and the number of steps, the lease's seed,
+    and physics inside the task space that hold what the request asked.
     """
     meta, prefix = episode.meta, request.action_prefix
     expected = {"request_id": request.id, "worker_id": worker_id, "task": request.task, "shape": request.shape,
@@ -160,12 +161,22 @@ def provenance_mismatch(episode: Episode, request: Request, worker_id: str) -> s
     if prefix and not np.allclose(episode.actions[:len(prefix)], np.asarray(prefix, np.float64),
                                   rtol=1e-6, atol=1e-3):  # stored as float32
         return "the episode's first actions are not the request's action prefix"
+    seed = messages.request_seed(request.id, request.token)
+    if meta.seed != seed:
+        return f"expected the lease's seed {seed}, found {meta.seed!r}"
+    problem = protocol.physics_problem(meta.physics)
+    if problem:
+        return problem
+    physics = {k: default for k, (_, _, default) in protocol.PHYSICS_RANGES.items()}  # what workers fill in
+    physics.update(request.start_state.get("physics", {}))
     for name, asked, found in (("start_state", request.start_state, meta.start_state),
-                               ("policy_params", request.policy_params, meta.policy_params)):
+                               ("policy_params", request.policy_params, meta.policy_params),
+                               ("physics", physics, meta.physics)):
         where = _differs(asked, found, name)
         if where:
             return f"{where} differs from the request's"
     return ""
+
 
 
 def _differs(asked: Any, found: Any, path: str) -> str:

@@ -261,18 +261,25 @@ class Catalog:
         data = encode_episode(ep)
         return self._store(data, sha256_hex(data), ep.meta, len(ep), split, in_transaction)
 
-    def ingest_file(self, path: str | Path, split: str = "train") -> IngestResult:
+    def ingest_file(self, path: str | Path, split: str = "train",
+                    admit: Callable[[EpisodeMeta], str] | None = None) -> IngestResult:
         """Verifies and indexes an MCAP file collected elsewhere (copied into the data dir).
 
-        Raises ``CatalogError`` for a missing/unreadable path, ``EpisodeError`` subclasses
-        for a bad file.
+        ``admit(meta)``: the caller's own rule for what may enter (e.g. the task space's physics), run
+        once the file has verified; a non-empty answer refuses the file with that reason
+        (``EpisodeError``). Raises ``CatalogError`` for a missing/unreadable path, ``EpisodeError``
+        subclasses for a bad file.
         """
         path = Path(path)
         try:
             data = path.read_bytes()
         except OSError as exc:
             raise CatalogError(f"{path}: cannot read: {exc.strerror or exc}") from exc
-        return self._ingest(data, None, split, None, str(path))
+        info = inspect_episode(data, name=str(path))
+        refusal = admit(info.meta) if admit is not None else ""
+        if refusal:
+            raise EpisodeError(f"{path}: {refusal}")
+        return self._ingest(data, None, split, None, str(path), verified=info)
 
     def ingest_bytes(self, data: bytes, expected_sha256: str | None = None, split: str = "train",
                      in_transaction: Callable[[sqlite3.Connection], None] | None = None,

@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import functools
 import io
+import math
 import os
 import struct
 import zlib
@@ -60,7 +61,8 @@ from storage.errors import (
     TruncatedEpisodeError,
 )
 from storage.files import sha256_hex, write_bytes_atomic
-from storage.records import ACTION_DIM, STATE_DIM, STATE_FIELDS, Episode, EpisodeMeta
+from storage.records import (ACTION_DIM, MAX_META_BYTES, MAX_META_CHARS, STATE_DIM, STATE_FIELDS, Episode,
+                             EpisodeMeta)
 
 Source = Union[str, os.PathLike, bytes, bytearray, memoryview]
 
@@ -359,9 +361,20 @@ def _check_meta(meta: EpisodeMeta, frames: int, name: str,
         if isinstance(value, bool) or not isinstance(value, types):
             raise error(f"{name}: episode metadata field {key} is {type(value).__name__} "
                                       f"{value!r:.60}, expected {' or '.join(t.__name__ for t in types)}")
-    bad_physics = [k for k, v in meta.physics.items() if isinstance(v, bool) or not isinstance(v, (int, float))]
+    long = [key for key, types in _META_TYPES.items() if types == (str,) and len(getattr(meta, key)) > MAX_META_CHARS]
+    if long:
+        raise error(f"{name}: episode metadata field {long[0]} has {len(getattr(meta, long[0]))} characters, "
+                    f"expected at most {MAX_META_CHARS}")
+    bad_physics = [k for k, v in meta.physics.items()
+                   if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v)]
     if bad_physics:
-        raise error(f"{name}: episode metadata physics {bad_physics} are not numbers")
+        raise error(f"{name}: episode metadata physics {bad_physics} are not finite numbers")
+    try:
+        size = len(meta.to_json())
+    except EpisodeError as exc:
+        raise error(f"{name}: {exc}") from exc
+    if size > MAX_META_BYTES:
+        raise error(f"{name}: episode metadata takes {size} bytes, expected at most {MAX_META_BYTES}")
     if meta.image_size <= 0 or not meta.control_hz > 0 or frames <= 0 or meta.action_prefix_len < 0:
         raise error(f"{name}: episode metadata has image_size={meta.image_size}, control_hz="
                                   f"{meta.control_hz}, frames={frames}, action_prefix_len={meta.action_prefix_len}; "

@@ -31,6 +31,15 @@ ACTION_DIM = 2
 #: Frame sizes an episode may have: what the simulator renders and workers record (the wire layer's
 #: orchestrator.protocol holds the same limits; storage imports nothing above it).
 MIN_FRAME_SIZE, MAX_FRAME_SIZE = 8, 1024
+#: An episode's metadata, encoded: far more than any request's start state and policy parameters (the
+#: wire contract allows 16 KiB each), small enough that a catalog row stays small.
+MAX_META_BYTES = 64 * 1024
+#: Characters in one string field of the metadata (ids, names, versions, times).
+MAX_META_CHARS = 256
+
+
+def _refuse_constant(name: str) -> None:
+    raise EpisodeError(f"episode metadata holds {name}; expected finite numbers")
 
 
 @dataclass
@@ -71,14 +80,21 @@ class EpisodeMeta:
     """Creation time, ISO 8601 UTC."""
 
     def to_json(self) -> str:
-        return json.dumps(dataclasses.asdict(self), sort_keys=True)
+        """Strict JSON (no NaN or Infinity: the catalog stores it in a JSON column). Raises
+        ``EpisodeError`` for a value JSON cannot hold."""
+        try:
+            return json.dumps(dataclasses.asdict(self), sort_keys=True, allow_nan=False)
+        except (TypeError, ValueError) as exc:
+            raise EpisodeError(f"episode metadata of {self.episode_id!r:.80} is not strict JSON: {exc}") from exc
 
     @classmethod
     def from_json(cls, text: str | bytes) -> "EpisodeMeta":
         """Parse and validate; raises ``EpisodeError`` naming the bad field."""
+        if len(text) > MAX_META_BYTES:
+            raise EpisodeError(f"episode metadata: expected at most {MAX_META_BYTES} bytes, found {len(text)}")
         try:
-            raw = json.loads(text)
-        except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+            raw = json.loads(text, parse_constant=_refuse_constant)
+        except (json.JSONDecodeError, UnicodeDecodeError, RecursionError) as exc:
             raise EpisodeError(f"episode metadata is not JSON: {exc}") from exc
         if not isinstance(raw, dict):
             raise EpisodeError(f"episode metadata must be an object, found {type(raw).__name__}")

@@ -91,6 +91,17 @@ def test_ingest_one_good_one_bad(capsys, data, rng, tmp_path):
     assert rc == 0 and json.loads(out)["files"][0]["duplicate"] is True
 
 
+def test_ingest_refuses_physics_outside_the_task_space(capsys, data, rng, tmp_path):
+    ep = make_episode(rng)
+    ep.meta.physics = {**ep.meta.physics, "mass": 50.0}  # the planner would ask workers for it
+    path = tmp_path / "heavy.mcap"
+    episodes.write_episode(path, ep)
+    rc, out, err = run_cli(capsys, "ingest", str(path), "--data", str(data))
+    assert rc == 1 and "0 of 1 files indexed" in out
+    assert f"refused {path}: {path}: physics.mass: expected a finite number in [0.2, 5], found 50.0" in err
+    assert Catalog(data).count() == 0
+
+
 def test_ingest_directory_and_split(capsys, data, rng, tmp_path):
     src = tmp_path / "src"
     for i in range(2):

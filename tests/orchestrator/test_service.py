@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import json
 import threading
@@ -29,6 +30,9 @@ from tests.conftest import wait_for
 from workers.collect import collect_episode
 
 START = {"shape": "box", "agent": [100.0, 100.0], "object": [256.0, 256.0, 0.3]}
+
+
+DEFAULT_PHYSICS = {k: default for k, (_, _, default) in protocol.PHYSICS_RANGES.items()}
 
 
 def new_request(shape: str = "box", **kw: Any) -> NewRequest:
@@ -79,10 +83,12 @@ def lease(client, keys, worker: str = "w1", **kw) -> LeaseGrant:
     return LeaseGrant.from_dict(body["grant"])
 
 
-def episode_bytes(grant: LeaseGrant, worker: str = "w1", size: int = 16) -> bytes:
+def episode_bytes(grant: LeaseGrant, worker: str = "w1", size: int = 16, **meta: Any) -> bytes:
+    """What a worker collects for ``grant``; ``meta``: metadata fields it then claims instead."""
     ep = collect_episode(start_state=grant.start_state, policy=grant.policy, policy_params=grant.policy_params,
                          seed=grant.seed, steps=grant.steps, image_size=size, request_id=grant.request_id,
                          worker_id=worker)
+    ep.meta = dataclasses.replace(ep.meta, **meta)
     return encode_episode(ep)
 
 
@@ -205,14 +211,19 @@ def test_hash_size_and_provenance_mismatches_are_refused(service, client, keys, 
     (lambda g: {"policy": "random_waypoints", "policy_params": {}}, "expected policy 'push'"),
     (lambda g: {"start_state": {**g.start_state, "agent": [101.0, 100.0]}}, "start_state.agent[0] differs"),
     (lambda g: {"worker": "someone-else"}, "expected worker_id 'w1'"),
+    (lambda g: {"seed": g.seed + 1}, "expected the lease's seed"),
+    (lambda g: {"meta": {"physics": {"mass": 1e308}}}, "physics.mass: expected a finite number in [0.2, 5]"),
+    (lambda g: {"meta": {"physics": {"mass": 1.0, "gravity": -5.0}}}, "found gravity (outside the task space)"),
+    (lambda g: {"meta": {"physics": {**DEFAULT_PHYSICS, "mass": DEFAULT_PHYSICS["mass"] * 1.5}}},
+     "physics.mass differs"),
 ])
 def test_an_upload_that_is_not_what_the_request_asked_for_is_refused(service, client, keys, data_dir,
                                                                      change, words) -> None:
     service.queue.enqueue(new_request())
     grant = lease(client, keys)
     asked = change(grant)
-    worker = asked.pop("worker", "w1")
-    wrong = episode_bytes(LeaseGrant.from_dict({**grant.to_dict(), **asked}), worker=worker)
+    worker, meta = asked.pop("worker", "w1"), asked.pop("meta", {})
+    wrong = episode_bytes(LeaseGrant.from_dict({**grant.to_dict(), **asked}), worker=worker, **meta)
     message = refused(ErrorCode.BAD_FIELD, upload, client, keys, grant, wrong)
     assert "provenance" in message and words in message, message
     assert Catalog(data_dir).count() == 0

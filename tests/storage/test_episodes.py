@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import dataclasses
 import io
+import json
 import os
 import uuid
 
@@ -368,3 +370,26 @@ def test_a_creation_time_past_the_last_utc_day_is_still_ingested(rng, tmp_path):
     ep = make_episode(rng, created="9999-12-31T23:00:00-05:00")
     result = Catalog(tmp_path).ingest_bytes(episodes.encode_episode(ep))
     assert result.path.is_file()
+
+
+@pytest.mark.parametrize("change, words", [
+    ({"physics": {"mass": float("nan")}}, "holds NaN"),
+    ({"physics": {"mass": float("inf")}}, "holds Infinity"),
+    ({"model_version": "v" * 1000}, "model_version has 1000 characters, expected at most 256"),
+    ({"policy_params": {"blob": "x" * 200_000}}, "expected at most 65536 bytes"),
+])
+def test_metadata_the_catalog_cannot_hold_is_refused_on_write_and_on_read(rng, monkeypatch, tmp_path, change,
+                                                                          words):
+    ep = make_episode(rng)
+    ep.meta = dataclasses.replace(ep.meta, **change)
+    with pytest.raises(EpisodeError):
+        episodes.encode_episode(ep)
+    with monkeypatch.context() as m:  # what another writer could make: Python's json writes NaN by default
+        m.setattr(EpisodeMeta, "to_json", lambda self: json.dumps(dataclasses.asdict(self), sort_keys=True))
+        data = _encode_unchecked(ep, monkeypatch)
+    cat = Catalog(tmp_path)
+    with pytest.raises(CorruptEpisodeError, match=words):
+        cat.ingest_bytes(data)
+    assert cat.count() == 0
+    # a NaN in the first row's JSON once made every later ingest fail ("malformed JSON")
+    assert not cat.ingest_bytes(episodes.encode_episode(make_episode(rng))).duplicate
