@@ -191,7 +191,7 @@ class Service:
             self.planner = cfg.planner(self.context)
             self._seed_queue()
         self._uploads = UploadHandler(self.queue, self.catalog, self.metrics, self.publish, self._writes,
-                                      cfg.max_upload_bytes, self._episode_stored)
+                                      cfg.max_upload_bytes, self._episode_stored, self._frame_size)
         self._threads = [threading.Thread(target=self._maintain, name="maintenance", daemon=True),
                          threading.Thread(target=self._after_episodes, name="episodes", daemon=True)]
         for t in self._threads:

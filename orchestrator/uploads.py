@@ -24,8 +24,8 @@ from orchestrator.metrics import ServiceMetrics
 from orchestrator.protocol import ErrorCode, EventKind, ProtocolError
 from orchestrator.transport import Incoming
 from storage.catalog import Catalog
-from storage.episodes import EpisodeInfo, read_episode
-from storage.errors import EpisodeError, QueueError, StaleLeaseError, StorageError, StorageUnavailableError
+from storage.episodes import EpisodeInfo, decoded_limit, read_episode
+from storage.errors import EpisodeError, OversizedEpisodeError, QueueError, StaleLeaseError, StorageError, StorageUnavailableError
 from storage.queue import RequestQueue
 from storage.records import Episode
 from storage.requests import IllegalTransitionError, Request, RequestStatus
@@ -50,7 +50,8 @@ class UploadHandler:
 
     def __init__(self, queue: RequestQueue, catalog: Catalog, metrics: ServiceMetrics,
                  publish: Callable[[EventKind, dict[str, Any]], None], write_lock: threading.Lock,
-                 max_upload_bytes: int, on_stored: Callable[[StoredEpisode], None]) -> None:
+                 max_upload_bytes: int, on_stored: Callable[[StoredEpisode], None],
+                 frame_size: Callable[[], int] = lambda: 0) -> None:
         self.queue = queue
         self.catalog = catalog
         self.metrics = metrics
@@ -59,6 +60,8 @@ class UploadHandler:
         """The service's writer turn: the ingest transaction takes it like every queue transition."""
         self.max_upload_bytes = max_upload_bytes
         self.on_stored = on_stored
+        self.frame_size = frame_size
+        """The catalog's frame size (0 while unknown): bounds what an upload may inflate to."""
 
     def handle(self, msg: Incoming) -> bytes:
         """Answer one ``NS/orch/upload`` query: store the episode and complete its request, or refuse."""
@@ -126,7 +129,11 @@ class UploadHandler:
 
     def _decode(self, data: bytes, header: messages.UploadHeader, request: Request) -> Episode:
         try:
-            episode = read_episode(data, name=f"upload for {header.request_id}")
+            size = self.frame_size() or protocol.MAX_FRAME_SIZE
+            episode = read_episode(data, name=f"upload for {header.request_id}",  # no more than the request needs
+                                   max_decoded=decoded_limit(len(request.action_prefix) + request.steps, size))
+        except OversizedEpisodeError as exc:
+            raise self._reject(ProtocolError(ErrorCode.TOO_LARGE, str(exc)), header) from exc
         except EpisodeError as exc:
             raise self._reject(ProtocolError(ErrorCode.CORRUPT_EPISODE, str(exc)), header) from exc
         mismatch = provenance_mismatch(episode, request, header.worker_id)

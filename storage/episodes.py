@@ -39,6 +39,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Union
 
+import lz4.frame
 import numpy as np
 import zstandard
 from foxglove_schemas_protobuf.RawImage_pb2 import RawImage
@@ -49,7 +50,8 @@ from google.protobuf.timestamp_pb2 import Timestamp
 from mcap.exceptions import McapError
 from mcap.opcode import Opcode
 from mcap.reader import FOOTER_SIZE, SeekingReader
-from mcap.records import Channel, Message, Schema, Statistics
+from mcap.data_stream import ReadDataStream
+from mcap.records import Channel, Chunk, Message, Schema, Statistics
 from mcap.stream_reader import CRCValidationError
 from mcap.writer import CompressionType, Writer
 from mcap_protobuf.schema import build_file_descriptor_set
@@ -58,6 +60,7 @@ from storage.errors import (
     CorruptEpisodeError,
     EpisodeError,
     ForeignFileError,
+    OversizedEpisodeError,
     TruncatedEpisodeError,
 )
 from storage.files import sha256_hex, write_bytes_atomic
@@ -311,8 +314,24 @@ def _check_envelope(data: bytes, name: str) -> None:
                                       f"bytes give {found:#010x})")
 
 
-def _scan(data: bytes, name: str) -> _Scan:
-    """Summary, metadata and every message, through mcap's indexed reader with chunk CRCs checked."""
+#: What one step may add to the chunks besides its pixels: three message records and their framing
+#: (ours take ~150 bytes), and what a chunk may hold besides steps (schemas, channels).
+STEP_OVERHEAD, CHUNK_OVERHEAD = 1024, 64 * 1024
+
+
+def decoded_limit(frames: int, image_size: int) -> int:
+    """The most bytes the chunks of an episode of ``frames`` steps of ``image_size`` pixels may inflate to."""
+    return frames * (3 * image_size * image_size + STEP_OVERHEAD) + CHUNK_OVERHEAD
+
+
+def _scan(data: bytes, name: str,
+          max_decoded: int | None = None) -> tuple[_Scan, EpisodeMeta, int, dict[str, int]]:
+    """Summary, metadata, our three channels' ids, and every message, with chunk CRCs checked.
+
+    The chunks are inflated only up to what the metadata's frames and frame size need (and at
+    most ``max_decoded`` bytes in all): a small file whose chunk claims gigabytes is refused
+    before that memory is taken.
+    """
     scan = _Scan()
     reader = SeekingReader(io.BytesIO(data), validate_crcs=True, record_size_limit=len(data))
     try:
@@ -322,15 +341,71 @@ def _scan(data: bytes, name: str) -> _Scan:
         scan.schemas, scan.channels, scan.statistics = summary.schemas, summary.channels, summary.statistics
         for record in reader.iter_metadata():
             scan.metadata[record.name] = record.metadata
-        for _schema, _channel, message in reader.iter_messages(log_time_order=False):
-            scan.messages.setdefault(message.channel_id, []).append(message)
+        meta, frames = _meta(scan, name)
+        ids = {TOPIC_CAMERA: _channel(scan, TOPIC_CAMERA, IMAGE_SCHEMA, "protobuf", name),
+               TOPIC_ACTION: _channel(scan, TOPIC_ACTION, ACTION_SCHEMA, "protobuf", name),
+               TOPIC_STATE: _channel(scan, TOPIC_STATE, STATE_SCHEMA, "protobuf", name)}
+        budget = decoded_limit(frames, meta.image_size)
+        if max_decoded is not None:
+            budget = min(budget, max_decoded)
+        _read_chunks(data, summary.chunk_indexes, budget, scan, name)
     except CRCValidationError as exc:
         raise CorruptEpisodeError(f"{name}: {exc}") from exc
     except (McapError, struct.error, ValueError, KeyError, IndexError, TypeError, OverflowError, OSError,
             RuntimeError, zstandard.ZstdError, MemoryError) as exc:
         # The envelope was intact, so a record that does not parse was written that way.
         raise CorruptEpisodeError(f"{name}: undecodable MCAP record: {type(exc).__name__}: {exc}") from exc
-    return scan
+    return scan, meta, frames, ids
+
+
+def _read_chunks(data: bytes, indexes: list, budget: int, scan: _Scan, name: str) -> None:
+    """Every message of the indexed chunks into ``scan.messages``, inflating at most ``budget`` bytes."""
+    if not indexes:
+        raise ForeignFileError(f"{name}: MCAP file without chunk indexes (activecollect episodes have them)")
+    offsets = [ix.chunk_start_offset for ix in indexes]
+    if len(set(offsets)) != len(offsets):
+        raise CorruptEpisodeError(f"{name}: the summary indexes a chunk twice")
+    buf = io.BytesIO(data)
+    for offset in sorted(offsets):
+        buf.seek(offset)
+        stream = ReadDataStream(buf)
+        if stream.read1() != Opcode.CHUNK:
+            raise CorruptEpisodeError(f"{name}: no chunk at byte {offset}, where the summary indexes one")
+        stream.read8()
+        chunk = Chunk.read(stream)
+        if chunk.uncompressed_size > budget:
+            raise OversizedEpisodeError(f"{name}: chunk at byte {offset} inflates to {chunk.uncompressed_size} "
+                                        f"bytes; the episode's frames need at most {budget} more")
+        body = _inflate(chunk, name)
+        budget -= len(body)
+        if chunk.uncompressed_crc != 0 and zlib.crc32(body) != chunk.uncompressed_crc:
+            raise CorruptEpisodeError(f"{name}: chunk at byte {offset}: CRC mismatch of its content")
+        inner = ReadDataStream(io.BytesIO(body))
+        while inner.count < len(body):
+            opcode, length = inner.read1(), inner.read8()
+            if opcode == Opcode.MESSAGE:
+                message = Message.read(inner, length)
+                scan.messages.setdefault(message.channel_id, []).append(message)
+            else:  # schemas and channels: the summary has them
+                inner.read(length)
+
+
+def _inflate(chunk: Chunk, name: str) -> bytes:
+    """A chunk's content, never more than the ``uncompressed_size`` it declares."""
+    size = chunk.uncompressed_size
+    if chunk.compression == "":
+        body = chunk.data
+    elif chunk.compression == "lz4":
+        body = lz4.frame.LZ4FrameDecompressor().decompress(chunk.data, max_length=size + 1)
+    elif chunk.compression == "zstd":
+        with zstandard.ZstdDecompressor().stream_reader(chunk.data) as reader:
+            body = reader.read(size + 1)
+    else:
+        raise ForeignFileError(f"{name}: chunk compression {chunk.compression!r} (expected lz4, zstd or none)")
+    if len(body) != size:
+        raise CorruptEpisodeError(f"{name}: a chunk declares {size} bytes of content and holds "
+                                  f"{'more' if len(body) > size else len(body)}")
+    return body
 
 
 def _channel(scan: _Scan, topic: str, schema: str, encoding: str, name: str) -> int:
@@ -416,14 +491,11 @@ def _check_counts(scan: _Scan, ids: dict[str, int], frames: int, name: str) -> N
             raise CorruptEpisodeError(f"{name}: {topic} messages are not steps 0..{frames - 1} in order")
 
 
-def _examine(source: Source, name: str | None) -> tuple[_Scan, EpisodeMeta, dict[str, int], str]:
+def _examine(source: Source, name: str | None,
+             max_decoded: int | None = None) -> tuple[_Scan, EpisodeMeta, dict[str, int], str]:
     data, name = _load(source, name)
     _check_envelope(data, name)
-    scan = _scan(data, name)
-    meta, frames = _meta(scan, name)
-    ids = {TOPIC_CAMERA: _channel(scan, TOPIC_CAMERA, IMAGE_SCHEMA, "protobuf", name),
-           TOPIC_ACTION: _channel(scan, TOPIC_ACTION, ACTION_SCHEMA, "protobuf", name),
-           TOPIC_STATE: _channel(scan, TOPIC_STATE, STATE_SCHEMA, "protobuf", name)}
+    scan, meta, frames, ids = _scan(data, name, max_decoded)
     _check_counts(scan, ids, frames, name)
     return scan, meta, ids, name
 
@@ -480,17 +552,19 @@ def _decode_numeric(msgs: list[Message], cls, keys: tuple[str, ...], scalar: str
     return out
 
 
-def read_episode(source: Source, *, name: str | None = None) -> Episode:
+def read_episode(source: Source, *, name: str | None = None, max_decoded: int | None = None) -> Episode:
     """Reads and fully validates an episode file (a path or the file's bytes).
 
-    ``name`` labels the source in error messages (default: the path, or ``<bytes>``).
+    ``name`` labels the source in error messages (default: the path, or ``<bytes>``). The chunks
+    are inflated only as far as the metadata's frames need (see ``decoded_limit``), and to at most
+    ``max_decoded`` bytes: what a caller expecting a given episode (the service, for an upload) allows.
 
     Raises ``TruncatedEpisodeError`` (the file ends early), ``CorruptEpisodeError``
     (CRC mismatch, undecodable record, counts that disagree, non-finite actions or
     states, images too small for the metadata's size), ``ForeignFileError``
     (not MCAP, or MCAP without our channels/metadata) or ``EpisodeError`` (unreadable path).
     """
-    scan, meta, ids, name = _examine(source, name)
+    scan, meta, ids, name = _examine(source, name, max_decoded)
     frames = _decode_frames(scan.messages[ids[TOPIC_CAMERA]], meta.image_size, name)
     actions = _decode_numeric(scan.messages[ids[TOPIC_ACTION]], ActionMessage, ACTION_KEYS, _ACTION_SCALAR,
                               TOPIC_ACTION, name)

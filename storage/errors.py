@@ -21,6 +21,11 @@ class ForeignFileError(EpisodeError):
     """The file is not an activecollect episode (not MCAP, or MCAP without our channels/metadata)."""
 
 
+class OversizedEpisodeError(EpisodeError):
+    """The file's chunks would inflate to more than its frames need, or than the reader allows: refused
+    before that memory is taken."""
+
+
 class CatalogError(StorageError):
     """The catalog refused an operation (unknown id, conflicting row, bad split)."""
 

@@ -247,6 +247,20 @@ def test_an_upload_of_another_frame_size_than_the_catalogs_is_refused(service, c
     assert Catalog(data_dir).count() == 1 and service.queue.get(grant.request_id).status == RequestStatus.LEASED
 
 
+def test_an_upload_that_would_inflate_past_what_the_request_needs_is_refused_before(service, client, keys,
+                                                                                    data_dir) -> None:
+    for _ in range(2):
+        service.queue.enqueue(new_request())
+    first = lease(client, keys)
+    upload(client, keys, first, episode_bytes(first))  # the catalog holds 16 px frames from now on
+    grant = lease(client, keys)
+    data = episode_bytes(grant, size=1024)  # 15 MiB of pixels in a small file
+    assert len(data) < 1 << 20
+    message = refused(ErrorCode.TOO_LARGE, upload, client, keys, grant, data)
+    assert "inflates to" in message and "frames need at most" in message, message
+    assert Catalog(data_dir).count() == 1 and service.queue.get(grant.request_id).status == RequestStatus.LEASED
+
+
 def test_oversized_upload_is_refused(make_service, client, keys, data_dir) -> None:
     service = make_service(max_upload_bytes=1000)
     service.queue.enqueue(new_request())

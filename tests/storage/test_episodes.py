@@ -5,14 +5,18 @@ from __future__ import annotations
 import dataclasses
 import io
 import json
+import tracemalloc
 import os
 import uuid
 
+import lz4.frame
 import numpy as np
 import pytest
+import zstandard
 from foxglove_schemas_protobuf.RawImage_pb2 import RawImage
 from mcap.reader import make_reader
-from mcap.writer import Writer
+from mcap.records import Chunk
+from mcap.writer import CompressionType, Writer
 from mcap_protobuf.decoder import DecoderFactory
 
 from storage import episodes, files
@@ -21,6 +25,7 @@ from storage.errors import (
     CorruptEpisodeError,
     EpisodeError,
     ForeignFileError,
+    OversizedEpisodeError,
     StorageError,
     TruncatedEpisodeError,
 )
@@ -245,11 +250,15 @@ def test_camera_with_other_schema_refused(ep):
         episodes.read_episode(buf.getvalue())
 
 
-def _episode_like_mcap(ep: Episode, skip: tuple[str, int] | None = None) -> bytes:
-    """Our layout written by hand with mcap's Writer, optionally leaving out one message."""
+def _episode_like_mcap(ep: Episode, skip: tuple[str, int] | None = None,
+                       compression: CompressionType = CompressionType.ZSTD, pad: int = 0) -> bytes:
+    """Our layout written by hand with mcap's Writer, optionally leaving out one message or adding a
+    ``pad``-byte message of zeros (which compresses to almost nothing) on a channel of its own."""
     buf = io.BytesIO()
-    w = Writer(buf)
+    w = Writer(buf, compression=compression)
     w.start()
+    if pad:
+        w.add_message(w.register_channel("/pad", "", 0), 0, bytes(pad), 0, 0)
     image = w.register_schema("foxglove.RawImage", "protobuf", episodes._IMAGE_SCHEMA_DATA)
     action = w.register_schema("activecollect.Action", "protobuf", episodes._NUMERIC_SCHEMA_DATA)
     state = w.register_schema("activecollect.State", "protobuf", episodes._NUMERIC_SCHEMA_DATA)
@@ -270,9 +279,39 @@ def _episode_like_mcap(ep: Episode, skip: tuple[str, int] | None = None) -> byte
     return buf.getvalue()
 
 
-def test_canonical_protobuf_encoding_reads_back(ep):
+@pytest.mark.parametrize("compression", list(CompressionType))
+def test_canonical_protobuf_encoding_reads_back(ep, compression):
     """Another writer's canonical protobuf (zeros omitted, fields in order) reads the same."""
-    assert_same(episodes.read_episode(_episode_like_mcap(ep)), ep)
+    assert_same(episodes.read_episode(_episode_like_mcap(ep, compression=compression)), ep)
+
+
+@pytest.mark.parametrize("compression", [CompressionType.ZSTD, CompressionType.LZ4])
+def test_a_chunk_that_inflates_past_what_the_frames_need_is_refused_before_inflating(ep, compression):
+    data = _episode_like_mcap(ep, compression=compression, pad=32 << 20)
+    assert len(data) < 1 << 20  # 32 MiB of content in a small file
+    tracemalloc.start()
+    try:
+        with pytest.raises(OversizedEpisodeError, match=r"inflates to 335\d+ bytes; the episode's frames need at most"):
+            episodes.read_episode(data)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert peak < 4 * len(data) + (1 << 20)
+    with pytest.raises(OversizedEpisodeError, match="frames need at most 1000 more"):
+        episodes.read_episode(_episode_like_mcap(ep), max_decoded=1000)  # what an upload's caller allows
+
+
+@pytest.mark.parametrize("compression", ["zstd", "lz4"])
+def test_a_chunk_holding_more_than_it_declares_is_not_inflated_past_it(compression):
+    body = bytes(8 << 20)
+    packed = zstandard.compress(body) if compression == "zstd" else lz4.frame.compress(body)
+    chunk = Chunk(compression=compression, data=packed, message_start_time=0, message_end_time=0,
+                  uncompressed_crc=0, uncompressed_size=100)
+    with pytest.raises(CorruptEpisodeError, match="declares 100 bytes of content and holds more"):
+        episodes._inflate(chunk, "x")
+    with pytest.raises(ForeignFileError, match="compression 'bz2'"):
+        episodes._inflate(Chunk(compression="bz2", data=b"", message_start_time=0, message_end_time=0,
+                                uncompressed_crc=0, uncompressed_size=0), "x")
 
 
 def test_missing_messages_refused_not_read_partially(ep):
