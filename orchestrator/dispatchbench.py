@@ -238,9 +238,9 @@ def _raw_server(endpoint: str) -> Iterator[tuple[zenoh.Session, Cycle]]:
         child.stop()
 
 
-def _tiny_episode(request_id: str, worker_id: str) -> bytes:
+def _tiny_episode(request_id: str, worker_id: str, token: int = 1) -> bytes:
     meta = EpisodeMeta(episode_id=uuid.uuid4().hex, task="push", shape="box", physics=dict(_START["physics"]),
-                       seed=0, policy="push", start_state=dict(_START), image_size=8, request_id=request_id,
+                       seed=messages.request_seed(request_id, token), policy="push", start_state=dict(_START), image_size=8, request_id=request_id,
                        worker_id=worker_id)
     return encode_episode(Episode(meta, np.zeros((2, 8, 8, 3), np.uint8), np.zeros((2, 2), np.float32),
                                   np.zeros((2, 11), np.float64)))
@@ -328,11 +328,12 @@ def _phases_raw_and_dispatch(cfg: BenchConfig, data_dir: Path) -> tuple[dict[str
 def _phase_upload(cfg: BenchConfig, endpoint: str, data_dir: Path) -> dict[str, Any]:
     ids = _fill(data_dir, cfg.upload_requests, 3)
     # Encoded before the clock starts, for whichever worker leases the request (the service checks the upload
-    # names the worker that holds the lease).
+    # names the worker that holds the lease, and the first lease's seed).
     episodes = {(rid, i): _tiny_episode(rid, f"bench-{i}") for rid in ids for i in range(cfg.workers)}
     with _service(cfg, endpoint, "benchup", data_dir) as (session, keys):
         def upload(s: zenoh.Session, i: int, grant: dict[str, Any], lats: dict[str, list[float]]) -> None:
-            data = episodes[grant["request_id"], i]
+            data = (episodes[grant["request_id"], i] if grant["token"] == 1
+                    else _tiny_episode(grant["request_id"], f"bench-{i}", grant["token"]))
             header = messages.UploadHeader.for_payload(data, request_id=grant["request_id"], token=grant["token"],
                                                        worker_id=f"bench-{i}").to_json()
             protocol.parse_reply(_timed(lats, "upload",

@@ -58,7 +58,7 @@ class Message:
         _, names, required = _field_names(cls)
         if not names.issuperset(obj):
             unknown = sorted(set(obj) - names, key=str)
-            raise bad_field(f"{cls.__name__}: unknown field(s) {', '.join(map(str, unknown))[:200]}")
+            raise bad_field(f"{cls.__name__}: unknown field(s) {', '.join(map(repr, unknown))[:200]}")
         if not required.issubset(obj):
             missing = [f.name for f in dataclasses.fields(cls) if f.name in required and f.name not in obj]
             raise bad_field(f"{cls.__name__}: missing field(s) {', '.join(missing)}")
@@ -268,6 +268,8 @@ class RequestSpec(Message):
         _check_collection(self)
         self.priority = check_float("priority", self.priority, -1e12, 1e12)
         self.reason = check_obj("reason", self.reason)
+        if self.reason.get("model_version") is not None:  # it goes into every grant, which workers check
+            check_str("reason.model_version", self.reason["model_version"], allow_empty=True)
         self.max_attempts = check_int("max_attempts", self.max_attempts, 1, MAX_ATTEMPTS)
         if self.idempotency_key is not None:
             self.idempotency_key = check_str("idempotency_key", self.idempotency_key, max_len=256)

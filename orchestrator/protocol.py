@@ -391,9 +391,19 @@ def validate_action_prefix(value: Any, name: str = "action_prefix") -> list[list
 # --- encoding ---------------------------------------------------------------
 
 
+_CONTROL = re.compile(r"[\x00-\x1f\x7f]")
+
+
+def one_line(text: str) -> str:
+    """``text`` with its control characters escaped (``\\n``): a peer's words in a log line cannot start
+    a line of their own."""
+    return _CONTROL.sub(lambda m: repr(m.group())[1:-1], text)
+
+
 # One encoder and one decoder for every message: json.dumps / json.loads with options build a new
 # one per call, which showed up on the lease path.
 _ENCODER = json.JSONEncoder(allow_nan=False, separators=(",", ":"))
+_STRICT_ENCODER = json.JSONEncoder(ensure_ascii=False, separators=(",", ":"))
 
 
 def encode(obj: dict[str, Any]) -> bytes:
@@ -412,12 +422,15 @@ def decode(data: bytes | bytearray | memoryview | str | None, max_bytes: int = M
     """Parse one JSON message: size, JSON object, ``"v"`` == PROTOCOL_VERSION. Returns it without "v"."""
     if data is None:
         raise ProtocolError(ErrorCode.BAD_JSON, "expected a JSON message, found no payload")
-    raw = data.encode() if isinstance(data, str) else bytes(data)
+    raw = data.encode("utf-8", "surrogatepass") if isinstance(data, str) else bytes(data)
     if len(raw) > max_bytes:
         raise ProtocolError(ErrorCode.TOO_LARGE, f"expected at most {max_bytes} bytes, found {len(raw)}")
-    try:  # what json.loads does with bytes, without building a decoder per call
-        obj = _DECODER.decode(raw.decode(json.detect_encoding(raw), "surrogatepass"))
-    except (UnicodeDecodeError, ValueError) as exc:
+    try:  # what json.loads does with bytes (strictly: no lone surrogates), without a decoder per call
+        text = raw.decode(json.detect_encoding(raw))
+        obj = _DECODER.decode(text)
+        if "\\u" in text:  # an escape may spell half a surrogate pair, which no UTF-8 string can hold
+            _STRICT_ENCODER.encode(obj).encode("utf-8")
+    except (UnicodeError, ValueError) as exc:
         raise ProtocolError(ErrorCode.BAD_JSON, f"expected a JSON object: {exc}") from None
     except RecursionError:  # a few thousand brackets fit well under max_bytes
         raise ProtocolError(ErrorCode.BAD_JSON, "expected a JSON object, found lists / objects nested "

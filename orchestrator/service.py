@@ -263,7 +263,7 @@ class Service:
                 return Response(handler(msg))
             except ProtocolError as exc:
                 self.metrics.refusal(exc.code.value)
-                log.info("refused %s: %s", msg.key, exc)
+                log.info("refused %s: %s", msg.key, protocol.one_line(str(exc)))  # peer text: no forged lines
                 return Response(exc.reply())
 
         def crashed(code: str, message: str) -> bytes:  # a bug in a handler: logged by the Server

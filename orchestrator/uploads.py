@@ -70,14 +70,14 @@ class UploadHandler:
             request = self.queue.get(header.request_id)
         except QueueError as exc:
             raise admin.protocol_error(exc) from exc
+        if header.size > self.max_upload_bytes or len(msg.payload) > self.max_upload_bytes:
+            raise ProtocolError(ErrorCode.TOO_LARGE, f"payload: expected at most {self.max_upload_bytes} "
+                                f"bytes, found {max(header.size, len(msg.payload))}")
+        data = header.check_payload(msg.payload)  # a repeat too: it is acknowledged for these bytes
         if self._is_duplicate(request, header):
             self.metrics.upload("duplicate")
             return protocol.duplicate_reply(request_id=request.id, episode_id=request.episode_id)
         self._check_live(request, header)  # before a byte is written
-        if header.size > self.max_upload_bytes or len(msg.payload) > self.max_upload_bytes:
-            raise ProtocolError(ErrorCode.TOO_LARGE, f"payload: expected at most {self.max_upload_bytes} "
-                                f"bytes, found {max(header.size, len(msg.payload))}")
-        data = header.check_payload(msg.payload)
         episode = self._decode(data, header, request)  # the one full read of the bytes; ingest reuses it
         try:
             result = self.catalog.ingest_bytes(

@@ -16,6 +16,7 @@ import urllib.request
 
 import pytest
 
+from storage.catalog import Catalog
 from tests.conftest import REPO, free_port, wait_for
 
 #: Runs ``activecollect ARGV`` and then writes marker lines saying whether torch / matplotlib were imported.
@@ -121,7 +122,7 @@ def test_serve_without_a_champion_does_not_import_torch(tmp_path):
 def test_training_commands_still_load_torch(tmp_path):
     """The other side: ``train`` imports the models when it runs (here: to refuse an empty catalog)."""
     data = tmp_path / "data"
-    data.mkdir()
+    Catalog(data)  # empty (without one, train refuses before loading anything: exit 2)
     proc = _cli("train", "--data", str(data), "--epochs", "1")
     assert proc.returncode == 1, proc.stderr
     assert "training failed" in proc.stderr

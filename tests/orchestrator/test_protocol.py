@@ -142,6 +142,16 @@ BAD = [
     (m.RequestSpec, json.dumps({"v": 1, "task": "push", "shape": "T", "start_state": START,
                                 "priority": 10 ** 400}).encode(), ErrorCode.BAD_FIELD),
     (m.LeaseGrant, _grant(expires_at=10 ** 400), ErrorCode.BAD_FIELD),
+    # half a surrogate pair (escaped or as bytes): no UTF-8 string holds it, so storage could not either
+    (m.FailRequest, b'{"v": 1, "request_id": "r", "token": 1, "worker_id": "w", "error": "bad \\ud800 x"}',
+     ErrorCode.BAD_JSON),
+    (m.FailRequest, b'{"v": 1, "request_id": "r", "token": 1, "worker_id": "w", "error": "bad \xed\xa0\x80"}',
+     ErrorCode.BAD_JSON),
+    (m.RequestSpec, json.dumps({"v": 1, "task": "push", "shape": "T", "start_state": START,
+                                "idempotency_key": "\ud800k"}).encode(), ErrorCode.BAD_JSON),
+    # it goes into every grant, where workers allow 128 characters
+    (m.RequestSpec, json.dumps({"v": 1, "task": "push", "shape": "T", "start_state": START,
+                                "reason": {"model_version": "v" * 200}}).encode(), ErrorCode.BAD_FIELD),
     (m.AdminRequest, b'{"v": 1, "op": "queue.drop"}', ErrorCode.UNKNOWN_OP),
     (m.AdminRequest, b'{"v": 1, "op": "queue.ls", "args": []}', ErrorCode.BAD_FIELD),
     (m.Event, b'{"v": 1, "kind": "request.exploded", "at": 1.0}', ErrorCode.BAD_FIELD),
@@ -247,3 +257,9 @@ def test_protocol_is_a_leaf_module() -> None:
 def test_messages_import_only_the_protocol() -> None:
     ours = {name for name in _imports(m) if name.split(".")[0] in {"storage", "workers", "uncertainty", "orchestrator"}}
     assert ours == {"orchestrator.protocol"}
+
+
+def test_escaped_characters_outside_the_basic_plane_still_decode() -> None:
+    body = p.decode(b'{"v": 1, "error": "smile \\ud83d\\ude00 and \\u00fc"}')
+    assert body == {"error": "smile \U0001F600 and \u00fc"}
+    assert p.decode('{"v": 1, "w": "\u00fc"}') == {"w": "\u00fc"}

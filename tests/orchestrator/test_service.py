@@ -5,6 +5,7 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
+import logging
 import threading
 import time
 from pathlib import Path
@@ -128,6 +129,15 @@ def test_lease_grants_the_best_matching_request_or_says_no_work(service, client,
     assert (r.status, r.worker_id) == (RequestStatus.LEASED, "w1")
 
 
+def test_a_refusal_is_logged_on_one_line_whatever_the_peer_sent(service, client, keys, caplog) -> None:
+    forged = "x\n2026-11-21 00:00:00,000 orchestrator.service ERROR forged line"
+    with caplog.at_level(logging.INFO, logger="orchestrator.service"):
+        refused(ErrorCode.BAD_FIELD, call, client, keys.lease, protocol.encode({"v": 1, "worker_id": "w1", forged: 1}))
+        wait_for(lambda: any("refused" in r.getMessage() for r in caplog.records), message="the refusal's log line")
+    lines = [r.getMessage() for r in caplog.records if "refused" in r.getMessage()]
+    assert lines and all("\n" not in line for line in lines) and "'x\\n2026" in lines[0], lines
+
+
 def test_upload_stores_indexes_and_completes_once(service, client, keys, data_dir) -> None:
     request, _ = service.queue.enqueue(new_request())
     grant = lease(client, keys)
@@ -140,6 +150,9 @@ def test_upload_stores_indexes_and_completes_once(service, client, keys, data_di
     assert row.sha256 == hashlib.sha256(data).hexdigest() and row.request_id == request.id
     again = upload(client, keys, grant, data)  # e.g. the reply was lost and the worker retried
     assert again == {**body, "duplicate": True}
+    refused(ErrorCode.BAD_FIELD, call, client, keys.upload, b"junk",  # the right header, other bytes
+            protocol.encode({"v": 1, **messages.UploadHeader.for_payload(data, request_id=grant.request_id,
+                                                                         token=grant.token, worker_id="w1").to_dict()}))
     assert Catalog(data_dir).count() == 1
     assert len(list((data_dir / "episodes").rglob("*.mcap"))) == 1
 
