@@ -36,9 +36,11 @@ from storage.episodes import (
     encode_episode,
     inspect_episode,
     read_episode,
+    read_file,
     verify_episode,
 )
-from storage.database import DB_NAME, Migration, connection, ensure_schema, storage_error, transaction
+from storage.database import (DB_NAME, Migration, connection, ensure_schema, refuse_lost_database, storage_error,
+                              transaction)
 from storage.errors import CatalogError, CorruptEpisodeError, EpisodeError
 from storage.files import age_s, publish, sha256_hex, stage_bytes
 from storage.records import MAX_FRAME_SIZE, MIN_FRAME_SIZE, Episode, EpisodeMeta
@@ -233,6 +235,7 @@ class Catalog:
 
     def __init__(self, data_dir: str | Path):
         self.data_dir = Path(data_dir).absolute()
+        refuse_lost_database(self.data_dir, CatalogError)
         self.episodes_dir = self.data_dir / EPISODES_DIR
         self.episodes_dir.mkdir(parents=True, exist_ok=True)
         self._db_path = self.data_dir / DB_NAME
@@ -271,10 +274,7 @@ class Catalog:
         subclasses for a bad file.
         """
         path = Path(path)
-        try:
-            data = path.read_bytes()
-        except OSError as exc:
-            raise CatalogError(f"{path}: cannot read: {exc.strerror or exc}") from exc
+        data = read_file(path, CatalogError)
         info = inspect_episode(data, name=str(path))
         refusal = admit(info.meta) if admit is not None else ""
         if refusal:

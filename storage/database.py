@@ -110,6 +110,25 @@ def connect(db_path: str | Path) -> sqlite3.Connection:
     return conn
 
 
+def refuse_lost_database(data_dir: Path, error: type[StorageError]) -> None:
+    """Raise ``error`` when ``DATA/catalog.sqlite`` is missing or empty while ``data_dir`` holds episode files
+    or model folders: the index of acknowledged data is lost, and starting a new one there would treat that
+    data as a crash's leftovers. Checked before anything opens (and so creates) the file."""
+    db = data_dir / DB_NAME
+    try:
+        if db.stat().st_size or Path(f"{db}-wal").stat().st_size:
+            return
+    except FileNotFoundError:
+        pass
+    held = next(iter((data_dir / "episodes").rglob("*.mcap")), None) or next(
+        (p for p in (data_dir / "models").glob("m*") if p.is_dir()), None)
+    if held is not None:
+        state = "empty" if db.exists() else "missing"
+        raise error(f"{db} is {state}, but {data_dir} holds the data it indexed (e.g. {held}); nothing was "
+                    f"changed: restore the directory from a backup (activecollect backup), or ingest its "
+                    f"episode files into a new data directory")
+
+
 def configure(conn: sqlite3.Connection, busy_timeout_ms: int, synchronous: str) -> None:
     """The settings every connection that may write the file needs: busy timeout, WAL, ``synchronous``,
     and ``JOURNAL_SIZE_LIMIT`` (the writer that starts the WAL over is the one that cuts it back)."""

@@ -33,6 +33,7 @@ import functools
 import io
 import math
 import os
+import stat
 import struct
 import zlib
 from dataclasses import dataclass, field
@@ -61,6 +62,7 @@ from storage.errors import (
     EpisodeError,
     ForeignFileError,
     OversizedEpisodeError,
+    StorageError,
     TruncatedEpisodeError,
 )
 from storage.files import sha256_hex, write_bytes_atomic
@@ -254,18 +256,33 @@ class _Scan:
     statistics: Statistics | None = None
 
 
+#: No episode file is larger (1,000 steps of 1024 px frames, lz4-compressed, stay well under it): a bigger
+#: path is refused before it is read into memory.
+MAX_EPISODE_FILE_BYTES = 1 << 30
+
+
+def read_file(path: Path, error: type[StorageError] = EpisodeError) -> bytes:
+    """The bytes of the episode file at ``path``; ``error`` for a missing path, a directory, a pipe or
+    device (reading one may never end), a file larger than ``MAX_EPISODE_FILE_BYTES``, a failed read."""
+    try:
+        st = path.stat()
+        if stat.S_ISDIR(st.st_mode):
+            raise error(f"{path}: is a directory, expected an MCAP file")
+        if not stat.S_ISREG(st.st_mode):
+            raise error(f"{path}: is not a regular file (a pipe or a device?), expected an MCAP file")
+        if st.st_size > MAX_EPISODE_FILE_BYTES:
+            raise error(f"{path}: {st.st_size} bytes, more than any episode (at most {MAX_EPISODE_FILE_BYTES})")
+        return path.read_bytes()
+    except FileNotFoundError:
+        raise error(f"{path}: no such file") from None
+    except OSError as exc:
+        raise error(f"{path}: cannot read: {exc.strerror or exc}") from exc
+
+
 def _load(source: Source, name: str | None) -> tuple[bytes, str]:
     if isinstance(source, (bytes, bytearray, memoryview)):
         return bytes(source), name or "<bytes>"
-    path = Path(source)
-    try:
-        return path.read_bytes(), name or str(path)
-    except FileNotFoundError:
-        raise EpisodeError(f"{path}: no such file") from None
-    except IsADirectoryError:
-        raise EpisodeError(f"{path}: is a directory, expected an MCAP file") from None
-    except OSError as exc:
-        raise EpisodeError(f"{path}: cannot read: {exc.strerror or exc}") from exc
+    return read_file(Path(source)), name or str(source)
 
 
 def _check_envelope(data: bytes, name: str) -> None:

@@ -33,7 +33,8 @@ from enum import Enum
 from pathlib import Path
 from typing import Any
 
-from storage.database import DB_NAME, connection, ensure_schema, storage_error, transaction
+from storage.database import (DB_NAME, connection, ensure_schema, refuse_lost_database, storage_error,
+                              transaction)
 from storage.errors import CorruptCheckpointError, PrunedCheckpointError, RegistryError
 from storage.files import age_s, fsync_dir, write_synced
 from storage.gate import DEFAULT_METRIC, DEFAULT_MIN_REL_IMPROVEMENT, GateDecision, judge
@@ -203,6 +204,7 @@ class ModelRegistry:
 
     def __init__(self, data_dir: str | os.PathLike[str]) -> None:
         self.data_dir = Path(data_dir)
+        refuse_lost_database(self.data_dir, RegistryError)
         self.models_dir = self.data_dir / MODELS_DIR
         self.models_dir.mkdir(parents=True, exist_ok=True)
         self.db_path = self.data_dir / DB_NAME

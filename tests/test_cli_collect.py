@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 
@@ -194,3 +195,11 @@ def test_a_damaged_catalog_is_one_line_and_exit_1(capsys, data, argv):
     (data / "catalog.sqlite").write_bytes(b"not a database, but a file that was overwritten " * 100)
     rc, out, err = run_cli(capsys, *argv, "--data", str(data))
     assert rc == 1 and err.count("\n") == 1 and "catalog.sqlite" in err and "Traceback" not in err
+
+
+def test_ingest_refuses_a_pipe_and_a_device_without_reading_them(capsys, data, tmp_path):
+    fifo = tmp_path / "stuck.mcap"
+    os.mkfifo(fifo)  # reading it would wait for a writer for ever
+    rc, out, err = run_cli(capsys, "ingest", str(fifo), "/dev/zero", "--data", str(data))
+    assert rc == 1 and "0 of 2 files indexed" in out
+    assert f"{fifo}: is not a regular file (a pipe or a device?)" in err and "/dev/zero: is not a regular" in err

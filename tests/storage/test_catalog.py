@@ -6,6 +6,7 @@ import os
 import sqlite3
 import threading
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -140,7 +141,7 @@ def test_ingest_file_errors_name_the_path(cat, rng, tmp_path):
     bad.write_bytes(episodes.encode_episode(make_episode(rng))[:300])
     with pytest.raises(TruncatedEpisodeError, match="half.mcap"):
         cat.ingest_file(bad)
-    with pytest.raises(CatalogError, match="missing.mcap: cannot read"):
+    with pytest.raises(CatalogError, match="missing.mcap: no such file"):
         cat.ingest_file(tmp_path / "missing.mcap")
 
 
@@ -463,3 +464,20 @@ def test_pinning_refuses_params_that_misstate_the_frame_size_and_odd_sizes_are_r
     with pytest.raises(CatalogError, match="4px frames; expected 8..1024"):
         cat.add_episode(tiny)
 
+
+
+@pytest.mark.parametrize("loss", ["missing", "empty"])
+def test_a_lost_catalog_beside_its_data_is_refused_not_started_over(tmp_path, loss) -> None:
+    data = tmp_path / "data"
+    catalog = Catalog(data)
+    row = catalog.add_episode(make_episode(np.random.default_rng(3)))
+    ModelRegistry(data).register(b"weights", {}, {"h1_mse": 0.1}, "snap", "split")
+    for suffix in ("", "-wal", "-shm"):
+        Path(f"{catalog.db_path}{suffix}").unlink(missing_ok=True)
+    if loss == "empty":
+        catalog.db_path.write_bytes(b"")
+    for store, error in ((Catalog, CatalogError), (ModelRegistry, RegistryError)):
+        with pytest.raises(error, match=f"catalog.sqlite is {loss}, but .* holds the data it indexed"):
+            store(data)
+    assert row.path.is_file() and catalog.db_path.exists() == (loss == "empty")
+    assert catalog.db_path.exists() is False or catalog.db_path.stat().st_size == 0
