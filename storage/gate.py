@@ -67,8 +67,11 @@ def non_finite(metrics: dict[str, Any], metric: str) -> str | None:
 
 
 def judge(rec: Evaluated, champ: Evaluated | None, metric: str, min_rel: float,
-          split: str | None) -> tuple[bool, str, float | None]:
-    """(promote?, reason, champion's value) for ``rec`` against ``champ``; no side effects."""
+          split: str | None, champ_unusable: str = "") -> tuple[bool, str, float | None]:
+    """(promote?, reason, champion's value) for ``rec`` against ``champ``; no side effects.
+
+    ``champ_unusable``: why the champion's weights cannot serve (failed sha256, missing); then any
+    candidate that passes the split and finiteness checks replaces it, whatever the metrics say."""
     expected = split if split is not None else (champ.eval_split_hash if champ else None)
     if expected is not None and rec.eval_split_hash != expected:
         return False, (f"wrong eval split: {rec.version} was evaluated on {rec.eval_split_hash}, "
@@ -79,6 +82,9 @@ def judge(rec: Evaluated, champ: Evaluated | None, metric: str, min_rel: float,
     value = float(rec.metrics[metric])
     if champ is None:
         return True, f"first champion: {metric} {value:.6g} on eval split {rec.eval_split_hash}", None
+    if champ_unusable:
+        return True, (f"{metric} {value:.6g} replaces champion {champ.version}, whose weights are unusable "
+                      f"({champ_unusable})"), None
     if champ.eval_split_hash != rec.eval_split_hash:
         return False, (f"not comparable: champion {champ.version} was evaluated on "
                        f"{champ.eval_split_hash}, {rec.version} on {rec.eval_split_hash}; "

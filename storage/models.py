@@ -412,6 +412,14 @@ class ModelRegistry:
             self._read_verified(rec)
         except CorruptCheckpointError as exc:
             return self._refuse(rec, f"corrupt checkpoint: {exc}", metric)
+        # A champion whose weights fail their sha256 serves nothing: any sound candidate replaces it
+        # (checked before the write lock: it reads files).
+        checked, unusable = self.champion(), ""
+        if checked is not None and checked != version:
+            try:
+                self.verify(checked)
+            except CorruptCheckpointError as exc:
+                unusable = str(exc)
         with self._transaction() as conn:
             current = self._champion(conn)
             if current == version:
@@ -421,7 +429,8 @@ class ModelRegistry:
             if now.status != ModelStatus.CANDIDATE:  # a rolled-back or refused model is not re-judged
                 return self._not_a_candidate(now, current, metric)
             champ = self._get(conn, current) if current is not None else None
-            promoted, reason, champ_value = judge(rec, champ, metric, min_rel_improvement, eval_split_hash)
+            promoted, reason, champ_value = judge(rec, champ, metric, min_rel_improvement, eval_split_hash,
+                                                  unusable if current == checked else "")
             if promoted:
                 self._switch(conn, version, reason)
             else:

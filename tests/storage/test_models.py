@@ -513,3 +513,15 @@ def test_a_corrupt_rolled_back_champion_does_not_take_a_slot_either(reg: ModelRe
     _flip_byte(reg, c)
     result = reg.prune(keep=3)
     assert result.kept == [b, a] and result.pruned == [c]
+
+
+def test_a_champion_with_damaged_weights_is_replaced_by_the_next_sound_candidate(reg: ModelRegistry) -> None:
+    champ = _register(reg, 0.1)
+    assert reg.gate(champ).promoted
+    _flip_byte(reg, champ)  # a disk error: its metrics still look unbeatable
+    worse = _register(reg, 0.5)
+    decision = reg.gate(worse)
+    assert decision.promoted and reg.champion() == worse, decision
+    assert f"replaces champion {champ}, whose weights are unusable" in decision.reason and "sha256" in decision.reason
+    assert not reg.gate(_register(reg, 0.5, split="another-split")).promoted  # the split still has to match
+    assert not reg.gate(_register(reg, 0.9)).promoted  # and a sound champion is judged as before
