@@ -383,19 +383,28 @@ def _read_chunks(data: bytes, indexes: list, budget: int, scan: _Scan, name: str
     if len(set(offsets)) != len(offsets):
         raise CorruptEpisodeError(f"{name}: the summary indexes a chunk twice")
     buf = io.BytesIO(data)
-    for offset in sorted(offsets):
+    for index in sorted(indexes, key=lambda ix: ix.chunk_start_offset):
+        offset = index.chunk_start_offset
         buf.seek(offset)
         stream = ReadDataStream(buf)
         if stream.read1() != Opcode.CHUNK:
             raise CorruptEpisodeError(f"{name}: no chunk at byte {offset}, where the summary indexes one")
-        stream.read8()
+        length = stream.read8()
+        if length != index.chunk_length - 9 or offset + index.chunk_length > len(data):
+            raise CorruptEpisodeError(f"{name}: chunk at byte {offset} says it is {length} bytes long, its index "
+                                      f"{index.chunk_length - 9}, in a file of {len(data)} bytes")
         chunk = Chunk.read(stream)
+        if stream.count != 9 + length:
+            raise CorruptEpisodeError(f"{name}: chunk at byte {offset} holds {stream.count - 9} bytes of "
+                                      f"fields, its record {length}")
+        if chunk.uncompressed_crc == 0:  # with no CRC, a flipped bit in it could not be found
+            raise CorruptEpisodeError(f"{name}: chunk at byte {offset} has no CRC (activecollect writes one)")
         if chunk.uncompressed_size > budget:
             raise OversizedEpisodeError(f"{name}: chunk at byte {offset} inflates to {chunk.uncompressed_size} "
                                         f"bytes; the episode's frames need at most {budget} more")
         body = _inflate(chunk, name)
         budget -= len(body)
-        if chunk.uncompressed_crc != 0 and zlib.crc32(body) != chunk.uncompressed_crc:
+        if zlib.crc32(body) != chunk.uncompressed_crc:
             raise CorruptEpisodeError(f"{name}: chunk at byte {offset}: CRC mismatch of its content")
         inner = ReadDataStream(io.BytesIO(body))
         while inner.count < len(body):
@@ -506,6 +515,11 @@ def _check_counts(scan: _Scan, ids: dict[str, int], frames: int, name: str) -> N
                                       f"{said}, metadata says {frames} frames")
         if [m.sequence for m in msgs] != list(range(frames)):
             raise CorruptEpisodeError(f"{name}: {topic} messages are not steps 0..{frames - 1} in order")
+        times = [m.log_time for m in msgs]  # ours are step / control_hz; another recorder's clock may differ
+        back = next((t for t in range(1, frames) if times[t] <= times[t - 1]), None)
+        if back is not None:
+            raise CorruptEpisodeError(f"{name}: {topic} step {back} is logged at {times[back]} ns, not after "
+                                      f"step {back - 1} ({times[back - 1]} ns)")
 
 
 def _examine(source: Source, name: str | None,

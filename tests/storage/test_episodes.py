@@ -2,9 +2,13 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import dataclasses
 import io
 import json
+import re
+import struct
 import tracemalloc
 import os
 import uuid
@@ -15,6 +19,7 @@ import pytest
 import zstandard
 from foxglove_schemas_protobuf.RawImage_pb2 import RawImage
 from mcap.reader import make_reader
+from mcap.opcode import Opcode
 from mcap.records import Chunk
 from mcap.writer import CompressionType, Writer
 from mcap_protobuf.decoder import DecoderFactory
@@ -251,11 +256,12 @@ def test_camera_with_other_schema_refused(ep):
 
 
 def _episode_like_mcap(ep: Episode, skip: tuple[str, int] | None = None,
-                       compression: CompressionType = CompressionType.ZSTD, pad: int = 0) -> bytes:
+                       compression: CompressionType = CompressionType.ZSTD, pad: int = 0,
+                       times: Callable[[int], int] = lambda t: t, crcs: bool = True) -> bytes:
     """Our layout written by hand with mcap's Writer, optionally leaving out one message or adding a
     ``pad``-byte message of zeros (which compresses to almost nothing) on a channel of its own."""
     buf = io.BytesIO()
-    w = Writer(buf, compression=compression)
+    w = Writer(buf, compression=compression, enable_crcs=crcs)
     w.start()
     if pad:
         w.add_message(w.register_channel("/pad", "", 0), 0, bytes(pad), 0, 0)
@@ -274,7 +280,7 @@ def _episode_like_mcap(ep: Episode, skip: tuple[str, int] | None = None,
                     "/state": episodes.StateMessage(**dict(zip(STATE_FIELDS, ep.states[t]))).SerializeToString()}
         for topic, payload in payloads.items():
             if skip != (topic, t):
-                w.add_message(channels[topic], t, payload, t, t)
+                w.add_message(channels[topic], times(t), payload, times(t), t)
     w.finish()
     return buf.getvalue()
 
@@ -432,3 +438,26 @@ def test_metadata_the_catalog_cannot_hold_is_refused_on_write_and_on_read(rng, m
     assert cat.count() == 0
     # a NaN in the first row's JSON once made every later ingest fail ("malformed JSON")
     assert not cat.ingest_bytes(episodes.encode_episode(make_episode(rng))).duplicate
+
+
+@pytest.mark.parametrize("times, words", [
+    (lambda t: 100 - t, "/camera step 1 is logged at 99 ns, not after step 0 (100 ns)"),
+    (lambda t: 0, "/camera step 1 is logged at 0 ns, not after step 0 (0 ns)"),
+])
+def test_steps_logged_out_of_time_order_are_refused(ep, times, words):
+    with pytest.raises(CorruptEpisodeError, match=re.escape(words)):
+        episodes.read_episode(_episode_like_mcap(ep, times=times))
+
+
+def test_a_chunk_without_a_crc_is_refused(ep):
+    with pytest.raises(CorruptEpisodeError, match="has no CRC"):
+        episodes.read_episode(_episode_like_mcap(ep, crcs=False))
+
+
+def test_a_chunk_record_longer_than_its_index_says_is_refused(ep):
+    data = bytearray(_episode_like_mcap(ep))  # no data-section CRC: only the chunk's own fields guard it
+    at = make_reader(io.BytesIO(bytes(data))).get_summary().chunk_indexes[0].chunk_start_offset
+    assert data[at] == Opcode.CHUNK
+    struct.pack_into("<Q", data, at + 1, 1 << 62)
+    with pytest.raises(CorruptEpisodeError, match=r"says it is 4611686018427387904 bytes long, its index"):
+        episodes.read_episode(bytes(data))
