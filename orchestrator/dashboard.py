@@ -17,6 +17,7 @@ import io
 import json
 import logging
 import math
+import socket
 import threading
 from dataclasses import dataclass, field
 from http import HTTPStatus
@@ -74,6 +75,11 @@ class DashboardSources:
     frames_png: Callable[[], bytes] = lambda: b""
 
 
+class _Server(ThreadingHTTPServer):
+    daemon_threads = True
+    request_queue_size = socket.SOMAXCONN  # the default 5 made a burst of scrapes wait on SYN retries
+
+
 class Dashboard:
     """A ThreadingHTTPServer in a daemon thread; ``start`` / ``stop``."""
 
@@ -92,8 +98,7 @@ class Dashboard:
 
     def start(self) -> None:
         handler = type("Handler", (_Handler,), {"dashboard": self, "timeout": self.cfg.request_timeout_s})
-        self._server = ThreadingHTTPServer((self.cfg.host, self.cfg.port), handler)
-        self._server.daemon_threads = True
+        self._server = _Server((self.cfg.host, self.cfg.port), handler)
         self._thread = threading.Thread(target=self._server.serve_forever, name="dashboard", daemon=True)
         self._thread.start()
         log.info("dashboard on %s", self.url)

@@ -109,6 +109,7 @@ def _connect() -> list[str]:
     (["serve", "--retrain-args=--w 8,16,32", "--data", "DATA"], "ambiguous option: --w"),
     (["run", "--retrain-args='unclosed", "--data", "DATA"], "No closing quotation"),
     (["serve", "--retrain-args=--members 0", "--data", "DATA"], "argument --members: expected a positive integer"),
+    (["dashboard", "--port", "70000", "--data", "DATA"], "expected a TCP port in 0..65535, found 70000"),
 ])
 def test_bad_arguments_exit_2_in_one_line(capsys, tmp_path, argv, words) -> None:
     data = tmp_path / "data"

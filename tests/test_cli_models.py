@@ -297,3 +297,11 @@ def test_train_with_a_variance_head_reports_both_calibrations(trained, capsys, t
                          "--device", "cpu", "--variance-head", "--min-improvement", "0")
     assert rc == 0
     assert "spearman(disagreement, error)" in out and "spearman(total predictive variance, error)" in out
+
+
+@pytest.mark.parametrize("argv", [("models", "ls"), ("models", "show", "m1"), ("eval",), ("score", "e1")])
+def test_reading_commands_make_no_catalog_where_there_is_none(capsys, tmp_path, argv) -> None:
+    plain = tmp_path / "plain"
+    plain.mkdir()
+    rc, out, err = run_cli(capsys, *argv, "--data", str(plain))
+    assert rc == 2 and "no catalog at" in err and err.count("\n") == 1 and list(plain.iterdir()) == []

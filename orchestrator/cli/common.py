@@ -78,6 +78,14 @@ def non_negative_int(text: str) -> int:
     return _int_at_least(text, 0, "an integer >= 0")
 
 
+def tcp_port(text: str) -> int:
+    """A TCP port to listen on, 0 for any free one."""
+    value = _int_at_least(text, 0, "a TCP port in 0..65535")
+    if value > 65535:
+        raise argparse.ArgumentTypeError(f"expected a TCP port in 0..65535, found {value}")
+    return value
+
+
 def finite_float(text: str) -> float:
     """A number other than nan / inf (argparse's float takes both)."""
     try:

@@ -69,7 +69,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("dashboard", help="serve the read-only dashboard over a data directory")
     common.add_data_arg(p)
     p.add_argument("--host", default="127.0.0.1", help="address to bind (default 127.0.0.1)")
-    p.add_argument("--port", type=common.non_negative_int, default=8765, help="TCP port (default 8765, 0 = any)")
+    p.add_argument("--port", type=common.tcp_port, default=8765, help="TCP port (default 8765, 0 = any)")
     p.set_defaults(func=_dashboard)
 
 

@@ -125,6 +125,7 @@ def _data_dir(args: argparse.Namespace) -> Path:
     if not data.is_dir():
         raise common.UsageError(f"no data directory at {data} (give --data DIR, "
                                 f"or collect and train first)")
+    common.require_catalog(data)  # these commands read: they must not make a catalog where there is none
     return data
 
 
@@ -379,8 +380,9 @@ def _episode(arg: str, data: Path) -> Episode:
 
 
 def _score(args: argparse.Namespace) -> int:
+    data = _data_dir(args)  # the champion lives there: nothing to score with (or look up) without a catalog
     try:
-        episode = _episode(args.episode, Path(args.data))
+        episode = _episode(args.episode, data)
     except EpisodeError as exc:
         return _fail(f"cannot read episode {args.episode}: {exc}")
     registry = _registry(args)

@@ -138,7 +138,7 @@ def test_training_commands_still_load_torch(tmp_path):
 def test_model_commands_refuse_bad_requests_before_loading_torch(tmp_path, argv, rc, words):
     """A mistake in what was asked is told without paying for the torch import."""
     data = tmp_path / "data"
-    data.mkdir()
+    Catalog(data)  # empty
     proc = _cli(*argv, "--data", str(data))
     assert proc.returncode == rc, proc.stderr
     assert words in proc.stderr
@@ -147,6 +147,7 @@ def test_model_commands_refuse_bad_requests_before_loading_torch(tmp_path, argv,
 
 def test_a_reader_that_goes_away_ends_the_command_quietly(tmp_path):
     """`activecollect models ls | head -0`: no BrokenPipeError traceback, the shell's SIGPIPE status."""
+    Catalog(tmp_path)  # empty
     read_end, write_end = os.pipe()
     os.close(read_end)  # the reader is gone before the command writes a byte
     try:
