@@ -240,8 +240,8 @@ def _raw_server(endpoint: str) -> Iterator[tuple[zenoh.Session, Cycle]]:
 
 def _tiny_episode(request_id: str, worker_id: str, token: int = 1) -> bytes:
     meta = EpisodeMeta(episode_id=uuid.uuid4().hex, task="push", shape="box", physics=dict(_START["physics"]),
-                       seed=messages.request_seed(request_id, token), policy="push", start_state=dict(_START), image_size=8, request_id=request_id,
-                       worker_id=worker_id)
+                       seed=messages.request_seed(request_id, token), policy="push", start_state=dict(_START),
+                       image_size=8, request_id=request_id, worker_id=worker_id)
     return encode_episode(Episode(meta, np.zeros((2, 8, 8, 3), np.uint8), np.zeros((2, 2), np.float32),
                                   np.zeros((2, 11), np.float64)))
 

@@ -25,10 +25,12 @@ from orchestrator.protocol import ErrorCode, EventKind, ProtocolError
 from orchestrator.transport import Incoming
 from storage.catalog import Catalog
 from storage.episodes import EpisodeInfo, decoded_limit, read_episode
-from storage.errors import EpisodeError, OversizedEpisodeError, QueueError, StaleLeaseError, StorageError, StorageUnavailableError
+from storage.errors import (EpisodeError, OversizedEpisodeError, QueueError, StaleLeaseError, StorageError,
+                            StorageUnavailableError)
 from storage.queue import RequestQueue
 from storage.records import Episode
 from storage.requests import IllegalTransitionError, Request, RequestStatus
+from workers.env import resolve_physics
 
 
 @dataclass(frozen=True)
@@ -174,8 +176,7 @@ def provenance_mismatch(episode: Episode, request: Request, worker_id: str) -> s
     problem = protocol.physics_problem(meta.physics)
     if problem:
         return problem
-    physics = {k: default for k, (_, _, default) in protocol.PHYSICS_RANGES.items()}  # what workers fill in
-    physics.update(request.start_state.get("physics", {}))
+    physics = resolve_physics(request.start_state.get("physics"))  # what the worker ran: defaults filled in
     for name, asked, found in (("start_state", request.start_state, meta.start_state),
                                ("policy_params", request.policy_params, meta.policy_params),
                                ("physics", physics, meta.physics)):
@@ -183,7 +184,6 @@ def provenance_mismatch(episode: Episode, request: Request, worker_id: str) -> s
         if where:
             return f"{where} differs from the request's"
     return ""
-
 
 
 def _differs(asked: Any, found: Any, path: str) -> str:

@@ -39,15 +39,14 @@ from storage.episodes import (
     read_file,
     verify_episode,
 )
-from storage.database import (DB_NAME, Migration, connection, ensure_schema, refuse_lost_database, storage_error,
-                              transaction)
+from storage.database import (DB_NAME, EPISODES_DIR, Migration, connection, ensure_schema, refuse_lost_database,
+                              storage_error, transaction)
 from storage.errors import CatalogError, CorruptEpisodeError, EpisodeError
 from storage.files import age_s, publish, sha256_hex, stage_bytes
 from storage.records import MAX_FRAME_SIZE, MIN_FRAME_SIZE, Episode, EpisodeMeta
 
 #: Splits an episode can belong to. ``eval`` episodes never enter a training snapshot.
 SPLITS: tuple[str, ...] = ("train", "eval")
-EPISODES_DIR = "episodes"
 _SAFE_ID = re.compile(r"^[A-Za-z0-9_-]{1,128}$")
 
 _CATALOG_MIGRATIONS: tuple[Migration, ...] = (

@@ -182,6 +182,10 @@ def _check_writable(ep: Episode) -> None:
     if len(ep) == 0:
         raise EpisodeError(f"episode {ep.meta.episode_id} has no steps; nothing to write")
     _check_meta(ep.meta, len(ep), f"episode {ep.meta.episode_id}", EpisodeError)
+    size = len(ep.meta.to_json())  # (a read's EpisodeMeta.from_json checks the same of the text it parses)
+    if size > MAX_META_BYTES:
+        raise EpisodeError(f"episode {ep.meta.episode_id}: metadata takes {size} bytes, expected at most "
+                           f"{MAX_META_BYTES}")
     if not np.isfinite(ep.actions).all():
         raise EpisodeError(f"episode {ep.meta.episode_id}: actions must be finite")
     if not np.isfinite(ep.states).all():
@@ -470,12 +474,6 @@ def _check_meta(meta: EpisodeMeta, frames: int, name: str,
                    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v)]
     if bad_physics:
         raise error(f"{name}: episode metadata physics {bad_physics} are not finite numbers")
-    try:
-        size = len(meta.to_json())
-    except EpisodeError as exc:
-        raise error(f"{name}: {exc}") from exc
-    if size > MAX_META_BYTES:
-        raise error(f"{name}: episode metadata takes {size} bytes, expected at most {MAX_META_BYTES}")
     if meta.image_size <= 0 or not meta.control_hz > 0 or frames <= 0 or meta.action_prefix_len < 0:
         raise error(f"{name}: episode metadata has image_size={meta.image_size}, control_hz="
                                   f"{meta.control_hz}, frames={frames}, action_prefix_len={meta.action_prefix_len}; "

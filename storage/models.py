@@ -33,8 +33,8 @@ from enum import Enum
 from pathlib import Path
 from typing import Any
 
-from storage.database import (DB_NAME, connection, ensure_schema, refuse_lost_database, storage_error,
-                              transaction)
+from storage.database import (DB_NAME, MODELS_DIR, connection, ensure_schema, refuse_lost_database,
+                              storage_error, transaction)
 from storage.errors import CorruptCheckpointError, PrunedCheckpointError, RegistryError
 from storage.files import age_s, fsync_dir, write_synced
 from storage.gate import DEFAULT_METRIC, DEFAULT_MIN_REL_IMPROVEMENT, GateDecision, judge
@@ -44,7 +44,6 @@ CONFIG_FILE = "config.json"
 METRICS_FILE = "metrics.json"
 META_FILE = "meta.json"
 CHAMPION = "champion"
-MODELS_DIR = "models"
 #: A staging or deleting dot folder under ``models/`` this old belongs to no live call (they take seconds).
 STALE_AGE_S = 3600.0
 

@@ -277,7 +277,8 @@ def _retrain(args: argparse.Namespace) -> int:
     except ConfigError as exc:
         raise common.UsageError(str(exc)) from None
     common.require_catalog(args.data)  # checked before the retrain lock would make the directory
-    from orchestrator.retrain import abandoned_note, run_retrain  # torch: imported once the arguments are known good (start-up cost)
+    # torch: imported once the arguments are known good (start-up cost)
+    from orchestrator.retrain import abandoned_note, run_retrain
     try:
         result = run_retrain(args.data, cfg, wait=args.wait, keep_models=args.keep_models)
     except RetrainBusyError as exc:

@@ -286,7 +286,6 @@ def _train(args: argparse.Namespace) -> int:
                           variance_head=args.variance_head)
     except ConfigError as exc:
         raise common.UsageError(str(exc)) from None
-    common.require_catalog(data)  # checked before the retrain lock would make a file there
     # torch: imported once the arguments are known good (start-up cost, not a cycle)
     from orchestrator.retrain import abandoned_note, training_job
     from uncertainty.train import train_candidate
@@ -385,8 +384,7 @@ def _score(args: argparse.Namespace) -> int:
         episode = _episode(args.episode, data)
     except EpisodeError as exc:
         return _fail(f"cannot read episode {args.episode}: {exc}")
-    registry = _registry(args)
-    ensemble = _load(registry, None, args.device)
+    ensemble = _load(ModelRegistry(data), None, args.device)
     if ensemble is None:
         return 1
     from uncertainty.score import score_episode  # torch (already loaded by _load): start-up cost, not a cycle
