@@ -185,6 +185,7 @@ def _stats(queue: RequestQueue, catalog: Any, registry: Any,
     if catalog is not None:
         episodes = {split: catalog.count(split=split) for split in SPLITS}
         episodes["total"] = catalog.count()
+        episodes["quarantined"] = catalog.count(quarantined=True)
         disk = disk_json(catalog.data_dir)
     return {"requests": queue.counts(), "episodes": episodes,
             "champion": registry.champion() if registry is not None else None,

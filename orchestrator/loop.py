@@ -273,7 +273,8 @@ class LoopRun:
 
     def _release(self, limit: int | None = None) -> None:
         if not self.planner.has_episodes():
-            latest = self.catalog.list(split="train", limit=self.cfg.round_episodes, newest_first=True)[::-1]
+            latest = self.catalog.list(split="train", limit=self.cfg.round_episodes, newest_first=True,
+                                       quarantined=False)[::-1]
             self.planner.remember([self.catalog.load(r.episode_id) for r in latest])
         made = 0
         for request, created in self.queue.enqueue_many(self.planner.release(limit)):
@@ -349,7 +350,7 @@ class LoopRun:
                    "image_size": self.cfg.image_size, "steps": self.cfg.steps, "champion": champion,
                    "champion_h1_mse": h1, "retrains": len(retrains), "interrupted": interrupted,
                    "seconds": round(time.time() - start, 1), "queue": self.queue.counts()}
-        train_rows = self.catalog.list(split="train", limit=40, newest_first=True)
+        train_rows = self.catalog.list(split="train", limit=40, newest_first=True, quarantined=False)
         split = self.catalog.eval_split()
         inputs = ReportInputs(curve=learning_curve(self.catalog, self.registry), summary=summary,
                               retrains=retrains, champion=ensemble,

@@ -65,6 +65,9 @@ class ServiceMetrics:
                                    namespace=ns, registry=r)
         self.episodes = Gauge("episodes", "Episodes in the catalog, by split.", ["split"],
                               namespace=ns, registry=r)
+        self.episodes_quarantined = Gauge("episodes_quarantined", "Episodes taken out of training because their "
+                                          "files were found missing or damaged, or an operator rejected them.",
+                                          namespace=ns, registry=r)
         self.champion_h1_mse = Gauge("champion_h1_mse", "The champion's horizon-1 MSE on the eval split.",
                                      namespace=ns, registry=r)
         self.champion_info = Gauge("champion_info", "The champion's version (value 1; label version).",
@@ -147,6 +150,7 @@ class ServiceMetrics:
         """
         self.set_queue_depth(queue.counts())
         self.set_episodes({split: catalog.count(split=split) for split in SPLITS})
+        self.episodes_quarantined.set(catalog.count(quarantined=True))
         self.set_disk(disk_json(catalog.data_dir))
         champion = registry.champion()
         h1 = registry.get(champion).metrics.get("h1_mse") if champion is not None else None

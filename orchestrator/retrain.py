@@ -28,6 +28,14 @@ def abandoned_note(versions: list[str]) -> str:
     return f"rejected {', '.join(versions)}: left as candidates by a job that ended before its gate"
 
 
+def quarantined_note(episode_ids: list[str]) -> str:
+    """One line for the operator on the train episodes a job found missing or damaged."""
+    shown = ", ".join(episode_ids[:5]) + (f" and {len(episode_ids) - 5} more" if len(episode_ids) > 5 else "")
+    return (f"quarantined {len(episode_ids)} train episode(s) whose files are missing or damaged: {shown} "
+            "(trained without them; `activecollect episodes ls --quarantined` lists them, re-ingesting their "
+            "bytes restores them)")
+
+
 @contextlib.contextmanager
 def training_job(data_dir: Path, wait: bool = False) -> Iterator[tuple[Catalog, ModelRegistry, list[str]]]:
     """Hold the retrain lock for one training job (``retrain`` and ``train`` alike).
@@ -53,8 +61,9 @@ def run_retrain(data_dir: Path, cfg: TrainConfig, wait: bool = False, keep_model
     fresh model while there is no champion yet). With ``keep_models`` the registry is then
     pruned to the champion's rollback chain of that many (``ModelRegistry.prune``).
 
-    Returns ``{"version", "promoted", "reason", "metrics", "champion", "pruned", "prune_error", "abandoned"}``
-    (``abandoned``: candidates earlier jobs left, rejected first, see ``training_job``); a
+    Returns ``{"version", "promoted", "reason", "metrics", "champion", "pruned", "prune_error", "abandoned",
+    "quarantined"}`` (``abandoned``: candidates earlier jobs left, rejected first, see ``training_job``;
+    ``quarantined``: train episodes found missing or damaged, see ``uncertainty.data.load_train``); a
     prune that fails does not fail the job (the gate has decided by then): ``prune_error`` says why. Raises
     ``orchestrator.scheduler.RetrainBusyError`` when another job holds the lock (and ``wait`` is False), and
     whatever training raises (``uncertainty`` and ``storage`` errors); in every failure
@@ -72,5 +81,5 @@ def run_retrain(data_dir: Path, cfg: TrainConfig, wait: bool = False, keep_model
                 prune_error = f"pruning the registry failed: {exc}"
         return {"version": result.version, "promoted": result.decision.promoted,
                 "reason": result.decision.reason, "champion": registry.champion(), "pruned": pruned,
-                "prune_error": prune_error, "abandoned": abandoned,
+                "prune_error": prune_error, "abandoned": abandoned, "quarantined": result.quarantined,
                 "metrics": {k: v for k, v in result.metrics.items() if not isinstance(v, (list, dict))}}

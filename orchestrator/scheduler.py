@@ -381,6 +381,9 @@ class RetrainScheduler:
                 f" (pruned the files of {len(pruned)} older models)" if pruned else "")
         if rc == 0 and result.get("prune_error"):
             log.warning("retrain %s: %s", rec.version or "-", result["prune_error"])
+        if rc == 0 and result.get("quarantined"):
+            log.warning("retrain %s: quarantined %d train episode(s) whose files are missing or damaged: %s",
+                        rec.version or "-", len(result["quarantined"]), ", ".join(map(str, result["quarantined"][:5])))
         if rec.status is RetrainStatus.promoted:
             self.on_promoted(rec.version)
         self.on_finished(rec)

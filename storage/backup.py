@@ -6,6 +6,8 @@ not block them). Then the files that snapshot names are copied: every indexed ep
 checkpoint folder of every model whose files are kept, each episode and each set of weights checked
 against its recorded sha256 as it is read. Files written after the snapshot are not in it and are
 not copied; a model pruned between the snapshot and its copy is marked pruned in the copy too.
+A quarantined episode's file is copied from ``quarantine/`` as it is (it may be what was damaged), and
+one quarantined between the snapshot and its copy is quarantined in the copy too.
 
 The copy is built under a hidden name next to ``dest`` and renamed into place last, so ``dest``
 exists only when complete. Not copied: ``reports/`` (made again by ``run``), lock files, and what
@@ -111,6 +113,34 @@ def _pruned_in_source(source_db: Path, version: str) -> bool:
     return row is not None and "pruned_at" in row.keys() and row["pruned_at"] is not None
 
 
+def _quarantine_in_source(source_db: Path, episode_id: str) -> sqlite3.Row | None:
+    with connection(source_db, BackupError) as conn:
+        try:
+            return conn.execute("SELECT * FROM quarantine WHERE episode_id = ?", (episode_id,)).fetchone()
+        except sqlite3.OperationalError:  # a catalog from before quarantines
+            return None
+
+
+def _copy_episode(conn: sqlite3.Connection, source_db: Path, work: Path, row: sqlite3.Row, dirs: set[Path]) -> int:
+    """Copy one episode's file as the snapshot knows it: its file checked against its sha256, or, when it is
+    quarantined, the file kept in ``quarantine/`` as it is (if any). One quarantined since the snapshot is
+    copied as the source holds it now. Returns the bytes copied; raises ``_Unusable`` as ``_copy_checked``."""
+    data_dir = source_db.parent
+    episode_id, rel, sha, moved_to = row
+    if moved_to is not None:  # quarantined: what is left of it, which may be what was damaged
+        kept = data_dir / moved_to if moved_to else None
+        return _copy_checked(kept, work / moved_to, None, dirs) if kept is not None and kept.exists() else 0
+    try:
+        return _copy_checked(data_dir / rel, work / rel, sha, dirs)
+    except _Unusable:
+        now = _quarantine_in_source(source_db, episode_id)
+        if now is None:
+            raise
+        conn.execute("INSERT OR REPLACE INTO quarantine(episode_id, reason, moved_to, at) VALUES (?, ?, ?, ?)",
+                     (episode_id, now["reason"], now["moved_to"], now["at"]))
+        return _copy_episode(conn, source_db, work, (episode_id, rel, sha, now["moved_to"]), dirs)
+
+
 def backup(data_dir: str | os.PathLike[str], dest: str | os.PathLike[str],
            progress: Callable[[int, int], None] | None = None) -> BackupResult:
     """Copy the data directory ``data_dir`` to ``dest`` (a new directory), consistently, while it is in use.
@@ -157,17 +187,18 @@ def _fill(data_dir: Path, work: Path, progress: Callable[[int, int], None] | Non
     ModelRegistry(work)
     size = 0
     with connection(db, BackupError) as conn:
-        episodes = conn.execute("SELECT episode_id, path, sha256 FROM episodes ORDER BY path").fetchall()
+        episodes = conn.execute("SELECT e.episode_id, e.path, e.sha256, q.moved_to FROM episodes e "
+                                "LEFT JOIN quarantine q USING (episode_id) ORDER BY e.path").fetchall()
         models = conn.execute("SELECT version, weights_sha256 FROM models WHERE pruned_at IS NULL "
                               "ORDER BY seq").fetchall()
         total, done, problems, n_episodes, n_models = len(episodes) + len(models), 0, [], 0, 0
         dirs: set[Path] = set()
-        for episode_id, rel, sha in episodes:
+        for row in episodes:
             try:
-                size += _copy_checked(data_dir / rel, work / rel, sha, dirs)
-                n_episodes += 1
+                size += _copy_episode(conn, source_db, work, row, dirs)
+                n_episodes += row["moved_to"] is None
             except _Unusable as exc:
-                problems.append(f"episode {episode_id}: {exc}")
+                problems.append(f"episode {row['episode_id']}: {exc}")
             done += 1
             if progress is not None:
                 progress(done, total)

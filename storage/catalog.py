@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import os
 import re
 import sqlite3
 import time
@@ -41,8 +40,8 @@ from storage.episodes import (
 )
 from storage.database import (DB_NAME, EPISODES_DIR, Migration, connection, ensure_schema, refuse_lost_database,
                               storage_error, transaction)
-from storage.errors import CatalogError, CorruptEpisodeError, EpisodeError
-from storage.files import age_s, publish, sha256_hex, stage_bytes
+from storage.errors import CatalogError, CorruptEpisodeError, EpisodeError, MissingEpisodeError
+from storage.files import age_s, holds, move, publish, sha256_hex, stage_bytes
 from storage.records import MAX_FRAME_SIZE, MIN_FRAME_SIZE, Episode, EpisodeMeta
 
 #: Splits an episode can belong to. ``eval`` episodes never enter a training snapshot.
@@ -77,7 +76,20 @@ _CATALOG_MIGRATIONS: tuple[Migration, ...] = (
         """CREATE TABLE IF NOT EXISTS eval_split_members (
             episode_id TEXT PRIMARY KEY REFERENCES episodes(episode_id))""",
     ),
+    (  # episodes taken out of training (see Catalog.quarantine); moved_to '' when the file was already gone
+        """CREATE TABLE IF NOT EXISTS quarantine (
+            episode_id TEXT PRIMARY KEY REFERENCES episodes(episode_id),
+            reason TEXT NOT NULL,
+            moved_to TEXT NOT NULL,
+            at REAL NOT NULL)""",
+    ),
 )
+#: Every catalog query of episode rows: the row and, when it is quarantined, why.
+_SELECT_ROWS = "SELECT e.*, q.reason AS quarantined FROM episodes e LEFT JOIN quarantine q USING (episode_id)"
+#: Where ``Catalog.quarantine`` moves the file of an episode it takes out of training.
+QUARANTINE_DIR = "quarantine"
+#: A quarantine reason is kept to one line of at most this many characters.
+MAX_REASON_CHARS = 500
 
 
 def _now_iso() -> str:
@@ -116,6 +128,8 @@ class EpisodeRow:
     model_version: str
     ingested: float
     """When it was indexed (unix seconds)."""
+    quarantined: str = ""
+    """Why it was taken out of training (``Catalog.quarantine``); '' while it is in."""
 
     def to_json(self) -> dict[str, Any]:
         out = asdict(self)
@@ -129,7 +143,9 @@ class IngestResult:
     path: Path
     sha256: str
     duplicate: bool
-    """True when this exact file was already indexed (nothing changed)."""
+    """True when this exact file was already indexed."""
+    restored: bool = False
+    """True for a duplicate whose bytes put back a file that was missing, damaged or quarantined."""
 
 
 @dataclass
@@ -149,6 +165,14 @@ class Snapshot:
     """Sorted episode ids."""
     snapshot_id: str
     """First 16 hex digits of the content hash of ``ids`` and their sha256s."""
+    sha256s: list[str] = field(default_factory=list)
+    """The sha256 of each of ``ids``."""
+
+    def without(self, drop: Sequence[str]) -> Snapshot:
+        """This snapshot less the episodes ``drop`` (those a job found damaged and quarantined)."""
+        pairs = [(i, s) for i, s in zip(self.ids, self.sha256s) if i not in set(drop)]
+        return Snapshot(ids=[p[0] for p in pairs], snapshot_id=_content_hash(pairs)[:16],
+                        sha256s=[p[1] for p in pairs])
 
 
 # ---------------------------------------------------------------------------------------------
@@ -253,7 +277,8 @@ class Catalog:
             episode_id=r["episode_id"], path=self.data_dir / r["path"], sha256=r["sha256"],
             frames=r["frames"], task=r["task"], shape=r["shape"], request_id=r["request_id"],
             worker_id=r["worker_id"], split=r["split"], created=r["created"],
-            size_bytes=r["size_bytes"], model_version=r["model_version"], ingested=r["ingested"])
+            size_bytes=r["size_bytes"], model_version=r["model_version"], ingested=r["ingested"],
+            quarantined=r["quarantined"] or "")
 
     # --- ingest ---------------------------------------------------------------------------------
 
@@ -350,7 +375,7 @@ class Catalog:
         conn.execute("BEGIN IMMEDIATE")
         published = False
         try:
-            r = conn.execute("SELECT * FROM episodes WHERE episode_id = ?", (meta.episode_id,)).fetchone()
+            r = conn.execute(f"{_SELECT_ROWS} WHERE episode_id = ?", (meta.episode_id,)).fetchone()
             if r is not None:
                 conn.execute("ROLLBACK")
                 return self._duplicate(self._row(r), sha, split, data)
@@ -383,10 +408,22 @@ class Catalog:
         if known.split != split:
             raise CatalogError(f"episode {known.episode_id} is already indexed in split {known.split!r}, "
                                f"not {split!r}")
-        if not known.path.exists():  # the same bytes restore a file lost from disk
+        if not known.quarantined and holds(known.path, sha):
+            return IngestResult(known.episode_id, known.path, sha, duplicate=True)
+        # the same bytes restore a file lost from disk, damaged, or quarantined (which ends the quarantine)
+        staged = None
+        try:
             staged = stage_bytes(known.path, data)
-            publish(staged, known.path)
-        return IngestResult(known.episode_id, known.path, sha, duplicate=True)
+            with self._connect() as conn, transaction(conn):
+                publish(staged, known.path)
+                conn.execute("DELETE FROM quarantine WHERE episode_id = ?", (known.episode_id,))
+        except OSError as exc:
+            raise storage_error(exc, CatalogError, f"cannot restore episode {known.episode_id} at {known.path}: "
+                                f"{exc.strerror or exc}", known.path) from exc
+        finally:
+            if staged is not None:
+                staged.unlink(missing_ok=True)
+        return IngestResult(known.episode_id, known.path, sha, duplicate=True, restored=True)
 
     # --- queries ---------------------------------------------------------------------------------
 
@@ -399,7 +436,7 @@ class Catalog:
 
     def find(self, episode_id: str) -> EpisodeRow | None:
         with self._connect() as conn:
-            r = conn.execute("SELECT * FROM episodes WHERE episode_id = ?", (episode_id,)).fetchone()
+            r = conn.execute(f"{_SELECT_ROWS} WHERE episode_id = ?", (episode_id,)).fetchone()
         return self._row(r) if r else None
 
     def get(self, episode_id: str) -> EpisodeRow:
@@ -416,7 +453,7 @@ class Catalog:
             return row
         pattern = id_or_prefix.replace("\\", "\\\\").replace("%", "\\%").replace("_", "\\_") + "%"
         with self._connect() as conn:
-            rows = conn.execute("SELECT * FROM episodes WHERE episode_id LIKE ? ESCAPE '\\' LIMIT 3",
+            rows = conn.execute(f"{_SELECT_ROWS} WHERE episode_id LIKE ? ESCAPE '\\' LIMIT 3",
                                 (pattern,)).fetchall()
         if len(rows) == 1 and id_or_prefix:
             return self._row(rows[0])
@@ -426,13 +463,15 @@ class Catalog:
         raise CatalogError(f"no episode {id_or_prefix!r} in the catalog at {self.data_dir}")
 
     def list(self, split: str | None = None, shape: str | None = None, limit: int | None = None,
-             since: float | str | datetime | None = None, newest_first: bool = False) -> list[EpisodeRow]:
+             since: float | str | datetime | None = None, newest_first: bool = False,
+             quarantined: bool | None = None) -> list[EpisodeRow]:
         """Indexed episodes in ingest order (``newest_first`` reverses it).
 
         ``since``: only episodes indexed at or after this time (unix seconds, ISO 8601 or datetime).
+        ``quarantined``: only those taken out of training (True), only the others (False), or all (None).
         """
-        where, args = self._filters(split, shape, since)
-        sql = f"SELECT * FROM episodes{where} ORDER BY rowid {'DESC' if newest_first else 'ASC'}"
+        where, args = self._filters(split, shape, since, quarantined)
+        sql = f"{_SELECT_ROWS}{where} ORDER BY e.rowid {'DESC' if newest_first else 'ASC'}"
         if limit is not None:
             sql += " LIMIT ?"
             args.append(int(limit))
@@ -440,14 +479,17 @@ class Catalog:
             return [self._row(r) for r in conn.execute(sql, args).fetchall()]
 
     def count(self, split: str | None = None, shape: str | None = None,
-              since: float | str | datetime | None = None) -> int:
-        where, args = self._filters(split, shape, since)
+              since: float | str | datetime | None = None, quarantined: bool | None = None) -> int:
+        where, args = self._filters(split, shape, since, quarantined)
         with self._connect() as conn:
-            return conn.execute(f"SELECT COUNT(*) FROM episodes{where}", args).fetchone()[0]
+            return conn.execute(f"SELECT COUNT(*) FROM episodes e LEFT JOIN quarantine q USING (episode_id){where}",
+                                args).fetchone()[0]
 
-    def _filters(self, split: str | None, shape: str | None,
-                 since: float | str | datetime | None) -> tuple[str, list[Any]]:
+    def _filters(self, split: str | None, shape: str | None, since: float | str | datetime | None,
+                 quarantined: bool | None) -> tuple[str, list[Any]]:
         clauses, args = [], []
+        if quarantined is not None:
+            clauses.append(f"q.episode_id IS {'NOT ' if quarantined else ''}NULL")
         if split is not None:
             _check_split(split)
             clauses.append("split = ?")
@@ -465,7 +507,9 @@ class Catalog:
         with self._connect() as conn:
             rows = conn.execute("SELECT split, shape, COUNT(*) AS n, SUM(frames) AS frames, "
                                 "SUM(size_bytes) AS bytes FROM episodes GROUP BY split, shape").fetchall()
-        out: dict[str, Any] = {"episodes": 0, "frames": 0, "bytes": 0, "by_split": {}, "by_shape": {}}
+            quarantined = conn.execute("SELECT COUNT(*) FROM quarantine").fetchone()[0]
+        out: dict[str, Any] = {"episodes": 0, "frames": 0, "bytes": 0, "by_split": {}, "by_shape": {},
+                               "quarantined": quarantined}
         for r in rows:
             out["episodes"] += r["n"]
             out["frames"] += r["frames"]
@@ -486,7 +530,9 @@ class Catalog:
         try:
             data = row.path.read_bytes()
         except FileNotFoundError:
-            raise EpisodeError(f"{row.path}: file of episode {row.episode_id} is missing") from None
+            why = (f"it is quarantined ({row.quarantined}); `activecollect episodes restore` puts it back"
+                   if row.quarantined else "re-ingest its bytes (e.g. from a backup) to restore it")
+            raise MissingEpisodeError(f"{row.path}: file of episode {row.episode_id} is missing: {why}") from None
         except OSError as exc:
             raise EpisodeError(f"{row.path}: cannot read: {exc.strerror or exc}") from exc
         sha = sha256_hex(data)
@@ -530,11 +576,70 @@ class Catalog:
             unindexed = [p for p in files
                          if p.relative_to(self.data_dir).as_posix() not in indexed and p.exists()]
             for path in unindexed if move_to is not None else ():
-                target = move_to / path.relative_to(self.episodes_dir)
-                target.parent.mkdir(parents=True, exist_ok=True)
-                os.replace(path, target)
+                move(path, move_to / path.relative_to(self.episodes_dir))
         staging = sorted(p for p in self.episodes_dir.rglob(".*.mcap.*.tmp") if age_s(p, now) > min_tmp_age_s)
         return Strays(staging=staging, unindexed=unindexed)
+
+    def quarantine(self, episode_id: str, reason: str) -> EpisodeRow:
+        """Takes an episode out of training; returns its row as it is now.
+
+        For a file found missing or damaged (a training job does this itself, see
+        ``uncertainty.data.load_train``, so one lost file does not stop every retrain) or one an operator
+        rejects. Its row stays (what was acknowledged stays known), its file, when there is one, moves to
+        ``DATA/quarantine/<day>/``, and snapshots leave it out. ``restore``, or ingesting the same bytes
+        again, brings it back. Quarantining twice keeps the first reason. Episodes of the pinned eval split
+        cannot be quarantined (the split is fixed): restore their bytes instead.
+        """
+        reason = " ".join(str(reason).split())[:MAX_REASON_CHARS]
+        if not reason:
+            raise CatalogError("a quarantine needs a reason")
+        row = self.get(episode_id)
+        target = self.data_dir / QUARANTINE_DIR / row.path.parent.name / row.path.name
+        try:
+            with self._connect() as conn, transaction(conn):
+                if conn.execute("SELECT 1 FROM eval_split_members WHERE episode_id = ?", (row.episode_id,)).fetchone():
+                    raise CatalogError(f"episode {row.episode_id} is in the pinned eval split, which cannot change: "
+                                       "restore its file instead (ingest its bytes again, e.g. from a backup)")
+                if conn.execute("SELECT 1 FROM quarantine WHERE episode_id = ?", (row.episode_id,)).fetchone():
+                    return row
+                present = row.path.exists()
+                conn.execute("INSERT INTO quarantine(episode_id, reason, moved_to, at) VALUES (?, ?, ?, ?)",
+                             (row.episode_id, reason, target.relative_to(self.data_dir).as_posix() if present else "",
+                              time.time()))
+                if present:  # after the insert: a failed move rolls it back
+                    move(row.path, target)
+        except OSError as exc:
+            raise storage_error(exc, CatalogError, f"cannot move {row.path} to {target}: {exc.strerror or exc}",
+                                target) from exc
+        return self.get(row.episode_id)
+
+    def restore(self, episode_id: str) -> EpisodeRow:
+        """Puts a quarantined episode back into training; returns its row as it is now.
+
+        Its file moves back from ``DATA/quarantine/`` if it still holds the bytes indexed (or is already
+        back in place). ``CatalogError`` when it is not quarantined, or its file is gone or damaged: then
+        ingesting its original bytes again restores it.
+        """
+        row = self.get(episode_id)
+        try:
+            with self._connect() as conn, transaction(conn):
+                q = conn.execute("SELECT moved_to FROM quarantine WHERE episode_id = ?", (row.episode_id,)).fetchone()
+                if q is None:
+                    raise CatalogError(f"episode {row.episode_id} is not quarantined")
+                if not holds(row.path, row.sha256):
+                    kept = self.data_dir / q["moved_to"] if q["moved_to"] else None
+                    if kept is None or not holds(kept, row.sha256):
+                        state = ("its file was already missing when it was quarantined" if kept is None else
+                                 f"{kept} is missing" if not kept.exists() else
+                                 f"{kept} does not hold the bytes indexed (sha256 {row.sha256[:16]}...)")
+                        raise CatalogError(f"cannot restore episode {row.episode_id}: {state}; ingest its original "
+                                           "bytes again (activecollect ingest FILE), which restores it")
+                    move(kept, row.path)
+                conn.execute("DELETE FROM quarantine WHERE episode_id = ?", (row.episode_id,))
+        except OSError as exc:
+            raise storage_error(exc, CatalogError, f"cannot restore episode {row.episode_id} to {row.path}: "
+                                f"{exc.strerror or exc}", row.path) from exc
+        return self.get(row.episode_id)
 
     def verify(self, episode_id: str) -> EpisodeMeta:
         """Re-hashes and re-verifies an indexed episode's file; raises a ``StorageError`` if bad."""
@@ -602,14 +707,15 @@ class Catalog:
                          params=json.loads(head["params"]), created=head["created"])
 
     def snapshot(self, split: str = "train") -> Snapshot:
-        """The episodes of ``split`` now, with a content id. Training never sees eval episodes."""
+        """The episodes of ``split`` now, with a content id. Training never sees eval episodes, nor
+        quarantined ones."""
         _check_split(split)
         with self._connect() as conn:
             rows = conn.execute(
-                "SELECT episode_id, sha256 FROM episodes WHERE split = ? AND episode_id NOT IN "
-                "(SELECT episode_id FROM eval_split_members) ORDER BY episode_id"
-                if split == "train" else
-                "SELECT episode_id, sha256 FROM episodes WHERE split = ? ORDER BY episode_id",
-                (split,)).fetchall()
+                "SELECT episode_id, sha256 FROM episodes WHERE split = ? "
+                "AND episode_id NOT IN (SELECT episode_id FROM quarantine)"
+                + (" AND episode_id NOT IN (SELECT episode_id FROM eval_split_members)" if split == "train" else "")
+                + " ORDER BY episode_id", (split,)).fetchall()
         pairs = [(r["episode_id"], r["sha256"]) for r in rows]
-        return Snapshot(ids=[p[0] for p in pairs], snapshot_id=_content_hash(pairs)[:16])
+        return Snapshot(ids=[p[0] for p in pairs], snapshot_id=_content_hash(pairs)[:16],
+                        sha256s=[p[1] for p in pairs])

@@ -21,9 +21,19 @@ class ForeignFileError(EpisodeError):
     """The file is not an activecollect episode (not MCAP, or MCAP without our channels/metadata)."""
 
 
+class MissingEpisodeError(EpisodeError):
+    """An indexed episode's file is gone from disk (deleted, or moved aside by ``Catalog.quarantine``)."""
+
+
 class OversizedEpisodeError(EpisodeError):
     """The file's chunks would inflate to more than its frames need, or than the reader allows: refused
     before that memory is taken."""
+
+
+#: What reading an indexed episode raises when its file no longer holds what was acknowledged (gone, other
+#: bytes, an unreadable structure), unlike a read that may pass (permissions, I/O): what
+#: ``Catalog.quarantine`` is for.
+DAMAGED_EPISODE_ERRORS = (MissingEpisodeError, CorruptEpisodeError, TruncatedEpisodeError, ForeignFileError)
 
 
 class CatalogError(StorageError):

@@ -81,6 +81,24 @@ def publish(staged: Path, path: str | os.PathLike) -> None:
     fsync_dir(path.parent)
 
 
+def move(src: str | os.PathLike, dst: str | os.PathLike) -> None:
+    """Renames ``src`` to ``dst`` (on the same file system; its folder made as needed), durably: both
+    folders are fsynced, so after a crash the file is under one name or the other."""
+    src, dst = Path(src), Path(dst)
+    ensure_dir(dst.parent)
+    os.replace(src, dst)
+    fsync_dir(dst.parent)
+    fsync_dir(src.parent)
+
+
+def holds(path: str | os.PathLike, sha256: str) -> bool:
+    """Whether the file at ``path`` exists and its bytes hash to ``sha256``."""
+    try:
+        return sha256_hex(Path(path).read_bytes()) == sha256
+    except FileNotFoundError:
+        return False
+
+
 def write_bytes_atomic(path: str | os.PathLike, data: bytes) -> None:
     """Writes ``data`` to a temporary name in the same directory, fsyncs, renames, fsyncs the dir.
 

@@ -11,12 +11,13 @@ is also in the pinned eval split; evaluation reads only the eval split.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Protocol, Sequence
 
 import numpy as np
 import torch
 
+from storage.errors import DAMAGED_EPISODE_ERRORS
 from storage.records import Episode
 from uncertainty.errors import DataError
 from uncertainty.model import PredictorConfig
@@ -28,6 +29,7 @@ class CatalogLike(Protocol):
     def snapshot(self, split: str = "train"): ...
     def eval_split(self): ...
     def load(self, episode_id: str) -> Episode: ...
+    def quarantine(self, episode_id: str, reason: str): ...
 
 
 @dataclass
@@ -143,10 +145,17 @@ class TrainData:
     episodes: list[Episode]
     snapshot_id: str
     episode_ids: list[str]
+    quarantined: list[str] = field(default_factory=list)
+    """Episodes of the snapshot whose files were found missing or damaged, and quarantined."""
 
 
 def load_train(catalog: CatalogLike, max_episodes: int | None = None) -> TrainData:
-    """Loads the ``train`` snapshot; raises ``DataError`` if it is empty or overlaps the eval split."""
+    """Loads the ``train`` snapshot; raises ``DataError`` if it is empty or overlaps the eval split.
+
+    An episode whose file is missing or no longer holds the bytes indexed is quarantined
+    (``Catalog.quarantine``, which keeps its row and whatever is left of its file) and left out, so one
+    lost file does not stop every retrain: the snapshot id is then that of the episodes kept.
+    """
     snap = catalog.snapshot(split="train")
     ids = list(snap.ids)
     split = catalog.eval_split()
@@ -157,9 +166,20 @@ def load_train(catalog: CatalogLike, max_episodes: int | None = None) -> TrainDa
                             f"(first {leaked[0]}); the eval split must never be trained on")
     if not ids:
         raise DataError("the catalog has no train episodes; collect some first")
-    if max_episodes is not None:
-        ids = ids[:max_episodes]
-    return TrainData([catalog.load(i) for i in ids], snap.snapshot_id, ids)
+    episodes, kept, lost = [], [], []
+    for episode_id in ids:
+        if max_episodes is not None and len(kept) == max_episodes:
+            break
+        try:
+            episodes.append(catalog.load(episode_id))
+            kept.append(episode_id)
+        except DAMAGED_EPISODE_ERRORS as exc:
+            catalog.quarantine(episode_id, f"found by a training job: {exc}")
+            lost.append(episode_id)
+    if not kept:
+        raise DataError(f"the files of all {len(lost)} train episodes are missing or damaged (quarantined "
+                        "now); restore them from a backup (activecollect ingest), or collect new ones")
+    return TrainData(episodes, snap.without(lost).snapshot_id, kept, lost)
 
 
 def load_eval(catalog: CatalogLike) -> tuple[list[Episode], str]:

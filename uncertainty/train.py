@@ -52,6 +52,8 @@ class TrainResult:
     decision: GateDecision
     losses: list[float] = field(default_factory=list)
     """Mean training loss per epoch."""
+    quarantined: list[str] = field(default_factory=list)
+    """Train episodes whose files were found missing or damaged, quarantined and left out."""
 
 
 def _show_progress(flag: bool | None) -> bool:
@@ -311,4 +313,4 @@ def train_candidate(catalog: CatalogLike, registry: ModelRegistry, cfg: TrainCon
     version = save_candidate(registry, ensemble, metrics, data.snapshot_id, eval_hash, parent=parent,
                              train_config=used)
     decision = registry.gate(version, cfg.min_rel_improvement, eval_split_hash=eval_hash)
-    return TrainResult(version, metrics, decision, losses)
+    return TrainResult(version, metrics, decision, losses, data.quarantined)

@@ -7,7 +7,7 @@ import sys
 import time
 from datetime import datetime, timezone
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 from tqdm import tqdm
@@ -16,7 +16,7 @@ from orchestrator.cli import common
 from orchestrator.protocol import MAX_EPISODE_STEPS, POLICIES, SHAPES, physics_problem
 from storage.backup import backup, check_dest
 from storage.catalog import ORPHANS_DIR, SPLITS, Catalog, EpisodeRow
-from storage.errors import BackupError, CatalogError, StorageError, StorageUnavailableError
+from storage.errors import DAMAGED_EPISODE_ERRORS, BackupError, CatalogError, StorageError, StorageUnavailableError
 from workers import simbench
 from workers.collect import EvalSplitConflict, collect_episode, create_eval_split
 from workers.env import sample_state
@@ -53,20 +53,42 @@ def register(sub: argparse._SubParsersAction) -> None:
     common.add_json_arg(p)
     p.set_defaults(func=_collect)
 
-    episodes = sub.add_parser("episodes", help="the episode catalog: list, show, verify")
+    episodes = sub.add_parser("episodes", help="the episode catalog: list, show, verify, quarantine, restore")
     esub = episodes.add_subparsers(dest="episodes_command", metavar="ACTION", parser_class=common.Parser)
     esub.required = True
     p = esub.add_parser("ls", help="list indexed episodes, oldest first")
     p.add_argument("--split", choices=SPLITS)
     p.add_argument("--shape", choices=SHAPES)
     p.add_argument("--limit", type=common.positive_int, metavar="N", help="only the N newest")
+    p.add_argument("--quarantined", action="store_true", help="only the episodes taken out of training")
     p.set_defaults(func=_episodes_ls)
     p = esub.add_parser("show", help="one episode: catalog row and provenance")
     p.add_argument("episode_id", metavar="ID", help="episode id or a unique prefix of it")
     p.set_defaults(func=_episodes_show)
-    p = esub.add_parser("verify", help="re-hash and re-verify episode files (all when no ID); exit 1 if any is bad")
+    p = esub.add_parser("verify", help="re-hash and re-verify episode files (all when no ID); exit 1 if any is bad",
+                        description="Re-hash and re-verify the files of the episodes named (all not quarantined "
+                                    "when none is). Exit 1 when any is bad (missing, other bytes than indexed, "
+                                    "unreadable); with --quarantine the bad train episodes are also taken out "
+                                    "of training (exit 0 when that took care of every bad one).")
     p.add_argument("episode_ids", nargs="*", metavar="ID")
+    p.add_argument("--quarantine", action="store_true",
+                   help="quarantine the bad train episodes found (as a retrain would)")
     p.set_defaults(func=_episodes_verify)
+    p = esub.add_parser(
+        "quarantine", help="take episodes out of training; their files move to DATA/quarantine/",
+        description="Take episodes out of training: the catalog keeps their rows, their files move to "
+                    "DATA/quarantine/<day>/ and no snapshot includes them. Retrains do this themselves for "
+                    "files found missing or damaged. Episodes of the pinned eval split cannot be "
+                    "quarantined. `episodes restore`, or ingesting the same bytes again, brings them back.")
+    p.add_argument("episode_ids", nargs="+", metavar="ID", help="episode ids or unique prefixes")
+    p.add_argument("--reason", required=True, help="why (kept with the episode, one line)")
+    p.set_defaults(func=_episodes_quarantine)
+    p = esub.add_parser("restore", help="put quarantined episodes back into training",
+                        description="Move quarantined episodes' files back (when they still hold the bytes "
+                                    "indexed) and let training use them again. For one whose file is gone or "
+                                    "damaged, ingest its original bytes again instead (`activecollect ingest`).")
+    p.add_argument("episode_ids", nargs="+", metavar="ID", help="episode ids or unique prefixes")
+    p.set_defaults(func=_episodes_restore)
     for p in esub.choices.values():
         common.add_data_arg(p)
         common.add_json_arg(p)
@@ -175,20 +197,25 @@ def _collect(args: argparse.Namespace) -> int:
 
 def _episodes_ls(args: argparse.Namespace) -> int:
     cat = _existing_catalog(args)
-    rows = cat.list(split=args.split, shape=args.shape, limit=args.limit, newest_first=args.limit is not None)
+    quarantined = True if args.quarantined else None
+    rows = cat.list(split=args.split, shape=args.shape, limit=args.limit, newest_first=args.limit is not None,
+                    quarantined=quarantined)
     if args.limit is not None:
         rows.reverse()
     if args.json:
         common.print_json([r.to_json() for r in rows])
         return 0
     if not rows:
-        print(f"no episodes in {cat.data_dir}")
+        print(f"no {'quarantined ' if args.quarantined else ''}episodes in {cat.data_dir}")
         return 0
     print(f"{'EPISODE':<32}  {'SHAPE':<5} {'FRAMES':>6}  {'SPLIT':<5}  {'CREATED':<19}  {'SIZE':>8}  REQUEST")
     for r in rows:
         print(f"{r.episode_id:<32}  {r.shape:<5} {r.frames:>6}  {r.split:<5}  {r.created[:19]:<19}  "
               f"{r.size_bytes / 1e3:>6.0f}KB  {r.request_id or '-'}")
-    print(f"{len(rows)} of {cat.count()} episodes")
+        if r.quarantined:
+            print(f"  quarantined: {r.quarantined}")
+    held = cat.count(quarantined=True)
+    print(f"{len(rows)} of {cat.count()} episodes" + (f" ({held} quarantined)" if held else ""))
     return 0
 
 
@@ -208,30 +235,78 @@ def _episodes_show(args: argparse.Namespace) -> int:
 
 def _episodes_verify(args: argparse.Namespace) -> int:
     cat = _existing_catalog(args)
-    rows = [_resolve(cat, i) for i in args.episode_ids] if args.episode_ids else cat.list()
+    rows = [_resolve(cat, i) for i in args.episode_ids] if args.episode_ids else cat.list(quarantined=False)
     report = []
     for row in tqdm(rows, unit="ep", desc="verify", file=sys.stderr, disable=None):
+        entry = {"episode_id": row.episode_id, "ok": True, "error": "", "quarantined": bool(row.quarantined)}
         try:
             cat.verify(row.episode_id)
-            report.append({"episode_id": row.episode_id, "ok": True, "error": ""})
         except StorageError as exc:
-            report.append({"episode_id": row.episode_id, "ok": False,
-                           "error": f"{type(exc).__name__}: {exc}"})
+            entry.update(ok=False, error=f"{type(exc).__name__}: {exc}")
+            if args.quarantine and not row.quarantined and isinstance(exc, DAMAGED_EPISODE_ERRORS):
+                entry["quarantined"] = _quarantine_bad(cat, row, exc)
+        report.append(entry)
     bad = [r for r in report if not r["ok"]]
+    unresolved = [r for r in bad if not r["quarantined"]]
     strays = cat.strays() if not args.episode_ids else None
     stray_paths = [str(p) for p in (strays.staging + strays.unindexed)] if strays else []
     if args.json:
-        common.print_json({"checked": len(report), "bad": len(bad), "episodes": report, "strays": stray_paths})
+        common.print_json({"checked": len(report), "bad": len(bad), "episodes": report, "strays": stray_paths,
+                           "quarantined": cat.count(quarantined=True)})
     else:
         for r in bad:
-            print(f"BAD {r['episode_id']}: {r['error']}")
-        print(f"verified {len(report)} episodes: {len(report) - len(bad)} ok, {len(bad)} bad")
+            print(f"BAD {r['episode_id']}: {r['error']}" + (" (quarantined)" if r["quarantined"] else ""))
+        held = cat.count(quarantined=True)
+        print(f"verified {len(report)} episodes: {len(report) - len(bad)} ok, {len(bad)} bad"
+              + (f"; {held} quarantined in all (`episodes ls --quarantined`)" if held else ""))
         if stray_paths:  # never acknowledged, so not an error; `serve` moves them aside when it starts
             print(f"{len(stray_paths)} file(s) left by a crashed ingest, not in the catalog "
                   f"(`serve` moves them to {ORPHANS_DIR}/ at start-up):")
             for path in stray_paths:
                 print(f"  {path}")
-    return 1 if bad else 0
+    return 1 if (unresolved if args.quarantine else bad) else 0
+
+
+def _quarantine_bad(cat: Catalog, row: EpisodeRow, exc: StorageError) -> bool:
+    """Quarantines a bad episode ``verify`` found; False (with a line on stderr) when it cannot be."""
+    try:
+        cat.quarantine(row.episode_id, f"found by episodes verify: {exc}")
+        return True
+    except CatalogError as why:
+        print(f"activecollect: cannot quarantine {row.episode_id}: {why}", file=sys.stderr)
+        return False
+
+
+def _episodes_quarantine(args: argparse.Namespace) -> int:
+    cat = _existing_catalog(args)
+    if not args.reason.strip():
+        raise common.UsageError("--reason must say why")
+    rows = [_resolve(cat, i) for i in args.episode_ids]  # all known before any changes
+    return _each(args, rows, lambda row: cat.quarantine(row.episode_id, args.reason), "quarantined")
+
+
+def _episodes_restore(args: argparse.Namespace) -> int:
+    cat = _existing_catalog(args)
+    rows = [_resolve(cat, i) for i in args.episode_ids]
+    return _each(args, rows, lambda row: cat.restore(row.episode_id), "restored")
+
+
+def _each(args: argparse.Namespace, rows: list[EpisodeRow], change: Callable[[EpisodeRow], EpisodeRow],
+          done: str) -> int:
+    """Applies ``change`` to each row, reporting each; exit 1 when any was refused."""
+    report = []
+    for row in rows:
+        try:
+            now = change(row)
+            report.append({"episode_id": row.episode_id, "ok": True, "quarantined": now.quarantined})
+            if not args.json:
+                print(f"{done} {row.episode_id}" + (f": {now.quarantined}" if now.quarantined else ""))
+        except StorageError as exc:
+            report.append({"episode_id": row.episode_id, "ok": False, "error": str(exc)})
+            print(f"activecollect: {exc}", file=sys.stderr)
+    if args.json:
+        common.print_json(report)
+    return 0 if all(r["ok"] for r in report) else 1
 
 
 # -- ingest ------------------------------------------------------------------------------------
@@ -241,7 +316,10 @@ def _expand(paths: list[Path]) -> list[Path]:
     files = []
     for path in paths:
         if path.is_dir():
-            files.extend(sorted(p for p in path.rglob("*.mcap") if not p.name.startswith(".")))
+            found = sorted(p for p in path.rglob("*.mcap") if not p.name.startswith("."))
+            if not found:
+                raise common.UsageError(f"no .mcap files under {path}")
+            files.extend(found)
         elif path.exists():
             files.append(path)
         else:
@@ -265,9 +343,9 @@ def _ingest(args: argparse.Namespace) -> int:
                 print(f"activecollect: refused {path}: {exc}", file=sys.stderr)
             continue
         report.append({"path": str(path), "ok": True, "episode_id": res.episode_id,
-                       "duplicate": res.duplicate, "stored": str(res.path)})
+                       "duplicate": res.duplicate, "restored": res.restored, "stored": str(res.path)})
         if not args.json:
-            state = "already indexed" if res.duplicate else "ingested"
+            state = "restored" if res.restored else "already indexed" if res.duplicate else "ingested"
             print(f"{state} {res.episode_id} from {path}")
     refused = sum(not r["ok"] for r in report)
     if args.json:

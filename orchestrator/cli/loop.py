@@ -278,7 +278,7 @@ def _retrain(args: argparse.Namespace) -> int:
         raise common.UsageError(str(exc)) from None
     common.require_catalog(args.data)  # checked before the retrain lock would make the directory
     # torch: imported once the arguments are known good (start-up cost)
-    from orchestrator.retrain import abandoned_note, run_retrain
+    from orchestrator.retrain import abandoned_note, quarantined_note, run_retrain
     try:
         result = run_retrain(args.data, cfg, wait=args.wait, keep_models=args.keep_models)
     except RetrainBusyError as exc:
@@ -297,6 +297,8 @@ def _retrain(args: argparse.Namespace) -> int:
               f"champion {result['champion']}")
         if result["abandoned"]:
             print(f"  {abandoned_note(result['abandoned'])}")
+    if result["quarantined"]:
+        print(f"activecollect retrain: warning: {quarantined_note(result['quarantined'])}", file=sys.stderr)
         if result["pruned"]:
             print(f"  pruned the files of {', '.join(result['pruned'])}")
     if result["prune_error"]:

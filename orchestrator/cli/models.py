@@ -287,7 +287,7 @@ def _train(args: argparse.Namespace) -> int:
     except ConfigError as exc:
         raise common.UsageError(str(exc)) from None
     # torch: imported once the arguments are known good (start-up cost, not a cycle)
-    from orchestrator.retrain import abandoned_note, training_job
+    from orchestrator.retrain import abandoned_note, quarantined_note, training_job
     from uncertainty.train import train_candidate
     try:
         with training_job(data, wait=args.wait) as (catalog, registry, abandoned):
@@ -298,10 +298,13 @@ def _train(args: argparse.Namespace) -> int:
         return EXIT_BUSY
     except (UncertaintyError, StorageError) as exc:
         return _fail(f"training failed: {exc}")
+    if result.quarantined:
+        print(f"activecollect train: warning: {quarantined_note(result.quarantined)}", file=sys.stderr)
     if args.json:
         common.print_json(_strict({"version": result.version, "metrics": result.metrics,
                                    "decision": result.decision.to_json(), "losses": result.losses,
-                                   "champion": champion, "abandoned": abandoned}))
+                                   "champion": champion, "abandoned": abandoned,
+                                   "quarantined": result.quarantined}))
         return 0
     if abandoned:
         print(abandoned_note(abandoned))

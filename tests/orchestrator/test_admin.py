@@ -8,6 +8,7 @@ import sqlite3
 from collections import Counter
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from orchestrator import admin, messages, protocol
@@ -153,7 +154,13 @@ def test_stats_with_a_catalog(queue: RequestQueue, tmp_path: Path) -> None:
     catalog_mod = pytest.importorskip("storage.catalog")
     catalog = catalog_mod.Catalog(tmp_path)
     stats = call("stats", queue=queue, catalog=catalog)
-    assert stats["episodes"] == {"train": 0, "eval": 0, "total": 0}
+    assert stats["episodes"] == {"train": 0, "eval": 0, "total": 0, "quarantined": 0}
+    from tests.storage.test_episodes import make_episode
+    rng = np.random.default_rng(0)
+    _, lost = (catalog.add_episode(make_episode(rng)).episode_id for _ in range(2))
+    catalog.quarantine(lost, "operator: wrong object")
+    stats = call("stats", queue=queue, catalog=catalog)
+    assert stats["episodes"] == {"train": 2, "eval": 0, "total": 2, "quarantined": 1}
     assert stats["disk"]["size_bytes"] == shutil.disk_usage(tmp_path).total and stats["disk"]["free_bytes"] > 0
 
 

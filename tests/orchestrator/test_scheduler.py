@@ -313,3 +313,21 @@ def test_a_failing_prune_does_not_fail_the_retrain(trained, tmp_path, monkeypatc
     assert result["pruned"] == [] and "No space left on device" in result["prune_error"]
     assert result["version"] in [m.version for m in ModelRegistry(data).list()]
     assert ModelRegistry(data).champion() == result["champion"]
+
+
+def test_a_retrain_quarantines_a_lost_train_file_and_trains_on_the_rest(trained, tmp_path):
+    from orchestrator.retrain import quarantined_note
+    data = tmp_path / "copy"
+    shutil.copytree(trained, data)
+    catalog = Catalog(data)
+    lost = catalog.list(split="train")[2]
+    lost.path.unlink()  # a disk error, an operator's mistake: the file of an acknowledged episode is gone
+    done = retrain(data, "--epochs", "1")
+    assert done.returncode == 0, done.stderr
+    result = json.loads(done.stdout)
+    assert result["quarantined"] == [lost.episode_id] and result["metrics"]["train_episodes"] == 5
+    assert quarantined_note([lost.episode_id]) in done.stderr
+    assert catalog.get(lost.episode_id).quarantined.startswith("found by a training job: ")
+    assert ModelRegistry(data).get(result["version"]).snapshot_id == catalog.snapshot().snapshot_id
+    again = retrain(data, "--epochs", "1")  # the next job trains on the same snapshot, nothing new to say
+    assert again.returncode == 0 and json.loads(again.stdout)["quarantined"] == [] and again.stderr == ""

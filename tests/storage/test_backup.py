@@ -223,3 +223,39 @@ def test_a_data_directory_from_before_pruning_is_backed_up_at_the_current_schema
     assert ModelRegistry(tmp_path / "b").load_weights("m000001-00000000") == weights
     with connection(data / DB_NAME, RegistryError) as conn:  # the source itself is left as it was
         assert "pruned_at" not in {r["name"] for r in conn.execute("PRAGMA table_info(models)")}
+
+
+def test_quarantined_episodes_are_backed_up_as_quarantined(tmp_path, rng) -> None:
+    data, dest = tmp_path / "data", tmp_path / "b"
+    want = _filled(data, rng)
+    cat = Catalog(data)
+    kept = cat.quarantine(want["train"][0], "operator: blurred")
+    cat.get(want["train"][1]).path.unlink()
+    cat.quarantine(want["train"][1], "found by a training job: missing")
+
+    result = backup(data, dest)
+
+    assert result.problems == [] and result.episodes == 3  # one train, two eval
+    copy = Catalog(dest)
+    assert {r.episode_id: r.quarantined for r in copy.list(quarantined=True)} == {
+        want["train"][0]: "operator: blurred", want["train"][1]: "found by a training job: missing"}
+    assert copy.restore(want["train"][0]).quarantined == "" and copy.verify(want["train"][0])
+    assert not kept.path.exists()  # the source is as it was
+
+
+def test_an_episode_quarantined_during_the_backup_is_quarantined_in_it(tmp_path, rng) -> None:
+    data, dest = tmp_path / "data", tmp_path / "b"
+    want = _filled(data, rng)
+    cat = Catalog(data)
+    last = max((cat.get(i) for i in want["train"]), key=lambda r: str(r.path)).episode_id
+
+    def quarantine_once(done: int, total: int) -> None:  # after the snapshot, before that file is copied
+        if done == 1:
+            cat.quarantine(last, "operator: wrong object")
+
+    result = backup(data, dest, progress=quarantine_once)
+
+    assert result.problems == []
+    copy = Catalog(dest)
+    assert copy.get(last).quarantined == "operator: wrong object"
+    assert copy.restore(last).quarantined == "" and copy.verify(last)

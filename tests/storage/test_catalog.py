@@ -21,6 +21,7 @@ from storage.errors import (
     CorruptEpisodeError,
     EpisodeError,
     ForeignFileError,
+    MissingEpisodeError,
     RegistryError,
     TruncatedEpisodeError,
 )
@@ -52,7 +53,7 @@ def test_layout_and_wal(cat):
     with connect(cat.db_path) as conn:
         assert conn.execute("PRAGMA journal_mode").fetchone()[0] == "wal"
         versions = dict(conn.execute("SELECT component, version FROM schema_versions").fetchall())
-    assert versions == {"catalog": 1}
+    assert versions == {"catalog": 2}
     Catalog(cat.data_dir)  # reopening is harmless
 
 
@@ -481,3 +482,105 @@ def test_a_lost_catalog_beside_its_data_is_refused_not_started_over(tmp_path, lo
             store(data)
     assert row.path.is_file() and catalog.db_path.exists() == (loss == "empty")
     assert catalog.db_path.exists() is False or catalog.db_path.stat().st_size == 0
+
+
+# --- quarantine ----------------------------------------------------------------------------------
+
+
+def test_duplicate_bytes_repair_a_damaged_file(cat, rng):
+    ep = make_episode(rng)
+    res = cat.add_episode(ep)
+    res.path.write_bytes(res.path.read_bytes()[:-10])
+    again = cat.add_episode(ep)
+    assert again.duplicate and again.restored
+    assert cat.verify(ep.meta.episode_id) == ep.meta
+    assert not cat.add_episode(ep).restored  # intact now: nothing to do
+
+
+def test_quarantine_moves_the_file_aside_keeps_the_row_and_leaves_snapshots(cat, rng):
+    eps = [make_episode(rng) for _ in range(3)]
+    for ep in eps:
+        cat.add_episode(ep)
+    ids = [e.meta.episode_id for e in eps]
+    before = cat.snapshot()
+    row = cat.quarantine(ids[1], "camera\nglitch  ")
+    assert row.quarantined == "camera glitch"  # one line
+    assert not row.path.exists()
+    kept = cat.data_dir / "quarantine" / row.path.parent.name / row.path.name
+    assert files.sha256_hex(kept.read_bytes()) == row.sha256
+    assert cat.snapshot().ids == sorted([ids[0], ids[2]]) == before.without([ids[1]]).ids
+    assert cat.snapshot().snapshot_id == before.without([ids[1]]).snapshot_id != before.snapshot_id
+    assert cat.count() == 3 and cat.count(quarantined=True) == 1 and cat.count(quarantined=False) == 2
+    assert [r.episode_id for r in cat.list(quarantined=True)] == [ids[1]]
+    assert cat.summary()["quarantined"] == 1
+    assert cat.quarantine(ids[1], "other reason").quarantined == "camera glitch"  # the first reason stays
+    with pytest.raises(MissingEpisodeError, match="quarantined .camera glitch.; .*episodes restore"):
+        cat.load(ids[1])
+    assert cat.strays().unindexed == []  # the moved file is not a crash's leftover
+    restored = cat.restore(ids[1])
+    assert restored.quarantined == "" and not kept.exists()
+    assert cat.snapshot() == before
+    assert_same(cat.load(ids[1]), eps[1])
+    with pytest.raises(CatalogError, match="is not quarantined"):
+        cat.restore(ids[1])
+
+
+def test_a_quarantined_episode_whose_file_is_gone_comes_back_with_its_bytes(cat, rng):
+    ep = make_episode(rng)
+    res = cat.add_episode(ep)
+    res.path.unlink()
+    assert cat.quarantine(ep.meta.episode_id, "lost").quarantined == "lost"
+    with pytest.raises(CatalogError, match="already missing when it was quarantined; ingest its original bytes"):
+        cat.restore(ep.meta.episode_id)
+    assert cat.count(quarantined=True) == 1
+    again = cat.add_episode(ep)
+    assert again.restored and cat.find(ep.meta.episode_id).quarantined == ""
+    assert cat.verify(ep.meta.episode_id) == ep.meta
+
+
+def test_restore_refuses_a_quarantined_file_that_was_damaged(cat, rng):
+    ep = make_episode(rng)
+    cat.add_episode(ep)
+    row = cat.quarantine(ep.meta.episode_id, "suspect")
+    kept = cat.data_dir / "quarantine" / row.path.parent.name / row.path.name
+    kept.write_bytes(kept.read_bytes()[:-1])
+    with pytest.raises(CatalogError, match="does not hold the bytes indexed"):
+        cat.restore(ep.meta.episode_id)
+    assert cat.find(ep.meta.episode_id).quarantined == "suspect" and not row.path.exists()
+
+
+def test_the_pinned_eval_split_and_empty_reasons_cannot_be_quarantined(cat, rng):
+    ep = make_episode(rng)
+    cat.add_episode(ep, split="eval")
+    cat.pin_eval_split([ep.meta.episode_id])
+    with pytest.raises(CatalogError, match="pinned eval split, which cannot change"):
+        cat.quarantine(ep.meta.episode_id, "bad")
+    with pytest.raises(CatalogError, match="needs a reason"):
+        cat.quarantine(ep.meta.episode_id, " \n")
+    assert cat.count(quarantined=True) == 0 and cat.get(ep.meta.episode_id).path.exists()
+
+
+def test_a_failed_move_quarantines_nothing(cat, rng, monkeypatch):
+    ep = make_episode(rng)
+    res = cat.add_episode(ep)
+
+    def full_disk(src, dst):
+        raise OSError(28, "No space left on device")
+    monkeypatch.setattr("storage.catalog.move", full_disk)
+    with pytest.raises(CatalogError, match="No space left on device"):
+        cat.quarantine(ep.meta.episode_id, "bad")
+    assert cat.count(quarantined=True) == 0 and res.path.exists()
+
+
+def test_a_version_1_catalog_is_migrated_with_its_episodes(tmp_path, rng):
+    data = tmp_path / "old"
+    ep = make_episode(rng)
+    Catalog(data).add_episode(ep)
+    with connect(data / "catalog.sqlite") as conn:  # back to the catalog's tables as the first release made them
+        conn.execute("DROP TABLE quarantine")
+        conn.execute("UPDATE schema_versions SET version = 1 WHERE component = 'catalog'")
+    cat = Catalog(data)
+    with connect(data / "catalog.sqlite") as conn:
+        assert dict(conn.execute("SELECT component, version FROM schema_versions").fetchall()) == {"catalog": 2}
+    assert cat.list()[0].quarantined == "" and cat.snapshot().ids == [ep.meta.episode_id]
+    assert cat.quarantine(ep.meta.episode_id, "x").quarantined == "x"

@@ -72,3 +72,36 @@ def test_train_and_eval_splits_never_mix(tmp_path):
 def test_empty_train_split_is_refused(tmp_path):
     with pytest.raises(DataError, match="no train episodes"):
         load_train(Catalog(tmp_path))
+
+
+def test_a_lost_or_damaged_train_file_is_quarantined_and_training_goes_on(tmp_path):
+    cat = Catalog(tmp_path)
+    ids = sorted(cat.add_episode(make_episode(s, steps=5)).episode_id for s in range(4))
+    full = cat.snapshot()
+    cat.get(ids[0]).path.unlink()
+    damaged = cat.get(ids[2]).path
+    damaged.write_bytes(damaged.read_bytes()[:-3])
+    train = load_train(cat)
+    assert train.episode_ids == [ids[1], ids[3]] and len(train.episodes) == 2
+    assert train.quarantined == [ids[0], ids[2]]
+    assert train.snapshot_id == cat.snapshot().snapshot_id == full.without([ids[0], ids[2]]).snapshot_id
+    reasons = {r.episode_id: r.quarantined for r in cat.list(quarantined=True)}
+    assert reasons[ids[0]].startswith("found by a training job: ") and "is missing" in reasons[ids[0]]
+    assert "sha256 is" in reasons[ids[2]]
+    assert load_train(cat).quarantined == []  # the next job finds them out already
+
+
+def test_max_episodes_counts_only_the_episodes_loaded(tmp_path):
+    cat = Catalog(tmp_path)
+    ids = sorted(cat.add_episode(make_episode(s, steps=5)).episode_id for s in range(3))
+    cat.get(ids[0]).path.unlink()
+    assert load_train(cat, max_episodes=2).episode_ids == ids[1:]
+
+
+def test_when_every_train_file_is_lost_the_job_says_so(tmp_path):
+    cat = Catalog(tmp_path)
+    lost = cat.add_episode(make_episode(0, steps=5))
+    lost.path.unlink()
+    with pytest.raises(DataError, match="the files of all 1 train episodes are missing or damaged"):
+        load_train(cat)
+    assert cat.count(quarantined=True) == 1
