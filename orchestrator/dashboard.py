@@ -1,7 +1,7 @@
 """The read-only HTTP dashboard: one page, JSON under ``/api/``, Prometheus text at ``/metrics``.
 
 Standard library only (``http.server.ThreadingHTTPServer``), bound to a local
-port. Every handler is a GET that reads; nothing changes state. The data comes
+port. Every handler is a GET (or HEAD) that reads; nothing changes state. The data comes
 from ``DashboardSources``, a bundle of callables, so the same server shows an
 in-process service (``activecollect run``) or just a data directory.
 
@@ -19,6 +19,7 @@ import logging
 import math
 import socket
 import threading
+import time
 from dataclasses import dataclass, field
 from http import HTTPStatus
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
@@ -36,6 +37,8 @@ from storage.queue import RequestQueue
 log = logging.getLogger(__name__)
 
 PROMETHEUS_CONTENT_TYPE = "text/plain; version=0.0.4; charset=utf-8"
+SERVER_NAME = "activecollect-dashboard"
+"""The ``Server`` header: no version of this package or of Python for a scanner to match."""
 
 
 @dataclass
@@ -51,13 +54,17 @@ class DashboardConfig:
     queue_rows: int = 50
     """How many of the latest requests the queue table shows."""
     request_timeout_s: float = 10.0
-    """How long a client may take to send its request: a stalled one does not hold a thread longer."""
+    """How long a client may take to send its whole request (line and headers), however it trickles in."""
+    max_connections: int = 32
+    """Connections served at once; one more is answered 503 (``Retry-After``) and closed, given no thread."""
 
     def __post_init__(self) -> None:
         if not 0 <= self.port <= 65535:
             raise ValueError(f"port must be in [0, 65535], found {self.port}")
         if not self.request_timeout_s > 0:
             raise ValueError(f"request_timeout_s must be > 0, found {self.request_timeout_s}")
+        if self.max_connections < 1:
+            raise ValueError(f"max_connections must be >= 1, found {self.max_connections}")
         if self.refresh_s <= 0 or self.queue_rows < 1:
             raise ValueError(f"refresh_s > 0 and queue_rows >= 1 expected, found {self.refresh_s}, {self.queue_rows}")
 
@@ -76,8 +83,55 @@ class DashboardSources:
 
 
 class _Server(ThreadingHTTPServer):
+    """A thread per connection, at most ``max_connections`` of them; one more is refused from the accepting thread."""
+
     daemon_threads = True
     request_queue_size = socket.SOMAXCONN  # the default 5 made a burst of scrapes wait on SYN retries
+
+    def __init__(self, address: tuple[str, int], handler: type[BaseHTTPRequestHandler], max_connections: int) -> None:
+        self._slots = threading.BoundedSemaphore(max_connections)
+        super().__init__(address, handler)
+
+    def process_request(self, request: socket.socket, client_address: Any) -> None:
+        if not self._slots.acquire(blocking=False):
+            log.debug("dashboard: %s refused, already serving the most connections at once", client_address)
+            _refuse(request)
+            self.shutdown_request(request)
+            return
+        try:
+            super().process_request(request, client_address)
+        except BaseException:  # no thread started, so none will give the slot back
+            self._slots.release()
+            raise
+
+    def process_request_thread(self, request: socket.socket, client_address: Any) -> None:
+        try:  # the base class catches the handler's exceptions and closes the socket; the slot goes back after
+            super().process_request_thread(request, client_address)
+        finally:
+            self._slots.release()
+
+
+_BUSY_BODY = b"the dashboard is serving too many connections; retry in a second\n"
+_BUSY = (b"HTTP/1.0 503 Service Unavailable\r\n"
+         b"Server: " + SERVER_NAME.encode() + b"\r\n"
+         b"Retry-After: 1\r\n"
+         b"Content-Type: text/plain; charset=utf-8\r\n"
+         b"Content-Length: " + str(len(_BUSY_BODY)).encode() + b"\r\n"
+         b"Connection: close\r\n"
+         b"\r\n" + _BUSY_BODY)
+
+
+def _refuse(sock: socket.socket) -> None:
+    """Answer 503 without ever blocking the accepting thread: a client that cannot take it now goes without."""
+    sock.setblocking(False)
+    try:
+        sock.send(_BUSY)
+    except OSError as exc:  # its buffer is full or it is gone; it is closed either way
+        log.debug("dashboard: the 503 was not sent: %s", exc)
+    try:  # what the client already sent: closing over unread bytes resets the connection, and may lose the 503
+        sock.recv(65536)
+    except OSError:  # nothing has arrived yet (BlockingIOError), or the client is gone: nothing to read
+        pass
 
 
 class Dashboard:
@@ -98,7 +152,7 @@ class Dashboard:
 
     def start(self) -> None:
         handler = type("Handler", (_Handler,), {"dashboard": self, "timeout": self.cfg.request_timeout_s})
-        self._server = _Server((self.cfg.host, self.cfg.port), handler)
+        self._server = _Server((self.cfg.host, self.cfg.port), handler, self.cfg.max_connections)
         self._thread = threading.Thread(target=self._server.serve_forever, name="dashboard", daemon=True)
         self._thread.start()
         log.info("dashboard on %s", self.url)
@@ -132,9 +186,60 @@ class Dashboard:
         return 404, "text/plain; charset=utf-8", f"no such page: {path}\n".encode()
 
 
+class _DeadlineReader(io.RawIOBase):
+    """The reading side of a socket whose every read ends by ``deadline`` (``time.monotonic()``).
+
+    The socket's own timeout bounds each read; a client sending a byte every few seconds
+    would pass each one. Writes keep the socket's timeout.
+    """
+
+    def __init__(self, sock: socket.socket) -> None:
+        self._sock = sock
+        self.deadline = math.inf
+
+    def readable(self) -> bool:
+        return True
+
+    def readinto(self, buf: Any) -> int:
+        left = self.deadline - time.monotonic()
+        if left <= 0:
+            raise TimeoutError("the client did not send its request in time")
+        per_read = self._sock.gettimeout()
+        self._sock.settimeout(left if per_read is None else min(left, per_read))
+        try:
+            return self._sock.recv_into(buf)
+        finally:
+            self._sock.settimeout(per_read)
+
+
 class _Handler(BaseHTTPRequestHandler):
+    """GET and HEAD; every other method is 405. One request per connection (HTTP/1.0, the base class's default)."""
+
     dashboard: Dashboard
-    server_version = "activecollect-dashboard"
+    server_version = SERVER_NAME
+
+    def setup(self) -> None:
+        super().setup()
+        self.rfile.close()  # the base class's reader; an open one would keep the socket from closing
+        self._reader = _DeadlineReader(self.connection)
+        self.rfile = io.BufferedReader(self._reader)
+
+    def handle_one_request(self) -> None:
+        # the base class answers a TimeoutError from any read by dropping the connection, as for a stalled client
+        self._reader.deadline = time.monotonic() + self.timeout
+        super().handle_one_request()
+
+    def parse_request(self) -> bool:
+        if not super().parse_request():  # it has answered the error
+            return False
+        if self.command not in ("GET", "HEAD"):  # rather than the base class's 501 for methods with no do_*
+            self._send(HTTPStatus.METHOD_NOT_ALLOWED, "text/plain; charset=utf-8",
+                       f"method not allowed: {self.command}\n".encode(), {"Allow": "GET, HEAD"})
+            return False
+        return True
+
+    def version_string(self) -> str:
+        return self.server_version  # the base class appends Python's version
 
     def do_GET(self) -> None:  # noqa: N802 (http.server's naming)
         try:
@@ -149,17 +254,18 @@ class _Handler(BaseHTTPRequestHandler):
             status, ctype, body = 500, "text/plain; charset=utf-8", f"{type(exc).__name__}: {exc}\n".encode()
         self._send(status, ctype, body)
 
-    def _send(self, status: int, ctype: str, body: bytes) -> None:
+    do_HEAD = do_GET  # noqa: N815 (the same headers; _send leaves the body out)
+
+    def _send(self, status: int, ctype: str, body: bytes, headers: dict[str, str] | None = None) -> None:
         self.send_response(status)
         self.send_header("Content-Type", ctype)
         self.send_header("Content-Length", str(len(body)))
         self.send_header("Cache-Control", "no-store")
+        for name, value in (headers or {}).items():
+            self.send_header(name, value)
         self.end_headers()
-        self.wfile.write(body)
-
-    def do_HEAD(self) -> None:  # noqa: N802
-        self.send_response(HTTPStatus.METHOD_NOT_ALLOWED)
-        self.end_headers()
+        if self.command != "HEAD":
+            self.wfile.write(body)
 
     def log_message(self, format: str, *args: Any) -> None:  # noqa: A002 (signature of the base class)
         log.debug("dashboard: " + format, *args)

@@ -6,14 +6,20 @@ driven over the DevTools protocol with ``websocket-client``.
 
 from __future__ import annotations
 
+import contextlib
+import http.client
 import json
 import os
+import select
 import shutil
 import socket
+import struct
 import subprocess
+import time
 import urllib.error
 import urllib.request
 from pathlib import Path
+from typing import Iterator
 from urllib.parse import urlsplit
 
 import numpy as np
@@ -91,6 +97,115 @@ def test_a_stalled_client_is_let_go(stores):
             assert conn.recv(4096) == b""  # closed by the server, not held until this client gives up
     finally:
         dash.stop()
+
+
+@contextlib.contextmanager
+def serving(data_dir: Path, **cfg) -> Iterator[Dashboard]:
+    """A dashboard over ``data_dir`` on a free port, with ``cfg`` for its DashboardConfig."""
+    dash = Dashboard(DashboardConfig(port=0, **cfg), DataSources(data_dir).sources())
+    dash.start()
+    try:
+        yield dash
+    finally:
+        dash.stop()
+
+
+def request(url: str, method: str, path: str) -> tuple[int, http.client.HTTPMessage, bytes]:
+    parts = urlsplit(url)
+    conn = http.client.HTTPConnection(parts.hostname, parts.port, timeout=10)
+    try:
+        conn.request(method, path)
+        r = conn.getresponse()
+        return r.status, r.headers, r.read()
+    finally:
+        conn.close()
+
+
+def status_or_none(url: str) -> int | None:
+    """The status of a GET, or None when the connection is refused or cut (as the server's 503 may be)."""
+    try:
+        return get(url)[0]
+    except (OSError, http.client.HTTPException):
+        return None
+
+
+def read_to_close(conn: socket.socket) -> bytes:
+    chunks = []
+    while chunk := conn.recv(4096):
+        chunks.append(chunk)
+    return b"".join(chunks)
+
+
+def test_a_client_trickling_its_request_is_let_go_at_the_deadline(stores):
+    timeout = 0.5
+    with serving(stores[0], request_timeout_s=timeout, max_connections=1) as dash:
+        with _raw_http(dash.url, b"GET /api/stats HTTP/1.0\r\nX-Slow: ") as conn:
+            give_up, closed = time.monotonic() + 10 * timeout, False
+            while not closed and time.monotonic() < give_up:
+                try:  # a byte every 50 ms: each read is quick, the request as a whole never ends
+                    conn.sendall(b"x")
+                    if select.select([conn], [], [], 0.05)[0]:  # paces the trickle and sees the server close
+                        closed = conn.recv(4096) == b""
+                except (ConnectionResetError, BrokenPipeError):
+                    closed = True
+            assert closed, f"the server still read the trickle {10 * timeout:g} s on (request_timeout_s={timeout:g})"
+        # the connection's one slot came back
+        wait_for(lambda: status_or_none(dash.url + "api/workers") == 200, message="a GET to be served again")
+
+
+def test_connections_over_the_cap_get_503_and_the_cap_frees_as_they_close(stores):
+    with serving(stores[0], max_connections=2, request_timeout_s=60) as dash:
+        host, port = urlsplit(dash.url).hostname, urlsplit(dash.url).port
+        idle = [socket.create_connection((host, port), timeout=10) for _ in range(2)]  # accepted first, in order
+        try:
+            with socket.create_connection((host, port), timeout=5) as extra:
+                response = read_to_close(extra)  # at once: not after the 60 s the idle ones may take
+            head = response.split(b"\r\n\r\n")[0].split(b"\r\n")
+            assert head[0] == b"HTTP/1.0 503 Service Unavailable" and b"Retry-After: 1" in head
+        finally:
+            for conn in idle:
+                conn.close()
+        wait_for(lambda: status_or_none(dash.url + "api/workers") == 200, message="a GET once the idle ones closed")
+
+
+def test_a_client_that_resets_mid_request_gives_its_slot_back(stores):
+    with serving(stores[0], max_connections=1, request_timeout_s=60) as dash:
+        vanishing = _raw_http(dash.url, b"GET /api/stats HTTP/1.0\r\nX-Partial: ")  # takes the one slot
+        with socket.create_connection(vanishing.getpeername(), timeout=5) as extra:
+            assert read_to_close(extra).startswith(b"HTTP/1.0 503 ")
+        vanishing.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, struct.pack("ii", 1, 0))
+        vanishing.close()  # linger 0: a reset, so the handler's read raises rather than ends
+        wait_for(lambda: status_or_none(dash.url + "api/workers") == 200, message="a GET after the reset")
+
+
+def test_max_connections_must_be_positive():
+    with pytest.raises(ValueError, match="max_connections"):
+        DashboardConfig(max_connections=0)
+
+
+@pytest.mark.parametrize("method", ["POST", "PUT", "DELETE", "PATCH", "OPTIONS", "TRACE"])
+def test_methods_other_than_get_and_head_are_405_with_allow(dashboard, method):
+    dash, _, _ = dashboard
+    status, headers, body = request(dash.url, method, "/api/stats")
+    assert status == 405 and headers["Allow"] == "GET, HEAD" and method.encode() in body
+
+
+def test_head_gives_the_headers_of_get_without_a_body(dashboard):
+    dash, _, _ = dashboard
+    get_status, get_headers, get_body = request(dash.url, "GET", "/api/workers")
+    head_status, head_headers, head_body = request(dash.url, "HEAD", "/api/workers")
+    assert get_status == head_status == 200 and get_body and head_body == b""
+    for name in ("Content-Type", "Content-Length", "Cache-Control"):
+        assert head_headers[name] == get_headers[name]
+
+
+@pytest.mark.parametrize("raw", [b"GET /api/workers HTTP/1.0\r\n\r\n", b"GET /nope HTTP/1.0\r\n\r\n",
+                                 b"GET / / HTTP/1.0\r\n\r\n"])  # served, 404, and the base class's own 400
+def test_the_server_header_names_no_versions(dashboard, raw):
+    dash, _, _ = dashboard
+    with _raw_http(dash.url, raw) as conn:
+        head = read_to_close(conn).split(b"\r\n\r\n")[0].split(b"\r\n")
+    assert b"Server: activecollect-dashboard" in head, head
 
 
 def test_api_endpoints_answer_json(dashboard, tmp_path):
