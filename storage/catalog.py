@@ -40,7 +40,7 @@ from storage.episodes import (
 )
 from storage.database import (DB_NAME, EPISODES_DIR, Migration, connection, ensure_schema, refuse_lost_database,
                               storage_error, transaction)
-from storage.errors import CatalogError, CorruptEpisodeError, EpisodeError, MissingEpisodeError
+from storage.errors import CatalogError, CorruptEpisodeError, EpisodeError, MissingEpisodeError, UnknownEpisodeError
 from storage.files import age_s, holds, move, publish, sha256_hex, stage_bytes
 from storage.records import MAX_FRAME_SIZE, MIN_FRAME_SIZE, Episode, EpisodeMeta
 
@@ -443,7 +443,7 @@ class Catalog:
         """The row of ``episode_id``; ``CatalogError`` if it is not indexed."""
         row = self.find(episode_id)
         if row is None:
-            raise CatalogError(f"no episode {episode_id!r} in the catalog at {self.data_dir}")
+            raise UnknownEpisodeError(f"no episode {episode_id!r} in the catalog at {self.data_dir}")
         return row
 
     def resolve(self, id_or_prefix: str) -> EpisodeRow:
@@ -458,9 +458,9 @@ class Catalog:
         if len(rows) == 1 and id_or_prefix:
             return self._row(rows[0])
         if len(rows) > 1 and id_or_prefix:
-            raise CatalogError(f"episode id prefix {id_or_prefix!r} is ambiguous "
+            raise UnknownEpisodeError(f"episode id prefix {id_or_prefix!r} is ambiguous "
                                f"({', '.join(r['episode_id'] for r in rows[:2])}, ...)")
-        raise CatalogError(f"no episode {id_or_prefix!r} in the catalog at {self.data_dir}")
+        raise UnknownEpisodeError(f"no episode {id_or_prefix!r} in the catalog at {self.data_dir}")
 
     def list(self, split: str | None = None, shape: str | None = None, limit: int | None = None,
              since: float | str | datetime | None = None, newest_first: bool = False,
@@ -523,7 +523,7 @@ class Catalog:
         with self._connect() as conn:
             r = conn.execute("SELECT meta FROM episodes WHERE episode_id = ?", (episode_id,)).fetchone()
         if r is None:
-            raise CatalogError(f"no episode {episode_id!r} in the catalog at {self.data_dir}")
+            raise UnknownEpisodeError(f"no episode {episode_id!r} in the catalog at {self.data_dir}")
         return EpisodeMeta.from_json(r["meta"])
 
     def _read_checked(self, row: EpisodeRow) -> bytes:

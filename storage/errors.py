@@ -40,6 +40,16 @@ class CatalogError(StorageError):
     """The catalog refused an operation (unknown id, conflicting row, bad split)."""
 
 
+class NotFoundError(StorageError):
+    """Nothing is stored under the id asked for (an unknown or ambiguous episode id, an unknown model
+    version): the asker's mistake, which the CLI reports as a usage error (exit 2), unlike a damaged
+    or unavailable store (exit 1). Each component raises its own subclass."""
+
+
+class UnknownEpisodeError(CatalogError, NotFoundError):
+    """No episode has this id (or, for a prefix, exactly one)."""
+
+
 class StorageUnavailableError(StorageError):
     """The disk or the database could not be used for a reason that passes (no space left, an I/O error,
     a lock held past the busy timeout): nothing was changed, and the same call can succeed later. Each
@@ -65,6 +75,10 @@ class StaleLeaseError(QueueError):
 
 class RegistryError(StorageError):
     """The model registry refused an operation (unknown version, no champion to roll back to)."""
+
+
+class UnknownModelError(RegistryError, NotFoundError):
+    """No model has this version."""
 
 
 class RegistryUnavailableError(RegistryError, StorageUnavailableError):

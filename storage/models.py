@@ -35,7 +35,7 @@ from typing import Any
 
 from storage.database import (DB_NAME, MODELS_DIR, connection, ensure_schema, refuse_lost_database,
                               storage_error, transaction)
-from storage.errors import CorruptCheckpointError, PrunedCheckpointError, RegistryError
+from storage.errors import CorruptCheckpointError, PrunedCheckpointError, RegistryError, UnknownModelError
 from storage.files import age_s, fsync_dir, write_synced
 from storage.gate import DEFAULT_METRIC, DEFAULT_MIN_REL_IMPROVEMENT, GateDecision, judge
 
@@ -237,7 +237,7 @@ class ModelRegistry:
         if row is None:
             known = [r[0] for r in conn.execute("SELECT version FROM models ORDER BY seq DESC LIMIT 5")]
             hint = f"; latest: {', '.join(known)}" if known else "; the registry is empty"
-            raise RegistryError(f"unknown model version {version!r}{hint}")
+            raise UnknownModelError(f"unknown model version {version!r}{hint}")
         return self._record(row)
 
     def get(self, version: str) -> ModelRecord:

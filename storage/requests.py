@@ -12,7 +12,7 @@ from dataclasses import asdict, dataclass, field
 from enum import Enum
 from typing import Any
 
-from storage.errors import QueueError
+from storage.errors import NotFoundError, QueueError
 
 
 class RequestStatus(str, Enum):
@@ -25,7 +25,7 @@ class RequestStatus(str, Enum):
     CANCELLED = "cancelled"
 
 
-class UnknownRequestError(QueueError):
+class UnknownRequestError(QueueError, NotFoundError):
     """No request has this id."""
 
 

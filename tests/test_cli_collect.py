@@ -261,3 +261,31 @@ def test_ingest_of_a_directory_without_episodes_is_a_usage_error(capsys, data, t
     rc, _, err = run_cli(capsys, "ingest", str(tmp_path / "empty"), "--data", str(data))
     assert rc == 2 and f"no .mcap files under {tmp_path / 'empty'}" in err
     assert not (data / "catalog.sqlite").exists()
+
+
+def _damage_table(db, table: str) -> None:
+    """Overwrites the root page of ``table`` (small tables live on it whole): SQLite opens the file, and
+    reading that table fails with 'database disk image is malformed'."""
+    import sqlite3
+    with sqlite3.connect(db) as conn:
+        page = conn.execute("PRAGMA page_size").fetchone()[0]
+        root = conn.execute("SELECT rootpage FROM sqlite_master WHERE name = ?", (table,)).fetchone()[0]
+    conn.close()
+    with open(db, "r+b") as f:
+        f.seek((root - 1) * page)
+        f.write(b"\xa5" * page)
+
+
+@pytest.mark.parametrize("argv,table", [
+    (("episodes", "show", "EP"), "episodes"), (("episodes", "quarantine", "EP", "--reason", "x"), "episodes"),
+    (("models", "show", "V"), "models"), (("eval", "V"), "models"), (("score", "EP"), "episodes"),
+])
+def test_a_damaged_table_is_exit_1_not_a_usage_error(capsys, data, rng, argv, table):
+    from storage.models import ModelRegistry
+    ep = make_episode(rng)
+    Catalog(data).add_episode(ep)
+    version = ModelRegistry(data).register(b"w" * 64, {}, {"h1_mse": 0.1}, "snap", "split")
+    argv = [ep.meta.episode_id if a == "EP" else version if a == "V" else a for a in argv]
+    _damage_table(data / "catalog.sqlite", table)
+    rc, _, err = run_cli(capsys, *argv, "--data", str(data))
+    assert rc == 1 and "malformed" in err and err.count("\n") == 1, err

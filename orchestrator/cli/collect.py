@@ -16,7 +16,8 @@ from orchestrator.cli import common
 from orchestrator.protocol import MAX_EPISODE_STEPS, POLICIES, SHAPES, physics_problem
 from storage.backup import backup, check_dest
 from storage.catalog import ORPHANS_DIR, SPLITS, Catalog, EpisodeRow
-from storage.errors import DAMAGED_EPISODE_ERRORS, BackupError, CatalogError, StorageError, StorageUnavailableError
+from storage.errors import (DAMAGED_EPISODE_ERRORS, BackupError, CatalogError, NotFoundError, StorageError,
+                            StorageUnavailableError)
 from workers import simbench
 from workers.collect import EvalSplitConflict, collect_episode, create_eval_split
 from workers.env import sample_state
@@ -151,7 +152,7 @@ def _existing_catalog(args: argparse.Namespace) -> Catalog:
 def _resolve(cat: Catalog, episode_id: str) -> EpisodeRow:
     try:
         return cat.resolve(episode_id)
-    except CatalogError as exc:
+    except NotFoundError as exc:  # (a damaged catalog is not a usage error: exit 1)
         raise common.UsageError(str(exc)) from None
 
 

@@ -21,7 +21,7 @@ from orchestrator.cli import common
 from orchestrator.scheduler import EXIT_BUSY, RetrainBusyError
 from storage.catalog import Catalog
 from storage.episodes import read_episode
-from storage.errors import CatalogError, CorruptCheckpointError, EpisodeError, RegistryError, StorageError
+from storage.errors import CorruptCheckpointError, EpisodeError, NotFoundError, RegistryError, StorageError
 from storage.models import ModelRecord, ModelRegistry, PruneResult
 from storage.records import Episode
 from uncertainty.config import TrainConfig
@@ -136,7 +136,7 @@ def _registry(args: argparse.Namespace) -> ModelRegistry:
 def _record(registry: ModelRegistry, version: str) -> ModelRecord:
     try:
         return registry.get(version)
-    except RegistryError as exc:
+    except NotFoundError as exc:  # (a damaged registry is not a usage error: exit 1)
         raise common.UsageError(str(exc)) from None
 
 
@@ -377,7 +377,7 @@ def _episode(arg: str, data: Path) -> Episode:
     catalog = Catalog(data)
     try:
         return catalog.load(catalog.resolve(arg).episode_id)
-    except CatalogError as exc:
+    except NotFoundError as exc:
         raise common.UsageError(str(exc)) from None
 
 
