@@ -91,7 +91,8 @@ async function refresh() {
     const [stats, queue, models, workers, curve] = await Promise.all(
       ["/api/stats", "/api/queue", "/api/models", "/api/workers", "/api/curve"].map(getJSON));
     text("episodes", stats.episodes.train);
-    text("budget", stats.budget ? "of " + stats.budget : "");
+    const held = stats.episodes.quarantined ? stats.episodes.quarantined + " quarantined" : "";
+    text("budget", [stats.budget ? "of " + stats.budget : "", held].filter(Boolean).join(" \u00b7 "));
     for (const s of ["queued", "leased", "done", "dead", "cancelled"]) text("q-" + s, queue.counts[s] || 0);
     text("workers-alive", workers.workers.length);
     text("champion", models.champion || "none");

@@ -34,6 +34,7 @@ from storage.catalog import Catalog
 from storage.models import ModelRegistry
 from storage.queue import RequestQueue
 from tests.conftest import wait_for
+from tests.storage.test_episodes import make_episode
 
 
 
@@ -243,16 +244,21 @@ def test_metrics_parse_as_prometheus_text(dashboard):
 
 
 def test_a_dashboard_without_a_service_reads_its_metrics_from_the_data_directory(stores):
-    data_dir, _, queue, registry = stores
+    data_dir, catalog, queue, registry = stores
     enqueue_uniform(queue, 3)
+    for _ in range(2):
+        catalog.add_episode(make_episode(np.random.default_rng(len(catalog.list()))))
+    catalog.quarantine(catalog.list()[1].episode_id, "found by a training job: missing")
     version = registry.register(b"weights", {}, {"h1_mse": 0.02}, snapshot_id="snap", eval_split_hash="hash")
     registry.promote(version)
     dash = Dashboard(DashboardConfig(port=0), DataSources(data_dir).sources())  # as `activecollect dashboard`
     dash.start()
     try:
         status, _, body = get(dash.url + "metrics")
+        stats = json.loads(get(dash.url + "api/stats")[2])
     finally:
         dash.stop()
+    assert stats["episodes"] == {"train": 2, "eval": 0, "quarantined": 1}
     families = {f.name: f for f in text_string_to_metric_families(body.decode())}
     depth = {s.labels["status"]: s.value for s in families["activecollect_queue_depth"].samples}
     assert status == 200 and depth["queued"] == 3.0
@@ -260,6 +266,7 @@ def test_a_dashboard_without_a_service_reads_its_metrics_from_the_data_directory
     assert families["activecollect_champion_info"].samples[0].labels["version"] == version
     size = families["activecollect_data_disk_size_bytes"].samples[0].value
     assert size == shutil.disk_usage(data_dir).total and families["activecollect_data_disk_free_bytes"].samples[0].value > 0
+    assert families["activecollect_episodes_quarantined"].samples[0].value == 1
 
 
 # -- the real browser --------------------------------------------------------------------------
@@ -352,7 +359,7 @@ def browser(tmp_path):
 
 
 @pytest.mark.timeout(1500)  # the first run on a fresh machine installs chromium
-def test_page_shows_live_queue_numbers_without_console_errors(dashboard, browser):
+def test_page_shows_live_queue_numbers_without_console_errors(dashboard, stores, browser):
     dash, queue, registry = dashboard
     enqueue_uniform(queue, 2)
     browser.call("Runtime.enable")
@@ -382,4 +389,11 @@ def test_page_shows_live_queue_numbers_without_console_errors(dashboard, browser
     wait_for(lambda: browser.evaluate("document.querySelectorAll('#queue tbody tr').length") == 4,
              message="the queue table with the odd request")
     assert browser.evaluate("document.getElementById('updated').textContent").startswith("updated")
+    assert browser.evaluate("document.getElementById('budget').textContent") == "of 40"
+    # an episode taken out of training is counted beside the budget
+    catalog = stores[1]
+    catalog.add_episode(make_episode(np.random.default_rng(3)))
+    catalog.quarantine(catalog.list()[0].episode_id, "operator: wrong object")
+    wait_for(lambda: browser.evaluate("document.getElementById('budget').textContent") == "of 40 \u00b7 1 quarantined",
+             message="the quarantined count")
     assert browser.errors() == []
