@@ -187,8 +187,9 @@ def _stats(queue: RequestQueue, catalog: Any, registry: Any,
         episodes["total"] = catalog.count()
         episodes["quarantined"] = catalog.count(quarantined=True)
         disk = disk_json(catalog.data_dir)
-    return {"requests": queue.counts(), "episodes": episodes,
-            "champion": registry.champion() if registry is not None else None,
+    champion = registry.champion() if registry is not None else None
+    return {"requests": queue.counts(), "episodes": episodes, "champion": champion,
+            "champion_problem": registry.weights_problem(champion) if champion is not None else None,
             "workers": len(_worker_ids(workers)), "disk": disk}
 
 

@@ -23,7 +23,7 @@ import numpy as np
 from orchestrator.planner import Scores
 from storage.catalog import Catalog
 from storage.errors import RegistryError
-from storage.models import ModelRegistry
+from storage.models import ModelRegistry, file_state
 from storage.records import Episode
 
 if TYPE_CHECKING:
@@ -38,6 +38,10 @@ class ChampionScorer:
     Every call compares the registry's champion with the loaded one and reloads on a
     change, so a promotion by the scheduler, by ``activecollect retrain`` from cron or
     by an operator's rollback is picked up without a restart. ``reload()`` forces it.
+
+    A champion that cannot be loaded (damaged weights) is logged once and tried again only
+    when its weights file changes (restored) or another model becomes champion; meanwhile
+    the one loaded before keeps scoring, and ``problem`` says why.
     """
 
     def __init__(self, data_dir: Path, device: str = "cpu",
@@ -49,6 +53,9 @@ class ChampionScorer:
         self._local = threading.local()
         self.version: str | None = None
         self.ensemble: Ensemble | None = None
+        self.problem: str | None = None
+        """Why the registry's champion is not the one loaded (None when it is)."""
+        self._failed: tuple[str, tuple[int, int, int] | None] | None = None
 
     def _registry(self) -> ModelRegistry:
         if not hasattr(self._local, "registry"):
@@ -57,20 +64,26 @@ class ChampionScorer:
 
     def reload(self) -> str | None:
         """Load the registry's champion if it is not the one loaded; returns its version."""
-        champion = self._registry().champion()
+        registry = self._registry()
+        champion = registry.champion()
         with self._lock:
             if champion == self.version:
+                self.problem = None
                 return champion
             if champion is None:
-                self.version, self.ensemble = None, None
+                self.version, self.ensemble, self.problem = None, None, None
                 return None
+            attempt = (champion, file_state(registry.get(champion).weights_path))
+            if attempt == self._failed:  # nothing has changed since it failed: not read (and hashed) again
+                return self.version
             from uncertainty.checkpoint import load_ensemble  # torch: start-up cost, see the module docstring
             try:
-                ensemble = load_ensemble(self._registry(), champion, self.device)
+                ensemble = load_ensemble(registry, champion, self.device)
             except RegistryError as exc:  # a corrupt checkpoint: keep scoring with the one we have
+                self._failed, self.problem = attempt, f"cannot load champion {champion}: {exc}"
                 log.error("could not load champion %s, keeping %s: %s", champion, self.version, exc)
                 return self.version
-            self.version, self.ensemble = champion, ensemble
+            self.version, self.ensemble, self.problem, self._failed = champion, ensemble, None, None
             log.info("scorer now uses champion %s", champion)
             return champion
 

@@ -336,11 +336,13 @@ class DataSources:
         catalog, queue, registry = self._stores()
         champion = registry.champion()
         h1 = registry.get(champion).metrics.get("h1_mse") if champion else None
+        problem = registry.weights_problem(champion) if champion else None
         retrains = self.retrains()
         return {"episodes": {"train": catalog.count(split="train"), "eval": catalog.count(split="eval"),
                              "quarantined": catalog.count(quarantined=True)},
                 "budget": self.budget, "queue": queue.counts(), "workers_alive": len(self.workers()),
-                "champion": champion, "champion_h1_mse": h1, "disk": disk_json(self.data_dir),
+                "champion": champion, "champion_h1_mse": h1, "champion_problem": problem,
+                "disk": disk_json(self.data_dir),
                 "retrains": len(retrains), "last_retrain": retrains[-1] if retrains else None}
 
     def queue(self, rows: int) -> dict:

@@ -96,7 +96,8 @@ async function refresh() {
     for (const s of ["queued", "leased", "done", "dead", "cancelled"]) text("q-" + s, queue.counts[s] || 0);
     text("workers-alive", workers.workers.length);
     text("champion", models.champion || "none");
-    text("champion-error", stats.champion_h1_mse === null ? "" : "h1 MSE " + fmt(stats.champion_h1_mse));
+    text("champion-error", stats.champion_problem ? "weights damaged: cannot be served"
+      : stats.champion_h1_mse === null ? "" : "h1 MSE " + fmt(stats.champion_h1_mse));
     const disk = stats.disk, gib = (b) => (b / 2 ** 30).toFixed(1) + " GiB";
     text("disk-free", disk ? gib(disk.free_bytes) : "-");
     text("disk-size", disk ? "of " + gib(disk.size_bytes) : "");

@@ -70,6 +70,9 @@ class ServiceMetrics:
                                           namespace=ns, registry=r)
         self.champion_h1_mse = Gauge("champion_h1_mse", "The champion's horizon-1 MSE on the eval split.",
                                      namespace=ns, registry=r)
+        self.champion_weights_damaged = Gauge("champion_weights_damaged", "1 when the champion's weights are "
+                                              "missing or fail their sha256 (it cannot be served), else 0.",
+                                              namespace=ns, registry=r)
         self.champion_info = Gauge("champion_info", "The champion's version (value 1; label version).",
                                    ["version"], namespace=ns, registry=r)
         self.disk_free_bytes = Gauge("data_disk_free_bytes", "Free bytes on the file system of the data directory.",
@@ -155,6 +158,7 @@ class ServiceMetrics:
         champion = registry.champion()
         h1 = registry.get(champion).metrics.get("h1_mse") if champion is not None else None
         self.set_champion(champion, h1 if isinstance(h1, (int, float)) else None)
+        self.champion_weights_damaged.set(champion is not None and registry.weights_problem(champion) is not None)
 
     def render(self) -> str:
         """Every metric in Prometheus text exposition format 0.0.4 (HELP and TYPE lines, escaped labels)."""

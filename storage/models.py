@@ -23,6 +23,7 @@ import math
 import os
 import shutil
 import sqlite3
+import threading
 import time
 import uuid
 from collections.abc import Iterator
@@ -194,6 +195,23 @@ def _dump(obj: Any, what: str) -> bytes:
         raise RegistryError(f"{what} must be JSON-serialisable: {exc}") from exc
 
 
+#: ``weights_problem``'s answers by the state of the file it read: ``(path, sha256, pruned_at, size, mtime_ns,
+#: inode)`` -> the problem (None: sound). Process-wide, as what polls it (the dashboard's handler threads) opens
+#: a registry per thread.
+_CHECKED: dict[tuple, str | None] = {}
+_CHECKED_LOCK = threading.Lock()
+_CHECKED_MAX = 256
+
+
+def file_state(path: Path) -> tuple[int, int, int] | None:
+    """``(size, mtime_ns, inode)`` of ``path``, None when it cannot be read: what changes when the file does."""
+    try:
+        st = path.stat()
+    except OSError:
+        return None
+    return st.st_size, st.st_mtime_ns, st.st_ino
+
+
 class ModelRegistry:
     """Checkpoints under ``data_dir/models`` and their rows in ``data_dir/catalog.sqlite``.
 
@@ -285,6 +303,28 @@ class ModelRegistry:
     def verify(self, version: str) -> None:
         """Raise ``CorruptCheckpointError`` unless the weights of ``version`` match their sha256."""
         self.load_weights(version)
+
+    def weights_problem(self, version: str) -> str | None:
+        """Why the weights of ``version`` cannot be served (pruned, missing, unreadable, not their sha256),
+        or None when they can. Remembered per state of the weights file (``file_state``), so what asks
+        again and again (the dashboard, ``stats``) re-reads the file only when it has changed."""
+        rec = self.get(version)
+        state = file_state(rec.weights_path)
+        key = None if state is None else (str(rec.weights_path), rec.weights_sha256, rec.pruned_at, *state)
+        with _CHECKED_LOCK:
+            if key in _CHECKED:
+                return _CHECKED[key]
+        try:
+            self._read_verified(rec)
+            problem = None
+        except CorruptCheckpointError as exc:
+            problem = str(exc)
+        if key is not None:
+            with _CHECKED_LOCK:
+                if len(_CHECKED) >= _CHECKED_MAX:
+                    _CHECKED.clear()
+                _CHECKED[key] = problem
+        return problem
 
     @staticmethod
     def _refuse_pruned(rec: ModelRecord) -> None:

@@ -40,7 +40,7 @@ def _register(reg: ModelRegistry, h1_mse: float, split: str = SPLIT) -> str:
 
 def test_models_ls_json_and_text(capsys, data, reg) -> None:
     rc, out, _ = run_cli(capsys, "models", "ls", "--data", str(data), "--json")
-    assert rc == 0 and json.loads(out) == {"champion": None, "models": []}
+    assert rc == 0 and json.loads(out) == {"champion": None, "champion_problem": None, "models": []}
     a, b, nan = _register(reg, 0.01), _register(reg, 0.5), _register(reg, math.nan)
     reg.gate(a)
     reg.gate(b)
@@ -52,8 +52,12 @@ def test_models_ls_json_and_text(capsys, data, reg) -> None:
         (a, "champion"), (b, "rejected"), (nan, "rejected")]
     assert listing["models"][2]["metrics"]["h1_mse"] is None
     assert "not better enough" in listing["models"][1]["reason"]
-    rc, out, _ = run_cli(capsys, "models", "ls", "--data", str(data))
-    assert rc == 0 and f"* {a}" in out and "rejected" in out
+    rc, out, err = run_cli(capsys, "models", "ls", "--data", str(data))
+    assert rc == 0 and f"* {a}" in out and "rejected" in out and err == ""
+    reg.get(a).weights_path.write_bytes(b"overwritten")  # the champion's weights damaged on disk
+    rc, out, err = run_cli(capsys, "models", "ls", "--data", str(data), "--json")
+    assert rc == 0 and json.loads(out)["champion_problem"].startswith(f"checkpoint {a}: weights sha256 mismatch")
+    assert "warning: the champion cannot be served: " in err and "models rollback" in err
 
 
 def test_models_show(capsys, data, reg) -> None:

@@ -150,8 +150,13 @@ def _num(value: Any, fmt: str = ".5g") -> str:
 def _models_ls(args: argparse.Namespace) -> int:
     registry = _registry(args)
     records, champion = registry.list(), registry.champion()
+    problem = registry.weights_problem(champion) if champion is not None else None
+    if problem:  # (stderr: --json output stays parseable)
+        print(f"activecollect: warning: the champion cannot be served: {problem}; `activecollect models rollback` "
+              "returns to the previous champion, and the next retrain replaces it", file=sys.stderr)
     if args.json:
-        common.print_json(_strict({"champion": champion, "models": [r.to_json() for r in records]}))
+        common.print_json(_strict({"champion": champion, "champion_problem": problem,
+                                   "models": [r.to_json() for r in records]}))
         return 0
     if not records:
         print(f"no models registered in {registry.models_dir} (run: activecollect train)")

@@ -381,7 +381,8 @@ def cmd_stats(args: argparse.Namespace) -> int:
         print("requests: " + " ".join(f"{k}={v}" for k, v in body["requests"].items()))
         episodes = body.get("episodes") or {}
         print("episodes: " + (" ".join(f"{k}={v}" for k, v in episodes.items()) or "-"))
-        print(f"champion: {body.get('champion') or '-'}")
+        problem = body.get("champion_problem")
+        print(f"champion: {body.get('champion') or '-'}" + (f" (CANNOT BE SERVED: {problem})" if problem else ""))
         print(f"workers:  {body.get('workers', 0)} alive")
         print(f"disk:     {disk_line(body.get('disk'))}")
     return _print_op(args, "stats", {}, show)

@@ -147,7 +147,7 @@ def test_workers_and_stats(queue: RequestQueue, tmp_path: Path) -> None:
     registry = ModelRegistry(tmp_path)
     stats = call("stats", queue=queue, registry=registry, workers=lambda: ["w1"])
     assert stats == {"requests": {"queued": 1, "leased": 2, "done": 0, "dead": 0, "cancelled": 0},
-                     "episodes": None, "champion": None, "workers": 1, "disk": None}
+                     "episodes": None, "champion": None, "champion_problem": None, "workers": 1, "disk": None}
 
 
 def test_stats_with_a_catalog(queue: RequestQueue, tmp_path: Path) -> None:
@@ -162,6 +162,16 @@ def test_stats_with_a_catalog(queue: RequestQueue, tmp_path: Path) -> None:
     stats = call("stats", queue=queue, catalog=catalog)
     assert stats["episodes"] == {"train": 2, "eval": 0, "total": 2, "quarantined": 1}
     assert stats["disk"]["size_bytes"] == shutil.disk_usage(tmp_path).total and stats["disk"]["free_bytes"] > 0
+
+
+def test_stats_say_when_the_champion_cannot_be_served(queue: RequestQueue, tmp_path: Path) -> None:
+    registry = ModelRegistry(tmp_path)
+    version = registry.register(b"weights" * 10, {}, {"h1_mse": 0.01}, snapshot_id="s", eval_split_hash="h")
+    registry.promote(version)
+    assert call("stats", queue=queue, registry=registry)["champion_problem"] is None
+    registry.get(version).weights_path.unlink()
+    problem = call("stats", queue=queue, registry=registry)["champion_problem"]
+    assert problem == f"checkpoint {version}: weights file {registry.get(version).weights_path} is missing"
 
 
 def test_models_ls(queue: RequestQueue, tmp_path: Path) -> None:

@@ -267,6 +267,17 @@ def test_a_dashboard_without_a_service_reads_its_metrics_from_the_data_directory
     size = families["activecollect_data_disk_size_bytes"].samples[0].value
     assert size == shutil.disk_usage(data_dir).total and families["activecollect_data_disk_free_bytes"].samples[0].value > 0
     assert families["activecollect_episodes_quarantined"].samples[0].value == 1
+    assert families["activecollect_champion_weights_damaged"].samples[0].value == 0
+    registry.get(version).weights_path.write_bytes(b"damaged")
+    dash = Dashboard(DashboardConfig(port=0), DataSources(data_dir).sources())
+    dash.start()
+    try:
+        families = {f.name: f for f in text_string_to_metric_families(get(dash.url + "metrics")[2].decode())}
+        stats = json.loads(get(dash.url + "api/stats")[2])
+    finally:
+        dash.stop()
+    assert families["activecollect_champion_weights_damaged"].samples[0].value == 1
+    assert "weights sha256 mismatch" in stats["champion_problem"]
 
 
 # -- the real browser --------------------------------------------------------------------------

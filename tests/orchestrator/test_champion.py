@@ -1,0 +1,49 @@
+"""The champion in service: a damaged one is reported once, kept out, and picked up when restored."""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+
+from orchestrator.champion import ChampionScorer
+from storage.models import ModelRegistry
+from tests.uncertainty.synth import make_episode
+from uncertainty.checkpoint import save_candidate
+from uncertainty.ensemble import Ensemble
+from uncertainty.model import PredictorConfig
+
+CFG = PredictorConfig(image_size=16, widths=(4, 8, 8), action_hidden=8)
+
+
+def _promoted(registry: ModelRegistry, seed: int, h1_mse: float) -> str:
+    ens = Ensemble(CFG, members=2, seed=seed)
+    ens.set_action_stats([256.0, 250.0], [100.0, 90.0])
+    version = save_candidate(registry, ens, {"h1_mse": h1_mse}, "snap", "split")
+    assert registry.promote(version).promoted
+    return version
+
+
+def test_a_damaged_champion_is_reported_once_and_loaded_once_restored(tmp_path, caplog):
+    registry = ModelRegistry(tmp_path)
+    first = _promoted(registry, 0, 0.02)
+    scorer = ChampionScorer(tmp_path)
+    episode = make_episode(0, size=16)
+    assert scorer(episode).model_version == first and scorer.problem is None
+    second = _promoted(registry, 1, 0.01)
+    weights = registry.get(second).weights_path
+    good = weights.read_bytes()
+    weights.write_bytes(good[:-7])
+    assert registry.weights_problem(second).startswith(f"checkpoint {second}: weights sha256 mismatch")
+    assert registry.weights_problem(first) is None
+
+    with caplog.at_level(logging.ERROR, logger="orchestrator.champion"):
+        for _ in range(3):
+            scores = scorer(episode)
+            assert scores.model_version == first and np.isfinite(scores.per_step).any()
+    assert [r.getMessage().split(",")[0] for r in caplog.records] == [f"could not load champion {second}"]
+    assert scorer.problem.startswith(f"cannot load champion {second}: ") and "sha256" in scorer.problem
+
+    weights.write_bytes(good)  # restored from a backup
+    assert registry.weights_problem(second) is None
+    assert scorer(episode).model_version == second and scorer.problem is None
