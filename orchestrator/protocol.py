@@ -425,8 +425,8 @@ def decode(data: bytes | bytearray | memoryview | str | None, max_bytes: int = M
     raw = data.encode("utf-8", "surrogatepass") if isinstance(data, str) else bytes(data)
     if len(raw) > max_bytes:
         raise ProtocolError(ErrorCode.TOO_LARGE, f"expected at most {max_bytes} bytes, found {len(raw)}")
-    try:  # what json.loads does with bytes (strictly: no lone surrogates), without a decoder per call
-        text = raw.decode(json.detect_encoding(raw))
+    try:  # UTF-8 only (RFC 8259; json.loads would also take UTF-16/32), strictly: no lone surrogates
+        text = raw.decode("utf-8")
         obj = _DECODER.decode(text)
         if "\\u" in text:  # an escape may spell half a surrogate pair, which no UTF-8 string can hold
             _STRICT_ENCODER.encode(obj).encode("utf-8")
@@ -438,7 +438,7 @@ def decode(data: bytes | bytearray | memoryview | str | None, max_bytes: int = M
     if not isinstance(obj, dict):
         raise ProtocolError(ErrorCode.BAD_JSON, f"expected a JSON object, found {type(obj).__name__}")
     version = obj.pop("v", None)
-    if version != PROTOCOL_VERSION or isinstance(version, bool):
+    if type(version) is not int or version != PROTOCOL_VERSION:  # not 1.0, not true
         raise ProtocolError(ErrorCode.BAD_VERSION, f"expected \"v\": {PROTOCOL_VERSION}, found {version!r:.40}")
     return obj
 

@@ -152,6 +152,11 @@ BAD = [
     # it goes into every grant, where workers allow 128 characters
     (m.RequestSpec, json.dumps({"v": 1, "task": "push", "shape": "T", "start_state": START,
                                 "reason": {"model_version": "v" * 200}}).encode(), ErrorCode.BAD_FIELD),
+    # JSON between systems is UTF-8 (RFC 8259), and the version an integer
+    (m.LeaseRequest, '{"v": 1, "worker_id": "w"}'.encode("utf-16"), ErrorCode.BAD_JSON),
+    (m.LeaseRequest, '{"v": 1, "worker_id": "w"}'.encode("utf-32-le"), ErrorCode.BAD_JSON),
+    (m.LeaseRequest, b'\xef\xbb\xbf{"v": 1, "worker_id": "w"}', ErrorCode.BAD_JSON),
+    (m.LeaseRequest, b'{"v": 1.0, "worker_id": "w"}', ErrorCode.BAD_VERSION),
     (m.AdminRequest, b'{"v": 1, "op": "queue.drop"}', ErrorCode.UNKNOWN_OP),
     (m.AdminRequest, b'{"v": 1, "op": "queue.ls", "args": []}', ErrorCode.BAD_FIELD),
     (m.Event, b'{"v": 1, "kind": "request.exploded", "at": 1.0}', ErrorCode.BAD_FIELD),
