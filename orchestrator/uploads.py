@@ -173,7 +173,7 @@ def provenance_mismatch(episode: Episode, request: Request, worker_id: str) -> s
     seed = messages.request_seed(request.id, request.token)
     if meta.seed != seed:
         return f"expected the lease's seed {seed}, found {meta.seed!r}"
-    problem = protocol.physics_problem(meta.physics)
+    problem = protocol.episode_problem(meta)
     if problem:
         return problem
     physics = resolve_physics(request.start_state.get("physics"))  # what the worker ran: defaults filled in

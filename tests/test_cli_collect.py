@@ -103,6 +103,21 @@ def test_ingest_refuses_physics_outside_the_task_space(capsys, data, rng, tmp_pa
     assert Catalog(data).count() == 0
 
 
+@pytest.mark.parametrize("field,value,needle", [
+    ("shape", "zzz<script>", "shape: expected one of T, box, L, disk, found 'zzz<script>'"),
+    ("task", "fold", "task: expected one of push, found 'fold'"),
+    ("created", "9999-99-99", "created: expected an ISO 8601 time, found '9999-99-99'"),
+])
+def test_ingest_refuses_metadata_outside_the_task_space(capsys, data, rng, tmp_path, field, value, needle):
+    ep = make_episode(rng)
+    setattr(ep.meta, field, value)
+    path = tmp_path / "odd.mcap"
+    episodes.write_episode(path, ep)
+    rc, out, err = run_cli(capsys, "ingest", str(path), "--data", str(data))
+    assert rc == 1 and "0 of 1 files indexed" in out and needle in err, err
+    assert Catalog(data).count() == 0
+
+
 def test_ingest_directory_and_split(capsys, data, rng, tmp_path):
     src = tmp_path / "src"
     for i in range(2):

@@ -13,7 +13,7 @@ import numpy as np
 from tqdm import tqdm
 
 from orchestrator.cli import common
-from orchestrator.protocol import MAX_EPISODE_STEPS, POLICIES, SHAPES, physics_problem
+from orchestrator.protocol import MAX_EPISODE_STEPS, POLICIES, SHAPES, episode_problem
 from storage.backup import backup, check_dest
 from storage.catalog import ORPHANS_DIR, SPLITS, Catalog, EpisodeRow
 from storage.errors import (DAMAGED_EPISODE_ERRORS, BackupError, CatalogError, NotFoundError, StorageError,
@@ -334,7 +334,7 @@ def _ingest(args: argparse.Namespace) -> int:
     report = []
     for path in files:
         try:
-            res = cat.ingest_file(path, split=args.split, admit=lambda meta: physics_problem(meta.physics))
+            res = cat.ingest_file(path, split=args.split, admit=episode_problem)
         except StorageError as exc:
             report.append({"path": str(path), "ok": False, "error": f"{type(exc).__name__}: {exc}"})
             if isinstance(exc, StorageUnavailableError):  # not the file's fault: a full disk, a busy catalog

@@ -227,6 +227,7 @@ def test_hash_size_and_provenance_mismatches_are_refused(service, client, keys, 
     (lambda g: {"seed": g.seed + 1}, "expected the lease's seed"),
     (lambda g: {"meta": {"physics": {"mass": 1e308}}}, "physics.mass: expected a finite number in [0.2, 5]"),
     (lambda g: {"meta": {"physics": {"mass": 1.0, "gravity": -5.0}}}, "found gravity (outside the task space)"),
+    (lambda g: {"meta": {"created": "9999-99-99"}}, "created: expected an ISO 8601 time, found '9999-99-99'"),
     (lambda g: {"meta": {"physics": {**DEFAULT_PHYSICS, "mass": DEFAULT_PHYSICS["mass"] * 1.5}}},
      "physics.mass differs"),
 ])
