@@ -69,6 +69,13 @@ def check_dest(data_dir: str | os.PathLike[str], dest: str | os.PathLike[str]) -
         raise BackupError(f"{dest} already exists and is not empty; choose a new directory")
     if dest.exists() and not dest.is_dir():
         raise BackupError(f"{dest} is a file; choose a new directory")
+    parent = dest.absolute().parent  # the nearest folder that exists is where the backup's folders are made
+    while not parent.exists() and parent != parent.parent:
+        parent = parent.parent
+    if not parent.is_dir():
+        raise BackupError(f"{parent} is a file, so {dest} cannot be made; choose a new directory")
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise BackupError(f"cannot write in {parent} (permission denied); choose a new directory")
 
 
 def _snapshot_db(source: Path, target: Path) -> None:

@@ -162,7 +162,8 @@ def test_the_destination_must_be_new_and_outside(tmp_path, rng, capsys) -> None:
     (tmp_path / "full" / "x").write_text("keep me")
     (tmp_path / "afile").write_text("keep me")
     for dest, why in ((tmp_path / "full", "not empty"), (tmp_path / "afile", "is a file"),
-                      (data / "inside", "inside the data directory")):
+                      (data / "inside", "inside the data directory"),
+                      (tmp_path / "afile" / "b" / "c", f"{tmp_path / 'afile'} is a file, so")):
         with pytest.raises(BackupError, match=why):
             check_dest(data, dest)
         rc, out, err = run_cli(capsys, "backup", str(dest), "--data", str(data))
