@@ -357,13 +357,14 @@ def physics_problem(physics: Any) -> str:
 
 def episode_problem(meta: Any) -> str:
     """Why an episode's metadata (a ``storage.records.EpisodeMeta``) is outside the task space ('' when
-    inside): a task and shape of ours, a ``created`` time in ISO 8601, physics a worker can run. What
-    enters the catalog by upload or ingest; the planner turns episodes into requests."""
+    inside): a task and shape of ours, a ``created`` time in ISO 8601 (or '', unknown), physics a worker
+    can run. What enters the catalog by upload or ingest; the planner turns episodes into requests."""
     for name, choices in (("task", TASKS), ("shape", SHAPES)):
         if getattr(meta, name) not in choices:
             return f"{name}: expected one of {', '.join(choices)}, found {one_line(repr(getattr(meta, name)))[:60]}"
     try:
-        datetime.fromisoformat(meta.created)
+        if meta.created != "":
+            datetime.fromisoformat(meta.created)
     except (TypeError, ValueError):
         return f"created: expected an ISO 8601 time, found {one_line(repr(meta.created))[:60]}"
     return physics_problem(meta.physics)
