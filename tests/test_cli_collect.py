@@ -304,3 +304,12 @@ def test_a_damaged_table_is_exit_1_not_a_usage_error(capsys, data, rng, argv, ta
     _damage_table(data / "catalog.sqlite", table)
     rc, _, err = run_cli(capsys, *argv, "--data", str(data))
     assert rc == 1 and "malformed" in err and err.count("\n") == 1, err
+
+
+def test_a_path_with_a_newline_is_reported_on_one_line(capsys, data, rng, tmp_path):
+    odd = tmp_path / "two\nlines.mcap"
+    odd.write_bytes(b"not an episode")
+    rc, out, err = run_cli(capsys, "ingest", str(odd), "--data", str(data))
+    assert rc == 1 and err.count("\n") == 1 and "two\\nlines.mcap" in err, err
+    rc, _, err = run_cli(capsys, "ingest", str(tmp_path / "no\nsuch.mcap"), "--data", str(data))
+    assert rc == 2 and err.count("\n") == 1 and "no\\nsuch.mcap" in err, err

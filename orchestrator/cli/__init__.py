@@ -12,6 +12,7 @@ import signal
 import sys
 
 from orchestrator import transport
+from orchestrator.protocol import one_line
 from orchestrator.cli import collect, common, loop, models, secure, service
 from storage.database import space_note
 from storage.errors import StorageError
@@ -43,7 +44,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         return int(args.func(args) or 0)
     except (common.UsageError, transport.SecureConfigError) as exc:
-        print(f"activecollect: error: {exc}", file=sys.stderr)
+        print(f"activecollect: error: {one_line(str(exc))}", file=sys.stderr)  # a path may hold a newline
         return 2
     except KeyboardInterrupt:
         print("activecollect: interrupted", file=sys.stderr)
@@ -53,7 +54,7 @@ def main(argv: list[str] | None = None) -> int:
         return 128 + signal.SIGPIPE
     except (StorageError, OSError) as exc:  # a full disk, a damaged catalog: one line, not a traceback
         detail = str(exc) if isinstance(exc, StorageError) else f"{exc}{space_note(exc.filename or '.')}"
-        print(f"activecollect: {detail}", file=sys.stderr)
+        print(f"activecollect: {one_line(detail)}", file=sys.stderr)
         return 1
 
 

@@ -13,7 +13,7 @@ import numpy as np
 from tqdm import tqdm
 
 from orchestrator.cli import common
-from orchestrator.protocol import MAX_EPISODE_STEPS, POLICIES, SHAPES, episode_problem
+from orchestrator.protocol import MAX_EPISODE_STEPS, POLICIES, SHAPES, episode_problem, one_line
 from storage.backup import backup, check_dest
 from storage.catalog import ORPHANS_DIR, SPLITS, Catalog, EpisodeRow
 from storage.errors import (DAMAGED_EPISODE_ERRORS, BackupError, CatalogError, NotFoundError, StorageError,
@@ -338,10 +338,10 @@ def _ingest(args: argparse.Namespace) -> int:
         except StorageError as exc:
             report.append({"path": str(path), "ok": False, "error": f"{type(exc).__name__}: {exc}"})
             if isinstance(exc, StorageUnavailableError):  # not the file's fault: a full disk, a busy catalog
-                print(f"activecollect: cannot store {path} now (nothing changed; run it again): {exc}",
+                print(one_line(f"activecollect: cannot store {path} now (nothing changed; run it again): {exc}"),
                       file=sys.stderr)
             else:
-                print(f"activecollect: refused {path}: {exc}", file=sys.stderr)
+                print(one_line(f"activecollect: refused {path}: {exc}"), file=sys.stderr)
             continue
         report.append({"path": str(path), "ok": True, "episode_id": res.episode_id,
                        "duplicate": res.duplicate, "restored": res.restored, "stored": str(res.path)})

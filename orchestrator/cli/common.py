@@ -9,6 +9,7 @@ import sys
 from pathlib import Path
 from typing import Any, NoReturn
 
+from orchestrator.protocol import one_line
 from storage.catalog import Catalog
 from storage.database import DB_NAME
 
@@ -23,7 +24,7 @@ class Parser(argparse.ArgumentParser):
     """argparse that reports a usage error as one line on stderr and exits 2."""
 
     def error(self, message: str) -> NoReturn:
-        self.exit(2, f"{self.prog}: error: {message}\n")
+        self.exit(2, f"{self.prog}: error: {one_line(message)}\n")
 
 
 def data_dir(text: str) -> Path:
