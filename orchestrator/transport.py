@@ -123,6 +123,11 @@ def validate_secure_config(path: str | os.PathLike[str]) -> list[Path]:
     message naming the config, the key and the file; CLIs turn it into exit status 2.
     """
     config_path = Path(path)
+    return _check_files(config_path, _read_config(config_path))
+
+
+def _read_config(config_path: Path) -> dict[str, Any]:
+    """The JSON5 object in a Zenoh config file; SecureConfigError (one line) when there is none."""
     try:
         text = config_path.read_text()
     except OSError as exc:
@@ -135,6 +140,10 @@ def validate_secure_config(path: str | os.PathLike[str]) -> list[Path]:
         raise SecureConfigError(f"{config_path} is not valid JSON5: {first}") from exc
     if not isinstance(config, dict):
         raise SecureConfigError(f"{config_path}: expected a JSON5 object, found {type(config).__name__}")
+    return config
+
+
+def _check_files(config_path: Path, config: dict[str, Any]) -> list[Path]:
     checked = [_check_file(config_path, key, value) for key in FILE_KEYS
                if (value := lookup_key(config, key)) is not None]
     return list(dict.fromkeys(checked))  # a file named twice (listen and connect TLS) is one file
@@ -180,26 +189,47 @@ def default_error_body(code: str, message: str) -> bytes:
 
 # --------------------------------------------------------------------------- config
 
+#: Zenoh's cap on one reassembled message (bytes), checked by the receiver.
+RX_MAX_MESSAGE_SIZE_KEY = "transport/link/rx/max_message_size"
+#: Our value for it: the largest legitimate message is an episode upload, ``MAX_UPLOAD_BYTES``
+#: (64 MiB, ``orchestrator.protocol``, which this leaf may not import) of MCAP plus an attachment
+#: of at most ``MAX_MESSAGE_BYTES`` (256 KiB) and Zenoh's own framing; 1 MiB above the upload
+#: limit covers both. Zenoh's default is 1 GiB, so without it a peer could make the service
+#: buffer a gigabyte before our handler ever answers ``too_large``.
+RX_MAX_MESSAGE_BYTES = 65 * 1024 * 1024
+
+
 def make_config(mode: str = "peer", listen: Sequence[str] = (), connect: Sequence[str] = (),
                 config_file: str | Path | None = None) -> zenoh.Config:
     """Build a Zenoh config.
 
     With ``config_file`` the file (Zenoh's own JSON5 format: routers, TLS,
-    user/password, ACL) is used unchanged; ``listen``/``connect`` only add
+    user/password, ACL) is used as written; ``listen``/``connect`` only add
     endpoints to it and ``mode`` is ignored. Without it: ``mode`` (``peer`` or
     ``client``), exactly the given endpoints, multicast scouting off (one
     machine, explicit endpoints; nothing is discovered behind our back).
+
+    Either way the largest message this process accepts is ``RX_MAX_MESSAGE_BYTES``
+    (``transport/link/rx/max_message_size``), unless the file sets that key itself.
+    Zenoh drops a bigger message while reassembling it, once it has buffered about the cap;
+    the link stays up and nothing tells the sender, whose ``get`` ends at its timeout
+    (:class:`NoReplyError` from :func:`request`). Same-host peers may hand a message
+    over in shared memory, which is not reassembled and so not capped (Zenoh's implicit
+    pool is 16 MiB).
 
     Raises ``SecureConfigError`` when a file the config names (CA, certificate, key,
     password dictionary) is missing or unreadable, ``TransportError`` for an unknown
     mode or a config file Zenoh refuses.
     """
     if config_file is not None:
-        validate_secure_config(config_file)  # a missing cert or key: one clear line, before Zenoh's own
+        written = _read_config(Path(config_file))
+        _check_files(Path(config_file), written)  # a missing cert or key: one clear line, before Zenoh's own
         try:
             config = zenoh.Config.from_file(str(config_file))
         except (zenoh.ZError, OSError, ValueError) as exc:
             raise TransportError(f"cannot load Zenoh config {config_file}: {exc}") from exc
+        if lookup_key(written, RX_MAX_MESSAGE_SIZE_KEY) is None:  # the operator's choice stands
+            config.insert_json5(RX_MAX_MESSAGE_SIZE_KEY, str(RX_MAX_MESSAGE_BYTES))
         _add_endpoints(config, "listen", listen)
         _add_endpoints(config, "connect", connect)
         return config
@@ -212,6 +242,7 @@ def make_config(mode: str = "peer", listen: Sequence[str] = (), connect: Sequenc
         config.insert_json5("mode", json.dumps(mode))
         config.insert_json5("scouting/multicast/enabled", "false")
         config.insert_json5("scouting/gossip/enabled", "false")  # peers learn no endpoints from each other
+        config.insert_json5(RX_MAX_MESSAGE_SIZE_KEY, str(RX_MAX_MESSAGE_BYTES))
         config.insert_json5("listen/endpoints", json.dumps(list(listen)))
         config.insert_json5("connect/endpoints", json.dumps(list(connect)))
     except zenoh.ZError as exc:
@@ -447,7 +478,9 @@ def add_connection_args(parser: argparse.ArgumentParser, *, listen: bool = False
                         help="Zenoh endpoint to connect to, e.g. tcp/10.0.0.5:7447 (repeatable"
                              + ("" if listen else f"; default {DEFAULT_ENDPOINT} without --zenoh-config") + ")")
     parser.add_argument("--zenoh-config", type=Path, default=None, metavar="FILE",
-                        help="Zenoh JSON5 config file, used unchanged (routers, TLS, passwords, ACL)")
+                        help="Zenoh JSON5 config file, used as written (routers, TLS, passwords, ACL); "
+                             f"incoming messages are capped at {RX_MAX_MESSAGE_BYTES >> 20} MiB unless it "
+                             f"sets {RX_MAX_MESSAGE_SIZE_KEY}")
     parser.add_argument("--mode", choices=MODES, default="peer",
                         help="Zenoh mode when no config file is given (default peer)")
     parser.add_argument("--namespace", default="activecollect",
