@@ -19,7 +19,8 @@ from typing import Callable, TextIO
 import zenoh
 
 from orchestrator.secure import is_secure_profile
-from orchestrator.transport import SecureConfigError, endpoint_problem, validate_secure_config
+from orchestrator.transport import (SecureConfigError, cap_incoming, endpoint_problem, read_config,
+                                    validate_secure_config)
 
 #: Where a router listens when given neither --listen nor a config: loopback only, so an
 #: unconfigured router is never reachable (in plaintext) from other hosts.
@@ -64,6 +65,7 @@ def build_router_config(cfg: RouterConfig) -> zenoh.Config:
             validate_secure_config(cfg.zenoh_config)
             secure = is_secure_profile(cfg.zenoh_config)
             config = zenoh.Config.from_file(str(cfg.zenoh_config))
+            cap_incoming(config, read_config(Path(cfg.zenoh_config)))  # a router relays only what it took in whole
         except SecureConfigError as exc:
             raise RouterError(str(exc)) from exc
         except zenoh.ZError as exc:
@@ -72,6 +74,7 @@ def build_router_config(cfg: RouterConfig) -> zenoh.Config:
         config = zenoh.Config()
         config.insert_json5("scouting/multicast/enabled", "false")
         config.insert_json5("scouting/gossip/enabled", "false")
+        cap_incoming(config)
     plain = [ep for ep in (*cfg.listen, *cfg.connect) if not ep.startswith(("tls/", "quic/"))]
     if secure and plain:
         raise RouterError(f"{cfg.zenoh_config} is a TLS-only profile; refusing plaintext endpoint {plain[0]}")

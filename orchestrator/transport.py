@@ -123,10 +123,10 @@ def validate_secure_config(path: str | os.PathLike[str]) -> list[Path]:
     message naming the config, the key and the file; CLIs turn it into exit status 2.
     """
     config_path = Path(path)
-    return _check_files(config_path, _read_config(config_path))
+    return _check_files(config_path, read_config(config_path))
 
 
-def _read_config(config_path: Path) -> dict[str, Any]:
+def read_config(config_path: Path) -> dict[str, Any]:
     """The JSON5 object in a Zenoh config file; SecureConfigError (one line) when there is none."""
     try:
         text = config_path.read_text()
@@ -199,6 +199,13 @@ RX_MAX_MESSAGE_SIZE_KEY = "transport/link/rx/max_message_size"
 RX_MAX_MESSAGE_BYTES = 65 * 1024 * 1024
 
 
+def cap_incoming(config: zenoh.Config, written: dict[str, Any] | None = None) -> None:
+    """Cap one incoming message at ``RX_MAX_MESSAGE_BYTES``, unless ``written`` (the parsed config file
+    ``config`` was loaded from) sets ``RX_MAX_MESSAGE_SIZE_KEY`` itself: the operator's choice stands."""
+    if written is None or lookup_key(written, RX_MAX_MESSAGE_SIZE_KEY) is None:
+        config.insert_json5(RX_MAX_MESSAGE_SIZE_KEY, str(RX_MAX_MESSAGE_BYTES))
+
+
 def make_config(mode: str = "peer", listen: Sequence[str] = (), connect: Sequence[str] = (),
                 config_file: str | Path | None = None) -> zenoh.Config:
     """Build a Zenoh config.
@@ -222,14 +229,13 @@ def make_config(mode: str = "peer", listen: Sequence[str] = (), connect: Sequenc
     mode or a config file Zenoh refuses.
     """
     if config_file is not None:
-        written = _read_config(Path(config_file))
+        written = read_config(Path(config_file))
         _check_files(Path(config_file), written)  # a missing cert or key: one clear line, before Zenoh's own
         try:
             config = zenoh.Config.from_file(str(config_file))
         except (zenoh.ZError, OSError, ValueError) as exc:
             raise TransportError(f"cannot load Zenoh config {config_file}: {exc}") from exc
-        if lookup_key(written, RX_MAX_MESSAGE_SIZE_KEY) is None:  # the operator's choice stands
-            config.insert_json5(RX_MAX_MESSAGE_SIZE_KEY, str(RX_MAX_MESSAGE_BYTES))
+        cap_incoming(config, written)
         _add_endpoints(config, "listen", listen)
         _add_endpoints(config, "connect", connect)
         return config
@@ -242,7 +248,7 @@ def make_config(mode: str = "peer", listen: Sequence[str] = (), connect: Sequenc
         config.insert_json5("mode", json.dumps(mode))
         config.insert_json5("scouting/multicast/enabled", "false")
         config.insert_json5("scouting/gossip/enabled", "false")  # peers learn no endpoints from each other
-        config.insert_json5(RX_MAX_MESSAGE_SIZE_KEY, str(RX_MAX_MESSAGE_BYTES))
+        cap_incoming(config)
         config.insert_json5("listen/endpoints", json.dumps(list(listen)))
         config.insert_json5("connect/endpoints", json.dumps(list(connect)))
     except zenoh.ZError as exc:

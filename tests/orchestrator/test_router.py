@@ -10,6 +10,7 @@ import sys
 import pytest
 import zenoh
 
+from orchestrator import transport
 from orchestrator.cli import main
 from orchestrator.router import DEFAULT_LISTEN, RouterConfig, RouterError, build_router_config, listen_endpoints
 from orchestrator.secure import SecureInitConfig, init_secure
@@ -123,3 +124,5 @@ def test_router_config_defaults_to_loopback_and_keeps_file_endpoints(tmp_path):
     more = build_router_config(RouterConfig(zenoh_config=secure.configs["router"], listen=("tls/127.0.0.1:7998",)))
     assert listen_endpoints(more) == ["tls/127.0.0.1:7998"]  # replaces the file's: one profile, two routers
     assert json.loads(config.get_json("mode")) == "router"
+    for built in (build_router_config(RouterConfig()), config):  # it relays only messages it took in whole
+        assert json.loads(built.get_json(transport.RX_MAX_MESSAGE_SIZE_KEY)) == transport.RX_MAX_MESSAGE_BYTES
