@@ -39,10 +39,13 @@ class ChampionScorer:
     change, so a promotion by the scheduler, by ``activecollect retrain`` from cron or
     by an operator's rollback is picked up without a restart. ``reload()`` forces it.
 
-    A champion that cannot be loaded (damaged weights) is logged once and tried again only
-    when its weights file changes (restored) or another model becomes champion; meanwhile
-    the one loaded before keeps scoring, and ``problem`` says why.
+    A champion that cannot be loaded (damaged weights) is logged once and tried again when
+    its weights file changes (restored), another model becomes champion, or ``RETRY_S`` have
+    passed (a read error that passes); meanwhile the one loaded before keeps scoring, and
+    ``problem`` says why.
     """
+
+    RETRY_S = 60.0
 
     def __init__(self, data_dir: Path, device: str = "cpu",
                  observe: Callable[[float], None] = lambda seconds: None) -> None:
@@ -55,7 +58,8 @@ class ChampionScorer:
         self.ensemble: Ensemble | None = None
         self.problem: str | None = None
         """Why the registry's champion is not the one loaded (None when it is)."""
-        self._failed: tuple[str, tuple[int, int, int] | None] | None = None
+        self._failed: tuple[str, tuple[int, int, int, int] | None] | None = None
+        self._failed_at = 0.0
 
     def _registry(self) -> ModelRegistry:
         if not hasattr(self._local, "registry"):
@@ -74,14 +78,16 @@ class ChampionScorer:
                 self.version, self.ensemble, self.problem = None, None, None
                 return None
             attempt = (champion, file_state(registry.get(champion).weights_path))
-            if attempt == self._failed:  # nothing has changed since it failed: not read (and hashed) again
-                return self.version
+            if attempt == self._failed and time.monotonic() - self._failed_at < self.RETRY_S:
+                return self.version  # nothing has changed since it failed: not read (and hashed) again yet
             from uncertainty.checkpoint import load_ensemble  # torch: start-up cost, see the module docstring
             try:
                 ensemble = load_ensemble(registry, champion, self.device)
             except RegistryError as exc:  # a corrupt checkpoint: keep scoring with the one we have
-                self._failed, self.problem = attempt, f"cannot load champion {champion}: {exc}"
-                log.error("could not load champion %s, keeping %s: %s", champion, self.version, exc)
+                level = logging.DEBUG if attempt == self._failed else logging.ERROR  # once, not every RETRY_S
+                self._failed, self._failed_at = attempt, time.monotonic()
+                self.problem = f"cannot load champion {champion}: {exc}"
+                log.log(level, "could not load champion %s, keeping %s: %s", champion, self.version, exc)
                 return self.version
             self.version, self.ensemble, self.problem, self._failed = champion, ensemble, None, None
             log.info("scorer now uses champion %s", champion)

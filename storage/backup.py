@@ -28,9 +28,9 @@ from datetime import datetime, timezone
 from pathlib import Path
 
 from storage.database import DB_NAME, connection
-from storage.catalog import Catalog
+from storage.catalog import Catalog, quarantine_path
 from storage.errors import BackupError, StorageError
-from storage.files import ensure_dir, fsync_dir, sha256_hex, write_synced
+from storage.files import ensure_dir, fsync_dir, holds, sha256_hex, write_synced
 from storage.models import MODELS_DIR, WEIGHTS_FILE, ModelRegistry
 
 
@@ -128,24 +128,41 @@ def _quarantine_in_source(source_db: Path, episode_id: str) -> sqlite3.Row | Non
             return None
 
 
-def _copy_episode(conn: sqlite3.Connection, source_db: Path, work: Path, row: sqlite3.Row, dirs: set[Path]) -> int:
-    """Copy one episode's file as the snapshot knows it: its file checked against its sha256, or, when it is
-    quarantined, the file kept in ``quarantine/`` as it is (if any). One quarantined since the snapshot is
-    copied as the source holds it now. Returns the bytes copied; raises ``_Unusable`` as ``_copy_checked``."""
+def _copy_episode(conn: sqlite3.Connection, source_db: Path, work: Path, row: sqlite3.Row, dirs: set[Path]
+                  ) -> tuple[int, bool]:
+    """Copy one episode's file; returns (bytes copied, whether it is in training in the copy).
+
+    As the snapshot knows it: its file checked against its sha256, or, when it is quarantined, the file
+    kept in ``quarantine/`` as it is (when there is one). When that fails, the source changed since the
+    snapshot (a quarantine or a restore went on, or one was cut short by a crash): the copy takes the
+    episode's quarantine state as the source has it now and its intact bytes wherever they are. Raises
+    ``_Unusable`` when an episode in training has no intact file."""
     data_dir = source_db.parent
     episode_id, rel, sha, moved_to = row
-    if moved_to is not None:  # quarantined: what is left of it, which may be what was damaged
-        kept = data_dir / moved_to if moved_to else None
-        return _copy_checked(kept, work / moved_to, None, dirs) if kept is not None and kept.exists() else 0
+    kept = quarantine_path(rel)
     try:
-        return _copy_checked(data_dir / rel, work / rel, sha, dirs)
+        if moved_to is None:
+            return _copy_checked(data_dir / rel, work / rel, sha, dirs), True
+        if moved_to:
+            return _copy_checked(data_dir / moved_to, work / moved_to, None, dirs), False
     except _Unusable:
-        now = _quarantine_in_source(source_db, episode_id)
-        if now is None:
-            raise
-        conn.execute("INSERT OR REPLACE INTO quarantine(episode_id, reason, moved_to, at) VALUES (?, ?, ?, ?)",
-                     (episode_id, now["reason"], now["moved_to"], now["at"]))
-        return _copy_episode(conn, source_db, work, (episode_id, rel, sha, now["moved_to"]), dirs)
+        pass
+    now = _quarantine_in_source(source_db, episode_id)
+    conn.execute("DELETE FROM quarantine WHERE episode_id = ?", (episode_id,))
+    if now is not None:
+        conn.execute("INSERT INTO quarantine(episode_id, reason, moved_to, at) VALUES (?, ?, ?, ?)",
+                     (episode_id, now["reason"], now["moved_to"] and kept, now["at"]))
+    target = rel if now is None else kept
+    for src in (data_dir / rel, data_dir / kept):
+        if holds(src, sha):
+            if now is not None:
+                conn.execute("UPDATE quarantine SET moved_to = ? WHERE episode_id = ?", (kept, episode_id))
+            return _copy_checked(src, work / target, sha, dirs), now is None
+    if now is None:
+        raise _Unusable(f"{data_dir / rel} is missing or does not hold the bytes indexed (sha256 {sha[:16]}...)")
+    if now["moved_to"] and (data_dir / kept).exists():  # what is left of a damaged file, as it is
+        return _copy_checked(data_dir / kept, work / kept, None, dirs), False
+    return 0, False
 
 
 def backup(data_dir: str | os.PathLike[str], dest: str | os.PathLike[str],
@@ -202,8 +219,9 @@ def _fill(data_dir: Path, work: Path, progress: Callable[[int, int], None] | Non
         dirs: set[Path] = set()
         for row in episodes:
             try:
-                size += _copy_episode(conn, source_db, work, row, dirs)
-                n_episodes += row["moved_to"] is None
+                copied, in_training = _copy_episode(conn, source_db, work, row, dirs)
+                size += copied
+                n_episodes += in_training
             except _Unusable as exc:
                 problems.append(f"episode {row['episode_id']}: {exc}")
             done += 1

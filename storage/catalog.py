@@ -27,7 +27,7 @@ from collections.abc import Callable, Sequence
 from contextlib import AbstractContextManager, nullcontext
 from dataclasses import asdict, dataclass, field
 from datetime import datetime, timezone
-from pathlib import Path
+from pathlib import Path, PurePosixPath
 from typing import Any
 
 from storage.episodes import (
@@ -38,8 +38,8 @@ from storage.episodes import (
     read_file,
     verify_episode,
 )
-from storage.database import (DB_NAME, EPISODES_DIR, Migration, connection, ensure_schema, refuse_lost_database,
-                              storage_error, transaction)
+from storage.database import (DB_NAME, EPISODES_DIR, QUARANTINE_DIR, Migration, connection, ensure_schema,
+                              refuse_lost_database, storage_error, transaction)
 from storage.errors import CatalogError, CorruptEpisodeError, EpisodeError, MissingEpisodeError, UnknownEpisodeError
 from storage.files import age_s, holds, move, publish, sha256_hex, stage_bytes
 from storage.records import MAX_FRAME_SIZE, MIN_FRAME_SIZE, Episode, EpisodeMeta
@@ -86,8 +86,6 @@ _CATALOG_MIGRATIONS: tuple[Migration, ...] = (
 )
 #: Every catalog query of episode rows: the row and, when it is quarantined, why.
 _SELECT_ROWS = "SELECT e.*, q.reason AS quarantined FROM episodes e LEFT JOIN quarantine q USING (episode_id)"
-#: Where ``Catalog.quarantine`` moves the file of an episode it takes out of training.
-QUARANTINE_DIR = "quarantine"
 #: A quarantine reason is kept to one line of at most this many characters.
 MAX_REASON_CHARS = 500
 
@@ -235,6 +233,13 @@ def _check_frame_size(conn: sqlite3.Connection, meta: EpisodeMeta) -> None:
     if fixed is not None and fixed[0] != meta.image_size:
         raise CatalogError(f"episode {meta.episode_id} has {meta.image_size}px frames; this catalog holds "
                            f"{fixed[0]}px episodes ({fixed[1]}): its models train and score one size")
+
+
+def quarantine_path(rel: str) -> str:
+    """Where ``Catalog.quarantine`` keeps the file of the episode indexed at ``rel`` (relative to the data
+    directory): one place per episode, so a quarantine a crash cut short is found again."""
+    path = PurePosixPath(rel)
+    return f"{QUARANTINE_DIR}/{path.parent.name}/{path.name}"
 
 
 def _check_split(split: str) -> None:
@@ -417,6 +422,9 @@ class Catalog:
             with self._connect() as conn, transaction(conn):
                 publish(staged, known.path)
                 conn.execute("DELETE FROM quarantine WHERE episode_id = ?", (known.episode_id,))
+                kept = self._kept(known)
+                if holds(kept, sha):
+                    kept.unlink()  # the same bytes are in place: no copy left behind to take up space
         except OSError as exc:
             raise storage_error(exc, CatalogError, f"cannot restore episode {known.episode_id} at {known.path}: "
                                 f"{exc.strerror or exc}", known.path) from exc
@@ -526,10 +534,18 @@ class Catalog:
             raise UnknownEpisodeError(f"no episode {episode_id!r} in the catalog at {self.data_dir}")
         return EpisodeMeta.from_json(r["meta"])
 
-    def _read_checked(self, row: EpisodeRow) -> bytes:
+    def _read_checked(self, row: EpisodeRow, heal: bool = True) -> bytes:
         try:
             data = row.path.read_bytes()
         except FileNotFoundError:
+            if heal and not row.quarantined:
+                try:
+                    with self._connect() as conn, transaction(conn):
+                        healed = self._heal(conn, row)
+                except OSError as exc:
+                    raise EpisodeError(f"{row.path}: cannot move it back from quarantine: {exc}") from exc
+                if healed:
+                    return self._read_checked(row, heal=False)
             why = (f"it is quarantined ({row.quarantined}); `activecollect episodes restore` puts it back"
                    if row.quarantined else "re-ingest its bytes (e.g. from a backup) to restore it")
             raise MissingEpisodeError(f"{row.path}: file of episode {row.episode_id} is missing: {why}") from None
@@ -580,37 +596,55 @@ class Catalog:
         staging = sorted(p for p in self.episodes_dir.rglob(".*.mcap.*.tmp") if age_s(p, now) > min_tmp_age_s)
         return Strays(staging=staging, unindexed=unindexed)
 
-    def quarantine(self, episode_id: str, reason: str) -> EpisodeRow:
+    def quarantine(self, episode_id: str, reason: str, only_if_damaged: bool = False) -> EpisodeRow:
         """Takes an episode out of training; returns its row as it is now.
 
         For a file found missing or damaged (a training job does this itself, see
         ``uncertainty.data.load_train``, so one lost file does not stop every retrain) or one an operator
         rejects. Its row stays (what was acknowledged stays known), its file, when there is one, moves to
-        ``DATA/quarantine/<day>/``, and snapshots leave it out. ``restore``, or ingesting the same bytes
-        again, brings it back. Quarantining twice keeps the first reason. Episodes of the pinned eval split
-        cannot be quarantined (the split is fixed): restore their bytes instead.
+        ``quarantine_path`` (an intact copy already kept there stays), and snapshots leave it out.
+        ``restore``, or ingesting the same bytes again, brings it back. Quarantining twice keeps the first
+        reason. Episodes of the pinned eval split cannot be quarantined (the split is fixed): restore their
+        bytes instead. ``only_if_damaged``: unless its file holds the bytes indexed by the time the write
+        lock is ours (a repair that came in between wins); the row returned then is not quarantined.
+
+        The file moves inside the write transaction and back if it does not commit; after a crash in
+        between, the next read of the episode moves it back (``_heal``).
         """
         reason = " ".join(str(reason).split())[:MAX_REASON_CHARS]
         if not reason:
             raise CatalogError("a quarantine needs a reason")
         row = self.get(episode_id)
-        target = self.data_dir / QUARANTINE_DIR / row.path.parent.name / row.path.name
+        kept = self._kept(row)
+        moved = False
         try:
-            with self._connect() as conn, transaction(conn):
-                if conn.execute("SELECT 1 FROM eval_split_members WHERE episode_id = ?", (row.episode_id,)).fetchone():
-                    raise CatalogError(f"episode {row.episode_id} is in the pinned eval split, which cannot change: "
-                                       "restore its file instead (ingest its bytes again, e.g. from a backup)")
-                if conn.execute("SELECT 1 FROM quarantine WHERE episode_id = ?", (row.episode_id,)).fetchone():
-                    return row
-                present = row.path.exists()
-                conn.execute("INSERT INTO quarantine(episode_id, reason, moved_to, at) VALUES (?, ?, ?, ?)",
-                             (row.episode_id, reason, target.relative_to(self.data_dir).as_posix() if present else "",
-                              time.time()))
-                if present:  # after the insert: a failed move rolls it back
-                    move(row.path, target)
+            try:
+                with self._connect() as conn, transaction(conn):
+                    if conn.execute("SELECT 1 FROM eval_split_members WHERE episode_id = ?",
+                                    (row.episode_id,)).fetchone():
+                        raise CatalogError(f"episode {row.episode_id} is in the pinned eval split, which cannot "
+                                           "change: restore its file instead (ingest its bytes again, e.g. from "
+                                           "a backup)")
+                    if conn.execute("SELECT 1 FROM quarantine WHERE episode_id = ?", (row.episode_id,)).fetchone():
+                        return self.get(row.episode_id)  # (reads its own row, committed or not)
+                    if only_if_damaged and holds(row.path, row.sha256):
+                        return row
+                    copy_kept = holds(kept, row.sha256)  # e.g. a quarantine a crash cut short
+                    present = row.path.exists()
+                    conn.execute("INSERT INTO quarantine(episode_id, reason, moved_to, at) VALUES (?, ?, ?, ?)",
+                                 (row.episode_id, reason,
+                                  kept.relative_to(self.data_dir).as_posix() if present or copy_kept else "",
+                                  time.time()))
+                    if present and not copy_kept:
+                        move(row.path, kept)  # (over a damaged leftover there)
+                        moved = True
+            except BaseException:
+                if moved:  # not committed: the file goes back where its row says it is
+                    move(kept, row.path)
+                raise
         except OSError as exc:
-            raise storage_error(exc, CatalogError, f"cannot move {row.path} to {target}: {exc.strerror or exc}",
-                                target) from exc
+            raise storage_error(exc, CatalogError, f"cannot move {row.path} to {kept}: {exc.strerror or exc}",
+                                kept) from exc
         return self.get(row.episode_id)
 
     def restore(self, episode_id: str) -> EpisodeRow:
@@ -621,25 +655,43 @@ class Catalog:
         ingesting its original bytes again restores it.
         """
         row = self.get(episode_id)
+        kept = self._kept(row)
         try:
             with self._connect() as conn, transaction(conn):
                 q = conn.execute("SELECT moved_to FROM quarantine WHERE episode_id = ?", (row.episode_id,)).fetchone()
                 if q is None:
+                    if self._heal(conn, row):
+                        return self.get(row.episode_id)
                     raise CatalogError(f"episode {row.episode_id} is not quarantined")
                 if not holds(row.path, row.sha256):
-                    kept = self.data_dir / q["moved_to"] if q["moved_to"] else None
-                    if kept is None or not holds(kept, row.sha256):
-                        state = ("its file was already missing when it was quarantined" if kept is None else
-                                 f"{kept} is missing" if not kept.exists() else
-                                 f"{kept} does not hold the bytes indexed (sha256 {row.sha256[:16]}...)")
+                    if not holds(kept, row.sha256):
+                        state = (f"{kept} does not hold the bytes indexed (sha256 {row.sha256[:16]}...)"
+                                 if kept.exists() else f"{kept} is missing" if q["moved_to"] else
+                                 "its file was already missing when it was quarantined")
                         raise CatalogError(f"cannot restore episode {row.episode_id}: {state}; ingest its original "
                                            "bytes again (activecollect ingest FILE), which restores it")
                     move(kept, row.path)
+                elif holds(kept, row.sha256):
+                    kept.unlink()  # the same bytes are in place
                 conn.execute("DELETE FROM quarantine WHERE episode_id = ?", (row.episode_id,))
         except OSError as exc:
             raise storage_error(exc, CatalogError, f"cannot restore episode {row.episode_id} to {row.path}: "
                                 f"{exc.strerror or exc}", row.path) from exc
         return self.get(row.episode_id)
+
+    def _kept(self, row: EpisodeRow) -> Path:
+        return self.data_dir / quarantine_path(row.path.relative_to(self.data_dir).as_posix())
+
+    def _heal(self, conn: sqlite3.Connection, row: EpisodeRow) -> bool:
+        """In a write transaction: move the file of an episode that is in training back from
+        ``DATA/quarantine/``, where a quarantine a crash cut short (file moved, row not committed) left
+        it. True when it did."""
+        kept = self._kept(row)
+        if (conn.execute("SELECT 1 FROM quarantine WHERE episode_id = ?", (row.episode_id,)).fetchone()
+                or row.path.exists() or not holds(kept, row.sha256)):
+            return False
+        move(kept, row.path)
+        return True
 
     def verify(self, episode_id: str) -> EpisodeMeta:
         """Re-hashes and re-verifies an indexed episode's file; raises a ``StorageError`` if bad."""
@@ -673,6 +725,11 @@ class Catalog:
             if wrong:
                 raise CatalogError(f"episodes {', '.join(wrong[:5])} are in split 'train'; only episodes "
                                    "added with split='eval' can be pinned")
+            held = [r[0] for r in conn.execute(f"SELECT episode_id FROM quarantine WHERE episode_id IN ({marks})",
+                                                ids)]
+            if held:
+                raise CatalogError(f"episodes {', '.join(held[:5])} are quarantined; restore them first, or pin "
+                                   "others")
             sizes = {r[0] for r in conn.execute(f"SELECT DISTINCT json_extract(meta, '$.image_size') FROM episodes "
                                                 f"WHERE episode_id IN ({marks})", ids)}
             said = (params or {}).get("image_size")

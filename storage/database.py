@@ -28,6 +28,8 @@ from storage.errors import (
 DB_NAME = "catalog.sqlite"
 #: The data directory's folders of episode files and of model checkpoints (the files the database indexes).
 EPISODES_DIR, MODELS_DIR = "episodes", "models"
+#: Where ``Catalog.quarantine`` keeps the files of episodes it takes out of training.
+QUARANTINE_DIR = "quarantine"
 BUSY_TIMEOUT_MS = 30_000
 #: What the WAL file is cut back to once a checkpoint has emptied it. SQLite reuses the file instead of
 #: shrinking it, so without a limit one burst (or a long backup, during which it cannot be reset) would
@@ -123,6 +125,7 @@ def refuse_lost_database(data_dir: Path, error: type[StorageError]) -> None:
     except FileNotFoundError:
         pass
     held = next(iter((data_dir / EPISODES_DIR).rglob("*.mcap")), None) or next(
+        iter((data_dir / QUARANTINE_DIR).rglob("*.mcap")), None) or next(
         (p for p in (data_dir / MODELS_DIR).glob("m*") if p.is_dir()), None)
     if held is not None:
         state = "empty" if db.exists() else "missing"

@@ -92,10 +92,11 @@ def move(src: str | os.PathLike, dst: str | os.PathLike) -> None:
 
 
 def holds(path: str | os.PathLike, sha256: str) -> bool:
-    """Whether the file at ``path`` exists and its bytes hash to ``sha256``."""
+    """Whether the file at ``path`` exists and its bytes hash to ``sha256`` (False when it cannot be read:
+    then it is to be repaired, or not trusted)."""
     try:
         return sha256_hex(Path(path).read_bytes()) == sha256
-    except FileNotFoundError:
+    except OSError:
         return False
 
 

@@ -195,21 +195,24 @@ def _dump(obj: Any, what: str) -> bytes:
         raise RegistryError(f"{what} must be JSON-serialisable: {exc}") from exc
 
 
-#: ``weights_problem``'s answers by the state of the file it read: ``(path, sha256, pruned_at, size, mtime_ns,
-#: inode)`` -> the problem (None: sound). Process-wide, as what polls it (the dashboard's handler threads) opens
-#: a registry per thread.
-_CHECKED: dict[tuple, str | None] = {}
+#: ``weights_problem``'s verdicts on what a file holds, by the state of the file it read: ``(path, sha256,
+#: pruned_at, *file_state)`` -> (the problem or None, when). Process-wide, as what polls it (the dashboard's
+#: handler threads) opens a registry per thread. A verdict is kept ``WEIGHTS_RECHECK_S`` at most, so media
+#: damage that leaves the file's times alone is found too.
+_CHECKED: dict[tuple, tuple[str | None, float]] = {}
 _CHECKED_LOCK = threading.Lock()
 _CHECKED_MAX = 256
+WEIGHTS_RECHECK_S = 300.0
 
 
-def file_state(path: Path) -> tuple[int, int, int] | None:
-    """``(size, mtime_ns, inode)`` of ``path``, None when it cannot be read: what changes when the file does."""
+def file_state(path: Path) -> tuple[int, int, int, int] | None:
+    """``(size, mtime_ns, ctime_ns, inode)`` of ``path``, None when it cannot be read: what changes when the
+    file, or who may read it, does."""
     try:
         st = path.stat()
     except OSError:
         return None
-    return st.st_size, st.st_mtime_ns, st.st_ino
+    return st.st_size, st.st_mtime_ns, st.st_ctime_ns, st.st_ino
 
 
 class ModelRegistry:
@@ -306,24 +309,27 @@ class ModelRegistry:
 
     def weights_problem(self, version: str) -> str | None:
         """Why the weights of ``version`` cannot be served (pruned, missing, unreadable, not their sha256),
-        or None when they can. Remembered per state of the weights file (``file_state``), so what asks
-        again and again (the dashboard, ``stats``) re-reads the file only when it has changed."""
+        or None when they can. A verdict on the bytes is remembered per state of the weights file
+        (``file_state``) for ``WEIGHTS_RECHECK_S``, so what asks again and again (the dashboard,
+        ``stats``) re-reads the file only when it has changed or that long has passed; a read that
+        failed (which may pass) is not remembered."""
         rec = self.get(version)
         state = file_state(rec.weights_path)
         key = None if state is None else (str(rec.weights_path), rec.weights_sha256, rec.pruned_at, *state)
+        now = time.monotonic()
         with _CHECKED_LOCK:
-            if key in _CHECKED:
-                return _CHECKED[key]
+            if key in _CHECKED and now - _CHECKED[key][1] < WEIGHTS_RECHECK_S:
+                return _CHECKED[key][0]
         try:
             self._read_verified(rec)
-            problem = None
+            problem, lasting = None, True
         except CorruptCheckpointError as exc:
-            problem = str(exc)
-        if key is not None:
+            problem, lasting = str(exc), not isinstance(exc.__cause__, OSError)
+        if key is not None and lasting:
             with _CHECKED_LOCK:
                 if len(_CHECKED) >= _CHECKED_MAX:
                     _CHECKED.clear()
-                _CHECKED[key] = problem
+                _CHECKED[key] = (problem, now)
         return problem
 
     @staticmethod

@@ -313,3 +313,39 @@ def test_a_path_with_a_newline_is_reported_on_one_line(capsys, data, rng, tmp_pa
     assert rc == 1 and err.count("\n") == 1 and "two\\nlines.mcap" in err, err
     rc, _, err = run_cli(capsys, "ingest", str(tmp_path / "no\nsuch.mcap"), "--data", str(data))
     assert rc == 2 and err.count("\n") == 1 and "no\\nsuch.mcap" in err, err
+
+
+def test_ingest_goes_on_past_an_indexed_file_it_cannot_repair(capsys, data, rng, tmp_path):
+    cat = Catalog(data)
+    first, second = make_episode(rng), make_episode(rng)
+    row = cat.get(cat.add_episode(first).episode_id)
+    (tmp_path / "a.mcap").write_bytes(row.path.read_bytes())
+    episodes.write_episode(tmp_path / "b.mcap", second)
+    row.path.unlink()
+    row.path.mkdir()  # something in the way of the repair
+    rc, out, err = run_cli(capsys, "ingest", str(tmp_path / "a.mcap"), str(tmp_path / "b.mcap"), "--data", str(data))
+    assert rc == 1 and "1 of 2 files indexed" in out and f"ingested {second.meta.episode_id}" in out
+    assert f"cannot restore episode {first.meta.episode_id}" in err and err.count("\n") == 1, err
+
+
+def test_restore_all_and_its_usage(capsys, data, rng):
+    cat = Catalog(data)
+    ids = [cat.add_episode(make_episode(rng)).episode_id for _ in range(3)]
+    for i in ids[:2]:
+        cat.quarantine(i, "found by a training job: the disk was away")
+    for argv in ((), (ids[0], "--all")):
+        rc, _, err = run_cli(capsys, "episodes", "restore", *argv, "--data", str(data))
+        assert rc == 2 and "give the episodes to restore, or --all (not both)" in err
+    rc, out, _ = run_cli(capsys, "episodes", "restore", "--all", "--data", str(data), "--json")
+    assert rc == 0 and [r["episode_id"] for r in json.loads(out)] == ids[:2]
+    assert cat.count(quarantined=True) == 0 and len(cat.snapshot().ids) == 3
+
+
+def test_restore_refusals_are_one_line_whatever_the_path(capsys, rng, tmp_path):
+    data = tmp_path / "nl\nX"
+    cat = Catalog(data)
+    row = cat.quarantine(cat.add_episode(make_episode(rng)).episode_id, "suspect")
+    kept = data / "quarantine" / row.path.parent.name / row.path.name
+    kept.write_bytes(b"damaged since")
+    rc, _, err = run_cli(capsys, "episodes", "restore", row.episode_id, "--data", str(data))
+    assert rc == 1 and err.count("\n") == 1 and "nl\\nX" in err, err

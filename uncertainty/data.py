@@ -29,7 +29,7 @@ class CatalogLike(Protocol):
     def snapshot(self, split: str = "train"): ...
     def eval_split(self): ...
     def load(self, episode_id: str) -> Episode: ...
-    def quarantine(self, episode_id: str, reason: str): ...
+    def quarantine(self, episode_id: str, reason: str, only_if_damaged: bool = False): ...
 
 
 @dataclass
@@ -154,7 +154,9 @@ def load_train(catalog: CatalogLike, max_episodes: int | None = None) -> TrainDa
 
     An episode whose file is missing or no longer holds the bytes indexed is quarantined
     (``Catalog.quarantine``, which keeps its row and whatever is left of its file) and left out, so one
-    lost file does not stop every retrain: the snapshot id is then that of the episodes kept.
+    lost file does not stop every retrain: the snapshot id is then that of the episodes kept. When most
+    of them are (more than one and more than half: a disk not mounted, not a lost file), nothing is
+    quarantined and ``DataError`` says so.
     """
     snap = catalog.snapshot(split="train")
     ids = list(snap.ids)
@@ -166,7 +168,7 @@ def load_train(catalog: CatalogLike, max_episodes: int | None = None) -> TrainDa
                             f"(first {leaked[0]}); the eval split must never be trained on")
     if not ids:
         raise DataError("the catalog has no train episodes; collect some first")
-    episodes, kept, lost = [], [], []
+    episodes, kept, damaged = [], [], []
     for episode_id in ids:
         if max_episodes is not None and len(kept) == max_episodes:
             break
@@ -174,8 +176,18 @@ def load_train(catalog: CatalogLike, max_episodes: int | None = None) -> TrainDa
             episodes.append(catalog.load(episode_id))
             kept.append(episode_id)
         except DAMAGED_EPISODE_ERRORS as exc:
-            catalog.quarantine(episode_id, f"found by a training job: {exc}")
+            damaged.append((episode_id, exc))
+    if len(damaged) > 1 and 2 * len(damaged) > len(damaged) + len(kept):
+        raise DataError(f"the files of {len(damaged)} of {len(damaged) + len(kept)} train episodes are missing "
+                        f"or damaged (first: {damaged[0][1]}); nothing was quarantined: check that the data "
+                        "directory's disk is there and readable, then `activecollect episodes verify --quarantine`")
+    lost = []
+    for episode_id, exc in damaged:
+        if catalog.quarantine(episode_id, f"found by a training job: {exc}", only_if_damaged=True).quarantined:
             lost.append(episode_id)
+        else:  # repaired (its bytes ingested again) since it was read
+            episodes.append(catalog.load(episode_id))
+            kept.append(episode_id)
     if not kept:
         raise DataError(f"the files of all {len(lost)} train episodes are missing or damaged (quarantined "
                         "now); restore them from a backup (activecollect ingest), or collect new ones")

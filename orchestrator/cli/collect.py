@@ -88,7 +88,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                         description="Move quarantined episodes' files back (when they still hold the bytes "
                                     "indexed) and let training use them again. For one whose file is gone or "
                                     "damaged, ingest its original bytes again instead (`activecollect ingest`).")
-    p.add_argument("episode_ids", nargs="+", metavar="ID", help="episode ids or unique prefixes")
+    p.add_argument("episode_ids", nargs="*", metavar="ID", help="episode ids or unique prefixes")
+    p.add_argument("--all", action="store_true", help="every quarantined episode (e.g. after a disk came back)")
     p.set_defaults(func=_episodes_restore)
     for p in esub.choices.values():
         common.add_data_arg(p)
@@ -270,11 +271,10 @@ def _episodes_verify(args: argparse.Namespace) -> int:
 
 def _quarantine_bad(cat: Catalog, row: EpisodeRow, exc: StorageError) -> bool:
     """Quarantines a bad episode ``verify`` found; False (with a line on stderr) when it cannot be."""
-    try:
-        cat.quarantine(row.episode_id, f"found by episodes verify: {exc}")
-        return True
+    try:  # (a repair that came in since it was read wins: then it is not quarantined)
+        return bool(cat.quarantine(row.episode_id, f"found by episodes verify: {exc}", only_if_damaged=True).quarantined)
     except CatalogError as why:
-        print(f"activecollect: cannot quarantine {row.episode_id}: {why}", file=sys.stderr)
+        print(one_line(f"activecollect: cannot quarantine {row.episode_id}: {why}"), file=sys.stderr)
         return False
 
 
@@ -287,8 +287,10 @@ def _episodes_quarantine(args: argparse.Namespace) -> int:
 
 
 def _episodes_restore(args: argparse.Namespace) -> int:
+    if bool(args.episode_ids) == args.all:
+        raise common.UsageError("give the episodes to restore, or --all (not both)")
     cat = _existing_catalog(args)
-    rows = [_resolve(cat, i) for i in args.episode_ids]
+    rows = cat.list(quarantined=True) if args.all else [_resolve(cat, i) for i in args.episode_ids]
     return _each(args, rows, lambda row: cat.restore(row.episode_id), "restored")
 
 
@@ -304,7 +306,7 @@ def _each(args: argparse.Namespace, rows: list[EpisodeRow], change: Callable[[Ep
                 print(f"{done} {row.episode_id}" + (f": {now.quarantined}" if now.quarantined else ""))
         except StorageError as exc:
             report.append({"episode_id": row.episode_id, "ok": False, "error": str(exc)})
-            print(f"activecollect: {exc}", file=sys.stderr)
+            print(one_line(f"activecollect: {exc}"), file=sys.stderr)
     if args.json:
         common.print_json(report)
     return 0 if all(r["ok"] for r in report) else 1

@@ -47,3 +47,35 @@ def test_a_damaged_champion_is_reported_once_and_loaded_once_restored(tmp_path, 
     weights.write_bytes(good)  # restored from a backup
     assert registry.weights_problem(second) is None
     assert scorer(episode).model_version == second and scorer.problem is None
+
+
+def _failing_reads_of(path, monkeypatch, times: int) -> None:
+    """The next ``times`` reads of ``path`` fail with EIO, as a flaky disk's would."""
+    import errno
+    import pathlib
+    real, left = pathlib.Path.read_bytes, [times]
+
+    def read_bytes(self):
+        if self == path and left[0] > 0:
+            left[0] -= 1
+            raise OSError(errno.EIO, "Input/output error")
+        return real(self)
+    monkeypatch.setattr(pathlib.Path, "read_bytes", read_bytes)
+
+
+def test_a_read_error_is_not_remembered_as_damage(tmp_path, monkeypatch):
+    registry = ModelRegistry(tmp_path)
+    version = _promoted(registry, 0, 0.02)
+    _failing_reads_of(registry.get(version).weights_path, monkeypatch, times=1)
+    assert "Input/output error" in registry.weights_problem(version)
+    assert registry.weights_problem(version) is None  # the same file, read again: it was the disk, not the bytes
+
+
+def test_the_scorer_tries_again_after_a_read_error(tmp_path, monkeypatch):
+    registry = ModelRegistry(tmp_path)
+    version = _promoted(registry, 0, 0.02)
+    scorer = ChampionScorer(tmp_path)
+    scorer.RETRY_S = 0.0  # (a minute in service)
+    _failing_reads_of(registry.get(version).weights_path, monkeypatch, times=1)
+    assert scorer.reload() is None and "Input/output error" in scorer.problem
+    assert scorer.reload() == version and scorer.problem is None

@@ -260,3 +260,34 @@ def test_an_episode_quarantined_during_the_backup_is_quarantined_in_it(tmp_path,
     copy = Catalog(dest)
     assert copy.get(last).quarantined == "operator: wrong object"
     assert copy.restore(last).quarantined == "" and copy.verify(last)
+
+
+def test_an_episode_restored_during_the_backup_is_in_training_in_it(tmp_path, rng) -> None:
+    data, dest = tmp_path / "data", tmp_path / "b"
+    want = _filled(data, rng)
+    cat = Catalog(data)
+    last = max((cat.get(i) for i in want["train"]), key=lambda r: str(r.path)).episode_id
+    cat.quarantine(last, "operator: suspect")
+
+    def restore_once(done: int, total: int) -> None:  # after the snapshot, before that file is copied
+        if done == 1:
+            cat.restore(last)
+
+    result = backup(data, dest, progress=restore_once)
+
+    assert result.problems == [] and result.episodes == 5
+    copy = Catalog(dest)
+    assert copy.get(last).quarantined == "" and copy.verify(last)
+
+
+def test_a_file_left_in_quarantine_by_a_crash_is_backed_up(tmp_path, rng) -> None:
+    from tests.storage.test_catalog import _killed_in_quarantine
+    data, dest = tmp_path / "data", tmp_path / "b"
+    want = _filled(data, rng)
+    cat = Catalog(data)
+    _killed_in_quarantine(cat, want["train"][0])  # the file moved, its row not quarantined
+
+    result = backup(data, dest)
+
+    assert result.problems == [] and result.episodes == 5
+    assert Catalog(dest).verify(want["train"][0])

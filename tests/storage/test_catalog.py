@@ -484,6 +484,17 @@ def test_a_lost_catalog_beside_its_data_is_refused_not_started_over(tmp_path, lo
     assert catalog.db_path.exists() is False or catalog.db_path.stat().st_size == 0
 
 
+def test_a_lost_catalog_beside_only_quarantined_files_is_refused_too(tmp_path) -> None:
+    data = tmp_path / "data"
+    catalog = Catalog(data)
+    row = catalog.quarantine(catalog.add_episode(make_episode(np.random.default_rng(3))).episode_id, "operator: x")
+    for suffix in ("", "-wal", "-shm"):
+        Path(f"{catalog.db_path}{suffix}").unlink(missing_ok=True)
+    with pytest.raises(CatalogError, match="catalog.sqlite is missing, but .* holds the data it indexed"):
+        Catalog(data)
+    assert not catalog.db_path.exists() and not row.path.exists()
+
+
 # --- quarantine ----------------------------------------------------------------------------------
 
 
@@ -516,7 +527,8 @@ def test_quarantine_moves_the_file_aside_keeps_the_row_and_leaves_snapshots(cat,
     assert cat.quarantine(ids[1], "other reason").quarantined == "camera glitch"  # the first reason stays
     with pytest.raises(MissingEpisodeError, match="quarantined .camera glitch.; .*episodes restore"):
         cat.load(ids[1])
-    assert cat.strays().unindexed == []  # the moved file is not a crash's leftover
+    cat.sweep_strays(min_tmp_age_s=0)  # the moved file is not a crash's leftover: it stays where it was put
+    assert kept.exists()
     restored = cat.restore(ids[1])
     assert restored.quarantined == "" and not kept.exists()
     assert cat.snapshot() == before
@@ -584,3 +596,99 @@ def test_a_version_1_catalog_is_migrated_with_its_episodes(tmp_path, rng):
         assert dict(conn.execute("SELECT component, version FROM schema_versions").fetchall()) == {"catalog": 2}
     assert cat.list()[0].quarantined == "" and cat.snapshot().ids == [ep.meta.episode_id]
     assert cat.quarantine(ep.meta.episode_id, "x").quarantined == "x"
+
+
+KILLED_IN_QUARANTINE = """
+import os, sys
+import storage.catalog as catalog, storage.files as files
+def move_then_die(src, dst):  # the process dies after the rename, before the row commits
+    files.move(src, dst)
+    os._exit(9)
+catalog.move = move_then_die
+catalog.Catalog(sys.argv[1]).quarantine(sys.argv[2], "operator: blurred")
+"""
+
+
+def _killed_in_quarantine(cat: Catalog, episode_id: str) -> None:
+    import subprocess
+    import sys
+    from tests.conftest import REPO
+    done = subprocess.run([sys.executable, "-c", KILLED_IN_QUARANTINE, str(cat.data_dir), episode_id], cwd=REPO,
+                          capture_output=True, text=True, timeout=60)
+    assert done.returncode == 9, done.stderr
+
+
+def test_a_quarantine_killed_before_its_commit_is_healed_by_the_next_read(cat, rng):
+    eps = [make_episode(rng) for _ in range(2)]
+    rows = [cat.get(cat.add_episode(ep).episode_id) for ep in eps]
+    for row in rows:
+        _killed_in_quarantine(cat, row.episode_id)
+        assert not row.path.exists() and cat.count(quarantined=True) == 0  # the file moved, the row did not
+    assert_same(cat.load(rows[0].episode_id), eps[0])  # the read moves it back
+    assert rows[0].path.exists() and not (cat.data_dir / "quarantine" / rows[0].path.parent.name /
+                                          rows[0].path.name).exists()
+    # quarantining it again takes the copy already kept; restore brings it back
+    assert cat.quarantine(rows[1].episode_id, "operator: blurred").quarantined == "operator: blurred"
+    assert cat.restore(rows[1].episode_id).quarantined == "" and cat.verify(rows[1].episode_id) == eps[1].meta
+
+
+def test_a_quarantine_whose_commit_fails_moves_the_file_back(cat, rng, monkeypatch):
+    ep = make_episode(rng)
+    row = cat.get(cat.add_episode(ep).episode_id)
+
+    def move_then_fail(src, dst):
+        files.move(src, dst)
+        if dst != row.path:  # (the move back succeeds)
+            raise OSError(5, "Input/output error")
+    monkeypatch.setattr("storage.catalog.move", move_then_fail)
+    with pytest.raises(CatalogError, match="Input/output error"):
+        cat.quarantine(ep.meta.episode_id, "bad")
+    assert cat.count(quarantined=True) == 0 and cat.verify(ep.meta.episode_id) == ep.meta
+
+
+def test_an_intact_kept_copy_is_never_overwritten_by_a_damaged_file(cat, rng):
+    ep = make_episode(rng)
+    row = cat.get(cat.add_episode(ep).episode_id)
+    good = row.path.read_bytes()
+    kept = cat.data_dir / "quarantine" / row.path.parent.name / row.path.name
+    kept.parent.mkdir(parents=True)
+    kept.write_bytes(good)  # as a quarantine cut short leaves it
+    row.path.write_bytes(good[:-5])  # and the file in place damaged since
+    cat.quarantine(ep.meta.episode_id, "found by a training job: damaged")
+    assert kept.read_bytes() == good
+    assert cat.restore(ep.meta.episode_id).quarantined == "" and row.path.read_bytes() == good
+
+
+def test_re_ingested_bytes_leave_no_copy_behind(cat, rng):
+    ep = make_episode(rng)
+    row = cat.quarantine(cat.add_episode(ep).episode_id, "operator: suspect")
+    assert cat.add_episode(ep).restored
+    assert not (cat.data_dir / "quarantine" / row.path.parent.name / row.path.name).exists()
+
+
+def test_a_repair_that_came_first_wins_over_only_if_damaged(cat, rng):
+    ep = make_episode(rng)
+    row = cat.get(cat.add_episode(ep).episode_id)
+    assert cat.quarantine(ep.meta.episode_id, "x", only_if_damaged=True).quarantined == ""  # intact: left alone
+    assert row.path.exists() and cat.count(quarantined=True) == 0
+    row.path.unlink()
+    assert cat.quarantine(ep.meta.episode_id, "x", only_if_damaged=True).quarantined == "x"
+
+
+def test_quarantine_answers_with_the_row_as_it_is_now(tmp_path, rng, monkeypatch):
+    a, b = Catalog(tmp_path / "d"), Catalog(tmp_path / "d")
+    episode_id = a.add_episode(make_episode(rng)).episode_id
+    stale = a.get(episode_id)  # read by one process just before another quarantines it
+    b.quarantine(episode_id, "first: by process B")
+    real_get, calls = a.get, []
+    monkeypatch.setattr(a, "get", lambda i: stale if not calls.append(i) and len(calls) == 1 else real_get(i))
+    assert a.quarantine(episode_id, "second").quarantined == "first: by process B"
+
+
+def test_quarantined_episodes_cannot_be_pinned(cat, rng):
+    ep = make_episode(rng)
+    cat.add_episode(ep, split="eval")
+    cat.quarantine(ep.meta.episode_id, "operator: wrong object")
+    with pytest.raises(CatalogError, match="are quarantined; restore them first"):
+        cat.pin_eval_split([ep.meta.episode_id])
+    assert cat.eval_split() is None

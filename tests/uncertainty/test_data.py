@@ -105,3 +105,14 @@ def test_when_every_train_file_is_lost_the_job_says_so(tmp_path):
     with pytest.raises(DataError, match="the files of all 1 train episodes are missing or damaged"):
         load_train(cat)
     assert cat.count(quarantined=True) == 1
+
+
+def test_when_most_train_files_are_gone_nothing_is_quarantined(tmp_path):
+    cat = Catalog(tmp_path)
+    rows = [cat.add_episode(make_episode(s, steps=5)) for s in range(4)]
+    for row in rows[:3]:  # e.g. the disk holding episodes/ is not mounted
+        row.path.unlink()
+    with pytest.raises(DataError, match="the files of 3 of 4 train episodes are missing or damaged .* "
+                                        "nothing was quarantined"):
+        load_train(cat)
+    assert cat.count(quarantined=True) == 0
