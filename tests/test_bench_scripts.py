@@ -63,3 +63,14 @@ def test_soak_keeps_collecting_and_retraining_and_sees_no_leak(tmp_path):
     assert summary["problems"] == [] and summary["retrain_jobs"] >= 1 and summary["models"].get("champion") == 1
     # after the first champion the active planner chose states (the seeds and top-ups are uniform draws)
     assert summary["requests_by_planner"].get("active", 0) >= 1
+
+
+def test_zenoh_cap_bench_drops_over_the_cap_and_passes_under_zenohs_default(tmp_path):
+    out = tmp_path / "cap.json"
+    argv = [sys.executable, str(ROOT / "bench" / "zenoh_cap.py"), "--mb", "70", "--timeout", "5", "--json", str(out)]
+    proc = subprocess.run(argv, cwd=ROOT, capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    result = json.loads(out.read_text())
+    assert not result["capped"]["handler_saw_big"] and result["capped"]["small_reply"] == "12"
+    assert result["zenoh_default"]["handler_saw_big"] and result["zenoh_default"]["big_reply"] == str(70 << 20)
+    assert result["capped"]["receiver_peak_mib_after"] < result["zenoh_default"]["receiver_peak_mib_after"]
