@@ -297,10 +297,10 @@ def _retrain(args: argparse.Namespace) -> int:
               f"champion {result['champion']}")
         if result["abandoned"]:
             print(f"  {abandoned_note(result['abandoned'])}")
-    if result["quarantined"]:
-        print(f"activecollect retrain: warning: {quarantined_note(result['quarantined'])}", file=sys.stderr)
         if result["pruned"]:
             print(f"  pruned the files of {', '.join(result['pruned'])}")
+    if result["quarantined"]:
+        print(f"activecollect retrain: warning: {quarantined_note(result['quarantined'])}", file=sys.stderr)
     if result["prune_error"]:
         print(f"activecollect retrain: warning: {result['prune_error']}", file=sys.stderr)
     return 0

@@ -331,3 +331,12 @@ def test_a_retrain_quarantines_a_lost_train_file_and_trains_on_the_rest(trained,
     assert ModelRegistry(data).get(result["version"]).snapshot_id == catalog.snapshot().snapshot_id
     again = retrain(data, "--epochs", "1")  # the next job trains on the same snapshot, nothing new to say
     assert again.returncode == 0 and json.loads(again.stdout)["quarantined"] == [] and again.stderr == ""
+
+
+def test_a_retrain_in_text_says_what_it_pruned(trained, tmp_path):
+    data = tmp_path / "copy"
+    shutil.copytree(trained, data)
+    done = subprocess.run([sys.executable, "-m", "orchestrator", "retrain", "--data", str(data), *TINY,
+                           "--epochs", "1", "--keep-models", "1"], capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    assert "pruned the files of " in done.stdout and done.stdout.splitlines()[0].startswith("m0")
