@@ -28,14 +28,6 @@ def abandoned_note(versions: list[str]) -> str:
     return f"rejected {', '.join(versions)}: left as candidates by a job that ended before its gate"
 
 
-def quarantined_note(episode_ids: list[str]) -> str:
-    """One line for the operator on the train episodes a job found missing or damaged."""
-    shown = ", ".join(episode_ids[:5]) + (f" and {len(episode_ids) - 5} more" if len(episode_ids) > 5 else "")
-    return (f"quarantined {len(episode_ids)} train episode(s) whose files are missing or damaged: {shown} "
-            "(trained without them; `activecollect episodes ls --quarantined` lists them, re-ingesting their "
-            "bytes restores them)")
-
-
 @contextlib.contextmanager
 def training_job(data_dir: Path, wait: bool = False) -> Iterator[tuple[Catalog, ModelRegistry, list[str]]]:
     """Hold the retrain lock for one training job (``retrain`` and ``train`` alike).

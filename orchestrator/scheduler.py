@@ -113,6 +113,14 @@ class RetrainRecord:
         return d
 
 
+def quarantined_note(episode_ids: list[str]) -> str:
+    """One line for the operator on the train episodes a job found missing or damaged."""
+    shown = ", ".join(episode_ids[:5]) + (f" and {len(episode_ids) - 5} more" if len(episode_ids) > 5 else "")
+    return (f"quarantined {len(episode_ids)} train episode(s) whose files are missing or damaged: {shown} "
+            "(trained without them; `activecollect episodes ls --quarantined` lists them, re-ingesting their "
+            "bytes restores them)")
+
+
 @contextlib.contextmanager
 def retrain_lock(data_dir: Path, wait: bool = False) -> Iterator[Path]:
     """Hold ``DATA/retrain.lock`` (``fcntl.flock``) for one retrain.
@@ -382,8 +390,7 @@ class RetrainScheduler:
         if rc == 0 and result.get("prune_error"):
             log.warning("retrain %s: %s", rec.version or "-", result["prune_error"])
         if rc == 0 and result.get("quarantined"):
-            log.warning("retrain %s: quarantined %d train episode(s) whose files are missing or damaged: %s",
-                        rec.version or "-", len(result["quarantined"]), ", ".join(map(str, result["quarantined"][:5])))
+            log.warning("retrain %s: %s", rec.version or "-", quarantined_note([str(i) for i in result["quarantined"]]))
         if rec.status is RetrainStatus.promoted:
             self.on_promoted(rec.version)
         self.on_finished(rec)

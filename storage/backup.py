@@ -148,16 +148,13 @@ def _copy_episode(conn: sqlite3.Connection, source_db: Path, work: Path, row: sq
     except _Unusable:
         pass
     now = _quarantine_in_source(source_db, episode_id)
+    intact = next((src for src in (data_dir / rel, data_dir / kept) if holds(src, sha)), None)
     conn.execute("DELETE FROM quarantine WHERE episode_id = ?", (episode_id,))
     if now is not None:
         conn.execute("INSERT INTO quarantine(episode_id, reason, moved_to, at) VALUES (?, ?, ?, ?)",
-                     (episode_id, now["reason"], now["moved_to"] and kept, now["at"]))
-    target = rel if now is None else kept
-    for src in (data_dir / rel, data_dir / kept):
-        if holds(src, sha):
-            if now is not None:
-                conn.execute("UPDATE quarantine SET moved_to = ? WHERE episode_id = ?", (kept, episode_id))
-            return _copy_checked(src, work / target, sha, dirs), now is None
+                     (episode_id, now["reason"], kept if intact is not None or now["moved_to"] else "", now["at"]))
+    if intact is not None:
+        return _copy_checked(intact, work / (rel if now is None else kept), sha, dirs), now is None
     if now is None:
         raise _Unusable(f"{data_dir / rel} is missing or does not hold the bytes indexed (sha256 {sha[:16]}...)")
     if now["moved_to"] and (data_dir / kept).exists():  # what is left of a damaged file, as it is

@@ -85,7 +85,8 @@ _CATALOG_MIGRATIONS: tuple[Migration, ...] = (
     ),
 )
 #: Every catalog query of episode rows: the row and, when it is quarantined, why.
-_SELECT_ROWS = "SELECT e.*, q.reason AS quarantined FROM episodes e LEFT JOIN quarantine q USING (episode_id)"
+_FROM_ROWS = "episodes e LEFT JOIN quarantine q USING (episode_id)"
+_SELECT_ROWS = f"SELECT e.*, q.reason AS quarantined FROM {_FROM_ROWS}"
 #: A quarantine reason is kept to one line of at most this many characters.
 MAX_REASON_CHARS = 500
 
@@ -490,8 +491,7 @@ class Catalog:
               since: float | str | datetime | None = None, quarantined: bool | None = None) -> int:
         where, args = self._filters(split, shape, since, quarantined)
         with self._connect() as conn:
-            return conn.execute(f"SELECT COUNT(*) FROM episodes e LEFT JOIN quarantine q USING (episode_id){where}",
-                                args).fetchone()[0]
+            return conn.execute(f"SELECT COUNT(*) FROM {_FROM_ROWS}{where}", args).fetchone()[0]
 
     def _filters(self, split: str | None, shape: str | None, since: float | str | datetime | None,
                  quarantined: bool | None) -> tuple[str, list[Any]]:
@@ -626,7 +626,7 @@ class Catalog:
                                            "change: restore its file instead (ingest its bytes again, e.g. from "
                                            "a backup)")
                     if conn.execute("SELECT 1 FROM quarantine WHERE episode_id = ?", (row.episode_id,)).fetchone():
-                        return self.get(row.episode_id)  # (reads its own row, committed or not)
+                        return self.get(row.episode_id)  # another process's quarantine, committed
                     if only_if_damaged and holds(row.path, row.sha256):
                         return row
                     copy_kept = holds(kept, row.sha256)  # e.g. a quarantine a crash cut short

@@ -25,7 +25,7 @@ from orchestrator.champion import ChampionScorer, FramesSource
 from orchestrator.cli import common
 from orchestrator.dashboard import Dashboard, DashboardConfig, DataSources
 from orchestrator.loopconfig import SIGNALS, LoopBenchConfig, RunConfig
-from orchestrator.scheduler import EXIT_BUSY, RetrainBusyError
+from orchestrator.scheduler import EXIT_BUSY, RetrainBusyError, quarantined_note
 from storage.catalog import Catalog
 from storage.errors import StorageError
 from storage.requests import Request
@@ -278,7 +278,7 @@ def _retrain(args: argparse.Namespace) -> int:
         raise common.UsageError(str(exc)) from None
     common.require_catalog(args.data)  # checked before the retrain lock would make the directory
     # torch: imported once the arguments are known good (start-up cost)
-    from orchestrator.retrain import abandoned_note, quarantined_note, run_retrain
+    from orchestrator.retrain import abandoned_note, run_retrain
     try:
         result = run_retrain(args.data, cfg, wait=args.wait, keep_models=args.keep_models)
     except RetrainBusyError as exc:

@@ -18,7 +18,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from orchestrator.cli import common
-from orchestrator.scheduler import EXIT_BUSY, RetrainBusyError
+from orchestrator.scheduler import EXIT_BUSY, RetrainBusyError, quarantined_note
 from storage.catalog import Catalog
 from storage.episodes import read_episode
 from storage.errors import CorruptCheckpointError, EpisodeError, NotFoundError, RegistryError, StorageError
@@ -292,7 +292,7 @@ def _train(args: argparse.Namespace) -> int:
     except ConfigError as exc:
         raise common.UsageError(str(exc)) from None
     # torch: imported once the arguments are known good (start-up cost, not a cycle)
-    from orchestrator.retrain import abandoned_note, quarantined_note, training_job
+    from orchestrator.retrain import abandoned_note, training_job
     from uncertainty.train import train_candidate
     try:
         with training_job(data, wait=args.wait) as (catalog, registry, abandoned):

@@ -316,7 +316,7 @@ def test_a_failing_prune_does_not_fail_the_retrain(trained, tmp_path, monkeypatc
 
 
 def test_a_retrain_quarantines_a_lost_train_file_and_trains_on_the_rest(trained, tmp_path):
-    from orchestrator.retrain import quarantined_note
+    from orchestrator.scheduler import quarantined_note
     data = tmp_path / "copy"
     shutil.copytree(trained, data)
     catalog = Catalog(data)
