@@ -206,7 +206,7 @@ def plot(points: list[dict], path: Path) -> None:
             for p in points:
                 if p["arm"] == arm and p[metric] is not None and math.isfinite(p[metric]):
                     by_ep.setdefault(p["episodes"], []).append(p[metric])
-            if not by_ep:
+            if not by_ep:  # e.g. h5 of episodes shorter than the context plus the longest eval horizon
                 continue
             xs = sorted(by_ep)
             mu = np.array([np.mean(by_ep[x]) for x in xs])
@@ -216,7 +216,10 @@ def plot(points: list[dict], path: Path) -> None:
         ax.set_xlabel("training episodes collected")
         ax.set_ylabel(f"eval {metric.replace('_', ' ')}")
         ax.grid(alpha=0.3)
-        ax.legend(fontsize=8)
+        if ax.get_legend_handles_labels()[0]:
+            ax.legend(fontsize=8)
+        else:
+            ax.text(0.5, 0.5, "no finite values", ha="center", va="center", transform=ax.transAxes)
     fig.suptitle("activecollect bench loop: active vs uniform planner")
     fig.savefig(path, dpi=100, bbox_inches="tight")
 

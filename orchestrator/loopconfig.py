@@ -105,6 +105,10 @@ class LoopBenchConfig:
     active_policy: bool = False
     """The active arm also chooses each request's collection policy by its episodes' disagreement
     (``ActivePlannerConfig.choose_policy``); the uniform arm keeps the mix."""
+    random_physics: bool = False
+    """Physics (mass, friction, ground friction) are part of the task space: the uniform arm, the seed
+    rounds and the eval split draw them uniformly over ``protocol.PHYSICS_RANGES`` (the active arm keeps
+    an uncertain state's physics, as it keeps its shape); off, every episode has the default physics."""
 
     def __post_init__(self) -> None:
         if not self.seeds:
@@ -123,7 +127,8 @@ class LoopBenchConfig:
 
     def uniform_config(self) -> UniformPlannerConfig:
         """The uniform arm's planner (and the seed rounds of both arms)."""
-        return UniformPlannerConfig(steps=self.steps, max_queue_depth=self.round_episodes, policies=self.policies)
+        return UniformPlannerConfig(steps=self.steps, max_queue_depth=self.round_episodes, policies=self.policies,
+                                    sample_physics=self.random_physics)
 
     def to_json(self) -> dict:
         d = asdict(self)

@@ -108,33 +108,38 @@ def collect_episode(*, start_state: SimState | Mapping[str, Any], policy: str,
     return Episode(meta=meta, frames=frames, actions=actions, states=states)
 
 
-def eval_split_plan(episodes: int = 24, seed: int = 1234) -> list[tuple[int, SimState]]:
-    """The (policy seed, start state) of each evaluation episode: shapes in turn, default physics."""
+def eval_split_plan(episodes: int = 24, seed: int = 1234, random_physics: bool = False) -> list[tuple[int, SimState]]:
+    """The (policy seed, start state) of each evaluation episode: shapes in turn, default physics
+    (or physics drawn uniformly over the task space with ``random_physics``)."""
     if isinstance(episodes, bool) or not isinstance(episodes, int) or episodes < 1:
         raise ValueError(f"episodes: expected a positive int, found {episodes!r}")
     rng = np.random.default_rng(seed)
     plan = []
     for i in range(episodes):
-        start = sample_state(rng, shape=SHAPES[i % len(SHAPES)])
+        start = sample_state(rng, shape=SHAPES[i % len(SHAPES)], random_physics=random_physics)
         plan.append((int(rng.integers(2**31)), start))
     return plan
 
 
 def create_eval_split(catalog, episodes: int = 24, seed: int = 1234, steps: int = 50,
-                      image_size: int = 64, palette: Mapping[str, tuple[int, int, int]] | None = None) -> str:
+                      image_size: int = 64, palette: Mapping[str, tuple[int, int, int]] | None = None,
+                      random_physics: bool = False) -> str:
     """Collects the evaluation split with the ``push`` policy, indexes it (split "eval"), pins it.
 
     ``catalog`` is a ``storage.catalog.Catalog``. Shapes take turns, physics are the defaults,
-    start states and policy seeds come from ``seed``; ``palette`` (experiments) recolours the
-    objects and is pinned with the other parameters. Returns the split's hash. When a split
+    start states and policy seeds come from ``seed``. Experiments: ``palette`` recolours the
+    objects, ``random_physics`` draws each episode's physics uniformly over the task space; both
+    are pinned with the other parameters. Returns the split's hash. When a split
     is already pinned, returns its hash if it was made with the same parameters and raises
     ``EvalSplitConflict`` (a ValueError) otherwise.
     """
-    plan = eval_split_plan(episodes, seed)
+    plan = eval_split_plan(episodes, seed, random_physics)
     params = {"episodes": episodes, "seed": seed, "steps": steps, "image_size": image_size,
               "policy": EVAL_POLICY}
     if palette:
         params["palette"] = {shape: list(rgb) for shape, rgb in sorted(palette.items())}
+    if random_physics:
+        params["random_physics"] = True
     existing = catalog.eval_split()
     if existing is not None:
         _check_same_split(catalog, existing, params, plan)

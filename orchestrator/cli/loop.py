@@ -13,6 +13,7 @@ and ``uncertainty.config``.
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import shlex
 import sys
@@ -100,6 +101,10 @@ def register_bench(bench: argparse._SubParsersAction) -> None:
     p.add_argument("--variance-head", action="store_true", default=d.train.variance_head,
                    help="both arms train members that also predict their own error (the active arm "
                         "still scores by disagreement)")
+    p.add_argument("--random-physics", action="store_true", default=d.random_physics,
+                   help="make physics (mass, friction, ground friction) part of the task space: uniform and "
+                        "seed episodes and the eval split draw them uniformly over their ranges, the active "
+                        "arm keeps an uncertain state's physics (default: every episode at the defaults)")
     p.add_argument("--out", type=Path, default=None,
                    help="output directory (default ./activecollect-bench/loop-<timestamp>)")
     p.set_defaults(func=_bench_loop)
@@ -114,8 +119,10 @@ def bench_collect(request: Request, seed: int, image_size: int) -> Episode:
                            model_version=str(request.reason.get("model_version") or ""))
 
 
-def bench_eval_split(catalog: Catalog, episodes: int, seed: int, steps: int, image_size: int) -> str:
-    return create_eval_split(catalog, episodes=episodes, seed=seed, steps=steps, image_size=image_size)
+def bench_eval_split(catalog: Catalog, episodes: int, seed: int, steps: int, image_size: int,
+                     random_physics: bool = False) -> str:
+    return create_eval_split(catalog, episodes=episodes, seed=seed, steps=steps, image_size=image_size,
+                             random_physics=random_physics)
 
 
 def _bench_loop(args: argparse.Namespace) -> int:
@@ -128,14 +135,15 @@ def _bench_loop(args: argparse.Namespace) -> int:
         cfg = LoopBenchConfig(seeds=tuple(range(args.seeds)), budget=args.budget,
                               round_episodes=args.round_episodes, steps=args.steps,
                               image_size=args.image_size, train=train, signal=args.signal,
-                              active_policy=args.active_policy)
+                              active_policy=args.active_policy, random_physics=args.random_physics)
     except ValueError as exc:
         raise common.UsageError(str(exc)) from None
     out = args.out or Path("activecollect-bench") / time.strftime("loop-%Y%m%dT%H%M%S")
     if (out / "summary.json").exists():
         raise common.UsageError(f"{out} already holds a bench loop result; give a fresh --out")
     log = (lambda line: print(line, file=sys.stderr, flush=True))
-    summary = run_bench(cfg, out, bench_collect, bench_eval_split, log=log)
+    summary = run_bench(cfg, out, bench_collect, functools.partial(bench_eval_split, random_physics=cfg.random_physics),
+                        log=log)
     if args.json:
         common.print_json(summary)
         return 0

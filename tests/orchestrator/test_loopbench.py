@@ -1,14 +1,19 @@
-"""The bench loop's arithmetic: episodes to reach an error, the headline ratios, mean and spread."""
+"""The bench loop: its arithmetic (episodes to reach an error, the headline ratios, mean and spread), its
+configuration, and one tiny run of both arms through the CLI."""
 
 from __future__ import annotations
 
+import json
 import math
 
 import pytest
 
 import numpy as np
 
-from orchestrator.loopbench import LoopBenchConfig, _bench_id, episodes_to_reach, summarize
+from orchestrator.loopbench import ARMS, LoopBenchConfig, _bench_id, episodes_to_reach, summarize
+from orchestrator.protocol import PHYSICS_RANGES
+from storage.catalog import Catalog
+from tests.conftest import run_cli
 from storage.records import Episode, EpisodeMeta
 from uncertainty.score import object_moving
 
@@ -66,3 +71,36 @@ def test_active_policy_reaches_only_the_active_arms_planner():
     cfg = LoopBenchConfig(active_policy=True)
     assert cfg.active.choose_policy and cfg.to_json()["active"]["choose_policy"]
     assert cfg.uniform_config().policies == cfg.policies  # the uniform arm keeps the mix
+
+
+def test_random_physics_reaches_the_uniform_arm_and_the_seeds():
+    assert not LoopBenchConfig().uniform_config().sample_physics
+    cfg = LoopBenchConfig(random_physics=True)
+    assert cfg.uniform_config().sample_physics and cfg.active.seed_uniform.sample_physics
+    assert cfg.to_json()["random_physics"]
+
+
+def test_bench_loop_runs_both_arms_end_to_end_with_physics_in_the_task_space(tmp_path, capsys):
+    out = tmp_path / "loop"
+    rc, stdout, _ = run_cli(capsys, "bench", "loop", "--seeds", "1", "--budget", "4", "--round", "2",
+                            "--steps", "12", "--image-size", "16", "--epochs", "1", "--members", "2",
+                            "--random-physics", "--json", "--out", str(out))
+    assert rc == 0
+    summary = json.loads(stdout)
+    assert summary["config"]["random_physics"] and (out / "loop.png").is_file()
+    assert [(p["arm"], p["episodes"]) for p in summary["points"]] == [
+        ("active", 2), ("active", 4), ("uniform", 2), ("uniform", 4)]
+    assert all(math.isfinite(p["h1_mse"]) and math.isfinite(p["h5_mse"]) for p in summary["points"])
+    defaults = {k: d for k, (_, _, d) in PHYSICS_RANGES.items()}
+    for arm in ARMS:
+        catalog = Catalog(out / "seed0" / arm)
+        evals = [catalog.meta(r.episode_id).physics for r in catalog.list(split="eval")]
+        assert catalog.eval_split().params["random_physics"]
+        assert len({tuple(sorted(p.items())) for p in evals}) == len(evals)  # each eval episode its own draw
+        train = [catalog.meta(r.episode_id) for r in sorted(catalog.list(split="train"), key=lambda r: r.episode_id)]
+        assert len(train) == 4 and all(m.physics != defaults for m in train)
+        first_round = [m.physics for m in train[:2]]
+        kept = [m.physics in first_round for m in train[2:]]
+        # The active arm plans its second round at states of the first, keeping their physics; the
+        # uniform arm draws new physics for every episode.
+        assert any(kept) if arm == "active" else not any(kept)

@@ -15,7 +15,7 @@ from storage.catalog import Catalog
 from storage.episodes import encode_episode, read_episode
 from storage.records import STATE_DIM
 from workers.collect import EvalSplitConflict, collect_episode, create_eval_split
-from workers.env import SHAPE_PALETTE, PushSim, SimState, sample_state
+from workers.env import PHYSICS_RANGES, SHAPE_PALETTE, PushSim, SimState, sample_state
 from workers.simbench import run_sim_bench
 
 
@@ -135,3 +135,16 @@ def test_episodes_are_identical_across_processes(start):
                          capture_output=True, text=True, timeout=120)
     ep = collect_episode(start_state=start, policy="push", seed=6, steps=15, image_size=32)
     assert out.stdout.strip() == hashlib.sha256(ep.frames.tobytes() + ep.states.tobytes()).hexdigest()
+
+
+def test_eval_split_with_random_physics_draws_each_episodes_physics_and_is_another_split(tmp_path):
+    catalog = Catalog(tmp_path / "data")
+    digest = create_eval_split(catalog, episodes=4, seed=7, steps=6, image_size=16, random_physics=True)
+    split = catalog.eval_split()
+    assert split.params["random_physics"] is True
+    physics = [catalog.meta(i).physics for i in split.ids]
+    assert len({tuple(sorted(p.items())) for p in physics}) == 4
+    assert all(low <= p[k] <= high for p in physics for k, (low, high, _) in PHYSICS_RANGES.items())
+    assert create_eval_split(catalog, episodes=4, seed=7, steps=6, image_size=16, random_physics=True) == digest
+    with pytest.raises(EvalSplitConflict, match="random_physics"):
+        create_eval_split(catalog, episodes=4, seed=7, steps=6, image_size=16)
