@@ -20,7 +20,7 @@ from storage.errors import RegistryError
 from storage.models import ModelRegistry
 from uncertainty.ensemble import Ensemble, default_device
 from uncertainty.errors import CheckpointError, ConfigError
-from uncertainty.model import PredictorConfig
+from uncertainty.model import Predictor, PredictorConfig
 
 FORMAT = "activecollect-ensemble"
 FORMAT_VERSION = 1
@@ -54,24 +54,48 @@ def ensemble_from_bytes(data: bytes, device: torch.device | str | None = None) -
                               f"found {payload.get('format_version')!r}")
     try:
         config = PredictorConfig.from_dict(payload["predictor"])
-        ensemble = Ensemble(config, members=int(payload["members"]), seed=int(payload["seed"]))
+        members, seed = int(payload["members"]), int(payload["seed"])
     except (KeyError, TypeError, ValueError, OverflowError, ConfigError) as exc:
+        raise CheckpointError(f"checkpoint config is invalid: {type(exc).__name__}: {exc}") from exc
+    _check_shapes(config, members, payload.get("params"))
+    try:
+        ensemble = Ensemble(config, members=members, seed=seed)
+    except (ValueError, OverflowError, ConfigError) as exc:
         raise CheckpointError(f"checkpoint config is invalid: {type(exc).__name__}: {exc}") from exc
     _load_tensors(ensemble, payload)
     return ensemble.to(device if device is not None else default_device())
 
 
+def _check_shapes(config: PredictorConfig, members: int, params: Any) -> None:
+    """Refuses a config whose members' parameters are not the tensors the file holds, before building it.
+
+    The config and member count are only claims: built as they stand, widths of 200,000 channels or
+    10 million members would allocate terabytes or loop for hours before the tensors were compared.
+    The shapes are taken from a predictor on the ``meta`` device (no memory), so what gets allocated
+    afterwards is bounded by the tensors actually read from the file.
+    """
+    if members < 1:
+        raise CheckpointError(f"checkpoint config is invalid: members must be >= 1, found {members}")
+    if not isinstance(params, dict) or not all(isinstance(t, torch.Tensor) for t in params.values()):
+        found = type(params).__name__ if not isinstance(params, dict) else "a dict of non-tensors"
+        raise CheckpointError(f"checkpoint parameters must be a dict of tensors, found {found}")
+    with torch.device("meta"):
+        template = Predictor(config)
+    expected = {name: (members, *p.shape) for name, p in template.named_parameters()}
+    if set(params) != set(expected):
+        raise CheckpointError(f"checkpoint parameters must be {sorted(expected)}, found {sorted(params)}")
+    for name, shape in expected.items():
+        if tuple(params[name].shape) != shape:
+            raise CheckpointError(f"checkpoint config does not match its weights: parameter {name} of "
+                                  f"{members} member(s) of {config} must have shape {shape}, "
+                                  f"found {tuple(params[name].shape)}")
+
+
 def _load_tensors(ensemble: Ensemble, payload: dict[str, Any]) -> None:
-    params = payload.get("params")
-    if not isinstance(params, dict) or set(params) != set(ensemble.names):
-        found = sorted(params) if isinstance(params, dict) else type(params).__name__
-        raise CheckpointError(f"checkpoint parameters must be {sorted(ensemble.names)}, found {found}")
+    params = payload["params"]  # names and shapes checked by _check_shapes
     with torch.no_grad():
         for name, p in zip(ensemble.names, ensemble.params):
             t = params[name]
-            if not isinstance(t, torch.Tensor) or t.shape != p.shape:
-                shape = tuple(t.shape) if isinstance(t, torch.Tensor) else type(t).__name__
-                raise CheckpointError(f"checkpoint parameter {name} must have shape {tuple(p.shape)}, found {shape}")
             if not bool(torch.isfinite(t).all()):
                 raise CheckpointError(f"checkpoint parameter {name} has non-finite values")
             p.copy_(t)

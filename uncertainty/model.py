@@ -23,12 +23,17 @@ from torch.nn import functional as F
 from uncertainty.errors import ConfigError
 
 
+#: Largest frame a predictor takes: the catalog's (``storage.records.MAX_FRAME_SIZE``; this module imports
+#: nothing of storage). Beyond it a config read from a file would allocate its coordinate grids unchecked.
+MAX_IMAGE_SIZE = 1024
+
+
 @dataclass(frozen=True)
 class PredictorConfig:
     """Shape of one predictor; passed whole, stored whole in checkpoints."""
 
     image_size: int = 64
-    """Frame height and width in pixels (a multiple of 8)."""
+    """Frame height and width in pixels (a multiple of 8, at most ``MAX_IMAGE_SIZE``)."""
     context: int = 2
     """How many past frames the predictor sees (C)."""
     action_dim: int = 2
@@ -41,8 +46,8 @@ class PredictorConfig:
     """Also predict a per-pixel log-variance of the next frame (see ``Predictor.forward``)."""
 
     def __post_init__(self) -> None:
-        if self.image_size < 8 or self.image_size % 8:
-            raise ConfigError(f"image_size must be a positive multiple of 8, found {self.image_size}")
+        if not 8 <= self.image_size <= MAX_IMAGE_SIZE or self.image_size % 8:
+            raise ConfigError(f"image_size must be a multiple of 8 in [8, {MAX_IMAGE_SIZE}], found {self.image_size}")
         if self.context < 1:
             raise ConfigError(f"context must be >= 1, found {self.context}")
         if self.action_dim < 1:

@@ -5,10 +5,11 @@ import torch
 
 from storage.errors import CorruptCheckpointError, RegistryError
 from storage.models import ModelRegistry
+from storage.records import MAX_FRAME_SIZE
 from uncertainty.checkpoint import ensemble_from_bytes, ensemble_to_bytes, load_ensemble, save_candidate
 from uncertainty.ensemble import Ensemble
-from uncertainty.errors import CheckpointError
-from uncertainty.model import PredictorConfig
+from uncertainty.errors import CheckpointError, ConfigError
+from uncertainty.model import MAX_IMAGE_SIZE, PredictorConfig
 
 CFG = PredictorConfig(image_size=16, widths=(4, 8, 8), action_hidden=8)
 METRICS = {"h1_mse": 0.01, "h1_psnr": 20.0}
@@ -76,6 +77,14 @@ def test_registered_bytes_that_are_not_an_ensemble_are_refused(tmp_path):
     (lambda p: p["predictor"].update(widths="abc"), "config is invalid"),
     (lambda p: p.update(action_mean=torch.tensor([float("nan"), 0.0])), "finite"),
     (lambda p: p["params"]["out.bias"].fill_(float("inf")), "non-finite"),
+    (lambda p: p.update(params=[1, 2]), "dict of tensors"),
+    (lambda p: p["params"].update({"enc1.weight": "x"}), "dict of tensors"),
+    (lambda p: p.update(members=0), "members must be >= 1"),
+    (lambda p: p.update(members=3), "does not match its weights"),  # 2 members' tensors
+    # Built as claimed, these allocated terabytes or looped for hours before the tensors were compared:
+    (lambda p: p["predictor"].update(widths=[200_000] * 3), "does not match its weights"),
+    (lambda p: p.update(members=10 ** 7), "does not match its weights"),
+    (lambda p: p["predictor"].update(image_size=8 * 10 ** 6), "image_size must be a multiple of 8 in"),
 ])
 def test_inconsistent_checkpoints_are_refused(change, message):
     payload = torch.load(io.BytesIO(ensemble_to_bytes(_ensemble())), weights_only=True)
@@ -84,6 +93,13 @@ def test_inconsistent_checkpoints_are_refused(change, message):
     torch.save(payload, buf)
     with pytest.raises(CheckpointError, match=message):
         ensemble_from_bytes(buf.getvalue())
+
+
+def test_the_predictors_largest_frame_is_the_catalogs():
+    assert MAX_IMAGE_SIZE == MAX_FRAME_SIZE
+    PredictorConfig(image_size=MAX_IMAGE_SIZE)
+    with pytest.raises(ConfigError, match="image_size"):
+        PredictorConfig(image_size=MAX_IMAGE_SIZE + 8)
 
 
 def test_checkpoint_loads_with_weights_only():
