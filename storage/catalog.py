@@ -48,8 +48,11 @@ from storage.records import MAX_FRAME_SIZE, MIN_FRAME_SIZE, Episode, EpisodeMeta
 SPLITS: tuple[str, ...] = ("train", "eval")
 _SAFE_ID = re.compile(r"^[A-Za-z0-9_-]{1,128}$")
 
+#: One entry per schema version; a change to the tables is a new entry at the end. Each says which older
+#: code may still use the file after it (``compatible_with``, see ``storage.database.Migration``): leave
+#: the default, its own version, unless that code can neither misread nor damage the new shape.
 _CATALOG_MIGRATIONS: tuple[Migration, ...] = (
-    (
+    Migration((
         """CREATE TABLE IF NOT EXISTS episodes (
             episode_id TEXT PRIMARY KEY,
             path TEXT NOT NULL,
@@ -75,14 +78,17 @@ _CATALOG_MIGRATIONS: tuple[Migration, ...] = (
             created TEXT NOT NULL)""",
         """CREATE TABLE IF NOT EXISTS eval_split_members (
             episode_id TEXT PRIMARY KEY REFERENCES episodes(episode_id))""",
-    ),
-    (  # episodes taken out of training (see Catalog.quarantine); moved_to '' when the file was already gone
+    )),
+    # Episodes taken out of training (see Catalog.quarantine); moved_to '' when the file was already gone.
+    # Not for version-1 code, which would ignore the table: snapshot quarantined episodes for training
+    # (their files are gone) and let them be pinned in the eval split.
+    Migration((
         """CREATE TABLE IF NOT EXISTS quarantine (
             episode_id TEXT PRIMARY KEY REFERENCES episodes(episode_id),
             reason TEXT NOT NULL,
             moved_to TEXT NOT NULL,
             at REAL NOT NULL)""",
-    ),
+    ), compatible_with=2),
 )
 #: Every catalog query of episode rows: the row and, when it is quarantined, why.
 _FROM_ROWS = "episodes e LEFT JOIN quarantine q USING (episode_id)"

@@ -3,6 +3,12 @@
 The catalog (episodes, eval split), the model registry and the request queue keep their
 tables in it: open it with ``connect`` and create a component's tables with
 ``ensure_schema``, which records each component's schema version in ``schema_versions``.
+
+Older code may keep using a file that newer code migrated, when the newer migrations allow it: each
+``Migration`` declares ``compatible_with``, the oldest schema version whose code can still read and write
+the file after it (by default its own version). ``schema_versions.compatible`` holds the highest level of
+the migrations applied; code that knows N versions opens a file at version M > N, unchanged, only when
+that level is at most N (a file without one counts as its own version's), and refuses it otherwise.
 """
 
 from __future__ import annotations
@@ -12,6 +18,7 @@ import shutil
 import sqlite3
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
+from dataclasses import dataclass
 from datetime import datetime, timezone
 from pathlib import Path
 
@@ -36,9 +43,28 @@ BUSY_TIMEOUT_MS = 30_000
 #: hold its high-water size for as long as any connection stays open -- the service's always does.
 JOURNAL_SIZE_LIMIT = 1 << 20
 
-#: One schema version of a component: the SQL statements that bring it there.
-Migration = Sequence[str]
 
+@dataclass(frozen=True)
+class Migration:
+    """One schema version of a component: the SQL statements that bring a file there, and the oldest
+    version whose code may still use the file after them. A plain sequence of statements stands for
+    ``Migration(statements)``."""
+
+    statements: Sequence[str]
+    """Applied in order, in one transaction together with the version bump."""
+    compatible_with: int | None = None
+    """The lowest schema version of the component whose code can still safely read and write a file at
+    this version; None: this migration's own version (older code refuses the file, the safe default).
+    Lower it only for a change older code cannot notice, and whose absence from the rows that code writes
+    newer code accepts (a table, index or nullable column it never reads); never for one it would misread
+    or undo (rows it must now skip, a column it would not fill)."""
+
+    def __post_init__(self) -> None:
+        if isinstance(self.statements, str):
+            raise ValueError(f"statements: expected a sequence of SQL statements, found the string "
+                             f"{self.statements[:60]!r}")
+        if self.compatible_with is not None and self.compatible_with < 1:
+            raise ValueError(f"compatible_with: expected a schema version >= 1, found {self.compatible_with}")
 
 
 #: SQLite's primary result codes for a condition that passes: BUSY, LOCKED, NOMEM, IOERR (also how a full
@@ -177,39 +203,79 @@ def transaction(conn: sqlite3.Connection) -> Iterator[sqlite3.Connection]:
     conn.execute("COMMIT")
 
 
-def ensure_schema(conn: sqlite3.Connection, component: str, migrations: Sequence[Migration]) -> int:
-    """Applies ``migrations[v:]`` where ``v`` is ``component``'s recorded version; returns the new one.
+def ensure_schema(conn: sqlite3.Connection, component: str,
+                  migrations: Sequence[Migration | Sequence[str]]) -> int:
+    """Applies ``migrations[v:]`` where ``v`` is ``component``'s recorded version; returns the file's
+    version after the call.
 
-    Each migration is a sequence of SQL statements, applied in one transaction together
-    with the version bump. Raises ``CatalogError`` if the file is newer than this code. A file
-    already at this code's version is only read: opening a catalog does not wait for writers.
+    Each migration is applied in one transaction together with the version bump and the file's new
+    compatible level (the highest ``compatible_with`` of ``migrations``). A file already at this code's
+    version, or at a newer one whose level is at most ``len(migrations)``, is only read: opening a catalog
+    does not wait for writers. Raises ``CatalogError`` if the file is newer than this code and not
+    compatible with it; ``ValueError`` if a migration declares a level above its own version.
     """
-    if _recorded_version(conn, component) == len(migrations):
-        return len(migrations)
+    known, level = len(migrations), _compatible_level(migrations)
+    recorded = _recorded(conn, component)
+    if recorded is not None and recorded[0] >= known:
+        return _usable_version(component, *recorded, known)
     with transaction(conn):
-        conn.execute("CREATE TABLE IF NOT EXISTS schema_versions ("
-                     "component TEXT PRIMARY KEY, version INTEGER NOT NULL, updated TEXT NOT NULL)")
-        row = conn.execute("SELECT version FROM schema_versions WHERE component = ?", (component,)).fetchone()
-        version = row["version"] if row else 0
-        if version > len(migrations):
-            raise CatalogError(f"{component} tables are at schema version {version}, this code knows "
-                               f"versions up to {len(migrations)}; upgrade activecollect")
-        for statements in migrations[version:]:
-            for sql in statements:
+        version, compatible = _recorded(conn, component) or (0, None)
+        if version >= known:  # another process migrated it since the read above
+            return _usable_version(component, version, compatible, known)
+        _create_versions_table(conn)
+        for entry in migrations[version:]:
+            for sql in entry.statements if isinstance(entry, Migration) else entry:
                 conn.execute(sql)
-        if version < len(migrations):
-            conn.execute("INSERT INTO schema_versions(component, version, updated) VALUES (?, ?, ?) "
-                         "ON CONFLICT(component) DO UPDATE SET version = excluded.version, "
-                         "updated = excluded.updated", (component, len(migrations), _now_iso()))
-    return len(migrations)
+        conn.execute("INSERT INTO schema_versions(component, version, updated, compatible) VALUES (?, ?, ?, ?) "
+                     "ON CONFLICT(component) DO UPDATE SET version = excluded.version, "
+                     "updated = excluded.updated, compatible = excluded.compatible",
+                     (component, known, _now_iso(), level))
+    return known
 
 
-def _recorded_version(conn: sqlite3.Connection, component: str) -> int | None:
-    """``component``'s schema version in the file, read without a write lock (None: not recorded)."""
-    if conn.execute("SELECT 1 FROM sqlite_master WHERE type = 'table' AND name = 'schema_versions'").fetchone():
-        row = conn.execute("SELECT version FROM schema_versions WHERE component = ?", (component,)).fetchone()
-        return None if row is None else row["version"]
-    return None
+def _compatible_level(migrations: Sequence[Migration | Sequence[str]]) -> int:
+    """The lowest code version that may use a file after all of ``migrations``: the highest of their levels."""
+    level = 0
+    for version, entry in enumerate(migrations, 1):
+        declared = entry.compatible_with if isinstance(entry, Migration) else None
+        if declared is not None and declared > version:
+            raise ValueError(f"migration to schema version {version}: compatible_with must be at most "
+                             f"{version}, found {declared}")
+        level = max(level, version if declared is None else declared)
+    return level
+
+
+def _usable_version(component: str, version: int, compatible: int | None, known: int) -> int:
+    """``version``, the file's, when code that knows ``known`` versions may use it unchanged (``version``
+    >= ``known``); raises ``CatalogError`` when it is newer and not declared compatible with that code."""
+    needed = version if compatible is None else compatible
+    if version > known and needed > known:
+        raise CatalogError(f"{component} tables are at schema version {version}, this code knows versions "
+                           f"up to {known} and the file needs code that knows version {needed} or later; "
+                           f"upgrade activecollect")
+    return version
+
+
+def _create_versions_table(conn: sqlite3.Connection) -> None:
+    """``schema_versions``, with the ``compatible`` column even where code from before it made the table
+    (a nullable column added in the migration's transaction: that code's statements name their columns)."""
+    conn.execute("CREATE TABLE IF NOT EXISTS schema_versions (component TEXT PRIMARY KEY, "
+                 "version INTEGER NOT NULL, updated TEXT NOT NULL, compatible INTEGER)")
+    if "compatible" not in {r[1] for r in conn.execute("PRAGMA table_info(schema_versions)")}:
+        conn.execute("ALTER TABLE schema_versions ADD COLUMN compatible INTEGER")
+
+
+def _recorded(conn: sqlite3.Connection, component: str) -> tuple[int, int | None] | None:
+    """``component``'s ``(version, compatible level)`` in the file, read without a write lock (None: not
+    recorded; level None: recorded by code from before levels)."""
+    if not conn.execute("SELECT 1 FROM sqlite_master WHERE type = 'table' AND name = 'schema_versions'").fetchone():
+        return None
+    cursor = conn.execute("SELECT * FROM schema_versions WHERE component = ?", (component,))  # one snapshot
+    row = cursor.fetchone()
+    if row is None:
+        return None
+    fields = dict(zip((d[0] for d in cursor.description), row))
+    return fields["version"], fields.get("compatible")
 
 
 def _now_iso() -> str:

@@ -34,7 +34,7 @@ from enum import Enum
 from pathlib import Path
 from typing import Any
 
-from storage.database import (DB_NAME, MODELS_DIR, connection, ensure_schema, refuse_lost_database,
+from storage.database import (DB_NAME, MODELS_DIR, Migration, connection, ensure_schema, refuse_lost_database,
                               storage_error, transaction)
 from storage.errors import CorruptCheckpointError, PrunedCheckpointError, RegistryError, UnknownModelError
 from storage.files import age_s, fsync_dir, write_synced
@@ -48,8 +48,11 @@ CHAMPION = "champion"
 #: A staging or deleting dot folder under ``models/`` this old belongs to no live call (they take seconds).
 STALE_AGE_S = 3600.0
 
-_MIGRATIONS: tuple[tuple[str, ...], ...] = (
-    (
+#: One entry per schema version; a change to the tables is a new entry at the end. Each says which older
+#: code may still use the file after it (``compatible_with``, see ``storage.database.Migration``): leave
+#: the default, its own version, unless that code can neither misread nor damage the new shape.
+_MIGRATIONS: tuple[Migration, ...] = (
+    Migration((
         """CREATE TABLE IF NOT EXISTS models (
             version TEXT PRIMARY KEY,
             seq INTEGER NOT NULL UNIQUE,
@@ -74,8 +77,10 @@ _MIGRATIONS: tuple[tuple[str, ...], ...] = (
             promoted_at TEXT NOT NULL,
             reason TEXT NOT NULL,
             rolled_back_at TEXT)""",
-    ),
-    ("ALTER TABLE models ADD COLUMN pruned_at TEXT",),
+    )),
+    # Not for version-1 code, which would take a pruned model (its files deleted) for one it can load: a
+    # rollback target, weights to serve.
+    Migration(("ALTER TABLE models ADD COLUMN pruned_at TEXT",), compatible_with=2),
 )
 
 
