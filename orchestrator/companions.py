@@ -30,6 +30,10 @@ class CompanionConfig:
     """Dashboard port on ``dashboard_host`` (0 = any free port, -1 = no dashboard)."""
     dashboard_host: str = "127.0.0.1"
     """Address the dashboard binds; it has no authentication, so keep it local."""
+    dashboard_max_connections: int = DashboardConfig.max_connections
+    """Dashboard connections served at once (``DashboardConfig.max_connections``)."""
+    dashboard_request_timeout_s: float = DashboardConfig.request_timeout_s
+    """How long a dashboard client may take to send its request (``DashboardConfig.request_timeout_s``)."""
     retrain_every: int = 0
     """Retrain each time the training episode count crosses a multiple of this (0 = not on count)."""
     retrain_cron: str = ""
@@ -42,11 +46,18 @@ class CompanionConfig:
     def __post_init__(self) -> None:
         if not -1 <= self.dashboard_port <= 65535:
             raise ValueError(f"dashboard_port must be -1 (none) or in [0, 65535], found {self.dashboard_port}")
+        self.dashboard_config()  # its own checks, before anything starts
         if self.retrain_every < 0:
             raise ValueError(f"retrain_every must be >= 0, found {self.retrain_every}")
         # The schedule's own checks (cron syntax, timeout), before anything starts.
         ScheduleConfig(every_episodes=self.retrain_every, cron=self.retrain_cron,
                        timeout_s=self.retrain_timeout_s, retrain_args=self.retrain_args)
+
+
+    def dashboard_config(self) -> DashboardConfig:
+        return DashboardConfig(host=self.dashboard_host, port=max(self.dashboard_port, 0),
+                               max_connections=self.dashboard_max_connections,
+                               request_timeout_s=self.dashboard_request_timeout_s)
 
 
 class Companions:
@@ -73,8 +84,7 @@ class Companions:
                                   metrics_text=self.service.metrics.render,
                                   frames_png=FramesSource(scorer, ctx.catalog),
                                   retrains=self._retrains)
-            dashboard = Dashboard(DashboardConfig(host=cfg.dashboard_host, port=cfg.dashboard_port),
-                                  sources.sources())
+            dashboard = Dashboard(cfg.dashboard_config(), sources.sources())
             dashboard.start()
             self.dashboard = dashboard
 

@@ -9,6 +9,7 @@ import sys
 from pathlib import Path
 from typing import Any, NoReturn
 
+from orchestrator.dashboard import DashboardConfig
 from orchestrator.protocol import one_line
 from storage.catalog import Catalog
 from storage.database import DB_NAME
@@ -107,6 +108,20 @@ def positive_float(text: str) -> float:
     if not value > 0:
         raise argparse.ArgumentTypeError(f"expected a positive number, found {text!r}")
     return value
+
+
+def add_dashboard_limit_args(p: argparse.ArgumentParser, prefix: str = "") -> None:
+    """``--[PREFIX]max-connections`` and ``--[PREFIX]request-timeout`` (``args.max_connections``,
+    ``args.request_timeout``): the dashboard's limits on clients, for ``dashboard`` and ``serve``."""
+    d = DashboardConfig
+    p.add_argument(f"--{prefix}max-connections", type=positive_int, default=d.max_connections, metavar="N",
+                   dest="max_connections",
+                   help=f"dashboard connections served at once; one more is answered 503 with Retry-After "
+                        f"(default {d.max_connections})")
+    p.add_argument(f"--{prefix}request-timeout", type=positive_float, default=d.request_timeout_s, metavar="S",
+                   dest="request_timeout",
+                   help=f"seconds a dashboard client may take to send its whole request before it is "
+                        f"dropped (default {d.request_timeout_s:g})")
 
 
 def require_frame_size(data: Path, size: int, flag: str) -> None:

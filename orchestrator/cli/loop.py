@@ -71,6 +71,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     common.add_data_arg(p)
     p.add_argument("--host", default="127.0.0.1", help="address to bind (default 127.0.0.1)")
     p.add_argument("--port", type=common.tcp_port, default=8765, help="TCP port (default 8765, 0 = any)")
+    common.add_dashboard_limit_args(p)
     p.set_defaults(func=_dashboard)
 
 
@@ -317,7 +318,9 @@ def _retrain(args: argparse.Namespace) -> int:
 def _dashboard(args: argparse.Namespace) -> int:
     common.require_catalog(args.data)
     frames = FramesSource(ChampionScorer(args.data), Catalog(args.data))
-    dash = Dashboard(DashboardConfig(host=args.host, port=args.port), DataSources(args.data, frames_png=frames).sources())
+    config = DashboardConfig(host=args.host, port=args.port, max_connections=args.max_connections,
+                             request_timeout_s=args.request_timeout)
+    dash = Dashboard(config, DataSources(args.data, frames_png=frames).sources())
     try:
         dash.start()
     except OSError as exc:

@@ -64,6 +64,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     d = CompanionConfig()
     p.add_argument("--dashboard-port", type=int, default=d.dashboard_port, metavar="PORT",
                    help=f"dashboard on 127.0.0.1:PORT (0 = any free port, -1 = none; default {d.dashboard_port})")
+    common.add_dashboard_limit_args(p, prefix="dashboard-")
     p.add_argument("--retrain-every", type=common.non_negative_int, default=d.retrain_every, metavar="N",
                    help="retrain (in a child process) each time N more training episodes are stored "
                         "(default 0 = not on count)")
@@ -215,7 +216,8 @@ def cmd_serve(args: argparse.Namespace) -> int:
     logging.basicConfig(level=args.log_level, format="%(asctime)s %(name)s %(levelname)s %(message)s")
     listen, connect = transport.endpoints_from_args(args)
     try:
-        extras = CompanionConfig(dashboard_port=args.dashboard_port, retrain_every=args.retrain_every,
+        extras = CompanionConfig(dashboard_port=args.dashboard_port, dashboard_max_connections=args.max_connections,
+                                 dashboard_request_timeout_s=args.request_timeout, retrain_every=args.retrain_every,
                                  retrain_cron=args.retrain_cron, retrain_args=args.retrain_args)
     except ValueError as exc:
         raise common.UsageError(str(exc)) from None

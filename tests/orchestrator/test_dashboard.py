@@ -10,6 +10,7 @@ import contextlib
 import http.client
 import json
 import os
+import re
 import select
 import shutil
 import socket
@@ -27,13 +28,14 @@ import pytest
 import websocket
 from prometheus_client.parser import text_string_to_metric_families
 
+from orchestrator.companions import CompanionConfig
 from orchestrator.dashboard import Dashboard, DashboardConfig, DataSources
 from orchestrator.metrics import ServiceMetrics
 from orchestrator.planner import UniformPlanner, UniformPlannerConfig
 from storage.catalog import Catalog
 from storage.models import ModelRegistry
 from storage.queue import RequestQueue
-from tests.conftest import wait_for
+from tests.conftest import run_cli, wait_for
 from tests.storage.test_episodes import make_episode
 
 
@@ -408,3 +410,29 @@ def test_page_shows_live_queue_numbers_without_console_errors(dashboard, stores,
     wait_for(lambda: browser.evaluate("document.getElementById('budget').textContent") == "of 40 \u00b7 1 quarantined",
              message="the quarantined count")
     assert browser.errors() == []
+
+
+@pytest.mark.parametrize("command", ["dashboard", "serve"])
+def test_the_commands_pass_the_connection_cap_to_their_dashboard(command, spawn, spawn_service, data_dir):
+    Catalog(data_dir)  # `dashboard` serves an existing data directory
+    if command == "dashboard":
+        proc = spawn("dashboard", "dashboard", "--data", str(data_dir), "--port", "0", "--max-connections", "1",
+                     "--request-timeout", "60")
+    else:
+        proc = spawn_service("--dashboard-port", "0", "--dashboard-max-connections", "1",
+                             "--dashboard-request-timeout", "60")
+    found = wait_for(lambda: re.search(r"dashboard (?:on|at) (http://\S+)", proc.log()), timeout=60,
+                     message=f"{command} to print its dashboard's address")
+    url = urlsplit(found.group(1))
+    with socket.create_connection((url.hostname, url.port), timeout=10):  # takes the one slot, idle
+        with socket.create_connection((url.hostname, url.port), timeout=10) as extra:
+            assert read_to_close(extra).startswith(b"HTTP/1.0 503 ")  # at once, not after the 60 s timeout
+    wait_for(lambda: status_or_none(found.group(1) + "api/workers") == 200, message="a GET once the slot is free")
+
+
+def test_dashboard_limits_must_be_positive(capsys):
+    for argv in (["dashboard", "--max-connections", "0"], ["serve", "--dashboard-request-timeout", "nan"]):
+        rc, _, err = run_cli(capsys, *argv)
+        assert rc == 2 and "expected a positive" in err
+    with pytest.raises(ValueError, match="max_connections"):
+        CompanionConfig(dashboard_max_connections=0)
