@@ -24,5 +24,6 @@ test: $(STAMP)
 bench: $(STAMP)
 	$(BIN)/python -m bench $(ARGS)
 
+# Removes the environment only: data directories (activecollect-data/, bench outputs) are never make's to delete.
 clean:
-	rm -rf $(VENV) activecollect-data
+	rm -rf $(VENV) *.egg-info
