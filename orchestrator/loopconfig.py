@@ -67,8 +67,10 @@ class RunConfig:
 
 #: What the active arm ranks steps by: ``disagreement`` (variance over all pixels, as the service's
 #: scorer), ``change`` (variance over the pixels that change), ``object`` (``change`` on the steps
-#: where the object moves, i.e. the pusher is in contact; other steps are not candidates).
-SIGNALS = ("disagreement", "change", "object")
+#: where the object moves, i.e. the pusher is in contact; other steps are not candidates),
+#: ``object_pixels`` (variance over the pixels of the object's colours only: the pusher's own motion,
+#: which the policy decides and a start state cannot buy, left out).
+SIGNALS = ("disagreement", "change", "object", "object_pixels")
 
 
 @dataclass

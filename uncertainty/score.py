@@ -8,6 +8,7 @@ start state, and the action prefix that led from the start to it.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
@@ -100,6 +101,37 @@ def change_disagreement(ensemble: Ensemble, frames: np.ndarray, actions: np.ndar
                 ((preds.mean(dim=0) - last).abs().amax(dim=2) > threshold)              # (B, Hz, H, W)
         var = preds.var(dim=0, unbiased=False).mean(dim=2)                              # (B, Hz, H, W)
         return (var * moved).mean(dim=(1, 2, 3))                                        # (B,)
+
+    return ensemble.score_steps(frames, actions, horizon, masked_variance, batch_size=batch_size)
+
+
+def colour_disagreement(ensemble: Ensemble, frames: np.ndarray, actions: np.ndarray,
+                        targets: Sequence[Sequence[float]], others: Sequence[Sequence[float]], horizon: int = 1,
+                        grow: int = 1, batch_size: int = 256) -> np.ndarray:
+    """Per-step disagreement over the pixels of one kind of thing, told by its colour: (T,) float64.
+
+    A pixel counts where its colour, in the last context frame or in a recorded next frame, is nearer
+    to one of ``targets`` than to every one of ``others`` (RGB, 0-255: e.g. the object's colours
+    against the table's, the walls' and the pusher's), grown by ``grow`` pixels (its edges blend into
+    the table), so the score follows what that thing does and leaves the rest of the scene (the
+    pusher's free motion) out. Masked variance summed over pixels, divided by the frame's pixel
+    count, as ``change_disagreement``.
+    """
+    if grow < 0:
+        raise ConfigError(f"grow must be >= 0, found {grow}")
+    refs = torch.tensor([*targets, *others], dtype=torch.float32, device=ensemble.device) / 255.0  # (R, 3)
+    n_targets = len(targets)
+
+    def is_target(x: torch.Tensor) -> torch.Tensor:                                    # (..., 3, H, W) -> (..., H, W)
+        dist = ((x.unsqueeze(-4) - refs.view(-1, 3, 1, 1)) ** 2).sum(dim=-3)            # (..., R, H, W)
+        return dist.argmin(dim=-3) < n_targets
+
+    def masked_variance(preds: torch.Tensor, context: torch.Tensor, real: torch.Tensor) -> torch.Tensor:
+        mask = (is_target(context[:, -1:]) | is_target(real)).float()                   # (B, Hz, H, W)
+        if grow:
+            mask = torch.nn.functional.max_pool2d(mask, 2 * grow + 1, stride=1, padding=grow)
+        var = preds.var(dim=0, unbiased=False).mean(dim=2)                              # (B, Hz, H, W)
+        return (var * mask).mean(dim=(1, 2, 3))                                         # (B,)
 
     return ensemble.score_steps(frames, actions, horizon, masked_variance, batch_size=batch_size)
 

@@ -5,7 +5,7 @@ import pytest
 
 from tests.uncertainty.synth import make_episode
 from uncertainty.errors import ConfigError
-from uncertainty.score import change_disagreement, pick_top, score_episode, state_dict
+from uncertainty.score import change_disagreement, colour_disagreement, pick_top, score_episode, state_dict
 from workers.env import SimState
 
 
@@ -62,3 +62,28 @@ def test_change_disagreement_counts_only_pixels_that_move(trained):
     still = ep.frames.copy()
     still[:] = still[0]  # nothing moves in the recording
     assert np.nansum(change_disagreement(ens, still, ep.actions, threshold=1.1)) == 0.0
+
+
+def test_colour_disagreement_counts_only_the_pixels_of_the_target_colours(trained):
+    ens, _ = trained
+    ep = make_episode(7, "disk", steps=12)
+    plain = ens.disagreement(ep.frames, ep.actions)
+    ok = ~np.isnan(plain)
+    scene = [tuple(int(c) for c in rgb) for rgb in np.unique(ep.frames.reshape(-1, 3), axis=0)]
+    # Every colour of the recording a target: every pixel counts, the plain disagreement.
+    everything = colour_disagreement(ens, ep.frames, ep.actions, scene, [(0, 255, 0)], grow=0)
+    np.testing.assert_array_equal(np.isnan(everything), np.isnan(plain))
+    np.testing.assert_allclose(everything[ok], plain[ok], rtol=1e-5)
+    # A colour the recording does not hold, nearer none of its pixels than the rest: nothing counts.
+    nothing = colour_disagreement(ens, ep.frames, ep.actions, [(0, 255, 0)], scene)
+    assert np.nansum(nothing) == 0.0
+    # The background's colour alone (the most common one), grown or not: a part of the pixels.
+    colours, counts = np.unique(ep.frames.reshape(-1, 3), axis=0, return_counts=True)
+    background = [tuple(int(c) for c in colours[counts.argmax()])]
+    rest = [c for c in scene if c != background[0]]
+    part = colour_disagreement(ens, ep.frames, ep.actions, background, rest, grow=0)
+    grown = colour_disagreement(ens, ep.frames, ep.actions, background, rest, grow=1)
+    assert np.all(part[ok] <= grown[ok] + 1e-12) and np.all(grown[ok] <= plain[ok] + 1e-12)
+    assert np.any(part[ok] < plain[ok])
+    with pytest.raises(ConfigError, match="grow"):
+        colour_disagreement(ens, ep.frames, ep.actions, background, rest, grow=-1)
