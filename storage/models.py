@@ -271,6 +271,22 @@ class ModelRegistry:
         with self._connect() as conn:
             return self._get(conn, version)
 
+    def resolve(self, version_or_prefix: str) -> ModelRecord:
+        """The model whose version is ``version_or_prefix`` or uniquely starts with it (for the CLI).
+
+        Raises ``UnknownModelError`` when none does, or more than one (naming them).
+        """
+        with self._connect() as conn:
+            row = conn.execute("SELECT * FROM models WHERE version = ?", (version_or_prefix,)).fetchone()
+            if row is None and version_or_prefix:
+                rows = conn.execute("SELECT * FROM models WHERE substr(version, 1, ?) = ? ORDER BY seq LIMIT 4",
+                                    (len(version_or_prefix), version_or_prefix)).fetchall()
+                if len(rows) > 1:
+                    shown = ", ".join(r["version"] for r in rows[:3]) + (", ..." if len(rows) > 3 else "")
+                    raise UnknownModelError(f"model version prefix {version_or_prefix!r} is ambiguous ({shown})")
+                row = rows[0] if rows else None
+            return self._get(conn, version_or_prefix) if row is None else self._record(row)  # _get: the error
+
     def list(self, status: ModelStatus | str | None = None) -> list[ModelRecord]:
         """All models in registration order, optionally only those with ``status``."""
         if status is not None and status not in {s.value for s in ModelStatus}:

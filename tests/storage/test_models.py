@@ -40,6 +40,18 @@ def reg(tmp_path) -> ModelRegistry:
     return ModelRegistry(tmp_path / "data")
 
 
+def test_resolve_takes_a_version_or_a_unique_prefix(reg: ModelRegistry) -> None:
+    versions = [_register(reg, h) for h in (0.1, 0.2)]
+    for version in versions:
+        assert reg.resolve(version).version == version
+        assert reg.resolve(version.split("-")[0]).version == version
+    with pytest.raises(RegistryError, match=f"prefix 'm0' is ambiguous \\({versions[0]}, {versions[1]}\\)"):
+        reg.resolve("m0")
+    for unknown in ("", "m000003", "M000001", "%", "m00000_"):  # LIKE's wildcards are plain characters here
+        with pytest.raises(RegistryError, match="unknown model version"):
+            reg.resolve(unknown)
+
+
 def test_register_and_load_round_trip(reg: ModelRegistry) -> None:
     weights = bytes(range(256)) * 7
     version = reg.register(weights, {"members": 3}, {"h1_mse": 0.01, "note": "x"}, "snap-9", SPLIT)
