@@ -26,7 +26,17 @@ EVAL_POLICY = "push"
 
 
 class EvalSplitConflict(ValueError):
-    """An evaluation split is already pinned and was made with other parameters."""
+    """An evaluation split is already pinned and was made with other parameters.
+
+    ``held`` and ``asked``: the parameters that differ (keys of ``create_eval_split``'s
+    params), as the pinned split has them and as they were asked for; a value the pinned
+    split's episodes do not tell (a split pinned without its parameters) is None.
+    """
+
+    def __init__(self, message: str, held: dict[str, Any], asked: dict[str, Any]) -> None:
+        super().__init__(message)
+        self.held = held
+        self.asked = asked
 
 
 def software_version() -> str:
@@ -121,6 +131,36 @@ def eval_split_plan(episodes: int = 24, seed: int = 1234, random_physics: bool =
     return plan
 
 
+def eval_split_params(episodes: int = 24, seed: int = 1234, steps: int = 50, image_size: int = 64,
+                      palette: Mapping[str, tuple[int, int, int]] | None = None,
+                      random_physics: bool = False) -> dict[str, Any]:
+    """The parameters ``create_eval_split`` pins with the split it makes."""
+    params: dict[str, Any] = {"episodes": episodes, "seed": seed, "steps": steps, "image_size": image_size,
+                              "policy": EVAL_POLICY}
+    if palette:
+        params["palette"] = {shape: list(rgb) for shape, rgb in sorted(palette.items())}
+    if random_physics:
+        params["random_physics"] = True
+    return params
+
+
+def check_eval_split(catalog, episodes: int = 24, seed: int = 1234, steps: int = 50, image_size: int = 64,
+                     palette: Mapping[str, tuple[int, int, int]] | None = None,
+                     random_physics: bool = False) -> str | None:
+    """Whether ``create_eval_split`` with these arguments would keep the pinned split: its hash when
+    it would, None when none is pinned yet (it would make one). Collects nothing, changes nothing.
+
+    Raises ``EvalSplitConflict`` when a split is pinned that was made with other parameters.
+    """
+    existing = catalog.eval_split()
+    if existing is None:
+        return None
+    plan = eval_split_plan(episodes, seed, random_physics)
+    _check_same_split(catalog, existing, eval_split_params(episodes, seed, steps, image_size, palette,
+                                                           random_physics), plan)
+    return existing.hash
+
+
 def create_eval_split(catalog, episodes: int = 24, seed: int = 1234, steps: int = 50,
                       image_size: int = 64, palette: Mapping[str, tuple[int, int, int]] | None = None,
                       random_physics: bool = False) -> str:
@@ -131,15 +171,10 @@ def create_eval_split(catalog, episodes: int = 24, seed: int = 1234, steps: int 
     objects, ``random_physics`` draws each episode's physics uniformly over the task space; both
     are pinned with the other parameters. Returns the split's hash. When a split
     is already pinned, returns its hash if it was made with the same parameters and raises
-    ``EvalSplitConflict`` (a ValueError) otherwise.
+    ``EvalSplitConflict`` (a ValueError) otherwise (see ``check_eval_split``).
     """
     plan = eval_split_plan(episodes, seed, random_physics)
-    params = {"episodes": episodes, "seed": seed, "steps": steps, "image_size": image_size,
-              "policy": EVAL_POLICY}
-    if palette:
-        params["palette"] = {shape: list(rgb) for shape, rgb in sorted(palette.items())}
-    if random_physics:
-        params["random_physics"] = True
+    params = eval_split_params(episodes, seed, steps, image_size, palette, random_physics)
     existing = catalog.eval_split()
     if existing is not None:
         _check_same_split(catalog, existing, params, plan)
@@ -156,19 +191,26 @@ def _check_same_split(catalog, existing, params: dict[str, Any], plan: list[tupl
     """Raises EvalSplitConflict unless the pinned split is the one ``params`` would make."""
     if existing.params:
         if existing.params != params:
+            keys = [k for k in dict.fromkeys([*existing.params, *params])
+                    if existing.params.get(k) != params.get(k)]
             raise EvalSplitConflict(f"an evaluation split is already pinned with {existing.params}; "
-                                    f"asked for {params}")
+                                    f"asked for {params}", {k: existing.params.get(k) for k in keys},
+                                    {k: params.get(k) for k in keys})
         return
     # Pinned without parameters: compare what its episodes' metadata says.
     want = sorted((policy_seed, start.shape) for policy_seed, start in plan)
     found = []
     for episode_id in existing.ids:
         m, frames = catalog.meta(episode_id), catalog.get(episode_id).frames
-        if m.image_size != params["image_size"] or m.policy != EVAL_POLICY or frames != params["steps"]:
+        held = {k: v for k, v in (("image_size", m.image_size), ("steps", frames), ("policy", m.policy))
+                if v != params[k]}
+        if held:
             raise EvalSplitConflict(
                 f"an evaluation split is already pinned with other parameters: episode {episode_id} has "
-                f"{frames} steps at {m.image_size}px by policy {m.policy!r}, asked for {params}")
+                f"{frames} steps at {m.image_size}px by policy {m.policy!r}, asked for {params}",
+                held, {k: params[k] for k in held})
         found.append((m.seed, m.shape))
     if sorted(found) != want:
+        held = {"episodes": len(found)} if len(found) != params["episodes"] else {"seed": None}
         raise EvalSplitConflict(f"an evaluation split is already pinned whose {len(found)} episodes are "
-                                f"not the ones {params} makes")
+                                f"not the ones {params} makes", held, {k: params[k] for k in held})
