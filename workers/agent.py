@@ -428,7 +428,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "after that every grant names the catalog's size, which the worker records at")
     parser.add_argument("--realtime", type=float, default=0.0, metavar="X",
                         help="pace episodes to X times real time (1.0 = steps / 10 Hz seconds; default 0 = flat out)")
-    parser.add_argument("--log-level", default="INFO", choices=("DEBUG", "INFO", "WARNING", "ERROR"))
+    parser.add_argument("--log-level", default="INFO", choices=("DEBUG", "INFO", "WARNING", "ERROR"),
+                        help="least severe log messages written to stderr (default INFO)")
 
 
 def config_from_args(args: argparse.Namespace) -> WorkerConfig:
