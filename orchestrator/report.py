@@ -198,4 +198,6 @@ img{{max-width:100%;border:1px solid #ddd}}</style></head><body>
 def _fmt(v: Any) -> str:
     if isinstance(v, float):
         return f"{v:.4g}"
+    if isinstance(v, dict):  # e.g. the queue's counts: queued=0 leased=0 ...
+        return " ".join(f"{k}={_fmt(x)}" for k, x in v.items())
     return "" if v is None else str(v)

@@ -385,7 +385,8 @@ class RetrainScheduler:
             rec.reason = f"exit status {rc}: {_tail(Path(rec.log_path))}"
         level = logging.INFO if rec.status in (RetrainStatus.promoted, RetrainStatus.rejected) else logging.WARNING
         pruned = (result.get("pruned") or []) if rc == 0 else []
-        log.log(level, "retrain %s: %s %s%s", rec.status.value, rec.version or "-", rec.reason,
+        log.log(level, "retrain %s%s: %s%s", rec.status.value, f" {rec.version}" if rec.version else "",
+                rec.reason.removeprefix(f"{rec.status.value}: ") or "-",
                 f" (pruned the files of {len(pruned)} older models)" if pruned else "")
         if rc == 0 and result.get("prune_error"):
             log.warning("retrain %s: %s", rec.version or "-", result["prune_error"])

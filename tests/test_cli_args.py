@@ -94,7 +94,31 @@ def _connect() -> list[str]:
     (["bench", "dispatch", "--seconds", "inf"], "expected a positive number"),
     (["retrain", "--lr", "inf", "--data", "DATA"], "expected a positive number"),
     (["retrain", "--seed", "-1", "--data", "DATA"], "expected an integer >= 0"),
-    (["retrain", "--min-improvement", "2", "--data", "DATA"], "min_rel_improvement must be in [0, 1)"),
+    (["retrain", "--min-improvement", "2", "--data", "DATA"], "argument --min-improvement: expected a fraction in [0, 1)"),
+    (["train", "--min-improvement", "1", "--data", "DATA"], "argument --min-improvement: expected a fraction in [0, 1)"),
+    # a config's own check names the flag, not its field
+    (["serve", "--dashboard-port", "-5", "--data", "DATA"], "argument --dashboard-port: expected -1 (none)"),
+    (["run", "--dashboard-port", "70000", "--data", "DATA"], "argument --dashboard-port: expected -1 (none)"),
+    (["serve", "--retrain-cron", "nope", "--data", "DATA"], "argument --retrain-cron: expected a cron expression"),
+    (["serve", "--lease-s", "1e6", "--data", "DATA"], "--lease-s: expected a number in [0.05, 86400.0]"),
+    (["serve", "--namespace", "a*b", "--data", "DATA"], "error: --namespace: expected chunks of"),
+    (["stats", "--namespace", "a*b"], "error: --namespace: expected chunks of"),
+    (["secure", "init", "DATA", "--namespace", "a*b"], "error: --namespace: expected chunks of"),
+    (["bench", "loop", "--budget", "20", "--round", "16"], "need --round >= 1 and --budget >= 2 rounds"),
+    (["bench", "score", "--size", "12", "--seconds", "0.1"], "--size must be a multiple of 8"),
+    (["score", "e1", "--top", "0", "--data", "DATA"], "argument --top: expected a positive integer, found 0"),
+    # too short to learn from: every retrain would fail on them
+    (["run", "--steps", "1", "--data", "DATA"], "argument --steps: expected at least 3 steps"),
+    (["run", "--steps", "2000", "--data", "DATA"], "argument --steps: expected at most 1000 steps"),
+    (["collect", "--steps", "2", "--data", "DATA"], "argument --steps: expected at least 3 steps"),
+    (["eval-split", "create", "--episodes", "2", "--steps", "2", "--size", "16", "--data", "DATA"],
+     "argument --steps: expected at least 3 steps"),
+    (["serve", "--steps", "2", "--data", "DATA"], "argument --steps: expected at least 3 steps"),
+    (["queue", "add", "--shape", "T", "--steps", "1"], "argument --steps: expected at least 3 steps"),
+    (["bench", "loop", "--steps", "2"], "argument --steps: expected at least 3 steps"),
+    # frames a model cannot train on
+    (["run", "--image-size", "12", "--data", "DATA"], "argument --image-size: expected a multiple of 8 from 16"),
+    (["bench", "loop", "--image-size", "8"], "argument --image-size: expected a multiple of 8 from 16"),
     (["retrain", "--min-improvement", "nan", "--data", "DATA"], "expected a finite number"),
     (["train", "--min-improvement", "inf", "--data", "DATA"], "expected a finite number"),
     (["run", "--seed", "-1", "--data", "DATA"], "expected an integer >= 0"),
@@ -118,6 +142,19 @@ def test_bad_arguments_exit_2_in_one_line(capsys, tmp_path, argv, words) -> None
         argv += _connect()  # nobody listens there: an argument that got through would fail with exit 1
     rc, out, err = run_cli(capsys, *argv)
     assert rc == 2 and words in err and err.count("\n") == 1, err
+    assert out == "" and not data.exists()
+
+
+@pytest.mark.parametrize("argv, prog", [
+    (["retrain", "--retrain-args", "x"], "activecollect retrain"),
+    (["models", "show", "m1", "m2"], "activecollect models show"),
+    (["queue", "ls", "--frobnicate"], "activecollect queue ls"),
+    (["run", "--budget", "4", "extra"], "activecollect run"),
+])
+def test_an_unknown_argument_is_the_error_of_the_command_given_it(capsys, tmp_path, argv, prog) -> None:
+    data = tmp_path / "data"
+    rc, out, err = run_cli(capsys, *argv, "--data", str(data)) if argv[0] != "queue" else run_cli(capsys, *argv)
+    assert rc == 2 and err.count("\n") == 1 and err.startswith(f"{prog}: error: unrecognized arguments: "), err
     assert out == "" and not data.exists()
 
 
@@ -162,6 +199,7 @@ def test_collect_and_run_refuse_another_frame_size_than_the_directory_holds(caps
     assert rc == 0, err
     files = sorted(p.name for p in data.rglob("*.mcap"))
     for argv, flag in ((["collect", "--episodes", "1", "--steps", "3", "--size", "24"], "--size 16"),
+                       (["eval-split", "create", "--episodes", "1", "--steps", "3", "--size", "24"], "--size 16"),
                        (["run", "--budget", "1", "--image-size", "24"], "--image-size 16")):
         rc, out, err = run_cli(capsys, *argv, "--data", str(data))
         assert rc == 2 and err.count("\n") == 1 and "holds 16px episodes" in err and flag in err, err
@@ -175,4 +213,36 @@ def test_run_refuses_an_eval_split_made_with_other_settings_in_one_line(capsys, 
     create_eval_split(Catalog(data), episodes=2, seed=RunConfig.eval_seed, steps=8, image_size=16)
     rc, out, err = run_cli(capsys, "run", "--budget", "1", "--image-size", "16", "--steps", "8", "--eval-episodes", "3",
                            "--dashboard-port", "-1", "--no-progress", "--data", str(data))
-    assert rc == 2 and err.count("\n") == 1 and "already pinned" in err and "another --data" in err, err
+    assert rc == 2 and err.count("\n") == 1, err
+    assert (f"{data}'s evaluation split was made with --eval-episodes 2 (this run asks for --eval-episodes 3): "
+            "give those, or another --data") in err
+
+
+def test_run_names_every_flag_a_directory_made_by_other_commands_needs_in_one_line(capsys, tmp_path) -> None:
+    """collect + eval-split create made D (their defaults differ from run's): run says at once what to give."""
+    data = tmp_path / "data"
+    for argv in (["collect", "--episodes", "1", "--steps", "5", "--size", "24"],
+                 ["eval-split", "create", "--episodes", "2", "--steps", "6", "--size", "24", "--seed", "7"]):
+        rc, _, err = run_cli(capsys, *argv, "--data", str(data))
+        assert rc == 0, err
+    before = sorted(p.relative_to(data) for p in data.rglob("*"))
+    rc, out, err = run_cli(capsys, "run", "--budget", "4", "--image-size", "16", "--dashboard-port", "-1",
+                           "--no-progress", "--data", str(data))
+    assert rc == 2 and out == "" and err.count("\n") == 1, err
+    assert err.startswith(f"activecollect: error: {data}'s evaluation split was made with "), err
+    for flag in ("--image-size 24", "--steps 6", "--eval-episodes 2", "--eval-seed 7"):
+        assert flag in err.split("(this run asks for")[0], err
+    for flag in ("--image-size 16", "--steps 40", "--eval-episodes 16", "--eval-seed 1234"):
+        assert flag in err.split("(this run asks for")[1], err
+    assert err.rstrip().endswith("give those, or another --data")
+    assert sorted(p.relative_to(data) for p in data.rglob("*")) == before  # nothing created, nothing collected
+
+
+def test_run_refuses_a_split_it_cannot_make_in_one_line(capsys, tmp_path) -> None:
+    from workers.collect import create_eval_split
+    data = tmp_path / "data"
+    create_eval_split(Catalog(data), episodes=2, seed=1234, steps=4, image_size=16, random_physics=True)
+    rc, out, err = run_cli(capsys, "run", "--budget", "4", "--image-size", "16", "--steps", "4", "--eval-episodes",
+                           "2", "--dashboard-port", "-1", "--no-progress", "--data", str(data))
+    assert rc == 2 and err.count("\n") == 1, err
+    assert "evaluation split was made with random physics, which run does not make: give another --data" in err

@@ -61,6 +61,10 @@ def test_episodes_ls_show_verify(capsys, data, rng):
     rc, out, _ = run_cli(capsys, "episodes", "show", ids[0][:10], "--data", str(data), "--json")
     shown = json.loads(out)
     assert rc == 0 and shown["episode_id"] == ids[0] and shown["meta"]["physics"] == eps[0].meta.physics
+    rc, out, _ = run_cli(capsys, "episodes", "show", ids[0][:10], "--data", str(data))
+    lines = {line.split(maxsplit=1)[0]: line.split(maxsplit=1)[1] for line in out.splitlines()}
+    assert rc == 0 and json.loads(lines["physics"]) == eps[0].meta.physics  # JSON, not a Python repr
+    assert json.loads(lines["start_state"]) == eps[0].meta.start_state
 
     rc, out, _ = run_cli(capsys, "episodes", "verify", "--data", str(data))
     assert rc == 0 and "2 ok, 0 bad" in out
@@ -140,14 +144,17 @@ def test_eval_split_create_and_show(capsys, data):
     assert rc == 0 and shown["hash"] == digest and len(shown["episodes"]) == 4
     rc, out, _ = run_cli(capsys, "eval-split", "show", "--data", str(data))
     assert "T: 1" in out and "disk: 1" in out
-    # the same parameters again: same split; other parameters: refused
-    rc, out, _ = run_cli(capsys, "eval-split", "create", "--episodes", "4", "--size", "16", "--steps", "3",
-                      "--data", str(data), "--json")
-    assert rc == 0 and json.loads(out)["hash"] == digest
-    rc, _, err = run_cli(capsys, "eval-split", "create", "--episodes", "4", "--size", "16", "--steps", "5",
-                      "--data", str(data))
-    assert rc == 1 and "already pinned" in err
-    assert Catalog(data).snapshot().ids == []
+    # the same parameters again: same split, nothing collected; other parameters: refused before collecting
+    rc, out, err = run_cli(capsys, "eval-split", "create", "--episodes", "4", "--size", "16", "--steps", "3",
+                           "--data", str(data), "--json")
+    assert rc == 0 and json.loads(out)["hash"] == digest and "collecting" not in err
+    files = sorted(data.rglob("*.mcap"))
+    rc, out, err = run_cli(capsys, "eval-split", "create", "--episodes", "6", "--size", "16", "--steps", "5",
+                           "--data", str(data))
+    assert rc == 2 and out == "" and err.count("\n") == 1, err
+    assert (f"{data}'s evaluation split was made with --episodes 4 --steps 3 (asked for --episodes 6 --steps 5): "
+            "give those, or another --data") in err
+    assert Catalog(data).snapshot().ids == [] and sorted(data.rglob("*.mcap")) == files
 
 
 @pytest.mark.parametrize("argv,needle", [
@@ -339,6 +346,10 @@ def test_restore_all_and_its_usage(capsys, data, rng):
     rc, out, _ = run_cli(capsys, "episodes", "restore", "--all", "--data", str(data), "--json")
     assert rc == 0 and [r["episode_id"] for r in json.loads(out)] == ids[:2]
     assert cat.count(quarantined=True) == 0 and len(cat.snapshot().ids) == 3
+    rc, out, err = run_cli(capsys, "episodes", "restore", "--all", "--data", str(data))
+    assert rc == 0 and out == f"nothing is quarantined in {cat.data_dir}\n" and err == ""
+    rc, out, _ = run_cli(capsys, "episodes", "restore", "--all", "--data", str(data), "--json")
+    assert rc == 0 and json.loads(out) == []
 
 
 def test_restore_refusals_are_one_line_whatever_the_path(capsys, rng, tmp_path):

@@ -71,6 +71,24 @@ def test_models_show(capsys, data, reg) -> None:
     assert rc == 0 and "h1_mse" in out and SPLIT in out
 
 
+def test_models_show_promote_and_eval_take_a_unique_prefix(capsys, data, reg) -> None:
+    a, b = _register(reg, 0.01), _register(reg, 0.5)  # m000001-..., m000002-...
+    reg.gate(a)
+    rc, out, err = run_cli(capsys, "models", "show", a.split("-")[0], "--data", str(data), "--json")
+    assert rc == 0 and json.loads(out)["version"] == a, err
+    rc, out, err = run_cli(capsys, "models", "promote", b[:9], "--data", str(data))
+    assert rc == 0 and out == f"champion is now {b} (was {a})\n" and reg.champion() == b, err
+    for prefix in ("m", "m00000"):  # ambiguous: both named, nothing changed
+        rc, out, err = run_cli(capsys, "models", "promote", prefix, "--data", str(data))
+        assert rc == 2 and out == "" and err.count("\n") == 1, err
+        assert f"model version prefix {prefix!r} is ambiguous ({a}, {b})" in err
+    assert reg.champion() == b
+    rc, _, err = run_cli(capsys, "models", "show", "M000001", "--data", str(data))  # case counts
+    assert rc == 2 and "unknown model version 'M000001'" in err
+    rc, _, err = run_cli(capsys, "eval", "m000003", "--data", str(data))
+    assert rc == 2 and "unknown model version 'm000003'" in err
+
+
 def test_models_promote_and_rollback(capsys, data, reg) -> None:
     a, b = _register(reg, 0.01), _register(reg, 0.5)
     reg.gate(a)
@@ -251,11 +269,12 @@ def test_train_without_data_exit_1(capsys, tmp_path) -> None:
 @pytest.mark.parametrize("argv, words", [
     (("train", "--members", "0"), "positive integer"),
     (("train", "--epochs", "x"), "positive integer"),
-    (("train", "--min-improvement", "2"), "min_rel_improvement"),
+    (("train", "--min-improvement", "2"), "argument --min-improvement: expected a fraction in [0, 1)"),
     (("score",), "EPISODE"),
     (("score", "nope-episode"), "no episode"),
     (("score", "missing.mcap"), "no episode file"),
-    (("score", "e1", "--top", "-1"), "integer >= 0"),
+    (("score", "e1", "--top", "-1"), "positive integer"),
+    (("score", "e1", "--top", "0"), "positive integer"),
     (("eval", "m999999-deadbeef"), "unknown model version"),
     (("bench", "score", "--seconds", "0"), "positive number"),
     (("bench", "score", "--size", "12", "--seconds", "0.1"), "multiple of 8"),
@@ -299,7 +318,8 @@ def test_train_with_a_variance_head_reports_both_calibrations(trained, capsys, t
     assert rc == 1 and "no variance head to warm-start" in err and len(err.strip().splitlines()) == 1
     rc, out, _ = run_cli(capsys, "train", "--data", str(data), "--members", "2", "--epochs", "1",
                          "--device", "cpu", "--variance-head", "--min-improvement", "0")
-    assert rc == 0
+    assert rc == 0 and " windows, 1 epoch in " in out
+    assert "promoted: promoted" not in out and "gate: promoted: h1_mse" not in out  # the verdict once
     assert "spearman(disagreement, error)" in out and "spearman(total predictive variance, error)" in out
 
 

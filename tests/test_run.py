@@ -104,6 +104,27 @@ def test_run_collects_retrains_promotes_reports_and_resumes_after_ctrl_c(tmp_pat
         assert conn.execute("PRAGMA integrity_check").fetchone()[0] == "ok"
 
 
+@pytest.mark.slow
+@pytest.mark.timeout(400)
+def test_a_run_whose_every_retrain_failed_exits_1_saying_so(tmp_path):
+    """Another retrain (a stuck cron job, say) holds the lock all along: no retrain of the run trains a model,
+    so the run did not do its job, whatever it collected."""
+    from orchestrator.scheduler import retrain_lock
+    data = tmp_path / "data"
+    with retrain_lock(data):
+        proc = subprocess.run([sys.executable, "-m", "orchestrator", "run", "--data", str(data), "--budget", "4",
+                               "--round", "2", "--workers", "1", "--steps", "3", "--image-size", "16",
+                               "--eval-episodes", "1", "--dashboard-port", "-1", "--no-progress", "--retrain-args",
+                               "--members 2 --epochs 1 --widths 4,4,4 --device cpu"],
+                              capture_output=True, text=True, timeout=360)
+    assert proc.returncode == 1, proc.stderr[-3000:]
+    assert "done: 4 episodes, 2 retrains (2 busy)" in proc.stdout, proc.stdout
+    last = proc.stderr.strip().splitlines()[-1]
+    assert last.startswith("activecollect run: every retrain of this run failed (2 busy; the last: ") and \
+        f"another retrain holds {data / 'retrain.lock'}" in last and last.endswith(f"their logs are in {data / 'logs'}")
+    assert train_count(data) == 4  # what it collected is kept
+
+
 def test_ctrl_c_during_set_up_ends_the_run_with_a_report(tmp_path):
     """A Ctrl-C while the eval split is collected (set-up's slow part): no traceback, a result saying so."""
     def interrupted_eval_split(catalog, episodes, seed, steps, size):
@@ -113,6 +134,8 @@ def test_ctrl_c_during_set_up_ends_the_run_with_a_report(tmp_path):
                             eval_episodes=2, dashboard_port=-1, progress=False), interrupted_eval_split)
     result = run.run()
     assert result.interrupted and result.episodes == 0 and result.retrains == [] and result.report.is_file()
+    html = result.report.read_text()
+    assert "<th>queue</th><td>queued=0 leased=0 " in html and "{" not in html.split("<th>queue</th>")[1][:80]
 
 
 def test_a_catalog_with_episodes_of_another_size_still_gets_its_report(tmp_path, monkeypatch):

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 import time
 from datetime import datetime, timezone
@@ -13,13 +14,14 @@ import numpy as np
 from tqdm import tqdm
 
 from orchestrator.cli import common
-from orchestrator.protocol import MAX_EPISODE_STEPS, POLICIES, SHAPES, episode_problem, one_line
+from orchestrator.protocol import POLICIES, SHAPES, episode_problem, one_line
 from storage.backup import backup, check_dest
 from storage.catalog import ORPHANS_DIR, SPLITS, Catalog, EpisodeRow
+from storage.database import DB_NAME
 from storage.errors import (DAMAGED_EPISODE_ERRORS, BackupError, CatalogError, NotFoundError, StorageError,
                             StorageUnavailableError)
 from workers import simbench
-from workers.collect import EvalSplitConflict, collect_episode, create_eval_split
+from workers.collect import EvalSplitConflict, check_eval_split, collect_episode, create_eval_split
 from workers.env import sample_state
 
 MIN_SIZE, MAX_SIZE = 8, 1024
@@ -32,11 +34,34 @@ def image_size(text: str) -> int:
     return value
 
 
-def episode_steps(text: str) -> int:
-    value = common.positive_int(text)
-    if value > MAX_EPISODE_STEPS:
-        raise argparse.ArgumentTypeError(f"expected at most {MAX_EPISODE_STEPS} steps, found {value}")
-    return value
+#: ``eval-split create``'s flag for each parameter of a pinned split (``workers.collect.eval_split_params``).
+EVAL_SPLIT_FLAGS = {"episodes": "--episodes", "seed": "--seed", "steps": "--steps", "image_size": "--size"}
+
+
+def eval_split_refusal(data: Path, exc: EvalSplitConflict, flags: dict[str, str], command: str,
+                       asks: str) -> common.UsageError:
+    """The usage error for a pinned split made with other parameters: every flag (of ``flags``, the
+    ``command``'s flag for each split parameter) that must change, with the values that would keep
+    it, and what the command asked for (``asks``: "this run asks for" ...)."""
+    matchable = {k: v for k, v in exc.held.items() if k in flags and v is not None}
+    other = [_made_with(k, v) for k, v in exc.held.items() if k not in matchable]
+    if other:  # something no flag of this command can match
+        return common.UsageError(f"{data}'s evaluation split was made with {', '.join(other)}, which "
+                                 f"{command} does not make: give another --data")
+    made = " ".join(f"{flags[k]} {v}" for k, v in matchable.items())
+    asked = " ".join(f"{flags[k]} {exc.asked[k]}" for k in matchable)
+    return common.UsageError(f"{data}'s evaluation split was made with {made} ({asks} {asked}): give those, "
+                             "or another --data")
+
+
+def _made_with(key: str, value: Any) -> str:
+    if key == "palette":
+        return "a palette" if value else "the default colours"
+    if key == "random_physics":
+        return "random physics" if value else "the default physics"
+    if value is None:
+        return f"another {key.replace('_', ' ')} (not recorded)"
+    return f"{key.replace('_', ' ')} {value}"
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -47,7 +72,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="object shape; 'all' takes the shapes in turn (default)")
     p.add_argument("--policy", choices=POLICIES, default="push", help="collection policy (default push)")
     p.add_argument("--size", type=image_size, default=64, metavar="PX", help="frame size in pixels (default 64)")
-    p.add_argument("--steps", type=episode_steps, default=50, metavar="T", help="steps per episode (default 50)")
+    p.add_argument("--steps", type=common.episode_steps, default=50, metavar="T",
+                   help=f"steps per episode, at least {common.MIN_EPISODE_STEPS} (default 50)")
     p.add_argument("--seed", type=common.non_negative_int, default=0, metavar="K",
                    help="seed of start states and policies (default 0)")
     common.add_data_arg(p)
@@ -58,8 +84,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     esub = episodes.add_subparsers(dest="episodes_command", metavar="ACTION", parser_class=common.Parser)
     esub.required = True
     p = esub.add_parser("ls", help="list indexed episodes, oldest first")
-    p.add_argument("--split", choices=SPLITS)
-    p.add_argument("--shape", choices=SHAPES)
+    p.add_argument("--split", choices=SPLITS, help="only episodes of this split (default: all)")
+    p.add_argument("--shape", choices=SHAPES, help="only episodes of this object shape (default: all)")
     p.add_argument("--limit", type=common.positive_int, metavar="N", help="only the N newest")
     p.add_argument("--quarantined", action="store_true", help="only the episodes taken out of training")
     p.set_defaults(func=_episodes_ls)
@@ -71,7 +97,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                                     "when none is). Exit 1 when any is bad (missing, other bytes than indexed, "
                                     "unreadable); with --quarantine the bad train episodes are also taken out "
                                     "of training (exit 0 when that took care of every bad one).")
-    p.add_argument("episode_ids", nargs="*", metavar="ID")
+    p.add_argument("episode_ids", nargs="*", metavar="ID",
+                   help="episode ids or unique prefixes (default: every episode not quarantined)")
     p.add_argument("--quarantine", action="store_true",
                    help="quarantine the bad train episodes found (as a retrain would)")
     p.set_defaults(func=_episodes_verify)
@@ -106,10 +133,14 @@ def register(sub: argparse._SubParsersAction) -> None:
     ssub = split.add_subparsers(dest="eval_split_command", metavar="ACTION", parser_class=common.Parser)
     ssub.required = True
     p = ssub.add_parser("create", help="collect the evaluation episodes (push policy, all shapes) and pin them")
-    p.add_argument("--episodes", type=common.positive_int, default=24, metavar="N", help="default 24")
-    p.add_argument("--seed", type=common.non_negative_int, default=1234, metavar="K", help="default 1234")
-    p.add_argument("--size", type=image_size, default=64, metavar="PX", help="default 64")
-    p.add_argument("--steps", type=episode_steps, default=50, metavar="T", help="default 50")
+    p.add_argument("--episodes", type=common.positive_int, default=24, metavar="N",
+                   help="evaluation episodes; shapes take turns (default 24)")
+    p.add_argument("--seed", type=common.non_negative_int, default=1234, metavar="K",
+                   help="seed of their start states and policies (default 1234, as `run --eval-seed`)")
+    p.add_argument("--size", type=image_size, default=64, metavar="PX",
+                   help="frame size in pixels; models of this directory predict frames of this size (default 64)")
+    p.add_argument("--steps", type=common.episode_steps, default=50, metavar="T",
+                   help=f"steps per episode, at least {common.MIN_EPISODE_STEPS} (default 50)")
     p.set_defaults(func=_eval_split_create)
     p = ssub.add_parser("show", help="the pinned split's hash and episodes")
     p.set_defaults(func=_eval_split_show)
@@ -231,7 +262,8 @@ def _episodes_show(args: argparse.Namespace) -> int:
     text = {**{k: v for k, v in out.items() if k != "meta"}, **out["meta"]}
     text["ingested"] = datetime.fromtimestamp(row.ingested, timezone.utc).isoformat(timespec="seconds")
     for key, value in text.items():
-        print(f"{key:<18} {value if value != '' else '-'}")
+        shown = json.dumps(value, sort_keys=True) if isinstance(value, (dict, list)) else value
+        print(f"{key:<18} {shown if shown != '' else '-'}")
     return 0
 
 
@@ -291,6 +323,8 @@ def _episodes_restore(args: argparse.Namespace) -> int:
         raise common.UsageError("give the episodes to restore, or --all (not both)")
     cat = _existing_catalog(args)
     rows = cat.list(quarantined=True) if args.all else [_resolve(cat, i) for i in args.episode_ids]
+    if not rows and not args.json:
+        print(f"nothing is quarantined in {cat.data_dir}")
     return _each(args, rows, lambda row: cat.restore(row.episode_id), "restored")
 
 
@@ -362,13 +396,23 @@ def _ingest(args: argparse.Namespace) -> int:
 
 
 def _eval_split_create(args: argparse.Namespace) -> int:
+    settings = dict(episodes=args.episodes, seed=args.seed, steps=args.steps, image_size=args.size)
+    if (Path(args.data) / DB_NAME).is_file():  # a pinned split is never replaced: check before collecting
+        try:
+            pinned = check_eval_split(Catalog(args.data), **settings)
+        except EvalSplitConflict as exc:
+            raise eval_split_refusal(args.data, exc, EVAL_SPLIT_FLAGS, "eval-split create", "asked for") from None
+        if pinned is None:
+            common.require_frame_size(args.data, args.size, "--size")
     cat = Catalog(args.data)
-    print(f"collecting {args.episodes} evaluation episodes ({args.steps} steps, {args.size}px) ...",
-          file=sys.stderr)
+    if cat.eval_split() is None:
+        print(f"collecting {args.episodes} evaluation episodes ({args.steps} steps, {args.size}px) ...",
+              file=sys.stderr)
     try:
-        digest = create_eval_split(cat, episodes=args.episodes, seed=args.seed, steps=args.steps,
-                                   image_size=args.size)
-    except (EvalSplitConflict, CatalogError) as exc:
+        digest = create_eval_split(cat, **settings)
+    except EvalSplitConflict as exc:  # pinned by another process since the check
+        raise eval_split_refusal(args.data, exc, EVAL_SPLIT_FLAGS, "eval-split create", "asked for") from None
+    except CatalogError as exc:
         print(f"activecollect: {exc}", file=sys.stderr)
         return 1
     split = cat.eval_split()

@@ -5,14 +5,19 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import re
 import sys
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any, NoReturn
 
+from croniter import croniter
+
 from orchestrator.dashboard import DashboardConfig
-from orchestrator.protocol import one_line
+from orchestrator.protocol import MAX_EPISODE_STEPS, one_line
 from storage.catalog import Catalog
 from storage.database import DB_NAME
+from uncertainty.config import TrainConfig
 
 DEFAULT_DATA = Path("activecollect-data")
 
@@ -22,10 +27,21 @@ class UsageError(Exception):
 
 
 class Parser(argparse.ArgumentParser):
-    """argparse that reports a usage error as one line on stderr and exits 2."""
+    """argparse that reports a usage error as one line on stderr and exits 2.
+
+    Arguments a command does not know are its own error ("activecollect retrain: error:
+    unrecognized arguments: ..."): argparse would hand them up to the top parser, whose
+    message names no command. No command here passes unknown arguments on.
+    """
 
     def error(self, message: str) -> NoReturn:
         self.exit(2, f"{self.prog}: error: {one_line(message)}\n")
+
+    def parse_known_args(self, args=None, namespace=None):  # type: ignore[override]
+        namespace, extras = super().parse_known_args(args, namespace)
+        if extras:
+            self.error(f"unrecognized arguments: {' '.join(extras)}")
+        return namespace, extras
 
 
 def data_dir(text: str) -> Path:
@@ -49,7 +65,7 @@ def data_dir(text: str) -> Path:
 
 def add_data_arg(p: argparse.ArgumentParser) -> None:
     # a str default, so argparse runs data_dir on it too
-    p.add_argument("--data", type=data_dir, default=str(DEFAULT_DATA),
+    p.add_argument("--data", type=data_dir, default=str(DEFAULT_DATA), metavar="DIR",
                    help=f"data directory (catalog, episodes, models, reports); default ./{DEFAULT_DATA}")
 
 
@@ -78,6 +94,82 @@ def positive_int(text: str) -> int:
 
 def non_negative_int(text: str) -> int:
     return _int_at_least(text, 0, "an integer >= 0")
+
+
+def _int(text: str, what: str) -> int:
+    try:
+        return int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected {what}, found {text!r}") from None
+
+
+#: The fewest steps an episode may have: training at the default context needs context + 1 frames
+#: (``uncertainty.data.build_windows``); a shorter episode gives no window, and a catalog or eval
+#: split of only such episodes fails every retrain.
+MIN_EPISODE_STEPS = TrainConfig.context + 1
+
+
+def episode_steps(text: str) -> int:
+    """Steps of an episode to record: enough to learn from (``MIN_EPISODE_STEPS``), at most the
+    protocol's ``MAX_EPISODE_STEPS``."""
+    value = _int(text, "a whole number of steps")
+    if value < MIN_EPISODE_STEPS:
+        raise argparse.ArgumentTypeError(
+            f"expected at least {MIN_EPISODE_STEPS} steps (a model learns from {TrainConfig.context} frames of "
+            f"context and the next one), found {value}")
+    if value > MAX_EPISODE_STEPS:
+        raise argparse.ArgumentTypeError(f"expected at most {MAX_EPISODE_STEPS} steps, found {value}")
+    return value
+
+
+def dashboard_port(text: str) -> int:
+    """A dashboard port: -1 (no dashboard), 0 (any free port) or a TCP port."""
+    value = _int(text, "-1 (none), 0 (any) or a TCP port")
+    if not -1 <= value <= 65535:
+        raise argparse.ArgumentTypeError(f"expected -1 (none), 0 (any free port) or a TCP port in 1..65535, "
+                                         f"found {value}")
+    return value
+
+
+def fraction(text: str) -> float:
+    """A number in [0, 1) (a relative improvement)."""
+    value = finite_float(text)
+    if not 0 <= value < 1:
+        raise argparse.ArgumentTypeError(f"expected a fraction in [0, 1) such as 0.02, found {text!r}")
+    return value
+
+
+def cron_expression(text: str) -> str:
+    """A cron expression such as ``0 * * * *`` ('' = none)."""
+    if text and not croniter.is_valid(text):
+        raise argparse.ArgumentTypeError(f"expected a cron expression like '*/10 * * * *' "
+                                         f"(minute hour day month weekday), found {text!r}")
+    return text
+
+
+#: Config fields that CLI flags set under another name. A config's ValueError names its field
+#: (``dashboard_port must be ...``); shown to a user it names the flag (see ``config_error``).
+#: Only names with an underscore, which never stand for a plain word of a message.
+FLAGS = {"round_episodes": "--round", "min_rel_improvement": "--min-improvement",
+         "dashboard_port": "--dashboard-port", "dashboard_max_connections": "--dashboard-max-connections",
+         "dashboard_request_timeout_s": "--dashboard-request-timeout", "retrain_every": "--retrain-every",
+         "every_episodes": "--retrain-every", "retrain_cron": "--retrain-cron", "retrain_args": "--retrain-args",
+         "image_size": "--image-size", "eval_episodes": "--eval-episodes", "eval_seed": "--eval-seed",
+         "batch_size": "--batch-size", "max_windows": "--max-windows", "from_champion": "--from-champion",
+         "variance_head": "--variance-head", "lease_s": "--lease-s", "reap_interval_s": "--reap-interval-s",
+         "seed_requests": "--seed-requests", "min_queued": "--min-queued", "max_connections": "--max-connections",
+         "request_timeout_s": "--request-timeout", "active_policy": "--active-policy",
+         "random_physics": "--random-physics"}
+
+
+def config_error(exc: Exception, flags: Mapping[str, str] | None = None) -> UsageError:
+    """A configuration's ValueError as a usage error that names flags instead of fields.
+
+    ``flags``: this command's own names (plain words such as ``budget``, or a field its flag
+    names otherwise, e.g. ``image_size`` -> ``--size``), over ``FLAGS``.
+    """
+    names = {**FLAGS, **(flags or {})}
+    return UsageError(re.sub(r"\b[a-z][a-z0-9_]*\b", lambda m: names.get(m.group(0), m.group(0)), str(exc)))
 
 
 def tcp_port(text: str) -> int:

@@ -23,47 +23,80 @@ from collections import Counter
 from pathlib import Path
 
 from orchestrator.champion import ChampionScorer, FramesSource
-from orchestrator.cli import common
+from orchestrator.cli import collect as collect_cli, common
 from orchestrator.dashboard import Dashboard, DashboardConfig, DataSources
 from orchestrator.loopconfig import SIGNALS, LoopBenchConfig, RunConfig
 from orchestrator.scheduler import EXIT_BUSY, RetrainBusyError, quarantined_note
+from orchestrator.protocol import one_line
 from storage.catalog import Catalog
+from storage.database import DB_NAME
 from storage.errors import StorageError
 from storage.requests import Request
 from storage.records import Episode
 from uncertainty.config import TrainConfig
 from uncertainty.errors import ConfigError, UncertaintyError
 # The CLI is the composition root: it alone hands the simulator to the orchestrator's loops.
-from workers.collect import EvalSplitConflict, collect_episode, create_eval_split
+from workers.collect import EvalSplitConflict, check_eval_split, collect_episode, create_eval_split
+
+
+#: The smallest frame a model trains and is evaluated on: the predictor takes multiples of 8
+#: (``uncertainty.model.PredictorConfig``) and SSIM needs an 11-pixel window (``uncertainty.metrics``);
+#: both modules import torch, which the parsers must not.
+MIN_TRAINABLE_SIZE = 16
+
+
+def trainable_image_size(text: str) -> int:
+    """A frame size that the commands which also train (``run``, ``bench loop``) can train on."""
+    value = collect_cli.image_size(text)
+    if value < MIN_TRAINABLE_SIZE or value % 8:
+        raise argparse.ArgumentTypeError(f"expected a multiple of 8 from {MIN_TRAINABLE_SIZE} to "
+                                         f"{collect_cli.MAX_SIZE} (what a model trains on), found {value}")
+    return value
 
 
 def register(sub: argparse._SubParsersAction) -> None:
     d = RunConfig(data_dir=common.DEFAULT_DATA)
-    p = sub.add_parser("run", help="the whole loop on this machine: service, workers, retrains, report")
+    retrain = vars(retrain_options_parser().parse_args(list(d.retrain_args)))
+    p = sub.add_parser("run", help="the whole loop on this machine: service, workers, retrains, report",
+                       description="The whole loop on this machine: the service, worker processes over Zenoh on "
+                                   "loopback, the eval split (made when missing), a retrain after every round and "
+                                   "a report. Each retrain trains "
+                                   f"{retrain['members']} members, {retrain['epochs']} epochs, widths "
+                                   f"{','.join(map(str, retrain['widths']))} (--retrain-args; `retrain` alone "
+                                   f"trains {train_defaults(TrainConfig())}).")
     common.add_data_arg(p)
     common.add_json_arg(p)
-    p.add_argument("--budget", type=common.positive_int, default=d.budget,
+    p.add_argument("--budget", type=common.positive_int, default=d.budget, metavar="N",
                    help=f"stop at this many training episodes (default {d.budget})")
-    p.add_argument("--round", type=common.positive_int, default=d.round_episodes, dest="round_episodes",
+    p.add_argument("--round", type=common.positive_int, default=d.round_episodes, dest="round_episodes", metavar="N",
                    help=f"retrain every N episodes; the next N are planned by the model it made (default "
                         f"{d.round_episodes})")
-    p.add_argument("--workers", type=common.positive_int, default=d.workers,
+    p.add_argument("--workers", type=common.positive_int, default=d.workers, metavar="N",
                    help=f"worker processes (default {d.workers})")
     p.add_argument("--planner", choices=("active", "uniform"), default=d.planner,
                    help=f"where episodes start (default {d.planner})")
-    p.add_argument("--steps", type=common.positive_int, default=d.steps, help=f"steps per episode (default {d.steps})")
-    p.add_argument("--image-size", type=common.positive_int, default=d.image_size,
-                   help=f"frame size in pixels (default {d.image_size})")
-    p.add_argument("--eval-episodes", type=common.positive_int, default=d.eval_episodes,
+    p.add_argument("--steps", type=common.episode_steps, default=d.steps, metavar="T",
+                   help=f"steps per episode, of the training episodes and of the eval split's (at least "
+                        f"{common.MIN_EPISODE_STEPS}; default {d.steps})")
+    p.add_argument("--image-size", type=trainable_image_size, default=d.image_size, metavar="PX",
+                   help=f"frame size in pixels, a multiple of 8 from {MIN_TRAINABLE_SIZE} (default {d.image_size})")
+    p.add_argument("--eval-episodes", type=common.positive_int, default=d.eval_episodes, metavar="N",
                    help=f"episodes in the eval split, made when missing (default {d.eval_episodes})")
-    p.add_argument("--seed", type=common.non_negative_int, default=d.seed, help=f"planner seed (default {d.seed})")
-    p.add_argument("--dashboard-port", type=int, default=d.dashboard_port,
-                   help=f"dashboard port on 127.0.0.1 (default {d.dashboard_port}; 0 any, -1 off)")
+    p.add_argument("--eval-seed", type=common.non_negative_int, default=d.eval_seed, metavar="K",
+                   help=f"seed of the eval split's start states and policies, as eval-split create --seed "
+                        f"(default {d.eval_seed})")
+    p.add_argument("--seed", type=common.non_negative_int, default=d.seed, metavar="K",
+                   help=f"planner seed (default {d.seed})")
+    p.add_argument("--dashboard-port", type=common.dashboard_port, default=d.dashboard_port, metavar="PORT",
+                   help=f"dashboard on 127.0.0.1:PORT (0 = any free port, -1 = none; default {d.dashboard_port})")
     add_retrain_args_arg(p, d.retrain_args)
     p.add_argument("--no-progress", action="store_true", help="no live progress line")
     p.set_defaults(func=_run)
 
-    p = sub.add_parser("retrain", help="one retrain job (train, evaluate, gate) under DATA/retrain.lock, then exit")
+    p = sub.add_parser("retrain", help="one retrain job (train, evaluate, gate) under DATA/retrain.lock, then exit",
+                       description="One retrain job under DATA/retrain.lock: train a candidate on every train "
+                                   "episode, evaluate it on the pinned eval split, and promote it when the gate "
+                                   f"allows; then exit. By default it trains {train_defaults(TrainConfig())}.")
     _retrain_options(p)
     p.set_defaults(func=_retrain)
 
@@ -79,20 +112,23 @@ def register_bench(bench: argparse._SubParsersAction) -> None:
     d = LoopBenchConfig()
     p = bench.add_parser("loop", help="active vs uniform planner: eval error per episodes collected")
     common.add_json_arg(p)
-    p.add_argument("--seeds", type=common.positive_int, default=len(d.seeds),
+    p.add_argument("--seeds", type=common.positive_int, default=len(d.seeds), metavar="N",
                    help=f"seeds 0..N-1, one run of each arm per seed (default {len(d.seeds)})")
-    p.add_argument("--budget", type=common.positive_int, default=d.budget,
-                   help=f"training episodes per arm (default {d.budget})")
-    p.add_argument("--round", type=common.positive_int, default=d.round_episodes, dest="round_episodes",
+    p.add_argument("--budget", type=common.positive_int, default=d.budget, metavar="N",
+                   help=f"training episodes per arm, at least 2 rounds (default {d.budget})")
+    p.add_argument("--round", type=common.positive_int, default=d.round_episodes, dest="round_episodes", metavar="N",
                    help=f"retrain every N episodes (default {d.round_episodes})")
-    p.add_argument("--steps", type=common.positive_int, default=d.steps, help=f"steps per episode (default {d.steps})")
-    p.add_argument("--image-size", type=common.positive_int, default=d.image_size,
-                   help=f"frame size in pixels (default {d.image_size})")
-    p.add_argument("--epochs", type=common.positive_int, default=d.train.epochs,
+    p.add_argument("--steps", type=common.episode_steps, default=d.steps, metavar="T",
+                   help=f"steps per episode, of the training episodes and of the eval split's (at least "
+                        f"{common.MIN_EPISODE_STEPS}; default {d.steps})")
+    p.add_argument("--image-size", type=trainable_image_size, default=d.image_size, metavar="PX",
+                   help=f"frame size in pixels, a multiple of 8 from {MIN_TRAINABLE_SIZE} (default {d.image_size})")
+    p.add_argument("--epochs", type=common.positive_int, default=d.train.epochs, metavar="N",
                    help=f"training epochs per retrain (default {d.train.epochs})")
-    p.add_argument("--members", type=common.positive_int, default=d.train.members,
+    p.add_argument("--members", type=common.positive_int, default=d.train.members, metavar="K",
                    help=f"ensemble size (default {d.train.members})")
-    p.add_argument("--device", choices=("auto", "cpu", "cuda"), default=d.train.device, help="torch device")
+    p.add_argument("--device", choices=("auto", "cpu", "cuda"), default=d.train.device,
+                   help=f"torch device (default {d.train.device}; auto: cuda when there is one)")
     p.add_argument("--signal", choices=SIGNALS, default=d.signal,
                    help=f"what the active arm ranks steps by (default {d.signal})")
     p.add_argument("--active-policy", action="store_true", default=d.active_policy,
@@ -106,7 +142,7 @@ def register_bench(bench: argparse._SubParsersAction) -> None:
                    help="make physics (mass, friction, ground friction) part of the task space: uniform and "
                         "seed episodes and the eval split draw them uniformly over their ranges, the active "
                         "arm keeps an uncertain state's physics (default: every episode at the defaults)")
-    p.add_argument("--out", type=Path, default=None,
+    p.add_argument("--out", type=Path, default=None, metavar="DIR",
                    help="output directory (default ./activecollect-bench/loop-<timestamp>)")
     p.set_defaults(func=_bench_loop)
 
@@ -127,21 +163,22 @@ def bench_eval_split(catalog: Catalog, episodes: int, seed: int, steps: int, ima
 
 
 def _bench_loop(args: argparse.Namespace) -> int:
-    from orchestrator.loopbench import run_bench  # torch: imported when the command runs (start-up cost)
     d = LoopBenchConfig()
-    train = TrainConfig(**{**d.train.to_dict(), "epochs": args.epochs, "members": args.members,
-                           "device": args.device, "widths": d.train.widths,
-                           "variance_head": args.variance_head})
     try:
+        train = TrainConfig(**{**d.train.to_dict(), "epochs": args.epochs, "members": args.members,
+                               "device": args.device, "widths": d.train.widths,
+                               "variance_head": args.variance_head})
         cfg = LoopBenchConfig(seeds=tuple(range(args.seeds)), budget=args.budget,
                               round_episodes=args.round_episodes, steps=args.steps,
                               image_size=args.image_size, train=train, signal=args.signal,
                               active_policy=args.active_policy, random_physics=args.random_physics)
-    except ValueError as exc:
-        raise common.UsageError(str(exc)) from None
+    except (ValueError, ConfigError) as exc:
+        raise common.config_error(exc, {"budget": "--budget", "seeds": "--seeds", "members": "--members",
+                                        "epochs": "--epochs"}) from None
     out = args.out or Path("activecollect-bench") / time.strftime("loop-%Y%m%dT%H%M%S")
     if (out / "summary.json").exists():
         raise common.UsageError(f"{out} already holds a bench loop result; give a fresh --out")
+    from orchestrator.loopbench import run_bench  # torch: imported once the arguments are known good (start-up cost)
     log = (lambda line: print(line, file=sys.stderr, flush=True))
     summary = run_bench(cfg, out, bench_collect, functools.partial(bench_eval_split, random_physics=cfg.random_physics),
                         log=log)
@@ -164,24 +201,29 @@ def _eps(v: float | None) -> str:
 def add_train_args(p: argparse.ArgumentParser, defaults: TrainConfig | None = None) -> None:
     """Training settings shared by ``retrain`` and ``run`` (the rest keep TrainConfig's defaults)."""
     d = defaults or TrainConfig()
-    p.add_argument("--members", type=common.positive_int, default=d.members, help=f"ensemble size (default {d.members})")
-    p.add_argument("--epochs", type=common.positive_int, default=d.epochs, help=f"epochs (default {d.epochs})")
-    p.add_argument("--batch-size", type=common.positive_int, default=d.batch_size,
+    p.add_argument("--members", type=common.positive_int, default=d.members, metavar="K",
+                   help=f"ensemble size (default {d.members})")
+    p.add_argument("--epochs", type=common.positive_int, default=d.epochs, metavar="N",
+                   help=f"passes over the training windows (default {d.epochs})")
+    p.add_argument("--batch-size", type=common.positive_int, default=d.batch_size, metavar="N",
                    help=f"windows per member per step (default {d.batch_size})")
-    p.add_argument("--lr", type=common.positive_float, default=d.lr, help=f"peak learning rate (default {d.lr})")
-    p.add_argument("--widths", type=_widths, default=d.widths,
-                   help=f"channel widths A,B,C of a fresh model (default {','.join(map(str, d.widths))})")
-    p.add_argument("--max-windows", type=common.positive_int, default=d.max_windows,
+    p.add_argument("--lr", type=common.positive_float, default=d.lr, metavar="LR",
+                   help=f"peak learning rate (default {d.lr})")
+    p.add_argument("--widths", type=_widths, default=d.widths, metavar="A,B,C",
+                   help=f"channel widths of a fresh model (default {','.join(map(str, d.widths))})")
+    p.add_argument("--max-windows", type=common.positive_int, default=d.max_windows, metavar="N",
                    help="cap on training windows (a seeded subset; default all)")
-    p.add_argument("--seed", type=common.non_negative_int, default=d.seed, help=f"training seed (default {d.seed})")
-    p.add_argument("--device", choices=("auto", "cpu", "cuda"), default=d.device, help="torch device")
+    p.add_argument("--seed", type=common.non_negative_int, default=d.seed, metavar="K",
+                   help=f"training seed (default {d.seed})")
+    p.add_argument("--device", choices=("auto", "cpu", "cuda"), default=d.device,
+                   help=f"torch device (default {d.device}{': cuda when there is one' if d.device == 'auto' else ''})")
     p.add_argument("--from-champion", action="store_true", default=d.from_champion,
                    help="warm-start from the champion's weights")
     p.add_argument("--variance-head", action="store_true", default=d.variance_head,
                    help="a fresh model's members also predict the variance of their own error "
                         "(eval reports its calibration; scoring still uses the disagreement)")
-    p.add_argument("--min-improvement", type=common.finite_float, default=d.min_rel_improvement,
-                   help=f"the gate's minimum relative h1 MSE improvement (default {d.min_rel_improvement})")
+    p.add_argument("--min-improvement", type=common.fraction, default=d.min_rel_improvement, metavar="FRAC",
+                   help=f"the gate's minimum relative h1 MSE improvement, in [0, 1) (default {d.min_rel_improvement})")
 
 
 def _retrain_options(p: argparse.ArgumentParser) -> None:
@@ -203,6 +245,13 @@ class _RetrainArgsParser(common.Parser):
         raise argparse.ArgumentTypeError(message)
 
 
+def retrain_options_parser() -> argparse.ArgumentParser:
+    """A parser of the retrain job's options that raises ``ArgumentTypeError`` instead of exiting."""
+    parser = _RetrainArgsParser(prog="retrain", add_help=False)
+    _retrain_options(parser)
+    return parser
+
+
 #: Set by the scheduler itself (``scheduler.retrain_command``): in --retrain-args they would train elsewhere
 #: or change what the scheduler reads back.
 _SCHEDULER_OWNS = ("data", "json", "wait")
@@ -216,8 +265,7 @@ def retrain_args(text: str) -> tuple[str, ...]:
         args = tuple(shlex.split(text))
     except ValueError as exc:
         raise argparse.ArgumentTypeError(f"cannot split {text!r}: {exc}") from None
-    parser = _RetrainArgsParser(prog="retrain", add_help=False)
-    _retrain_options(parser)
+    parser = retrain_options_parser()
     unset = object()
     parser.set_defaults(**{dest: unset for dest in _SCHEDULER_OWNS})
     given = vars(parser.parse_args(list(args)))
@@ -227,11 +275,22 @@ def retrain_args(text: str) -> tuple[str, ...]:
     return args
 
 
+def train_defaults(cfg: TrainConfig) -> str:
+    """``5 members, 8 epochs, widths 16,32,64``: what a retrain job trains when not told otherwise."""
+    return f"{cfg.members} members, {cfg.epochs} epochs, widths {','.join(map(str, cfg.widths))}"
+
+
 def add_retrain_args_arg(p: argparse.ArgumentParser, default: tuple[str, ...]) -> None:
-    shown = " ".join(default) or "retrain's own defaults"
+    shown = f"'{' '.join(default)}'" if default else f"none: retrain's own defaults ({train_defaults(TrainConfig())})"
     p.add_argument("--retrain-args", type=retrain_args, default=default, metavar="'ARGS'",
-                   help=f"arguments of each retrain job, as one string (see 'activecollect retrain --help'; "
-                        f"default: {shown}); one option alone needs '=': --retrain-args=--from-champion")
+                   help=f"arguments of each retrain job, as one string (see 'activecollect retrain --help'). They "
+                        f"REPLACE the default arguments, they are not added to them: repeat any of the default's "
+                        f"you want kept (default: {shown}). One option alone needs '=': "
+                        "--retrain-args=--from-champion")
+
+
+#: ``TrainConfig`` fields that ``add_train_args`` sets under a flag of the same name (see ``common.config_error``).
+TRAIN_FLAGS = {name: f"--{name}" for name in ("members", "epochs", "lr", "widths", "seed", "device")}
 
 
 def train_config(args: argparse.Namespace) -> TrainConfig:
@@ -251,22 +310,41 @@ def _widths(text: str) -> tuple[int, int, int]:
     return widths  # type: ignore[return-value]
 
 
+#: ``run``'s flag for each parameter of a pinned eval split (``workers.collect.eval_split_params``).
+RUN_SPLIT_FLAGS = {"image_size": "--image-size", "steps": "--steps", "episodes": "--eval-episodes",
+                   "seed": "--eval-seed"}
+
+
+def _check_run_data(cfg: RunConfig) -> None:
+    """UsageError (exit 2) naming every flag to change when ``cfg.data_dir`` holds an eval split made
+    with other settings, or episodes of another frame size. Nothing is created."""
+    if not (cfg.data_dir / DB_NAME).is_file():
+        return
+    try:
+        check_eval_split(Catalog(cfg.data_dir), episodes=cfg.eval_episodes, seed=cfg.eval_seed, steps=cfg.steps,
+                         image_size=cfg.image_size)
+    except EvalSplitConflict as exc:
+        raise collect_cli.eval_split_refusal(cfg.data_dir, exc, RUN_SPLIT_FLAGS, "run", "this run asks for") from None
+    common.require_frame_size(cfg.data_dir, cfg.image_size, "--image-size")
+
+
 def _run(args: argparse.Namespace) -> int:
-    from orchestrator.loop import LoopRun  # torch: imported when the command runs (start-up cost)
     try:
         cfg = RunConfig(data_dir=args.data, budget=args.budget, round_episodes=args.round_episodes,
                         workers=args.workers, planner=args.planner, steps=args.steps,
-                        image_size=args.image_size, eval_episodes=args.eval_episodes, seed=args.seed,
-                        dashboard_port=args.dashboard_port, retrain_args=args.retrain_args,
+                        image_size=args.image_size, eval_episodes=args.eval_episodes, eval_seed=args.eval_seed,
+                        seed=args.seed, dashboard_port=args.dashboard_port, retrain_args=args.retrain_args,
                         progress=not args.no_progress)
     except ValueError as exc:
-        raise common.UsageError(str(exc)) from None
-    common.require_frame_size(args.data, args.image_size, "--image-size")
+        raise common.config_error(exc, {"budget": "--budget", "workers": "--workers", "steps": "--steps",
+                                        "planner": "--planner"}) from None
+    _check_run_data(cfg)
+    from orchestrator.loop import LoopRun  # torch: imported once the arguments are known good (start-up cost)
     run = LoopRun(cfg, bench_eval_split, announce=lambda line: print(line, file=sys.stderr, flush=True))
     try:
         result = run.run()
-    except EvalSplitConflict as exc:  # this directory's split was made with other --steps / --eval-episodes
-        raise common.UsageError(f"{exc}; give the same settings, or another --data") from None
+    except EvalSplitConflict as exc:  # pinned by another process since the check
+        raise collect_cli.eval_split_refusal(cfg.data_dir, exc, RUN_SPLIT_FLAGS, "run", "this run asks for") from None
     if args.json:
         common.print_json(result.to_json())
     else:
@@ -277,14 +355,24 @@ def _run(args: argparse.Namespace) -> int:
               f"{len(result.retrains)} retrains{how}, champion {result.champion or '-'} (eval h1 MSE {h1}), "
               f"{result.seconds:.0f} s")
         print(f"report: {result.report}")
-    return 130 if result.interrupted else 0
+    if result.interrupted:
+        return 130
+    learned = [r for r in result.retrains if r["status"] in ("promoted", "rejected")]
+    if result.retrains and not learned:  # no model came of this run: not a success, whatever it collected
+        outcomes = Counter(r["status"] for r in result.retrains)
+        print(one_line(f"activecollect run: every retrain of this run failed "
+                       f"({', '.join(f'{n} {status}' for status, n in outcomes.items())}; the last: "
+                       f"{result.retrains[-1]['reason'] or '-'}); their logs are in {cfg.data_dir / 'logs'}"),
+              file=sys.stderr)
+        return 1
+    return 0
 
 
 def _retrain(args: argparse.Namespace) -> int:
     try:
         cfg = train_config(args)
     except ConfigError as exc:
-        raise common.UsageError(str(exc)) from None
+        raise common.config_error(exc, TRAIN_FLAGS) from None
     common.require_catalog(args.data)  # checked before the retrain lock would make the directory
     # torch: imported once the arguments are known good (start-up cost)
     from orchestrator.retrain import abandoned_note, run_retrain
@@ -301,7 +389,7 @@ def _retrain(args: argparse.Namespace) -> int:
         print(json.dumps(result, default=str, allow_nan=True))
     else:
         verdict = "promoted" if result["promoted"] else "not promoted"
-        print(f"{result['version']}: {verdict}: {result['reason']}")
+        print(f"{result['version']}: {verdict}: {result['reason'].removeprefix('promoted: ')}")  # (the gate's words)
         print(f"  h1_mse {result['metrics'].get('h1_mse')}  h5_mse {result['metrics'].get('h5_mse')}  "
               f"champion {result['champion']}")
         if result["abandoned"]:

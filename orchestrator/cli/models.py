@@ -35,7 +35,12 @@ _DEVICES = ("auto", "cpu", "cuda")
 
 def register(sub: argparse._SubParsersAction) -> None:
     """Adds ``train``, ``eval``, ``score`` and ``models``."""
-    p = sub.add_parser("train", help="train a candidate ensemble, evaluate it, run it through the gate")
+    p = sub.add_parser("train", help="train a candidate ensemble, evaluate it, run it through the gate",
+                       description="Train a candidate ensemble on every train episode, evaluate it on the pinned "
+                                   "eval split and run it through the gate. By default "
+                                   f"{TrainConfig.members} members, {TrainConfig.epochs} epochs, a fresh model of "
+                                   f"widths {','.join(map(str, TrainConfig.widths))} and context "
+                                   f"{TrainConfig.context} frames ('retrain' takes more settings).")
     p.add_argument("--members", type=common.positive_int, default=TrainConfig.members, metavar="K",
                    help=f"ensemble size (default {TrainConfig.members})")
     p.add_argument("--epochs", type=common.positive_int, default=TrainConfig.epochs, metavar="E",
@@ -47,7 +52,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--seed", type=common.non_negative_int, default=TrainConfig.seed, metavar="S",
                    help=f"seed of the initialisation and the shuffling (default {TrainConfig.seed})")
     p.add_argument("--device", choices=_DEVICES, default="auto", help="torch device (default auto: cuda when there is one)")
-    p.add_argument("--min-improvement", type=common.finite_float, default=TrainConfig.min_rel_improvement,
+    p.add_argument("--min-improvement", type=common.fraction, default=TrainConfig.min_rel_improvement,
                    metavar="FRAC",
                    help="the gate's minimum relative improvement of h1_mse over the champion "
                         f"(default {TrainConfig.min_rel_improvement})")
@@ -56,13 +61,14 @@ def register(sub: argparse._SubParsersAction) -> None:
                         f"{EXIT_BUSY} at once")
     p.set_defaults(func=_train)
     p = sub.add_parser("eval", help="evaluate a model (default: the champion) on the pinned eval split")
-    p.add_argument("version", nargs="?", metavar="VERSION", help="a registered version (default: the champion)")
+    p.add_argument("version", nargs="?", metavar="VERSION",
+                   help="a registered version or a unique prefix of one (default: the champion)")
     p.add_argument("--device", choices=_DEVICES, default="auto", help="torch device (default auto: cuda when there is one)")
     p.set_defaults(func=_eval)
     p = sub.add_parser("score", help="per-step disagreement of an episode and its most uncertain states")
     p.add_argument("episode", metavar="EPISODE", help="an episode id (or unique prefix) in the catalog, "
                                                       "or a path to an .mcap file")
-    p.add_argument("--top", type=common.non_negative_int, default=5, metavar="K",
+    p.add_argument("--top", type=common.positive_int, default=5, metavar="K",
                    help="how many top states to show (default 5)")
     p.add_argument("--horizon", type=common.positive_int, default=1, metavar="H",
                    help="roll each member out H steps (default 1)")
@@ -78,10 +84,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     p = msub.add_parser("ls", help="list registered models, champion marked")
     p.set_defaults(func=_models_ls)
     p = msub.add_parser("show", help="one model: metrics, lineage, status and reason")
-    p.add_argument("version", metavar="VERSION")
+    p.add_argument("version", metavar="VERSION", help="a model version (as `models ls` lists), or a unique prefix "
+                                                      "of one such as m000003")
     p.set_defaults(func=_models_show)
     p = msub.add_parser("promote", help="make VERSION the champion (override; still checks sha256 and split)")
-    p.add_argument("version", metavar="VERSION")
+    p.add_argument("version", metavar="VERSION", help="a model version, or a unique prefix of one such as m000003")
     p.set_defaults(func=_models_promote)
     p = msub.add_parser("rollback", help="return to the previous champion whose weights are intact")
     p.set_defaults(func=_models_rollback)
@@ -134,8 +141,9 @@ def _registry(args: argparse.Namespace) -> ModelRegistry:
 
 
 def _record(registry: ModelRegistry, version: str) -> ModelRecord:
+    """The model ``version`` names, in full or by a unique prefix; a usage error when none does."""
     try:
-        return registry.get(version)
+        return registry.resolve(version)
     except NotFoundError as exc:  # (a damaged registry is not a usage error: exit 1)
         raise common.UsageError(str(exc)) from None
 
@@ -203,9 +211,9 @@ def _models_show(args: argparse.Namespace) -> int:
 
 def _models_promote(args: argparse.Namespace) -> int:
     registry = _registry(args)
-    _record(registry, args.version)
+    version = _record(registry, args.version).version
     try:
-        decision = registry.promote(args.version, eval_split_hash=_current_split(args.data))
+        decision = registry.promote(version, eval_split_hash=_current_split(args.data))
     except CorruptCheckpointError as exc:
         return _fail(f"refusing to promote: {exc}")
     except RegistryError as exc:
@@ -214,7 +222,7 @@ def _models_promote(args: argparse.Namespace) -> int:
         common.print_json(_strict(decision.to_json()))
     elif decision.promoted:
         before = f" (was {decision.champion_before})" if decision.champion_before else ""
-        print(f"champion is now {args.version}{before}")
+        print(f"champion is now {version}{before}")
     else:
         print(decision.reason)
     return 0
@@ -290,7 +298,7 @@ def _train(args: argparse.Namespace) -> int:
                           seed=args.seed, device=args.device, min_rel_improvement=args.min_improvement,
                           variance_head=args.variance_head)
     except ConfigError as exc:
-        raise common.UsageError(str(exc)) from None
+        raise common.config_error(exc, {name: f"--{name}" for name in ("members", "epochs", "seed", "device")}) from None
     # torch: imported once the arguments are known good (start-up cost, not a cycle)
     from orchestrator.retrain import abandoned_note, training_job
     from uncertainty.train import train_candidate
@@ -315,10 +323,11 @@ def _train(args: argparse.Namespace) -> int:
         print(abandoned_note(abandoned))
     m = result.metrics
     print(f"trained {result.version}: {m.get('train_episodes')} episodes, {m.get('train_windows')} windows, "
-          f"{cfg.epochs} epochs in {_num(m.get('train_seconds'), '.1f')} s (final loss {_num(m.get('train_loss'))})")
+          f"{cfg.epochs} epoch{'s' if cfg.epochs != 1 else ''} in {_num(m.get('train_seconds'), '.1f')} s "
+          f"(final loss {_num(m.get('train_loss'))})")
     _print_eval(m)
     verdict = "promoted" if result.decision.promoted else "refused"
-    print(f"gate: {verdict}: {result.decision.reason}")
+    print(f"gate: {verdict}: {result.decision.reason.removeprefix('promoted: ')}")  # (the gate's words)
     print(f"champion: {champion or 'none'}")
     return 0
 
@@ -352,9 +361,8 @@ def _load(registry: ModelRegistry, version: str | None, device: str) -> Ensemble
 def _eval(args: argparse.Namespace) -> int:
     data = _data_dir(args)
     registry = ModelRegistry(data)
-    if args.version is not None:
-        _record(registry, args.version)
-    ensemble = _load(registry, args.version, args.device)
+    version = None if args.version is None else _record(registry, args.version).version
+    ensemble = _load(registry, version, args.device)
     if ensemble is None:
         return 1
     from uncertainty.train import evaluate  # torch (already loaded by _load): start-up cost, not a cycle
@@ -421,7 +429,8 @@ def _bench_score(args: argparse.Namespace) -> int:
         out = run_score_bench(members=args.members, image_size=args.size, seconds=args.seconds,
                               batch=args.batch, threads=args.threads, device=args.device)
     except ConfigError as exc:
-        raise common.UsageError(str(exc)) from None
+        raise common.config_error(exc, {"image_size": "--size", "members": "--members", "batch": "--batch",
+                                        "seconds": "--seconds", "threads": "--threads"}) from None
     if args.json:
         common.print_json(_strict(out))
         return 0

@@ -6,7 +6,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from orchestrator.cli.common import Parser, UsageError, add_json_arg, print_json, positive_int
+from orchestrator.cli.common import Parser, UsageError, add_json_arg, config_error, print_json, positive_int
 from orchestrator.router import RouterConfig, RouterError, run_router
 from orchestrator.secure import DEFAULT_NAMESPACE, DEFAULT_ROUTER_ENDPOINT, SecureInitConfig, init_secure
 from orchestrator.transport import SecureConfigError, endpoint, validate_secure_config
@@ -29,7 +29,9 @@ def register(sub) -> None:
     ssub.required = True
     init = ssub.add_parser("init", help="write a CA, per-role certificates and passwords, and "
                                         "router/orchestrator/worker/operator Zenoh configs")
-    init.add_argument("directory", type=Path, metavar="DIR")
+    init.add_argument("directory", type=Path, metavar="DIR",
+                      help="where to write the profile: a new or empty directory (made private, mode 0700: it "
+                           "holds the keys), or one holding a profile to replace with --force")
     init.add_argument("--namespace", default=DEFAULT_NAMESPACE, help=f"key namespace the ACL protects (default {DEFAULT_NAMESPACE})")
     init.add_argument("--router-endpoint", default=DEFAULT_ROUTER_ENDPOINT, metavar="tls/HOST:PORT",
                       help=f"where clients reach the router (default {DEFAULT_ROUTER_ENDPOINT})")
@@ -43,7 +45,8 @@ def register(sub) -> None:
     add_json_arg(init)
     init.set_defaults(func=_init)
     check = ssub.add_parser("check", help="check that every file a Zenoh config names exists and is readable")
-    check.add_argument("config", type=Path, metavar="FILE")
+    check.add_argument("config", type=Path, metavar="FILE",
+                       help="a Zenoh JSON5 config, e.g. DIR/worker.json5 from `secure init`")
     check.set_defaults(func=_check)
 
 
@@ -63,7 +66,7 @@ def _init(args: argparse.Namespace) -> int:
                                extra_hosts=tuple(args.hosts), force=args.force, valid_days=args.valid_days)
         result = init_secure(cfg)
     except SecureConfigError as exc:
-        raise UsageError(str(exc)) from exc
+        raise config_error(exc, {"namespace": "--namespace"} if str(exc).startswith("namespace:") else {}) from exc
     if args.json:
         print_json({"directory": str(result.directory), "ca_certificate": str(result.ca_certificate),
                     "configs": {role: str(p) for role, p in result.configs.items()}})

@@ -17,6 +17,7 @@ import threading
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -46,10 +47,14 @@ def register(sub: argparse._SubParsersAction) -> None:
     """Adds serve, worker, queue, workers, stats and watch."""
     p = sub.add_parser("serve", help="run the orchestrator: queue, leases, uploads, admin over Zenoh")
     common.add_data_arg(p)
+    p.add_argument("--init", action="store_true",
+                   help="start a new data directory at --data when there is none (without it, a --data that "
+                        "does not exist is refused: a misspelt path must not start a new, empty catalog)")
     transport.add_connection_args(p, listen=True)
-    p.add_argument("--lease-s", type=common.positive_float, default=30.0, help="lease length (default 30)")
-    p.add_argument("--reap-interval-s", type=common.positive_float, default=1.0,
-                   help="how often expired leases are looked for (default 1)")
+    p.add_argument("--lease-s", type=common.positive_float, default=30.0, metavar="S",
+                   help="seconds a worker holds a request before it must renew the lease or lose it (default 30)")
+    p.add_argument("--reap-interval-s", type=common.positive_float, default=1.0, metavar="S",
+                   help="seconds between looks for expired leases (default 1)")
     p.add_argument("--planner", choices=PLANNERS, default="active",
                    help="what turns stored episodes into requests (default active)")
     p.add_argument("--seed-requests", type=common.non_negative_int, default=0, metavar="N",
@@ -58,20 +63,22 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help=f"with a planner, keep at least N requests queued: when its own requests run out, uniform "
                         f"draws top the queue up so collection never stops (at most the planner's queue depth "
                         f"cap, {QUEUE_DEPTH_CAP}; default {MIN_QUEUED}, 0 with --planner none; 0 = no floor)")
-    p.add_argument("--steps", type=common.positive_int, default=50, help="steps per planned episode (default 50)")
-    p.add_argument("--seed", type=common.non_negative_int, default=0,
+    p.add_argument("--steps", type=common.episode_steps, default=50, metavar="T",
+                   help=f"steps per planned episode, at least {common.MIN_EPISODE_STEPS} (default 50)")
+    p.add_argument("--seed", type=common.non_negative_int, default=0, metavar="K",
                    help="seed of the planner's generator (default 0)")
     d = CompanionConfig()
-    p.add_argument("--dashboard-port", type=int, default=d.dashboard_port, metavar="PORT",
+    p.add_argument("--dashboard-port", type=common.dashboard_port, default=d.dashboard_port, metavar="PORT",
                    help=f"dashboard on 127.0.0.1:PORT (0 = any free port, -1 = none; default {d.dashboard_port})")
     common.add_dashboard_limit_args(p, prefix="dashboard-")
     p.add_argument("--retrain-every", type=common.non_negative_int, default=d.retrain_every, metavar="N",
                    help="retrain (in a child process) each time N more training episodes are stored "
                         "(default 0 = not on count)")
-    p.add_argument("--retrain-cron", default=d.retrain_cron, metavar="EXPR",
+    p.add_argument("--retrain-cron", type=common.cron_expression, default=d.retrain_cron, metavar="EXPR",
                    help="also retrain on this cron expression, e.g. '0 * * * *' (default: not on time)")
     add_retrain_args_arg(p, d.retrain_args)
-    p.add_argument("--log-level", default="INFO", choices=("DEBUG", "INFO", "WARNING", "ERROR"))
+    p.add_argument("--log-level", default="INFO", choices=("DEBUG", "INFO", "WARNING", "ERROR"),
+                   help="least severe log messages written to stderr (default INFO)")
     p.set_defaults(func=cmd_serve)
 
     p = sub.add_parser("worker", help="run a collector worker: lease, simulate, record MCAP, upload")
@@ -100,8 +107,9 @@ def _register_queue(sub: argparse._SubParsersAction) -> None:
     qsub.required = True
     p = qsub.add_parser("ls", help="requests, newest change first (queued: in lease order)")
     _operator_args(p)
-    p.add_argument("--status", choices=[s.value for s in RequestStatus], default=None)
-    p.add_argument("--limit", type=_list_limit, default=50,
+    p.add_argument("--status", choices=[s.value for s in RequestStatus], default=None,
+                   help="only requests in this state (default: all)")
+    p.add_argument("--limit", type=_list_limit, default=50, metavar="N",
                    help=f"most requests to list, at most {admin.MAX_LIST} (default 50)")
     p.set_defaults(func=cmd_queue_ls)
     p = qsub.add_parser("show", help="one request in full")
@@ -117,15 +125,20 @@ def _register_queue(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--policy-params", type=_json_object, default={}, metavar="JSON",
                    help="the policy's parameters as a JSON object, e.g. '{\"side\": \"left\"}' (default: its defaults)")
     p.add_argument("--start-state", type=_json_object, default=None, metavar="JSON",
-                   help="start state in SimState.to_dict form (default: drawn uniformly with --seed)")
-    p.add_argument("--seed", type=common.non_negative_int, default=None,
+                   help="start state as a JSON object: shape (as --shape), agent [x, y] (the pusher), object "
+                        f"[x, y, angle in radians], positions in 0..{protocol.WORLD_SIZE:g}; optional agent_vel "
+                        "[vx, vy], object_vel [vx, vy, omega] (default at rest) and physics {mass, friction, "
+                        "ground_friction} (default the defaults). E.g. '{\"shape\": \"T\", \"agent\": [100, 100], "
+                        "\"object\": [256, 256, 0]}' (default: drawn uniformly with --seed)")
+    p.add_argument("--seed", type=common.non_negative_int, default=None, metavar="K",
                    help="seed of the uniform start state (default: random)")
-    p.add_argument("--steps", type=common.positive_int, default=50, help="steps to record (default 50)")
-    p.add_argument("--priority", type=common.finite_float, default=0.0,
+    p.add_argument("--steps", type=common.episode_steps, default=50, metavar="T",
+                   help=f"steps to record, at least {common.MIN_EPISODE_STEPS} (default 50)")
+    p.add_argument("--priority", type=common.finite_float, default=0.0, metavar="P",
                    help="higher is leased first (default 0; planned requests carry their score)")
-    p.add_argument("--max-attempts", type=common.positive_int, default=3,
+    p.add_argument("--max-attempts", type=common.positive_int, default=3, metavar="N",
                    help="leases that may fail or expire before the request is dead (default 3)")
-    p.add_argument("--idempotency-key", default=None, metavar="K",
+    p.add_argument("--idempotency-key", default=None, metavar="KEY",
                    help="a repeated add with the same key returns the first request instead of a new one")
     p.set_defaults(func=cmd_queue_add)
     for name, op, help_text in (("cancel", "queue.cancel", "cancel a queued or leased request"),
@@ -137,16 +150,21 @@ def _register_queue(sub: argparse._SubParsersAction) -> None:
     p = qsub.add_parser("prioritize", help="set a request's priority (higher is leased first)")
     _operator_args(p)
     p.add_argument("id", metavar="ID", help="a request id, or a unique prefix of one")
-    p.add_argument("priority", type=common.finite_float)
+    p.add_argument("priority", type=common.finite_float, metavar="PRIORITY",
+                   help="the new priority, any finite number; higher is leased first (manual requests start at 0, "
+                        "planned ones at their score)")
     p.set_defaults(func=lambda a: _print_op(a, "queue.prioritize", {"id": a.id, "priority": a.priority},
                                             _print_request))
 
 
 def register_bench(bench_sub: argparse._SubParsersAction) -> None:
     p = bench_sub.add_parser("dispatch", help="lease->complete round trips/s and latency vs raw Zenoh queries")
-    p.add_argument("--workers", type=common.positive_int, default=8, help="concurrent dispatch clients (default 8)")
-    p.add_argument("--seconds", type=common.positive_float, default=5.0, help="measuring time per phase")
-    p.add_argument("--data", type=common.data_dir, default=None, help="data directory (default: a temporary one)")
+    p.add_argument("--workers", type=common.positive_int, default=8, metavar="N",
+                   help="concurrent dispatch clients (default 8)")
+    p.add_argument("--seconds", type=common.positive_float, default=5.0, metavar="S",
+                   help="measuring time per phase in seconds (default 5)")
+    p.add_argument("--data", type=common.data_dir, default=None, metavar="DIR",
+                   help="data directory (default: a temporary one)")
     common.add_json_arg(p)
     p.set_defaults(func=cmd_bench_dispatch)
 
@@ -213,6 +231,7 @@ def _min_queued(args: argparse.Namespace) -> int:
 
 def cmd_serve(args: argparse.Namespace) -> int:
     min_queued = _min_queued(args)
+    _keys(args)
     logging.basicConfig(level=args.log_level, format="%(asctime)s %(name)s %(levelname)s %(message)s")
     listen, connect = transport.endpoints_from_args(args)
     try:
@@ -220,7 +239,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
                                  dashboard_request_timeout_s=args.request_timeout, retrain_every=args.retrain_every,
                                  retrain_cron=args.retrain_cron, retrain_args=args.retrain_args)
     except ValueError as exc:
-        raise common.UsageError(str(exc)) from None
+        raise common.config_error(exc) from None
     try:
         config = ServiceConfig(data_dir=args.data, namespace=args.namespace, mode=args.mode, listen=listen,
                                connect=connect, zenoh_config=args.zenoh_config, lease_s=args.lease_s,
@@ -228,7 +247,10 @@ def cmd_serve(args: argparse.Namespace) -> int:
                                min_queued=min_queued,
                                planner=planner_factory(args.planner, args.steps, args.seed))
     except ServiceError as exc:
-        raise common.UsageError(str(exc)) from None
+        raise common.config_error(exc, {"namespace": "--namespace", "mode": "--mode"}) from None
+    if not args.init and not args.data.is_dir():  # (data_dir has refused a file there)
+        raise common.UsageError(f"no data directory at {args.data}: create it, or give --init to start a new one "
+                                "there")
     stop = threading.Event()
     for sig in (signal.SIGTERM, signal.SIGINT):
         signal.signal(sig, lambda signum, frame: stop.set())
@@ -244,7 +266,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
         return 1
     if companions.dashboard is not None:
         print(f"dashboard at {companions.dashboard.url}", flush=True)
-    print(f"serving {args.namespace} on {', '.join(listen + connect) or args.zenoh_config} "
+    print(f"serving {args.namespace} {where_served(listen, connect, args.zenoh_config)} "
           f"(data {args.data}, planner {args.planner}); Ctrl-C to stop", flush=True)
     try:
         stop.wait()
@@ -252,6 +274,14 @@ def cmd_serve(args: argparse.Namespace) -> int:
         companions.stop()
         service.stop()
     return 0
+
+
+def where_served(listen: tuple[str, ...], connect: tuple[str, ...], zenoh_config: Path | None) -> str:
+    """``listening on EP``, ``connected to EP`` and/or ``with Zenoh config FILE``: how ``serve`` is reached."""
+    parts = ([f"listening on {', '.join(listen)}"] if listen else []) + \
+        ([f"connected to {', '.join(connect)}"] if connect else []) + \
+        ([f"with Zenoh config {zenoh_config}"] if zenoh_config is not None else [])
+    return ", ".join(parts)
 
 
 # --- operator commands -----------------------------------------------------------------------------
@@ -273,25 +303,42 @@ def _session(args: argparse.Namespace) -> Iterator[zenoh.Session]:
         session.close()
 
 
-def admin_call(session: zenoh.Session, keys: Keys, op: str, args: dict[str, Any], timeout: float) -> dict[str, Any]:
-    """One admin op over Zenoh; the reply body. Raises _NoService, ProtocolError (refused)."""
+def admin_call(session: zenoh.Session, keys: Keys, op: str, args: dict[str, Any], timeout: float,
+               secure: bool = False) -> dict[str, Any]:
+    """One admin op over Zenoh; the reply body. Raises _NoService, ProtocolError (refused).
+
+    ``secure``: the session runs under a secure profile, whose router drops a query its ACL denies
+    without a word, so no answer may also mean that this role may not make it.
+    """
     try:
         reply = transport.query(session, keys.admin(op), AdminRequest(op=op, args=args).to_json(), timeout=timeout)
     except transport.NoReplyError:
+        denied = (" or your role may not be allowed this operation: the router's ACL drops a denied request "
+                  "unanswered") if secure else ""
         raise _NoService(f"no orchestrator answered on {keys.admin(op)} within {timeout:g} s "
-                         "(is `activecollect serve` running and reachable?)") from None
+                         f"(is `activecollect serve` running and reachable?{denied})") from None
     except transport.RemoteError as exc:
         raise ProtocolError(protocol.ErrorCode.INTERNAL, str(exc)) from None
     return protocol.parse_reply(reply)
 
 
-def _run_op(args: argparse.Namespace, op: str, op_args: dict[str, Any]) -> dict[str, Any]:
+def _keys(args: argparse.Namespace) -> Keys:
+    """The keys of ``--namespace``; a usage error naming the flag when it is not a namespace."""
     try:
-        keys = Keys(args.namespace)
+        return Keys(args.namespace)
     except ProtocolError as exc:
-        raise common.UsageError(exc.message) from None
+        raise common.UsageError(f"--{exc.message}" if exc.message.startswith("namespace:") else exc.message) from None
+
+
+def _secure_profile(args: argparse.Namespace) -> bool:
+    """Whether ``--zenoh-config`` is a secure profile (it names certificate, key or password files)."""
+    return args.zenoh_config is not None and bool(transport.validate_secure_config(args.zenoh_config))
+
+
+def _run_op(args: argparse.Namespace, op: str, op_args: dict[str, Any]) -> dict[str, Any]:
+    keys = _keys(args)
     with _session(args) as session:
-        return admin_call(session, keys, op, op_args, args.timeout)
+        return admin_call(session, keys, op, op_args, args.timeout, secure=_secure_profile(args))
 
 
 def _failed(exc: Exception, op: str) -> int:
@@ -400,14 +447,11 @@ def disk_line(disk: dict[str, int] | None) -> str:
 
 def cmd_watch(args: argparse.Namespace) -> int:
     """Print events as they come; first checks that a service answers."""
-    try:
-        keys = Keys(args.namespace)
-    except ProtocolError as exc:
-        raise common.UsageError(exc.message) from None
+    keys = _keys(args)
     seen = threading.Semaphore(0)
     try:
         with _session(args) as session:
-            admin_call(session, keys, "stats", {}, args.timeout)
+            admin_call(session, keys, "stats", {}, args.timeout, secure=_secure_profile(args))
             sub = session.declare_subscriber(keys.events_all, lambda s: _print_event(s, args.json, seen))
             if not args.json:
                 print(f"watching {keys.events_all} (Ctrl-C to stop)", flush=True)

@@ -97,7 +97,7 @@ def test_catalog_and_registry_commands_do_not_import_torch(tmp_path):
 def test_serve_without_a_champion_does_not_import_torch(tmp_path):
     """``serve`` with the active planner and the dashboard: torch waits for a champion to load."""
     log_path = tmp_path / "serve.log"
-    argv = ["serve", "--data", str(tmp_path / "data"), "--listen", f"tcp/127.0.0.1:{free_port()}",
+    argv = ["serve", "--init", "--data", str(tmp_path / "data"), "--listen", f"tcp/127.0.0.1:{free_port()}",
             "--namespace", "startup", "--planner", "active", "--dashboard-port", "0"]
     with open(log_path, "wb") as log:
         proc = subprocess.Popen([sys.executable, "-c", WRAPPER, *argv], stdout=log, stderr=subprocess.STDOUT,
@@ -131,7 +131,7 @@ def test_training_commands_still_load_torch(tmp_path):
 
 
 @pytest.mark.parametrize("argv, rc, words", [
-    (("train", "--min-improvement", "2"), 2, "min_rel_improvement"),
+    (("train", "--min-improvement", "2"), 2, "argument --min-improvement"),
     (("eval",), 1, "no champion model yet"),
     (("score", "nosuchepisode"), 2, "no episode 'nosuchepisode'"),
 ])

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import logging
 import os
 import shutil
 import signal
@@ -64,7 +65,7 @@ def test_retrains_every_n_episodes_and_reports_a_promotion(tmp_path):
     json.dumps(rec.to_json())
 
 
-def test_one_job_at_a_time(tmp_path):
+def test_one_job_at_a_time(tmp_path, caplog):
     episodes = Counter()
     sched = RetrainScheduler(ScheduleConfig(every_episodes=1), tmp_path, episodes,
                              command=script_command(HANGS))
@@ -73,8 +74,23 @@ def test_one_job_at_a_time(tmp_path):
     assert first is not None
     episodes.n = 10
     assert sched.tick() is None and sched.running and len(sched.history) == 1
-    sched.stop()
+    with caplog.at_level(logging.INFO, logger="orchestrator.scheduler"):
+        sched.stop()
     assert first.status is RetrainStatus.killed and "stopped" in first.reason and not sched.running
+    # no version yet: the log line says what happened, without a "-" for the missing version
+    assert [r.getMessage() for r in caplog.records] == ["retrain killed: stopped with the scheduler"]
+
+
+def test_a_promotion_is_logged_with_the_gate_s_words_once(tmp_path, caplog):
+    gate_words = "import json; print(json.dumps({'version': 'm000002-ab', 'promoted': True, " \
+                 "'reason': 'promoted: h1_mse 0.01 vs champion m000001-aa 0.02'}))"
+    sched = RetrainScheduler(ScheduleConfig(), tmp_path, Counter(), command=script_command(gate_words))
+    sched.request()
+    sched.tick()
+    with caplog.at_level(logging.INFO, logger="orchestrator.scheduler"):
+        assert sched.wait_idle(timeout=60)
+    assert "retrain promoted m000002-ab: h1_mse 0.01 vs champion m000001-aa 0.02" in [
+        r.getMessage() for r in caplog.records]
 
 
 def test_a_failed_job_is_logged_with_its_reason_and_promotes_nothing(tmp_path):
@@ -340,3 +356,5 @@ def test_a_retrain_in_text_says_what_it_pruned(trained, tmp_path):
                            "--epochs", "1", "--keep-models", "1"], capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, done.stderr
     assert "pruned the files of " in done.stdout and done.stdout.splitlines()[0].startswith("m0")
+    verdict = done.stdout.splitlines()[0].split(": ")
+    assert verdict[1] in ("promoted", "not promoted") and verdict[2] != "promoted", done.stdout  # said once

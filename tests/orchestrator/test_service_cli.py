@@ -104,6 +104,36 @@ def test_no_service_is_one_line_and_exit_1(argv, namespace, capsys) -> None:
     rc = main([*argv, "--connect", f"tcp/127.0.0.1:{free_port()}", "--namespace", namespace, "--timeout", "0.3"])
     err = capsys.readouterr().err
     assert rc == 1 and err.count("\n") == 1 and "no orchestrator answered" in err
+    assert "role" not in err  # no secure profile: an ACL cannot be why
+
+
+def test_serve_refuses_a_data_directory_that_does_not_exist_unless_told_init(capsys, tmp_path, spawn, endpoint,
+                                                                             namespace) -> None:
+    missing = tmp_path / "misspelt" / "data"
+    argv = ["serve", "--data", str(missing), "--listen", endpoint, "--namespace", namespace, "--planner", "none",
+            "--dashboard-port", "-1"]
+    rc = main(argv)
+    out, err = capsys.readouterr()
+    assert rc == 2 and out == "" and err == (f"activecollect: error: no data directory at {missing}: create it, or "
+                                             "give --init to start a new one there\n")
+    assert not (tmp_path / "misspelt").exists()
+    proc = spawn("service", *argv, "--init")
+    line = wait_for(lambda: next((ln for ln in proc.log().splitlines() if ln.startswith("serving ")), None)
+                    or not proc.alive(), timeout=60, message="serve --init to start")
+    assert proc.alive(), proc.log()
+    assert line.startswith(f"serving {namespace} listening on {endpoint} (data {missing}, planner none)")
+    assert (missing / "catalog.sqlite").is_file()
+    assert main(["stats", "--connect", endpoint, "--namespace", namespace, "--timeout", "10", "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["episodes"]["total"] == 0
+
+
+def test_serve_says_how_it_is_reached() -> None:
+    from orchestrator.cli.service import where_served
+    assert where_served(("tcp/127.0.0.1:7447",), (), None) == "listening on tcp/127.0.0.1:7447"
+    assert where_served((), ("tcp/10.0.0.5:7447",), None) == "connected to tcp/10.0.0.5:7447"
+    assert where_served((), (), Path("orchestrator.json5")) == "with Zenoh config orchestrator.json5"
+    assert (where_served(("tcp/0.0.0.0:7448",), ("tls/r:7447",), Path("o.json5"))
+            == "listening on tcp/0.0.0.0:7448, connected to tls/r:7447, with Zenoh config o.json5")
 
 
 def test_parse_capabilities() -> None:
