@@ -281,12 +281,14 @@ def train_defaults(cfg: TrainConfig) -> str:
 
 
 def add_retrain_args_arg(p: argparse.ArgumentParser, default: tuple[str, ...]) -> None:
-    shown = f"'{' '.join(default)}'" if default else f"none: retrain's own defaults ({train_defaults(TrainConfig())})"
+    if default:
+        what = (f"they REPLACE this command's default, '{' '.join(default)}', and are not added to it: repeat "
+                "those of its options you want kept")
+    else:
+        what = f"an option not given keeps retrain's own default ({train_defaults(TrainConfig())})"
     p.add_argument("--retrain-args", type=retrain_args, default=default, metavar="'ARGS'",
-                   help=f"arguments of each retrain job, as one string (see 'activecollect retrain --help'). They "
-                        f"REPLACE the default arguments, they are not added to them: repeat any of the default's "
-                        f"you want kept (default: {shown}). One option alone needs '=': "
-                        "--retrain-args=--from-champion")
+                   help=f"arguments of each retrain job, as one string (see 'activecollect retrain --help'); {what}. "
+                        "One option alone needs '=': --retrain-args=--from-champion")
 
 
 #: ``TrainConfig`` fields that ``add_train_args`` sets under a flag of the same name (see ``common.config_error``).

@@ -43,13 +43,13 @@ def register(sub: argparse._SubParsersAction) -> None:
                                    f"{TrainConfig.context} frames ('retrain' takes more settings).")
     p.add_argument("--members", type=common.positive_int, default=TrainConfig.members, metavar="K",
                    help=f"ensemble size (default {TrainConfig.members})")
-    p.add_argument("--epochs", type=common.positive_int, default=TrainConfig.epochs, metavar="E",
+    p.add_argument("--epochs", type=common.positive_int, default=TrainConfig.epochs, metavar="N",
                    help=f"passes over the training windows (default {TrainConfig.epochs})")
     p.add_argument("--from-champion", action="store_true", help="warm-start from the champion's weights")
     p.add_argument("--variance-head", action="store_true",
                    help="members also predict the variance of their own error (a fresh model only); eval then "
                         "reports the calibration of the total predictive variance next to the disagreement's")
-    p.add_argument("--seed", type=common.non_negative_int, default=TrainConfig.seed, metavar="S",
+    p.add_argument("--seed", type=common.non_negative_int, default=TrainConfig.seed, metavar="K",
                    help=f"seed of the initialisation and the shuffling (default {TrainConfig.seed})")
     p.add_argument("--device", choices=_DEVICES, default="auto", help="torch device (default auto: cuda when there is one)")
     p.add_argument("--min-improvement", type=common.fraction, default=TrainConfig.min_rel_improvement,
