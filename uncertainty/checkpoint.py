@@ -72,13 +72,15 @@ def _check_shapes(config: PredictorConfig, members: int, params: Any) -> None:
     The config and member count are only claims: built as they stand, widths of 200,000 channels or
     10 million members would allocate terabytes or loop for hours before the tensors were compared.
     The shapes are taken from a predictor on the ``meta`` device (no memory), so what gets allocated
-    afterwards is bounded by the tensors actually read from the file.
+    afterwards is the tensors actually read from the file plus one predictor's buffers (``Ensemble``
+    builds one predictor for all its members; ``image_size`` is capped by ``PredictorConfig``).
     """
     if members < 1:
         raise CheckpointError(f"checkpoint config is invalid: members must be >= 1, found {members}")
-    if not isinstance(params, dict) or not all(isinstance(t, torch.Tensor) for t in params.values()):
-        found = type(params).__name__ if not isinstance(params, dict) else "a dict of non-tensors"
-        raise CheckpointError(f"checkpoint parameters must be a dict of tensors, found {found}")
+    if (not isinstance(params, dict) or not all(isinstance(t, torch.Tensor) for t in params.values())
+            or not all(isinstance(k, str) for k in params)):
+        found = type(params).__name__ if not isinstance(params, dict) else "other keys or values"
+        raise CheckpointError(f"checkpoint parameters must be a dict of names to tensors, found {found}")
     with torch.device("meta"):
         template = Predictor(config)
     expected = {name: (members, *p.shape) for name, p in template.named_parameters()}

@@ -58,20 +58,23 @@ class Ensemble(nn.Module):
         self.cpu_slice = CPU_SLICE
         """Windows per fused call on CPU in inference (0: the whole batch at once); see ``CPU_SLICE``."""
         gen = torch.Generator().manual_seed(seed)
-        nets = []
+        # One predictor re-initialised per member (the same draws as K predictors): its buffers (coordinate
+        # grids, 8 MiB at 1024 px) exist once, not K times, whatever member count a checkpoint claims.
+        net = Predictor(config)
+        self.names = [n for n, _ in net.named_parameters()]
+        drawn: list[list[torch.Tensor]] = []
         for _ in range(members):
-            net = Predictor(config)
             net.reset_parameters(gen)
-            nets.append(net)
+            drawn.append([p.detach().clone() for p in net.parameters()])
         # The template holds no weights of its own that matter: functional_call swaps them in.
         # Kept out of the module tree (not a submodule), so .to(device) leaves it on "meta".
-        self.__dict__["template"] = copy.deepcopy(nets[0]).to("meta")
-        self.names = [n for n, _ in nets[0].named_parameters()]
+        self.__dict__["template"] = copy.deepcopy(net).to("meta")
         self.params = nn.ParameterList(
-            nn.Parameter(torch.stack([dict(n.named_parameters())[name].detach() for n in nets]))  # (K, ...)
-            for name in self.names)
-        self.buffer_names = [n for n, _ in nets[0].named_buffers()]
-        for name, buf in nets[0].named_buffers():
+            nn.Parameter(torch.stack([member[i] for member in drawn]))  # (K, ...)
+            for i in range(len(self.names)))
+        del drawn
+        self.buffer_names = [n for n, _ in net.named_buffers()]
+        for name, buf in net.named_buffers():
             self.register_buffer("buf_" + name, buf, persistent=False)
         # Action normalisation (raw world units -> roughly zero mean, unit std); set from training data.
         self.register_buffer("action_mean", torch.zeros(config.action_dim))

@@ -1,4 +1,8 @@
 import io
+import os
+import subprocess
+import sys
+from pathlib import Path
 
 import pytest
 import torch
@@ -77,8 +81,9 @@ def test_registered_bytes_that_are_not_an_ensemble_are_refused(tmp_path):
     (lambda p: p["predictor"].update(widths="abc"), "config is invalid"),
     (lambda p: p.update(action_mean=torch.tensor([float("nan"), 0.0])), "finite"),
     (lambda p: p["params"]["out.bias"].fill_(float("inf")), "non-finite"),
-    (lambda p: p.update(params=[1, 2]), "dict of tensors"),
-    (lambda p: p["params"].update({"enc1.weight": "x"}), "dict of tensors"),
+    (lambda p: p.update(params=[1, 2]), "dict of names to tensors"),
+    (lambda p: p["params"].update({"enc1.weight": "x"}), "dict of names to tensors"),
+    (lambda p: p["params"].update({1: torch.zeros(1)}), "dict of names to tensors"),  # was a TypeError
     (lambda p: p.update(members=0), "members must be >= 1"),
     (lambda p: p.update(members=3), "does not match its weights"),  # 2 members' tensors
     # Built as claimed, these allocated terabytes or looped for hours before the tensors were compared:
@@ -105,3 +110,24 @@ def test_the_predictors_largest_frame_is_the_catalogs():
 def test_checkpoint_loads_with_weights_only():
     payload = torch.load(io.BytesIO(ensemble_to_bytes(_ensemble())), weights_only=True)
     assert payload["members"] == 2
+
+
+def test_many_tiny_members_at_a_large_frame_load_without_a_buffer_per_member(tmp_path):
+    """Each predictor holds coordinate grids of the frame size (8 MiB at 1024 px): a small file of 300
+    tiny members at 1024 px made the ensemble build 300 of them at once (2.5 GB). In a child process
+    whose address space is capped at what it has plus 1 GiB, it loads."""
+    payload = torch.load(io.BytesIO(ensemble_to_bytes(
+        Ensemble(PredictorConfig(image_size=16, widths=(1, 1, 1), action_hidden=1), members=300))), weights_only=True)
+    payload["predictor"]["image_size"] = 1024  # the parameters do not depend on it
+    path = tmp_path / "ckpt.pt"
+    torch.save(payload, path)
+    script = (
+        "import resource, sys\n"
+        "from uncertainty.checkpoint import ensemble_from_bytes\n"
+        "with open('/proc/self/statm') as f: vsz = int(f.read().split()[0]) * resource.getpagesize()\n"
+        "resource.setrlimit(resource.RLIMIT_AS, (vsz + (1 << 30), resource.RLIM_INFINITY))\n"
+        f"ens = ensemble_from_bytes(open({str(path)!r}, 'rb').read(), 'cpu')\n"
+        "print('loaded', ens.members)\n")
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120,
+                          env={**os.environ, "OMP_NUM_THREADS": "1"}, cwd=Path(__file__).resolve().parents[2])
+    assert done.returncode == 0 and "loaded 300" in done.stdout, done.stderr[-2000:]
