@@ -48,17 +48,16 @@ from storage.requests import Request
 from storage.records import Episode
 from uncertainty.config import TrainConfig
 from uncertainty.score import change_disagreement, colour_disagreement, object_moving
-from workers.env import AGENT_RGB, MARKER_RGB, OBJECT_RGB, TABLE_RGB, WALL_RGB
+from workers.env import MARKER_RGB, OBJECT_RGB, scene_colours
 
 #: Collects the episode a request asks for: (request, policy seed, image size) -> Episode.
 Collect = Callable[[Request, int, int], Episode]
 #: Creates (or checks) the pinned eval split in a catalog: (catalog, episodes, seed, steps, image size) -> hash.
 MakeEvalSplit = Callable[[Catalog, int, int, int, int], str]
 ARMS = ("active", "uniform")
-#: The ``object_pixels`` signal's object (body and marker) and everything else in the service's frames,
-#: with the walls' edge blended into the table (at 16 px its grey is nearer the object's blue than either).
+#: The ``object_pixels`` signal's object (body and marker); the rest of a frame is ``workers.env.scene_colours``
+#: of its size (the walls' anti-aliased edges differ with it, and some are nearer the object's blue than grey).
 OBJECT_COLOURS = (OBJECT_RGB, MARKER_RGB)
-SCENE_COLOURS = (TABLE_RGB, WALL_RGB, AGENT_RGB, tuple((w + t) // 2 for w, t in zip(WALL_RGB, TABLE_RGB)))
 
 
 class SignalScorer:
@@ -80,7 +79,7 @@ class SignalScorer:
             per_step = ensemble.disagreement(episode.frames, episode.actions, horizon=self.horizon)
         elif self.signal == "object_pixels":
             per_step = colour_disagreement(ensemble, episode.frames, episode.actions, OBJECT_COLOURS,
-                                           SCENE_COLOURS, horizon=self.horizon)
+                                           scene_colours(episode.frames.shape[1]), horizon=self.horizon)
         else:
             per_step = change_disagreement(ensemble, episode.frames, episode.actions, horizon=self.horizon)
         if self.signal == "object":

@@ -105,6 +105,7 @@ def change_disagreement(ensemble: Ensemble, frames: np.ndarray, actions: np.ndar
     return ensemble.score_steps(frames, actions, horizon, masked_variance, batch_size=batch_size)
 
 
+@torch.inference_mode()
 def colour_disagreement(ensemble: Ensemble, frames: np.ndarray, actions: np.ndarray,
                         targets: Sequence[Sequence[float]], others: Sequence[Sequence[float]], horizon: int = 1,
                         grow: int = 1, batch_size: int = 256) -> np.ndarray:
@@ -119,12 +120,9 @@ def colour_disagreement(ensemble: Ensemble, frames: np.ndarray, actions: np.ndar
     """
     if grow < 0:
         raise ConfigError(f"grow must be >= 0, found {grow}")
-    refs = torch.tensor([*targets, *others], dtype=torch.float32, device=ensemble.device) / 255.0  # (R, 3)
-    n_targets = len(targets)
 
-    def is_target(x: torch.Tensor) -> torch.Tensor:                                    # (..., 3, H, W) -> (..., H, W)
-        dist = ((x.unsqueeze(-4) - refs.view(-1, 3, 1, 1)) ** 2).sum(dim=-3)            # (..., R, H, W)
-        return dist.argmin(dim=-3) < n_targets
+    def is_target(x: torch.Tensor) -> torch.Tensor:
+        return colour_mask(x, targets, others)
 
     def masked_variance(preds: torch.Tensor, context: torch.Tensor, real: torch.Tensor) -> torch.Tensor:
         mask = (is_target(context[:, -1:]) | is_target(real)).float()                   # (B, Hz, H, W)
@@ -134,6 +132,14 @@ def colour_disagreement(ensemble: Ensemble, frames: np.ndarray, actions: np.ndar
         return (var * mask).mean(dim=(1, 2, 3))                                         # (B,)
 
     return ensemble.score_steps(frames, actions, horizon, masked_variance, batch_size=batch_size)
+
+
+def colour_mask(x: torch.Tensor, targets: Sequence[Sequence[float]], others: Sequence[Sequence[float]]) -> torch.Tensor:
+    """(..., 3, H, W) frames in [0, 1] -> (..., H, W) bool: the pixel's colour is nearer one of ``targets``
+    than every one of ``others`` (RGB, 0-255)."""
+    refs = torch.tensor([*targets, *others], dtype=torch.float32, device=x.device) / 255.0      # (R, 3)
+    dist = ((x.unsqueeze(-4) - refs.view(-1, 3, 1, 1)) ** 2).sum(dim=-3)                        # (..., R, H, W)
+    return dist.argmin(dim=-3) < len(targets)
 
 
 def object_moving(states: np.ndarray, horizon: int = 1, min_motion: float = 0.5) -> np.ndarray:

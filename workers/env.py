@@ -233,6 +233,13 @@ def _background(size: int) -> np.ndarray:
     return out
 
 
+def scene_colours(size: int) -> tuple[tuple[int, int, int], ...]:
+    """Every colour a frame of ``size`` px holds besides the object's: the table's, the walls' and their
+    anti-aliased edges at that size, and the pusher's."""
+    table_and_walls = {tuple(int(c) for c in rgb) for rgb in np.unique(_background(size).reshape(-1, 3), axis=0)}
+    return tuple(sorted(table_and_walls | {AGENT_RGB}))
+
+
 class PushSim:
     """The pushing world without the gymnasium wrapper: reset, step, state, contact, render.
 

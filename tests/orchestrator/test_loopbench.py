@@ -6,16 +6,17 @@ from __future__ import annotations
 import json
 import math
 
-import pytest
-
 import numpy as np
+import pytest
+import torch
 
-from orchestrator.loopbench import ARMS, LoopBenchConfig, _bench_id, episodes_to_reach, summarize
+from orchestrator.loopbench import ARMS, OBJECT_COLOURS, LoopBenchConfig, _bench_id, episodes_to_reach, summarize
 from orchestrator.protocol import PHYSICS_RANGES
 from storage.catalog import Catalog
-from tests.conftest import run_cli
 from storage.records import Episode, EpisodeMeta
-from uncertainty.score import object_moving
+from tests.conftest import run_cli
+from uncertainty.score import colour_mask, object_moving
+from workers.env import AGENT_RGB, PushSim, SimState, _background, scene_colours
 
 
 def test_episodes_to_reach_interpolates_between_retrains():
@@ -104,3 +105,17 @@ def test_bench_loop_runs_both_arms_end_to_end_with_physics_in_the_task_space(tmp
         # The active arm plans its second round at states of the first, keeping their physics; the
         # uniform arm draws new physics for every episode.
         assert any(kept) if arm == "active" else not any(kept)
+
+
+@pytest.mark.parametrize("size", range(8, 129, 8))
+def test_object_pixels_are_the_objects_at_every_frame_size(size):
+    scene = scene_colours(size)
+    empty = torch.from_numpy(_background(size).copy()).permute(2, 0, 1).float() / 255
+    assert not colour_mask(empty, OBJECT_COLOURS, scene).any()  # table, walls and their edges
+    sim = PushSim(image_size=size)
+    sim.reset(SimState(shape="T", agent=(100.0, 100.0), obj=(300.0, 300.0, 0.3)))
+    frame = torch.from_numpy(sim.render()).permute(2, 0, 1).float() / 255
+    mask = colour_mask(frame, OBJECT_COLOURS, scene)
+    agent = sim.render().astype(int)
+    pusher = (np.abs(agent - np.array(AGENT_RGB)).sum(axis=-1) == 0)  # the pusher's pure-colour pixels
+    assert mask.any() and not mask.numpy()[pusher].any()
