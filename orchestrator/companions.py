@@ -53,8 +53,8 @@ class CompanionConfig:
         ScheduleConfig(every_episodes=self.retrain_every, cron=self.retrain_cron,
                        timeout_s=self.retrain_timeout_s, retrain_args=self.retrain_args)
 
-
     def dashboard_config(self) -> DashboardConfig:
+        """The dashboard's settings (raises ValueError for a bad one; port -1, no dashboard, gives 0)."""
         return DashboardConfig(host=self.dashboard_host, port=max(self.dashboard_port, 0),
                                max_connections=self.dashboard_max_connections,
                                request_timeout_s=self.dashboard_request_timeout_s)

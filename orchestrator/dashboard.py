@@ -41,6 +41,11 @@ SERVER_NAME = "activecollect-dashboard"
 """The ``Server`` header: no version of this package or of Python for a scanner to match."""
 
 
+#: The longest request timeout (a day): sockets refuse timeouts past ~9e9 s, and every connection's
+#: handler would die on one.
+MAX_REQUEST_TIMEOUT_S = 86400.0
+
+
 @dataclass
 class DashboardConfig:
     """Where and how the dashboard serves."""
@@ -61,8 +66,8 @@ class DashboardConfig:
     def __post_init__(self) -> None:
         if not 0 <= self.port <= 65535:
             raise ValueError(f"port must be in [0, 65535], found {self.port}")
-        if not self.request_timeout_s > 0:
-            raise ValueError(f"request_timeout_s must be > 0, found {self.request_timeout_s}")
+        if not 0 < self.request_timeout_s <= MAX_REQUEST_TIMEOUT_S:
+            raise ValueError(f"request_timeout_s must be in (0, {MAX_REQUEST_TIMEOUT_S:g}], found {self.request_timeout_s}")
         if self.max_connections < 1:
             raise ValueError(f"max_connections must be >= 1, found {self.max_connections}")
         if self.refresh_s <= 0 or self.queue_rows < 1:

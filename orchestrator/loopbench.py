@@ -52,8 +52,9 @@ from workers.env import MARKER_RGB, OBJECT_RGB, scene_colours
 
 #: Collects the episode a request asks for: (request, policy seed, image size) -> Episode.
 Collect = Callable[[Request, int, int], Episode]
-#: Creates (or checks) the pinned eval split in a catalog: (catalog, episodes, seed, steps, image size) -> hash.
-MakeEvalSplit = Callable[[Catalog, int, int, int, int], str]
+#: Creates (or checks) the pinned eval split in a catalog: (catalog, episodes, seed, steps, image size,
+#: random physics) -> hash.
+MakeEvalSplit = Callable[[Catalog, int, int, int, int, bool], str]
 ARMS = ("active", "uniform")
 #: The ``object_pixels`` signal's object (body and marker); the rest of a frame is ``workers.env.scene_colours``
 #: of its size (the walls' anti-aliased edges differ with it, and some are nearer the object's blue than grey).
@@ -102,7 +103,7 @@ def run_arm(arm: str, seed: int, cfg: LoopBenchConfig, data_dir: Path, collect: 
     """One arm for one seed; returns one point per retrain (episodes, h1/h5 of candidate and champion)."""
     catalog = Catalog(data_dir)
     queue = RequestQueue(catalog.db_path)
-    make_eval_split(catalog, cfg.eval_episodes, cfg.eval_seed, cfg.steps, cfg.image_size)
+    make_eval_split(catalog, cfg.eval_episodes, cfg.eval_seed, cfg.steps, cfg.image_size, cfg.random_physics)
     planner = make_planner(arm, cfg, ChampionScorer(data_dir), np.random.default_rng(seed), queue)
     train = TrainConfig(**{**cfg.train.to_dict(), "seed": seed, "widths": tuple(cfg.train.widths)})
     points: list[dict] = []

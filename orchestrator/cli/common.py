@@ -13,7 +13,7 @@ from typing import Any, NoReturn
 
 from croniter import croniter
 
-from orchestrator.dashboard import DashboardConfig
+from orchestrator.dashboard import MAX_REQUEST_TIMEOUT_S, DashboardConfig
 from orchestrator.protocol import MAX_EPISODE_STEPS, one_line
 from storage.catalog import Catalog
 from storage.database import DB_NAME
@@ -202,6 +202,13 @@ def positive_float(text: str) -> float:
     return value
 
 
+def _request_timeout(text: str) -> float:
+    value = positive_float(text)
+    if value > MAX_REQUEST_TIMEOUT_S:
+        raise argparse.ArgumentTypeError(f"expected at most {MAX_REQUEST_TIMEOUT_S:g} seconds (a day), found {text!r}")
+    return value
+
+
 def add_dashboard_limit_args(p: argparse.ArgumentParser, prefix: str = "") -> None:
     """``--[PREFIX]max-connections`` and ``--[PREFIX]request-timeout`` (``args.max_connections``,
     ``args.request_timeout``): the dashboard's limits on clients, for ``dashboard`` and ``serve``."""
@@ -210,7 +217,7 @@ def add_dashboard_limit_args(p: argparse.ArgumentParser, prefix: str = "") -> No
                    dest="max_connections",
                    help=f"dashboard connections served at once; one more is answered 503 with Retry-After "
                         f"(default {d.max_connections})")
-    p.add_argument(f"--{prefix}request-timeout", type=positive_float, default=d.request_timeout_s, metavar="S",
+    p.add_argument(f"--{prefix}request-timeout", type=_request_timeout, default=d.request_timeout_s, metavar="S",
                    dest="request_timeout",
                    help=f"seconds a dashboard client may take to send its whole request before it is "
                         f"dropped (default {d.request_timeout_s:g})")

@@ -13,7 +13,6 @@ and ``uncertainty.config``.
 from __future__ import annotations
 
 import argparse
-import functools
 import json
 import shlex
 import sys
@@ -180,8 +179,7 @@ def _bench_loop(args: argparse.Namespace) -> int:
         raise common.UsageError(f"{out} already holds a bench loop result; give a fresh --out")
     from orchestrator.loopbench import run_bench  # torch: imported once the arguments are known good (start-up cost)
     log = (lambda line: print(line, file=sys.stderr, flush=True))
-    summary = run_bench(cfg, out, bench_collect, functools.partial(bench_eval_split, random_physics=cfg.random_physics),
-                        log=log)
+    summary = run_bench(cfg, out, bench_collect, bench_eval_split, log=log)
     if args.json:
         common.print_json(summary)
         return 0

@@ -430,9 +430,27 @@ def test_the_commands_pass_the_connection_cap_to_their_dashboard(command, spawn,
     wait_for(lambda: status_or_none(found.group(1) + "api/workers") == 200, message="a GET once the slot is free")
 
 
+@pytest.mark.parametrize("command", ["dashboard", "serve"])
+def test_the_commands_pass_the_request_timeout_to_their_dashboard(command, spawn, spawn_service, data_dir):
+    Catalog(data_dir)
+    if command == "dashboard":
+        proc = spawn("dashboard", "dashboard", "--data", str(data_dir), "--port", "0", "--request-timeout", "0.5")
+    else:
+        proc = spawn_service("--dashboard-port", "0", "--dashboard-request-timeout", "0.5")
+    found = wait_for(lambda: re.search(r"dashboard (?:on|at) (http://\S+)", proc.log()), timeout=60,
+                     message=f"{command} to print its dashboard's address")
+    url = urlsplit(found.group(1))
+    with socket.create_connection((url.hostname, url.port), timeout=10) as idle:  # sends nothing
+        # let go after 0.5 s: well before the 5 s this waits, and the default of 10 s
+        assert select.select([idle], [], [], 5.0)[0] and idle.recv(4096) == b""
+
+
 def test_dashboard_limits_must_be_positive(capsys):
     for argv in (["dashboard", "--max-connections", "0"], ["serve", "--dashboard-request-timeout", "nan"]):
         rc, _, err = run_cli(capsys, *argv)
         assert rc == 2 and "expected a positive" in err
+    for argv in (["dashboard", "--request-timeout", "1e10"], ["serve", "--dashboard-request-timeout", "86401"]):
+        rc, _, err = run_cli(capsys, *argv)  # a socket refuses ~9e9 s: every request would fail
+        assert rc == 2 and "at most 86400 seconds" in err
     with pytest.raises(ValueError, match="max_connections"):
         CompanionConfig(dashboard_max_connections=0)
