@@ -204,24 +204,24 @@ def transaction(conn: sqlite3.Connection) -> Iterator[sqlite3.Connection]:
 
 
 def ensure_schema(conn: sqlite3.Connection, component: str,
-                  migrations: Sequence[Migration | Sequence[str]]) -> int:
+                  migrations: Sequence[Migration | Sequence[str]], error: type[StorageError] = CatalogError) -> int:
     """Applies ``migrations[v:]`` where ``v`` is ``component``'s recorded version; returns the file's
     version after the call.
 
     Each migration is applied in one transaction together with the version bump and the file's new
     compatible level (the highest ``compatible_with`` of ``migrations``). A file already at this code's
     version, or at a newer one whose level is at most ``len(migrations)``, is only read: opening a catalog
-    does not wait for writers. Raises ``CatalogError`` if the file is newer than this code and not
-    compatible with it; ``ValueError`` if a migration declares a level above its own version.
+    does not wait for writers. Raises ``error`` (the component's: ``CatalogError``, ``RegistryError``)
+    if the file is newer than this code and not compatible with it; ``ValueError`` if a migration declares a level above its own version.
     """
     known, level = len(migrations), _compatible_level(migrations)
     recorded = _recorded(conn, component)
     if recorded is not None and recorded[0] >= known:
-        return _usable_version(component, *recorded, known)
+        return _usable_version(component, *recorded, known, error)
     with transaction(conn):
         version, compatible = _recorded(conn, component) or (0, None)
         if version >= known:  # another process migrated it since the read above
-            return _usable_version(component, version, compatible, known)
+            return _usable_version(component, version, compatible, known, error)
         _create_versions_table(conn)
         for entry in migrations[version:]:
             for sql in entry.statements if isinstance(entry, Migration) else entry:
@@ -245,12 +245,13 @@ def _compatible_level(migrations: Sequence[Migration | Sequence[str]]) -> int:
     return level
 
 
-def _usable_version(component: str, version: int, compatible: int | None, known: int) -> int:
+def _usable_version(component: str, version: int, compatible: int | None, known: int,
+                    error: type[StorageError]) -> int:
     """``version``, the file's, when code that knows ``known`` versions may use it unchanged (``version``
-    >= ``known``); raises ``CatalogError`` when it is newer and not declared compatible with that code."""
+    >= ``known``); raises ``error`` when it is newer and not declared compatible with that code."""
     needed = version if compatible is None else compatible
     if version > known and needed > known:
-        raise CatalogError(f"{component} tables are at schema version {version}, this code knows versions "
+        raise error(f"{component} tables are at schema version {version}, this code knows versions "
                            f"up to {known} and the file needs code that knows version {needed} or later; "
                            f"upgrade activecollect")
     return version

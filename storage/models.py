@@ -234,7 +234,7 @@ class ModelRegistry:
         self.models_dir.mkdir(parents=True, exist_ok=True)
         self.db_path = self.data_dir / DB_NAME
         with self._connect() as conn:
-            ensure_schema(conn, "models", _MIGRATIONS)
+            ensure_schema(conn, "models", _MIGRATIONS, RegistryError)
 
     # -- connections ---------------------------------------------------------------------------
 
