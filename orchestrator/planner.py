@@ -130,8 +130,9 @@ class UniformPlannerConfig:
     """Collection policy mix (shared with the active arm)."""
 
     def __post_init__(self) -> None:
-        if not 1 <= self.steps <= protocol.MAX_EPISODE_STEPS:
-            raise ValueError(f"steps must be in [1, {protocol.MAX_EPISODE_STEPS}], found {self.steps}")
+        if not protocol.MIN_EPISODE_STEPS <= self.steps <= protocol.MAX_EPISODE_STEPS:
+            raise ValueError(f"steps must be in [{protocol.MIN_EPISODE_STEPS}, {protocol.MAX_EPISODE_STEPS}], "
+                             f"found {self.steps}")
         if self.per_episode < 0 or self.max_queue_depth < 1:
             raise ValueError(f"per_episode must be >= 0 and max_queue_depth >= 1, "
                              f"found {self.per_episode} and {self.max_queue_depth}")
@@ -255,8 +256,9 @@ class ActivePlannerConfig:
         if self.min_distance < 0 or not 0.0 <= self.explore_fraction <= 1.0:
             raise ValueError(f"min_distance >= 0 and explore_fraction in [0, 1] expected, found "
                              f"{self.min_distance} and {self.explore_fraction}")
-        if not 1 <= self.steps <= protocol.MAX_EPISODE_STEPS:
-            raise ValueError(f"steps must be in [1, {protocol.MAX_EPISODE_STEPS}], found {self.steps}")
+        if not protocol.MIN_EPISODE_STEPS <= self.steps <= protocol.MAX_EPISODE_STEPS:
+            raise ValueError(f"steps must be in [{protocol.MIN_EPISODE_STEPS}, {protocol.MAX_EPISODE_STEPS}], "
+                             f"found {self.steps}")
         if (self.policy_sharpness < 0 or self.policy_window < 1
                 or not 0.0 <= self.policy_floor <= 1.0 / len(MIX_POLICIES)):
             raise ValueError(f"policy_sharpness >= 0, policy_window >= 1 and policy_floor in [0, "

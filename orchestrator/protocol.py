@@ -40,8 +40,10 @@ PHYSICS_RANGES: dict[str, tuple[float, float, float]] = {
 }
 #: Collection policies a request may name.
 POLICIES: tuple[str, ...] = ("random_waypoints", "push")
-#: Hard caps used by validation.
-MAX_EPISODE_STEPS = 1000
+#: Hard caps used by validation. The fewest steps a requested episode may have: a model learns from
+#: its context frames and the next one (``uncertainty.config.TrainConfig.context`` + 1; this module
+#: imports nothing of ours, a test keeps the two equal): a shorter episode gives no training window.
+MIN_EPISODE_STEPS, MAX_EPISODE_STEPS = 3, 1000
 #: Frame sizes an episode may have (what the simulator renders; storage.records holds the same limits).
 MIN_FRAME_SIZE, MAX_FRAME_SIZE = 8, 1024
 MAX_PREFIX_STEPS = 1000

@@ -474,7 +474,8 @@ def endpoint(text: str) -> str:
 def add_connection_args(parser: argparse.ArgumentParser, *, listen: bool = False, timeout: float = 5.0) -> None:
     """The flags every process that talks Zenoh shares: endpoints, config file, namespace, timeout.
 
-    ``listen=True`` (the service) adds ``--listen``; ``--connect`` is always there.
+    ``listen=True`` (the service) adds ``--listen`` and leaves ``--timeout`` out (the service answers
+    queries, it waits on none); ``--connect`` is always there.
     """
     if listen:
         parser.add_argument("--listen", action="append", default=[], metavar="EP", type=endpoint,
@@ -491,8 +492,9 @@ def add_connection_args(parser: argparse.ArgumentParser, *, listen: bool = False
                         help="Zenoh mode when no config file is given (default peer)")
     parser.add_argument("--namespace", default="activecollect",
                         help="key prefix of the deployment (default activecollect)")
-    parser.add_argument("--timeout", type=timeout_seconds, default=timeout, metavar="S",
-                        help=f"seconds to wait for a reply (default {timeout:g})")
+    if not listen:
+        parser.add_argument("--timeout", type=timeout_seconds, default=timeout, metavar="S",
+                            help=f"seconds to wait for a reply (default {timeout:g})")
 
 
 def endpoints_from_args(args: argparse.Namespace) -> tuple[tuple[str, ...], tuple[str, ...]]:

@@ -119,6 +119,8 @@ def _connect() -> list[str]:
     # frames a model cannot train on
     (["run", "--image-size", "12", "--data", "DATA"], "argument --image-size: expected a multiple of 8 from 16"),
     (["bench", "loop", "--image-size", "8"], "argument --image-size: expected a multiple of 8 from 16"),
+    (["collect", "--size", "12", "--data", "DATA"], "argument --size: expected a multiple of 8 from 16"),
+    (["eval-split", "create", "--size", "8", "--data", "DATA"], "argument --size: expected a multiple of 8 from 16"),
     (["retrain", "--min-improvement", "nan", "--data", "DATA"], "expected a finite number"),
     (["train", "--min-improvement", "inf", "--data", "DATA"], "expected a finite number"),
     (["run", "--seed", "-1", "--data", "DATA"], "expected an integer >= 0"),
@@ -246,3 +248,40 @@ def test_run_refuses_a_split_it_cannot_make_in_one_line(capsys, tmp_path) -> Non
                            "2", "--dashboard-port", "-1", "--no-progress", "--data", str(data))
     assert rc == 2 and err.count("\n") == 1, err
     assert "evaluation split was made with random physics, which run does not make: give another --data" in err
+
+
+def test_serve_takes_no_timeout_it_would_ignore(capsys):
+    # The service answers queries and waits on none: --timeout was listed in its help and did nothing.
+    rc, _, err = run_cli(capsys, "serve", "--timeout", "3")
+    assert rc == 2 and "activecollect serve: error: unrecognized arguments: --timeout 3" in err
+    assert "--timeout" not in run_cli(capsys, "serve", "--help")[1]
+
+
+def test_a_directory_made_at_a_size_or_length_no_flag_accepts_now_is_refused_without_naming_it(tmp_path, capsys):
+    # Older versions pinned splits of any size and length: "give --image-size 12" would be refused in turn.
+    import numpy as np
+
+    from orchestrator.loopconfig import RunConfig
+    from storage.catalog import Catalog
+    from workers.collect import collect_episode, create_eval_split
+    from workers.env import sample_state
+    short = tmp_path / "short"
+    create_eval_split(Catalog(short), episodes=2, seed=RunConfig.eval_seed, steps=2, image_size=16)
+    rc, _, err = run_cli(capsys, "run", "--data", str(short), "--image-size", "16", "--eval-episodes", "2",
+                         "--steps", "8", "--no-progress")
+    assert rc == 2 and "made with steps 2, which run does not make: give another --data" in err, err
+    small = tmp_path / "small"
+    catalog = Catalog(small)
+    catalog.add_episode(collect_episode(start_state=sample_state(np.random.default_rng(0), shape="T").to_dict(),
+                                        policy="push", seed=0, steps=4, image_size=12))
+    rc, _, err = run_cli(capsys, "collect", "--data", str(small), "--size", "16", "--episodes", "1", "--steps", "4")
+    assert rc == 2 and "holds 12px episodes, a size no model trains on: give another --data" in err, err
+    assert catalog.count() == 1
+
+
+def test_config_errors_name_flags_but_leave_paths_and_quoted_values_alone():
+    from orchestrator.cli.common import config_error
+    assert str(config_error(ValueError("need round_episodes >= 1, found round_episodes=16"))) == \
+        "need --round >= 1, found --round=16"
+    message = "expected an empty directory at /data/image_size, found 'mode' in notes_mode.txt"
+    assert str(config_error(ValueError(message), {"image_size": "--size", "mode": "--mode"})) == message

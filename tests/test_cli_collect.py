@@ -160,7 +160,7 @@ def test_eval_split_create_and_show(capsys, data):
 @pytest.mark.parametrize("argv,needle", [
     (["collect", "--shape", "star", "--data", "DATA"], "invalid choice: 'star'"),
     (["collect", "--episodes", "0", "--data", "DATA"], "expected a positive integer"),
-    (["collect", "--size", "4", "--data", "DATA"], "expected a size in pixels"),
+    (["collect", "--size", "4", "--data", "DATA"], "expected a multiple of 8 from 16"),
     (["collect", "--steps", "5000", "--data", "DATA"], "expected at most 1000 steps"),
     (["collect", "--policy", "teleport", "--data", "DATA"], "invalid choice: 'teleport'"),
     (["collect", "--frobnicate", "--data", "DATA"], "unrecognized arguments: --frobnicate"),

@@ -14,7 +14,7 @@ import numpy as np
 from tqdm import tqdm
 
 from orchestrator.cli import common
-from orchestrator.protocol import POLICIES, SHAPES, episode_problem, one_line
+from orchestrator.protocol import MAX_EPISODE_STEPS, POLICIES, SHAPES, episode_problem, one_line
 from storage.backup import backup, check_dest
 from storage.catalog import ORPHANS_DIR, SPLITS, Catalog, EpisodeRow
 from storage.database import DB_NAME
@@ -43,15 +43,24 @@ def eval_split_refusal(data: Path, exc: EvalSplitConflict, flags: dict[str, str]
     """The usage error for a pinned split made with other parameters: every flag (of ``flags``, the
     ``command``'s flag for each split parameter) that must change, with the values that would keep
     it, and what the command asked for (``asks``: "this run asks for" ...)."""
-    matchable = {k: v for k, v in exc.held.items() if k in flags and v is not None}
+    matchable = {k: v for k, v in exc.held.items() if k in flags and v is not None and _flag_can_give(k, v)}
     other = [_made_with(k, v) for k, v in exc.held.items() if k not in matchable]
-    if other:  # something no flag of this command can match
+    if other:  # something no flag of this command can match (or no longer accepts: 12 px, 2 steps)
         return common.UsageError(f"{data}'s evaluation split was made with {', '.join(other)}, which "
                                  f"{command} does not make: give another --data")
     made = " ".join(f"{flags[k]} {v}" for k, v in matchable.items())
     asked = " ".join(f"{flags[k]} {exc.asked[k]}" for k in matchable)
     return common.UsageError(f"{data}'s evaluation split was made with {made} ({asks} {asked}): give those, "
                              "or another --data")
+
+
+def _flag_can_give(key: str, value: Any) -> bool:
+    """Whether the flag of a split parameter accepts ``value`` today (older versions pinned any size and length)."""
+    if key == "image_size":
+        return common.trainable_size(value)
+    if key == "steps":
+        return common.MIN_EPISODE_STEPS <= value <= MAX_EPISODE_STEPS
+    return True
 
 
 def _made_with(key: str, value: Any) -> str:
@@ -71,7 +80,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--shape", choices=(*SHAPES, "all"), default="all",
                    help="object shape; 'all' takes the shapes in turn (default)")
     p.add_argument("--policy", choices=POLICIES, default="push", help="collection policy (default push)")
-    p.add_argument("--size", type=image_size, default=64, metavar="PX", help="frame size in pixels (default 64)")
+    p.add_argument("--size", type=common.trainable_image_size, default=64, metavar="PX",
+                   help=f"frame size in pixels, a multiple of 8 from {common.MIN_TRAINABLE_SIZE} (default 64)")
     p.add_argument("--steps", type=common.episode_steps, default=50, metavar="T",
                    help=f"steps per episode, at least {common.MIN_EPISODE_STEPS} (default 50)")
     p.add_argument("--seed", type=common.non_negative_int, default=0, metavar="K",
@@ -137,7 +147,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="evaluation episodes; shapes take turns (default 24)")
     p.add_argument("--seed", type=common.non_negative_int, default=1234, metavar="K",
                    help="seed of their start states and policies (default 1234, as `run --eval-seed`)")
-    p.add_argument("--size", type=image_size, default=64, metavar="PX",
+    p.add_argument("--size", type=common.trainable_image_size, default=64, metavar="PX",
                    help="frame size in pixels; models of this directory predict frames of this size (default 64)")
     p.add_argument("--steps", type=common.episode_steps, default=50, metavar="T",
                    help=f"steps per episode, at least {common.MIN_EPISODE_STEPS} (default 50)")

@@ -14,6 +14,7 @@ from typing import Any, NoReturn
 from croniter import croniter
 
 from orchestrator.dashboard import MAX_REQUEST_TIMEOUT_S, DashboardConfig
+from orchestrator import protocol
 from orchestrator.protocol import MAX_EPISODE_STEPS, one_line
 from storage.catalog import Catalog
 from storage.database import DB_NAME
@@ -103,10 +104,27 @@ def _int(text: str, what: str) -> int:
         raise argparse.ArgumentTypeError(f"expected {what}, found {text!r}") from None
 
 
-#: The fewest steps an episode may have: training at the default context needs context + 1 frames
-#: (``uncertainty.data.build_windows``); a shorter episode gives no window, and a catalog or eval
-#: split of only such episodes fails every retrain.
-MIN_EPISODE_STEPS = TrainConfig.context + 1
+#: The fewest steps an episode may have (``protocol.MIN_EPISODE_STEPS``): a catalog or eval split of
+#: shorter episodes fails every retrain.
+MIN_EPISODE_STEPS = protocol.MIN_EPISODE_STEPS
+#: The smallest frame a model trains and is evaluated on: the predictor takes multiples of 8
+#: (``uncertainty.model.PredictorConfig``) and SSIM needs an 11-pixel window (``uncertainty.metrics``);
+#: both modules import torch, which the parsers must not.
+MIN_TRAINABLE_SIZE = 16
+
+
+def trainable_size(size: int) -> bool:
+    """A frame size a model trains on: a multiple of 8 from ``MIN_TRAINABLE_SIZE`` to ``MAX_FRAME_SIZE``."""
+    return MIN_TRAINABLE_SIZE <= size <= protocol.MAX_FRAME_SIZE and size % 8 == 0
+
+
+def trainable_image_size(text: str) -> int:
+    """A frame size to record or train at (``trainable_size``)."""
+    value = _int(text, "a size in pixels")
+    if not trainable_size(value):
+        raise argparse.ArgumentTypeError(f"expected a multiple of 8 from {MIN_TRAINABLE_SIZE} to "
+                                         f"{protocol.MAX_FRAME_SIZE} (what a model trains on), found {value}")
+    return value
 
 
 def episode_steps(text: str) -> int:
@@ -169,7 +187,9 @@ def config_error(exc: Exception, flags: Mapping[str, str] | None = None) -> Usag
     names otherwise, e.g. ``image_size`` -> ``--size``), over ``FLAGS``.
     """
     names = {**FLAGS, **(flags or {})}
-    return UsageError(re.sub(r"\b[a-z][a-z0-9_]*\b", lambda m: names.get(m.group(0), m.group(0)), str(exc)))
+    # Whole words only, and not inside a path, a file name or a quoted value (/data/image_size, 'mode').
+    word = r"(?<![\w/.'\"-])[a-z][a-z0-9_]*(?![\w/.'\"-])"
+    return UsageError(re.sub(word, lambda m: names.get(m.group(0), m.group(0)), str(exc)))
 
 
 def tcp_port(text: str) -> int:
@@ -230,6 +250,8 @@ def require_frame_size(data: Path, size: int, flag: str) -> None:
         return
     held = Catalog(data).frame_size()
     if held is not None and held != size:
+        if not trainable_size(held):  # made before sizes were checked: no flag value matches it
+            raise UsageError(f"{data} holds {held}px episodes, a size no model trains on: give another --data")
         raise UsageError(f"{data} holds {held}px episodes and its models predict {held}px frames: "
                          f"give {flag} {held}, or another --data")
 

@@ -38,21 +38,6 @@ from uncertainty.errors import ConfigError, UncertaintyError
 from workers.collect import EvalSplitConflict, check_eval_split, collect_episode, create_eval_split
 
 
-#: The smallest frame a model trains and is evaluated on: the predictor takes multiples of 8
-#: (``uncertainty.model.PredictorConfig``) and SSIM needs an 11-pixel window (``uncertainty.metrics``);
-#: both modules import torch, which the parsers must not.
-MIN_TRAINABLE_SIZE = 16
-
-
-def trainable_image_size(text: str) -> int:
-    """A frame size that the commands which also train (``run``, ``bench loop``) can train on."""
-    value = collect_cli.image_size(text)
-    if value < MIN_TRAINABLE_SIZE or value % 8:
-        raise argparse.ArgumentTypeError(f"expected a multiple of 8 from {MIN_TRAINABLE_SIZE} to "
-                                         f"{collect_cli.MAX_SIZE} (what a model trains on), found {value}")
-    return value
-
-
 def register(sub: argparse._SubParsersAction) -> None:
     d = RunConfig(data_dir=common.DEFAULT_DATA)
     retrain = vars(retrain_options_parser().parse_args(list(d.retrain_args)))
@@ -77,8 +62,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--steps", type=common.episode_steps, default=d.steps, metavar="T",
                    help=f"steps per episode, of the training episodes and of the eval split's (at least "
                         f"{common.MIN_EPISODE_STEPS}; default {d.steps})")
-    p.add_argument("--image-size", type=trainable_image_size, default=d.image_size, metavar="PX",
-                   help=f"frame size in pixels, a multiple of 8 from {MIN_TRAINABLE_SIZE} (default {d.image_size})")
+    p.add_argument("--image-size", type=common.trainable_image_size, default=d.image_size, metavar="PX",
+                   help=f"frame size in pixels, a multiple of 8 from {common.MIN_TRAINABLE_SIZE} (default {d.image_size})")
     p.add_argument("--eval-episodes", type=common.positive_int, default=d.eval_episodes, metavar="N",
                    help=f"episodes in the eval split, made when missing (default {d.eval_episodes})")
     p.add_argument("--eval-seed", type=common.non_negative_int, default=d.eval_seed, metavar="K",
@@ -120,8 +105,8 @@ def register_bench(bench: argparse._SubParsersAction) -> None:
     p.add_argument("--steps", type=common.episode_steps, default=d.steps, metavar="T",
                    help=f"steps per episode, of the training episodes and of the eval split's (at least "
                         f"{common.MIN_EPISODE_STEPS}; default {d.steps})")
-    p.add_argument("--image-size", type=trainable_image_size, default=d.image_size, metavar="PX",
-                   help=f"frame size in pixels, a multiple of 8 from {MIN_TRAINABLE_SIZE} (default {d.image_size})")
+    p.add_argument("--image-size", type=common.trainable_image_size, default=d.image_size, metavar="PX",
+                   help=f"frame size in pixels, a multiple of 8 from {common.MIN_TRAINABLE_SIZE} (default {d.image_size})")
     p.add_argument("--epochs", type=common.positive_int, default=d.train.epochs, metavar="N",
                    help=f"training epochs per retrain (default {d.train.epochs})")
     p.add_argument("--members", type=common.positive_int, default=d.train.members, metavar="K",

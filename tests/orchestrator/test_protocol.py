@@ -157,6 +157,9 @@ BAD = [
     (m.LeaseRequest, '{"v": 1, "worker_id": "w"}'.encode("utf-32-le"), ErrorCode.BAD_JSON),
     (m.LeaseRequest, b'\xef\xbb\xbf{"v": 1, "worker_id": "w"}', ErrorCode.BAD_JSON),
     (m.LeaseRequest, b'{"v": 1.0, "worker_id": "w"}', ErrorCode.BAD_VERSION),
+    # too short to learn from (a model needs its context frames and the next): any client, not only the CLI
+    (m.RequestSpec, json.dumps({"v": 1, "task": "push", "shape": "T", "start_state": START, "steps": 2}).encode(),
+     ErrorCode.BAD_FIELD),
     (m.AdminRequest, b'{"v": 1, "op": "queue.drop"}', ErrorCode.UNKNOWN_OP),
     (m.AdminRequest, b'{"v": 1, "op": "queue.ls", "args": []}', ErrorCode.BAD_FIELD),
     (m.Event, b'{"v": 1, "kind": "request.exploded", "at": 1.0}', ErrorCode.BAD_FIELD),
@@ -268,3 +271,8 @@ def test_escaped_characters_outside_the_basic_plane_still_decode() -> None:
     body = p.decode(b'{"v": 1, "error": "smile \\ud83d\\ude00 and \\u00fc"}')
     assert body == {"error": "smile \U0001F600 and \u00fc"}
     assert p.decode('{"v": 1, "w": "\u00fc"}') == {"w": "\u00fc"}
+
+
+def test_the_fewest_steps_are_what_training_at_the_default_context_needs() -> None:
+    from uncertainty.config import TrainConfig  # this module imports nothing of ours; the test keeps them equal
+    assert p.MIN_EPISODE_STEPS == TrainConfig.context + 1
