@@ -54,6 +54,21 @@ def eval_split_refusal(data: Path, exc: EvalSplitConflict, flags: dict[str, str]
                              "or another --data")
 
 
+def refuse_other_settings(data: Path, flags: dict[str, str], command: str, asks: str, size_flag: str,
+                          **settings: Any) -> str | None:
+    """Before anything is collected or made: a usage error naming every flag to change when ``data``
+    holds an eval split made with other ``settings`` (``check_eval_split``'s arguments), or episodes of
+    another frame size. The pinned split's hash when it stays; None when none is pinned yet."""
+    if not (Path(data) / DB_NAME).is_file():
+        return None
+    try:
+        pinned = check_eval_split(Catalog(data), **settings)
+    except EvalSplitConflict as exc:
+        raise eval_split_refusal(data, exc, flags, command, asks) from None
+    common.require_frame_size(data, settings["image_size"], size_flag)
+    return pinned
+
+
 def _flag_can_give(key: str, value: Any) -> bool:
     """Whether the flag of a split parameter accepts ``value`` today (older versions pinned any size and length)."""
     if key == "image_size":
@@ -407,15 +422,10 @@ def _ingest(args: argparse.Namespace) -> int:
 
 def _eval_split_create(args: argparse.Namespace) -> int:
     settings = dict(episodes=args.episodes, seed=args.seed, steps=args.steps, image_size=args.size)
-    if (Path(args.data) / DB_NAME).is_file():  # a pinned split is never replaced: check before collecting
-        try:
-            pinned = check_eval_split(Catalog(args.data), **settings)
-        except EvalSplitConflict as exc:
-            raise eval_split_refusal(args.data, exc, EVAL_SPLIT_FLAGS, "eval-split create", "asked for") from None
-        if pinned is None:
-            common.require_frame_size(args.data, args.size, "--size")
+    # a pinned split is never replaced: checked before collecting
+    pinned = refuse_other_settings(args.data, EVAL_SPLIT_FLAGS, "eval-split create", "asked for", "--size", **settings)
     cat = Catalog(args.data)
-    if cat.eval_split() is None:
+    if pinned is None:
         print(f"collecting {args.episodes} evaluation episodes ({args.steps} steps, {args.size}px) ...",
               file=sys.stderr)
     try:

@@ -13,8 +13,8 @@ from typing import Any, NoReturn
 
 from croniter import croniter
 
-from orchestrator.dashboard import MAX_REQUEST_TIMEOUT_S, DashboardConfig
 from orchestrator import protocol
+from orchestrator.dashboard import MAX_REQUEST_TIMEOUT_S, DashboardConfig
 from orchestrator.protocol import MAX_EPISODE_STEPS, one_line
 from storage.catalog import Catalog
 from storage.database import DB_NAME
@@ -178,6 +178,10 @@ FLAGS = {"round_episodes": "--round", "min_rel_improvement": "--min-improvement"
          "seed_requests": "--seed-requests", "min_queued": "--min-queued", "max_connections": "--max-connections",
          "request_timeout_s": "--request-timeout", "active_policy": "--active-policy",
          "random_physics": "--random-physics"}
+
+
+#: ``TrainConfig`` fields that ``train`` and ``retrain`` set under a flag of the same name.
+TRAIN_FLAGS = {name: f"--{name}" for name in ("members", "epochs", "lr", "widths", "seed", "device")}
 
 
 def config_error(exc: Exception, flags: Mapping[str, str] | None = None) -> UsageError:

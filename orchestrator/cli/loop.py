@@ -28,14 +28,13 @@ from orchestrator.loopconfig import SIGNALS, LoopBenchConfig, RunConfig
 from orchestrator.scheduler import EXIT_BUSY, RetrainBusyError, quarantined_note
 from orchestrator.protocol import one_line
 from storage.catalog import Catalog
-from storage.database import DB_NAME
 from storage.errors import StorageError
 from storage.requests import Request
 from storage.records import Episode
 from uncertainty.config import TrainConfig
 from uncertainty.errors import ConfigError, UncertaintyError
 # The CLI is the composition root: it alone hands the simulator to the orchestrator's loops.
-from workers.collect import EvalSplitConflict, check_eval_split, collect_episode, create_eval_split
+from workers.collect import EvalSplitConflict, collect_episode, create_eval_split
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -59,11 +58,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help=f"worker processes (default {d.workers})")
     p.add_argument("--planner", choices=("active", "uniform"), default=d.planner,
                    help=f"where episodes start (default {d.planner})")
-    p.add_argument("--steps", type=common.episode_steps, default=d.steps, metavar="T",
-                   help=f"steps per episode, of the training episodes and of the eval split's (at least "
-                        f"{common.MIN_EPISODE_STEPS}; default {d.steps})")
-    p.add_argument("--image-size", type=common.trainable_image_size, default=d.image_size, metavar="PX",
-                   help=f"frame size in pixels, a multiple of 8 from {common.MIN_TRAINABLE_SIZE} (default {d.image_size})")
+    _add_episode_args(p, d.steps, d.image_size)
     p.add_argument("--eval-episodes", type=common.positive_int, default=d.eval_episodes, metavar="N",
                    help=f"episodes in the eval split, made when missing (default {d.eval_episodes})")
     p.add_argument("--eval-seed", type=common.non_negative_int, default=d.eval_seed, metavar="K",
@@ -92,6 +87,15 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=_dashboard)
 
 
+def _add_episode_args(p: argparse.ArgumentParser, steps: int, image_size: int) -> None:
+    """``--steps`` and ``--image-size`` of the commands that collect and train (``run``, ``bench loop``)."""
+    p.add_argument("--steps", type=common.episode_steps, default=steps, metavar="T",
+                   help=f"steps per episode, of the training episodes and of the eval split's (at least "
+                        f"{common.MIN_EPISODE_STEPS}; default {steps})")
+    p.add_argument("--image-size", type=common.trainable_image_size, default=image_size, metavar="PX",
+                   help=f"frame size in pixels, a multiple of 8 from {common.MIN_TRAINABLE_SIZE} (default {image_size})")
+
+
 def register_bench(bench: argparse._SubParsersAction) -> None:
     d = LoopBenchConfig()
     p = bench.add_parser("loop", help="active vs uniform planner: eval error per episodes collected")
@@ -102,11 +106,7 @@ def register_bench(bench: argparse._SubParsersAction) -> None:
                    help=f"training episodes per arm, at least 2 rounds (default {d.budget})")
     p.add_argument("--round", type=common.positive_int, default=d.round_episodes, dest="round_episodes", metavar="N",
                    help=f"retrain every N episodes (default {d.round_episodes})")
-    p.add_argument("--steps", type=common.episode_steps, default=d.steps, metavar="T",
-                   help=f"steps per episode, of the training episodes and of the eval split's (at least "
-                        f"{common.MIN_EPISODE_STEPS}; default {d.steps})")
-    p.add_argument("--image-size", type=common.trainable_image_size, default=d.image_size, metavar="PX",
-                   help=f"frame size in pixels, a multiple of 8 from {common.MIN_TRAINABLE_SIZE} (default {d.image_size})")
+    _add_episode_args(p, d.steps, d.image_size)
     p.add_argument("--epochs", type=common.positive_int, default=d.train.epochs, metavar="N",
                    help=f"training epochs per retrain (default {d.train.epochs})")
     p.add_argument("--members", type=common.positive_int, default=d.train.members, metavar="K",
@@ -274,10 +274,6 @@ def add_retrain_args_arg(p: argparse.ArgumentParser, default: tuple[str, ...]) -
                         "One option alone needs '=': --retrain-args=--from-champion")
 
 
-#: ``TrainConfig`` fields that ``add_train_args`` sets under a flag of the same name (see ``common.config_error``).
-TRAIN_FLAGS = {name: f"--{name}" for name in ("members", "epochs", "lr", "widths", "seed", "device")}
-
-
 def train_config(args: argparse.Namespace) -> TrainConfig:
     return TrainConfig(members=args.members, epochs=args.epochs, batch_size=args.batch_size, lr=args.lr,
                        widths=args.widths, max_windows=args.max_windows, seed=args.seed, device=args.device,
@@ -300,19 +296,6 @@ RUN_SPLIT_FLAGS = {"image_size": "--image-size", "steps": "--steps", "episodes":
                    "seed": "--eval-seed"}
 
 
-def _check_run_data(cfg: RunConfig) -> None:
-    """UsageError (exit 2) naming every flag to change when ``cfg.data_dir`` holds an eval split made
-    with other settings, or episodes of another frame size. Nothing is created."""
-    if not (cfg.data_dir / DB_NAME).is_file():
-        return
-    try:
-        check_eval_split(Catalog(cfg.data_dir), episodes=cfg.eval_episodes, seed=cfg.eval_seed, steps=cfg.steps,
-                         image_size=cfg.image_size)
-    except EvalSplitConflict as exc:
-        raise collect_cli.eval_split_refusal(cfg.data_dir, exc, RUN_SPLIT_FLAGS, "run", "this run asks for") from None
-    common.require_frame_size(cfg.data_dir, cfg.image_size, "--image-size")
-
-
 def _run(args: argparse.Namespace) -> int:
     try:
         cfg = RunConfig(data_dir=args.data, budget=args.budget, round_episodes=args.round_episodes,
@@ -323,7 +306,9 @@ def _run(args: argparse.Namespace) -> int:
     except ValueError as exc:
         raise common.config_error(exc, {"budget": "--budget", "workers": "--workers", "steps": "--steps",
                                         "planner": "--planner"}) from None
-    _check_run_data(cfg)
+    collect_cli.refuse_other_settings(cfg.data_dir, RUN_SPLIT_FLAGS, "run", "this run asks for", "--image-size",
+                                      episodes=cfg.eval_episodes, seed=cfg.eval_seed, steps=cfg.steps,
+                                      image_size=cfg.image_size)
     from orchestrator.loop import LoopRun  # torch: imported once the arguments are known good (start-up cost)
     run = LoopRun(cfg, bench_eval_split, announce=lambda line: print(line, file=sys.stderr, flush=True))
     try:
@@ -357,7 +342,7 @@ def _retrain(args: argparse.Namespace) -> int:
     try:
         cfg = train_config(args)
     except ConfigError as exc:
-        raise common.config_error(exc, TRAIN_FLAGS) from None
+        raise common.config_error(exc, common.TRAIN_FLAGS) from None
     common.require_catalog(args.data)  # checked before the retrain lock would make the directory
     # torch: imported once the arguments are known good (start-up cost)
     from orchestrator.retrain import abandoned_note, run_retrain

@@ -298,7 +298,7 @@ def _train(args: argparse.Namespace) -> int:
                           seed=args.seed, device=args.device, min_rel_improvement=args.min_improvement,
                           variance_head=args.variance_head)
     except ConfigError as exc:
-        raise common.config_error(exc, {name: f"--{name}" for name in ("members", "epochs", "seed", "device")}) from None
+        raise common.config_error(exc, common.TRAIN_FLAGS) from None
     # torch: imported once the arguments are known good (start-up cost, not a cycle)
     from orchestrator.retrain import abandoned_note, training_job
     from uncertainty.train import train_candidate
