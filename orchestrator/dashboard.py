@@ -18,6 +18,7 @@ import json
 import logging
 import math
 import socket
+import sys
 import threading
 import time
 from dataclasses import dataclass, field
@@ -108,6 +109,15 @@ class _Server(ThreadingHTTPServer):
         except BaseException:  # no thread started, so none will give the slot back
             self._slots.release()
             raise
+
+    def handle_error(self, request: Any, client_address: Any) -> None:
+        """A client that went away (reset, broken pipe) is no error of ours; anything else is logged with
+        its traceback (the base class prints every one to stderr)."""
+        exc = sys.exc_info()[1]
+        if isinstance(exc, (ConnectionError, TimeoutError)):
+            log.debug("dashboard: %s went away: %s", client_address, exc)
+        else:
+            log.error("dashboard: the request from %s failed", client_address, exc_info=True)
 
     def process_request_thread(self, request: socket.socket, client_address: Any) -> None:
         try:  # the base class catches the handler's exceptions and closes the socket; the slot goes back after

@@ -171,7 +171,7 @@ def test_connections_over_the_cap_get_503_and_the_cap_frees_as_they_close(stores
         wait_for(lambda: status_or_none(dash.url + "api/workers") == 200, message="a GET once the idle ones closed")
 
 
-def test_a_client_that_resets_mid_request_gives_its_slot_back(stores):
+def test_a_client_that_resets_mid_request_gives_its_slot_back(stores, capfd):
     with serving(stores[0], max_connections=1, request_timeout_s=60) as dash:
         vanishing = _raw_http(dash.url, b"GET /api/stats HTTP/1.0\r\nX-Partial: ")  # takes the one slot
         with socket.create_connection(vanishing.getpeername(), timeout=5) as extra:
@@ -179,6 +179,24 @@ def test_a_client_that_resets_mid_request_gives_its_slot_back(stores):
         vanishing.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, struct.pack("ii", 1, 0))
         vanishing.close()  # linger 0: a reset, so the handler's read raises rather than ends
         wait_for(lambda: status_or_none(dash.url + "api/workers") == 200, message="a GET after the reset")
+    assert "Traceback" not in capfd.readouterr().err  # a client going away is no error of ours
+
+
+def test_a_failure_of_ours_is_logged_with_its_traceback_and_a_client_going_away_is_not(stores, caplog):
+    with serving(stores[0]) as dash:
+        server = dash._server
+        for exc in (ConnectionResetError(104, "reset"), BrokenPipeError(32, "broken"), RuntimeError("a bug")):
+            caplog.clear()
+            with caplog.at_level("DEBUG", logger="orchestrator.dashboard"):
+                try:
+                    raise exc
+                except Exception:
+                    server.handle_error(None, ("127.0.0.1", 1))
+            [record] = caplog.records
+            if isinstance(exc, RuntimeError):
+                assert record.levelname == "ERROR" and record.exc_info[1] is exc
+            else:
+                assert record.levelname == "DEBUG" and "went away" in record.getMessage() and not record.exc_info
 
 
 def test_max_connections_must_be_positive():
