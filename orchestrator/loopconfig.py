@@ -107,6 +107,9 @@ class LoopBenchConfig:
     active_policy: bool = False
     """The active arm also chooses each request's collection policy by its episodes' disagreement
     (``ActivePlannerConfig.choose_policy``); the uniform arm keeps the mix."""
+    within_policy: bool = False
+    """The active arm ranks each step against the steps of its own policy
+    (``ActivePlannerConfig.within_policy``)."""
     random_physics: bool = False
     """Physics (mass, friction, ground friction) are part of the task space: the uniform arm, the seed
     rounds and the eval split draw them uniformly over ``protocol.PHYSICS_RANGES`` (the active arm keeps
@@ -125,6 +128,7 @@ class LoopBenchConfig:
         self.active.max_queue_depth = self.round_episodes
         self.active.steps = self.steps
         self.active.choose_policy = self.active_policy
+        self.active.within_policy = self.within_policy
         self.active.seed_uniform = self.uniform_config()
 
     def uniform_config(self) -> UniformPlannerConfig:

@@ -244,6 +244,11 @@ class ActivePlannerConfig:
     """Least probability of each policy when ``choose_policy`` (exploration), at most 1 / number of policies."""
     policy_window: int = 64
     """How many recent episodes per policy its score is the mean over."""
+    within_policy: bool = False
+    """Rank each step against the steps of its own collection policy: its score divided by the mean
+    score of that policy's episodes in the batch being planned. A policy that moves more makes every
+    member err more (random waypoints: ~2x the disagreement of a push), but a request draws its policy
+    afresh, so what it can buy is the state; an experiment, off by default."""
 
     def __post_init__(self) -> None:
         if not 0.0 <= self.percentile < 100.0:
@@ -389,6 +394,8 @@ class ActivePlanner:
         if version != self._recent_version:  # a new champion: its scores live on another scale
             self._recent.clear()
             self._recent_version = version
+        if self.cfg.within_policy:
+            scored = relative_to_policy(scored)
         for _, s in scored:
             self._recent.extend(float(v) for v in s.per_step if np.isfinite(v))
         if not self._recent:
@@ -467,6 +474,21 @@ class ActivePlanner:
             priority=round(cand.score / scale, 6),
             reason=reason, idempotency_key=f"active:{ep.meta.episode_id}:{step}",
         )
+
+
+def relative_to_policy(scored: Sequence[tuple[Episode, Scores]]) -> list[tuple[Episode, Scores]]:
+    """Each episode's scores divided by the mean finite score of the episodes collected with its policy
+    (in ``scored``); an episode whose policy's mean is not positive keeps its scores."""
+    by_policy: dict[str, list[np.ndarray]] = {}
+    for ep, s in scored:
+        by_policy.setdefault(ep.meta.policy, []).append(s.per_step[np.isfinite(s.per_step)])
+    means = {name: float(np.concatenate(parts).mean()) if any(p.size for p in parts) else math.nan
+             for name, parts in by_policy.items()}
+    out = []
+    for ep, s in scored:
+        mean = means[ep.meta.policy]
+        out.append((ep, Scores(s.model_version, s.per_step / mean) if mean > 0 else s))
+    return out
 
 
 def state_at(ep: Episode, step: int) -> dict:

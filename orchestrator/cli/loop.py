@@ -122,6 +122,10 @@ def register_bench(bench: argparse._SubParsersAction) -> None:
     p.add_argument("--variance-head", action="store_true", default=d.train.variance_head,
                    help="both arms train members that also predict their own error (the active arm "
                         "still scores by disagreement)")
+    p.add_argument("--within-policy", action="store_true", default=d.within_policy,
+                   help="the active arm ranks each step against its own policy's steps (its score over the "
+                        "mean score of the round's episodes of that policy), so the policy that moves more "
+                        "does not take every request")
     p.add_argument("--random-physics", action="store_true", default=d.random_physics,
                    help="make physics (mass, friction, ground friction) part of the task space: uniform and "
                         "seed episodes and the eval split draw them uniformly over their ranges, the active "
@@ -155,7 +159,8 @@ def _bench_loop(args: argparse.Namespace) -> int:
         cfg = LoopBenchConfig(seeds=tuple(range(args.seeds)), budget=args.budget,
                               round_episodes=args.round_episodes, steps=args.steps,
                               image_size=args.image_size, train=train, signal=args.signal,
-                              active_policy=args.active_policy, random_physics=args.random_physics)
+                              active_policy=args.active_policy, random_physics=args.random_physics,
+                              within_policy=args.within_policy)
     except (ValueError, ConfigError) as exc:
         raise common.config_error(exc, {"budget": "--budget", "seeds": "--seeds", "members": "--members",
                                         "epochs": "--epochs"}) from None

@@ -67,10 +67,11 @@ def test_object_moving_marks_the_steps_before_the_object_moves_or_turns():
     assert object_moving(states, horizon=2).tolist() == [True, True, True, False, False]
 
 
-def test_active_policy_reaches_only_the_active_arms_planner():
-    assert not LoopBenchConfig().active.choose_policy
-    cfg = LoopBenchConfig(active_policy=True)
+def test_active_policy_and_within_policy_reach_only_the_active_arms_planner():
+    assert not LoopBenchConfig().active.choose_policy and not LoopBenchConfig().active.within_policy
+    cfg = LoopBenchConfig(active_policy=True, within_policy=True)
     assert cfg.active.choose_policy and cfg.to_json()["active"]["choose_policy"]
+    assert cfg.active.within_policy and cfg.to_json()["within_policy"]
     assert cfg.uniform_config().policies == cfg.policies  # the uniform arm keeps the mix
 
 
@@ -85,10 +86,11 @@ def test_bench_loop_runs_both_arms_end_to_end_with_physics_in_the_task_space(tmp
     out = tmp_path / "loop"
     rc, stdout, _ = run_cli(capsys, "bench", "loop", "--seeds", "1", "--budget", "4", "--round", "2",
                             "--steps", "12", "--image-size", "16", "--epochs", "1", "--members", "2",
-                            "--random-physics", "--json", "--out", str(out))
+                            "--random-physics", "--within-policy", "--json", "--out", str(out))
     assert rc == 0
     summary = json.loads(stdout)
-    assert summary["config"]["random_physics"] and (out / "loop.png").is_file()
+    assert summary["config"]["random_physics"] and summary["config"]["within_policy"]
+    assert (out / "loop.png").is_file()
     assert [(p["arm"], p["episodes"]) for p in summary["points"]] == [
         ("active", 2), ("active", 4), ("uniform", 2), ("uniform", 4)]
     assert all(math.isfinite(p["h1_mse"]) and math.isfinite(p["h5_mse"]) for p in summary["points"])

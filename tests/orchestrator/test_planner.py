@@ -12,7 +12,7 @@ from orchestrator import protocol
 from orchestrator.loop import RoundPlanner
 from orchestrator.planner import (
     ActivePlanner, ActivePlannerConfig, Candidate, PolicyMix, Scores, UniformPlanner, UniformPlannerConfig,
-    AGENT_CLEARANCE, MIX_POLICIES, select_diverse, state_at, state_features,
+    AGENT_CLEARANCE, MIX_POLICIES, relative_to_policy, select_diverse, state_at, state_features,
 )
 from storage.queue import RequestQueue
 from storage.requests import NewRequest
@@ -290,6 +290,41 @@ def test_choose_policy_is_off_by_default_and_its_settings_are_checked():
         ActivePlannerConfig(choose_policy=True, policy_floor=0.6)
     with pytest.raises(ValueError, match="policy_sharpness"):
         ActivePlannerConfig(policy_sharpness=-1.0)
+
+
+def test_within_policy_ranks_steps_against_their_own_policy():
+    rng = np.random.default_rng(21)
+    level = {"push": 1.0, "random_waypoints": 5.0}
+    # a real scorer: the policy's level (waypoints move more, so every member errs more) times the
+    # episode's own surprise, times a small ramp so steps differ
+    surprise: dict[str, float] = {}
+    def scorer(ep: Episode) -> Scores:
+        return Scores("m1", level[ep.meta.policy] * surprise[ep.meta.episode_id] * (1 + np.arange(len(ep)) / 100))
+    eps = []
+    for i, policy in enumerate(MIX_POLICIES * 4):
+        ep = with_policy(make_episode(rng, steps=20), policy)
+        # one push episode is 3x as surprising as the other pushes; the waypoint episodes differ little
+        surprise[ep.meta.episode_id] = (3.0 if i == 6 else 1.0) if policy == "push" else 1.0 + 0.02 * i
+        eps.append(ep)
+    cfg = dict(percentile=50.0, budget_per_round=4, max_queue_depth=100, min_distance=0.0)
+
+    def sources(planner: ActivePlanner) -> list[str]:
+        by_id = {ep.meta.episode_id: ep for ep in eps}
+        return [by_id[r.reason["source_episode"]].meta.policy for r in planner.plan(eps)]
+
+    assert sources(ActivePlanner(acfg(**cfg), scorer, np.random.default_rng(0))) == ["random_waypoints"] * 4
+    within = sources(ActivePlanner(acfg(**cfg, within_policy=True), scorer, np.random.default_rng(0)))
+    assert within == ["push"] * 4
+    assert not ActivePlannerConfig().within_policy
+
+    # the helper itself: each policy's mean finite score becomes 1; a policy with nothing finite is left alone
+    scores = [(with_policy(eps[0], "push"), Scores("m1", np.array([np.nan, 2.0, 4.0]))),
+              (with_policy(eps[1], "push"), Scores("m1", np.array([6.0, np.nan]))),
+              (with_policy(eps[2], "random_waypoints"), Scores("m1", np.array([np.nan, np.nan])))]
+    out = relative_to_policy(scores)
+    assert np.allclose(out[0][1].per_step, [np.nan, 0.5, 1.0], equal_nan=True)
+    assert np.allclose(out[1][1].per_step, [1.5, np.nan], equal_nan=True)
+    assert out[2][1] is scores[2][1]
 
 
 def test_a_round_left_short_is_filled_to_its_end_not_by_a_whole_round():
