@@ -22,8 +22,9 @@ for the CLI's parser). The active arm ranks steps by its ``signal`` (see
 of one configuration give the same numbers.
 
 Headline: the episodes the uniform arm needs to reach the active arm's final eval
-error, divided by the active arm's budget (< 1: uniform is more efficient; > 1:
-active is), interpolated on the mean curves, with the per-seed values.
+error, divided by the active arm's budget, interpolated on the mean curves, with the per-seed values
+(< 1: uniform reached active's final error with fewer episodes; None: not within the budget,
+i.e. active ended ahead), and the same the other way round.
 """
 
 from __future__ import annotations

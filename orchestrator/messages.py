@@ -13,7 +13,9 @@ Per key, the message it takes and the reply (ok_reply / error_reply / duplicate_
   orch/release ReleaseRequest          -> ok {"status": "queued", "attempts": n} | error stale_token
   admin/<op>   AdminRequest (or empty) -> ok with the op's body (orchestrator.admin) | error
   events/**    Event (publications)
-Any key: bad_json, bad_version, bad_field, too_large for a malformed message; internal for a bug.
+Any key: bad_json, bad_version, bad_field, too_large for a malformed message; internal for a bug;
+unavailable when storage cannot do it now (a full disk, a busy or failing SQLite file; every orch/
+and admin/ operation that touches storage may answer it): the worker keeps its episode and retries.
 """
 
 from __future__ import annotations

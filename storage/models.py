@@ -8,7 +8,7 @@ the model in service and ``champion_history`` remembers every promotion, so a ro
 
 Versions are ``m<6-digit sequence>-<8 hex of the weights' sha256>``: unique, and they sort in
 registration order. Every change is one ``BEGIN IMMEDIATE`` transaction, so the alias switch is atomic.
-The tables are created through the catalog's ``ensure_schema`` (component ``models``).
+The tables are created through ``storage.database.ensure_schema`` (component ``models``).
 
 Retention: nothing is deleted unless asked. ``prune(keep=N)`` deletes the files of retired and
 rejected models outside the champion's rollback chain of N; their rows stay (``pruned_at`` set), so
