@@ -44,7 +44,8 @@ POLICIES: tuple[str, ...] = ("random_waypoints", "push")
 #: its context frames and the next one (``uncertainty.config.TrainConfig.context`` + 1; this module
 #: imports nothing of ours, a test keeps the two equal): a shorter episode gives no training window.
 MIN_EPISODE_STEPS, MAX_EPISODE_STEPS = 3, 1000
-#: Frame sizes an episode may have (what the simulator renders; storage.records holds the same limits).
+#: Frame sizes an episode may have (what the simulator renders; storage.records holds the same limits, a
+#: test keeps them equal, and the narrower ``trainable_size``: what a model trains on).
 MIN_FRAME_SIZE, MAX_FRAME_SIZE = 8, 1024
 MAX_PREFIX_STEPS = 1000
 

@@ -29,13 +29,26 @@ ACTION_DIM = 2
 
 
 #: Frame sizes an episode may have: what the simulator renders and workers record (the wire layer's
-#: orchestrator.protocol holds the same limits; storage imports nothing above it).
+#: orchestrator.protocol holds the same limits; storage imports nothing above it, a test keeps them equal).
 MIN_FRAME_SIZE, MAX_FRAME_SIZE = 8, 1024
+#: The smallest frame a model trains and is evaluated on: the predictor takes multiples of 8 (it halves a
+#: frame three times; ``uncertainty.model.PredictorConfig``, which imports nothing of storage: a test
+#: keeps the two in step) and SSIM needs an 11-pixel window (``uncertainty.metrics``).
+MIN_TRAINABLE_SIZE = 16
+#: ``trainable_size`` in words, for messages and ``--help``.
+TRAINABLE_SIZES = f"a multiple of 8 from {MIN_TRAINABLE_SIZE} to {MAX_FRAME_SIZE}"
 #: An episode's metadata, encoded: far more than any request's start state and policy parameters (the
 #: wire contract allows 16 KiB each), small enough that a catalog row stays small.
 MAX_META_BYTES = 64 * 1024
 #: Characters in one string field of the metadata (ids, names, versions, times).
 MAX_META_CHARS = 256
+
+
+def trainable_size(size: int) -> bool:
+    """Whether a model trains on ``size``-pixel frames (``TRAINABLE_SIZES``). A catalog's first episode
+    fixes the frame size of every later one, so what records or accepts it checks this."""
+    return (isinstance(size, int) and not isinstance(size, bool)
+            and MIN_TRAINABLE_SIZE <= size <= MAX_FRAME_SIZE and size % 8 == 0)
 
 
 def _refuse_constant(name: str) -> None:

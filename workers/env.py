@@ -37,7 +37,7 @@ from pymunk._chipmunk import lib as _cp
 
 from orchestrator.protocol import (AGENT_RANGE, OBJECT_RANGE, PHYSICS_RANGES, SHAPES, WALL,
                                    WORLD_SIZE)
-from storage.records import STATE_DIM
+from storage.records import MAX_FRAME_SIZE, MIN_FRAME_SIZE, STATE_DIM
 from workers.shapes import AGENT_RADIUS, ShapeGeometry, get_shape
 
 #: Actions per simulated second and physics substeps per action.
@@ -250,8 +250,10 @@ class PushSim:
 
     def __init__(self, image_size: int = 64, palette: Mapping[str, tuple[int, int, int]] | None = None) -> None:
         """``palette``: object colour (RGB) per shape; shapes it leaves out are drawn in ``OBJECT_RGB``."""
-        if isinstance(image_size, bool) or not isinstance(image_size, int) or not 8 <= image_size <= 1024:
-            raise ValueError(f"image_size: expected an int in [8, 1024], found {image_size!r}")
+        if (isinstance(image_size, bool) or not isinstance(image_size, int)
+                or not MIN_FRAME_SIZE <= image_size <= MAX_FRAME_SIZE):
+            raise ValueError(f"image_size: expected an int in [{MIN_FRAME_SIZE}, {MAX_FRAME_SIZE}], "
+                             f"found {image_size!r}")
         self.image_size = image_size
         self._palette = _check_palette(palette)
         self._bg = _background(image_size)

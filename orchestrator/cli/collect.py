@@ -20,17 +20,18 @@ from storage.catalog import ORPHANS_DIR, SPLITS, Catalog, EpisodeRow
 from storage.database import DB_NAME
 from storage.errors import (DAMAGED_EPISODE_ERRORS, BackupError, CatalogError, NotFoundError, StorageError,
                             StorageUnavailableError)
+from storage.records import MAX_FRAME_SIZE, MIN_FRAME_SIZE, TRAINABLE_SIZES
 from workers import simbench
 from workers.collect import EvalSplitConflict, check_eval_split, collect_episode, create_eval_split
 from workers.env import sample_state
 
-MIN_SIZE, MAX_SIZE = 8, 1024
 
-
-def image_size(text: str) -> int:
+def rendered_size(text: str) -> int:
+    """A frame size the simulator renders (``bench sim``: nothing is kept, so no model need train on it)."""
     value = common.positive_int(text)
-    if not MIN_SIZE <= value <= MAX_SIZE:
-        raise argparse.ArgumentTypeError(f"expected a size in pixels in [{MIN_SIZE}, {MAX_SIZE}], found {value}")
+    if not MIN_FRAME_SIZE <= value <= MAX_FRAME_SIZE:
+        raise argparse.ArgumentTypeError(f"expected a size in pixels in [{MIN_FRAME_SIZE}, {MAX_FRAME_SIZE}], "
+                                         f"found {value}")
     return value
 
 
@@ -96,7 +97,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="object shape; 'all' takes the shapes in turn (default)")
     p.add_argument("--policy", choices=POLICIES, default="push", help="collection policy (default push)")
     p.add_argument("--size", type=common.trainable_image_size, default=64, metavar="PX",
-                   help=f"frame size in pixels, a multiple of 8 from {common.MIN_TRAINABLE_SIZE} (default 64)")
+                   help=f"frame size in pixels, {TRAINABLE_SIZES} (default 64)")
     p.add_argument("--steps", type=common.episode_steps, default=50, metavar="T",
                    help=f"steps per episode, at least {common.MIN_EPISODE_STEPS} (default 50)")
     p.add_argument("--seed", type=common.non_negative_int, default=0, metavar="K",
@@ -163,7 +164,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--seed", type=common.non_negative_int, default=1234, metavar="K",
                    help="seed of their start states and policies (default 1234, as `run --eval-seed`)")
     p.add_argument("--size", type=common.trainable_image_size, default=64, metavar="PX",
-                   help="frame size in pixels; models of this directory predict frames of this size (default 64)")
+                   help=f"frame size in pixels, {TRAINABLE_SIZES}; models of this directory predict frames of "
+                        "this size (default 64)")
     p.add_argument("--steps", type=common.episode_steps, default=50, metavar="T",
                    help=f"steps per episode, at least {common.MIN_EPISODE_STEPS} (default 50)")
     p.set_defaults(func=_eval_split_create)
@@ -190,7 +192,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 def register_bench(bench_sub: argparse._SubParsersAction) -> None:
     """Adds ``bench sim``."""
     p = bench_sub.add_parser("sim", help="recorded frames per second of one process (simulate + render + write MCAP)")
-    p.add_argument("--size", type=image_size, default=96, metavar="PX", help="frame size (default 96)")
+    p.add_argument("--size", type=rendered_size, default=96, metavar="PX", help="frame size (default 96)")
     p.add_argument("--seconds", type=common.positive_float, default=5.0, metavar="S",
                    help="how long to measure (default 5)")
     common.add_json_arg(p)

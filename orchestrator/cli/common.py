@@ -16,8 +16,10 @@ from croniter import croniter
 from orchestrator import protocol
 from orchestrator.dashboard import MAX_REQUEST_TIMEOUT_S, DashboardConfig
 from orchestrator.protocol import MAX_EPISODE_STEPS, one_line
+from storage import records
 from storage.catalog import Catalog
 from storage.database import DB_NAME
+from storage.records import trainable_size
 from uncertainty.config import TrainConfig
 
 DEFAULT_DATA = Path("activecollect-data")
@@ -107,23 +109,17 @@ def _int(text: str, what: str) -> int:
 #: The fewest steps an episode may have (``protocol.MIN_EPISODE_STEPS``): a catalog or eval split of
 #: shorter episodes fails every retrain.
 MIN_EPISODE_STEPS = protocol.MIN_EPISODE_STEPS
-#: The smallest frame a model trains and is evaluated on: the predictor takes multiples of 8
-#: (``uncertainty.model.PredictorConfig``) and SSIM needs an 11-pixel window (``uncertainty.metrics``);
-#: both modules import torch, which the parsers must not.
-MIN_TRAINABLE_SIZE = 16
-
-
-def trainable_size(size: int) -> bool:
-    """A frame size a model trains on: a multiple of 8 from ``MIN_TRAINABLE_SIZE`` to ``MAX_FRAME_SIZE``."""
-    return MIN_TRAINABLE_SIZE <= size <= protocol.MAX_FRAME_SIZE and size % 8 == 0
+#: The smallest frame a model trains and is evaluated on (``storage.records``, which holds the rule:
+#: ``trainable_size``), for the flags' help.
+MIN_TRAINABLE_SIZE = records.MIN_TRAINABLE_SIZE
 
 
 def trainable_image_size(text: str) -> int:
-    """A frame size to record or train at (``trainable_size``)."""
+    """A frame size to record or train at (``storage.records.trainable_size``)."""
     value = _int(text, "a size in pixels")
     if not trainable_size(value):
-        raise argparse.ArgumentTypeError(f"expected a multiple of 8 from {MIN_TRAINABLE_SIZE} to "
-                                         f"{protocol.MAX_FRAME_SIZE} (what a model trains on), found {value}")
+        raise argparse.ArgumentTypeError(f"expected {records.TRAINABLE_SIZES} (what a model trains on), "
+                                         f"found {value}")
     return value
 
 

@@ -273,6 +273,11 @@ def test_escaped_characters_outside_the_basic_plane_still_decode() -> None:
     assert p.decode('{"v": 1, "w": "\u00fc"}') == {"w": "\u00fc"}
 
 
+def test_the_wire_takes_the_frame_sizes_storage_does() -> None:
+    from storage import records  # this module imports nothing of ours; the test keeps them equal
+    assert (p.MIN_FRAME_SIZE, p.MAX_FRAME_SIZE) == (records.MIN_FRAME_SIZE, records.MAX_FRAME_SIZE)
+
+
 def test_the_fewest_steps_are_what_training_at_the_default_context_needs() -> None:
     from uncertainty.config import TrainConfig  # this module imports nothing of ours; the test keeps them equal
     assert p.MIN_EPISODE_STEPS == TrainConfig.context + 1

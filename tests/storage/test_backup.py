@@ -23,7 +23,7 @@ from storage.queue import NewRequest, RequestQueue
 from tests.conftest import REPO, run_cli, wait_for
 from tests.storage.test_episodes import make_episode
 
-SPLIT_PARAMS = {"image_size": 8}
+SPLIT_PARAMS = {"image_size": 16}
 
 
 @pytest.fixture

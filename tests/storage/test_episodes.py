@@ -34,10 +34,10 @@ from storage.errors import (
     StorageError,
     TruncatedEpisodeError,
 )
-from storage.records import STATE_DIM, STATE_FIELDS, Episode, EpisodeMeta
+from storage.records import STATE_DIM, STATE_FIELDS, Episode, EpisodeMeta, trainable_size
 
 
-def make_episode(rng: np.random.Generator, steps: int = 6, size: int = 8, shape: str = "T",
+def make_episode(rng: np.random.Generator, steps: int = 6, size: int = 16, shape: str = "T",
                  created: str = "2026-11-21T05:00:00+00:00", **meta_fields) -> Episode:
     """A synthetic episode (storage must not depend on the simulator)."""
     meta = EpisodeMeta(
@@ -135,10 +135,11 @@ def test_mcap_reader_sees_foxglove_raw_image(ep, data):
     decoded = {"/camera": [], "/action": [], "/state": []}
     for _schema, channel, message, obj in reader.iter_decoded_messages():
         decoded[channel.topic].append((message.log_time, obj))
+    size = ep.meta.image_size
     for t, (_, img) in enumerate(decoded["/camera"]):
-        assert (img.width, img.height, img.encoding, img.step) == (8, 8, "rgb8", 24)
+        assert (img.width, img.height, img.encoding, img.step) == (size, size, "rgb8", 3 * size)
         assert img.timestamp.ToNanoseconds() == t * 100_000_000
-        assert np.array_equal(np.frombuffer(img.data, np.uint8).reshape(8, 8, 3), ep.frames[t])
+        assert np.array_equal(np.frombuffer(img.data, np.uint8).reshape(size, size, 3), ep.frames[t])
     for t, (_, st) in enumerate(decoded["/state"]):
         assert [getattr(st, f) for f in STATE_FIELDS] == ep.states[t].tolist()
     assert [(a.x, a.y) for _, a in decoded["/action"]] == [tuple(r) for r in ep.actions.tolist()]
@@ -153,7 +154,8 @@ def test_camera_message_parses_like_protobufs_own(ep, data):
     reader = make_reader(io.BytesIO(data))
     _, _, msg = next(iter(reader.iter_messages(topics=["/camera"])))
     ours = RawImage.FromString(msg.data)
-    theirs = RawImage(frame_id="camera", width=8, height=8, encoding="rgb8", step=24,
+    size = ep.meta.image_size
+    theirs = RawImage(frame_id="camera", width=size, height=size, encoding="rgb8", step=3 * size,
                       data=ep.frames[0].tobytes())
     theirs.timestamp.FromNanoseconds(0)
     assert ours == theirs
@@ -461,3 +463,8 @@ def test_a_chunk_record_longer_than_its_index_says_is_refused(ep):
     struct.pack_into("<Q", data, at + 1, 1 << 62)
     with pytest.raises(CorruptEpisodeError, match=r"says it is 4611686018427387904 bytes long, its index"):
         episodes.read_episode(bytes(data))
+
+
+def test_a_model_trains_on_multiples_of_8_from_16_to_1024() -> None:
+    assert [s for s in range(-8, 2048) if trainable_size(s)] == list(range(16, 1025, 8))
+    assert not any(trainable_size(v) for v in (True, 16.0, "16", None))

@@ -9,10 +9,11 @@ import torch
 
 from storage.errors import CorruptCheckpointError, RegistryError
 from storage.models import ModelRegistry
-from storage.records import MAX_FRAME_SIZE
+from storage.records import MAX_FRAME_SIZE, MIN_TRAINABLE_SIZE, trainable_size
 from uncertainty.checkpoint import ensemble_from_bytes, ensemble_to_bytes, load_ensemble, save_candidate
 from uncertainty.ensemble import Ensemble
 from uncertainty.errors import CheckpointError, ConfigError
+from uncertainty.metrics import SSIM_WINDOW
 from uncertainty.model import MAX_IMAGE_SIZE, PredictorConfig
 
 CFG = PredictorConfig(image_size=16, widths=(4, 8, 8), action_hidden=8)
@@ -105,6 +106,14 @@ def test_the_predictors_largest_frame_is_the_catalogs():
     PredictorConfig(image_size=MAX_IMAGE_SIZE)
     with pytest.raises(ConfigError, match="image_size"):
         PredictorConfig(image_size=MAX_IMAGE_SIZE + 8)
+
+
+def test_every_size_storage_calls_trainable_is_one_the_predictor_and_ssim_take():
+    """``storage.records.trainable_size`` holds the rule; this package imports nothing of it."""
+    sizes = [s for s in range(MAX_FRAME_SIZE + 1) if trainable_size(s)]
+    assert sizes[0] == MIN_TRAINABLE_SIZE >= SSIM_WINDOW
+    for size in sizes:
+        PredictorConfig(image_size=size)
 
 
 def test_checkpoint_loads_with_weights_only():
