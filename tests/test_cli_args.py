@@ -147,6 +147,22 @@ def test_bad_arguments_exit_2_in_one_line(capsys, tmp_path, argv, words) -> None
     assert out == "" and not data.exists()
 
 
+@pytest.mark.parametrize("size", ["8", "12", "20", "1032"])
+def test_a_worker_refuses_a_size_no_model_trains_on(capsys, size) -> None:
+    """Its size becomes the catalog's when it uploads the first episode. Parsed only: a worker that got
+    through would wait for a service for ever."""
+    from orchestrator.cli import build_parser
+    from workers import agent
+    words = f"argument --size: expected a multiple of 8 from 16 to 1024 (what a model trains on), found {size}"
+    with pytest.raises(SystemExit) as exc:
+        build_parser().parse_args(["worker", "--size", size])
+    err = capsys.readouterr().err
+    assert exc.value.code == 2 and err == f"activecollect worker: error: {words}\n"
+    with pytest.raises(SystemExit) as exc:  # python -m workers.agent: argparse's own usage, then the error
+        agent.main(["--size", size])
+    assert exc.value.code == 2 and words in capsys.readouterr().err
+
+
 @pytest.mark.parametrize("argv, prog", [
     (["retrain", "--retrain-args", "x"], "activecollect retrain"),
     (["models", "show", "m1", "m2"], "activecollect models show"),
@@ -257,10 +273,12 @@ def test_serve_takes_no_timeout_it_would_ignore(capsys):
     assert "--timeout" not in run_cli(capsys, "serve", "--help")[1]
 
 
-def test_a_directory_made_at_a_size_or_length_no_flag_accepts_now_is_refused_without_naming_it(tmp_path, capsys):
+def test_a_directory_made_at_a_size_or_length_no_flag_accepts_now_is_refused_without_naming_it(tmp_path, capsys,
+                                                                                                 monkeypatch):
     # Older versions pinned splits of any size and length: "give --image-size 12" would be refused in turn.
     import numpy as np
 
+    import storage.catalog
     from orchestrator.loopconfig import RunConfig
     from storage.catalog import Catalog
     from workers.collect import collect_episode, create_eval_split
@@ -272,8 +290,10 @@ def test_a_directory_made_at_a_size_or_length_no_flag_accepts_now_is_refused_wit
     assert rc == 2 and "made with steps 2, which run does not make: give another --data" in err, err
     small = tmp_path / "small"
     catalog = Catalog(small)
-    catalog.add_episode(collect_episode(start_state=sample_state(np.random.default_rng(0), shape="T").to_dict(),
-                                        policy="push", seed=0, steps=4, image_size=12))
+    with monkeypatch.context() as m:  # today's catalog refuses a first episode of 12 px
+        m.setattr(storage.catalog, "_check_frame_size", lambda conn, meta: None)
+        catalog.add_episode(collect_episode(start_state=sample_state(np.random.default_rng(0), shape="T").to_dict(),
+                                            policy="push", seed=0, steps=4, image_size=12))
     rc, _, err = run_cli(capsys, "collect", "--data", str(small), "--size", "16", "--episodes", "1", "--steps", "4")
     assert rc == 2 and "holds 12px episodes, a size no model trains on: give another --data" in err, err
     assert catalog.count() == 1

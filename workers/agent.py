@@ -50,6 +50,7 @@ from orchestrator import messages, protocol, transport
 from orchestrator.messages import LeaseGrant
 from orchestrator.protocol import ErrorCode, Keys, ProtocolError
 from storage.episodes import encode_episode
+from storage.records import TRAINABLE_SIZES, trainable_size
 from workers.collect import collect_episode
 from workers.env import CONTROL_HZ
 
@@ -86,7 +87,8 @@ class WorkerConfig:
     shapes: tuple[str, ...] = ()
     """Object shapes this worker can do; empty means any."""
     image_size: int = 64
-    """Camera frame side in pixels when the grant names none (the service's catalog is still empty)."""
+    """Camera frame side in pixels when the grant names none (the service's catalog is still empty, and the
+    first upload fixes the size of every later one): a size a model trains on (``trainable_size``)."""
     max_episodes: int | None = None
     """Exit after uploading this many episodes (None: run until stopped)."""
     once: bool = False
@@ -116,8 +118,8 @@ class WorkerConfig:
             raise WorkerError(exc.message) from None
         if self.mode not in transport.MODES:
             raise WorkerError(f"mode: expected one of {transport.MODES}, found {self.mode!r}")
-        if not protocol.MIN_FRAME_SIZE <= self.image_size <= protocol.MAX_FRAME_SIZE:
-            raise WorkerError(f"image_size: expected {protocol.MIN_FRAME_SIZE}..{protocol.MAX_FRAME_SIZE} pixels, "
+        if not trainable_size(self.image_size):
+            raise WorkerError(f"image_size: expected {TRAINABLE_SIZES} pixels (what a model trains on), "
                               f"found {self.image_size}")
         if self.max_episodes is not None and self.max_episodes < 1:
             raise WorkerError(f"max_episodes: expected >= 1 or None, found {self.max_episodes}")
@@ -415,6 +417,17 @@ def parse_capabilities(text: str) -> tuple[tuple[str, ...], tuple[str, ...]]:
     return tasks, shapes
 
 
+def _frame_size(text: str) -> int:
+    """``--size``: a frame size a model trains on (the first upload fixes the catalog's)."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a size in pixels, found {text!r}") from None
+    if not trainable_size(value):
+        raise argparse.ArgumentTypeError(f"expected {TRAINABLE_SIZES} (what a model trains on), found {value}")
+    return value
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """The worker's flags."""
     transport.add_connection_args(parser, timeout=10.0)
@@ -423,9 +436,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help='what it can collect: "push:T,box", "T,box" or "push" (default: anything)')
     parser.add_argument("--once", action="store_true", help="handle at most one request, then exit")
     parser.add_argument("--max-episodes", type=int, default=None, metavar="N", help="exit after N uploads")
-    parser.add_argument("--size", type=int, default=64, metavar="PX",
-                        help="frame side in pixels while the service's catalog holds no episode yet (default 64); "
-                             "after that every grant names the catalog's size, which the worker records at")
+    parser.add_argument("--size", type=_frame_size, default=64, metavar="PX",
+                        help="frame side in pixels while the service's catalog holds no episode yet, "
+                             f"{TRAINABLE_SIZES} (default 64); after that every grant names the catalog's size, "
+                             "which the worker records at")
     parser.add_argument("--realtime", type=float, default=0.0, metavar="X",
                         help="pace episodes to X times real time (1.0 = steps / 10 Hz seconds; default 0 = flat out)")
     parser.add_argument("--log-level", default="INFO", choices=("DEBUG", "INFO", "WARNING", "ERROR"),

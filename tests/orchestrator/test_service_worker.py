@@ -39,6 +39,11 @@ def test_worker_config_is_validated() -> None:
         WorkerConfig(shapes=("hexagon",))
     with pytest.raises(WorkerError, match="image_size"):
         WorkerConfig(image_size=2)
+    for size in (8, 12, 20, 1032):  # its size becomes the catalog's when it uploads the first episode
+        with pytest.raises(WorkerError, match=rf"image_size: expected a multiple of 8 from 16 to 1024 pixels "
+                                              rf"\(what a model trains on\), found {size}"):
+            WorkerConfig(image_size=size)
+    assert WorkerConfig(image_size=16).image_size == 16
     assert WorkerConfig().worker_id  # <host>-<pid>
 
 
