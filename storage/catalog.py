@@ -42,7 +42,8 @@ from storage.database import (DB_NAME, EPISODES_DIR, QUARANTINE_DIR, Migration, 
                               refuse_lost_database, storage_error, transaction)
 from storage.errors import CatalogError, CorruptEpisodeError, EpisodeError, MissingEpisodeError, UnknownEpisodeError
 from storage.files import age_s, holds, move, publish, sha256_hex, stage_bytes
-from storage.records import MAX_FRAME_SIZE, MIN_FRAME_SIZE, Episode, EpisodeMeta
+from storage.records import (MAX_FRAME_SIZE, MIN_FRAME_SIZE, TRAINABLE_SIZES, Episode, EpisodeMeta,
+                             trainable_size)
 
 #: Splits an episode can belong to. ``eval`` episodes never enter a training snapshot.
 SPLITS: tuple[str, ...] = ("train", "eval")
@@ -232,11 +233,16 @@ def _frame_size(conn: sqlite3.Connection) -> tuple[int, str] | None:
 
 def _check_frame_size(conn: sqlite3.Connection, meta: EpisodeMeta) -> None:
     """Every episode of a catalog has one frame size (``_frame_size``): the models train on, and score,
-    one size, so one other episode would fail every retrain. Raises ``CatalogError``."""
+    one size, so one other episode would fail every retrain. The episode that fixes it must be one a model
+    trains on (``trainable_size``); a catalog fixed at another size before that rule keeps its size.
+    Raises ``CatalogError``."""
     if not MIN_FRAME_SIZE <= meta.image_size <= MAX_FRAME_SIZE:
         raise CatalogError(f"episode {meta.episode_id} has {meta.image_size}px frames; expected "
                            f"{MIN_FRAME_SIZE}..{MAX_FRAME_SIZE} (what the simulator renders and workers record)")
     fixed = _frame_size(conn)
+    if fixed is None and not trainable_size(meta.image_size):
+        raise CatalogError(f"episode {meta.episode_id} has {meta.image_size}px frames; the first episode fixes "
+                           f"this catalog's frame size, which must be {TRAINABLE_SIZES} (what a model trains on)")
     if fixed is not None and fixed[0] != meta.image_size:
         raise CatalogError(f"episode {meta.episode_id} has {meta.image_size}px frames; this catalog holds "
                            f"{fixed[0]}px episodes ({fixed[1]}): its models train and score one size")

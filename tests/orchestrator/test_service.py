@@ -261,6 +261,23 @@ def test_an_upload_of_another_frame_size_than_the_catalogs_is_refused(service, c
     assert Catalog(data_dir).count() == 1 and service.queue.get(grant.request_id).status == RequestStatus.LEASED
 
 
+def test_a_first_upload_at_a_size_no_model_trains_on_is_refused_and_changes_nothing(service, client, keys,
+                                                                                   data_dir) -> None:
+    """It would fix the empty catalog's size (a worker from before ``--size`` was checked can send one)."""
+    service.queue.enqueue(new_request())
+    grant = lease(client, keys, image_size=12)
+    assert grant.image_size == 0  # an empty catalog: the worker's own size
+    message = refused(ErrorCode.BAD_FIELD, upload, client, keys, grant, episode_bytes(grant, size=12))
+    assert "12px frames; the first episode fixes this catalog's frame size, which must be a multiple of 8 " \
+           "from 16 to 1024" in message, message
+    catalog = Catalog(data_dir)
+    assert catalog.count() == 0 and catalog.frame_size() is None
+    assert [p for p in catalog.episodes_dir.rglob("*") if p.is_file()] == []
+    assert service.queue.get(grant.request_id).status == RequestStatus.LEASED
+    assert "duplicate" not in upload(client, keys, grant, episode_bytes(grant))  # 16 px still goes in
+    assert catalog.frame_size() == 16
+
+
 def test_an_upload_that_would_inflate_past_what_the_request_needs_is_refused_before(service, client, keys,
                                                                                     data_dir) -> None:
     for _ in range(2):
