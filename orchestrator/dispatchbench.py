@@ -64,7 +64,7 @@ from storage.catalog import Catalog
 from storage.episodes import encode_episode
 from storage.queue import RequestQueue
 from storage.requests import NewRequest
-from storage.records import Episode, EpisodeMeta
+from storage.records import MIN_TRAINABLE_SIZE, Episode, EpisodeMeta
 
 _START = {"shape": "box", "agent": [100.0, 100.0], "agent_vel": [0.0, 0.0], "object": [256.0, 256.0, 0.0],
           "object_vel": [0.0, 0.0, 0.0], "physics": {"mass": 1.0, "friction": 0.6, "ground_friction": 1.0}}
@@ -239,10 +239,11 @@ def _raw_server(endpoint: str) -> Iterator[tuple[zenoh.Session, Cycle]]:
 
 
 def _tiny_episode(request_id: str, worker_id: str, token: int = 1) -> bytes:
+    size = MIN_TRAINABLE_SIZE  # the first upload fixes the catalog's frame size: the smallest one it takes
     meta = EpisodeMeta(episode_id=uuid.uuid4().hex, task="push", shape="box", physics=dict(_START["physics"]),
                        seed=messages.request_seed(request_id, token), policy="push", start_state=dict(_START),
-                       image_size=8, request_id=request_id, worker_id=worker_id)
-    return encode_episode(Episode(meta, np.zeros((2, 8, 8, 3), np.uint8), np.zeros((2, 2), np.float32),
+                       image_size=size, request_id=request_id, worker_id=worker_id)
+    return encode_episode(Episode(meta, np.zeros((2, size, size, 3), np.uint8), np.zeros((2, 2), np.float32),
                                   np.zeros((2, 11), np.float64)))
 
 
