@@ -4,13 +4,19 @@ Layout::
 
     DATA/catalog.sqlite                       this index, plus other components' tables
     DATA/episodes/<yyyy-mm-dd>/<episode_id>.mcap
+    DATA/quarantine/<yyyy-mm-dd>/<episode_id>.mcap   files taken out of training (``Catalog.quarantine``)
+    DATA/orphans/...                          episode files no row indexes, moved aside (``sweep_strays``)
 
 Ingest is idempotent (the same file twice is one episode) and atomic: the file is
 verified, staged under a temporary name and fsynced outside any lock; then, inside
 one ``BEGIN IMMEDIATE`` transaction, it is renamed into place, its row inserted and
 the caller's ``in_transaction`` hook run. Any failure removes the renamed file before
-the write lock is released, so no row ever points at a missing file and no other
-ingest can have claimed the name in between.
+the write lock is released, so an ingest never leaves a row without its file and no
+other ingest can have claimed the name in between. (A quarantined episode keeps its row
+while its file is away, or gone: ``quarantine`` records where it went.)
+
+A catalog holds one frame size, its eval split's, else its first episode's; that first
+episode must be of a size a model trains on (``storage.records.trainable_size``).
 
 Other components (``storage.queue``, ``storage.models``) keep their tables in the
 same file (``storage.database``).

@@ -1,4 +1,5 @@
-"""CLI: ``collect``, ``episodes ls|show|verify``, ``ingest``, ``eval-split create|show``, ``backup``, ``bench sim``."""
+"""CLI: ``collect``, ``episodes ls|show|verify|quarantine|restore``, ``ingest``, ``eval-split create|show``,
+``backup``, ``bench sim``."""
 
 from __future__ import annotations
 
