@@ -246,9 +246,10 @@ class ActivePlannerConfig:
     """How many recent episodes per policy its score is the mean over."""
     within_policy: bool = False
     """Rank each step against the steps of its own collection policy: its score divided by the mean
-    score of that policy's episodes in the batch being planned. A policy that moves more makes every
-    member err more (random waypoints: ~2x the disagreement of a push), but a request draws its policy
-    afresh, so what it can buy is the state; an experiment, off by default."""
+    score of the recent episodes of that policy (the last ``policy_window`` scored by the current
+    champion, these included), so the requests' ``score`` and ``threshold`` are ratios to it. A policy
+    that moves more makes every member err more (random waypoints: ~2x the disagreement of a push), but
+    a request draws its policy afresh, so what it can buy is the state; an experiment, off by default."""
 
     def __post_init__(self) -> None:
         if not 0.0 <= self.percentile < 100.0:
@@ -337,7 +338,9 @@ class ActivePlanner:
         self._requested: deque[np.ndarray] = deque(maxlen=cfg.memory)
         self._requested_steps: set[tuple[str, int]] = set()
         self.threshold = math.nan
-        self._policy_scores = {name: deque(maxlen=cfg.policy_window) for name in MIX_POLICIES}
+        # per policy, the mean scores of its recent episodes under the current champion (any policy an
+        # episode was collected with; choose_policy looks at MIX_POLICIES only)
+        self._policy_scores: dict[str, deque[float]] = {}
         self._policy_version = ""
 
     def seed(self, n: int, why: str = "seed") -> list[NewRequest]:
@@ -361,7 +364,7 @@ class ActivePlanner:
         if any(s is None for _, s in scored):
             return [self.uniform.draw_request("seed") for _ in range(min(budget, len(new_episodes)))]
         scored = self._one_version(scored)
-        if self.cfg.choose_policy:
+        if self.cfg.choose_policy or self.cfg.within_policy:
             self._update_policy_scores(scored)
         n_explore = int(round(budget * self.cfg.explore_fraction))
         versions = {id(ep): s.model_version for ep, s in scored}
@@ -395,7 +398,7 @@ class ActivePlanner:
             self._recent.clear()
             self._recent_version = version
         if self.cfg.within_policy:
-            scored = relative_to_policy(scored)
+            scored = relative_to_policy(scored, self.policy_means())
         for _, s in scored:
             self._recent.extend(float(v) for v in s.per_step if np.isfinite(v))
         if not self._recent:
@@ -412,20 +415,24 @@ class ActivePlanner:
         """Each new episode's mean score goes to its policy's recent scores (reset on a new champion)."""
         version = scored[-1][1].model_version
         if version != self._policy_version:  # another champion's scores are on another scale
-            for recent in self._policy_scores.values():
-                recent.clear()
+            self._policy_scores.clear()
             self._policy_version = version
         for ep, s in scored:
             finite = s.per_step[np.isfinite(s.per_step)]
-            if ep.meta.policy in self._policy_scores and finite.size:
-                self._policy_scores[ep.meta.policy].append(float(finite.mean()))
+            if finite.size:
+                recent = self._policy_scores.setdefault(ep.meta.policy, deque(maxlen=self.cfg.policy_window))
+                recent.append(float(finite.mean()))
+
+    def policy_means(self) -> dict[str, float]:
+        """Per policy, the mean score of its recent episodes under the current champion (those scored)."""
+        return {n: float(np.mean(r)) for n, r in self._policy_scores.items() if r}
 
     def policy_weights(self) -> dict[str, float]:
         """Probability of each policy for the next active request (the shared mix's while nothing is scored).
 
         A policy not yet scored under the current champion counts as the best scored one, so it is tried.
         """
-        means = {n: float(np.mean(r)) for n, r in self._policy_scores.items() if r}
+        means = {n: m for n, m in self.policy_means().items() if n in MIX_POLICIES}
         if not self.cfg.choose_policy or not means or max(means.values()) <= 0:
             w = self.cfg.seed_uniform.policies.push_weight
             return {"push": w, "random_waypoints": 1.0 - w}
@@ -465,6 +472,8 @@ class ActivePlanner:
         scale = self.threshold if self.threshold > 0 else 1.0
         reason = {"model_version": model_version, "score": cand.score, "source_episode": ep.meta.episode_id,
                   "step": step, "planner": "active", "threshold": self.threshold}
+        if self.cfg.within_policy:
+            reason["within_policy"] = True  # score and threshold are ratios to the policy's mean
         if self.cfg.choose_policy:
             reason["policy_weights"] = {n: round(w, 4) for n, w in self.policy_weights().items()}
         return NewRequest(
@@ -476,17 +485,13 @@ class ActivePlanner:
         )
 
 
-def relative_to_policy(scored: Sequence[tuple[Episode, Scores]]) -> list[tuple[Episode, Scores]]:
-    """Each episode's scores divided by the mean finite score of the episodes collected with its policy
-    (in ``scored``); an episode whose policy's mean is not positive keeps its scores."""
-    by_policy: dict[str, list[np.ndarray]] = {}
-    for ep, s in scored:
-        by_policy.setdefault(ep.meta.policy, []).append(s.per_step[np.isfinite(s.per_step)])
-    means = {name: float(np.concatenate(parts).mean()) if any(p.size for p in parts) else math.nan
-             for name, parts in by_policy.items()}
+def relative_to_policy(scored: Sequence[tuple[Episode, Scores]],
+                       means: dict[str, float]) -> list[tuple[Episode, Scores]]:
+    """Each episode's scores divided by ``means`` of its policy; an episode whose policy has no positive
+    mean there keeps its scores."""
     out = []
     for ep, s in scored:
-        mean = means[ep.meta.policy]
+        mean = means.get(ep.meta.policy, math.nan)
         out.append((ep, Scores(s.model_version, s.per_step / mean) if mean > 0 else s))
     return out
 

@@ -317,14 +317,25 @@ def test_within_policy_ranks_steps_against_their_own_policy():
     assert within == ["push"] * 4
     assert not ActivePlannerConfig().within_policy
 
-    # the helper itself: each policy's mean finite score becomes 1; a policy with nothing finite is left alone
+    # one episode at a time, as the service plans each upload: the surprising push is measured against
+    # the pushes before it, not against itself
+    planner = ActivePlanner(acfg(**cfg, within_policy=True), scorer, np.random.default_rng(0))
+    best = {}
+    for ep in eps:
+        reqs = planner.plan([ep])
+        best[ep.meta.episode_id] = max((r.reason["score"] for r in reqs), default=0.0)
+        assert all(r.reason["within_policy"] for r in reqs)
+    assert planner.policy_means() == pytest.approx({"push": 1.5 * 1.095, "random_waypoints": 5.0 * 1.08 * 1.095})
+    surprising = eps[6].meta.episode_id
+    assert best[surprising] > 1.5 * max(v for k, v in best.items() if k != surprising)
+
+    # the function itself: scores over their policy's mean; a policy without a positive mean is left alone
     scores = [(with_policy(eps[0], "push"), Scores("m1", np.array([np.nan, 2.0, 4.0]))),
-              (with_policy(eps[1], "push"), Scores("m1", np.array([6.0, np.nan]))),
-              (with_policy(eps[2], "random_waypoints"), Scores("m1", np.array([np.nan, np.nan])))]
-    out = relative_to_policy(scores)
+              (with_policy(eps[2], "random_waypoints"), Scores("m1", np.array([1.0, np.nan]))),
+              (with_policy(eps[4], "scripted"), Scores("m1", np.array([3.0])))]
+    out = relative_to_policy(scores, {"push": 4.0, "random_waypoints": 0.0})
     assert np.allclose(out[0][1].per_step, [np.nan, 0.5, 1.0], equal_nan=True)
-    assert np.allclose(out[1][1].per_step, [1.5, np.nan], equal_nan=True)
-    assert out[2][1] is scores[2][1]
+    assert out[1][1] is scores[1][1] and out[2][1] is scores[2][1]
 
 
 def test_a_round_left_short_is_filled_to_its_end_not_by_a_whole_round():
