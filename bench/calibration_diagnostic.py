@@ -11,13 +11,13 @@ Prints the Spearman correlations between them. Inference only.
 
 from __future__ import annotations
 
-import argparse
 import json
 from pathlib import Path
 
 import numpy as np
 import torch
 
+from orchestrator.cli.common import Parser
 from storage.catalog import Catalog
 from storage.database import DB_NAME
 from storage.models import ModelRegistry
@@ -72,7 +72,7 @@ def diagnose(data: Path, version: str | None = None, batch: int = 64) -> dict:
 
 
 def main() -> None:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p = Parser(description=__doc__.splitlines()[0])
     p.add_argument("--data", type=Path, required=True, help="a data directory with an eval split and models")
     p.add_argument("--version", help="model version (default: the champion)")
     args = p.parse_args()

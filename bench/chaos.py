@@ -50,6 +50,7 @@ from pathlib import Path
 
 import numpy as np
 
+from orchestrator.cli.common import Parser
 from storage.catalog import ORPHANS_DIR, STAGING_MAX_AGE_S
 from storage.database import DB_NAME
 
@@ -401,7 +402,7 @@ def summarize(chaos: Chaos) -> dict:
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = Parser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--data", type=Path, required=True, metavar="DIR",
                    help="new or empty directory: the service's data directory (process logs in DATA/chaos-logs/)")
     p.add_argument("--requests", type=int, default=150, metavar="N", help="requests to enqueue (default 150)")

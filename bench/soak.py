@@ -44,7 +44,9 @@ from pathlib import Path
 import numpy as np
 
 from chaos import ACTIVECOLLECT, Cluster, check_episode_rows, check_files, free_port, log, read_rows, request_counts
+from orchestrator.cli.common import Parser, trainable_image_size
 from storage.database import DB_NAME
+from storage.records import TRAINABLE_SIZES
 
 RETRAIN_ARGS = ("--members 3 --epochs 2 --widths 8,16,32 --batch-size 16 --max-windows 1500 --from-champion "
                 "--device cpu --min-improvement 0.005")
@@ -252,7 +254,7 @@ def summarize(soak: Soak, elapsed: float) -> dict:
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = Parser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--data", type=Path, required=True, metavar="DIR",
                    help="new or empty directory: the service's data directory (process logs in DATA/chaos-logs/)")
     p.add_argument("--minutes", type=float, default=30.0, help="how long the loop runs (default 30)")
@@ -260,7 +262,8 @@ def main(argv=None) -> int:
                    help="growth is judged after this (default a fifth of --minutes)")
     p.add_argument("--interval", type=float, default=15.0, metavar="S", help="seconds between samples (default 15)")
     p.add_argument("--workers", type=int, default=2, help="worker processes (default 2)")
-    p.add_argument("--size", type=int, default=32, metavar="PX", help="frame size (default 32)")
+    p.add_argument("--size", type=trainable_image_size, default=32, metavar="PX",
+                   help=f"frame size, {TRAINABLE_SIZES} (default 32)")
     p.add_argument("--steps", type=int, default=30, help="steps per episode (default 30)")
     p.add_argument("--eval-episodes", type=int, default=8, help="episodes in the eval split (default 8)")
     p.add_argument("--realtime", type=float, default=1.0, metavar="X",

@@ -21,7 +21,6 @@ Usage: .venv/bin/python bench/uncertainty_figures.py --data /tmp/figs [--train-e
 
 from __future__ import annotations
 
-import argparse
 import json
 import sys
 import time
@@ -30,8 +29,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from orchestrator.cli.common import Parser, trainable_image_size
 from storage.catalog import Catalog
 from storage.models import ModelRegistry
+from storage.records import TRAINABLE_SIZES
 from uncertainty.benchmark import run_score_bench
 from uncertainty import metrics as M
 from uncertainty.checkpoint import load_ensemble
@@ -226,11 +227,11 @@ def _moving_variance(ens, ep) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p = Parser(description=__doc__.splitlines()[0])
     p.add_argument("--data", type=Path, required=True)
     p.add_argument("--train-episodes", type=int, default=80)
     p.add_argument("--steps", type=int, default=50)
-    p.add_argument("--image-size", type=int, default=64)
+    p.add_argument("--image-size", type=trainable_image_size, default=64, help=f"frame size, {TRAINABLE_SIZES}")
     p.add_argument("--members", type=int, default=5)
     p.add_argument("--epochs", type=int, default=4)
     p.add_argument("--batch-size", type=int, default=16)
@@ -247,7 +248,7 @@ def main(argv=None) -> int:
     p.add_argument("--ood-train-episodes", type=int, default=80)
     p.add_argument("--ood-epochs", type=int, default=40)
     p.add_argument("--ood-test-episodes", type=int, default=8)
-    p.add_argument("--ood-image-size", type=int, default=32, help="frame size of the OOD check")
+    p.add_argument("--ood-image-size", type=trainable_image_size, default=32, help="frame size of the OOD check")
     p.add_argument("--ood-batch-size", type=int, default=32)
     p.add_argument("--ood-lr", type=float, default=2e-3)
     p.add_argument("--ood-bootstrap", action="store_true", help="members train on bootstrap resamples")

@@ -11,6 +11,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 from orchestrator.planner import ActivePlannerConfig, PolicyMix, UniformPlannerConfig
+from storage.records import TRAINABLE_SIZES, trainable_size
 from uncertainty.config import TrainConfig
 
 
@@ -58,9 +59,11 @@ class RunConfig:
         self.data_dir = Path(self.data_dir)
         if self.planner not in ("active", "uniform"):
             raise ValueError(f"planner must be active or uniform, found {self.planner!r}")
-        for name in ("budget", "round_episodes", "workers", "steps", "image_size", "eval_episodes"):
+        for name in ("budget", "round_episodes", "workers", "steps", "eval_episodes"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, found {getattr(self, name)}")
+        if not trainable_size(self.image_size):
+            raise ValueError(f"image_size must be {TRAINABLE_SIZES}, found {self.image_size}")
         if self.dashboard_port < -1 or self.dashboard_port > 65535:
             raise ValueError(f"dashboard_port must be -1 (off), 0 (any) or a port, found {self.dashboard_port}")
 
@@ -121,6 +124,8 @@ class LoopBenchConfig:
         if self.round_episodes < 1 or self.budget < 2 * self.round_episodes:
             raise ValueError(f"need round_episodes >= 1 and budget >= 2 rounds, found round_episodes="
                              f"{self.round_episodes}, budget={self.budget}")
+        if not trainable_size(self.image_size):
+            raise ValueError(f"image_size must be {TRAINABLE_SIZES}, found {self.image_size}")
         if self.signal not in SIGNALS or self.signal_horizon < 1:
             raise ValueError(f"signal must be one of {SIGNALS} and signal_horizon >= 1, found "
                              f"{self.signal!r} and {self.signal_horizon}")

@@ -98,7 +98,7 @@ class UploadHandler:
             raise self._reject(ProtocolError(ErrorCode.CORRUPT_EPISODE, str(exc)), header) from exc
         except StorageUnavailableError as exc:  # a full disk: nothing stored; the worker sends the same bytes again
             raise self._reject(ProtocolError(ErrorCode.UNAVAILABLE, str(exc)), header) from exc
-        except StorageError as exc:  # CatalogError: the id is indexed with other bytes
+        except StorageError as exc:  # CatalogError: the id is indexed with other bytes, or a frame size it refuses
             raise self._reject(ProtocolError(ErrorCode.BAD_FIELD, str(exc)), header) from exc
         if result.duplicate:  # indexed before: by a racing identical upload, or for another request
             if self._is_duplicate(self.queue.get(header.request_id), header):

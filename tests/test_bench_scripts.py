@@ -74,3 +74,15 @@ def test_zenoh_cap_bench_drops_over_the_cap_and_passes_under_zenohs_default(tmp_
     assert not result["capped"]["handler_saw_big"] and result["capped"]["small_reply"] == "12"
     assert result["zenoh_default"]["handler_saw_big"] and result["zenoh_default"]["big_reply"] == str(70 << 20)
     assert result["capped"]["receiver_peak_mib_after"] < result["zenoh_default"]["receiver_peak_mib_after"]
+
+
+@pytest.mark.parametrize("script, flag", [("soak.py", "--size"), ("uncertainty_figures.py", "--image-size"),
+                                          ("uncertainty_figures.py", "--ood-image-size")])
+def test_figure_scripts_refuse_a_frame_size_no_model_trains_on_in_one_line(tmp_path, script, flag):
+    data = tmp_path / "data"
+    proc = subprocess.run([sys.executable, str(ROOT / "bench" / script), "--data", str(data), flag, "12"],
+                          cwd=ROOT, capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 2
+    assert proc.stderr.splitlines() == [f"{script}: error: argument {flag}: expected a multiple of 8 from 16 to "
+                                        "1024 (what a model trains on), found 12"]
+    assert not data.exists()  # refused before anything was made

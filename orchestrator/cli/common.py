@@ -109,9 +109,6 @@ def _int(text: str, what: str) -> int:
 #: The fewest steps an episode may have (``protocol.MIN_EPISODE_STEPS``): a catalog or eval split of
 #: shorter episodes fails every retrain.
 MIN_EPISODE_STEPS = protocol.MIN_EPISODE_STEPS
-#: The smallest frame a model trains and is evaluated on (``storage.records``, which holds the rule:
-#: ``trainable_size``), for the flags' help.
-MIN_TRAINABLE_SIZE = records.MIN_TRAINABLE_SIZE
 
 
 def trainable_image_size(text: str) -> int:

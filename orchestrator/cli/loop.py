@@ -30,7 +30,7 @@ from orchestrator.protocol import one_line
 from storage.catalog import Catalog
 from storage.errors import StorageError
 from storage.requests import Request
-from storage.records import Episode
+from storage.records import TRAINABLE_SIZES, Episode
 from uncertainty.config import TrainConfig
 from uncertainty.errors import ConfigError, UncertaintyError
 # The CLI is the composition root: it alone hands the simulator to the orchestrator's loops.
@@ -93,7 +93,7 @@ def _add_episode_args(p: argparse.ArgumentParser, steps: int, image_size: int) -
                    help=f"steps per episode, of the training episodes and of the eval split's (at least "
                         f"{common.MIN_EPISODE_STEPS}; default {steps})")
     p.add_argument("--image-size", type=common.trainable_image_size, default=image_size, metavar="PX",
-                   help=f"frame size in pixels, a multiple of 8 from {common.MIN_TRAINABLE_SIZE} (default {image_size})")
+                   help=f"frame size in pixels, {TRAINABLE_SIZES} (default {image_size})")
 
 
 def register_bench(bench: argparse._SubParsersAction) -> None:

@@ -11,6 +11,7 @@ import pytest
 import torch
 
 from orchestrator.loopbench import ARMS, OBJECT_COLOURS, LoopBenchConfig, _bench_id, episodes_to_reach, summarize
+from orchestrator.loopconfig import RunConfig
 from orchestrator.protocol import PHYSICS_RANGES
 from storage.catalog import Catalog
 from storage.records import Episode, EpisodeMeta
@@ -73,6 +74,15 @@ def test_active_policy_and_within_policy_reach_only_the_active_arms_planner():
     assert cfg.active.choose_policy and cfg.to_json()["active"]["choose_policy"]
     assert cfg.active.within_policy and cfg.to_json()["within_policy"]
     assert cfg.uniform_config().policies == cfg.policies  # the uniform arm keeps the mix
+
+
+@pytest.mark.parametrize("size", [8, 12, 20, 1032])
+def test_both_loop_configs_refuse_a_frame_size_no_model_trains_on(tmp_path, size):
+    with pytest.raises(ValueError, match=f"image_size must be a multiple of 8 from 16 to 1024, found {size}"):
+        LoopBenchConfig(image_size=size)
+    with pytest.raises(ValueError, match=f"image_size must be a multiple of 8 from 16 to 1024, found {size}"):
+        RunConfig(data_dir=tmp_path, image_size=size)
+    assert LoopBenchConfig(image_size=24).image_size == RunConfig(data_dir=tmp_path, image_size=24).image_size == 24
 
 
 def test_random_physics_reaches_the_uniform_arm_and_the_seeds():
