@@ -171,7 +171,8 @@ def test_connections_over_the_cap_get_503_and_the_cap_frees_as_they_close(stores
         wait_for(lambda: status_or_none(dash.url + "api/workers") == 200, message="a GET once the idle ones closed")
 
 
-def test_a_client_that_resets_mid_request_gives_its_slot_back(stores, capfd):
+def test_a_client_that_resets_mid_request_gives_its_slot_back(stores, capfd, caplog):
+    caplog.set_level("DEBUG", logger="orchestrator.dashboard")
     with serving(stores[0], max_connections=1, request_timeout_s=60) as dash:
         vanishing = _raw_http(dash.url, b"GET /api/stats HTTP/1.0\r\nX-Partial: ")  # takes the one slot
         with socket.create_connection(vanishing.getpeername(), timeout=5) as extra:
@@ -180,6 +181,8 @@ def test_a_client_that_resets_mid_request_gives_its_slot_back(stores, capfd):
         vanishing.close()  # linger 0: a reset, so the handler's read raises rather than ends
         wait_for(lambda: status_or_none(dash.url + "api/workers") == 200, message="a GET after the reset")
     assert "Traceback" not in capfd.readouterr().err  # a client going away is no error of ours
+    assert not [r for r in caplog.records if r.levelname == "ERROR"]
+    assert any("went away" in r.getMessage() and r.levelname == "DEBUG" for r in caplog.records)
 
 
 def test_a_failure_of_ours_is_logged_with_its_traceback_and_a_client_going_away_is_not(stores, caplog):
