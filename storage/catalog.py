@@ -13,7 +13,7 @@ one ``BEGIN IMMEDIATE`` transaction, it is renamed into place, its row inserted 
 the caller's ``in_transaction`` hook run. Any failure removes the renamed file before
 the write lock is released, so an ingest never leaves a row without its file and no
 other ingest can have claimed the name in between. (A quarantined episode keeps its row
-while its file is away, or gone: ``quarantine`` records where it went.)
+while its file is away, or gone: ``quarantine`` records where it went, see ``storage.quarantine``.)
 
 A catalog holds one frame size, its eval split's, else its first episode's; that first
 episode must be of a size a model trains on (``storage.records.trainable_size``).
@@ -33,7 +33,7 @@ from collections.abc import Callable, Sequence
 from contextlib import AbstractContextManager, nullcontext
 from dataclasses import asdict, dataclass, field
 from datetime import datetime, timezone
-from pathlib import Path, PurePosixPath
+from pathlib import Path
 from typing import Any
 
 from storage.episodes import (
@@ -44,10 +44,13 @@ from storage.episodes import (
     read_file,
     verify_episode,
 )
-from storage.database import (DB_NAME, EPISODES_DIR, QUARANTINE_DIR, Migration, connection, ensure_schema,
-                              refuse_lost_database, storage_error, transaction)
+from storage.database import (DB_NAME, EPISODES_DIR, Migration, connection, ensure_schema, refuse_lost_database,
+                              storage_error, transaction)
 from storage.errors import CatalogError, CorruptEpisodeError, EpisodeError, MissingEpisodeError, UnknownEpisodeError
 from storage.files import age_s, holds, move, publish, sha256_hex, stage_bytes
+# (named apart from the method Catalog.quarantine, which calls it)
+from storage import quarantine as quarantines
+from storage.quarantine import quarantine_path
 from storage.records import (MAX_FRAME_SIZE, MIN_FRAME_SIZE, TRAINABLE_SIZES, Episode, EpisodeMeta,
                              trainable_size)
 
@@ -86,22 +89,13 @@ _CATALOG_MIGRATIONS: tuple[Migration, ...] = (
         """CREATE TABLE IF NOT EXISTS eval_split_members (
             episode_id TEXT PRIMARY KEY REFERENCES episodes(episode_id))""",
     )),
-    # Episodes taken out of training (see Catalog.quarantine); moved_to '' when the file was already gone.
-    # Not for version-1 code, which would ignore the table: snapshot quarantined episodes for training
-    # (their files are gone) and let them be pinned in the eval split.
-    Migration((
-        """CREATE TABLE IF NOT EXISTS quarantine (
-            episode_id TEXT PRIMARY KEY REFERENCES episodes(episode_id),
-            reason TEXT NOT NULL,
-            moved_to TEXT NOT NULL,
-            at REAL NOT NULL)""",
-    ), compatible_with=2),
+    # The quarantine table (storage.quarantine). Not for version-1 code, which would ignore the table:
+    # snapshot quarantined episodes for training (their files are gone) and let them be pinned in the eval split.
+    Migration((quarantines.TABLE,), compatible_with=2),
 )
 #: Every catalog query of episode rows: the row and, when it is quarantined, why.
 _FROM_ROWS = "episodes e LEFT JOIN quarantine q USING (episode_id)"
 _SELECT_ROWS = f"SELECT e.*, q.reason AS quarantined FROM {_FROM_ROWS}"
-#: A quarantine reason is kept to one line of at most this many characters.
-MAX_REASON_CHARS = 500
 
 
 def _now_iso() -> str:
@@ -252,13 +246,6 @@ def _check_frame_size(conn: sqlite3.Connection, meta: EpisodeMeta) -> None:
     if fixed is not None and fixed[0] != meta.image_size:
         raise CatalogError(f"episode {meta.episode_id} has {meta.image_size}px frames; this catalog holds "
                            f"{fixed[0]}px episodes ({fixed[1]}): its models train and score one size")
-
-
-def quarantine_path(rel: str) -> str:
-    """Where ``Catalog.quarantine`` keeps the file of the episode indexed at ``rel`` (relative to the data
-    directory): one place per episode, so a quarantine a crash cut short is found again."""
-    path = PurePosixPath(rel)
-    return f"{QUARANTINE_DIR}/{path.parent.name}/{path.name}"
 
 
 def _check_split(split: str) -> None:
@@ -440,10 +427,7 @@ class Catalog:
             staged = stage_bytes(known.path, data)
             with self._connect() as conn, transaction(conn):
                 publish(staged, known.path)
-                conn.execute("DELETE FROM quarantine WHERE episode_id = ?", (known.episode_id,))
-                kept = self._kept(known)
-                if holds(kept, sha):
-                    kept.unlink()  # the same bytes are in place: no copy left behind to take up space
+                quarantines.readmit(conn, known.episode_id, self._kept(known), sha)
         except OSError as exc:
             raise storage_error(exc, CatalogError, f"cannot restore episode {known.episode_id} at {known.path}: "
                                 f"{exc.strerror or exc}", known.path) from exc
@@ -533,7 +517,7 @@ class Catalog:
         with self._connect() as conn:
             rows = conn.execute("SELECT split, shape, COUNT(*) AS n, SUM(frames) AS frames, "
                                 "SUM(size_bytes) AS bytes FROM episodes GROUP BY split, shape").fetchall()
-            quarantined = conn.execute("SELECT COUNT(*) FROM quarantine").fetchone()[0]
+            quarantined = quarantines.count(conn)
         out: dict[str, Any] = {"episodes": 0, "frames": 0, "bytes": 0, "by_split": {}, "by_shape": {},
                                "quarantined": quarantined}
         for r in rows:
@@ -559,7 +543,7 @@ class Catalog:
             if heal and not row.quarantined:
                 try:
                     with self._connect() as conn, transaction(conn):
-                        healed = self._heal(conn, row)
+                        healed = quarantines.heal(conn, row, self._kept(row))
                 except OSError as exc:
                     raise EpisodeError(f"{row.path}: cannot move it back from quarantine: {exc}") from exc
                 if healed:
@@ -627,33 +611,21 @@ class Catalog:
         lock is ours (a repair that came in between wins); the row returned then is not quarantined.
 
         The file moves inside the write transaction and back if it does not commit; after a crash in
-        between, the next read of the episode moves it back (``_heal``).
+        between, the next read of the episode moves it back (``storage.quarantine.heal``).
         """
-        reason = " ".join(str(reason).split())[:MAX_REASON_CHARS]
-        if not reason:
-            raise CatalogError("a quarantine needs a reason")
+        reason = quarantines.clean_reason(reason)
         row = self.get(episode_id)
         kept = self._kept(row)
         moved = False
         try:
             try:
                 with self._connect() as conn, transaction(conn):
-                    if conn.execute("SELECT 1 FROM eval_split_members WHERE episode_id = ?",
-                                    (row.episode_id,)).fetchone():
-                        raise CatalogError(f"episode {row.episode_id} is in the pinned eval split, which cannot "
-                                           "change: restore its file instead (ingest its bytes again, e.g. from "
-                                           "a backup)")
-                    if conn.execute("SELECT 1 FROM quarantine WHERE episode_id = ?", (row.episode_id,)).fetchone():
+                    quarantines.refuse_pinned(conn, row.episode_id)
+                    if quarantines.is_quarantined(conn, row.episode_id):
                         return self.get(row.episode_id)  # another process's quarantine, committed
                     if only_if_damaged and holds(row.path, row.sha256):
                         return row
-                    copy_kept = holds(kept, row.sha256)  # e.g. a quarantine a crash cut short
-                    present = row.path.exists()
-                    conn.execute("INSERT INTO quarantine(episode_id, reason, moved_to, at) VALUES (?, ?, ?, ?)",
-                                 (row.episode_id, reason,
-                                  kept.relative_to(self.data_dir).as_posix() if present or copy_kept else "",
-                                  time.time()))
-                    if present and not copy_kept:
+                    if quarantines.record(conn, row, kept, self.data_dir, reason):
                         move(row.path, kept)  # (over a damaged leftover there)
                         moved = True
             except BaseException:
@@ -676,22 +648,7 @@ class Catalog:
         kept = self._kept(row)
         try:
             with self._connect() as conn, transaction(conn):
-                q = conn.execute("SELECT moved_to FROM quarantine WHERE episode_id = ?", (row.episode_id,)).fetchone()
-                if q is None:
-                    if self._heal(conn, row):
-                        return self.get(row.episode_id)
-                    raise CatalogError(f"episode {row.episode_id} is not quarantined")
-                if not holds(row.path, row.sha256):
-                    if not holds(kept, row.sha256):
-                        state = (f"{kept} does not hold the bytes indexed (sha256 {row.sha256[:16]}...)"
-                                 if kept.exists() else f"{kept} is missing" if q["moved_to"] else
-                                 "its file was already missing when it was quarantined")
-                        raise CatalogError(f"cannot restore episode {row.episode_id}: {state}; ingest its original "
-                                           "bytes again (activecollect ingest FILE), which restores it")
-                    move(kept, row.path)
-                elif holds(kept, row.sha256):
-                    kept.unlink()  # the same bytes are in place
-                conn.execute("DELETE FROM quarantine WHERE episode_id = ?", (row.episode_id,))
+                quarantines.put_back(conn, row, kept)
         except OSError as exc:
             raise storage_error(exc, CatalogError, f"cannot restore episode {row.episode_id} to {row.path}: "
                                 f"{exc.strerror or exc}", row.path) from exc
@@ -699,17 +656,6 @@ class Catalog:
 
     def _kept(self, row: EpisodeRow) -> Path:
         return self.data_dir / quarantine_path(row.path.relative_to(self.data_dir).as_posix())
-
-    def _heal(self, conn: sqlite3.Connection, row: EpisodeRow) -> bool:
-        """In a write transaction: move the file of an episode that is in training back from
-        ``DATA/quarantine/``, where a quarantine a crash cut short (file moved, row not committed) left
-        it. True when it did."""
-        kept = self._kept(row)
-        if (conn.execute("SELECT 1 FROM quarantine WHERE episode_id = ?", (row.episode_id,)).fetchone()
-                or row.path.exists() or not holds(kept, row.sha256)):
-            return False
-        move(kept, row.path)
-        return True
 
     def verify(self, episode_id: str) -> EpisodeMeta:
         """Re-hashes and re-verifies an indexed episode's file; raises a ``StorageError`` if bad."""
@@ -743,8 +689,7 @@ class Catalog:
             if wrong:
                 raise CatalogError(f"episodes {', '.join(wrong[:5])} are in split 'train'; only episodes "
                                    "added with split='eval' can be pinned")
-            held = [r[0] for r in conn.execute(f"SELECT episode_id FROM quarantine WHERE episode_id IN ({marks})",
-                                                ids)]
+            held = quarantines.quarantined_among(conn, ids)
             if held:
                 raise CatalogError(f"episodes {', '.join(held[:5])} are quarantined; restore them first, or pin "
                                    "others")
@@ -787,8 +732,7 @@ class Catalog:
         _check_split(split)
         with self._connect() as conn:
             rows = conn.execute(
-                "SELECT episode_id, sha256 FROM episodes WHERE split = ? "
-                "AND episode_id NOT IN (SELECT episode_id FROM quarantine)"
+                f"SELECT episode_id, sha256 FROM episodes WHERE split = ? AND {quarantines.NOT_QUARANTINED}"
                 + (" AND episode_id NOT IN (SELECT episode_id FROM eval_split_members)" if split == "train" else "")
                 + " ORDER BY episode_id", (split,)).fetchall()
         pairs = [(r["episode_id"], r["sha256"]) for r in rows]

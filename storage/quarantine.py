@@ -1,0 +1,137 @@
+"""Quarantine: episodes taken out of training while their rows stay (``Catalog.quarantine``).
+
+A quarantined episode has a row in the ``quarantine`` table (why, where its file went, when) and its
+file, when there is one, under ``DATA/quarantine/<yyyy-mm-dd>/<episode_id>.mcap`` (``quarantine_path``).
+Snapshots leave it out and the eval split cannot take it; ``Catalog.restore``, or ingesting the same bytes
+again, brings it back.
+
+These are the catalog's steps, over a connection it opened (those that write, inside its ``BEGIN IMMEDIATE``
+transaction) and the fields of an episode's row (``IndexedFile``); ``storage.catalog`` owns the connections
+and transactions, and the move of a file into quarantine, which it undoes when the row does not commit.
+"""
+
+from __future__ import annotations
+
+import sqlite3
+import time
+from collections.abc import Sequence
+from pathlib import Path, PurePosixPath
+from typing import Protocol
+
+from storage.database import QUARANTINE_DIR
+from storage.errors import CatalogError
+from storage.files import holds, move
+
+#: The table, as the catalog's schema version 2 made it (``storage.catalog._CATALOG_MIGRATIONS``): a change
+#: to it is a new migration, never an edit here. Episodes taken out of training (see Catalog.quarantine);
+#: moved_to '' when the file was already gone.
+TABLE = """CREATE TABLE IF NOT EXISTS quarantine (
+            episode_id TEXT PRIMARY KEY REFERENCES episodes(episode_id),
+            reason TEXT NOT NULL,
+            moved_to TEXT NOT NULL,
+            at REAL NOT NULL)"""
+#: A quarantine reason is kept to one line of at most this many characters.
+MAX_REASON_CHARS = 500
+#: An SQL condition on ``episodes``: the episode is not quarantined.
+NOT_QUARANTINED = "episode_id NOT IN (SELECT episode_id FROM quarantine)"
+
+
+class IndexedFile(Protocol):
+    """What quarantine needs of a catalog row (``storage.catalog.EpisodeRow``)."""
+
+    episode_id: str
+    path: Path
+    """Absolute path of the MCAP file, where its row says it is."""
+    sha256: str
+    """Of the bytes indexed."""
+
+
+def quarantine_path(rel: str) -> str:
+    """Where ``Catalog.quarantine`` keeps the file of the episode indexed at ``rel`` (relative to the data
+    directory): one place per episode, so a quarantine a crash cut short is found again."""
+    path = PurePosixPath(rel)
+    return f"{QUARANTINE_DIR}/{path.parent.name}/{path.name}"
+
+
+def clean_reason(reason: object) -> str:
+    """``reason`` on one line of at most ``MAX_REASON_CHARS``; ``CatalogError`` when nothing is left."""
+    reason = " ".join(str(reason).split())[:MAX_REASON_CHARS]
+    if not reason:
+        raise CatalogError("a quarantine needs a reason")
+    return reason
+
+
+def refuse_pinned(conn: sqlite3.Connection, episode_id: str) -> None:
+    """``CatalogError`` when the episode is in the pinned eval split, which cannot change."""
+    if conn.execute("SELECT 1 FROM eval_split_members WHERE episode_id = ?",
+                    (episode_id,)).fetchone():
+        raise CatalogError(f"episode {episode_id} is in the pinned eval split, which cannot "
+                           "change: restore its file instead (ingest its bytes again, e.g. from "
+                           "a backup)")
+
+
+def is_quarantined(conn: sqlite3.Connection, episode_id: str) -> bool:
+    return conn.execute("SELECT 1 FROM quarantine WHERE episode_id = ?", (episode_id,)).fetchone() is not None
+
+
+def record(conn: sqlite3.Connection, row: IndexedFile, kept: Path, data_dir: Path, reason: str) -> bool:
+    """In a write transaction: records the quarantine of ``row``, its file kept at ``kept``. True when the
+    caller is to move the file there, inside the same transaction: it is present and no intact copy is
+    already kept (an intact copy is never overwritten)."""
+    copy_kept = holds(kept, row.sha256)  # e.g. a quarantine a crash cut short
+    present = row.path.exists()
+    conn.execute("INSERT INTO quarantine(episode_id, reason, moved_to, at) VALUES (?, ?, ?, ?)",
+                 (row.episode_id, reason,
+                  kept.relative_to(data_dir).as_posix() if present or copy_kept else "",
+                  time.time()))
+    return present and not copy_kept
+
+
+def put_back(conn: sqlite3.Connection, row: IndexedFile, kept: Path) -> None:
+    """In a write transaction: ends the quarantine of ``row``, its file moved back from ``kept`` if it still
+    holds the bytes indexed (or is already back in place). ``CatalogError`` when it is not quarantined, or
+    its file is gone or damaged. An episode in training whose file a quarantine a crash cut short left at
+    ``kept`` is healed instead (``heal``)."""
+    q = conn.execute("SELECT moved_to FROM quarantine WHERE episode_id = ?", (row.episode_id,)).fetchone()
+    if q is None:
+        if heal(conn, row, kept):
+            return
+        raise CatalogError(f"episode {row.episode_id} is not quarantined")
+    if not holds(row.path, row.sha256):
+        if not holds(kept, row.sha256):
+            state = (f"{kept} does not hold the bytes indexed (sha256 {row.sha256[:16]}...)"
+                     if kept.exists() else f"{kept} is missing" if q["moved_to"] else
+                     "its file was already missing when it was quarantined")
+            raise CatalogError(f"cannot restore episode {row.episode_id}: {state}; ingest its original "
+                               "bytes again (activecollect ingest FILE), which restores it")
+        move(kept, row.path)
+    elif holds(kept, row.sha256):
+        kept.unlink()  # the same bytes are in place
+    conn.execute("DELETE FROM quarantine WHERE episode_id = ?", (row.episode_id,))
+
+
+def readmit(conn: sqlite3.Connection, episode_id: str, kept: Path, sha256: str) -> None:
+    """In a write transaction, once an ingest has put the bytes indexed back in place: the episode is in
+    training again (if it was quarantined)."""
+    conn.execute("DELETE FROM quarantine WHERE episode_id = ?", (episode_id,))
+    if holds(kept, sha256):
+        kept.unlink()  # the same bytes are in place: no copy left behind to take up space
+
+
+def heal(conn: sqlite3.Connection, row: IndexedFile, kept: Path) -> bool:
+    """In a write transaction: move the file of an episode that is in training back from
+    ``DATA/quarantine/``, where a quarantine a crash cut short (file moved, row not committed) left
+    it. True when it did."""
+    if is_quarantined(conn, row.episode_id) or row.path.exists() or not holds(kept, row.sha256):
+        return False
+    move(kept, row.path)
+    return True
+
+
+def quarantined_among(conn: sqlite3.Connection, ids: Sequence[str]) -> list[str]:
+    marks = ",".join("?" * len(ids))
+    return [r[0] for r in conn.execute(f"SELECT episode_id FROM quarantine WHERE episode_id IN ({marks})", ids)]
+
+
+def count(conn: sqlite3.Connection) -> int:
+    return conn.execute("SELECT COUNT(*) FROM quarantine").fetchone()[0]
