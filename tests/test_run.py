@@ -46,8 +46,10 @@ def train_count(data: Path) -> int:
 @pytest.mark.timeout(600)
 def test_run_collects_retrains_promotes_reports_and_resumes_after_ctrl_c(tmp_path):
     data = tmp_path / "data"
-    # 1. a run interrupted with Ctrl-C (SIGINT to its process group, as a terminal sends it)
-    first = subprocess.Popen(run_cmd(data, 12), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    # 1. a run interrupted with Ctrl-C (SIGINT to its process group, as a terminal sends it); its budget is
+    # far more than it can reach before the signal, however slowly this test's polls come round on a busy
+    # machine (with 12 it once finished first and exited 0)
+    first = subprocess.Popen(run_cmd(data, 400), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                              start_new_session=True)
     try:
         wait_for(lambda: train_count(data) >= 4, 240, "the first round of episodes")
@@ -57,7 +59,7 @@ def test_run_collects_retrains_promotes_reports_and_resumes_after_ctrl_c(tmp_pat
         if first.poll() is None:
             first.kill()
             first.wait()
-    assert first.returncode == 130, err[-2000:]
+    assert first.returncode == 130, f"{err[-2000:]}\n{out[-2000:]}"
     interrupted = json.loads(out)
     assert interrupted["interrupted"] is True and Path(interrupted["report"]).exists()
     # nothing acknowledged is lost: every done request has its episode in the catalog, nothing is leased
@@ -70,12 +72,13 @@ def test_run_collects_retrains_promotes_reports_and_resumes_after_ctrl_c(tmp_pat
     kept = train_count(data)
 
     # 2. the next run resumes from the catalog and finishes the budget
-    second = subprocess.run(run_cmd(data, 12), capture_output=True, text=True, timeout=540)
+    budget = max(12, kept + 4)
+    second = subprocess.run(run_cmd(data, budget), capture_output=True, text=True, timeout=540)
     assert second.returncode == 0, second.stderr[-3000:]
     assert "dashboard at http://127.0.0.1:" in second.stderr  # --dashboard-port 0: the operator must learn where
     result = json.loads(second.stdout)
     assert result["interrupted"] is False
-    assert 12 <= result["episodes"] <= 12 + 2 and result["episodes"] >= kept
+    assert budget <= result["episodes"] <= budget + 2 and result["episodes"] >= kept
     assert train_count(data) == result["episodes"]
 
     registry = ModelRegistry(data)
