@@ -25,6 +25,17 @@ REPO = Path(__file__).resolve().parents[1]
 T = TypeVar("T")
 
 
+@pytest.fixture(autouse=True, scope="session")
+def sigint_as_in_a_terminal() -> Iterator[None]:
+    """Children start with SIGINT's default disposition even when the suite itself was started in the
+    background of a script, which starts it with SIGINT ignored (and an ignored signal stays ignored across
+    exec, so `run` would ignore the test's Ctrl-C while its workers, which catch it, stopped). The tests
+    that send SIGINT stand for a terminal's Ctrl-C."""
+    if signal.getsignal(signal.SIGINT) == signal.SIG_IGN:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+    yield
+
+
 def free_port() -> int:
     """A TCP port on 127.0.0.1 that was free a moment ago."""
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:

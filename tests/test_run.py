@@ -46,9 +46,9 @@ def train_count(data: Path) -> int:
 @pytest.mark.timeout(600)
 def test_run_collects_retrains_promotes_reports_and_resumes_after_ctrl_c(tmp_path):
     data = tmp_path / "data"
-    # 1. a run interrupted with Ctrl-C (SIGINT to its process group, as a terminal sends it); its budget is
-    # far more than it can reach before the signal, however slowly this test's polls come round on a busy
-    # machine (with 12 it once finished first and exited 0)
+    # 1. a run interrupted with Ctrl-C (SIGINT to its process group, as a terminal sends it; the suite's
+    # children start with SIGINT's default disposition, conftest.sigint_as_in_a_terminal); its budget is more
+    # than it can reach before the signal, so it cannot end on its own first
     first = subprocess.Popen(run_cmd(data, 400), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                              start_new_session=True)
     try:

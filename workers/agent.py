@@ -195,9 +195,12 @@ class Worker:
             log.info("draining: finishing the current request (signal again to give it back)")
 
     def install_signal_handlers(self) -> None:
-        """SIGTERM / SIGINT call ``stop`` (main thread only)."""
-        for sig in (signal.SIGTERM, signal.SIGINT):
-            signal.signal(sig, lambda signum, frame: self.stop())
+        """SIGTERM / SIGINT call ``stop`` (main thread only). A SIGINT this process was started ignoring
+        stays ignored, as its parent's does: a shell starts background jobs so (a terminal's Ctrl-C is not
+        theirs), and a worker of ``activecollect run`` must not stop on a SIGINT its run ignores."""
+        signal.signal(signal.SIGTERM, lambda signum, frame: self.stop())
+        if signal.getsignal(signal.SIGINT) != signal.SIG_IGN:
+            signal.signal(signal.SIGINT, lambda signum, frame: self.stop())
 
     def run(self) -> int:
         """Work until stopped; returns the number of episodes uploaded. Raises WorkerError on start."""
