@@ -16,10 +16,9 @@ from croniter import croniter
 from orchestrator import protocol
 from orchestrator.dashboard import MAX_REQUEST_TIMEOUT_S, DashboardConfig
 from orchestrator.protocol import MAX_EPISODE_STEPS, one_line
-from storage import records
 from storage.catalog import Catalog
 from storage.database import DB_NAME
-from storage.records import trainable_size
+from storage.records import TRAINABLE_SIZES, trainable_size
 from uncertainty.config import TrainConfig
 
 DEFAULT_DATA = Path("activecollect-data")
@@ -115,7 +114,7 @@ def trainable_image_size(text: str) -> int:
     """A frame size to record or train at (``storage.records.trainable_size``)."""
     value = _int(text, "a size in pixels")
     if not trainable_size(value):
-        raise argparse.ArgumentTypeError(f"expected {records.TRAINABLE_SIZES} (what a model trains on), "
+        raise argparse.ArgumentTypeError(f"expected {TRAINABLE_SIZES} (what a model trains on), "
                                          f"found {value}")
     return value
 
