@@ -628,14 +628,26 @@ class Catalog:
                     if quarantines.record(conn, row, kept, self.data_dir, reason):
                         move(row.path, kept)  # (over a damaged leftover there)
                         moved = True
-            except BaseException:
+            except BaseException as exc:
                 if moved:  # not committed: the file goes back where its row says it is
-                    move(kept, row.path)
+                    self._move_back(kept, row, exc)
                 raise
         except OSError as exc:
             raise storage_error(exc, CatalogError, f"cannot move {row.path} to {kept}: {exc.strerror or exc}",
                                 kept) from exc
         return self.get(row.episode_id)
+
+    @staticmethod
+    def _move_back(kept: Path, row: EpisodeRow, error: BaseException) -> None:
+        """After a quarantine that did not commit (``error``): its file back from ``kept``. That move's own
+        failure is noted on ``error``, which stays the one raised: the move is outside the write lock, so
+        another process's read may have moved the file back first (``quarantine.heal``), and otherwise the
+        next read does."""
+        try:
+            move(kept, row.path)
+        except OSError as exc:
+            error.add_note(f"{kept} could not be moved back to {row.path} ({exc.strerror or exc}); unless a "
+                           f"read of episode {row.episode_id} already did, the next one does")
 
     def restore(self, episode_id: str) -> EpisodeRow:
         """Puts a quarantined episode back into training; returns its row as it is now.

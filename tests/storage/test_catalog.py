@@ -680,6 +680,31 @@ def test_a_quarantine_whose_commit_fails_moves_the_file_back(cat, rng, monkeypat
     assert cat.count(quarantined=True) == 0 and cat.verify(ep.meta.episode_id) == ep.meta
 
 
+def test_a_failed_commit_is_the_error_even_when_moving_the_file_back_fails(cat, rng, monkeypatch):
+    from storage import quarantine
+    ep = make_episode(rng)
+    row = cat.get(cat.add_episode(ep).episode_id)
+    real_record = quarantine.record
+
+    def record_then_break_the_commit(conn, *args):
+        # A deferred foreign key is checked at COMMIT: this one makes the real COMMIT fail.
+        conn.execute("PRAGMA defer_foreign_keys = ON")
+        conn.execute("INSERT INTO eval_split_members(episode_id) VALUES ('no-such-episode')")
+        return real_record(conn, *args)
+
+    def move_back_after_a_heal(src, dst):
+        if dst == row.path:  # after the rollback: another process's read moves the file back first
+            Catalog(cat.data_dir).load(row.episode_id)
+        files.move(src, dst)
+    monkeypatch.setattr(quarantine, "record", record_then_break_the_commit)
+    monkeypatch.setattr("storage.catalog.move", move_back_after_a_heal)
+    with pytest.raises(CatalogError, match="FOREIGN KEY constraint failed") as raised:
+        cat.quarantine(ep.meta.episode_id, "bad")
+    assert "cannot move" not in str(raised.value)
+    assert any("could not be moved back" in note for note in getattr(raised.value, "__notes__", []))
+    assert cat.count(quarantined=True) == 0 and cat.verify(ep.meta.episode_id) == ep.meta
+
+
 def test_an_intact_kept_copy_is_never_overwritten_by_a_damaged_file(cat, rng):
     ep = make_episode(rng)
     row = cat.get(cat.add_episode(ep).episode_id)
