@@ -470,7 +470,7 @@ class Catalog:
             return self._row(rows[0])
         if len(rows) > 1 and id_or_prefix:
             raise UnknownEpisodeError(f"episode id prefix {id_or_prefix!r} is ambiguous "
-                               f"({', '.join(r['episode_id'] for r in rows[:2])}, ...)")
+                                      f"({', '.join(r['episode_id'] for r in rows[:2])}, ...)")
         raise UnknownEpisodeError(f"no episode {id_or_prefix!r} in the catalog at {self.data_dir}")
 
     def list(self, split: str | None = None, shape: str | None = None, limit: int | None = None,
