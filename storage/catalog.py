@@ -19,19 +19,18 @@ A catalog holds one frame size, its eval split's, else its first episode's; that
 episode must be of a size a model trains on (``storage.records.trainable_size``).
 
 Other components (``storage.queue``, ``storage.models``) keep their tables in the
-same file (``storage.database``).
+same file (``storage.database``). The rows the catalog answers with are ``storage.rows``'s dataclasses,
+its sweep of what crashed ingests left is ``storage.strays``; both re-exported here.
 """
 
 from __future__ import annotations
 
-import hashlib
 import json
 import re
 import sqlite3
 import time
 from collections.abc import Callable, Sequence
 from contextlib import AbstractContextManager, nullcontext
-from dataclasses import asdict, dataclass, field
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
@@ -47,12 +46,15 @@ from storage.episodes import (
 from storage.database import (DB_NAME, EPISODES_DIR, Migration, connection, ensure_schema, refuse_lost_database,
                               storage_error, transaction)
 from storage.errors import CatalogError, CorruptEpisodeError, EpisodeError, MissingEpisodeError, UnknownEpisodeError
-from storage.files import age_s, holds, move, publish, sha256_hex, stage_bytes
-# (named apart from the method Catalog.quarantine, which calls it)
+from storage.files import holds, move, publish, sha256_hex, stage_bytes
+# (named apart from the methods Catalog.quarantine and Catalog.strays, which call them)
 from storage import quarantine as quarantines
+from storage import strays as stray_files
 from storage.quarantine import quarantine_path
 from storage.records import (MAX_FRAME_SIZE, MIN_FRAME_SIZE, TRAINABLE_SIZES, Episode, EpisodeMeta,
                              trainable_size)
+from storage.rows import EpisodeRow, EvalSplit, IngestResult, Snapshot, content_hash
+from storage.strays import ORPHANS_DIR, STAGING_MAX_AGE_S, Strays
 
 #: Splits an episode can belong to. ``eval`` episodes never enter a training snapshot.
 SPLITS: tuple[str, ...] = ("train", "eval")
@@ -102,106 +104,8 @@ def _now_iso() -> str:
     return datetime.now(timezone.utc).isoformat(timespec="seconds")
 
 
-def _content_hash(pairs: Sequence[tuple[str, str]]) -> str:
-    """sha256 over sorted ``(episode_id, sha256)`` pairs, one ``id sha\\n`` line each."""
-    h = hashlib.sha256()
-    for episode_id, sha in sorted(pairs):
-        h.update(f"{episode_id} {sha}\n".encode())
-    return h.hexdigest()
-
-
-# ---------------------------------------------------------------------------------------------
-# records
-
-
-@dataclass
-class EpisodeRow:
-    """One indexed episode."""
-
-    episode_id: str
-    path: Path
-    """Absolute path of the MCAP file."""
-    sha256: str
-    frames: int
-    task: str
-    shape: str
-    request_id: str
-    worker_id: str
-    split: str
-    created: str
-    """When the episode was collected (ISO 8601 UTC, from its metadata)."""
-    size_bytes: int
-    model_version: str
-    ingested: float
-    """When it was indexed (unix seconds)."""
-    quarantined: str = ""
-    """Why it was taken out of training (``Catalog.quarantine``); '' while it is in."""
-
-    def to_json(self) -> dict[str, Any]:
-        out = asdict(self)
-        out["path"] = str(self.path)
-        return out
-
-
-@dataclass
-class IngestResult:
-    episode_id: str
-    path: Path
-    sha256: str
-    duplicate: bool
-    """True when this exact file was already indexed."""
-    restored: bool = False
-    """True for a duplicate whose bytes put back a file that was missing, damaged or quarantined."""
-
-
-@dataclass
-class EvalSplit:
-    ids: list[str]
-    """Sorted episode ids."""
-    hash: str
-    """sha256 over the sorted (episode_id, sha256) pairs."""
-    params: dict[str, Any] = field(default_factory=dict)
-    """How the split was generated (episodes, seed, steps, image_size ...)."""
-    created: str = ""
-
-
-@dataclass
-class Snapshot:
-    ids: list[str]
-    """Sorted episode ids."""
-    snapshot_id: str
-    """First 16 hex digits of the content hash of ``ids`` and their sha256s."""
-    sha256s: list[str] = field(default_factory=list)
-    """The sha256 of each of ``ids``."""
-
-    def without(self, drop: Sequence[str]) -> Snapshot:
-        """This snapshot less the episodes ``drop`` (those a job found damaged and quarantined)."""
-        pairs = [(i, s) for i, s in zip(self.ids, self.sha256s) if i not in set(drop)]
-        return Snapshot(ids=[p[0] for p in pairs], snapshot_id=_content_hash(pairs)[:16],
-                        sha256s=[p[1] for p in pairs])
-
-
 # ---------------------------------------------------------------------------------------------
 # the catalog
-
-
-#: Where ``sweep_strays`` moves episode files that have no catalog row.
-ORPHANS_DIR = "orphans"
-#: A staging file older than this belongs to no live ingest (an ingest stages, then commits, in seconds).
-STAGING_MAX_AGE_S = 300.0
-
-
-@dataclass
-class Strays:
-    """Files a crashed ingest left under ``episodes/``."""
-
-    staging: list[Path]
-    """``.<id>.mcap.*.tmp`` files: written before a crash, never renamed into place."""
-    unindexed: list[Path]
-    """Episode files with no catalog row: renamed into place, then a crash before the commit."""
-
-    def __bool__(self) -> bool:
-        return bool(self.staging or self.unindexed)
 
 
 def _episode_date(created: str) -> str:
@@ -588,15 +492,10 @@ class Catalog:
 
     def _strays(self, min_tmp_age_s: float, now: float | None, move_to: Path | None) -> Strays:
         now = time.time() if now is None else now
-        files = sorted(p for p in self.episodes_dir.rglob("*.mcap") if not p.name.startswith("."))
+        files = stray_files.episode_files(self.episodes_dir)
         with self._connect() as conn, transaction(conn):  # held briefly: no directory walk inside
-            indexed = {r["path"] for r in conn.execute("SELECT path FROM episodes")}
-            unindexed = [p for p in files
-                         if p.relative_to(self.data_dir).as_posix() not in indexed and p.exists()]
-            for path in unindexed if move_to is not None else ():
-                move(path, move_to / path.relative_to(self.episodes_dir))
-        staging = sorted(p for p in self.episodes_dir.rglob(".*.mcap.*.tmp") if age_s(p, now) > min_tmp_age_s)
-        return Strays(staging=staging, unindexed=unindexed)
+            unindexed = stray_files.unindexed(conn, self.data_dir, files, move_to)
+        return Strays(staging=stray_files.staging_files(self.episodes_dir, min_tmp_age_s, now), unindexed=unindexed)
 
     def quarantine(self, episode_id: str, reason: str, only_if_damaged: bool = False) -> EpisodeRow:
         """Takes an episode out of training; returns its row as it is now.
@@ -711,7 +610,7 @@ class Catalog:
             if said is not None and ({said} != sizes or isinstance(said, bool)):
                 raise CatalogError(f"params say image_size {said!r}, the episodes have "
                                    f"{', '.join(map(str, sorted(sizes)))}px frames")
-            digest = _content_hash([(r["episode_id"], r["sha256"]) for r in rows])
+            digest = content_hash([(r["episode_id"], r["sha256"]) for r in rows])
             current = conn.execute("SELECT hash FROM eval_split WHERE id = 1").fetchone()
             if current is not None:
                 if current["hash"] != digest:
@@ -731,7 +630,7 @@ class Catalog:
                 return None
             rows = conn.execute("SELECT m.episode_id, e.sha256 FROM eval_split_members m "
                                 "JOIN episodes e USING (episode_id) ORDER BY m.episode_id").fetchall()
-        digest = _content_hash([(r["episode_id"], r["sha256"]) for r in rows])
+        digest = content_hash([(r["episode_id"], r["sha256"]) for r in rows])
         if digest != head["hash"]:
             raise CatalogError(f"the pinned eval split's episodes hash to {digest[:16]}, "
                                f"pinned as {head['hash'][:16]}")
@@ -748,5 +647,5 @@ class Catalog:
                 + (" AND episode_id NOT IN (SELECT episode_id FROM eval_split_members)" if split == "train" else "")
                 + " ORDER BY episode_id", (split,)).fetchall()
         pairs = [(r["episode_id"], r["sha256"]) for r in rows]
-        return Snapshot(ids=[p[0] for p in pairs], snapshot_id=_content_hash(pairs)[:16],
+        return Snapshot(ids=[p[0] for p in pairs], snapshot_id=content_hash(pairs)[:16],
                         sha256s=[p[1] for p in pairs])

@@ -37,7 +37,7 @@ NOT_QUARANTINED = "episode_id NOT IN (SELECT episode_id FROM quarantine)"
 
 
 class IndexedFile(Protocol):
-    """What quarantine needs of a catalog row (``storage.catalog.EpisodeRow``)."""
+    """What quarantine needs of a catalog row (``storage.rows.EpisodeRow``)."""
 
     episode_id: str
     path: Path
