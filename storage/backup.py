@@ -27,8 +27,10 @@ from dataclasses import dataclass, field
 from datetime import datetime, timezone
 from pathlib import Path
 
+from storage import quarantine as quarantines
 from storage.database import DB_NAME, connection
-from storage.catalog import Catalog, quarantine_path
+from storage.catalog import Catalog
+from storage.quarantine import quarantine_path
 from storage.errors import BackupError, StorageError
 from storage.files import ensure_dir, fsync_dir, holds, sha256_hex, write_synced
 from storage.models import MODELS_DIR, WEIGHTS_FILE, ModelRegistry
@@ -123,7 +125,7 @@ def _pruned_in_source(source_db: Path, version: str) -> bool:
 def _quarantine_in_source(source_db: Path, episode_id: str) -> sqlite3.Row | None:
     with connection(source_db, BackupError) as conn:
         try:
-            return conn.execute("SELECT * FROM quarantine WHERE episode_id = ?", (episode_id,)).fetchone()
+            return quarantines.find(conn, episode_id)
         except sqlite3.OperationalError:  # a catalog from before quarantines
             return None
 
@@ -149,10 +151,10 @@ def _copy_episode(conn: sqlite3.Connection, source_db: Path, work: Path, row: sq
         pass
     now = _quarantine_in_source(source_db, episode_id)
     intact = next((src for src in (data_dir / rel, data_dir / kept) if holds(src, sha)), None)
-    conn.execute("DELETE FROM quarantine WHERE episode_id = ?", (episode_id,))
+    quarantines.remove(conn, episode_id)
     if now is not None:
-        conn.execute("INSERT INTO quarantine(episode_id, reason, moved_to, at) VALUES (?, ?, ?, ?)",
-                     (episode_id, now["reason"], kept if intact is not None or now["moved_to"] else "", now["at"]))
+        quarantines.insert(conn, episode_id, now["reason"], kept if intact is not None or now["moved_to"] else "",
+                           now["at"])
     if intact is not None:
         return _copy_checked(intact, work / (rel if now is None else kept), sha, dirs), now is None
     if now is None:

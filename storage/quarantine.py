@@ -8,6 +8,8 @@ again, brings it back.
 These are the catalog's steps, over a connection it opened (those that write, inside its ``BEGIN IMMEDIATE``
 transaction) and the fields of an episode's row (``IndexedFile``); ``storage.catalog`` owns the connections
 and transactions, and the move of a file into quarantine, which it undoes when the row does not commit.
+``storage.backup`` reads a source's quarantine rows and writes its copy's with ``find``, ``insert`` and
+``remove``.
 """
 
 from __future__ import annotations
@@ -70,8 +72,27 @@ def refuse_pinned(conn: sqlite3.Connection, episode_id: str) -> None:
                            "a backup)")
 
 
+def find(conn: sqlite3.Connection, episode_id: str) -> sqlite3.Row | None:
+    """The quarantine row of ``episode_id`` (``reason``, ``moved_to``, ``at``); None while it is in training.
+    Over any connection to a catalog's file (``storage.backup`` reads its source's with it)."""
+    return conn.execute("SELECT reason, moved_to, at FROM quarantine WHERE episode_id = ?", (episode_id,)).fetchone()
+
+
 def is_quarantined(conn: sqlite3.Connection, episode_id: str) -> bool:
-    return conn.execute("SELECT 1 FROM quarantine WHERE episode_id = ?", (episode_id,)).fetchone() is not None
+    return find(conn, episode_id) is not None
+
+
+def insert(conn: sqlite3.Connection, episode_id: str, reason: str, moved_to: str, at: float) -> None:
+    """The quarantine row of ``episode_id``, as given: ``record`` decides it for the catalog, inside its write
+    transaction; ``storage.backup`` copies its source's. ``moved_to``: relative to the data directory, '' when
+    the file was already gone; ``at``: unix seconds."""
+    conn.execute("INSERT INTO quarantine(episode_id, reason, moved_to, at) VALUES (?, ?, ?, ?)",
+                 (episode_id, reason, moved_to, at))
+
+
+def remove(conn: sqlite3.Connection, episode_id: str) -> None:
+    """Deletes the quarantine row of ``episode_id``, if any (its file is the caller's)."""
+    conn.execute("DELETE FROM quarantine WHERE episode_id = ?", (episode_id,))
 
 
 def record(conn: sqlite3.Connection, row: IndexedFile, kept: Path, data_dir: Path, reason: str) -> bool:
@@ -80,10 +101,8 @@ def record(conn: sqlite3.Connection, row: IndexedFile, kept: Path, data_dir: Pat
     already kept (an intact copy is never overwritten)."""
     copy_kept = holds(kept, row.sha256)  # e.g. a quarantine a crash cut short
     present = row.path.exists()
-    conn.execute("INSERT INTO quarantine(episode_id, reason, moved_to, at) VALUES (?, ?, ?, ?)",
-                 (row.episode_id, reason,
-                  kept.relative_to(data_dir).as_posix() if present or copy_kept else "",
-                  time.time()))
+    insert(conn, row.episode_id, reason, kept.relative_to(data_dir).as_posix() if present or copy_kept else "",
+           time.time())
     return present and not copy_kept
 
 
@@ -92,7 +111,7 @@ def put_back(conn: sqlite3.Connection, row: IndexedFile, kept: Path) -> None:
     holds the bytes indexed (or is already back in place). ``CatalogError`` when it is not quarantined, or
     its file is gone or damaged. An episode in training whose file a quarantine a crash cut short left at
     ``kept`` is healed instead (``heal``)."""
-    q = conn.execute("SELECT moved_to FROM quarantine WHERE episode_id = ?", (row.episode_id,)).fetchone()
+    q = find(conn, row.episode_id)
     if q is None:
         if heal(conn, row, kept):
             return
@@ -107,13 +126,13 @@ def put_back(conn: sqlite3.Connection, row: IndexedFile, kept: Path) -> None:
         move(kept, row.path)
     elif holds(kept, row.sha256):
         kept.unlink()  # the same bytes are in place
-    conn.execute("DELETE FROM quarantine WHERE episode_id = ?", (row.episode_id,))
+    remove(conn, row.episode_id)
 
 
 def readmit(conn: sqlite3.Connection, episode_id: str, kept: Path, sha256: str) -> None:
     """In a write transaction, once an ingest has put the bytes indexed back in place: the episode is in
     training again (if it was quarantined)."""
-    conn.execute("DELETE FROM quarantine WHERE episode_id = ?", (episode_id,))
+    remove(conn, episode_id)
     if holds(kept, sha256):
         kept.unlink()  # the same bytes are in place: no copy left behind to take up space
 
