@@ -10,7 +10,6 @@ signal.
 from __future__ import annotations
 
 import json
-import signal
 import threading
 from dataclasses import dataclass
 from pathlib import Path
@@ -19,6 +18,7 @@ from typing import Callable, TextIO
 import zenoh
 
 from orchestrator.secure import is_secure_profile
+from orchestrator.signals import on_stop_signals
 from orchestrator.transport import (SecureConfigError, cap_incoming, endpoint_problem, read_config,
                                     validate_secure_config)
 
@@ -141,7 +141,7 @@ def run_router(cfg: RouterConfig, out: TextIO, stop: threading.Event | None = No
     """
     stop = stop or threading.Event()
     router = Router(cfg)
-    restore = _install_signals(stop)
+    restore = on_stop_signals(stop.set)
     try:
         router.start()
         where = " ".join(router.endpoints) or "(no endpoint: links only through --connect)"
@@ -155,16 +155,3 @@ def run_router(cfg: RouterConfig, out: TextIO, stop: threading.Event | None = No
         router.stop()
         restore()
     return 0
-
-
-def _install_signals(stop: threading.Event) -> Callable[[], None]:
-    if threading.current_thread() is not threading.main_thread():
-        return lambda: None
-    previous = {sig: signal.getsignal(sig) for sig in (signal.SIGTERM, signal.SIGINT)}
-    for sig in previous:
-        signal.signal(sig, lambda *_: stop.set())
-
-    def restore() -> None:
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
-    return restore

@@ -1,7 +1,8 @@
 """Imports point one way (DESIGN.md): every import of ours, module level or inside a function, is checked.
 
 storage <- uncertainty <- orchestrator; workers import storage and only the wire contract of
-orchestrator (protocol, messages, transport), which import nothing else of ours.
+orchestrator (protocol, messages, transport) and how a process is asked to stop (signals), which
+import nothing else of ours.
 """
 
 from __future__ import annotations
@@ -13,7 +14,7 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 PACKAGES = ("storage", "uncertainty", "workers", "orchestrator")
-WIRE = {"orchestrator.protocol", "orchestrator.messages", "orchestrator.transport"}
+WIRE = {"orchestrator.protocol", "orchestrator.messages", "orchestrator.transport", "orchestrator.signals"}
 
 #: For each package (or module), which of our modules it may import, besides its own package.
 ALLOWED = {
@@ -27,6 +28,7 @@ LEAVES = {
     "orchestrator.protocol": set(),
     "orchestrator.messages": {"orchestrator.protocol"},
     "orchestrator.transport": set(),
+    "orchestrator.signals": set(),
     "uncertainty.model": {"uncertainty.errors"},
 }
 

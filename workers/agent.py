@@ -33,7 +33,6 @@ import logging
 import os
 import random
 import re
-import signal
 import socket
 import sys
 import threading
@@ -46,7 +45,7 @@ from typing import Any
 import numpy as np
 import zenoh
 
-from orchestrator import messages, protocol, transport
+from orchestrator import messages, protocol, signals, transport
 from orchestrator.messages import LeaseGrant
 from orchestrator.protocol import ErrorCode, Keys, ProtocolError
 from storage.episodes import encode_episode
@@ -195,12 +194,10 @@ class Worker:
             log.info("draining: finishing the current request (signal again to give it back)")
 
     def install_signal_handlers(self) -> None:
-        """SIGTERM / SIGINT call ``stop`` (main thread only). A SIGINT this process was started ignoring
-        stays ignored, as its parent's does: a shell starts background jobs so (a terminal's Ctrl-C is not
-        theirs), and a worker of ``activecollect run`` must not stop on a SIGINT its run ignores."""
-        signal.signal(signal.SIGTERM, lambda signum, frame: self.stop())
-        if signal.getsignal(signal.SIGINT) != signal.SIG_IGN:
-            signal.signal(signal.SIGINT, lambda signum, frame: self.stop())
+        """SIGTERM / SIGINT call ``stop`` (main thread only; ``orchestrator.signals``: a SIGINT this
+        process was started ignoring stays ignored, so a worker of ``activecollect run`` does not stop on
+        a SIGINT its run ignores)."""
+        signals.on_stop_signals(self.stop)
 
     def run(self) -> int:
         """Work until stopped; returns the number of episodes uploaded. Raises WorkerError on start."""

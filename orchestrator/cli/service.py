@@ -11,7 +11,6 @@ from __future__ import annotations
 import argparse
 import json
 import logging
-import signal
 import sys
 import threading
 import time
@@ -33,6 +32,7 @@ from orchestrator.planner import ActivePlanner, ActivePlannerConfig, UniformPlan
     uniform_start_state
 from orchestrator.protocol import Keys, ProtocolError
 from orchestrator.service import PlannerFactory, Service, ServiceConfig, ServiceContext, ServiceError
+from orchestrator.signals import on_stop_signals
 from storage.requests import RequestStatus
 from workers import agent
 
@@ -252,8 +252,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
         raise common.UsageError(f"no data directory at {args.data}: create it, or give --init to start a new one "
                                 "there")
     stop = threading.Event()
-    for sig in (signal.SIGTERM, signal.SIGINT):
-        signal.signal(sig, lambda signum, frame: stop.set())
+    on_stop_signals(stop.set)  # (SIGINT stays ignored when serve was started ignoring it)
     service = Service(config)
     companions = Companions(extras, service)
     try:
