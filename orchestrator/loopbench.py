@@ -34,7 +34,7 @@ import json
 import math
 import time
 from pathlib import Path
-from typing import Callable, Sequence
+from typing import Callable, Mapping, Sequence
 
 import numpy as np
 from matplotlib.figure import Figure
@@ -49,26 +49,40 @@ from storage.requests import Request
 from storage.records import Episode
 from uncertainty.config import TrainConfig
 from uncertainty.score import change_disagreement, colour_disagreement, object_moving
-from workers.env import MARKER_RGB, OBJECT_RGB, scene_colours
+from workers.env import MARKER_RGB, OBJECT_RGB, SHAPE_PALETTE, scene_colours
 
-#: Collects the episode a request asks for: (request, policy seed, image size) -> Episode.
-Collect = Callable[[Request, int, int], Episode]
+#: Object colour per shape (``workers.env.SHAPE_PALETTE``), or None: every object in ``OBJECT_RGB``.
+Palette = Mapping[str, tuple[int, int, int]] | None
+#: Collects the episode a request asks for: (request, policy seed, image size, palette) -> Episode.
+Collect = Callable[[Request, int, int, Palette], Episode]
 #: Creates (or checks) the pinned eval split in a catalog: (catalog, episodes, seed, steps, image size,
-#: random physics) -> hash.
-MakeEvalSplit = Callable[[Catalog, int, int, int, int, bool], str]
+#: random physics, palette) -> hash.
+MakeEvalSplit = Callable[[Catalog, int, int, int, int, bool, Palette], str]
 ARMS = ("active", "uniform")
 #: The ``object_pixels`` signal's object (body and marker); the rest of a frame is ``workers.env.scene_colours``
 #: of its size (the walls' anti-aliased edges differ with it, and some are nearer the object's blue than grey).
 OBJECT_COLOURS = (OBJECT_RGB, MARKER_RGB)
 
 
+def palette_of(cfg: LoopBenchConfig) -> Palette:
+    """The objects' colours of ``cfg.palette``: None (all alike) or one per shape."""
+    return dict(SHAPE_PALETTE) if cfg.palette == "per-shape" else None
+
+
+def object_colours(palette: Palette) -> tuple[tuple[int, int, int], ...]:
+    """The ``object_pixels`` signal's colours in a world of ``palette``."""
+    return OBJECT_COLOURS if palette is None else tuple(dict.fromkeys((*palette.values(), MARKER_RGB)))
+
+
 class SignalScorer:
     """The champion's ``Scores`` by the bench's signal (``ChampionScorer`` loads and hot-swaps it)."""
 
-    def __init__(self, champion: ChampionScorer, signal: str, horizon: int) -> None:
+    def __init__(self, champion: ChampionScorer, signal: str, horizon: int,
+                 colours: Sequence[tuple[int, int, int]] = OBJECT_COLOURS) -> None:
         self.champion = champion
         self.signal = signal
         self.horizon = horizon
+        self.colours = tuple(colours)
 
     def __call__(self, episode: Episode) -> Scores | None:
         if self.signal == "disagreement" and self.horizon == 1:
@@ -80,7 +94,7 @@ class SignalScorer:
         if self.signal == "disagreement":
             per_step = ensemble.disagreement(episode.frames, episode.actions, horizon=self.horizon)
         elif self.signal == "object_pixels":
-            per_step = colour_disagreement(ensemble, episode.frames, episode.actions, OBJECT_COLOURS,
+            per_step = colour_disagreement(ensemble, episode.frames, episode.actions, self.colours,
                                            scene_colours(episode.frames.shape[1]), horizon=self.horizon)
         else:
             per_step = change_disagreement(ensemble, episode.frames, episode.actions, horizon=self.horizon)
@@ -93,7 +107,8 @@ def make_planner(arm: str, cfg: LoopBenchConfig, scorer: ChampionScorer, rng: np
                  queue: RequestQueue) -> Planner:
     depth = lambda: queue.counts().get("queued", 0)  # noqa: E731
     if arm == "active":
-        return ActivePlanner(cfg.active, SignalScorer(scorer, cfg.signal, cfg.signal_horizon), rng, depth)
+        colours = object_colours(palette_of(cfg))
+        return ActivePlanner(cfg.active, SignalScorer(scorer, cfg.signal, cfg.signal_horizon, colours), rng, depth)
     if arm == "uniform":
         return UniformPlanner(cfg.uniform_config(), rng, depth)
     raise ValueError(f"arm must be one of {ARMS}, found {arm!r}")
@@ -104,34 +119,40 @@ def run_arm(arm: str, seed: int, cfg: LoopBenchConfig, data_dir: Path, collect: 
     """One arm for one seed; returns one point per retrain (episodes, h1/h5 of candidate and champion)."""
     catalog = Catalog(data_dir)
     queue = RequestQueue(catalog.db_path)
-    make_eval_split(catalog, cfg.eval_episodes, cfg.eval_seed, cfg.steps, cfg.image_size, cfg.random_physics)
+    palette = palette_of(cfg)
+    make_eval_split(catalog, cfg.eval_episodes, cfg.eval_seed, cfg.steps, cfg.image_size, cfg.random_physics,
+                    palette)
     planner = make_planner(arm, cfg, ChampionScorer(data_dir), np.random.default_rng(seed), queue)
     train = TrainConfig(**{**cfg.train.to_dict(), "seed": seed, "widths": tuple(cfg.train.widths)})
     points: list[dict] = []
     round_eps: list[Episode] = []
     reasons: list[str] = []
     policies: list[str] = []
+    shapes: list[str] = []
     collected = catalog.count(split="train")
     while collected < cfg.budget:
         missing = cfg.round_episodes - len(round_eps) - queue.counts().get("queued", 0)
         if missing > 0:  # the first round, or a round the planner could not fill with diverse states
             queue.enqueue_many(planner.seed(missing))
         lease = queue.lease("bench", (), (), 600.0)
-        ep = _bench_id(collect(lease.request, seed * 1_000_003 + collected, cfg.image_size), seed, collected)
+        ep = _bench_id(collect(lease.request, seed * 1_000_003 + collected, cfg.image_size, palette), seed,
+                       collected)
         stored = catalog.add_episode(ep)
         queue.complete(lease.request.id, lease.token, stored.episode_id)
         round_eps.append(ep)
         reasons.append(str(lease.request.reason.get("planner", "")))
         policies.append(lease.request.policy)
+        shapes.append(lease.request.shape)
         collected += 1
         if len(round_eps) == cfg.round_episodes or collected == cfg.budget:
             start = time.perf_counter()
             result = run_retrain(data_dir, train)
-            points.append(_point(arm, seed, collected, result, time.perf_counter() - start, reasons, policies))
+            points.append(_point(arm, seed, collected, result, time.perf_counter() - start, reasons, policies,
+                                 shapes))
             log(f"  {arm:7s} seed {seed} {collected:4d} ep: h1 {points[-1]['h1_mse']:.3e} "
                 f"h5 {points[-1]['h5_mse']:.3e} ({points[-1]['train_s']:.0f} s)")
             queue.enqueue_many(planner.plan(round_eps))
-            round_eps, reasons, policies = [], [], []
+            round_eps, reasons, policies, shapes = [], [], [], []
     queue.close()
     return points
 
@@ -147,13 +168,14 @@ def _bench_id(ep: Episode, seed: int, index: int) -> Episode:
 
 
 def _point(arm: str, seed: int, episodes: int, result: dict, seconds: float, reasons: list[str],
-           policies: list[str]) -> dict:
+           policies: list[str], shapes: list[str]) -> dict:
     m = result["metrics"]
     return {"arm": arm, "seed": seed, "episodes": episodes, "version": result["version"],
             "h1_mse": m.get("h1_mse"), "h5_mse": m.get("h5_mse"), "promoted": result["promoted"],
             "champion": result["champion"], "train_s": round(seconds, 1),
             "round_planners": {k: reasons.count(k) for k in sorted(set(reasons))},
-            "round_policies": {k: policies.count(k) for k in sorted(set(policies))}}
+            "round_policies": {k: policies.count(k) for k in sorted(set(policies))},
+            "round_shapes": {k: shapes.count(k) for k in sorted(set(shapes))}}
 
 
 def episodes_to_reach(curve: Sequence[tuple[int, float]], target: float) -> float:

@@ -10,6 +10,7 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
+from orchestrator import protocol
 from orchestrator.planner import ActivePlannerConfig, PolicyMix, UniformPlannerConfig
 from storage.records import TRAINABLE_SIZES, trainable_size
 from uncertainty.config import TrainConfig
@@ -71,6 +72,9 @@ class RunConfig:
 #: What the active arm ranks steps by: ``disagreement`` (variance over all pixels, as the service's
 #: scorer), ``change`` (variance over the pixels that change), ``object`` (``change`` on the steps
 #: where the object moves, i.e. the pusher is in contact; other steps are not candidates),
+#: The objects' colours in ``bench loop``: all alike (the service's world) or one per shape
+#: (``workers.env.SHAPE_PALETTE``).
+PALETTES = ("uniform", "per-shape")
 #: ``object_pixels`` (variance over the pixels of the object's colours only: the pusher's own motion,
 #: which the policy decides and a start state cannot buy, left out).
 SIGNALS = ("disagreement", "change", "object", "object_pixels")
@@ -117,6 +121,13 @@ class LoopBenchConfig:
     """Physics (mass, friction, ground friction) are part of the task space: the uniform arm, the seed
     rounds and the eval split draw them uniformly over ``protocol.PHYSICS_RANGES`` (the active arm keeps
     an uncertain state's physics, as it keeps its shape); off, every episode has the default physics."""
+    shape_weights: tuple[float, ...] = ()
+    """The uniform arm and the seed rounds draw shapes with these relative weights (one per
+    ``protocol.SHAPES``, in its order) while the eval split keeps every shape equally: a fleet's usual task
+    mix that differs from what its model is judged on. Empty: every shape equally likely."""
+    palette: str = "uniform"
+    """The objects' colours (one of ``PALETTES``), in both arms and the eval split: ``per-shape`` makes the
+    shapes look different (where a model trained on one shape does not yet know the others)."""
 
     def __post_init__(self) -> None:
         if not self.seeds:
@@ -129,6 +140,10 @@ class LoopBenchConfig:
         if self.signal not in SIGNALS or self.signal_horizon < 1:
             raise ValueError(f"signal must be one of {SIGNALS} and signal_horizon >= 1, found "
                              f"{self.signal!r} and {self.signal_horizon}")
+        if self.palette not in PALETTES:
+            raise ValueError(f"palette must be one of {PALETTES}, found {self.palette!r}")
+        self.shape_weights = tuple(float(w) for w in self.shape_weights)
+        self.uniform_config()  # (checks shape_weights)
         self.active.budget_per_round = self.round_episodes
         self.active.max_queue_depth = self.round_episodes
         self.active.steps = self.steps
@@ -139,7 +154,8 @@ class LoopBenchConfig:
     def uniform_config(self) -> UniformPlannerConfig:
         """The uniform arm's planner (and the seed rounds of both arms)."""
         return UniformPlannerConfig(steps=self.steps, max_queue_depth=self.round_episodes, policies=self.policies,
-                                    sample_physics=self.random_physics)
+                                    sample_physics=self.random_physics, shapes=protocol.SHAPES,
+                                    shape_weights=self.shape_weights)
 
     def to_json(self) -> dict:
         d = asdict(self)

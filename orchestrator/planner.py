@@ -126,6 +126,9 @@ class UniformPlannerConfig:
     """Draw physics uniformly from PHYSICS_RANGES; False uses each parameter's default."""
     shapes: tuple[str, ...] = protocol.SHAPES
     """Shapes to draw from."""
+    shape_weights: tuple[float, ...] = ()
+    """Relative weight of each of ``shapes`` (same order); empty: each equally likely. A fleet's usual
+    task mix is seldom the one its model is judged on (``bench loop --shape-weights``)."""
     policies: PolicyMix = field(default_factory=PolicyMix)
     """Collection policy mix (shared with the active arm)."""
 
@@ -139,6 +142,18 @@ class UniformPlannerConfig:
         unknown = set(self.shapes) - set(protocol.SHAPES)
         if not self.shapes or unknown:
             raise ValueError(f"shapes must be a non-empty subset of {protocol.SHAPES}, found {self.shapes}")
+        if self.shape_weights and (len(self.shape_weights) != len(self.shapes)
+                                   or not all(math.isfinite(w) and w >= 0 for w in self.shape_weights)
+                                   or sum(self.shape_weights) <= 0):
+            raise ValueError(f"shape_weights must be one finite weight >= 0 per shape of {self.shapes}, not all 0, "
+                             f"found {self.shape_weights}")
+
+    def draw_shape(self, rng: np.random.Generator) -> str:
+        """One shape, by ``shape_weights`` when given."""
+        if not self.shape_weights:
+            return str(rng.choice(self.shapes))  # (as before weights: the same draws for a seed)
+        w = np.asarray(self.shape_weights, dtype=np.float64)
+        return str(rng.choice(self.shapes, p=w / w.sum()))
 
 
 def uniform_start_state(rng: np.random.Generator, shape: str, sample_physics: bool = False) -> dict:
@@ -186,7 +201,7 @@ class UniformPlanner:
 
     def draw_request(self, why: str) -> NewRequest:
         """One uniform request; ``why`` goes into its reason as the planner name."""
-        shape = str(self.rng.choice(self.cfg.shapes))
+        shape = self.cfg.draw_shape(self.rng)
         policy, params = self.cfg.policies.draw(self.rng)
         return NewRequest(
             task="push", shape=shape,

@@ -116,6 +116,13 @@ def _connect() -> list[str]:
     (["serve", "--steps", "2", "--data", "DATA"], "argument --steps: expected at least 3 steps"),
     (["queue", "add", "--shape", "T", "--steps", "1"], "argument --steps: expected at least 3 steps"),
     (["bench", "loop", "--steps", "2"], "argument --steps: expected at least 3 steps"),
+    (["bench", "loop", "--shape-weights", "T=7,star=1"], "with shapes from T, box, L, disk, found 'star=1'"),
+    (["bench", "loop", "--shape-weights", "T"], "expected SHAPE=WEIGHT,..."),
+    (["bench", "loop", "--shape-weights", "T=-1,L=2"], "expected a weight >= 0 for T, found -1"),
+    (["bench", "loop", "--shape-weights", "T=nan"], "expected a finite number"),
+    (["bench", "loop", "--shape-weights", "T=0,box=0"], "expected at least one positive weight"),
+    (["bench", "loop", "--max-shape-share", "0"], "expected a share in (0, 1]"),
+    (["bench", "loop", "--palette", "pastel"], "argument --palette: invalid choice"),
     # frames a model cannot train on
     (["run", "--image-size", "12", "--data", "DATA"], "argument --image-size: expected a multiple of 8 from 16"),
     (["bench", "loop", "--image-size", "8"], "argument --image-size: expected a multiple of 8 from 16"),

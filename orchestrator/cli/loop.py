@@ -13,6 +13,7 @@ and ``uncertainty.config``.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import shlex
 import sys
@@ -20,13 +21,14 @@ import threading
 import time
 from collections import Counter
 from pathlib import Path
+from typing import Mapping
 
 from orchestrator.champion import ChampionScorer, FramesSource
 from orchestrator.cli import collect as collect_cli, common
 from orchestrator.dashboard import Dashboard, DashboardConfig, DataSources
-from orchestrator.loopconfig import SIGNALS, LoopBenchConfig, RunConfig
+from orchestrator.loopconfig import PALETTES, SIGNALS, LoopBenchConfig, RunConfig
 from orchestrator.scheduler import EXIT_BUSY, RetrainBusyError, quarantined_note
-from orchestrator.protocol import one_line
+from orchestrator.protocol import SHAPES, one_line
 from storage.catalog import Catalog
 from storage.errors import StorageError
 from storage.requests import Request
@@ -124,30 +126,68 @@ def register_bench(bench: argparse._SubParsersAction) -> None:
                         "still scores by disagreement)")
     p.add_argument("--within-policy", action="store_true", default=d.within_policy,
                    help="the active arm ranks each step against its own policy's steps (its score over the "
-                        "mean score of the round's episodes of that policy), so the policy that moves more "
-                        "does not take every request")
+                        f"mean score of the last {d.active.policy_window} episodes of that policy the champion "
+                        "scored), so the policy that moves more does not take every request")
     p.add_argument("--random-physics", action="store_true", default=d.random_physics,
                    help="make physics (mass, friction, ground friction) part of the task space: uniform and "
                         "seed episodes and the eval split draw them uniformly over their ranges, the active "
                         "arm keeps an uncertain state's physics (default: every episode at the defaults)")
+    p.add_argument("--shape-weights", type=shape_weights, default=d.shape_weights, metavar="S=W,...",
+                   help="the uniform arm and the seed rounds draw shapes with these relative weights, e.g. "
+                        f"T=7,box=1,L=1,disk=1 (shapes {', '.join(SHAPES)}; one left out weighs 0), while the "
+                        "eval split keeps every shape equally: a usual task mix that differs from what the "
+                        "model is judged on (default: every shape equally likely)")
+    p.add_argument("--palette", choices=PALETTES, default=d.palette,
+                   help="object colours in both arms and the eval split: all alike, as the service draws them, "
+                        "or one per shape, so that the shapes also look different (default "
+                        f"{d.palette})")
+    p.add_argument("--max-shape-share", type=share, default=d.active.max_shape_share, metavar="F",
+                   help="the active arm gives at most this share of a round's requests to one shape (default "
+                        f"{d.active.max_shape_share}; 1 = no cap)")
     p.add_argument("--out", type=Path, default=None, metavar="DIR",
                    help="output directory (default ./activecollect-bench/loop-<timestamp>)")
     p.set_defaults(func=_bench_loop)
 
 
-def bench_collect(request: Request, seed: int, image_size: int) -> Episode:
+def share(text: str) -> float:
+    """A share in (0, 1]."""
+    value = common.finite_float(text)
+    if not 0 < value <= 1:
+        raise argparse.ArgumentTypeError(f"expected a share in (0, 1] such as 0.5, found {text!r}")
+    return value
+
+
+def shape_weights(text: str) -> tuple[float, ...]:
+    """``--shape-weights``: ``SHAPE=W,...`` to one weight per ``protocol.SHAPES`` (a shape left out weighs 0)."""
+    weights = dict.fromkeys(SHAPES, 0.0)
+    for item in text.split(","):
+        name, eq, value = item.partition("=")
+        name = name.strip()
+        if not eq or name not in weights:
+            raise argparse.ArgumentTypeError(f"expected SHAPE=WEIGHT,... with shapes from {', '.join(SHAPES)}, "
+                                             f"found {item.strip()!r}")
+        weights[name] = common.finite_float(value)
+        if weights[name] < 0:
+            raise argparse.ArgumentTypeError(f"expected a weight >= 0 for {name}, found {value.strip()}")
+    if sum(weights.values()) <= 0:
+        raise argparse.ArgumentTypeError(f"expected at least one positive weight, found {text!r}")
+    return tuple(weights.values())
+
+
+def bench_collect(request: Request, seed: int, image_size: int,
+                  palette: Mapping[str, tuple[int, int, int]] | None = None) -> Episode:
     """``loopbench.Collect`` over the simulator: the episode a request asks for, collected here."""
     return collect_episode(start_state=request.start_state, policy=request.policy,
                            policy_params=request.policy_params, seed=seed, steps=request.steps,
                            image_size=image_size, action_prefix=request.action_prefix or None,
                            request_id=request.id, worker_id="bench",
-                           model_version=str(request.reason.get("model_version") or ""))
+                           model_version=str(request.reason.get("model_version") or ""), palette=palette)
 
 
 def bench_eval_split(catalog: Catalog, episodes: int, seed: int, steps: int, image_size: int,
-                     random_physics: bool = False) -> str:
+                     random_physics: bool = False, palette: Mapping[str, tuple[int, int, int]] | None = None) -> str:
     return create_eval_split(catalog, episodes=episodes, seed=seed, steps=steps, image_size=image_size,
-                             random_physics=random_physics)
+                             random_physics=random_physics, palette=palette)
 
 
 def _bench_loop(args: argparse.Namespace) -> int:
@@ -160,7 +200,9 @@ def _bench_loop(args: argparse.Namespace) -> int:
                               round_episodes=args.round_episodes, steps=args.steps,
                               image_size=args.image_size, train=train, signal=args.signal,
                               active_policy=args.active_policy, random_physics=args.random_physics,
-                              within_policy=args.within_policy)
+                              within_policy=args.within_policy, shape_weights=args.shape_weights,
+                              palette=args.palette,
+                              active=dataclasses.replace(d.active, max_shape_share=args.max_shape_share))
     except (ValueError, ConfigError) as exc:
         raise common.config_error(exc, {"budget": "--budget", "seeds": "--seeds", "members": "--members",
                                         "epochs": "--epochs"}) from None

@@ -10,14 +10,15 @@ import numpy as np
 import pytest
 import torch
 
-from orchestrator.loopbench import ARMS, OBJECT_COLOURS, LoopBenchConfig, _bench_id, episodes_to_reach, summarize
+from orchestrator.loopbench import (ARMS, OBJECT_COLOURS, LoopBenchConfig, _bench_id, episodes_to_reach, object_colours,
+                                    palette_of, summarize)
 from orchestrator.loopconfig import RunConfig
-from orchestrator.protocol import PHYSICS_RANGES
+from orchestrator.protocol import PHYSICS_RANGES, SHAPES
 from storage.catalog import Catalog
 from storage.records import Episode, EpisodeMeta
 from tests.conftest import run_cli
 from uncertainty.score import colour_mask, object_moving
-from workers.env import AGENT_RGB, PushSim, SimState, _background, scene_colours
+from workers.env import AGENT_RGB, MARKER_RGB, SHAPE_PALETTE, PushSim, SimState, _background, scene_colours
 
 
 def test_episodes_to_reach_interpolates_between_retrains():
@@ -90,6 +91,45 @@ def test_random_physics_reaches_the_uniform_arm_and_the_seeds():
     cfg = LoopBenchConfig(random_physics=True)
     assert cfg.uniform_config().sample_physics and cfg.active.seed_uniform.sample_physics
     assert cfg.to_json()["random_physics"]
+
+
+def test_shape_weights_reach_the_uniform_arm_and_the_seeds_and_palettes_are_checked():
+    assert LoopBenchConfig().uniform_config().shape_weights == ()
+    cfg = LoopBenchConfig(shape_weights=(7, 1, 1, 1))
+    assert cfg.uniform_config().shape_weights == cfg.active.seed_uniform.shape_weights == (7.0, 1.0, 1.0, 1.0)
+    assert cfg.to_json()["shape_weights"] == (7.0, 1.0, 1.0, 1.0)
+    with pytest.raises(ValueError, match="shape_weights"):
+        LoopBenchConfig(shape_weights=(1, 1))
+    with pytest.raises(ValueError, match="palette must be one of"):
+        LoopBenchConfig(palette="pastel")
+    assert palette_of(LoopBenchConfig()) is None and object_colours(None) == OBJECT_COLOURS
+    palette = palette_of(LoopBenchConfig(palette="per-shape"))
+    assert palette == SHAPE_PALETTE
+    assert set(object_colours(palette)) == {*SHAPE_PALETTE.values(), MARKER_RGB}
+
+
+def test_bench_loop_with_a_skewed_mix_and_shapes_coloured_apart(tmp_path, capsys):
+    """The uniform arm and the seeds draw by --shape-weights; the eval split keeps every shape, and
+    --palette reaches every episode of both arms and the split."""
+    out = tmp_path / "loop"
+    rc, stdout, _ = run_cli(capsys, "bench", "loop", "--seeds", "1", "--budget", "4", "--round", "2",
+                            "--steps", "12", "--image-size", "16", "--epochs", "1", "--members", "2",
+                            "--shape-weights", "disk=1", "--palette", "per-shape", "--max-shape-share", "1",
+                            "--json", "--out", str(out))
+    assert rc == 0
+    summary = json.loads(stdout)
+    assert summary["config"]["shape_weights"] == [0.0, 0.0, 0.0, 1.0] and summary["config"]["palette"] == "per-shape"
+    assert summary["config"]["active"]["max_shape_share"] == 1.0
+    assert all(p["round_shapes"] == {"disk": 2} for p in summary["points"])
+    gold = np.array(SHAPE_PALETTE["disk"])
+    for arm in ARMS:
+        catalog = Catalog(out / "seed0" / arm)
+        assert catalog.eval_split().params["palette"]["disk"] == list(SHAPE_PALETTE["disk"])
+        assert {r.shape for r in catalog.list(split="eval")} == set(SHAPES)  # the split keeps every shape
+        for r in catalog.list(split="train"):
+            assert r.shape == "disk"
+            frames = catalog.load(r.episode_id).frames.astype(int)
+            assert (np.abs(frames - gold).sum(axis=-1) <= 6).any()  # drawn in the disk's own colour
 
 
 def test_bench_loop_runs_both_arms_end_to_end_with_physics_in_the_task_space(tmp_path, capsys):

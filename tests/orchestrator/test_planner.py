@@ -76,6 +76,21 @@ def test_uniform_requests_stay_in_the_task_space():
     assert 150 < pushes < 250
 
 
+def test_shape_weights_skew_the_uniform_draw_and_are_checked():
+    cfg = UniformPlannerConfig(max_queue_depth=1000, shape_weights=(6.0, 2.0, 0.0, 2.0))  # T, box, L, disk
+    shapes = [r.shape for r in UniformPlanner(cfg, np.random.default_rng(0)).seed(1000)]
+    assert shapes.count("L") == 0
+    assert 540 < shapes.count("T") < 660 and 150 < shapes.count("box") < 250 and 150 < shapes.count("disk") < 250
+    # Without weights the draws are those from before weights existed (the same shapes for a seed).
+    rng = np.random.default_rng(3)
+    plain = [UniformPlannerConfig().draw_shape(rng) for _ in range(50)]
+    rng = np.random.default_rng(3)
+    assert plain == [str(rng.choice(protocol.SHAPES)) for _ in range(50)]
+    for bad in ((1.0, 1.0), (1.0, -1.0, 1.0, 1.0), (math.nan, 1.0, 1.0, 1.0), (0.0, 0.0, 0.0, 0.0)):
+        with pytest.raises(ValueError, match="shape_weights must be one finite weight >= 0 per shape"):
+            UniformPlannerConfig(shape_weights=bad)
+
+
 def test_same_seed_gives_same_requests():
     a = UniformPlanner(UniformPlannerConfig(), np.random.default_rng(7)).seed(5)
     b = UniformPlanner(UniformPlannerConfig(), np.random.default_rng(7)).seed(5)
