@@ -126,8 +126,10 @@ def _quarantine_in_source(source_db: Path, episode_id: str) -> sqlite3.Row | Non
     with connection(source_db, BackupError) as conn:
         try:
             return quarantines.find(conn, episode_id)
-        except sqlite3.OperationalError:  # a catalog from before quarantines
-            return None
+        except sqlite3.OperationalError as exc:
+            if "no such table" not in str(exc):  # busy, or failing: no answer (the backup fails, naming it)
+                raise
+            return None  # a catalog from before quarantines
 
 
 def _copy_episode(conn: sqlite3.Connection, source_db: Path, work: Path, row: sqlite3.Row, dirs: set[Path]

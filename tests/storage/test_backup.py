@@ -262,6 +262,30 @@ def test_an_episode_quarantined_during_the_backup_is_quarantined_in_it(tmp_path,
     assert copy.restore(last).quarantined == "" and copy.verify(last)
 
 
+def test_a_source_that_cannot_say_whether_an_episode_is_quarantined_fails_the_backup(tmp_path, rng,
+                                                                                      monkeypatch) -> None:
+    """Only a catalog without a quarantine table means 'not quarantined'; a busy or failing source is not an
+    answer (the copy would have put an episode quarantined during the backup back in training)."""
+    import sqlite3
+    from storage import backup as backup_module
+    data, dest = tmp_path / "data", tmp_path / "b"
+    want = _filled(data, rng)
+    cat = Catalog(data)
+    last = max((cat.get(i) for i in want["train"]), key=lambda r: str(r.path)).episode_id
+
+    def locked(conn, episode_id):
+        raise sqlite3.OperationalError("database is locked")
+
+    def quarantine_once(done: int, total: int) -> None:  # after the snapshot, before that file is copied
+        if done == 1:
+            cat.quarantine(last, "operator: wrong object")
+            monkeypatch.setattr(backup_module.quarantines, "find", locked)  # the backup's look finds it busy
+
+    with pytest.raises(BackupError, match="database is locked"):
+        backup(data, dest, progress=quarantine_once)
+    assert not dest.exists()
+
+
 def test_an_episode_restored_during_the_backup_is_in_training_in_it(tmp_path, rng) -> None:
     data, dest = tmp_path / "data", tmp_path / "b"
     want = _filled(data, rng)
