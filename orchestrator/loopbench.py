@@ -33,6 +33,7 @@ import dataclasses
 import json
 import math
 import time
+import zlib
 from pathlib import Path
 from typing import Callable, Mapping, Sequence
 
@@ -91,7 +92,11 @@ class SignalScorer:
         ensemble, version = self.champion.ensemble, self.champion.version
         if ensemble is None or version is None:
             return None
-        if self.signal == "disagreement":
+        if self.signal == "random":  # the steps disagreement scores, at random (seeded by the episode's id)
+            scored = ensemble.disagreement(episode.frames, episode.actions, horizon=self.horizon)
+            rng = np.random.default_rng(zlib.crc32(episode.meta.episode_id.encode()))
+            per_step = np.where(np.isnan(scored), np.nan, rng.random(len(scored)))
+        elif self.signal == "disagreement":
             per_step = ensemble.disagreement(episode.frames, episode.actions, horizon=self.horizon)
         elif self.signal == "object_pixels":
             per_step = colour_disagreement(ensemble, episode.frames, episode.actions, self.colours,

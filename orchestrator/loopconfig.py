@@ -72,12 +72,14 @@ class RunConfig:
 #: What the active arm ranks steps by: ``disagreement`` (variance over all pixels, as the service's
 #: scorer), ``change`` (variance over the pixels that change), ``object`` (``change`` on the steps
 #: where the object moves, i.e. the pusher is in contact; other steps are not candidates),
+#: ``object_pixels`` (variance over the pixels of the object's colours only: the pusher's own motion,
+#: which the policy decides and a start state cannot buy, left out), ``random`` (a random number per
+#: step, the same in every run: the planner's threshold, diversity and shape cap without any model
+#: score, the ablation that tells what the score itself adds).
+SIGNALS = ("disagreement", "change", "object", "object_pixels", "random")
 #: The objects' colours in ``bench loop``: all alike (the service's world) or one per shape
 #: (``workers.env.SHAPE_PALETTE``).
 PALETTES = ("uniform", "per-shape")
-#: ``object_pixels`` (variance over the pixels of the object's colours only: the pusher's own motion,
-#: which the policy decides and a start state cannot buy, left out).
-SIGNALS = ("disagreement", "change", "object", "object_pixels")
 
 
 @dataclass

@@ -171,3 +171,25 @@ def test_object_pixels_are_the_objects_at_every_frame_size(size):
     agent = sim.render().astype(int)
     pusher = (np.abs(agent - np.array(AGENT_RGB)).sum(axis=-1) == 0)  # the pusher's pure-colour pixels
     assert mask.any() and not mask.numpy()[pusher].any()
+
+
+def test_the_random_signal_ranks_the_steps_disagreement_scores_at_random_and_alike_in_every_run(tmp_path):
+    """``--signal random``: the ablation with the planner's structure and no model score."""
+    import dataclasses as dc
+
+    from orchestrator.champion import ChampionScorer
+    from orchestrator.loopbench import SignalScorer
+    from storage.models import ModelRegistry
+    from tests.orchestrator.test_champion import _promoted
+    from tests.uncertainty.synth import make_episode as synth_episode
+    _promoted(ModelRegistry(tmp_path), 0, 0.02)
+    champion = ChampionScorer(tmp_path)
+    ep = synth_episode(0, steps=12, size=16)
+    other = dc.replace(ep, meta=dc.replace(ep.meta, episode_id="another"))
+    scores = SignalScorer(champion, "random", 1)(ep).per_step
+    plain = SignalScorer(champion, "disagreement", 1)(ep).per_step
+    assert np.array_equal(np.isnan(scores), np.isnan(plain)) and np.isnan(scores).any()
+    valid = scores[~np.isnan(scores)]
+    assert ((valid >= 0) & (valid < 1)).all() and not np.allclose(valid, plain[~np.isnan(plain)])
+    assert np.array_equal(SignalScorer(ChampionScorer(tmp_path), "random", 1)(ep).per_step, scores, equal_nan=True)
+    assert not np.array_equal(SignalScorer(champion, "random", 1)(other).per_step, scores, equal_nan=True)
