@@ -135,7 +135,8 @@ class Router:
 
 def run_router(cfg: RouterConfig, out: TextIO, stop: threading.Event | None = None,
                on_ready: Callable[[Router], None] | None = None) -> int:
-    """Runs a router until ``stop`` is set or SIGTERM/SIGINT arrives (main thread only); returns 0.
+    """Runs a router until ``stop`` is set or SIGTERM/SIGINT arrives (main thread only; a SIGINT this process
+    was started ignoring stays ignored: ``orchestrator.signals``); returns 0.
 
     Prints one ready line with its id and endpoints once the router is listening.
     """

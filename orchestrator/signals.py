@@ -18,9 +18,10 @@ from typing import Callable
 
 
 def on_stop_signals(handler: Callable[[], None]) -> Callable[[], None]:
-    """Calls ``handler`` on SIGTERM and on SIGINT (unless SIGINT was ignored when this process started:
-    it stays ignored). Returns a function that puts the previous handlers back. Outside the main
-    thread, where Python takes no signal handlers, it installs nothing."""
+    """Calls ``handler`` on SIGTERM and on SIGINT, unless SIGINT is ignored when this is called (as it is in
+    a process started ignoring it, before anything of ours installs a handler): then it stays ignored.
+    Returns a function that puts the previous handlers back. Outside the main thread, where Python takes
+    no signal handlers, it installs nothing."""
     if threading.current_thread() is not threading.main_thread():
         return lambda: None
     sigs = [signal.SIGTERM] + ([signal.SIGINT] if signal.getsignal(signal.SIGINT) != signal.SIG_IGN else [])

@@ -14,6 +14,7 @@ import sys
 import time
 import uuid
 from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
 from pathlib import Path
 from typing import TypeVar
 
@@ -41,6 +42,24 @@ def free_port() -> int:
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
         s.bind(("127.0.0.1", 0))
         return s.getsockname()[1]
+
+
+def disposition(pid: int, sig: int) -> str:
+    """How a process takes ``sig``: ``ignored``, ``caught`` (a handler) or ``default``, as Linux reports it."""
+    fields = dict(line.split(":\t") for line in Path(f"/proc/{pid}/status").read_text().splitlines()
+                  if line.startswith(("SigIgn", "SigCgt")))
+    bit = 1 << (sig - 1)
+    return "ignored" if int(fields["SigIgn"], 16) & bit else "caught" if int(fields["SigCgt"], 16) & bit else "default"
+
+
+@contextmanager
+def ignoring_sigint() -> Iterator[None]:
+    """Children started in this block inherit SIGINT ignored across exec, as a script's background jobs do."""
+    old = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, old)
 
 
 def wait_for(condition: Callable[[], T], timeout: float = 10.0, message: str = "condition",

@@ -14,13 +14,14 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 PACKAGES = ("storage", "uncertainty", "workers", "orchestrator")
-WIRE = {"orchestrator.protocol", "orchestrator.messages", "orchestrator.transport", "orchestrator.signals"}
+#: What workers may import of the orchestrator: the wire contract, and how a process is asked to stop.
+SHARED = {"orchestrator.protocol", "orchestrator.messages", "orchestrator.transport", "orchestrator.signals"}
 
 #: For each package (or module), which of our modules it may import, besides its own package.
 ALLOWED = {
     "storage": lambda mod: False,
     "uncertainty": lambda mod: mod.startswith("storage"),
-    "workers": lambda mod: mod.startswith("storage") or mod in WIRE,
+    "workers": lambda mod: mod.startswith("storage") or mod in SHARED,
     "orchestrator": lambda mod: mod.split(".")[0] in ("storage", "uncertainty", "workers"),
 }
 #: Leaves: the modules they may import of ours (nothing else, not even their own package).

@@ -11,7 +11,7 @@ from orchestrator.service import Service, ServiceConfig
 from storage.catalog import Catalog
 from storage.errors import CatalogUnavailableError
 from storage.requests import RequestStatus
-from tests.conftest import wait_for
+from tests.conftest import disposition, ignoring_sigint, wait_for
 from tests.orchestrator.test_service import new_request
 from workers.agent import WorkerConfig, WorkerError
 
@@ -96,30 +96,17 @@ def test_sigterm_drains_the_current_request(start_service, spawn_worker, data_di
     assert Catalog(data_dir).count() == 1
 
 
-def signal_masks(pid: int) -> tuple[int, int]:
-    """(ignored, caught) signal bit masks of a process, as Linux reports them."""
-    fields = dict(line.split(":\t") for line in Path(f"/proc/{pid}/status").read_text().splitlines()
-                  if line.startswith(("SigIgn", "SigCgt")))
-    return int(fields["SigIgn"], 16), int(fields["SigCgt"], 16)
-
-
 def test_a_worker_started_ignoring_sigint_keeps_ignoring_it(start_service, spawn_worker) -> None:
     """As `activecollect run` started in a script's background does (the shell starts it so): its workers
     must not stop on a SIGINT their run ignores."""
     start_service()
-    bit = lambda sig: 1 << (sig - 1)  # noqa: E731
-    old = signal.signal(signal.SIGINT, signal.SIG_IGN)  # inherited across exec, as from such a parent
-    try:
+    with ignoring_sigint():
         ignoring = spawn_worker("I")
-    finally:
-        signal.signal(signal.SIGINT, old)
     plain = spawn_worker("P")
     for w in (ignoring, plain):  # SIGTERM caught: the worker's handlers are in place
-        wait_for(lambda: signal_masks(w.pid)[1] & bit(signal.SIGTERM), timeout=30, message=f"{w.name} handlers")
-    ignored, caught = signal_masks(ignoring.pid)
-    assert ignored & bit(signal.SIGINT) and not caught & bit(signal.SIGINT)
-    ignored, caught = signal_masks(plain.pid)
-    assert caught & bit(signal.SIGINT) and not ignored & bit(signal.SIGINT)
+        wait_for(lambda: disposition(w.pid, signal.SIGTERM) == "caught", timeout=30, message=f"{w.name} handlers")
+    assert disposition(ignoring.pid, signal.SIGINT) == "ignored"
+    assert disposition(plain.pid, signal.SIGINT) == "caught"
 
 
 def test_second_sigterm_gives_the_request_back(start_service, spawn_worker) -> None:

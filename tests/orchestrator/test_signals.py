@@ -1,5 +1,5 @@
-"""How serve, router and worker are asked to stop (``orchestrator.signals``): SIGTERM, and SIGINT unless
-they were started ignoring it (a script's background job)."""
+"""How serve, router and worker are asked to stop (``orchestrator.signals``): SIGTERM, and SIGINT unless they
+were started ignoring it (a script's background job). The worker's case is in test_service_worker.py."""
 
 from __future__ import annotations
 
@@ -8,13 +8,8 @@ import signal
 import threading
 
 from orchestrator.signals import on_stop_signals
-from tests.conftest import free_port, wait_for
+from tests.conftest import disposition, free_port, ignoring_sigint, wait_for
 from tests.orchestrator.test_router import start, start_plain_router
-from tests.orchestrator.test_service_worker import signal_masks
-
-
-def bit(sig: int) -> int:
-    return 1 << (sig - 1)
 
 
 def test_sigterm_and_sigint_call_the_handler_and_restore_puts_the_old_ones_back() -> None:
@@ -30,16 +25,16 @@ def test_sigterm_and_sigint_call_the_handler_and_restore_puts_the_old_ones_back(
     assert {s: signal.getsignal(s) for s in before} == before
 
 
-def test_a_sigint_ignored_at_start_stays_ignored() -> None:
-    old = signal.signal(signal.SIGINT, signal.SIG_IGN)
-    try:
+def test_a_sigint_ignored_when_called_stays_ignored() -> None:
+    before = signal.getsignal(signal.SIGTERM)
+    with ignoring_sigint():
         restore = on_stop_signals(lambda: None)
-        assert signal.getsignal(signal.SIGINT) == signal.SIG_IGN
-        assert signal.getsignal(signal.SIGTERM) not in (signal.SIG_DFL, signal.SIG_IGN)
-        restore()
-        assert signal.getsignal(signal.SIGTERM) == signal.SIG_DFL
-    finally:
-        signal.signal(signal.SIGINT, old)
+        try:
+            assert signal.getsignal(signal.SIGINT) == signal.SIG_IGN
+            assert signal.getsignal(signal.SIGTERM) not in (signal.SIG_DFL, signal.SIG_IGN, before)
+        finally:
+            restore()
+    assert signal.getsignal(signal.SIGTERM) == before
 
 
 def test_outside_the_main_thread_nothing_is_installed() -> None:
@@ -53,26 +48,29 @@ def test_outside_the_main_thread_nothing_is_installed() -> None:
 
 
 def test_a_router_started_ignoring_sigint_keeps_ignoring_it_and_stops_on_sigterm() -> None:
-    """As ``activecollect router`` (and ``serve``, the same function) in a script's background."""
-    old = signal.signal(signal.SIGINT, signal.SIG_IGN)  # inherited across exec, as from such a parent
-    try:
+    with ignoring_sigint():
         ignoring = start("--listen", f"tcp/127.0.0.1:{free_port()}")
-    finally:
-        signal.signal(signal.SIGINT, old)
     plain = start_plain_router((f"tcp/127.0.0.1:{free_port()}",))
     try:
-        for p in (ignoring, plain):  # (it prints its ready line after its handlers are in place)
-            wait_for(lambda: signal_masks(p.popen.pid)[1] & bit(signal.SIGTERM), message="SIGTERM handled")
-        ignored, caught = signal_masks(ignoring.popen.pid)
-        assert ignored & bit(signal.SIGINT) and not caught & bit(signal.SIGINT)
-        ignored, caught = signal_masks(plain.popen.pid)
-        assert caught & bit(signal.SIGINT) and not ignored & bit(signal.SIGINT)
-        ignoring.popen.send_signal(signal.SIGINT)  # ignored: still routing
+        for p in (ignoring, plain):
+            wait_for(lambda: disposition(p.popen.pid, signal.SIGTERM) == "caught", message="SIGTERM handled")
+        assert disposition(ignoring.popen.pid, signal.SIGINT) == "ignored"
+        assert disposition(plain.popen.pid, signal.SIGINT) == "caught"
         plain.popen.send_signal(signal.SIGINT)
         assert plain.popen.wait(15) == 0, plain.output()
-        assert ignoring.popen.poll() is None
         ignoring.popen.send_signal(signal.SIGTERM)
         assert ignoring.popen.wait(15) == 0, ignoring.output()
     finally:
         ignoring.stop()
         plain.stop()
+
+
+def test_serve_started_ignoring_sigint_keeps_ignoring_it_and_stops_on_sigterm(spawn_service) -> None:
+    with ignoring_sigint():
+        ignoring = spawn_service(name="service-I")
+    wait_for(lambda: "serving " in ignoring.log() or not ignoring.alive(), timeout=60, message="serve to start")
+    assert ignoring.alive(), ignoring.log()
+    assert disposition(ignoring.pid, signal.SIGTERM) == "caught"  # (it prints 'serving' after its handlers)
+    assert disposition(ignoring.pid, signal.SIGINT) == "ignored"
+    ignoring.signal(signal.SIGTERM)
+    assert ignoring.wait(30) == 0, ignoring.log()
