@@ -92,12 +92,11 @@ class SignalScorer:
         ensemble, version = self.champion.ensemble, self.champion.version
         if ensemble is None or version is None:
             return None
-        if self.signal == "random":  # the steps disagreement scores, at random (seeded by the episode's id)
-            scored = ensemble.disagreement(episode.frames, episode.actions, horizon=self.horizon)
-            rng = np.random.default_rng(zlib.crc32(episode.meta.episode_id.encode()))
-            per_step = np.where(np.isnan(scored), np.nan, rng.random(len(scored)))
-        elif self.signal == "disagreement":
+        if self.signal in ("disagreement", "random"):
             per_step = ensemble.disagreement(episode.frames, episode.actions, horizon=self.horizon)
+            if self.signal == "random":  # the same steps, at random (seeded by the episode's id: alike in every run)
+                rng = np.random.default_rng(zlib.crc32(episode.meta.episode_id.encode()))
+                per_step = np.where(np.isnan(per_step), np.nan, rng.random(len(per_step)))
         elif self.signal == "object_pixels":
             per_step = colour_disagreement(ensemble, episode.frames, episode.actions, self.colours,
                                            scene_colours(episode.frames.shape[1]), horizon=self.horizon)

@@ -124,9 +124,10 @@ class LoopBenchConfig:
     rounds and the eval split draw them uniformly over ``protocol.PHYSICS_RANGES`` (the active arm keeps
     an uncertain state's physics, as it keeps its shape); off, every episode has the default physics."""
     shape_weights: tuple[float, ...] = ()
-    """The uniform arm and the seed rounds draw shapes with these relative weights (one per
-    ``protocol.SHAPES``, in its order) while the eval split keeps every shape equally: a fleet's usual task
-    mix that differs from what its model is judged on. Empty: every shape equally likely."""
+    """The uniform arm, the seed rounds and the uniform requests that fill an active round the planner left
+    short draw shapes with these relative weights (one per ``protocol.SHAPES``, in its order) while the
+    eval split keeps every shape equally: a fleet's usual task mix that differs from what its model is
+    judged on. Empty: every shape equally likely."""
     palette: str = "uniform"
     """The objects' colours (one of ``PALETTES``), in both arms and the eval split: ``per-shape`` makes the
     shapes look different (where a model trained on one shape does not yet know the others)."""
@@ -145,7 +146,6 @@ class LoopBenchConfig:
         if self.palette not in PALETTES:
             raise ValueError(f"palette must be one of {PALETTES}, found {self.palette!r}")
         self.shape_weights = tuple(float(w) for w in self.shape_weights)
-        self.uniform_config()  # (checks shape_weights)
         self.active.budget_per_round = self.round_episodes
         self.active.max_queue_depth = self.round_episodes
         self.active.steps = self.steps

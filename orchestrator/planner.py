@@ -144,9 +144,9 @@ class UniformPlannerConfig:
             raise ValueError(f"shapes must be a non-empty subset of {protocol.SHAPES}, found {self.shapes}")
         if self.shape_weights and (len(self.shape_weights) != len(self.shapes)
                                    or not all(math.isfinite(w) and w >= 0 for w in self.shape_weights)
-                                   or sum(self.shape_weights) <= 0):
+                                   or not 0 < sum(self.shape_weights) < math.inf):
             raise ValueError(f"shape_weights must be one finite weight >= 0 per shape of {self.shapes}, not all 0, "
-                             f"found {self.shape_weights}")
+                             f"with a finite sum, found {self.shape_weights}")
 
     def draw_shape(self, rng: np.random.Generator) -> str:
         """One shape, by ``shape_weights`` when given."""
@@ -246,7 +246,8 @@ class ActivePlannerConfig:
     does (away from the object): starting next to the object, as contact states would, leaves the
     active arm short of the pusher's free motion, which most of the eval error comes from."""
     max_shape_share: float = 0.5
-    """At most this share of a round's requests may be of one shape (no collapse onto one shape)."""
+    """At most this share of the requests planned in one call may be of one shape (rounded up, at least 1):
+    no collapse onto one shape."""
     seed_uniform: UniformPlannerConfig = field(default_factory=UniformPlannerConfig)
     """How seeds (before any model) and exploration requests are drawn; its policy mix is shared."""
     choose_policy: bool = False

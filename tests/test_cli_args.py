@@ -118,9 +118,11 @@ def _connect() -> list[str]:
     (["bench", "loop", "--steps", "2"], "argument --steps: expected at least 3 steps"),
     (["bench", "loop", "--shape-weights", "T=7,star=1"], "with shapes from T, box, L, disk, found 'star=1'"),
     (["bench", "loop", "--shape-weights", "T"], "expected SHAPE=WEIGHT,..."),
-    (["bench", "loop", "--shape-weights", "T=-1,L=2"], "expected a weight >= 0 for T, found -1"),
-    (["bench", "loop", "--shape-weights", "T=nan"], "expected a finite number"),
+    (["bench", "loop", "--shape-weights", "T=-1,L=2"], "expected a weight >= 0 for T, found '-1'"),
+    (["bench", "loop", "--shape-weights", "T=nan"], "weight of T: expected a finite number"),
     (["bench", "loop", "--shape-weights", "T=0,box=0"], "expected at least one positive weight"),
+    (["bench", "loop", "--shape-weights", "T=1e308,box=1e308"], "and a finite sum"),
+    (["bench", "loop", "--shape-weights", "T=1,T=0"], "T is given twice in 'T=1,T=0'"),
     (["bench", "loop", "--max-shape-share", "0"], "expected a share in (0, 1]"),
     (["bench", "loop", "--palette", "pastel"], "argument --palette: invalid choice"),
     # frames a model cannot train on

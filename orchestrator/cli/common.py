@@ -149,6 +149,14 @@ def fraction(text: str) -> float:
     return value
 
 
+def share(text: str) -> float:
+    """A share in (0, 1] (of a round, of a budget)."""
+    value = finite_float(text)
+    if not 0 < value <= 1:
+        raise argparse.ArgumentTypeError(f"expected a share in (0, 1] such as 0.5, found {text!r}")
+    return value
+
+
 def cron_expression(text: str) -> str:
     """A cron expression such as ``0 * * * *`` ('' = none)."""
     if text and not croniter.is_valid(text):

@@ -15,6 +15,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import math
 import shlex
 import sys
 import threading
@@ -133,7 +134,8 @@ def register_bench(bench: argparse._SubParsersAction) -> None:
                         "seed episodes and the eval split draw them uniformly over their ranges, the active "
                         "arm keeps an uncertain state's physics (default: every episode at the defaults)")
     p.add_argument("--shape-weights", type=shape_weights, default=d.shape_weights, metavar="S=W,...",
-                   help="the uniform arm and the seed rounds draw shapes with these relative weights, e.g. "
+                   help="the uniform arm, the seed rounds and the uniform requests that fill an active round "
+                        "the planner left short draw shapes with these relative weights, e.g. "
                         f"T=7,box=1,L=1,disk=1 (shapes {', '.join(SHAPES)}; one left out weighs 0), while the "
                         "eval split keeps every shape equally: a usual task mix that differs from what the "
                         "model is judged on (default: every shape equally likely)")
@@ -141,36 +143,36 @@ def register_bench(bench: argparse._SubParsersAction) -> None:
                    help="object colours in both arms and the eval split: all alike, as the service draws them, "
                         "or one per shape, so that the shapes also look different (default "
                         f"{d.palette})")
-    p.add_argument("--max-shape-share", type=share, default=d.active.max_shape_share, metavar="F",
-                   help="the active arm gives at most this share of a round's requests to one shape (default "
-                        f"{d.active.max_shape_share}; 1 = no cap)")
+    p.add_argument("--max-shape-share", type=common.share, default=d.active.max_shape_share, metavar="F",
+                   help="the active planner gives at most this share of the requests it picks in a round to one "
+                        f"shape, rounded up, at least 1 (default {d.active.max_shape_share}; 1 = no cap); a round it "
+                        "leaves short is filled with uniform requests")
     p.add_argument("--out", type=Path, default=None, metavar="DIR",
                    help="output directory (default ./activecollect-bench/loop-<timestamp>)")
     p.set_defaults(func=_bench_loop)
 
 
-def share(text: str) -> float:
-    """A share in (0, 1]."""
-    value = common.finite_float(text)
-    if not 0 < value <= 1:
-        raise argparse.ArgumentTypeError(f"expected a share in (0, 1] such as 0.5, found {text!r}")
-    return value
-
-
 def shape_weights(text: str) -> tuple[float, ...]:
     """``--shape-weights``: ``SHAPE=W,...`` to one weight per ``protocol.SHAPES`` (a shape left out weighs 0)."""
     weights = dict.fromkeys(SHAPES, 0.0)
+    given: set[str] = set()
     for item in text.split(","):
         name, eq, value = item.partition("=")
         name = name.strip()
         if not eq or name not in weights:
             raise argparse.ArgumentTypeError(f"expected SHAPE=WEIGHT,... with shapes from {', '.join(SHAPES)}, "
                                              f"found {item.strip()!r}")
-        weights[name] = common.finite_float(value)
+        if name in given:
+            raise argparse.ArgumentTypeError(f"{name} is given twice in {text!r}")
+        given.add(name)
+        try:
+            weights[name] = common.finite_float(value)
+        except argparse.ArgumentTypeError as exc:
+            raise argparse.ArgumentTypeError(f"weight of {name}: {exc}") from None
         if weights[name] < 0:
-            raise argparse.ArgumentTypeError(f"expected a weight >= 0 for {name}, found {value.strip()}")
-    if sum(weights.values()) <= 0:
-        raise argparse.ArgumentTypeError(f"expected at least one positive weight, found {text!r}")
+            raise argparse.ArgumentTypeError(f"expected a weight >= 0 for {name}, found {value.strip()!r}")
+    if not 0 < sum(weights.values()) < math.inf:
+        raise argparse.ArgumentTypeError(f"expected at least one positive weight and a finite sum, found {text!r}")
     return tuple(weights.values())
 
 

@@ -86,7 +86,8 @@ def test_shape_weights_skew_the_uniform_draw_and_are_checked():
     plain = [UniformPlannerConfig().draw_shape(rng) for _ in range(50)]
     rng = np.random.default_rng(3)
     assert plain == [str(rng.choice(protocol.SHAPES)) for _ in range(50)]
-    for bad in ((1.0, 1.0), (1.0, -1.0, 1.0, 1.0), (math.nan, 1.0, 1.0, 1.0), (0.0, 0.0, 0.0, 0.0)):
+    for bad in ((1.0, 1.0), (1.0, -1.0, 1.0, 1.0), (math.nan, 1.0, 1.0, 1.0), (0.0, 0.0, 0.0, 0.0),
+                (1e308, 1e308, 0.0, 0.0)):
         with pytest.raises(ValueError, match="shape_weights must be one finite weight >= 0 per shape"):
             UniformPlannerConfig(shape_weights=bad)
 
