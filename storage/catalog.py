@@ -646,6 +646,4 @@ class Catalog:
                 f"SELECT episode_id, sha256 FROM episodes WHERE split = ? AND {quarantines.NOT_QUARANTINED}"
                 + (" AND episode_id NOT IN (SELECT episode_id FROM eval_split_members)" if split == "train" else "")
                 + " ORDER BY episode_id", (split,)).fetchall()
-        pairs = [(r["episode_id"], r["sha256"]) for r in rows]
-        return Snapshot(ids=[p[0] for p in pairs], snapshot_id=content_hash(pairs)[:16],
-                        sha256s=[p[1] for p in pairs])
+        return Snapshot.of([(r["episode_id"], r["sha256"]) for r in rows])

@@ -82,8 +82,11 @@ class Snapshot:
     sha256s: list[str] = field(default_factory=list)
     """The sha256 of each of ``ids``."""
 
+    @classmethod
+    def of(cls, pairs: Sequence[tuple[str, str]]) -> Snapshot:
+        """The snapshot of (episode_id, sha256) ``pairs``, sorted by id."""
+        return cls(ids=[p[0] for p in pairs], snapshot_id=content_hash(pairs)[:16], sha256s=[p[1] for p in pairs])
+
     def without(self, drop: Sequence[str]) -> Snapshot:
         """This snapshot less the episodes ``drop`` (those a job found damaged and quarantined)."""
-        pairs = [(i, s) for i, s in zip(self.ids, self.sha256s) if i not in set(drop)]
-        return Snapshot(ids=[p[0] for p in pairs], snapshot_id=content_hash(pairs)[:16],
-                        sha256s=[p[1] for p in pairs])
+        return Snapshot.of([(i, s) for i, s in zip(self.ids, self.sha256s) if i not in set(drop)])

@@ -279,7 +279,9 @@ def test_a_source_that_cannot_say_whether_an_episode_is_quarantined_fails_the_ba
     def quarantine_once(done: int, total: int) -> None:  # after the snapshot, before that file is copied
         if done == 1:
             cat.quarantine(last, "operator: wrong object")
-            monkeypatch.setattr(backup_module.quarantines, "find", locked)  # the backup's look finds it busy
+            # The backup's look finds the source busy (a real lock would only show after the busy timeout);
+            # patched for the whole process, which is safe here: nothing else reads quarantines after this.
+            monkeypatch.setattr(backup_module.quarantines, "find", locked)
 
     with pytest.raises(BackupError, match="database is locked"):
         backup(data, dest, progress=quarantine_once)
