@@ -13,13 +13,15 @@ The tables are created through ``storage.database.ensure_schema`` (component ``m
 Retention: nothing is deleted unless asked. ``prune(keep=N)`` deletes the files of retired and
 rejected models outside the champion's rollback chain of N; their rows stay (``pruned_at`` set), so
 ``models ls`` and the dashboard still show every model's metrics and history.
+
+The rows the registry answers with are ``storage.model_rows``'s dataclasses (re-exported here), the steps
+of a prune ``storage.pruning``'s functions.
 """
 
 from __future__ import annotations
 
 import hashlib
 import json
-import math
 import os
 import shutil
 import sqlite3
@@ -28,25 +30,20 @@ import time
 import uuid
 from collections.abc import Iterator
 from contextlib import AbstractContextManager, contextmanager
-from dataclasses import dataclass, field
 from datetime import datetime, timezone
-from enum import Enum
 from pathlib import Path
 from typing import Any
 
+from storage import pruning
 from storage.database import (DB_NAME, MODELS_DIR, Migration, connection, ensure_schema, refuse_lost_database,
                               storage_error, transaction)
 from storage.errors import CorruptCheckpointError, PrunedCheckpointError, RegistryError, UnknownModelError
-from storage.files import age_s, fsync_dir, write_synced
+from storage.files import fsync_dir, write_synced
 from storage.gate import DEFAULT_METRIC, DEFAULT_MIN_REL_IMPROVEMENT, GateDecision, judge
+from storage.model_rows import (CONFIG_FILE, META_FILE, METRICS_FILE, WEIGHTS_FILE, ChampionEntry, ModelRecord,
+                                ModelStatus, PruneResult)
 
-WEIGHTS_FILE = "weights.pt"
-CONFIG_FILE = "config.json"
-METRICS_FILE = "metrics.json"
-META_FILE = "meta.json"
 CHAMPION = "champion"
-#: A staging or deleting dot folder under ``models/`` this old belongs to no live call (they take seconds).
-STALE_AGE_S = 3600.0
 
 #: One entry per schema version; a change to the tables is a new entry at the end. Each says which older
 #: code may still use the file after it (``compatible_with``, see ``storage.database.Migration``): leave
@@ -84,113 +81,8 @@ _MIGRATIONS: tuple[Migration, ...] = (
 )
 
 
-class ModelStatus(str, Enum):
-    """Where a registered model stands. Transitions happen only in ``ModelRegistry``."""
-
-    CANDIDATE = "candidate"
-    """Registered, not yet through the gate."""
-    CHAMPION = "champion"
-    """The model in service (exactly one, or none before the first promotion)."""
-    RETIRED = "retired"
-    """A former champion, replaced by a better one or rolled back."""
-    REJECTED = "rejected"
-    """Refused by the gate; kept, with the reason."""
-
-
-@dataclass(frozen=True)
-class ModelRecord:
-    """One registered model: its registry row plus where its files are."""
-
-    version: str
-    """Unique, sortable version name (``m000001-1a2b3c4d``)."""
-    status: ModelStatus
-    """Current status."""
-    reason: str
-    """Why it has that status (the gate's or the operator's words); '' for a fresh candidate."""
-    parent: str | None
-    """Version it was warm-started from, if any."""
-    snapshot_id: str
-    """Catalog snapshot (training episode ids) it was trained on."""
-    eval_split_hash: str
-    """Hash of the eval split its metrics were measured on."""
-    weights_sha256: str
-    """sha256 hex of the weights file as registered."""
-    size_bytes: int
-    """Size of the weights file."""
-    created: str
-    """Registration time, ISO 8601 UTC."""
-    metrics: dict[str, Any]
-    """Evaluation metrics (``h1_mse`` ...)."""
-    config: dict[str, Any]
-    """Model / training configuration, as the trainer gave it."""
-    path: Path
-    """The checkpoint directory."""
-    pruned_at: str | None = None
-    """When ``prune`` deleted its files (ISO 8601 UTC); None while they are kept."""
-
-    @property
-    def weights_path(self) -> Path:
-        return self.path / WEIGHTS_FILE
-
-    def to_json(self) -> dict[str, Any]:
-        """A strict-JSON-able dict: non-finite metric values (NaN, inf) become None."""
-        return {
-            "version": self.version, "status": self.status.value, "reason": self.reason,
-            "parent": self.parent, "snapshot_id": self.snapshot_id,
-            "eval_split_hash": self.eval_split_hash, "weights_sha256": self.weights_sha256,
-            "size_bytes": self.size_bytes, "created": self.created, "metrics": _finite(self.metrics),
-            "config": self.config, "path": str(self.path), "pruned_at": self.pruned_at,
-        }
-
-
-@dataclass(frozen=True)
-class ChampionEntry:
-    """One promotion in the champion history."""
-
-    version: str
-    promoted_at: str
-    reason: str
-    rolled_back_at: str | None = field(default=None)
-
-
-@dataclass(frozen=True)
-class PruneResult:
-    """What ``ModelRegistry.prune`` deleted (or, with ``dry_run``, would delete)."""
-
-    pruned: list[str]
-    """Versions whose files were deleted, in registration order."""
-    kept: list[str]
-    """Models whose files are kept for going back: the champion, the earlier champions rollback returns
-    to, then the latest champions a rollback took out of service (candidates are kept too, not listed)."""
-    freed_bytes: int
-    """Total size of the files this call deleted (or would delete)."""
-    dry_run: bool = False
-
-
-def _finite(obj: Any) -> Any:
-    """``obj`` with every non-finite float replaced by None (JSON has no NaN)."""
-    if isinstance(obj, float) and not math.isfinite(obj):
-        return None
-    if isinstance(obj, dict):
-        return {k: _finite(v) for k, v in obj.items()}
-    if isinstance(obj, list):
-        return [_finite(v) for v in obj]
-    return obj
-
-
 def _now() -> str:
     return datetime.now(timezone.utc).isoformat(timespec="microseconds")
-
-
-def _tree_size(path: Path) -> int:
-    """Bytes of the files under ``path`` (files that vanish meanwhile count 0)."""
-    total = 0
-    for f in path.rglob("*"):
-        try:
-            total += f.stat().st_size if f.is_file() else 0
-        except FileNotFoundError:
-            continue
-    return total
 
 
 def _dump(obj: Any, what: str) -> bytes:
@@ -623,67 +515,26 @@ class ModelRegistry:
             raise RegistryError(f"keep must be a whole number of at least 1 (the champion), found {keep!r}")
         # Which of the chain rollback could return to: checking sha256 reads files, so before the lock
         # (a model promoted meanwhile is not in `unusable` and is kept).
-        unusable, intact = set(), 0
         with self._connect() as conn:
             wanted = self._keep_order(conn)
-        for version in wanted:
-            if intact == keep:
-                break
-            try:
-                self.verify(version)
-                intact += 1
-            except CorruptCheckpointError:
-                unusable.add(version)
+        unusable = pruning.unusable(wanted, keep, self.verify)
         with self._transaction() as conn:
             kept = [v for v in self._keep_order(conn) if v not in unusable][:keep]
-            marks = ",".join("?" * len(kept))
-            chosen = [r[0] for r in conn.execute(
-                f"SELECT version FROM models WHERE status IN (?, ?) AND pruned_at IS NULL "
-                f"AND version NOT IN ({marks}) ORDER BY seq",
-                (ModelStatus.RETIRED.value, ModelStatus.REJECTED.value, *kept))]
-            if not dry_run:
-                now = _now()
-                conn.executemany("UPDATE models SET pruned_at = ?, updated = ? WHERE version = ?",
-                                 [(now, now, v) for v in chosen])
-            # and any an earlier prune marked but died before deleting
-            marked = [r[0] for r in conn.execute("SELECT version FROM models WHERE pruned_at IS NOT NULL")]
+            chosen = pruning.mark(conn, kept, None if dry_run else _now())
+            marked = pruning.marked(conn)
         leftover = [v for v in marked if v not in chosen and (self.models_dir / v).exists()]
         if dry_run:
             return PruneResult(pruned=sorted(chosen + leftover), kept=kept, dry_run=True,
-                               freed_bytes=sum(_tree_size(self.models_dir / v) for v in chosen + leftover))
-        deleted, freed = [], 0
-        for version in chosen + leftover:
-            # Claimed by an atomic rename: of two prunes at once, one deletes and counts each directory.
-            claimed = self.models_dir / f".prune-{version}-{uuid.uuid4().hex[:8]}"
-            try:
-                os.rename(self.models_dir / version, claimed)
-            except FileNotFoundError:
-                continue
-            freed += _tree_size(claimed)
-            shutil.rmtree(claimed)
-            deleted.append(version)
-        self._sweep_stale()
+                               freed_bytes=sum(pruning.tree_size(self.models_dir / v) for v in chosen + leftover))
+        deleted, freed = pruning.delete(self.models_dir, chosen + leftover)
+        pruning.sweep_stale(self.models_dir, time.time())
         if deleted:
             fsync_dir(self.models_dir)
         return PruneResult(pruned=sorted(set(chosen) | set(deleted)), kept=kept, freed_bytes=freed)
 
     def _keep_order(self, conn: sqlite3.Connection) -> list[str]:
-        """What ``prune`` keeps first, unpruned: the rollback chain, then the latest champions a rollback
-        took out of service (so they can be promoted again)."""
-        pruned = {r[0] for r in conn.execute("SELECT version FROM models WHERE pruned_at IS NOT NULL")}
-        current = self._champion(conn)
-        chain = [v for _, v in reversed(self._live_history(conn))]  # what rollback walks, newest first
-        every = [r[0] for r in conn.execute("SELECT version FROM champion_history ORDER BY id DESC")]
-        order = dict.fromkeys(([current] if current else []) + chain + every)  # first place of each
-        return [v for v in order if v not in pruned]
-
-    def _sweep_stale(self) -> None:
-        """Delete the dot folders a crashed ``register`` (``.tmp-*``) or ``prune`` (``.prune-*``) left, once
-        older than ``STALE_AGE_S`` (a younger one may be a live call's)."""
-        now = time.time()
-        for stale in (*self.models_dir.glob(".tmp-*"), *self.models_dir.glob(".prune-*")):
-            if age_s(stale, now) > STALE_AGE_S:
-                shutil.rmtree(stale, ignore_errors=True)
+        """What ``prune`` keeps first (``storage.pruning.keep_order``)."""
+        return pruning.keep_order(conn, self._champion(conn), self._live_history(conn))
 
     def _live_history(self, conn: sqlite3.Connection | None = None) -> list[tuple[int, str]]:
         """(id, version) of promotions not rolled back, oldest first."""

@@ -1,0 +1,114 @@
+"""The model registry's rows: plain dataclasses of what ``storage.models.ModelRegistry`` answers with.
+
+``ModelStatus`` (where a model stands), ``ModelRecord`` (one registered model), ``ChampionEntry`` (one
+promotion) and ``PruneResult`` (what a prune did), with the names of a checkpoint directory's files. They
+import nothing of the registry; ``storage.models`` re-exports them.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from enum import Enum
+from pathlib import Path
+from typing import Any
+
+#: The files of a checkpoint directory ``DATA/models/<version>/``.
+WEIGHTS_FILE = "weights.pt"
+CONFIG_FILE = "config.json"
+METRICS_FILE = "metrics.json"
+META_FILE = "meta.json"
+
+
+class ModelStatus(str, Enum):
+    """Where a registered model stands. Transitions happen only in ``ModelRegistry``."""
+
+    CANDIDATE = "candidate"
+    """Registered, not yet through the gate."""
+    CHAMPION = "champion"
+    """The model in service (exactly one, or none before the first promotion)."""
+    RETIRED = "retired"
+    """A former champion, replaced by a better one or rolled back."""
+    REJECTED = "rejected"
+    """Refused by the gate; kept, with the reason."""
+
+
+@dataclass(frozen=True)
+class ModelRecord:
+    """One registered model: its registry row plus where its files are."""
+
+    version: str
+    """Unique, sortable version name (``m000001-1a2b3c4d``)."""
+    status: ModelStatus
+    """Current status."""
+    reason: str
+    """Why it has that status (the gate's or the operator's words); '' for a fresh candidate."""
+    parent: str | None
+    """Version it was warm-started from, if any."""
+    snapshot_id: str
+    """Catalog snapshot (training episode ids) it was trained on."""
+    eval_split_hash: str
+    """Hash of the eval split its metrics were measured on."""
+    weights_sha256: str
+    """sha256 hex of the weights file as registered."""
+    size_bytes: int
+    """Size of the weights file."""
+    created: str
+    """Registration time, ISO 8601 UTC."""
+    metrics: dict[str, Any]
+    """Evaluation metrics (``h1_mse`` ...)."""
+    config: dict[str, Any]
+    """Model / training configuration, as the trainer gave it."""
+    path: Path
+    """The checkpoint directory."""
+    pruned_at: str | None = None
+    """When ``prune`` deleted its files (ISO 8601 UTC); None while they are kept."""
+
+    @property
+    def weights_path(self) -> Path:
+        return self.path / WEIGHTS_FILE
+
+    def to_json(self) -> dict[str, Any]:
+        """A strict-JSON-able dict: non-finite metric values (NaN, inf) become None."""
+        return {
+            "version": self.version, "status": self.status.value, "reason": self.reason,
+            "parent": self.parent, "snapshot_id": self.snapshot_id,
+            "eval_split_hash": self.eval_split_hash, "weights_sha256": self.weights_sha256,
+            "size_bytes": self.size_bytes, "created": self.created, "metrics": _finite(self.metrics),
+            "config": self.config, "path": str(self.path), "pruned_at": self.pruned_at,
+        }
+
+
+@dataclass(frozen=True)
+class ChampionEntry:
+    """One promotion in the champion history."""
+
+    version: str
+    promoted_at: str
+    reason: str
+    rolled_back_at: str | None = field(default=None)
+
+
+@dataclass(frozen=True)
+class PruneResult:
+    """What ``ModelRegistry.prune`` deleted (or, with ``dry_run``, would delete)."""
+
+    pruned: list[str]
+    """Versions whose files were deleted, in registration order."""
+    kept: list[str]
+    """Models whose files are kept for going back: the champion, the earlier champions rollback returns
+    to, then the latest champions a rollback took out of service (candidates are kept too, not listed)."""
+    freed_bytes: int
+    """Total size of the files this call deleted (or would delete)."""
+    dry_run: bool = False
+
+
+def _finite(obj: Any) -> Any:
+    """``obj`` with every non-finite float replaced by None (JSON has no NaN)."""
+    if isinstance(obj, float) and not math.isfinite(obj):
+        return None
+    if isinstance(obj, dict):
+        return {k: _finite(v) for k, v in obj.items()}
+    if isinstance(obj, list):
+        return [_finite(v) for v in obj]
+    return obj
