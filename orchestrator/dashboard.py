@@ -68,7 +68,8 @@ class DashboardConfig:
         if not 0 <= self.port <= 65535:
             raise ValueError(f"port must be in [0, 65535], found {self.port}")
         if not 0 < self.request_timeout_s <= MAX_REQUEST_TIMEOUT_S:
-            raise ValueError(f"request_timeout_s must be in (0, {MAX_REQUEST_TIMEOUT_S:g}], found {self.request_timeout_s}")
+            raise ValueError(f"request_timeout_s must be in (0, {MAX_REQUEST_TIMEOUT_S:g}], "
+                             f"found {self.request_timeout_s}")
         if self.max_connections < 1:
             raise ValueError(f"max_connections must be >= 1, found {self.max_connections}")
         if self.refresh_s <= 0 or self.queue_rows < 1:

@@ -130,9 +130,7 @@ def run_arm(arm: str, seed: int, cfg: LoopBenchConfig, data_dir: Path, collect: 
     train = TrainConfig(**{**cfg.train.to_dict(), "seed": seed, "widths": tuple(cfg.train.widths)})
     points: list[dict] = []
     round_eps: list[Episode] = []
-    reasons: list[str] = []
-    policies: list[str] = []
-    shapes: list[str] = []
+    round_requests: list[Request] = []
     collected = catalog.count(split="train")
     while collected < cfg.budget:
         missing = cfg.round_episodes - len(round_eps) - queue.counts().get("queued", 0)
@@ -144,19 +142,16 @@ def run_arm(arm: str, seed: int, cfg: LoopBenchConfig, data_dir: Path, collect: 
         stored = catalog.add_episode(ep)
         queue.complete(lease.request.id, lease.token, stored.episode_id)
         round_eps.append(ep)
-        reasons.append(str(lease.request.reason.get("planner", "")))
-        policies.append(lease.request.policy)
-        shapes.append(lease.request.shape)
+        round_requests.append(lease.request)
         collected += 1
         if len(round_eps) == cfg.round_episodes or collected == cfg.budget:
             start = time.perf_counter()
             result = run_retrain(data_dir, train)
-            points.append(_point(arm, seed, collected, result, time.perf_counter() - start, reasons, policies,
-                                 shapes))
+            points.append(_point(arm, seed, collected, result, time.perf_counter() - start, round_requests))
             log(f"  {arm:7s} seed {seed} {collected:4d} ep: h1 {points[-1]['h1_mse']:.3e} "
                 f"h5 {points[-1]['h5_mse']:.3e} ({points[-1]['train_s']:.0f} s)")
             queue.enqueue_many(planner.plan(round_eps))
-            round_eps, reasons, policies, shapes = [], [], [], []
+            round_eps, round_requests = [], []
     queue.close()
     return points
 
@@ -171,15 +166,17 @@ def _bench_id(ep: Episode, seed: int, index: int) -> Episode:
     return dataclasses.replace(ep, meta=meta)
 
 
-def _point(arm: str, seed: int, episodes: int, result: dict, seconds: float, reasons: list[str],
-           policies: list[str], shapes: list[str]) -> dict:
+def _point(arm: str, seed: int, episodes: int, result: dict, seconds: float, requests: list[Request]) -> dict:
+    """One retrain's figures, with how many of the round's requests came from each planner, policy and shape."""
+    def counts(values: list[str]) -> dict[str, int]:
+        return {k: values.count(k) for k in sorted(set(values))}
     m = result["metrics"]
     return {"arm": arm, "seed": seed, "episodes": episodes, "version": result["version"],
             "h1_mse": m.get("h1_mse"), "h5_mse": m.get("h5_mse"), "promoted": result["promoted"],
             "champion": result["champion"], "train_s": round(seconds, 1),
-            "round_planners": {k: reasons.count(k) for k in sorted(set(reasons))},
-            "round_policies": {k: policies.count(k) for k in sorted(set(policies))},
-            "round_shapes": {k: shapes.count(k) for k in sorted(set(shapes))}}
+            "round_planners": counts([str(r.reason.get("planner", "")) for r in requests]),
+            "round_policies": counts([r.policy for r in requests]),
+            "round_shapes": counts([r.shape for r in requests])}
 
 
 def episodes_to_reach(curve: Sequence[tuple[int, float]], target: float) -> float:

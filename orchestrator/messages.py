@@ -27,7 +27,8 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from orchestrator.protocol import (ADMIN_OPS, MAX_ATTEMPTS, MAX_EPISODE_STEPS, MAX_ERROR_CHARS, MAX_FRAME_SIZE,
-                                   MAX_UPLOAD_BYTES, MIN_EPISODE_STEPS, MIN_FRAME_SIZE, POLICIES, PROTOCOL_VERSION, SHAPES, TASKS,
+                                   MAX_UPLOAD_BYTES, MIN_EPISODE_STEPS, MIN_FRAME_SIZE, POLICIES, PROTOCOL_VERSION,
+                                   SHAPES, TASKS,
                                    ErrorCode, EventKind, ProtocolError, bad_field, check_float, check_id, check_int,
                                    check_obj, check_str, check_str_list, decode, encode,
                                    validate_action_prefix, validate_start_state)

@@ -212,7 +212,8 @@ def ensure_schema(conn: sqlite3.Connection, component: str,
     compatible level (the highest ``compatible_with`` of ``migrations``). A file already at this code's
     version, or at a newer one whose level is at most ``len(migrations)``, is only read: opening a catalog
     does not wait for writers. Raises ``error`` (the component's: ``CatalogError``, ``RegistryError``)
-    if the file is newer than this code and not compatible with it; ``ValueError`` if a migration declares a level above its own version.
+    if the file is newer than this code and not compatible with it; ``ValueError`` if a migration declares a
+    level above its own version.
     """
     known, level = len(migrations), _compatible_level(migrations)
     recorded = _recorded(conn, component)
@@ -252,8 +253,8 @@ def _usable_version(component: str, version: int, compatible: int | None, known:
     needed = version if compatible is None else compatible
     if version > known and needed > known:
         raise error(f"{component} tables are at schema version {version}, this code knows versions "
-                           f"up to {known} and the file needs code that knows version {needed} or later; "
-                           f"upgrade activecollect")
+                    f"up to {known} and the file needs code that knows version {needed} or later; "
+                    f"upgrade activecollect")
     return version
 
 

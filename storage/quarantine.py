@@ -6,7 +6,7 @@ Snapshots leave it out and the eval split cannot take it; ``Catalog.restore``, o
 again, brings it back.
 
 These are the catalog's steps, over a connection it opened (those that write, inside its ``BEGIN IMMEDIATE``
-transaction) and the fields of an episode's row (``IndexedFile``); ``storage.catalog`` owns the connections
+transaction) and an episode's row (``storage.rows.EpisodeRow``); ``storage.catalog`` owns the connections
 and transactions, and the move of a file into quarantine, which it undoes when the row does not commit.
 ``storage.backup`` reads a source's quarantine rows and writes its copy's with ``find``, ``insert`` and
 ``remove``.
@@ -18,11 +18,11 @@ import sqlite3
 import time
 from collections.abc import Sequence
 from pathlib import Path, PurePosixPath
-from typing import Protocol
 
 from storage.database import QUARANTINE_DIR
 from storage.errors import CatalogError
 from storage.files import holds, move
+from storage.rows import EpisodeRow
 
 #: The table, as the catalog's schema version 2 made it (``storage.catalog._CATALOG_MIGRATIONS``): a change
 #: to it is a new migration, never an edit here. Episodes taken out of training (see Catalog.quarantine);
@@ -36,16 +36,6 @@ TABLE = """CREATE TABLE IF NOT EXISTS quarantine (
 MAX_REASON_CHARS = 500
 #: An SQL condition on ``episodes``: the episode is not quarantined.
 NOT_QUARANTINED = "episode_id NOT IN (SELECT episode_id FROM quarantine)"
-
-
-class IndexedFile(Protocol):
-    """What quarantine needs of a catalog row (``storage.rows.EpisodeRow``)."""
-
-    episode_id: str
-    path: Path
-    """Absolute path of the MCAP file, where its row says it is."""
-    sha256: str
-    """Of the bytes indexed."""
 
 
 def quarantine_path(rel: str) -> str:
@@ -95,7 +85,7 @@ def remove(conn: sqlite3.Connection, episode_id: str) -> None:
     conn.execute("DELETE FROM quarantine WHERE episode_id = ?", (episode_id,))
 
 
-def record(conn: sqlite3.Connection, row: IndexedFile, kept: Path, data_dir: Path, reason: str) -> bool:
+def record(conn: sqlite3.Connection, row: EpisodeRow, kept: Path, data_dir: Path, reason: str) -> bool:
     """In a write transaction: records the quarantine of ``row``, its file kept at ``kept``. True when the
     caller is to move the file there, inside the same transaction: it is present and no intact copy is
     already kept (an intact copy is never overwritten)."""
@@ -106,7 +96,7 @@ def record(conn: sqlite3.Connection, row: IndexedFile, kept: Path, data_dir: Pat
     return present and not copy_kept
 
 
-def put_back(conn: sqlite3.Connection, row: IndexedFile, kept: Path) -> None:
+def put_back(conn: sqlite3.Connection, row: EpisodeRow, kept: Path) -> None:
     """In a write transaction: ends the quarantine of ``row``, its file moved back from ``kept`` if it still
     holds the bytes indexed (or is already back in place). ``CatalogError`` when it is not quarantined, or
     its file is gone or damaged. An episode in training whose file a quarantine a crash cut short left at
@@ -137,7 +127,7 @@ def readmit(conn: sqlite3.Connection, episode_id: str, kept: Path, sha256: str) 
         kept.unlink()  # the same bytes are in place: no copy left behind to take up space
 
 
-def heal(conn: sqlite3.Connection, row: IndexedFile, kept: Path) -> bool:
+def heal(conn: sqlite3.Connection, row: EpisodeRow, kept: Path) -> bool:
     """In a write transaction: move the file of an episode that is in training back from
     ``DATA/quarantine/``, where a quarantine a crash cut short (file moved, row not committed) left
     it. True when it did."""

@@ -121,11 +121,9 @@ def colour_disagreement(ensemble: Ensemble, frames: np.ndarray, actions: np.ndar
     if grow < 0:
         raise ConfigError(f"grow must be >= 0, found {grow}")
 
-    def is_target(x: torch.Tensor) -> torch.Tensor:
-        return colour_mask(x, targets, others)
-
     def masked_variance(preds: torch.Tensor, context: torch.Tensor, real: torch.Tensor) -> torch.Tensor:
-        mask = (is_target(context[:, -1:]) | is_target(real)).float()                   # (B, Hz, H, W)
+        mask = (colour_mask(context[:, -1:], targets, others)
+                | colour_mask(real, targets, others)).float()                             # (B, Hz, H, W)
         if grow:
             mask = torch.nn.functional.max_pool2d(mask, 2 * grow + 1, stride=1, padding=grow)
         var = preds.var(dim=0, unbiased=False).mean(dim=2)                              # (B, Hz, H, W)

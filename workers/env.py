@@ -233,6 +233,7 @@ def _background(size: int) -> np.ndarray:
     return out
 
 
+@functools.lru_cache(maxsize=8)
 def scene_colours(size: int) -> tuple[tuple[int, int, int], ...]:
     """Every colour a frame of ``size`` px holds besides the object's: the table's, the walls' and their
     anti-aliased edges at that size, and the pusher's."""
