@@ -18,6 +18,8 @@ WEIGHTS_FILE = "weights.pt"
 CONFIG_FILE = "config.json"
 METRICS_FILE = "metrics.json"
 META_FILE = "meta.json"
+#: The episodes a model was trained on (``storage.rows.Snapshot``): ``{"snapshot_id", "episodes": [[id, sha256]]}``.
+SNAPSHOT_FILE = "snapshot.json"
 
 
 class ModelStatus(str, Enum):
@@ -46,7 +48,7 @@ class ModelRecord:
     parent: str | None
     """Version it was warm-started from, if any."""
     snapshot_id: str
-    """Catalog snapshot (training episode ids) it was trained on."""
+    """Catalog snapshot it was trained on (its episodes: ``ModelRegistry.snapshot``)."""
     eval_split_hash: str
     """Hash of the eval split its metrics were measured on."""
     weights_sha256: str

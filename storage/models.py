@@ -1,8 +1,9 @@
 """The model registry: versioned checkpoints on disk, their rows in the catalog, and the promotion gate.
 
 Layout: ``DATA/models/<version>/`` holds ``weights.pt`` (opaque bytes, whatever the trainer
-serialised), ``config.json``, ``metrics.json`` and ``meta.json`` (snapshot id, eval split hash,
-parent, created, sha256 of the weights). The rows live in the ``models`` table of
+serialised), ``config.json``, ``metrics.json``, ``meta.json`` (snapshot id, eval split hash,
+parent, created, sha256 of the weights) and ``snapshot.json`` (the training episodes' ids and sha256s,
+when the trainer gave them; they hash to the snapshot id). The rows live in the ``models`` table of
 ``DATA/catalog.sqlite`` next to the episodes; the alias ``champion`` (table ``model_aliases``) names
 the model in service and ``champion_history`` remembers every promotion, so a rollback can walk back.
 
@@ -40,8 +41,9 @@ from storage.database import (DB_NAME, MODELS_DIR, Migration, connection, ensure
 from storage.errors import CorruptCheckpointError, PrunedCheckpointError, RegistryError, UnknownModelError
 from storage.files import fsync_dir, write_synced
 from storage.gate import DEFAULT_METRIC, DEFAULT_MIN_REL_IMPROVEMENT, GateDecision, judge
-from storage.model_rows import (CONFIG_FILE, META_FILE, METRICS_FILE, WEIGHTS_FILE, ChampionEntry, ModelRecord,
-                                ModelStatus, PruneResult)
+from storage.model_rows import (CONFIG_FILE, META_FILE, METRICS_FILE, SNAPSHOT_FILE, WEIGHTS_FILE, ChampionEntry,
+                                ModelRecord, ModelStatus, PruneResult)
+from storage.rows import Snapshot
 
 CHAMPION = "champion"
 
@@ -220,6 +222,32 @@ class ModelRegistry:
         """Raise ``CorruptCheckpointError`` unless the weights of ``version`` match their sha256."""
         self.load_weights(version)
 
+    def snapshot(self, version: str) -> Snapshot | None:
+        """The episodes ``version`` was trained on (ids and sha256s, sorted by id), or None when it was
+        registered without them (by a trainer older than ``snapshot.json``).
+
+        Raises ``RegistryError`` for an unknown version, ``PrunedCheckpointError`` when its files were
+        pruned, and ``CorruptCheckpointError`` when the file cannot be read or does not hash to the
+        model's snapshot id.
+        """
+        rec = self.get(version)
+        self._refuse_pruned(rec)
+        path = rec.path / SNAPSHOT_FILE
+        try:
+            doc = json.loads(path.read_bytes())
+            snap = Snapshot.of([(str(i), str(s)) for i, s in doc["episodes"]])
+        except FileNotFoundError:
+            return None
+        except OSError as exc:
+            raise CorruptCheckpointError(f"checkpoint {version}: cannot read {path}: {exc.strerror or exc}") from exc
+        except (ValueError, KeyError, TypeError) as exc:
+            raise CorruptCheckpointError(f"checkpoint {version}: {path} is not a list of episodes: "
+                                         f"{type(exc).__name__}: {exc}") from exc
+        if snap.snapshot_id != rec.snapshot_id or snap.ids != sorted(snap.ids):
+            raise CorruptCheckpointError(f"checkpoint {version}: the {len(snap.ids)} episodes in {path} are not "
+                                         f"its snapshot {rec.snapshot_id} (they hash to {snap.snapshot_id})")
+        return snap
+
     def weights_problem(self, version: str) -> str | None:
         """Why the weights of ``version`` cannot be served (pruned, missing, unreadable, not their sha256),
         or None when they can. A verdict on the bytes is remembered per state of the weights file
@@ -271,12 +299,15 @@ class ModelRegistry:
     # -- registering ---------------------------------------------------------------------------
 
     def register(self, weights: bytes, config: dict[str, Any], metrics: dict[str, Any],
-                 snapshot_id: str, eval_split_hash: str, parent: str | None = None) -> str:
+                 snapshot_id: str, eval_split_hash: str, parent: str | None = None,
+                 snapshot: Snapshot | None = None) -> str:
         """Store a new checkpoint as a ``candidate`` and return its version.
 
-        The directory is written under a temporary name, fsynced and renamed before the row is
-        committed, so a registered version always has complete files. Raises ``RegistryError`` for
-        empty weights, non-JSON config/metrics, empty ids or an unknown ``parent``.
+        ``snapshot``: the episodes it was trained on (``snapshot.json``, read back by ``snapshot``); its id
+        must be ``snapshot_id``. The directory is written under a temporary name, fsynced and renamed
+        before the row is committed, so a registered version always has complete files. Raises
+        ``RegistryError`` for empty weights, non-JSON config/metrics, empty ids, a ``snapshot`` of another
+        id or an unknown ``parent``.
         """
         if not isinstance(weights, (bytes, bytearray, memoryview)) or len(weights) == 0:
             raise RegistryError(f"weights must be non-empty bytes, found {type(weights).__name__} "
@@ -287,6 +318,16 @@ class ModelRegistry:
         if not isinstance(config, dict) or not isinstance(metrics, dict):
             raise RegistryError(f"config and metrics must be dicts, found {type(config).__name__} "
                                 f"and {type(metrics).__name__}")
+        files = {}
+        if snapshot is not None:
+            pairs = list(zip(snapshot.ids, snapshot.sha256s))
+            found = Snapshot.of(pairs).snapshot_id
+            if (found != snapshot_id or snapshot.ids != sorted(snapshot.ids)
+                    or len(snapshot.sha256s) != len(snapshot.ids)):
+                raise RegistryError(f"the {len(snapshot.ids)} episodes given are not snapshot {snapshot_id!r} "
+                                    f"(sorted by id, one sha256 each); they hash to {found!r}")
+            files[SNAPSHOT_FILE] = json.dumps({"snapshot_id": snapshot_id, "episodes": pairs},
+                                              separators=(",", ":")).encode()
         weights = bytes(weights)
         sha = hashlib.sha256(weights).hexdigest()
         config_bytes, metrics_bytes = _dump(config, "config"), _dump(metrics, "metrics")
@@ -294,7 +335,8 @@ class ModelRegistry:
         # The big writes and their fsyncs happen before taking the write lock (leases wait on it).
         tmp = final = None
         try:
-            tmp = self._stage({WEIGHTS_FILE: weights, CONFIG_FILE: config_bytes, METRICS_FILE: metrics_bytes})
+            tmp = self._stage({WEIGHTS_FILE: weights, CONFIG_FILE: config_bytes, METRICS_FILE: metrics_bytes,
+                               **files})
             with self._transaction() as conn:
                 if parent is not None:
                     self._get(conn, parent)

@@ -204,6 +204,31 @@ def test_train_registers_and_promotes_the_first_model(trained, capsys) -> None:
     assert math.isfinite(first.metrics["h1_mse"])
 
 
+def test_models_show_episodes_lists_what_the_model_was_trained_on(trained, capsys, tmp_path) -> None:
+    data, _ = trained
+    version = ModelRegistry(data).list()[0].version
+    train_ids = Catalog(data).snapshot().ids
+    rc, out, err = run_cli(capsys, "models", "show", version, "--data", str(data), "--episodes")
+    assert rc == 0 and out.split() == train_ids and err == ""
+    rc, out, _ = run_cli(capsys, "models", "show", version, "--data", str(data), "--episodes", "--json")
+    shown = json.loads(out)
+    assert rc == 0 and shown["snapshot_episode_count"] == 6
+    assert [e["episode_id"] for e in shown["snapshot_episodes"]] == train_ids
+    rc, out, _ = run_cli(capsys, "models", "show", version, "--data", str(data))
+    assert rc == 0 and f"data snapshot    {shown['snapshot_id']}: 6 episodes (--episodes lists them)" in out
+    copy = tmp_path / "copy"  # a model registered without its episodes (an older trainer), and a damaged file
+    shutil.copytree(data, copy)
+    snapshot_file = ModelRegistry(copy).get(version).path / "snapshot.json"
+    snapshot_file.unlink()
+    rc, out, err = run_cli(capsys, "models", "show", version, "--data", str(copy), "--episodes")
+    assert rc == 1 and out == "" and f"cannot list the episodes of {version}: episodes not recorded" in err
+    rc, out, _ = run_cli(capsys, "models", "show", version, "--data", str(copy), "--json")
+    assert rc == 0 and json.loads(out)["snapshot_episode_count"] is None
+    snapshot_file.write_text('{"episodes": [["a", "b"]]}')
+    rc, out, _ = run_cli(capsys, "models", "show", version, "--data", str(copy))
+    assert rc == 0 and "episodes unavailable: checkpoint" in out and "are not its snapshot" in out
+
+
 def test_train_json_and_warm_start(trained, capsys) -> None:
     data, _ = trained
     champion = ModelRegistry(data).champion()

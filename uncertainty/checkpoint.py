@@ -18,6 +18,7 @@ import torch
 
 from storage.errors import RegistryError
 from storage.models import ModelRegistry
+from storage.rows import Snapshot
 from uncertainty.ensemble import Ensemble, default_device
 from uncertainty.errors import CheckpointError, ConfigError
 from uncertainty.model import Predictor, PredictorConfig
@@ -115,14 +116,16 @@ def _load_tensors(ensemble: Ensemble, payload: dict[str, Any]) -> None:
 
 def save_candidate(registry: ModelRegistry, ensemble: Ensemble, metrics: dict[str, Any], snapshot_id: str,
                    eval_hash: str, parent: str | None = None,
-                   train_config: dict[str, Any] | None = None) -> str:
-    """Register the ensemble as a candidate and return its version (the gate is the caller's call).
+                   train_config: dict[str, Any] | None = None, snapshot: Snapshot | None = None) -> str:
+    """Register the ensemble as a candidate and return its version (the gate is the caller's call);
+    ``snapshot``: the episodes it was trained on (``ModelRegistry.snapshot`` reads them back).
 
     Raises ``storage.errors.RegistryError`` when the registry refuses it.
     """
     config = {"predictor": ensemble.config.to_dict(), "members": ensemble.members, "seed": ensemble.seed,
               "format": FORMAT, "format_version": FORMAT_VERSION, "train": train_config or {}}
-    return registry.register(ensemble_to_bytes(ensemble), config, metrics, snapshot_id, eval_hash, parent)
+    return registry.register(ensemble_to_bytes(ensemble), config, metrics, snapshot_id, eval_hash, parent,
+                             snapshot=snapshot)
 
 
 def load_ensemble(registry: ModelRegistry, version: str | None = None,

@@ -19,6 +19,7 @@ import torch
 
 from storage.errors import DAMAGED_EPISODE_ERRORS
 from storage.records import Episode
+from storage.rows import Snapshot
 from uncertainty.errors import DataError
 from uncertainty.model import PredictorConfig
 
@@ -143,10 +144,16 @@ class TrainData:
     """The training episodes of one catalog snapshot."""
 
     episodes: list[Episode]
-    snapshot_id: str
+    snapshot: Snapshot
+    """The episodes loaded (ids and sha256s, sorted by id): what the model is trained on."""
     episode_ids: list[str]
+    """Their ids in training order."""
     quarantined: list[str] = field(default_factory=list)
     """Episodes of the snapshot whose files were found missing or damaged, and quarantined."""
+
+    @property
+    def snapshot_id(self) -> str:
+        return self.snapshot.snapshot_id
 
 
 def load_train(catalog: CatalogLike, max_episodes: int | None = None) -> TrainData:
@@ -154,7 +161,8 @@ def load_train(catalog: CatalogLike, max_episodes: int | None = None) -> TrainDa
 
     An episode whose file is missing or no longer holds the bytes indexed is quarantined
     (``Catalog.quarantine``, which keeps its row and whatever is left of its file) and left out, so one
-    lost file does not stop every retrain: the snapshot id is then that of the episodes kept. When most
+    lost file does not stop every retrain: the snapshot is then that of the episodes kept (as with
+    ``max_episodes``: of those loaded). When most
     of them are (more than one and more than half: a disk not mounted, not a lost file), nothing is
     quarantined and ``DataError`` says so.
     """
@@ -191,7 +199,8 @@ def load_train(catalog: CatalogLike, max_episodes: int | None = None) -> TrainDa
     if not kept:
         raise DataError(f"the files of all {len(lost)} train episodes are missing or damaged (quarantined "
                         "now); restore them from a backup (activecollect ingest), or collect new ones")
-    return TrainData(episodes, snap.without(lost).snapshot_id, kept, lost)
+    sha256 = dict(zip(snap.ids, snap.sha256s))
+    return TrainData(episodes, Snapshot.of(sorted((i, sha256[i]) for i in kept)), kept, lost)
 
 
 def load_eval(catalog: CatalogLike) -> tuple[list[Episode], str]:

@@ -311,6 +311,6 @@ def train_candidate(catalog: CatalogLike, registry: ModelRegistry, cfg: TrainCon
                             "widths": list(ensemble.config.widths),
                             "variance_head": ensemble.config.predict_variance}
     version = save_candidate(registry, ensemble, metrics, data.snapshot_id, eval_hash, parent=parent,
-                             train_config=used)
+                             train_config=used, snapshot=data.snapshot)
     decision = registry.gate(version, cfg.min_rel_improvement, eval_split_hash=eval_hash)
     return TrainResult(version, metrics, decision, losses, data.quarantined)

@@ -24,6 +24,7 @@ from storage.episodes import read_episode
 from storage.errors import CorruptCheckpointError, EpisodeError, NotFoundError, RegistryError, StorageError
 from storage.models import ModelRecord, ModelRegistry, PruneResult
 from storage.records import Episode
+from storage.rows import Snapshot
 from uncertainty.config import TrainConfig
 from uncertainty.errors import ConfigError, UncertaintyError
 
@@ -86,6 +87,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     p = msub.add_parser("show", help="one model: metrics, lineage, status and reason")
     p.add_argument("version", metavar="VERSION", help="a model version (as `models ls` lists), or a unique prefix "
                                                       "of one such as m000003")
+    p.add_argument("--episodes", action="store_true",
+                   help="list the episodes it was trained on instead, one id per line (with --json: the model "
+                        "and its episodes' ids and sha256s); exit 1 when they are not recorded (pruned, or "
+                        "trained before models recorded them)")
     p.set_defaults(func=_models_show)
     p = msub.add_parser("promote", help="make VERSION the champion (override; still checks sha256 and split)")
     p.add_argument("version", metavar="VERSION", help="a model version, or a unique prefix of one such as m000003")
@@ -178,20 +183,41 @@ def _models_ls(args: argparse.Namespace) -> int:
     return 0
 
 
+def _train_episodes(registry: ModelRegistry, rec: ModelRecord) -> tuple[Snapshot | None, str]:
+    """The episodes ``rec`` was trained on, or None and why they cannot be listed."""
+    try:
+        snap = registry.snapshot(rec.version)
+    except RegistryError as exc:  # pruned, or a damaged snapshot.json
+        return None, f"episodes unavailable: {exc}"
+    if snap is None:
+        return None, "episodes not recorded (registered before models recorded them)"
+    return snap, ""
+
+
 def _models_show(args: argparse.Namespace) -> int:
     registry = _registry(args)
     rec = _record(registry, args.version)
     history = [e for e in registry.history() if e.version == rec.version]
+    snap, why = _train_episodes(registry, rec)
+    if args.episodes and snap is None:
+        return _fail(f"cannot list the episodes of {rec.version}: {why}")
     if args.json:
         out = rec.to_json()
         out["champion_history"] = [vars(e) for e in history]
+        out["snapshot_episode_count"] = None if snap is None else len(snap.ids)
+        if args.episodes and snap is not None:
+            out["snapshot_episodes"] = [{"episode_id": i, "sha256": s} for i, s in zip(snap.ids, snap.sha256s)]
         common.print_json(_strict(out))
+        return 0
+    if args.episodes and snap is not None:
+        print("\n".join(snap.ids))
         return 0
     print(f"version          {rec.version}")
     print(f"status           {rec.status.value}{' (' + rec.reason + ')' if rec.reason else ''}")
     print(f"created          {rec.created}")
     print(f"parent           {rec.parent or '-'}")
-    print(f"data snapshot    {rec.snapshot_id}")
+    trained = f"{len(snap.ids)} episodes (--episodes lists them)" if snap is not None else why
+    print(f"data snapshot    {rec.snapshot_id}: {trained}")
     print(f"eval split       {rec.eval_split_hash}")
     if rec.pruned_at:
         print(f"weights          pruned at {rec.pruned_at} (were {rec.size_bytes} bytes, sha256 {rec.weights_sha256})")

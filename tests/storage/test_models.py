@@ -13,6 +13,7 @@ import pytest
 from storage.errors import CorruptCheckpointError, PrunedCheckpointError, RegistryError
 from storage.gate import GateDecision
 from storage.models import ModelRegistry, ModelStatus
+from storage.rows import Snapshot
 
 SPLIT = "split-aaaa"
 
@@ -38,6 +39,32 @@ def _flip_byte(reg: ModelRegistry, version: str) -> None:
 @pytest.fixture
 def reg(tmp_path) -> ModelRegistry:
     return ModelRegistry(tmp_path / "data")
+
+
+def test_a_model_keeps_the_episodes_it_was_trained_on(reg: ModelRegistry) -> None:
+    snap = Snapshot.of([("ep-a", "1" * 64), ("ep-b", "2" * 64)])
+    version = reg.register(b"weights", {}, _metrics(0.1), snap.snapshot_id, SPLIT, snapshot=snap)
+    assert reg.snapshot(version) == snap
+    assert reg.snapshot(_register(reg, 0.2)) is None  # registered without its episodes
+    path = reg.get(version).path / "snapshot.json"
+    doc = json.loads(path.read_text())
+    for damage in (b"{", json.dumps({**doc, "episodes": doc["episodes"][:1]}).encode(),
+                   json.dumps({**doc, "episodes": doc["episodes"][::-1]}).encode(), b'{"episodes": [["a"]]}'):
+        path.write_bytes(damage)
+        with pytest.raises(CorruptCheckpointError, match=f"checkpoint {version}: .*snapshot.json"):
+            reg.snapshot(version)
+    path.write_text(json.dumps(doc))
+    assert reg.snapshot(version) == snap
+
+
+def test_register_refuses_episodes_that_are_not_its_snapshot(reg: ModelRegistry) -> None:
+    snap = Snapshot.of([("ep-a", "1" * 64), ("ep-b", "2" * 64)])
+    unsorted = Snapshot.of([("ep-b", "2" * 64), ("ep-a", "1" * 64)])
+    for given, snapshot_id in ((snap, "snap-1"), (unsorted, unsorted.snapshot_id),
+                               (Snapshot(snap.ids, snap.snapshot_id, snap.sha256s[:1]), snap.snapshot_id)):
+        with pytest.raises(RegistryError, match="episodes given are not snapshot"):
+            reg.register(b"weights", {}, _metrics(0.1), snapshot_id, SPLIT, snapshot=given)
+    assert reg.list() == [] and [p.name for p in reg.models_dir.iterdir()] == []
 
 
 def test_resolve_takes_a_version_or_a_unique_prefix(reg: ModelRegistry) -> None:
@@ -331,6 +358,8 @@ def test_prune_keeps_the_champion_the_rollback_chain_and_candidates(reg: ModelRe
         assert rec.to_json()["pruned_at"] == rec.pruned_at
         with pytest.raises(PrunedCheckpointError, match=f"{v}: weights pruned at"):
             reg.load_weights(v)
+        with pytest.raises(PrunedCheckpointError, match=f"{v}: weights pruned at"):
+            reg.snapshot(v)  # its files went with the weights
     assert reg.get(a).status is ModelStatus.RETIRED and reg.get(rejected).status is ModelStatus.REJECTED
     assert reg.get(candidate).pruned_at is None and reg.load_weights(candidate)
     assert reg.gate(candidate).promoted  # the job in flight still finishes

@@ -95,7 +95,17 @@ def test_max_episodes_counts_only_the_episodes_loaded(tmp_path):
     cat = Catalog(tmp_path)
     ids = sorted(cat.add_episode(make_episode(s, steps=5)).episode_id for s in range(3))
     cat.get(ids[0]).path.unlink()
-    assert load_train(cat, max_episodes=2).episode_ids == ids[1:]
+    train = load_train(cat, max_episodes=2)
+    assert train.episode_ids == ids[1:]
+    assert train.snapshot.ids == ids[1:] and train.snapshot_id == cat.snapshot().snapshot_id  # what was loaded
+
+
+def test_the_snapshot_names_only_the_episodes_loaded(tmp_path):
+    cat = Catalog(tmp_path)
+    ids = sorted(cat.add_episode(make_episode(s, steps=5)).episode_id for s in range(3))
+    train = load_train(cat, max_episodes=2)
+    assert train.snapshot.ids == ids[:2] and train.snapshot.sha256s == [cat.get(i).sha256 for i in ids[:2]]
+    assert train.snapshot_id != cat.snapshot().snapshot_id
 
 
 def test_when_every_train_file_is_lost_the_job_says_so(tmp_path):
