@@ -48,10 +48,14 @@ class ChampionScorer:
     RETRY_S = 60.0
 
     def __init__(self, data_dir: Path, device: str = "cpu",
-                 observe: Callable[[float], None] = lambda seconds: None) -> None:
+                 observe: Callable[[float], None] = lambda seconds: None, with_error: bool = False) -> None:
         self.data_dir = Path(data_dir)
         self.device = device
         self.observe = observe
+        self.with_error = with_error
+        """Scores also carry the ensemble mean's error per step and whether the champion trained on the episode."""
+        self._trained_on: tuple[str | None, frozenset[str] | None] = (None, None)
+        # (version, the episodes it was trained on or None when not recorded): one tuple, read without the lock
         self._lock = threading.Lock()
         self._local = threading.local()
         self.version: str | None = None
@@ -90,8 +94,19 @@ class ChampionScorer:
                 log.log(level, "could not load champion %s, keeping %s: %s", champion, self.version, exc)
                 return self.version
             self.version, self.ensemble, self.problem, self._failed = champion, ensemble, None, None
+            if self.with_error:
+                self._trained_on = (champion, self._training_episodes(registry, champion))
             log.info("scorer now uses champion %s", champion)
             return champion
+
+    @staticmethod
+    def _training_episodes(registry: ModelRegistry, version: str) -> frozenset[str] | None:
+        try:
+            snap = registry.snapshot(version)
+        except RegistryError as exc:  # the weights loaded; only which episodes it saw is unknown
+            log.warning("champion %s: its training episodes cannot be read: %s", version, exc)
+            return None
+        return None if snap is None else frozenset(snap.ids)
 
     def __call__(self, episode: Episode) -> Scores | None:
         self.reload()
@@ -106,7 +121,18 @@ class ChampionScorer:
         start = time.perf_counter()
         per_step = ensemble.disagreement(episode.frames, episode.actions)
         self.observe(time.perf_counter() - start)
-        return Scores(version, per_step)
+        return self.scores(episode, per_step, ensemble, version)
+
+    def scores(self, episode: Episode, per_step: np.ndarray, ensemble: Ensemble, version: str) -> Scores:
+        """``per_step`` as the ``Scores`` of ``episode`` by the loaded ``ensemble`` (its ``version``), with the
+        error and whether it trained on the episode when ``with_error``."""
+        if not self.with_error:
+            return Scores(version, per_step)
+        from uncertainty.score import prediction_error  # torch is loaded: an ensemble is
+        known, ids = self._trained_on
+        trained_on = ids if known == version else None
+        return Scores(version, per_step, prediction_error(ensemble, episode.frames, episode.actions),
+                      None if trained_on is None else episode.meta.episode_id in trained_on)
 
 
 class FramesSource:

@@ -104,7 +104,7 @@ class SignalScorer:
             per_step = change_disagreement(ensemble, episode.frames, episode.actions, horizon=self.horizon)
         if self.signal == "object":
             per_step = np.where(object_moving(episode.states, self.horizon), per_step, np.nan)
-        return Scores(version, per_step)
+        return self.champion.scores(episode, per_step, ensemble, version)
 
 
 def make_planner(arm: str, cfg: LoopBenchConfig, scorer: ChampionScorer, rng: np.random.Generator,
@@ -126,7 +126,8 @@ def run_arm(arm: str, seed: int, cfg: LoopBenchConfig, data_dir: Path, collect: 
     palette = palette_of(cfg)
     make_eval_split(catalog, cfg.eval_episodes, cfg.eval_seed, cfg.steps, cfg.image_size, cfg.random_physics,
                     palette)
-    planner = make_planner(arm, cfg, ChampionScorer(data_dir), np.random.default_rng(seed), queue)
+    scorer = ChampionScorer(data_dir, with_error=cfg.active.shapes_by_gap)
+    planner = make_planner(arm, cfg, scorer, np.random.default_rng(seed), queue)
     train = TrainConfig(**{**cfg.train.to_dict(), "seed": seed, "widths": tuple(cfg.train.widths)})
     points: list[dict] = []
     round_eps: list[Episode] = []
@@ -145,6 +146,7 @@ def run_arm(arm: str, seed: int, cfg: LoopBenchConfig, data_dir: Path, collect: 
         round_requests.append(lease.request)
         collected += 1
         if len(round_eps) == cfg.round_episodes or collected == cfg.budget:
+            planner.observe(round_eps)  # before the retrain that trains on them
             start = time.perf_counter()
             result = run_retrain(data_dir, train)
             points.append(_point(arm, seed, collected, result, time.perf_counter() - start, round_requests))

@@ -128,6 +128,9 @@ class LoopBenchConfig:
     short draw shapes with these relative weights (one per ``protocol.SHAPES``, in its order) while the
     eval split keeps every shape equally: a fleet's usual task mix that differs from what its model is
     judged on. Empty: every shape equally likely."""
+    shapes_by_gap: bool = False
+    """The active arm splits each round over shapes by how much training on a shape's episodes lowered the
+    champion's error on them (``ActivePlannerConfig.shapes_by_gap``) instead of capping shapes."""
     palette: str = "uniform"
     """The objects' colours (one of ``PALETTES``), in both arms and the eval split: ``per-shape`` makes the
     shapes look different (where a model trained on one shape does not yet know the others)."""
@@ -151,6 +154,7 @@ class LoopBenchConfig:
         self.active.steps = self.steps
         self.active.choose_policy = self.active_policy
         self.active.within_policy = self.within_policy
+        self.active.shapes_by_gap = self.shapes_by_gap
         self.active.seed_uniform = self.uniform_config()
 
     def uniform_config(self) -> UniformPlannerConfig:

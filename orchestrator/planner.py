@@ -46,6 +46,7 @@ from typing import Callable, Protocol, Sequence
 import numpy as np
 
 from orchestrator import protocol
+from orchestrator.shapegap import ShapeGap
 from storage.requests import NewRequest
 from storage.records import STATE_FIELDS, Episode
 
@@ -68,6 +69,8 @@ class Planner(Protocol):
 
     def seed(self, n: int, why: str = "seed") -> list[NewRequest]: ...
 
+    def observe(self, episodes: Sequence[Episode]) -> None: ...
+
 
 @dataclass(frozen=True)
 class Scores:
@@ -77,6 +80,11 @@ class Scores:
     """Version of the ensemble that scored it."""
     per_step: np.ndarray
     """(T,) disagreement per step; NaN where a step has no context or no successor."""
+    error: np.ndarray | None = None
+    """(T,) squared error of the ensemble mean's next frame per step (``uncertainty.score.prediction_error``),
+    when the scorer was asked for it (``ChampionScorer(with_error=True)``)."""
+    trained: bool | None = None
+    """Whether that ensemble was trained on the episode (None: not known)."""
 
 
 #: Scores an episode with the current champion; None while no model exists.
@@ -199,9 +207,13 @@ class UniformPlanner:
         room = max(0, self.cfg.max_queue_depth - self.queue_depth())
         return [self.draw_request("uniform") for _ in range(min(room, self.cfg.per_episode * len(new_episodes)))]
 
-    def draw_request(self, why: str) -> NewRequest:
-        """One uniform request; ``why`` goes into its reason as the planner name."""
-        shape = self.cfg.draw_shape(self.rng)
+    def observe(self, episodes: Sequence[Episode]) -> None:
+        """Nothing: where a uniform request starts does not depend on what was collected."""
+
+    def draw_request(self, why: str, shape: str | None = None) -> NewRequest:
+        """One uniform request (of ``shape``, else drawn by the config); ``why`` goes into its reason as the
+        planner name."""
+        shape = shape if shape is not None else self.cfg.draw_shape(self.rng)
         policy, params = self.cfg.policies.draw(self.rng)
         return NewRequest(
             task="push", shape=shape,
@@ -247,7 +259,17 @@ class ActivePlannerConfig:
     active arm short of the pusher's free motion, which most of the eval error comes from."""
     max_shape_share: float = 0.5
     """At most this share of the requests planned in one call may be of one shape (rounded up, at least 1):
-    no collapse onto one shape."""
+    no collapse onto one shape. Not used with ``shapes_by_gap``, whose quotas take its place."""
+    shapes_by_gap: bool = False
+    """Split each round's requests over the shapes of ``seed_uniform.shapes`` by what data of each has been
+    buying (``orchestrator.shapegap``: how much a champion's error on a shape's episodes fell once it trained
+    on them), then pick each shape's states by the score; a shape short of candidates (none in the new
+    episodes, or none above the threshold) gets uniform starts of that shape. Needs a scorer that gives errors and what its champion
+    trained on (``ChampionScorer(with_error=True)``); an experiment, off by default."""
+    gap_floor: float = 0.25
+    """With ``shapes_by_gap``: this share of each round is split equally over the shapes."""
+    gap_memory: int = 16
+    """With ``shapes_by_gap``: a shape's gap is the mean over its last this many episodes."""
     seed_uniform: UniformPlannerConfig = field(default_factory=UniformPlannerConfig)
     """How seeds (before any model) and exploration requests are drawn; its policy mix is shared."""
     choose_policy: bool = False
@@ -275,6 +297,9 @@ class ActivePlannerConfig:
                              f"{self.window}, {self.budget_per_round}, {self.max_queue_depth}")
         if not 0.0 < self.max_shape_share <= 1.0:
             raise ValueError(f"max_shape_share must be in (0, 1], found {self.max_shape_share}")
+        if not 0.0 <= self.gap_floor <= 1.0 or self.gap_memory < 1:
+            raise ValueError(f"gap_floor in [0, 1] and gap_memory >= 1 expected, found {self.gap_floor} and "
+                             f"{self.gap_memory}")
         if self.min_distance < 0 or not 0.0 <= self.explore_fraction <= 1.0:
             raise ValueError(f"min_distance >= 0 and explore_fraction in [0, 1] expected, found "
                              f"{self.min_distance} and {self.explore_fraction}")
@@ -358,12 +383,24 @@ class ActivePlanner:
         # episode was collected with; choose_policy looks at MIX_POLICIES only)
         self._policy_scores: dict[str, deque[float]] = {}
         self._policy_version = ""
+        self.gap = ShapeGap(cfg.gap_memory)
+        self.shape_quotas: dict[str, int] = {}
+        """With ``shapes_by_gap``: the last round's requests per shape."""
 
     def seed(self, n: int, why: str = "seed") -> list[NewRequest]:
         """Uniform requests: before any model exists there is nothing to be uncertain about (and when
         the service tops its queue up, ``why`` = "top-up", its candidates have run out)."""
         room = max(0, self.cfg.max_queue_depth - self.queue_depth())
         return [self.uniform.draw_request(why) for _ in range(min(n, room))]
+
+    def observe(self, episodes: Sequence[Episode]) -> None:
+        """With ``shapes_by_gap``, score ``episodes`` before the champion trains on them (their fresh error),
+        for a caller that retrains before it plans (``bench loop``); otherwise nothing."""
+        if self.cfg.shapes_by_gap:
+            for ep in episodes:
+                scores = self.scorer(ep)
+                if scores is not None:
+                    self.gap.record(ep, scores)
 
     def plan(self, new_episodes: Sequence[Episode]) -> list[NewRequest]:
         """Score the new episodes and request their most uncertain, mutually distant states.
@@ -387,15 +424,39 @@ class ActivePlanner:
         fresh = [c for c in self._candidates(scored)
                  if (c.episode.meta.episode_id, c.step) not in self._requested_steps]
         k = budget - n_explore
-        chosen = select_diverse(fresh, k, self.cfg.min_distance, list(self._requested),
-                                max_per_shape=max(1, math.ceil(k * self.cfg.max_shape_share)))
+        if self.cfg.shapes_by_gap:
+            chosen, short = self._by_gap(scored, fresh, k)
+        else:
+            chosen, short = select_diverse(fresh, k, self.cfg.min_distance, list(self._requested),
+                                           max_per_shape=max(1, math.ceil(k * self.cfg.max_shape_share))), {}
         requests = []
         for cand in chosen:
             self._requested.append(cand.features)
             self._requested_steps.add((cand.episode.meta.episode_id, cand.step))
             requests.append(self._request(cand, versions[id(cand.episode)]))
+        requests += [self.uniform.draw_request("gap-fill", shape) for shape, n in short.items() for _ in range(n)]
         requests += [self.uniform.draw_request("explore") for _ in range(n_explore)]
         return requests
+
+    def _by_gap(self, scored: list[tuple[Episode, Scores]], candidates: list[Candidate],
+                k: int) -> tuple[list[Candidate], dict[str, int]]:
+        """``k`` candidates split over shapes by ``ShapeGap.quotas``, and per shape how many it lacks."""
+        version = scored[-1][1].model_version
+        for ep, s in scored:
+            self.gap.record(ep, s)
+        for ep in self.gap.waiting(version):  # fresh under an earlier champion: did this one train on them?
+            again = self.scorer(ep)
+            if again is not None and again.model_version == version:
+                self.gap.record(ep, again)
+        self.shape_quotas = self.gap.quotas(k, self.cfg.seed_uniform.shapes, self.cfg.gap_floor)
+        chosen, short = [], {}
+        for shape, quota in self.shape_quotas.items():
+            picked = select_diverse([c for c in candidates if c.episode.meta.shape == shape], quota,
+                                    self.cfg.min_distance, list(self._requested))
+            chosen += picked
+            if quota > len(picked):
+                short[shape] = quota - len(picked)
+        return sorted(chosen, key=lambda c: -c.score), short
 
     def _one_version(self, scored: list[tuple[Episode, Scores]]) -> list[tuple[Episode, Scores]]:
         """Scores of one champion only (each lives on its own scale): when a promotion happened while the
@@ -490,6 +551,8 @@ class ActivePlanner:
                   "step": step, "planner": "active", "threshold": self.threshold}
         if self.cfg.within_policy:
             reason["within_policy"] = True  # score and threshold are ratios to the policy's mean
+        if self.cfg.shapes_by_gap:
+            reason["shape_quotas"] = dict(self.shape_quotas)
         if self.cfg.choose_policy:
             reason["policy_weights"] = {n: round(w, 4) for n, w in self.policy_weights().items()}
         return NewRequest(

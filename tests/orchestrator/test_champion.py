@@ -8,10 +8,12 @@ import numpy as np
 
 from orchestrator.champion import ChampionScorer
 from storage.models import ModelRegistry
+from storage.rows import Snapshot
 from tests.uncertainty.synth import make_episode
 from uncertainty.checkpoint import save_candidate
 from uncertainty.ensemble import Ensemble
 from uncertainty.model import PredictorConfig
+from uncertainty.score import prediction_error
 
 CFG = PredictorConfig(image_size=16, widths=(4, 8, 8), action_hidden=8)
 
@@ -47,6 +49,26 @@ def test_a_damaged_champion_is_reported_once_and_loaded_once_restored(tmp_path, 
     weights.write_bytes(good)  # restored from a backup
     assert registry.weights_problem(second) is None
     assert scorer(episode).model_version == second and scorer.problem is None
+
+
+def test_with_error_the_scores_carry_the_error_and_whether_the_champion_trained_on_the_episode(tmp_path):
+    registry = ModelRegistry(tmp_path)
+    seen, unseen = make_episode(0, size=16), make_episode(1, size=16)
+    snap = Snapshot.of([(seen.meta.episode_id, "0" * 64)])
+    ens = Ensemble(CFG, members=2, seed=0)
+    ens.set_action_stats([256.0, 250.0], [100.0, 90.0])
+    version = save_candidate(registry, ens, {"h1_mse": 0.02}, snap.snapshot_id, "split", snapshot=snap)
+    assert registry.promote(version).promoted
+    plain = ChampionScorer(tmp_path)(seen)
+    assert plain.error is None and plain.trained is None  # not asked for: not computed
+    scorer = ChampionScorer(tmp_path, with_error=True)
+    scores = scorer(seen)
+    assert scores.trained is True and scorer(unseen).trained is False
+    np.testing.assert_allclose(scores.error, prediction_error(scorer.ensemble, seen.frames, seen.actions))
+    np.testing.assert_array_equal(np.isnan(scores.error), np.isnan(scores.per_step))
+    older = _promoted(registry, 1, 0.01)  # registered without its episodes: not known
+    assert scorer(seen).model_version == older and scorer(seen).trained is None
+    assert scorer(seen).error is not None
 
 
 def _failing_reads_of(path, monkeypatch, times: int) -> None:

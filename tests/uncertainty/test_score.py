@@ -5,7 +5,9 @@ import pytest
 
 from tests.uncertainty.synth import make_episode
 from uncertainty.errors import ConfigError
-from uncertainty.score import change_disagreement, colour_disagreement, pick_top, score_episode, state_dict
+from uncertainty.score import (change_disagreement, colour_disagreement, pick_top, prediction_error, score_episode,
+                                state_dict)
+from uncertainty.train import evaluate_episodes
 from workers.env import SimState
 
 
@@ -46,6 +48,14 @@ def test_state_dict_matches_the_simulator_form():
 def test_bad_arguments_are_refused(trained):
     with pytest.raises(ConfigError):
         score_episode(trained[0], make_episode(0), top_k=-1)
+
+
+def test_prediction_error_is_the_evals_h1_mse_step_by_step(trained):
+    ens, _ = trained
+    ep = make_episode(7, "disk", steps=12)
+    error = prediction_error(ens, ep.frames, ep.actions)
+    np.testing.assert_array_equal(np.isnan(error), np.isnan(ens.disagreement(ep.frames, ep.actions)))
+    assert np.nanmean(error) == pytest.approx(evaluate_episodes(ens, [ep], "h", horizons=(1,))["h1_mse"], rel=1e-5)
 
 
 def test_change_disagreement_counts_only_pixels_that_move(trained):
