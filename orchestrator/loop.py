@@ -29,9 +29,8 @@ from orchestrator.champion import ChampionScorer, FramesSource
 from orchestrator.dashboard import Dashboard, DashboardConfig, DataSources, learning_curve
 from orchestrator.loopconfig import RunConfig
 from orchestrator.metrics import ServiceMetrics
-from orchestrator.planner import (
-    ActivePlanner, ActivePlannerConfig, Planner, UniformPlanner, UniformPlannerConfig,
-)
+from orchestrator.planner import ActivePlanner, ActivePlannerConfig, Planner
+from orchestrator.uniform import UniformPlanner, UniformPlannerConfig
 from orchestrator.protocol import EventKind
 from orchestrator.report import ReportInputs, write_report
 from orchestrator.scheduler import RetrainRecord, RetrainScheduler, ScheduleConfig, die_with_parent

@@ -42,7 +42,8 @@ from matplotlib.figure import Figure
 
 from orchestrator.champion import ChampionScorer
 from orchestrator.loopconfig import LoopBenchConfig
-from orchestrator.planner import ActivePlanner, Planner, Scores, UniformPlanner
+from orchestrator.planner import ActivePlanner, Planner, Scores
+from orchestrator.uniform import UniformPlanner
 from orchestrator.retrain import run_retrain
 from storage.catalog import Catalog
 from storage.queue import RequestQueue
@@ -126,7 +127,7 @@ def run_arm(arm: str, seed: int, cfg: LoopBenchConfig, data_dir: Path, collect: 
     palette = palette_of(cfg)
     make_eval_split(catalog, cfg.eval_episodes, cfg.eval_seed, cfg.steps, cfg.image_size, cfg.random_physics,
                     palette)
-    scorer = ChampionScorer(data_dir, with_error=cfg.active.shapes_by_gap)
+    scorer = ChampionScorer(data_dir, with_error=cfg.active.shapes_by_progress)
     planner = make_planner(arm, cfg, scorer, np.random.default_rng(seed), queue)
     train = TrainConfig(**{**cfg.train.to_dict(), "seed": seed, "widths": tuple(cfg.train.widths)})
     points: list[dict] = []

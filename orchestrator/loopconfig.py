@@ -11,7 +11,8 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 from orchestrator import protocol
-from orchestrator.planner import ActivePlannerConfig, PolicyMix, UniformPlannerConfig
+from orchestrator.planner import ActivePlannerConfig
+from orchestrator.uniform import PolicyMix, UniformPlannerConfig
 from storage.records import TRAINABLE_SIZES, trainable_size
 from uncertainty.config import TrainConfig
 
@@ -128,9 +129,9 @@ class LoopBenchConfig:
     short draw shapes with these relative weights (one per ``protocol.SHAPES``, in its order) while the
     eval split keeps every shape equally: a fleet's usual task mix that differs from what its model is
     judged on. Empty: every shape equally likely."""
-    shapes_by_gap: bool = False
+    shapes_by_progress: bool = False
     """The active arm splits each round over shapes by how much training on a shape's episodes lowered the
-    champion's error on them (``ActivePlannerConfig.shapes_by_gap``) instead of capping shapes."""
+    champion's error on them (``ActivePlannerConfig.shapes_by_progress``) instead of capping shapes."""
     palette: str = "uniform"
     """The objects' colours (one of ``PALETTES``), in both arms and the eval split: ``per-shape`` makes the
     shapes look different (where a model trained on one shape does not yet know the others)."""
@@ -154,7 +155,7 @@ class LoopBenchConfig:
         self.active.steps = self.steps
         self.active.choose_policy = self.active_policy
         self.active.within_policy = self.within_policy
-        self.active.shapes_by_gap = self.shapes_by_gap
+        self.active.shapes_by_progress = self.shapes_by_progress
         self.active.seed_uniform = self.uniform_config()
 
     def uniform_config(self) -> UniformPlannerConfig:

@@ -9,7 +9,7 @@ interface so every comparison has its control arm:
   and caps them by a per-round budget and the queue's depth.
 - ``UniformPlanner`` draws start states uniformly over the task space of
   ``orchestrator.protocol``; it is the control arm and the seed of the queue
-  before any model exists.
+  before any model exists (``orchestrator.uniform``).
 
 Both draw the collection policy from the same ``PolicyMix``: only where the
 episodes start differs between the arms. With ``ActivePlannerConfig.choose_policy``
@@ -46,18 +46,12 @@ from typing import Callable, Protocol, Sequence
 import numpy as np
 
 from orchestrator import protocol
-from orchestrator.shapegap import ShapeGap
+from orchestrator.shapeprogress import ShapeProgress
+from orchestrator.uniform import MIX_POLICIES, UniformPlanner, UniformPlannerConfig, agent_away_from
 from storage.requests import NewRequest
 from storage.records import STATE_FIELDS, Episode
 
 _COL = {name: i for i, name in enumerate(STATE_FIELDS)}
-#: Push sides the "push" policy may be given.
-PUSH_SIDES: tuple[str, ...] = ("left", "right", "top", "bottom")
-#: The policies a ``PolicyMix`` draws from (and an active planner that chooses the policy chooses among).
-MIX_POLICIES: tuple[str, ...] = ("push", "random_waypoints")
-#: Clearance (world units) between a sampled agent and the object's centre: the largest shape's
-#: bounding radius (the L, ~124) plus the agent's (15), so a uniform start never overlaps the object.
-AGENT_CLEARANCE = 140.0
 
 
 class Planner(Protocol):
@@ -89,140 +83,6 @@ class Scores:
 
 #: Scores an episode with the current champion; None while no model exists.
 Scorer = Callable[[Episode], "Scores | None"]
-
-
-@dataclass
-class PolicyMix:
-    """The collection policies both arms draw from, with their weights."""
-
-    push_weight: float = 0.5
-    """Probability of the ``push`` policy (towards a random side); the rest is ``random_waypoints``."""
-    push_noise: float = 6.0
-    """Noise of the push policy's targets, world units (the policy's own default)."""
-
-    def __post_init__(self) -> None:
-        if not 0.0 <= self.push_weight <= 1.0:
-            raise ValueError(f"push_weight must be in [0, 1], found {self.push_weight}")
-        if self.push_noise < 0:
-            raise ValueError(f"push_noise must be >= 0, found {self.push_noise}")
-
-    def draw(self, rng: np.random.Generator) -> tuple[str, dict]:
-        """One (policy name, params) pair."""
-        name = "push" if rng.random() < self.push_weight else "random_waypoints"
-        return name, self.params_for(name, rng)
-
-    def params_for(self, name: str, rng: np.random.Generator) -> dict:
-        """The params this mix gives policy ``name`` (a push draws its side); raises ValueError if unknown."""
-        if name == "push":
-            return {"side": str(rng.choice(PUSH_SIDES)), "noise": self.push_noise}
-        if name == "random_waypoints":
-            return {}
-        raise ValueError(f"policy must be one of {MIX_POLICIES}, found {name!r}")
-
-
-@dataclass
-class UniformPlannerConfig:
-    """The control arm: uniform start states."""
-
-    steps: int = 50
-    """Steps per requested episode."""
-    per_episode: int = 1
-    """Requests planned per new episode (1 keeps the queue as deep as it was)."""
-    max_queue_depth: int = 64
-    """Never plan past this many queued requests."""
-    sample_physics: bool = False
-    """Draw physics uniformly from PHYSICS_RANGES; False uses each parameter's default."""
-    shapes: tuple[str, ...] = protocol.SHAPES
-    """Shapes to draw from."""
-    shape_weights: tuple[float, ...] = ()
-    """Relative weight of each of ``shapes`` (same order); empty: each equally likely. A fleet's usual
-    task mix is seldom the one its model is judged on (``bench loop --shape-weights``)."""
-    policies: PolicyMix = field(default_factory=PolicyMix)
-    """Collection policy mix (shared with the active arm)."""
-
-    def __post_init__(self) -> None:
-        if not protocol.MIN_EPISODE_STEPS <= self.steps <= protocol.MAX_EPISODE_STEPS:
-            raise ValueError(f"steps must be in [{protocol.MIN_EPISODE_STEPS}, {protocol.MAX_EPISODE_STEPS}], "
-                             f"found {self.steps}")
-        if self.per_episode < 0 or self.max_queue_depth < 1:
-            raise ValueError(f"per_episode must be >= 0 and max_queue_depth >= 1, "
-                             f"found {self.per_episode} and {self.max_queue_depth}")
-        unknown = set(self.shapes) - set(protocol.SHAPES)
-        if not self.shapes or unknown:
-            raise ValueError(f"shapes must be a non-empty subset of {protocol.SHAPES}, found {self.shapes}")
-        if self.shape_weights and (len(self.shape_weights) != len(self.shapes)
-                                   or not all(math.isfinite(w) and w >= 0 for w in self.shape_weights)
-                                   or not 0 < sum(self.shape_weights) < math.inf):
-            raise ValueError(f"shape_weights must be one finite weight >= 0 per shape of {self.shapes}, not all 0, "
-                             f"with a finite sum, found {self.shape_weights}")
-
-    def draw_shape(self, rng: np.random.Generator) -> str:
-        """One shape, by ``shape_weights`` when given."""
-        if not self.shape_weights:
-            return str(rng.choice(self.shapes))  # (as before weights: the same draws for a seed)
-        w = np.asarray(self.shape_weights, dtype=np.float64)
-        return str(rng.choice(self.shapes, p=w / w.sum()))
-
-
-def uniform_start_state(rng: np.random.Generator, shape: str, sample_physics: bool = False) -> dict:
-    """A start state (``SimState.to_dict`` form) drawn uniformly over the task space."""
-    lo, hi = protocol.OBJECT_RANGE
-    obj = (float(rng.uniform(lo, hi)), float(rng.uniform(lo, hi)), float(rng.uniform(0.0, 2 * math.pi)))
-    agent = agent_away_from(rng, obj)
-    if sample_physics:
-        physics = {k: float(rng.uniform(low, high)) for k, (low, high, _) in protocol.PHYSICS_RANGES.items()}
-    else:
-        physics = {k: float(default) for k, (_, _, default) in protocol.PHYSICS_RANGES.items()}
-    return {"shape": shape, "agent": list(agent), "agent_vel": [0.0, 0.0],
-            "object": list(obj), "object_vel": [0.0, 0.0, 0.0], "physics": physics}
-
-
-def agent_away_from(rng: np.random.Generator, obj: Sequence[float]) -> tuple[float, float]:
-    """An agent position drawn uniformly over AGENT_RANGE, at least AGENT_CLEARANCE from the object."""
-    alo, ahi = protocol.AGENT_RANGE
-    while True:  # rejection sampling; the free area is most of the table
-        agent = (float(rng.uniform(alo, ahi)), float(rng.uniform(alo, ahi)))
-        if math.hypot(agent[0] - obj[0], agent[1] - obj[1]) >= AGENT_CLEARANCE:
-            return agent
-
-
-class UniformPlanner:
-    """Start states drawn uniformly over the task space: the control arm."""
-
-    name = "uniform"
-
-    def __init__(self, cfg: UniformPlannerConfig, rng: np.random.Generator,
-                 queue_depth: Callable[[], int] = lambda: 0) -> None:
-        self.cfg = cfg
-        self.rng = rng
-        self.queue_depth = queue_depth
-
-    def seed(self, n: int, why: str = "seed") -> list[NewRequest]:
-        """``n`` uniform requests (capped by the queue depth); ``why`` names them in their reason."""
-        room = max(0, self.cfg.max_queue_depth - self.queue_depth())
-        return [self.draw_request(why) for _ in range(min(n, room))]
-
-    def plan(self, new_episodes: Sequence[Episode]) -> list[NewRequest]:
-        """``per_episode`` uniform requests per new episode, capped by the queue depth."""
-        room = max(0, self.cfg.max_queue_depth - self.queue_depth())
-        return [self.draw_request("uniform") for _ in range(min(room, self.cfg.per_episode * len(new_episodes)))]
-
-    def observe(self, episodes: Sequence[Episode]) -> None:
-        """Nothing: where a uniform request starts does not depend on what was collected."""
-
-    def draw_request(self, why: str, shape: str | None = None) -> NewRequest:
-        """One uniform request (of ``shape``, else drawn by the config); ``why`` goes into its reason as the
-        planner name."""
-        shape = shape if shape is not None else self.cfg.draw_shape(self.rng)
-        policy, params = self.cfg.policies.draw(self.rng)
-        return NewRequest(
-            task="push", shape=shape,
-            start_state=uniform_start_state(self.rng, shape, self.cfg.sample_physics),
-            policy=policy, policy_params=params, action_prefix=[], steps=self.cfg.steps,
-            priority=0.0,
-            reason={"model_version": "", "score": None, "source_episode": "", "step": None,
-                    "planner": why},
-        )
 
 
 @dataclass
@@ -259,17 +119,18 @@ class ActivePlannerConfig:
     active arm short of the pusher's free motion, which most of the eval error comes from."""
     max_shape_share: float = 0.5
     """At most this share of the requests planned in one call may be of one shape (rounded up, at least 1):
-    no collapse onto one shape. Not used with ``shapes_by_gap``, whose quotas take its place."""
-    shapes_by_gap: bool = False
+    no collapse onto one shape. Not used with ``shapes_by_progress``, whose quotas take its place."""
+    shapes_by_progress: bool = False
     """Split each round's requests over the shapes of ``seed_uniform.shapes`` by what data of each has been
-    buying (``orchestrator.shapegap``: how much a champion's error on a shape's episodes fell once it trained
-    on them), then pick each shape's states by the score; a shape short of candidates (none in the new
-    episodes, or none above the threshold) gets uniform starts of that shape. Needs a scorer that gives errors and what its champion
-    trained on (``ChampionScorer(with_error=True)``); an experiment, off by default."""
-    gap_floor: float = 0.25
-    """With ``shapes_by_gap``: this share of each round is split equally over the shapes."""
-    gap_memory: int = 16
-    """With ``shapes_by_gap``: a shape's gap is the mean over its last this many episodes."""
+    buying (``orchestrator.shapeprogress``: how much a champion's error on a shape's episodes fell once it
+    trained on them, beyond the shape whose error fell least), then pick each shape's states by the score;
+    a shape short of candidates (none in the new episodes, or none above the threshold) gets uniform starts
+    of that shape. Needs a scorer that gives errors and what its champion trained on
+    (``ChampionScorer(with_error=True)``); an experiment, off by default."""
+    progress_floor: float = 0.25
+    """With ``shapes_by_progress``: this share of each round is split equally over the shapes."""
+    progress_memory: int = 16
+    """With ``shapes_by_progress``: a shape's progress is the mean over its last this many episodes."""
     seed_uniform: UniformPlannerConfig = field(default_factory=UniformPlannerConfig)
     """How seeds (before any model) and exploration requests are drawn; its policy mix is shared."""
     choose_policy: bool = False
@@ -297,9 +158,9 @@ class ActivePlannerConfig:
                              f"{self.window}, {self.budget_per_round}, {self.max_queue_depth}")
         if not 0.0 < self.max_shape_share <= 1.0:
             raise ValueError(f"max_shape_share must be in (0, 1], found {self.max_shape_share}")
-        if not 0.0 <= self.gap_floor <= 1.0 or self.gap_memory < 1:
-            raise ValueError(f"gap_floor in [0, 1] and gap_memory >= 1 expected, found {self.gap_floor} and "
-                             f"{self.gap_memory}")
+        if not 0.0 <= self.progress_floor <= 1.0 or self.progress_memory < 1:
+            raise ValueError(f"progress_floor in [0, 1] and progress_memory >= 1 expected, found "
+                             f"{self.progress_floor} and {self.progress_memory}")
         if self.min_distance < 0 or not 0.0 <= self.explore_fraction <= 1.0:
             raise ValueError(f"min_distance >= 0 and explore_fraction in [0, 1] expected, found "
                              f"{self.min_distance} and {self.explore_fraction}")
@@ -383,9 +244,9 @@ class ActivePlanner:
         # episode was collected with; choose_policy looks at MIX_POLICIES only)
         self._policy_scores: dict[str, deque[float]] = {}
         self._policy_version = ""
-        self.gap = ShapeGap(cfg.gap_memory)
+        self.progress = ShapeProgress(cfg.progress_memory)
         self.shape_quotas: dict[str, int] = {}
-        """With ``shapes_by_gap``: the last round's requests per shape."""
+        """With ``shapes_by_progress``: the last round's requests per shape."""
 
     def seed(self, n: int, why: str = "seed") -> list[NewRequest]:
         """Uniform requests: before any model exists there is nothing to be uncertain about (and when
@@ -394,13 +255,13 @@ class ActivePlanner:
         return [self.uniform.draw_request(why) for _ in range(min(n, room))]
 
     def observe(self, episodes: Sequence[Episode]) -> None:
-        """With ``shapes_by_gap``, score ``episodes`` before the champion trains on them (their fresh error),
+        """With ``shapes_by_progress``, score ``episodes`` before the champion trains on them (their fresh error),
         for a caller that retrains before it plans (``bench loop``); otherwise nothing."""
-        if self.cfg.shapes_by_gap:
+        if self.cfg.shapes_by_progress:
             for ep in episodes:
                 scores = self.scorer(ep)
                 if scores is not None:
-                    self.gap.record(ep, scores)
+                    self.progress.record(ep, scores)
 
     def plan(self, new_episodes: Sequence[Episode]) -> list[NewRequest]:
         """Score the new episodes and request their most uncertain, mutually distant states.
@@ -424,8 +285,8 @@ class ActivePlanner:
         fresh = [c for c in self._candidates(scored)
                  if (c.episode.meta.episode_id, c.step) not in self._requested_steps]
         k = budget - n_explore
-        if self.cfg.shapes_by_gap:
-            chosen, short = self._by_gap(scored, fresh, k)
+        if self.cfg.shapes_by_progress:
+            chosen, short = self._by_progress(scored, fresh, k)
         else:
             chosen, short = select_diverse(fresh, k, self.cfg.min_distance, list(self._requested),
                                            max_per_shape=max(1, math.ceil(k * self.cfg.max_shape_share))), {}
@@ -434,21 +295,21 @@ class ActivePlanner:
             self._requested.append(cand.features)
             self._requested_steps.add((cand.episode.meta.episode_id, cand.step))
             requests.append(self._request(cand, versions[id(cand.episode)]))
-        requests += [self.uniform.draw_request("gap-fill", shape) for shape, n in short.items() for _ in range(n)]
+        requests += [self.uniform.draw_request("shape-fill", shape) for shape, n in short.items() for _ in range(n)]
         requests += [self.uniform.draw_request("explore") for _ in range(n_explore)]
         return requests
 
-    def _by_gap(self, scored: list[tuple[Episode, Scores]], candidates: list[Candidate],
+    def _by_progress(self, scored: list[tuple[Episode, Scores]], candidates: list[Candidate],
                 k: int) -> tuple[list[Candidate], dict[str, int]]:
-        """``k`` candidates split over shapes by ``ShapeGap.quotas``, and per shape how many it lacks."""
+        """``k`` candidates split over shapes by ``ShapeProgress.quotas``, and per shape how many it lacks."""
         version = scored[-1][1].model_version
         for ep, s in scored:
-            self.gap.record(ep, s)
-        for ep in self.gap.waiting(version):  # fresh under an earlier champion: did this one train on them?
+            self.progress.record(ep, s)
+        for ep in self.progress.waiting(version):  # fresh under an earlier champion: did this one train on them?
             again = self.scorer(ep)
             if again is not None and again.model_version == version:
-                self.gap.record(ep, again)
-        self.shape_quotas = self.gap.quotas(k, self.cfg.seed_uniform.shapes, self.cfg.gap_floor)
+                self.progress.record(ep, again)
+        self.shape_quotas = self.progress.quotas(k, self.cfg.seed_uniform.shapes, self.cfg.progress_floor)
         chosen, short = [], {}
         for shape, quota in self.shape_quotas.items():
             picked = select_diverse([c for c in candidates if c.episode.meta.shape == shape], quota,
@@ -551,7 +412,7 @@ class ActivePlanner:
                   "step": step, "planner": "active", "threshold": self.threshold}
         if self.cfg.within_policy:
             reason["within_policy"] = True  # score and threshold are ratios to the policy's mean
-        if self.cfg.shapes_by_gap:
+        if self.cfg.shapes_by_progress:
             reason["shape_quotas"] = dict(self.shape_quotas)
         if self.cfg.choose_policy:
             reason["policy_weights"] = {n: round(w, 4) for n, w in self.policy_weights().items()}

@@ -145,7 +145,7 @@ def test_a_catalog_with_episodes_of_another_size_still_gets_its_report(tmp_path,
     """Catalogs from before the one-frame-size rule may mix sizes: the report shows the run's own."""
     import numpy as np
     import storage.catalog
-    from orchestrator.planner import UniformPlanner, UniformPlannerConfig
+    from orchestrator.uniform import UniformPlanner, UniformPlannerConfig
     from uncertainty.config import TrainConfig
     from uncertainty.train import train_candidate
     from workers.collect import collect_episode, create_eval_split

@@ -147,15 +147,16 @@ def register_bench(bench: argparse._SubParsersAction) -> None:
                    help="the active planner gives at most this share of the requests it picks in a round to one "
                         f"shape, rounded up, at least 1 (default {d.active.max_shape_share}; 1 = no cap); a round it "
                         "leaves short is filled with uniform requests")
-    p.add_argument("--shapes-by-gap", action="store_true", default=d.shapes_by_gap,
+    p.add_argument("--shapes-by-progress", action="store_true", default=d.shapes_by_progress,
                    help="instead of that cap, the active planner splits each round over the shapes by how much "
-                        "the champion's error on a shape's recent episodes fell once it trained on them "
-                        f"(what data of that shape still buys; {d.active.gap_floor:.0%} of each round split "
-                        "equally), then picks each shape's states by the signal; a shape without candidates "
-                        "gets uniform starts of that shape (an experiment)")
-    p.add_argument("--gap-floor", type=common.share, default=d.active.gap_floor, metavar="F",
-                   help=f"with --shapes-by-gap, the share of each round split equally over the shapes (default "
-                        f"{d.active.gap_floor}; 1 = every shape equally, whatever the data buys)")
+                        "the champion's error on a shape's recent episodes fell once it trained on them, beyond "
+                        "the shape whose error fell least (what data of that shape buys; "
+                        f"{d.active.progress_floor:.0%} of each round split equally), then picks each shape's "
+                        "states by the signal; a shape without candidates gets uniform starts of that shape "
+                        "(an experiment)")
+    p.add_argument("--progress-floor", type=common.share, default=d.active.progress_floor, metavar="F",
+                   help="with --shapes-by-progress, the share of each round split equally over the shapes "
+                        f"(default {d.active.progress_floor}; 1 = every shape equally, whatever the data buys)")
     p.add_argument("--out", type=Path, default=None, metavar="DIR",
                    help="output directory (default ./activecollect-bench/loop-<timestamp>)")
     p.set_defaults(func=_bench_loop)
@@ -212,9 +213,9 @@ def _bench_loop(args: argparse.Namespace) -> int:
                               image_size=args.image_size, train=train, signal=args.signal,
                               active_policy=args.active_policy, random_physics=args.random_physics,
                               within_policy=args.within_policy, shape_weights=args.shape_weights,
-                              palette=args.palette, shapes_by_gap=args.shapes_by_gap,
+                              palette=args.palette, shapes_by_progress=args.shapes_by_progress,
                               active=dataclasses.replace(d.active, max_shape_share=args.max_shape_share,
-                                                         gap_floor=args.gap_floor))
+                                                         progress_floor=args.progress_floor))
     except (ValueError, ConfigError) as exc:
         raise common.config_error(exc, {"budget": "--budget", "seeds": "--seeds", "members": "--members",
                                         "epochs": "--epochs"}) from None

@@ -28,8 +28,8 @@ from orchestrator.cli import common
 from orchestrator.cli.loop import add_retrain_args_arg
 from orchestrator.companions import CompanionConfig, Companions
 from orchestrator.messages import AdminRequest, Event
-from orchestrator.planner import ActivePlanner, ActivePlannerConfig, UniformPlanner, UniformPlannerConfig, \
-    uniform_start_state
+from orchestrator.planner import ActivePlanner, ActivePlannerConfig
+from orchestrator.uniform import UniformPlanner, UniformPlannerConfig, uniform_start_state
 from orchestrator.protocol import Keys, ProtocolError
 from orchestrator.service import PlannerFactory, Service, ServiceConfig, ServiceContext, ServiceError
 from orchestrator.signals import on_stop_signals

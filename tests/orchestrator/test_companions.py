@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from orchestrator.companions import CompanionConfig, Companions
-from orchestrator.planner import UniformPlanner, UniformPlannerConfig
+from orchestrator.uniform import UniformPlanner, UniformPlannerConfig
 from orchestrator.service import Service, ServiceConfig
 from storage.models import ModelRegistry
 from tests.conftest import wait_for

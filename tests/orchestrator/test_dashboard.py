@@ -31,7 +31,7 @@ from prometheus_client.parser import text_string_to_metric_families
 from orchestrator.companions import CompanionConfig
 from orchestrator.dashboard import Dashboard, DashboardConfig, DataSources
 from orchestrator.metrics import ServiceMetrics
-from orchestrator.planner import UniformPlanner, UniformPlannerConfig
+from orchestrator.uniform import UniformPlanner, UniformPlannerConfig
 from storage.catalog import Catalog
 from storage.models import ModelRegistry
 from storage.queue import RequestQueue

@@ -132,21 +132,21 @@ def test_bench_loop_with_a_skewed_mix_and_shapes_coloured_apart(tmp_path, capsys
             assert (np.abs(frames - gold).sum(axis=-1) <= 6).any()  # drawn in the disk's own colour
 
 
-def test_bench_loop_shapes_by_gap_asks_for_shapes_the_last_round_did_not_have(tmp_path, capsys):
-    """With --shapes-by-gap the active arm splits a round over every shape (equally while no gap is known),
+def test_bench_loop_shapes_by_progress_asks_for_shapes_the_last_round_did_not_have(tmp_path, capsys):
+    """With --shapes-by-progress the active arm splits a round over every shape (equally while no progress is known),
     filling shapes without candidates with uniform starts of their own shape; the uniform arm keeps its mix."""
     rc, stdout, _ = run_cli(capsys, "bench", "loop", "--seeds", "1", "--budget", "12", "--round", "4",
                             "--steps", "12", "--image-size", "16", "--epochs", "1", "--members", "2",
-                            "--shape-weights", "disk=1", "--shapes-by-gap", "--gap-floor", "0.5", "--json",
+                            "--shape-weights", "disk=1", "--shapes-by-progress", "--progress-floor", "0.5", "--json",
                             "--out", str(tmp_path / "o"))
     assert rc == 0
     summary = json.loads(stdout)
-    assert summary["config"]["shapes_by_gap"] and summary["config"]["active"]["shapes_by_gap"]
-    assert summary["config"]["active"]["gap_floor"] == 0.5
+    assert summary["config"]["shapes_by_progress"] and summary["config"]["active"]["shapes_by_progress"]
+    assert summary["config"]["active"]["progress_floor"] == 0.5
     active = [p for p in summary["points"] if p["arm"] == "active"]
     assert active[0]["round_shapes"] == {"disk": 4}  # the seed round
-    assert active[1]["round_shapes"] == {s: 1 for s in sorted(SHAPES)}  # no gap known yet: one of each
-    assert active[1]["round_planners"]["gap-fill"] == 3  # only disks were collected: three shapes start uniform
+    assert active[1]["round_shapes"] == {s: 1 for s in sorted(SHAPES)}  # no progress known yet: one of each
+    assert active[1]["round_planners"]["shape-fill"] == 3  # only disks were collected: three shapes start uniform
     assert sum(active[2]["round_shapes"].values()) == 4
     assert all(p["round_shapes"] == {"disk": 4} for p in summary["points"] if p["arm"] == "uniform")
 

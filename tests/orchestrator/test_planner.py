@@ -11,9 +11,9 @@ import pytest
 from orchestrator import protocol
 from orchestrator.loop import RoundPlanner
 from orchestrator.planner import (
-    ActivePlanner, ActivePlannerConfig, Candidate, PolicyMix, Scores, UniformPlanner, UniformPlannerConfig,
-    AGENT_CLEARANCE, MIX_POLICIES, relative_to_policy, select_diverse, state_at, state_features,
+    ActivePlanner, ActivePlannerConfig, Candidate, Scores, relative_to_policy, select_diverse, state_at, state_features,
 )
+from orchestrator.uniform import AGENT_CLEARANCE, MIX_POLICIES, PolicyMix, UniformPlanner, UniformPlannerConfig
 from storage.queue import RequestQueue
 from storage.requests import NewRequest
 from storage.records import STATE_FIELDS, Episode, EpisodeMeta

@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from orchestrator.planner import UniformPlanner, UniformPlannerConfig
+from orchestrator.uniform import UniformPlanner, UniformPlannerConfig
 from orchestrator.scheduler import (
     EXIT_BUSY, RetrainBusyError, RetrainScheduler, RetrainStatus, ScheduleConfig, lock_held, read_lock_info,
     note_phase, retrain_lock,

@@ -17,7 +17,7 @@ import zenoh
 
 from orchestrator import messages, protocol, transport
 from orchestrator.messages import LeaseGrant
-from orchestrator.planner import UniformPlanner, UniformPlannerConfig
+from orchestrator.uniform import UniformPlanner, UniformPlannerConfig
 from orchestrator.protocol import ErrorCode, Keys, ProtocolError
 from orchestrator.service import Service, ServiceConfig, ServiceError
 from orchestrator.uploads import StoredEpisode

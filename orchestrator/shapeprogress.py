@@ -6,7 +6,7 @@ An ensemble disagrees most where it predicts worst, and that is not always where
 starved got worse. What tells the two apart is whether training on a shape's episodes lowers the
 error on them.
 
-For each episode the planner scores, ``ShapeGap`` keeps two numbers: the mean error (ensemble mean,
+For each episode the planner scores, ``ShapeProgress`` keeps two numbers: the mean error (ensemble mean,
 horizon 1) of the latest champion that had *not* trained on it ("fresh"), and that of the first
 champion after it that *had* ("seen"). A shape's drop is ``(fresh - seen) / fresh`` averaged over its
 last ``memory`` episodes that have both. Every shape drops somewhat, because the later champion saw
@@ -42,7 +42,7 @@ class _Record:
     """Mean error of the first later champion trained on it (NaN until one scored it)."""
 
 
-class ShapeGap:
+class ShapeProgress:
     """Fresh and seen errors of the recent episodes, per shape (see the module docstring)."""
 
     def __init__(self, memory: int = 16) -> None:
