@@ -48,11 +48,14 @@ class ChampionScorer:
     RETRY_S = 60.0
 
     def __init__(self, data_dir: Path, device: str = "cpu",
-                 observe: Callable[[float], None] = lambda seconds: None, with_error: bool = False) -> None:
+                 observe: Callable[[float], None] = lambda seconds: None, with_error: bool = False,
+                 error_horizon: int = 1) -> None:
         self.data_dir = Path(data_dir)
         self.device = device
         self.observe = observe
         self.with_error = with_error
+        self.error_horizon = error_horizon
+        """The error's horizon (``uncertainty.score.prediction_error``)."""
         """Scores also carry the ensemble mean's error per step and whether the champion trained on the episode."""
         self._trained_on: tuple[str | None, frozenset[str] | None] = (None, None)
         # (version, the episodes it was trained on or None when not recorded): one tuple, read without the lock
@@ -131,7 +134,8 @@ class ChampionScorer:
         from uncertainty.score import prediction_error  # torch is loaded: an ensemble is
         known, ids = self._trained_on
         trained_on = ids if known == version else None
-        return Scores(version, per_step, prediction_error(ensemble, episode.frames, episode.actions),
+        error = prediction_error(ensemble, episode.frames, episode.actions, self.error_horizon)
+        return Scores(version, per_step, error,
                       None if trained_on is None else episode.meta.episode_id in trained_on)
 
 

@@ -127,7 +127,8 @@ def run_arm(arm: str, seed: int, cfg: LoopBenchConfig, data_dir: Path, collect: 
     palette = palette_of(cfg)
     make_eval_split(catalog, cfg.eval_episodes, cfg.eval_seed, cfg.steps, cfg.image_size, cfg.random_physics,
                     palette)
-    scorer = ChampionScorer(data_dir, with_error=cfg.active.shapes_by_progress)
+    scorer = ChampionScorer(data_dir, with_error=cfg.active.shapes_by_progress,
+                            error_horizon=cfg.active.progress_horizon)
     planner = make_planner(arm, cfg, scorer, np.random.default_rng(seed), queue)
     train = TrainConfig(**{**cfg.train.to_dict(), "seed": seed, "widths": tuple(cfg.train.widths)})
     points: list[dict] = []

@@ -129,6 +129,9 @@ class ActivePlannerConfig:
     (``ChampionScorer(with_error=True)``); an experiment, off by default."""
     progress_floor: float = 0.25
     """With ``shapes_by_progress``: this share of each round is split equally over the shapes."""
+    progress_horizon: int = 1
+    """With ``shapes_by_progress``: the horizon of the error whose fall is measured (the scorer's
+    ``error_horizon``; 1 is the gate's metric, a longer one weighs the dynamics more)."""
     progress_memory: int = 16
     """With ``shapes_by_progress``: a shape's progress is the mean over its last this many episodes."""
     seed_uniform: UniformPlannerConfig = field(default_factory=UniformPlannerConfig)
@@ -158,9 +161,9 @@ class ActivePlannerConfig:
                              f"{self.window}, {self.budget_per_round}, {self.max_queue_depth}")
         if not 0.0 < self.max_shape_share <= 1.0:
             raise ValueError(f"max_shape_share must be in (0, 1], found {self.max_shape_share}")
-        if not 0.0 <= self.progress_floor <= 1.0 or self.progress_memory < 1:
-            raise ValueError(f"progress_floor in [0, 1] and progress_memory >= 1 expected, found "
-                             f"{self.progress_floor} and {self.progress_memory}")
+        if not 0.0 <= self.progress_floor <= 1.0 or self.progress_memory < 1 or self.progress_horizon < 1:
+            raise ValueError(f"progress_floor in [0, 1], progress_memory >= 1 and progress_horizon >= 1 expected, "
+                             f"found {self.progress_floor}, {self.progress_memory} and {self.progress_horizon}")
         if self.min_distance < 0 or not 0.0 <= self.explore_fraction <= 1.0:
             raise ValueError(f"min_distance >= 0 and explore_fraction in [0, 1] expected, found "
                              f"{self.min_distance} and {self.explore_fraction}")

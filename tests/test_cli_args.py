@@ -125,6 +125,7 @@ def _connect() -> list[str]:
     (["bench", "loop", "--shape-weights", "T=1,T=0"], "T is given twice in 'T=1,T=0'"),
     (["bench", "loop", "--max-shape-share", "0"], "expected a share in (0, 1]"),
     (["bench", "loop", "--progress-floor", "1.5"], "expected a share in (0, 1]"),
+    (["bench", "loop", "--progress-horizon", "0"], "--progress-horizon"),
     (["bench", "loop", "--palette", "pastel"], "argument --palette: invalid choice"),
     # frames a model cannot train on
     (["run", "--image-size", "12", "--data", "DATA"], "argument --image-size: expected a multiple of 8 from 16"),

@@ -83,15 +83,16 @@ def state_dict(row: np.ndarray, shape: str, physics: dict[str, float]) -> dict[s
 
 
 @torch.inference_mode()
-def prediction_error(ensemble: Ensemble, frames: np.ndarray, actions: np.ndarray,
+def prediction_error(ensemble: Ensemble, frames: np.ndarray, actions: np.ndarray, horizon: int = 1,
                      batch_size: int = 256) -> np.ndarray:
-    """Per-step squared error of the ensemble mean's next frame against the recorded one, averaged over
-    pixels: (T,) float64, NaN where a step has no prediction (the eval's horizon-1 MSE, step by step).
-    Raises ``DataError`` on mismatched shapes."""
+    """Per-step squared error of the ensemble mean's next ``horizon`` frames against the recorded ones (each
+    member rolling out on its own predictions), averaged over pixels and the horizon: (T,) float64, NaN
+    where a step has no prediction or fewer than ``horizon`` successors (at 1: the eval's horizon-1 MSE, step
+    by step). Raises ``DataError`` on mismatched shapes."""
     def mean_error(preds: torch.Tensor, context: torch.Tensor, real: torch.Tensor) -> torch.Tensor:
         return ((preds.mean(dim=0) - real) ** 2).mean(dim=(1, 2, 3, 4))                # (B,)
 
-    return ensemble.score_steps(frames, actions, 1, mean_error, batch_size=batch_size)
+    return ensemble.score_steps(frames, actions, horizon, mean_error, batch_size=batch_size)
 
 
 @torch.inference_mode()

@@ -157,6 +157,9 @@ def register_bench(bench: argparse._SubParsersAction) -> None:
     p.add_argument("--progress-floor", type=common.share, default=d.active.progress_floor, metavar="F",
                    help="with --shapes-by-progress, the share of each round split equally over the shapes "
                         f"(default {d.active.progress_floor}; 1 = every shape equally, whatever the data buys)")
+    p.add_argument("--progress-horizon", type=common.positive_int, default=d.active.progress_horizon, metavar="H",
+                   help="with --shapes-by-progress, the horizon of the error whose fall is measured (default "
+                        f"{d.active.progress_horizon}, the gate's; a longer one weighs the dynamics more)")
     p.add_argument("--out", type=Path, default=None, metavar="DIR",
                    help="output directory (default ./activecollect-bench/loop-<timestamp>)")
     p.set_defaults(func=_bench_loop)
@@ -215,7 +218,8 @@ def _bench_loop(args: argparse.Namespace) -> int:
                               within_policy=args.within_policy, shape_weights=args.shape_weights,
                               palette=args.palette, shapes_by_progress=args.shapes_by_progress,
                               active=dataclasses.replace(d.active, max_shape_share=args.max_shape_share,
-                                                         progress_floor=args.progress_floor))
+                                                         progress_floor=args.progress_floor,
+                                                         progress_horizon=args.progress_horizon))
     except (ValueError, ConfigError) as exc:
         raise common.config_error(exc, {"budget": "--budget", "seeds": "--seeds", "members": "--members",
                                         "epochs": "--epochs"}) from None

@@ -66,6 +66,8 @@ def test_with_error_the_scores_carry_the_error_and_whether_the_champion_trained_
     assert scores.trained is True and scorer(unseen).trained is False
     np.testing.assert_allclose(scores.error, prediction_error(scorer.ensemble, seen.frames, seen.actions))
     np.testing.assert_array_equal(np.isnan(scores.error), np.isnan(scores.per_step))
+    longer = ChampionScorer(tmp_path, with_error=True, error_horizon=2)(seen).error
+    np.testing.assert_allclose(longer, prediction_error(scorer.ensemble, seen.frames, seen.actions, horizon=2))
     older = _promoted(registry, 1, 0.01)  # registered without its episodes: not known
     assert scorer(seen).model_version == older and scorer(seen).trained is None
     assert scorer(seen).error is not None

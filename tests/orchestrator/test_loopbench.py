@@ -137,12 +137,13 @@ def test_bench_loop_shapes_by_progress_asks_for_shapes_the_last_round_did_not_ha
     filling shapes without candidates with uniform starts of their own shape; the uniform arm keeps its mix."""
     rc, stdout, _ = run_cli(capsys, "bench", "loop", "--seeds", "1", "--budget", "12", "--round", "4",
                             "--steps", "12", "--image-size", "16", "--epochs", "1", "--members", "2",
-                            "--shape-weights", "disk=1", "--shapes-by-progress", "--progress-floor", "0.5", "--json",
+                            "--shape-weights", "disk=1", "--shapes-by-progress", "--progress-floor", "0.5",
+                            "--progress-horizon", "2", "--json",
                             "--out", str(tmp_path / "o"))
     assert rc == 0
     summary = json.loads(stdout)
     assert summary["config"]["shapes_by_progress"] and summary["config"]["active"]["shapes_by_progress"]
-    assert summary["config"]["active"]["progress_floor"] == 0.5
+    assert summary["config"]["active"]["progress_floor"] == 0.5 and summary["config"]["active"]["progress_horizon"] == 2
     active = [p for p in summary["points"] if p["arm"] == "active"]
     assert active[0]["round_shapes"] == {"disk": 4}  # the seed round
     assert active[1]["round_shapes"] == {s: 1 for s in sorted(SHAPES)}  # no progress known yet: one of each

@@ -58,6 +58,21 @@ def test_prediction_error_is_the_evals_h1_mse_step_by_step(trained):
     assert np.nanmean(error) == pytest.approx(evaluate_episodes(ens, [ep], "h", horizons=(1,))["h1_mse"], rel=1e-5)
 
 
+def test_prediction_error_over_a_horizon_averages_the_mean_rollouts_error(trained):
+    import torch
+    from uncertainty.ensemble import frames_to_tensor
+    ens, _ = trained
+    ep = make_episode(7, "disk", steps=12)
+    error = prediction_error(ens, ep.frames, ep.actions, horizon=3)
+    np.testing.assert_array_equal(np.isnan(error), np.isnan(ens.disagreement(ep.frames, ep.actions, horizon=3)))
+    step, c = 4, ens.config.context
+    x = frames_to_tensor(ep.frames)
+    actions = ens.normalize_actions(torch.as_tensor(ep.actions[step:step + 3], dtype=torch.float32))
+    with torch.inference_mode():
+        mean = ens.rollout(x[None, step - c + 1:step + 1], actions[None]).mean(dim=0)[0]  # (3, 3, H, W)
+    assert error[step] == pytest.approx(float(((mean - x[step + 1:step + 4]) ** 2).mean()), rel=1e-5)
+
+
 def test_change_disagreement_counts_only_pixels_that_move(trained):
     ens, _ = trained
     ep = make_episode(7, "disk", steps=12)
