@@ -22,8 +22,9 @@ import numpy as np
 
 from orchestrator.planner import Scores
 from storage.catalog import Catalog
+from storage.checkpoint_files import file_state
 from storage.errors import RegistryError
-from storage.models import ModelRegistry, file_state
+from storage.models import ModelRegistry
 from storage.records import Episode
 
 if TYPE_CHECKING:

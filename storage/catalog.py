@@ -19,19 +19,20 @@ A catalog holds one frame size, its eval split's, else its first episode's; that
 episode must be of a size a model trains on (``storage.records.trainable_size``).
 
 Other components (``storage.queue``, ``storage.models``) keep their tables in the
-same file (``storage.database``). The rows the catalog answers with are ``storage.rows``'s dataclasses,
-its sweep of what crashed ingests left is ``storage.strays``; both re-exported here.
+same file (``storage.database``). The catalog's own tables are read and written by its steps over a
+connection in ``storage.episode_table`` (the episodes: schema, rows, filters), ``storage.eval_split`` (the
+eval split, snapshots, the frame size) and ``storage.quarantine``. The rows the catalog answers with are
+``storage.rows``'s dataclasses, its sweep of what crashed ingests left is ``storage.strays``; both
+re-exported here.
 """
 
 from __future__ import annotations
 
-import json
-import re
 import sqlite3
 import time
 from collections.abc import Callable, Sequence
 from contextlib import AbstractContextManager, nullcontext
-from datetime import datetime, timezone
+from datetime import datetime
 from pathlib import Path
 from typing import Any
 
@@ -47,103 +48,44 @@ from storage.database import (DB_NAME, EPISODES_DIR, Migration, connection, ensu
                               storage_error, transaction)
 from storage.errors import CatalogError, CorruptEpisodeError, EpisodeError, MissingEpisodeError, UnknownEpisodeError
 from storage.files import holds, move, publish, sha256_hex, stage_bytes
-# (named apart from the methods Catalog.quarantine and Catalog.strays, which call them)
+from storage import episode_table
+# (named apart from the methods Catalog.eval_split, Catalog.quarantine and Catalog.strays, which call them)
+from storage import eval_split as eval_splits
 from storage import quarantine as quarantines
 from storage import strays as stray_files
 from storage.quarantine import quarantine_path
 from storage.records import (MAX_FRAME_SIZE, MIN_FRAME_SIZE, TRAINABLE_SIZES, Episode, EpisodeMeta,
                              trainable_size)
-from storage.rows import EpisodeRow, EvalSplit, IngestResult, Snapshot, content_hash
+from storage.rows import EpisodeRow, EvalSplit, IngestResult, Snapshot
 from storage.strays import ORPHANS_DIR, STAGING_MAX_AGE_S, Strays
 
 #: Splits an episode can belong to. ``eval`` episodes never enter a training snapshot.
 SPLITS: tuple[str, ...] = ("train", "eval")
-_SAFE_ID = re.compile(r"^[A-Za-z0-9_-]{1,128}$")
 
 #: One entry per schema version; a change to the tables is a new entry at the end. Each says which older
 #: code may still use the file after it (``compatible_with``, see ``storage.database.Migration``): leave
 #: the default, its own version, unless that code can neither misread nor damage the new shape.
 _CATALOG_MIGRATIONS: tuple[Migration, ...] = (
-    Migration((
-        """CREATE TABLE IF NOT EXISTS episodes (
-            episode_id TEXT PRIMARY KEY,
-            path TEXT NOT NULL,
-            sha256 TEXT NOT NULL,
-            frames INTEGER NOT NULL,
-            task TEXT NOT NULL,
-            shape TEXT NOT NULL,
-            request_id TEXT NOT NULL,
-            worker_id TEXT NOT NULL,
-            model_version TEXT NOT NULL,
-            split TEXT NOT NULL,
-            created TEXT NOT NULL,
-            size_bytes INTEGER NOT NULL,
-            ingested REAL NOT NULL,
-            meta TEXT NOT NULL)""",
-        "CREATE INDEX IF NOT EXISTS episodes_split ON episodes(split, shape)",
-        "CREATE INDEX IF NOT EXISTS episodes_request ON episodes(request_id)",
-        "CREATE INDEX IF NOT EXISTS episodes_ingested ON episodes(ingested)",
-        """CREATE TABLE IF NOT EXISTS eval_split (
-            id INTEGER PRIMARY KEY CHECK (id = 1),
-            hash TEXT NOT NULL,
-            params TEXT NOT NULL,
-            created TEXT NOT NULL)""",
-        """CREATE TABLE IF NOT EXISTS eval_split_members (
-            episode_id TEXT PRIMARY KEY REFERENCES episodes(episode_id))""",
-    )),
+    Migration((*episode_table.SCHEMA, *eval_splits.TABLES)),
     # The quarantine table (storage.quarantine). Not for version-1 code, which would ignore the table:
     # snapshot quarantined episodes for training (their files are gone) and let them be pinned in the eval split.
     Migration((quarantines.TABLE,), compatible_with=2),
 )
-#: Every catalog query of episode rows: the row and, when it is quarantined, why.
-_FROM_ROWS = "episodes e LEFT JOIN quarantine q USING (episode_id)"
-_SELECT_ROWS = f"SELECT e.*, q.reason AS quarantined FROM {_FROM_ROWS}"
-
-
-def _now_iso() -> str:
-    return datetime.now(timezone.utc).isoformat(timespec="seconds")
 
 
 # ---------------------------------------------------------------------------------------------
 # the catalog
 
 
-def _episode_date(created: str) -> str:
-    try:
-        when = datetime.fromisoformat(created)
-    except (TypeError, ValueError):
-        when = datetime.now(timezone.utc)
-    if when.tzinfo is None:
-        when = when.replace(tzinfo=timezone.utc)
-    try:
-        return when.astimezone(timezone.utc).strftime("%Y-%m-%d")
-    except OverflowError:  # e.g. 9999-12-31T23:00-05:00 is past the last representable UTC day
-        return datetime.now(timezone.utc).strftime("%Y-%m-%d")
-
-
-def _frame_size(conn: sqlite3.Connection) -> tuple[int, str] | None:
-    """(frame size, what fixed it) of a catalog: its pinned eval split's, else its first episode's; None
-    while it holds no episode."""
-    row = conn.execute("SELECT json_extract(params, '$.image_size'), json_type(params, '$.image_size') "
-                       "FROM eval_split WHERE id = 1").fetchone()
-    if row is not None and row[1] == "integer":
-        return row[0], "its eval split"
-    first = conn.execute("SELECT episode_id, json_extract(meta, '$.image_size') FROM episodes "
-                         "ORDER BY rowid LIMIT 1").fetchone()
-    if first is not None and isinstance(first[1], int):
-        return first[1], f"its first episode, {first[0]}"
-    return None
-
-
 def _check_frame_size(conn: sqlite3.Connection, meta: EpisodeMeta) -> None:
-    """Every episode of a catalog has one frame size (``_frame_size``): the models train on, and score,
-    one size, so one other episode would fail every retrain. The episode that fixes it must be one a model
-    trains on (``trainable_size``); a catalog fixed at another size before that rule keeps its size.
+    """Every episode of a catalog has one frame size (``storage.eval_split.frame_size``): the models train on,
+    and score, one size, so one other episode would fail every retrain. The episode that fixes it must be one a
+    model trains on (``trainable_size``); a catalog fixed at another size before that rule keeps its size.
     Raises ``CatalogError``."""
     if not MIN_FRAME_SIZE <= meta.image_size <= MAX_FRAME_SIZE:
         raise CatalogError(f"episode {meta.episode_id} has {meta.image_size}px frames; expected "
                            f"{MIN_FRAME_SIZE}..{MAX_FRAME_SIZE} (what the simulator renders and workers record)")
-    fixed = _frame_size(conn)
+    fixed = eval_splits.frame_size(conn)
     if fixed is None and not trainable_size(meta.image_size):
         raise CatalogError(f"episode {meta.episode_id} has {meta.image_size}px frames; the first episode fixes "
                            f"this catalog's frame size, which must be {TRAINABLE_SIZES} (what a model trains on)")
@@ -155,17 +97,6 @@ def _check_frame_size(conn: sqlite3.Connection, meta: EpisodeMeta) -> None:
 def _check_split(split: str) -> None:
     if split not in SPLITS:
         raise CatalogError(f"unknown split {split!r}; expected one of {', '.join(SPLITS)}")
-
-
-def _since_seconds(since: float | str | datetime) -> float:
-    if isinstance(since, datetime):
-        return (since if since.tzinfo else since.replace(tzinfo=timezone.utc)).timestamp()
-    if isinstance(since, str):
-        try:
-            return _since_seconds(datetime.fromisoformat(since))
-        except ValueError:
-            raise CatalogError(f"since must be an ISO 8601 time, found {since!r}") from None
-    return float(since)
 
 
 class Catalog:
@@ -188,12 +119,7 @@ class Catalog:
         return connection(self._db_path, CatalogError)
 
     def _row(self, r: sqlite3.Row) -> EpisodeRow:
-        return EpisodeRow(
-            episode_id=r["episode_id"], path=self.data_dir / r["path"], sha256=r["sha256"],
-            frames=r["frames"], task=r["task"], shape=r["shape"], request_id=r["request_id"],
-            worker_id=r["worker_id"], split=r["split"], created=r["created"],
-            size_bytes=r["size_bytes"], model_version=r["model_version"], ingested=r["ingested"],
-            quarantined=r["quarantined"] or "")
+        return episode_table.row(r, self.data_dir)
 
     # --- ingest ---------------------------------------------------------------------------------
 
@@ -263,10 +189,7 @@ class Catalog:
                in_transaction: Callable[[sqlite3.Connection], None] | None,
                write_lock: AbstractContextManager[Any] | None = None) -> IngestResult:
         _check_split(split)
-        if not isinstance(meta.episode_id, str) or not _SAFE_ID.match(meta.episode_id):
-            raise CatalogError(f"episode id {meta.episode_id!r} is not a safe file name "
-                               "(expected 1-128 letters, digits, '-' or '_')")
-        rel = f"{EPISODES_DIR}/{_episode_date(meta.created)}/{meta.episode_id}.mcap"
+        rel = episode_table.file_path(meta)
         final = self.data_dir / rel
         known = self.find(meta.episode_id)
         if known is not None:  # fast path; re-checked under the lock below
@@ -290,20 +213,14 @@ class Catalog:
         conn.execute("BEGIN IMMEDIATE")
         published = False
         try:
-            r = conn.execute(f"{_SELECT_ROWS} WHERE episode_id = ?", (meta.episode_id,)).fetchone()
-            if r is not None:
+            known = episode_table.find(conn, self.data_dir, meta.episode_id)
+            if known is not None:
                 conn.execute("ROLLBACK")
-                return self._duplicate(self._row(r), sha, split, data)
+                return self._duplicate(known, sha, split, data)
             _check_frame_size(conn, meta)
             publish(staged, final)
             published = True
-            conn.execute(
-                "INSERT INTO episodes(episode_id, path, sha256, frames, task, shape, request_id, worker_id, "
-                "model_version, split, created, size_bytes, ingested, meta) "
-                "VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
-                (meta.episode_id, rel, sha, frames, str(meta.task), str(meta.shape),
-                 str(meta.request_id), str(meta.worker_id), str(meta.model_version), split,
-                 str(meta.created), len(data), time.time(), meta.to_json()))
+            episode_table.insert(conn, meta, rel, sha, frames, split, len(data))
             if in_transaction is not None:
                 in_transaction(conn)
             conn.execute("COMMIT")
@@ -346,13 +263,12 @@ class Catalog:
         """The frame size every episode here has (its eval split's, else its first episode's); None
         while it holds none."""
         with self._connect() as conn:
-            fixed = _frame_size(conn)
+            fixed = eval_splits.frame_size(conn)
         return None if fixed is None else fixed[0]
 
     def find(self, episode_id: str) -> EpisodeRow | None:
         with self._connect() as conn:
-            r = conn.execute(f"{_SELECT_ROWS} WHERE episode_id = ?", (episode_id,)).fetchone()
-        return self._row(r) if r else None
+            return episode_table.find(conn, self.data_dir, episode_id)
 
     def get(self, episode_id: str) -> EpisodeRow:
         """The row of ``episode_id``; ``CatalogError`` if it is not indexed."""
@@ -366,15 +282,13 @@ class Catalog:
         row = self.find(id_or_prefix)
         if row is not None:
             return row
-        pattern = id_or_prefix.replace("\\", "\\\\").replace("%", "\\%").replace("_", "\\_") + "%"
         with self._connect() as conn:
-            rows = conn.execute(f"{_SELECT_ROWS} WHERE episode_id LIKE ? ESCAPE '\\' LIMIT 3",
-                                (pattern,)).fetchall()
+            rows = episode_table.by_prefix(conn, self.data_dir, id_or_prefix)
         if len(rows) == 1 and id_or_prefix:
-            return self._row(rows[0])
+            return rows[0]
         if len(rows) > 1 and id_or_prefix:
             raise UnknownEpisodeError(f"episode id prefix {id_or_prefix!r} is ambiguous "
-                                      f"({', '.join(r['episode_id'] for r in rows[:2])}, ...)")
+                                      f"({', '.join(r.episode_id for r in rows[:2])}, ...)")
         raise UnknownEpisodeError(f"no episode {id_or_prefix!r} in the catalog at {self.data_dir}")
 
     def list(self, split: str | None = None, shape: str | None = None, limit: int | None = None,
@@ -386,7 +300,7 @@ class Catalog:
         ``quarantined``: only those taken out of training (True), only the others (False), or all (None).
         """
         where, args = self._filters(split, shape, since, quarantined)
-        sql = f"{_SELECT_ROWS}{where} ORDER BY e.rowid {'DESC' if newest_first else 'ASC'}"
+        sql = f"{episode_table.SELECT_ROWS}{where} ORDER BY e.rowid {'DESC' if newest_first else 'ASC'}"
         if limit is not None:
             sql += " LIMIT ?"
             args.append(int(limit))
@@ -397,40 +311,18 @@ class Catalog:
               since: float | str | datetime | None = None, quarantined: bool | None = None) -> int:
         where, args = self._filters(split, shape, since, quarantined)
         with self._connect() as conn:
-            return conn.execute(f"SELECT COUNT(*) FROM {_FROM_ROWS}{where}", args).fetchone()[0]
+            return conn.execute(f"SELECT COUNT(*) FROM {episode_table.FROM_ROWS}{where}", args).fetchone()[0]
 
     def _filters(self, split: str | None, shape: str | None, since: float | str | datetime | None,
                  quarantined: bool | None) -> tuple[str, list[Any]]:
-        clauses, args = [], []
-        if quarantined is not None:
-            clauses.append(f"q.episode_id IS {'NOT ' if quarantined else ''}NULL")
         if split is not None:
             _check_split(split)
-            clauses.append("split = ?")
-            args.append(split)
-        if shape is not None:
-            clauses.append("shape = ?")
-            args.append(shape)
-        if since is not None:
-            clauses.append("ingested >= ?")
-            args.append(_since_seconds(since))
-        return (" WHERE " + " AND ".join(clauses) if clauses else ""), args
+        return episode_table.where(split, shape, since, quarantined)
 
     def summary(self) -> dict[str, Any]:
         """Episode, frame and byte totals by split and shape (for status displays)."""
         with self._connect() as conn:
-            rows = conn.execute("SELECT split, shape, COUNT(*) AS n, SUM(frames) AS frames, "
-                                "SUM(size_bytes) AS bytes FROM episodes GROUP BY split, shape").fetchall()
-            quarantined = quarantines.count(conn)
-        out: dict[str, Any] = {"episodes": 0, "frames": 0, "bytes": 0, "by_split": {}, "by_shape": {},
-                               "quarantined": quarantined}
-        for r in rows:
-            out["episodes"] += r["n"]
-            out["frames"] += r["frames"]
-            out["bytes"] += r["bytes"]
-            out["by_split"][r["split"]] = out["by_split"].get(r["split"], 0) + r["n"]
-            out["by_shape"][r["shape"]] = out["by_shape"].get(r["shape"], 0) + r["n"]
-        return out
+            return episode_table.summary(conn)
 
     def meta(self, episode_id: str) -> EpisodeMeta:
         """The provenance recorded at ingest (no file access)."""
@@ -589,61 +481,16 @@ class Catalog:
         if not ids:
             raise CatalogError("an eval split needs at least one episode")
         with self._connect() as conn, transaction(conn):
-            marks = ",".join("?" * len(ids))
-            rows = conn.execute(f"SELECT episode_id, sha256, split FROM episodes WHERE episode_id IN ({marks})",
-                                ids).fetchall()
-            unknown = sorted(set(ids) - {r["episode_id"] for r in rows})
-            if unknown:
-                raise CatalogError(f"cannot pin unknown episodes: {', '.join(unknown[:5])}"
-                                   f"{' ...' if len(unknown) > 5 else ''}")
-            wrong = [r["episode_id"] for r in rows if r["split"] != "eval"]
-            if wrong:
-                raise CatalogError(f"episodes {', '.join(wrong[:5])} are in split 'train'; only episodes "
-                                   "added with split='eval' can be pinned")
-            held = quarantines.quarantined_among(conn, ids)
-            if held:
-                raise CatalogError(f"episodes {', '.join(held[:5])} are quarantined; restore them first, or pin "
-                                   "others")
-            sizes = {r[0] for r in conn.execute(f"SELECT DISTINCT json_extract(meta, '$.image_size') FROM episodes "
-                                                f"WHERE episode_id IN ({marks})", ids)}
-            said = (params or {}).get("image_size")
-            if said is not None and ({said} != sizes or isinstance(said, bool)):
-                raise CatalogError(f"params say image_size {said!r}, the episodes have "
-                                   f"{', '.join(map(str, sorted(sizes)))}px frames")
-            digest = content_hash([(r["episode_id"], r["sha256"]) for r in rows])
-            current = conn.execute("SELECT hash FROM eval_split WHERE id = 1").fetchone()
-            if current is not None:
-                if current["hash"] != digest:
-                    raise CatalogError(f"an eval split is already pinned (hash {current['hash'][:16]}); "
-                                       "it cannot be replaced")
-                return digest
-            conn.execute("INSERT INTO eval_split(id, hash, params, created) VALUES (1, ?, ?, ?)",
-                         (digest, json.dumps(params or {}, sort_keys=True), _now_iso()))
-            conn.executemany("INSERT INTO eval_split_members(episode_id) VALUES (?)", [(i,) for i in ids])
-        return digest
+            return eval_splits.pin(conn, ids, params)
 
     def eval_split(self) -> EvalSplit | None:
         """The pinned evaluation split, or None. ``CatalogError`` if its rows no longer match its hash."""
         with self._connect() as conn:
-            head = conn.execute("SELECT hash, params, created FROM eval_split WHERE id = 1").fetchone()
-            if head is None:
-                return None
-            rows = conn.execute("SELECT m.episode_id, e.sha256 FROM eval_split_members m "
-                                "JOIN episodes e USING (episode_id) ORDER BY m.episode_id").fetchall()
-        digest = content_hash([(r["episode_id"], r["sha256"]) for r in rows])
-        if digest != head["hash"]:
-            raise CatalogError(f"the pinned eval split's episodes hash to {digest[:16]}, "
-                               f"pinned as {head['hash'][:16]}")
-        return EvalSplit(ids=[r["episode_id"] for r in rows], hash=head["hash"],
-                         params=json.loads(head["params"]), created=head["created"])
+            return eval_splits.read(conn)
 
     def snapshot(self, split: str = "train") -> Snapshot:
         """The episodes of ``split`` now, with a content id. Training never sees eval episodes, nor
         quarantined ones."""
         _check_split(split)
         with self._connect() as conn:
-            rows = conn.execute(
-                f"SELECT episode_id, sha256 FROM episodes WHERE split = ? AND {quarantines.NOT_QUARANTINED}"
-                + (" AND episode_id NOT IN (SELECT episode_id FROM eval_split_members)" if split == "train" else "")
-                + " ORDER BY episode_id", (split,)).fetchall()
-        return Snapshot.of([(r["episode_id"], r["sha256"]) for r in rows])
+            return eval_splits.snapshot(conn, split)

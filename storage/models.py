@@ -16,7 +16,8 @@ rejected models outside the champion's rollback chain of N; their rows stay (``p
 ``models ls`` and the dashboard still show every model's metrics and history.
 
 The rows the registry answers with are ``storage.model_rows``'s dataclasses (re-exported here), the steps
-of a prune ``storage.pruning``'s functions.
+of a prune ``storage.pruning``'s functions; a checkpoint directory's files are written, read back and checked
+by ``storage.checkpoint_files`` (with the verdicts ``weights_problem`` remembers).
 """
 
 from __future__ import annotations
@@ -26,19 +27,17 @@ import json
 import os
 import shutil
 import sqlite3
-import threading
 import time
-import uuid
 from collections.abc import Iterator
 from contextlib import AbstractContextManager, contextmanager
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
 
-from storage import pruning
+from storage import checkpoint_files, pruning
 from storage.database import (DB_NAME, MODELS_DIR, Migration, connection, ensure_schema, refuse_lost_database,
                               storage_error, transaction)
-from storage.errors import CorruptCheckpointError, PrunedCheckpointError, RegistryError, UnknownModelError
+from storage.errors import CorruptCheckpointError, RegistryError, UnknownModelError
 from storage.files import fsync_dir, write_synced
 from storage.gate import DEFAULT_METRIC, DEFAULT_MIN_REL_IMPROVEMENT, GateDecision, judge
 from storage.model_rows import (CONFIG_FILE, META_FILE, METRICS_FILE, SNAPSHOT_FILE, WEIGHTS_FILE, ChampionEntry,
@@ -92,26 +91,6 @@ def _dump(obj: Any, what: str) -> bytes:
         return json.dumps(obj, sort_keys=True, indent=2).encode()
     except (TypeError, ValueError) as exc:
         raise RegistryError(f"{what} must be JSON-serialisable: {exc}") from exc
-
-
-#: ``weights_problem``'s verdicts on what a file holds, by the state of the file it read: ``(path, sha256,
-#: pruned_at, *file_state)`` -> (the problem or None, when). Process-wide, as what polls it (the dashboard's
-#: handler threads) opens a registry per thread. A verdict is kept ``WEIGHTS_RECHECK_S`` at most, so media
-#: damage that leaves the file's times alone is found too.
-_CHECKED: dict[tuple, tuple[str | None, float]] = {}
-_CHECKED_LOCK = threading.Lock()
-_CHECKED_MAX = 256
-WEIGHTS_RECHECK_S = 300.0
-
-
-def file_state(path: Path) -> tuple[int, int, int, int] | None:
-    """``(size, mtime_ns, ctime_ns, inode)`` of ``path``, None when it cannot be read: what changes when the
-    file, or who may read it, does."""
-    try:
-        st = path.stat()
-    except OSError:
-        return None
-    return st.st_size, st.st_mtime_ns, st.st_ctime_ns, st.st_ino
 
 
 class ModelRegistry:
@@ -230,71 +209,18 @@ class ModelRegistry:
         pruned, and ``CorruptCheckpointError`` when the file cannot be read or does not hash to the
         model's snapshot id.
         """
-        rec = self.get(version)
-        self._refuse_pruned(rec)
-        path = rec.path / SNAPSHOT_FILE
-        try:
-            doc = json.loads(path.read_bytes())
-            snap = Snapshot.of([(str(i), str(s)) for i, s in doc["episodes"]])
-        except FileNotFoundError:
-            return None
-        except OSError as exc:
-            raise CorruptCheckpointError(f"checkpoint {version}: cannot read {path}: {exc.strerror or exc}") from exc
-        except (ValueError, KeyError, TypeError) as exc:
-            raise CorruptCheckpointError(f"checkpoint {version}: {path} is not a list of episodes: "
-                                         f"{type(exc).__name__}: {exc}") from exc
-        if snap.snapshot_id != rec.snapshot_id or snap.ids != sorted(snap.ids):
-            raise CorruptCheckpointError(f"checkpoint {version}: the {len(snap.ids)} episodes in {path} are not "
-                                         f"its snapshot {rec.snapshot_id} (they hash to {snap.snapshot_id})")
-        return snap
+        return checkpoint_files.read_snapshot(self.get(version))
 
     def weights_problem(self, version: str) -> str | None:
         """Why the weights of ``version`` cannot be served (pruned, missing, unreadable, not their sha256),
         or None when they can. A verdict on the bytes is remembered per state of the weights file
-        (``file_state``) for ``WEIGHTS_RECHECK_S``, so what asks again and again (the dashboard,
-        ``stats``) re-reads the file only when it has changed or that long has passed; a read that
-        failed (which may pass) is not remembered."""
-        rec = self.get(version)
-        state = file_state(rec.weights_path)
-        key = None if state is None else (str(rec.weights_path), rec.weights_sha256, rec.pruned_at, *state)
-        now = time.monotonic()
-        with _CHECKED_LOCK:
-            if key in _CHECKED and now - _CHECKED[key][1] < WEIGHTS_RECHECK_S:
-                return _CHECKED[key][0]
-        try:
-            self._read_verified(rec)
-            problem, lasting = None, True
-        except CorruptCheckpointError as exc:
-            problem, lasting = str(exc), not isinstance(exc.__cause__, OSError)
-        if key is not None and lasting:
-            with _CHECKED_LOCK:
-                if len(_CHECKED) >= _CHECKED_MAX:
-                    _CHECKED.clear()
-                _CHECKED[key] = (problem, now)
-        return problem
-
-    @staticmethod
-    def _refuse_pruned(rec: ModelRecord) -> None:
-        if rec.pruned_at is not None:
-            raise PrunedCheckpointError(f"checkpoint {rec.version}: weights pruned at {rec.pruned_at} "
-                                        "(models prune); its metrics and history remain")
+        (``file_state``) for ``WEIGHTS_RECHECK_S`` (both ``storage.checkpoint_files``'s), so what asks again
+        and again (the dashboard, ``stats``) re-reads the file only when it has changed or that long has
+        passed; a read that failed (which may pass) is not remembered."""
+        return checkpoint_files.weights_problem(self.get(version))
 
     def _read_verified(self, rec: ModelRecord) -> bytes:
-        self._refuse_pruned(rec)
-        try:
-            data = rec.weights_path.read_bytes()
-        except FileNotFoundError:
-            raise CorruptCheckpointError(
-                f"checkpoint {rec.version}: weights file {rec.weights_path} is missing") from None
-        except OSError as exc:
-            raise CorruptCheckpointError(
-                f"checkpoint {rec.version}: cannot read {rec.weights_path}: {exc}") from exc
-        found = hashlib.sha256(data).hexdigest()
-        if found != rec.weights_sha256:
-            raise CorruptCheckpointError(
-                f"checkpoint {rec.version}: weights sha256 mismatch: expected {rec.weights_sha256}, "
-                f"found {found} ({len(data)} bytes, registered {rec.size_bytes}) in {rec.weights_path}")
-        return data
+        return checkpoint_files.read_weights(rec)
 
     # -- registering ---------------------------------------------------------------------------
 
@@ -320,14 +246,7 @@ class ModelRegistry:
                                 f"and {type(metrics).__name__}")
         files = {}
         if snapshot is not None:
-            pairs = list(zip(snapshot.ids, snapshot.sha256s))
-            found = Snapshot.of(pairs).snapshot_id
-            if (found != snapshot_id or snapshot.ids != sorted(snapshot.ids)
-                    or len(snapshot.sha256s) != len(snapshot.ids)):
-                raise RegistryError(f"the {len(snapshot.ids)} episodes given are not snapshot {snapshot_id!r} "
-                                    f"(sorted by id, one sha256 each); they hash to {found!r}")
-            files[SNAPSHOT_FILE] = json.dumps({"snapshot_id": snapshot_id, "episodes": pairs},
-                                              separators=(",", ":")).encode()
+            files[SNAPSHOT_FILE] = checkpoint_files.snapshot_json(snapshot, snapshot_id)
         weights = bytes(weights)
         sha = hashlib.sha256(weights).hexdigest()
         config_bytes, metrics_bytes = _dump(config, "config"), _dump(metrics, "metrics")
@@ -335,8 +254,8 @@ class ModelRegistry:
         # The big writes and their fsyncs happen before taking the write lock (leases wait on it).
         tmp = final = None
         try:
-            tmp = self._stage({WEIGHTS_FILE: weights, CONFIG_FILE: config_bytes, METRICS_FILE: metrics_bytes,
-                               **files})
+            tmp = checkpoint_files.stage(self.models_dir, {WEIGHTS_FILE: weights, CONFIG_FILE: config_bytes,
+                                                           METRICS_FILE: metrics_bytes, **files})
             with self._transaction() as conn:
                 if parent is not None:
                     self._get(conn, parent)
@@ -346,7 +265,7 @@ class ModelRegistry:
                         "parent": parent, "created": created, "weights_sha256": sha,
                         "size_bytes": len(weights), "weights_file": WEIGHTS_FILE}
                 write_synced(tmp / META_FILE, _dump(meta, "meta"))
-                final = self._publish(tmp, version)
+                final = checkpoint_files.publish(self.models_dir, tmp, version)
                 conn.execute(
                     "INSERT INTO models (version, seq, status, reason, parent, snapshot_id, "
                     "eval_split_hash, weights_sha256, size_bytes, created, updated, metrics, config) "
@@ -364,30 +283,6 @@ class ModelRegistry:
             if tmp is not None and tmp.exists():
                 shutil.rmtree(tmp, ignore_errors=True)
         return version
-
-    def _stage(self, files: dict[str, bytes]) -> Path:
-        """Write ``files`` into a fresh temporary directory under ``models/``, each fsynced."""
-        tmp = self.models_dir / f".tmp-{uuid.uuid4().hex}"
-        tmp.mkdir()
-        try:
-            for name, data in files.items():
-                write_synced(tmp / name, data)
-        except OSError:
-            shutil.rmtree(tmp, ignore_errors=True)
-            raise
-        return tmp
-
-    def _publish(self, tmp: Path, version: str) -> Path:
-        """Under the write lock: rename the staged ``tmp`` to ``models/<version>`` durably."""
-        final = self.models_dir / version
-        if final.exists():
-            # No row names this version (we hold the write lock and seq is new): a crash left it
-            # between rename and commit. Nothing references it, so it can go.
-            shutil.rmtree(final)
-        fsync_dir(tmp)
-        os.rename(tmp, final)
-        fsync_dir(self.models_dir)
-        return final
 
     # -- the gate and the alias ----------------------------------------------------------------
 
@@ -467,7 +362,7 @@ class ModelRegistry:
             current = self._champion(conn)
             if current == version:
                 return GateDecision(False, f"{version} is already the champion", version, current)
-            self._refuse_pruned(self._get(conn, version))  # a prune may have landed since the sha256 check
+            checkpoint_files.refuse_pruned(self._get(conn, version))  # a prune may have landed since the sha256 check
             champ = self._get(conn, current) if current is not None else None
             expected = eval_split_hash if eval_split_hash is not None else (
                 champ.eval_split_hash if champ else None)
