@@ -151,7 +151,7 @@ def register_bench(bench: argparse._SubParsersAction) -> None:
                    help="instead of that cap, the active planner splits each round over the shapes by how much "
                         "the champion's error on a shape's recent episodes fell once it trained on them, beyond "
                         "the shape whose error fell least (what data of that shape buys; "
-                        f"{d.active.progress_floor:.0%} of each round split equally), then picks each shape's "
+                        f"{d.active.progress_floor:.0%}% of each round split equally), then picks each shape's "
                         "states by the signal; a shape without candidates gets uniform starts of that shape "
                         "(an experiment)")
     p.add_argument("--progress-floor", type=common.share, default=d.active.progress_floor, metavar="F",
