@@ -23,7 +23,7 @@ import numpy as np
 from orchestrator.planner import Scores
 from storage.catalog import Catalog
 from storage.checkpoint_files import file_state
-from storage.errors import RegistryError
+from storage.errors import RegistryError, StorageUnavailableError
 from storage.models import ModelRegistry
 from storage.records import Episode
 
@@ -55,11 +55,12 @@ class ChampionScorer:
         self.device = device
         self.observe = observe
         self.with_error = with_error
+        """Scores also carry the ensemble mean's error per step and whether the champion trained on the episode."""
         self.error_horizon = error_horizon
         """The error's horizon (``uncertainty.score.prediction_error``)."""
-        """Scores also carry the ensemble mean's error per step and whether the champion trained on the episode."""
-        self._trained_on: tuple[str | None, frozenset[str] | None] = (None, None)
-        # (version, the episodes it was trained on or None when not recorded): one tuple, read without the lock
+        self._trained_on: tuple[str | None, frozenset[str] | None, float] = (None, None, 0.0)
+        # (version, the episodes it was trained on or None when not known, when to read them again): one
+        # tuple, read and replaced without the lock
         self._lock = threading.Lock()
         self._local = threading.local()
         self.version: str | None = None
@@ -98,19 +99,31 @@ class ChampionScorer:
                 log.log(level, "could not load champion %s, keeping %s: %s", champion, self.version, exc)
                 return self.version
             self.version, self.ensemble, self.problem, self._failed = champion, ensemble, None, None
-            if self.with_error:
-                self._trained_on = (champion, self._training_episodes(registry, champion))
             log.info("scorer now uses champion %s", champion)
             return champion
 
-    @staticmethod
-    def _training_episodes(registry: ModelRegistry, version: str) -> frozenset[str] | None:
+    def _training_episodes(self, version: str) -> frozenset[str] | None:
+        """The episodes ``version`` was trained on (None: not recorded, or not readable), read once per champion;
+        a read that failed for a reason that passes is tried again after ``RETRY_S``."""
+        known, ids, retry_at = self._trained_on
+        if known == version and (ids is not None or time.monotonic() < retry_at):
+            return ids
+        retry_at = float("inf")
         try:
-            snap = registry.snapshot(version)
+            snap = self._registry().snapshot(version)
         except RegistryError as exc:  # the weights loaded; only which episodes it saw is unknown
-            log.warning("champion %s: its training episodes cannot be read: %s", version, exc)
-            return None
-        return None if snap is None else frozenset(snap.ids)
+            if isinstance(exc, StorageUnavailableError) or isinstance(exc.__cause__, OSError):
+                retry_at = time.monotonic() + self.RETRY_S
+            log.warning("champion %s: its training episodes cannot be read, scores say nothing of them%s: %s",
+                        version, " for now" if retry_at < float("inf") else "", exc)
+            snap = None
+        else:
+            if snap is None:
+                log.info("champion %s has no record of its training episodes (registered before models kept "
+                         "them): scores say nothing of them", version)
+        ids = None if snap is None else frozenset(snap.ids)
+        self._trained_on = (version, ids, retry_at)
+        return ids
 
     def __call__(self, episode: Episode) -> Scores | None:
         self.reload()
@@ -133,8 +146,7 @@ class ChampionScorer:
         if not self.with_error:
             return Scores(version, per_step)
         from uncertainty.score import prediction_error  # torch is loaded: an ensemble is
-        known, ids = self._trained_on
-        trained_on = ids if known == version else None
+        trained_on = self._training_episodes(version)
         error = prediction_error(ensemble, episode.frames, episode.actions, self.error_horizon)
         return Scores(version, per_step, error,
                       None if trained_on is None else episode.meta.episode_id in trained_on)

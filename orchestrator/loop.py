@@ -69,6 +69,9 @@ class RoundPlanner:
     def seed(self, n: int, why: str = "seed") -> list[NewRequest]:
         return self.inner.seed(min(n, self._room()), why)
 
+    def observe(self, episodes: Sequence[Episode]) -> None:
+        self.inner.observe(episodes)
+
     def plan(self, new_episodes: Sequence[Episode]) -> list[NewRequest]:
         with self._lock:
             self._buffer.extend(new_episodes)

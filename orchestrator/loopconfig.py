@@ -147,6 +147,10 @@ class LoopBenchConfig:
         if self.signal not in SIGNALS or self.signal_horizon < 1:
             raise ValueError(f"signal must be one of {SIGNALS} and signal_horizon >= 1, found "
                              f"{self.signal!r} and {self.signal_horizon}")
+        if self.shapes_by_progress and self.active.progress_horizon > self.steps - self.train.context:
+            raise ValueError(f"progress_horizon must be at most {self.steps - self.train.context} (the steps of an "
+                             f"episode less the model's {self.train.context} context frames: no step has a longer "
+                             f"error), found {self.active.progress_horizon}")
         if self.palette not in PALETTES:
             raise ValueError(f"palette must be one of {PALETTES}, found {self.palette!r}")
         self.shape_weights = tuple(float(w) for w in self.shape_weights)

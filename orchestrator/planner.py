@@ -55,7 +55,8 @@ _COL = {name: i for i, name in enumerate(STATE_FIELDS)}
 
 
 class Planner(Protocol):
-    """Turns new episodes into requests (``plan``) and fills an empty queue (``seed``)."""
+    """Turns new episodes into requests (``plan``) and fills an empty queue (``seed``); ``observe`` shows it
+    episodes before the champion trains on them, for a caller that retrains before it plans (``bench loop``)."""
 
     name: str
 
@@ -75,8 +76,9 @@ class Scores:
     per_step: np.ndarray
     """(T,) disagreement per step; NaN where a step has no context or no successor."""
     error: np.ndarray | None = None
-    """(T,) squared error of the ensemble mean's next frame per step (``uncertainty.score.prediction_error``),
-    when the scorer was asked for it (``ChampionScorer(with_error=True)``)."""
+    """(T,) squared error of the ensemble mean's next frame(s) per step, averaged over the scorer's horizon
+    (``uncertainty.score.prediction_error``), when the scorer was asked for it
+    (``ChampionScorer(with_error=True)``)."""
     trained: bool | None = None
     """Whether that ensemble was trained on the episode (None: not known)."""
 
@@ -308,7 +310,8 @@ class ActivePlanner:
         version = scored[-1][1].model_version
         for ep, s in scored:
             self.progress.record(ep, s)
-        for ep in self.progress.waiting(version):  # fresh under an earlier champion: did this one train on them?
+        knows = any(s.trained is not None for _, s in scored)  # whether this champion can say what it trained on
+        for ep in self.progress.waiting(version) if knows else ():  # fresh under an earlier one: seen now?
             again = self.scorer(ep)
             if again is not None and again.model_version == version:
                 self.progress.record(ep, again)

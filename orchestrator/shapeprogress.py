@@ -7,7 +7,7 @@ starved got worse. What tells the two apart is whether training on a shape's epi
 error on them.
 
 For each episode the planner scores, ``ShapeProgress`` keeps two numbers: the mean error (ensemble mean,
-horizon 1) of the latest champion that had *not* trained on it ("fresh"), and that of the first
+at the scorer's horizon, 1 by default) of the latest champion that had *not* trained on it ("fresh"), and that of the first
 champion after it that *had* ("seen"). A shape's drop is ``(fresh - seen) / fresh`` averaged over its
 last ``memory`` episodes that have both. Every shape drops somewhat, because the later champion saw
 more data of every kind (in ``bench loop`` 7-20 % a round); what a shape's own data buys is its drop
@@ -34,6 +34,7 @@ if TYPE_CHECKING:  # (orchestrator.planner imports this module)
 
 @dataclass
 class _Record:
+    episode_id: str
     shape: str
     fresh: float
     """Mean error of the latest champion not trained on the episode."""
@@ -52,7 +53,10 @@ class ShapeProgress:
         self._done: dict[str, deque[_Record]] = {}
         """Per shape, the last ``memory`` records with both errors."""
         self._waiting: dict[str, dict[str, tuple[Episode, _Record]]] = {}
-        """Per shape, the last ``memory`` episodes with a fresh error only, by id (oldest first)."""
+        """Per shape, the last ``memory`` episodes with a fresh error only, by id (oldest first); they are
+        kept whole (frames too) to be scored again, at most ``memory`` per shape."""
+        self._turn = 0
+        """Which shape the ties of the next ``quotas`` start from (they rotate from call to call)."""
 
     def record(self, episode: Episode, scores: Scores) -> None:
         """Take one scoring of ``episode`` (one that says whether its champion trained on it, with errors)."""
@@ -63,9 +67,11 @@ class ShapeProgress:
             return
         error, shape, episode_id = float(finite.mean()), episode.meta.shape, episode.meta.episode_id
         waiting = self._waiting.setdefault(shape, {})
+        if any(r.episode_id == episode_id for r in self._done.get(shape, ())):
+            return  # both errors known (a rollback to a champion that had not seen it changes nothing)
         if not scores.trained:  # the latest fresh error wins (the one nearest the training that follows)
             waiting.pop(episode_id, None)
-            waiting[episode_id] = (episode, _Record(shape, error, scores.model_version))
+            waiting[episode_id] = (episode, _Record(episode_id, shape, error, scores.model_version))
             while len(waiting) > self.memory:
                 waiting.pop(next(iter(waiting)))
         elif episode_id in waiting:  # the first champion trained on it
@@ -88,12 +94,13 @@ class ShapeProgress:
 
     def counts(self, shapes: Sequence[str]) -> dict[str, int]:
         """Per shape, how many episodes its drop is the mean over."""
-        return {shape: len(self._done.get(shape, ())) for shape in shapes}
+        return {shape: sum(r.fresh > 0 for r in self._done.get(shape, ())) for shape in shapes}
 
     def quotas(self, k: int, shapes: Sequence[str], floor: float) -> dict[str, int]:
         """``k`` requests split over ``shapes``: a share ``floor`` equally, the rest in proportion to each
         shape's drop beyond the smallest (an unknown one counts as the largest known; all equal while
-        fewer than two are known), rounded by largest remainder (ties in ``shapes`` order)."""
+        fewer than two are known), rounded by largest remainder; equal remainders go first to the shape
+        whose turn it is, the turn moving on by one shape each call (so no shape always gets the extra)."""
         if not shapes or k < 0 or not 0.0 <= floor <= 1.0:
             raise ValueError(f"need shapes, k >= 0 and floor in [0, 1], found {list(shapes)}, {k}, {floor}")
         drops = self.drops(shapes)
@@ -106,7 +113,8 @@ class ShapeProgress:
         share = floor / len(shapes) + (1.0 - floor) * value / value.sum()
         exact = k * share
         counts = np.floor(exact).astype(int)
-        order = sorted(range(len(shapes)), key=lambda i: (-(exact[i] - counts[i]), i))
+        turn, self._turn = self._turn, self._turn + 1
+        order = sorted(range(len(shapes)), key=lambda i: (-(exact[i] - counts[i]), (i - turn) % len(shapes)))
         for i in order[:k - int(counts.sum())]:
             counts[i] += 1
         return {shape: int(c) for shape, c in zip(shapes, counts)}

@@ -2,7 +2,7 @@
 
 ``UniformPlanner`` is the control arm of every comparison and the seed of the queue before any model
 exists; ``PolicyMix`` is the policy mix both arms share (only where the episodes start differs between
-them). ``orchestrator.planner`` re-exports these names.
+them). They were part of ``orchestrator.planner``.
 """
 
 from __future__ import annotations

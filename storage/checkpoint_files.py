@@ -136,7 +136,7 @@ def read_snapshot(rec: ModelRecord) -> Snapshot | None:
         return None
     except OSError as exc:
         raise CorruptCheckpointError(f"checkpoint {rec.version}: cannot read {path}: {exc.strerror or exc}") from exc
-    except (ValueError, KeyError, TypeError) as exc:
+    except (ValueError, KeyError, TypeError, RecursionError) as exc:  # (RecursionError: nested past the parser)
         raise CorruptCheckpointError(f"checkpoint {rec.version}: {path} is not a list of episodes: "
                                      f"{type(exc).__name__}: {exc}") from exc
     if snap.snapshot_id != rec.snapshot_id or snap.ids != sorted(snap.ids):

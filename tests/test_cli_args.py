@@ -124,7 +124,8 @@ def _connect() -> list[str]:
     (["bench", "loop", "--shape-weights", "T=1e308,box=1e308"], "and a finite sum"),
     (["bench", "loop", "--shape-weights", "T=1,T=0"], "T is given twice in 'T=1,T=0'"),
     (["bench", "loop", "--max-shape-share", "0"], "expected a share in (0, 1]"),
-    (["bench", "loop", "--progress-floor", "1.5"], "expected a share in (0, 1]"),
+    (["bench", "loop", "--progress-floor", "1.5"], "expected a number in [0, 1]"),
+    (["bench", "loop", "--shapes-by-progress", "--steps", "6", "--progress-horizon", "5"], "--progress-horizon"),
     (["bench", "loop", "--progress-horizon", "0"], "--progress-horizon"),
     (["bench", "loop", "--palette", "pastel"], "argument --palette: invalid choice"),
     # frames a model cannot train on

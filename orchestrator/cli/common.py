@@ -149,6 +149,14 @@ def fraction(text: str) -> float:
     return value
 
 
+def unit(text: str) -> float:
+    """A number in [0, 1] (a share that may be none)."""
+    value = finite_float(text)
+    if not 0 <= value <= 1:
+        raise argparse.ArgumentTypeError(f"expected a number in [0, 1] such as 0.25, found {text!r}")
+    return value
+
+
 def share(text: str) -> float:
     """A share in (0, 1] (of a round, of a budget)."""
     value = finite_float(text)
@@ -177,7 +185,7 @@ FLAGS = {"round_episodes": "--round", "min_rel_improvement": "--min-improvement"
          "variance_head": "--variance-head", "lease_s": "--lease-s", "reap_interval_s": "--reap-interval-s",
          "seed_requests": "--seed-requests", "min_queued": "--min-queued", "max_connections": "--max-connections",
          "request_timeout_s": "--request-timeout", "active_policy": "--active-policy",
-         "random_physics": "--random-physics"}
+         "random_physics": "--random-physics", "progress_horizon": "--progress-horizon"}
 
 
 #: ``TrainConfig`` fields that ``train`` and ``retrain`` set under a flag of the same name.

@@ -135,7 +135,8 @@ def register_bench(bench: argparse._SubParsersAction) -> None:
                         "arm keeps an uncertain state's physics (default: every episode at the defaults)")
     p.add_argument("--shape-weights", type=shape_weights, default=d.shape_weights, metavar="S=W,...",
                    help="the uniform arm, the seed rounds and the uniform requests that fill an active round "
-                        "the planner left short draw shapes with these relative weights, e.g. "
+                        "the planner left short (but with --shapes-by-progress, whose fill keeps each "
+                        "shape's quota) draw shapes with these relative weights, e.g. "
                         f"T=7,box=1,L=1,disk=1 (shapes {', '.join(SHAPES)}; one left out weighs 0), while the "
                         "eval split keeps every shape equally: a usual task mix that differs from what the "
                         "model is judged on (default: every shape equally likely)")
@@ -150,16 +151,17 @@ def register_bench(bench: argparse._SubParsersAction) -> None:
     p.add_argument("--shapes-by-progress", action="store_true", default=d.shapes_by_progress,
                    help="instead of that cap, the active planner splits each round over the shapes by how much "
                         "the champion's error on a shape's recent episodes fell once it trained on them, beyond "
-                        "the shape whose error fell least (what data of that shape buys; "
-                        f"{d.active.progress_floor:.0%}% of each round split equally), then picks each shape's "
-                        "states by the signal; a shape without candidates gets uniform starts of that shape "
-                        "(an experiment)")
-    p.add_argument("--progress-floor", type=common.share, default=d.active.progress_floor, metavar="F",
+                        "the shape whose error fell least (what data of that shape buys; a share "
+                        "--progress-floor of each round split equally), then picks each shape's states by the "
+                        "signal; a shape without candidates gets uniform starts of that shape (an experiment)")
+    p.add_argument("--progress-floor", type=common.unit, default=d.active.progress_floor, metavar="F",
                    help="with --shapes-by-progress, the share of each round split equally over the shapes "
-                        f"(default {d.active.progress_floor}; 1 = every shape equally, whatever the data buys)")
+                        f"(default {d.active.progress_floor}; 1 = every shape equally, whatever the data buys; "
+                        "0 = by progress only)")
     p.add_argument("--progress-horizon", type=common.positive_int, default=d.active.progress_horizon, metavar="H",
                    help="with --shapes-by-progress, the horizon of the error whose fall is measured (default "
-                        f"{d.active.progress_horizon}, the gate's; a longer one weighs the dynamics more)")
+                        f"{d.active.progress_horizon}, the gate's; a longer one weighs the dynamics more; at most "
+                        "--steps minus the model's context frames)")
     p.add_argument("--out", type=Path, default=None, metavar="DIR",
                    help="output directory (default ./activecollect-bench/loop-<timestamp>)")
     p.set_defaults(func=_bench_loop)

@@ -89,8 +89,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                                                       "of one such as m000003")
     p.add_argument("--episodes", action="store_true",
                    help="list the episodes it was trained on instead, one id per line (with --json: the model "
-                        "and its episodes' ids and sha256s); exit 1 when they are not recorded (pruned, or "
-                        "trained before models recorded them)")
+                        "and its episodes' ids and sha256s): those of the job that trained it (a model warm-"
+                        "started from another also saw what that one saw); exit 1 when they are not recorded "
+                        "(pruned, or trained before models recorded them)")
     p.set_defaults(func=_models_show)
     p = msub.add_parser("promote", help="make VERSION the champion (override; still checks sha256 and split)")
     p.add_argument("version", metavar="VERSION", help="a model version, or a unique prefix of one such as m000003")

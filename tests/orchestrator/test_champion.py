@@ -7,6 +7,7 @@ import logging
 import numpy as np
 
 from orchestrator.champion import ChampionScorer
+from storage.errors import RegistryUnavailableError
 from storage.models import ModelRegistry
 from storage.rows import Snapshot
 from tests.uncertainty.synth import make_episode
@@ -51,7 +52,7 @@ def test_a_damaged_champion_is_reported_once_and_loaded_once_restored(tmp_path, 
     assert scorer(episode).model_version == second and scorer.problem is None
 
 
-def test_with_error_the_scores_carry_the_error_and_whether_the_champion_trained_on_the_episode(tmp_path):
+def test_with_error_the_scores_carry_the_error_and_whether_the_champion_trained_on_the_episode(tmp_path, monkeypatch):
     registry = ModelRegistry(tmp_path)
     seen, unseen = make_episode(0, size=16), make_episode(1, size=16)
     snap = Snapshot.of([(seen.meta.episode_id, "0" * 64)])
@@ -68,6 +69,29 @@ def test_with_error_the_scores_carry_the_error_and_whether_the_champion_trained_
     np.testing.assert_array_equal(np.isnan(scores.error), np.isnan(scores.per_step))
     longer = ChampionScorer(tmp_path, with_error=True, error_horizon=2)(seen).error
     np.testing.assert_allclose(longer, prediction_error(scorer.ensemble, seen.frames, seen.actions, horizon=2))
+    path = registry.get(version).path / "snapshot.json"
+    good = path.read_bytes()
+    path.write_bytes(good[:-5])  # damaged: the weights still serve; what it trained on is unknown
+    damaged = ChampionScorer(tmp_path, with_error=True)
+    assert damaged(seen).trained is None and damaged(seen).error is not None
+    path.write_bytes(good)
+    assert damaged(seen).trained is None  # a lasting failure is not read again for this champion
+    real, reads = ModelRegistry.snapshot, []
+
+    def busy_once(self, v):  # the database busy at the first read, as a passing failure is
+        reads.append(v)
+        if len(reads) == 1:
+            raise RegistryUnavailableError("database is locked")
+        return real(self, v)
+
+    with monkeypatch.context() as m:
+        m.setattr(ModelRegistry, "snapshot", busy_once)
+        waits = ChampionScorer(tmp_path, with_error=True)
+        assert waits(seen).trained is None and waits(seen).trained is None and len(reads) == 1  # not before RETRY_S
+        reads.clear()
+        retries = ChampionScorer(tmp_path, with_error=True)
+        retries.RETRY_S = 0.0
+        assert retries(seen).trained is None and retries(seen).trained is True and len(reads) == 2  # read again
     older = _promoted(registry, 1, 0.01)  # registered without its episodes: not known
     assert scorer(seen).model_version == older and scorer(seen).trained is None
     assert scorer(seen).error is not None

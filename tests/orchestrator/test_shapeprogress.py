@@ -55,8 +55,13 @@ def test_quotas_follow_the_drops_beyond_the_smallest_with_a_floor_and_try_unknow
         progress.record(ep, _scores(ep, 1.0, True, "m2"))  # drops T 0, L 1/2, box 2/3; disk unknown
     quotas = progress.quotas(16, SHAPES, 0.25)
     # T (the smallest drop) gets only the floor; disk (unknown) counts as box (the largest); 16 * 0.335 = 5.36
-    # for each of them, and the last request goes to box by the shapes' order
-    assert quotas == {"T": 1, "box": 6, "L": 4, "disk": 5}
+    # for each of them, and the last request goes to one of the two, as the turn moves on: each twice in 4 calls
+    calls = [quotas] + [progress.quotas(16, SHAPES, 0.25) for _ in range(3)]
+    assert all(q["T"] == 1 and q["L"] == 4 and {q["box"], q["disk"]} == {5, 6} for q in calls)
+    assert sum(q["box"] == 6 for q in calls) == sum(q["disk"] == 6 for q in calls) == 2
+    turns = [progress.quotas(2, SHAPES, 1.0) for _ in range(4)]  # equal shares, 2 requests: every shape in turn
+    assert all(sum(q.values()) == 2 for q in turns) and sum(q[s] for q in turns for s in SHAPES) == 8
+    assert all(sum(q[s] for q in turns) == 2 for s in SHAPES)
     assert progress.quotas(16, SHAPES, 1.0) == {s: 4 for s in SHAPES}
     assert sum(progress.quotas(3, SHAPES, 0.0).values()) == 3
     assert progress.quotas(0, SHAPES, 0.25) == {s: 0 for s in SHAPES}
@@ -117,3 +122,36 @@ def test_the_planner_scores_again_what_a_new_champion_trained_on():
     planner.plan([make_episode(rng, shape="T")])  # the disks are scored again by m2
     assert planner.progress.drops(("disk",))["disk"] == pytest.approx(2 / 3)
     assert planner.progress.counts(SHAPES)["disk"] == 2
+
+
+def test_a_champion_that_cannot_say_what_it_trained_on_is_not_asked_again_and_again():
+    """Scores with ``trained=None`` (a champion registered before models kept their episodes) record nothing:
+    the waiting episodes are not scored again on every round."""
+    rng = np.random.default_rng(4)
+    champion, calls = {"version": "m1", "knows": True}, []
+
+    def scorer(ep):
+        calls.append(ep.meta.episode_id)
+        return Scores(champion["version"], np.ones(len(ep)), np.full(len(ep), 2.0),
+                      False if champion["knows"] else None)
+
+    planner = ActivePlanner(acfg(shapes_by_progress=True, budget_per_round=4, max_queue_depth=64), scorer, rng)
+    planner.plan([make_episode(rng, shape="disk") for _ in range(3)])  # fresh under m1
+    champion["version"], champion["knows"] = "m2", False
+    for _ in range(3):
+        calls.clear()
+        planner.plan([make_episode(rng, shape="T")])
+        assert len(calls) == 1  # the new episode only
+
+
+def test_an_episode_counts_once_and_the_config_is_checked():
+    rng, progress = np.random.default_rng(5), ShapeProgress()
+    ep = make_episode(rng, shape="box")
+    progress.record(ep, _scores(ep, 2.0, False, "m1"))
+    progress.record(ep, _scores(ep, 1.0, True, "m2"))
+    progress.record(ep, _scores(ep, 3.0, False, "m1"))  # a rollback to a champion that had not seen it
+    progress.record(ep, _scores(ep, 1.0, True, "m2"))
+    assert progress.counts(("box",)) == {"box": 1} and progress.waiting("m3") == []
+    for bad in ({"progress_floor": 1.5}, {"progress_memory": 0}, {"progress_horizon": 0}):
+        with pytest.raises(ValueError, match="progress_floor in \\[0, 1\\], progress_memory >= 1"):
+            acfg(**bad)

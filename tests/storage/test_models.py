@@ -49,7 +49,8 @@ def test_a_model_keeps_the_episodes_it_was_trained_on(reg: ModelRegistry) -> Non
     path = reg.get(version).path / "snapshot.json"
     doc = json.loads(path.read_text())
     for damage in (b"{", json.dumps({**doc, "episodes": doc["episodes"][:1]}).encode(),
-                   json.dumps({**doc, "episodes": doc["episodes"][::-1]}).encode(), b'{"episodes": [["a"]]}'):
+                   json.dumps({**doc, "episodes": doc["episodes"][::-1]}).encode(), b'{"episodes": [["a"]]}',
+                   b"[" * 100_000):  # (nested past the JSON parser's recursion limit)
         path.write_bytes(damage)
         with pytest.raises(CorruptCheckpointError, match=f"checkpoint {version}: .*snapshot.json"):
             reg.snapshot(version)
