@@ -547,7 +547,8 @@ class RequestQueue:
 
     def prioritize(self, request_id: str, priority: float, now: float | None = None) -> Request:
         """Set a request's priority (any status but done)."""
-        return self._operator("prioritize", request_id, None, "priority = ?", (finite_number("priority", priority),), now)
+        return self._operator("prioritize", request_id, None, "priority = ?", (finite_number("priority", priority),),
+                              now)
 
 
 _ENCODER = json.JSONEncoder(allow_nan=False, separators=(",", ":"))
