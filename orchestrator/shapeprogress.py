@@ -84,17 +84,21 @@ class ShapeProgress:
         they get their seen error if it was trained on them."""
         return [ep for shape in self._waiting.values() for ep, rec in shape.values() if rec.fresh_version != version]
 
+    def _measured(self, shape: str) -> list[_Record]:
+        """The shape's recent records with both errors and a fresh one to divide by."""
+        return [r for r in self._done.get(shape, ()) if r.fresh > 0]
+
     def drops(self, shapes: Sequence[str]) -> dict[str, float]:
         """Per shape, the mean of ``(fresh - seen) / fresh`` over its recent episodes; NaN for a shape with none."""
         out = {}
         for shape in shapes:
-            done = [r for r in self._done.get(shape, ()) if r.fresh > 0]
+            done = self._measured(shape)
             out[shape] = float(np.mean([(r.fresh - r.seen) / r.fresh for r in done])) if done else math.nan
         return out
 
     def counts(self, shapes: Sequence[str]) -> dict[str, int]:
         """Per shape, how many episodes its drop is the mean over."""
-        return {shape: sum(r.fresh > 0 for r in self._done.get(shape, ())) for shape in shapes}
+        return {shape: len(self._measured(shape)) for shape in shapes}
 
     def quotas(self, k: int, shapes: Sequence[str], floor: float) -> dict[str, int]:
         """``k`` requests split over ``shapes``: a share ``floor`` equally, the rest in proportion to each

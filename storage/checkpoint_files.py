@@ -54,11 +54,9 @@ def snapshot_json(snapshot: Snapshot, snapshot_id: str) -> bytes:
     """What ``snapshot.json`` holds for the episodes ``snapshot``; ``RegistryError`` unless they are
     ``snapshot_id`` (sorted by id, one sha256 each)."""
     pairs = list(zip(snapshot.ids, snapshot.sha256s))
-    found = Snapshot.of(pairs).snapshot_id
-    if (found != snapshot_id or snapshot.ids != sorted(snapshot.ids)
-            or len(snapshot.sha256s) != len(snapshot.ids)):
+    if not snapshot.is_of(snapshot_id):
         raise RegistryError(f"the {len(snapshot.ids)} episodes given are not snapshot {snapshot_id!r} "
-                            f"(sorted by id, one sha256 each); they hash to {found!r}")
+                            f"(sorted by id, one sha256 each); they hash to {Snapshot.of(pairs).snapshot_id!r}")
     return json.dumps({"snapshot_id": snapshot_id, "episodes": pairs}, separators=(",", ":")).encode()
 
 
@@ -139,7 +137,7 @@ def read_snapshot(rec: ModelRecord) -> Snapshot | None:
     except (ValueError, KeyError, TypeError, RecursionError) as exc:  # (RecursionError: nested past the parser)
         raise CorruptCheckpointError(f"checkpoint {rec.version}: {path} is not a list of episodes: "
                                      f"{type(exc).__name__}: {exc}") from exc
-    if snap.snapshot_id != rec.snapshot_id or snap.ids != sorted(snap.ids):
+    if not snap.is_of(rec.snapshot_id):
         raise CorruptCheckpointError(f"checkpoint {rec.version}: the {len(snap.ids)} episodes in {path} are not "
                                      f"its snapshot {rec.snapshot_id} (they hash to {snap.snapshot_id})")
     return snap

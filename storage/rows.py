@@ -87,6 +87,11 @@ class Snapshot:
         """The snapshot of (episode_id, sha256) ``pairs``, sorted by id."""
         return cls(ids=[p[0] for p in pairs], snapshot_id=content_hash(pairs)[:16], sha256s=[p[1] for p in pairs])
 
+    def is_of(self, snapshot_id: str) -> bool:
+        """Whether these are the episodes of ``snapshot_id``: sorted by id, one sha256 each, hashing to it."""
+        return (len(self.sha256s) == len(self.ids) and self.ids == sorted(self.ids)
+                and Snapshot.of(list(zip(self.ids, self.sha256s))).snapshot_id == snapshot_id)
+
     def without(self, drop: Sequence[str]) -> Snapshot:
         """This snapshot less the episodes ``drop`` (those a job found damaged and quarantined)."""
         return Snapshot.of([(i, s) for i, s in zip(self.ids, self.sha256s) if i not in set(drop)])
