@@ -41,7 +41,7 @@ import numpy as np
 from matplotlib.figure import Figure
 
 from orchestrator.champion import ChampionScorer
-from orchestrator.loopconfig import LoopBenchConfig
+from orchestrator.loopconfig import HEAD_SIGNALS, LoopBenchConfig
 from orchestrator.planner import ActivePlanner, Planner, Scores
 from orchestrator.uniform import UniformPlanner
 from orchestrator.retrain import run_retrain
@@ -50,7 +50,8 @@ from storage.queue import RequestQueue
 from storage.requests import Request
 from storage.records import Episode
 from uncertainty.config import TrainConfig
-from uncertainty.score import change_disagreement, colour_disagreement, object_moving
+from uncertainty.score import (change_disagreement, colour_disagreement, object_moving, prediction_error,
+                               predicted_variance)
 from workers.env import MARKER_RGB, OBJECT_RGB, SHAPE_PALETTE, scene_colours
 
 #: Object colour per shape (``workers.env.SHAPE_PALETTE``), or None: every object in ``OBJECT_RGB``.
@@ -98,6 +99,10 @@ class SignalScorer:
             if self.signal == "random":  # the same steps, at random (seeded by the episode's id: alike in every run)
                 rng = np.random.default_rng(zlib.crc32(episode.meta.episode_id.encode()))
                 per_step = np.where(np.isnan(per_step), np.nan, rng.random(len(per_step)))
+        elif self.signal == "error":
+            per_step = prediction_error(ensemble, episode.frames, episode.actions, horizon=self.horizon)
+        elif self.signal in HEAD_SIGNALS:
+            per_step = predicted_variance(ensemble, episode.frames, episode.actions, total=self.signal == "total")
         elif self.signal == "object_pixels":
             per_step = colour_disagreement(ensemble, episode.frames, episode.actions, self.colours,
                                            scene_colours(episode.frames.shape[1]), horizon=self.horizon)

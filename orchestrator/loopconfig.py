@@ -76,8 +76,13 @@ class RunConfig:
 #: ``object_pixels`` (variance over the pixels of the object's colours only: the pusher's own motion,
 #: which the policy decides and a start state cannot buy, left out), ``random`` (a random number per
 #: step, the same in every run: the planner's threshold, diversity and shape cap without any model
-#: score, the ablation that tells what the score itself adds).
-SIGNALS = ("disagreement", "change", "object", "object_pixels", "random")
+#: score, the ablation that tells what the score itself adds), ``error`` (the champion's actual error on the
+#: recorded frames: where the model was wrong, known once an episode is in; the bound on what a perfectly
+#: calibrated uncertainty could rank), ``predicted`` (the error the members predict for themselves, with
+#: ``--variance-head``), ``total`` (``predicted`` plus the disagreement: the total predictive variance).
+SIGNALS = ("disagreement", "change", "object", "object_pixels", "random", "error", "predicted", "total")
+#: The signals taken from the members' variance head (horizon 1 only; training needs ``variance_head``).
+HEAD_SIGNALS = ("predicted", "total")
 #: The objects' colours in ``bench loop``: all alike (the service's world) or one per shape
 #: (``workers.env.SHAPE_PALETTE``).
 PALETTES = ("uniform", "per-shape")
@@ -147,6 +152,10 @@ class LoopBenchConfig:
         if self.signal not in SIGNALS or self.signal_horizon < 1:
             raise ValueError(f"signal must be one of {SIGNALS} and signal_horizon >= 1, found "
                              f"{self.signal!r} and {self.signal_horizon}")
+        if self.signal in HEAD_SIGNALS and not (self.train.variance_head and self.signal_horizon == 1):
+            raise ValueError(f"signal {self.signal} ranks by a variance head: it needs variance_head and "
+                             f"signal_horizon 1, found variance_head={self.train.variance_head}, "
+                             f"signal_horizon={self.signal_horizon}")
         if self.shapes_by_progress and self.active.progress_horizon > self.steps - self.train.context:
             raise ValueError(f"progress_horizon must be at most {self.steps - self.train.context} (the steps of an "
                              f"episode less the model's {self.train.context} context frames: no step has a longer "

@@ -213,6 +213,20 @@ class Ensemble(nn.Module):
         ``score(preds (K,B,Hz,3,H,W), context (B,C,3,H,W), real (B,Hz,3,H,W)) -> (B,)`` reduces a
         batch (``disagreement`` is the plain variance). Raises ``DataError`` on mismatched shapes.
         """
+        def rolled_out(ctx: torch.Tensor, act: torch.Tensor, real: torch.Tensor) -> torch.Tensor:
+            return score(self.rollout(ctx, act, fused=fused), ctx, real)               # (B,)
+
+        return self.score_windows(frames, actions, horizon, rolled_out, batch_size)
+
+    @torch.inference_mode()
+    def score_windows(self, frames: np.ndarray, actions: np.ndarray, horizon: int, score: WindowScore,
+                      batch_size: int = 256) -> np.ndarray:
+        """Per-step scores of one episode's windows: (T,) float64, NaN where a step has none.
+
+        ``score(context (B,C,3,H,W), normalised actions (B,Hz,2), real next frames (B,Hz,3,H,W)) -> (B,)``
+        reduces each batch of the steps with ``C-1`` earlier frames and ``horizon`` successors
+        (``score_steps`` rolls the members out in it). Raises ``DataError`` on mismatched shapes.
+        """
         windows = episode_windows(frames, actions, self.config, horizon)
         out = np.full(len(frames), np.nan)
         if windows is None:
@@ -224,14 +238,15 @@ class Ensemble(nn.Module):
         for lo in range(0, len(steps), batch_size):
             ctx = x[torch.as_tensor(ctx_idx[lo:lo + batch_size], device=self.device)]   # (B, C, 3, H, W)
             act_i = torch.as_tensor(act_idx[lo:lo + batch_size], device=self.device)    # (B, Hz)
-            preds = self.rollout(ctx, a[act_i], fused=fused)                           # (K, B, Hz, 3, H, W)
-            scores.append(score(preds, ctx, x[act_i + 1]))                             # (B,)
+            scores.append(score(ctx, a[act_i], x[act_i + 1]))                          # (B,)
         out[steps] = torch.cat(scores).double().cpu().numpy()
         return out
 
 
 #: Reduces a batch of member rollouts to one score per step: (preds, context, real next frames) -> (B,).
 StepScore = Callable[[torch.Tensor, torch.Tensor, torch.Tensor], torch.Tensor]
+#: Scores a batch of windows, one score per step: (context, normalised actions, real next frames) -> (B,).
+WindowScore = Callable[[torch.Tensor, torch.Tensor, torch.Tensor], torch.Tensor]
 
 
 def _member_variance(preds: torch.Tensor, context: torch.Tensor, real: torch.Tensor) -> torch.Tensor:

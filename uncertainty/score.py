@@ -96,6 +96,27 @@ def prediction_error(ensemble: Ensemble, frames: np.ndarray, actions: np.ndarray
 
 
 @torch.inference_mode()
+def predicted_variance(ensemble: Ensemble, frames: np.ndarray, actions: np.ndarray, total: bool = False,
+                       batch_size: int = 256) -> np.ndarray:
+    """Per-step variance the members predict for their own next-frame error, averaged over members and
+    pixels: (T,) float64, NaN where a step has no prediction. With ``total`` the members' disagreement is
+    added: the mixture's total predictive variance, what eval's ``spearman_total`` ranks. Horizon 1 (the
+    head predicts one step). Raises ``ConfigError`` when the members have no variance head
+    (``predict_variance``), ``DataError`` on mismatched shapes."""
+    if not ensemble.config.predict_variance:
+        raise ConfigError("this ensemble has no variance head (predict_variance is false)")
+
+    def variance(context: torch.Tensor, actions: torch.Tensor, real: torch.Tensor) -> torch.Tensor:
+        preds, logvar = ensemble.forward_dist(context, actions[:, 0])                 # (K, B, 3, H, W) each
+        out = logvar.exp().mean(dim=(0, 2, 3, 4))                                       # (B,)
+        if total:  # the members' frames clamped to [0, 1], as every rollout's (and eval's)
+            out = out + preds.clamp(0.0, 1.0).var(dim=0, unbiased=False).mean(dim=(1, 2, 3))
+        return out
+
+    return ensemble.score_windows(frames, actions, 1, variance, batch_size)
+
+
+@torch.inference_mode()
 def change_disagreement(ensemble: Ensemble, frames: np.ndarray, actions: np.ndarray, horizon: int = 1,
                         threshold: float = 0.1, batch_size: int = 256) -> np.ndarray:
     """Per-step disagreement over the pixels that change: (T,) float64, NaN where a step has no score.

@@ -117,14 +117,16 @@ def register_bench(bench: argparse._SubParsersAction) -> None:
     p.add_argument("--device", choices=("auto", "cpu", "cuda"), default=d.train.device,
                    help=f"torch device (default {d.train.device}; auto: cuda when there is one)")
     p.add_argument("--signal", choices=SIGNALS, default=d.signal,
-                   help=f"what the active arm ranks steps by (default {d.signal})")
+                   help=f"what the active arm ranks steps by (default {d.signal}; error: the champion's actual "
+                        "error on the recorded frames; predicted, total: the variance head's, needs "
+                        "--variance-head)")
     p.add_argument("--active-policy", action="store_true", default=d.active_policy,
                    help="let the active arm also choose each episode's collection policy (push or random "
                         "waypoints), favouring the one whose recent episodes the champion disagrees on most "
                         f"(at least {d.active.policy_floor:.0%}% each); the uniform arm keeps the mix")
     p.add_argument("--variance-head", action="store_true", default=d.train.variance_head,
                    help="both arms train members that also predict their own error (the active arm "
-                        "still scores by disagreement)")
+                        "ranks by it only with --signal predicted or total)")
     p.add_argument("--within-policy", action="store_true", default=d.within_policy,
                    help="the active arm ranks each step against its own policy's steps (its score over the "
                         f"mean score of the last {d.active.policy_window} episodes of that policy the champion "
@@ -224,7 +226,7 @@ def _bench_loop(args: argparse.Namespace) -> int:
                                                          progress_horizon=args.progress_horizon))
     except (ValueError, ConfigError) as exc:
         raise common.config_error(exc, {"budget": "--budget", "seeds": "--seeds", "members": "--members",
-                                        "epochs": "--epochs"}) from None
+                                        "epochs": "--epochs", "signal": "--signal"}) from None
     out = args.out or Path("activecollect-bench") / time.strftime("loop-%Y%m%dT%H%M%S")
     if (out / "summary.json").exists():
         raise common.UsageError(f"{out} already holds a bench loop result; give a fresh --out")

@@ -3,6 +3,7 @@ configuration, and one tiny run of both arms through the CLI."""
 
 from __future__ import annotations
 
+import dataclasses as dc
 import json
 import math
 
@@ -51,6 +52,17 @@ def test_config_refuses_a_budget_of_less_than_two_rounds_and_unknown_signals():
         LoopBenchConfig(budget=16, round_episodes=16)
     with pytest.raises(ValueError, match="signal"):
         LoopBenchConfig(signal="loss")
+
+
+@pytest.mark.parametrize("signal", ["predicted", "total"])
+def test_config_refuses_the_variance_heads_signals_without_one_or_past_horizon_1(signal):
+    d = LoopBenchConfig()
+    head = dc.replace(d.train, variance_head=True)
+    with pytest.raises(ValueError, match=f"signal {signal} ranks by a variance head.*variance_head=False"):
+        LoopBenchConfig(signal=signal)
+    with pytest.raises(ValueError, match="signal_horizon=2"):
+        LoopBenchConfig(signal=signal, train=head, signal_horizon=2)
+    assert LoopBenchConfig(signal=signal, train=head).signal == signal
 
 
 def test_bench_ids_sort_in_collection_order_and_repeat_across_runs():
@@ -213,3 +225,35 @@ def test_the_random_signal_ranks_the_steps_disagreement_scores_at_random_and_ali
     assert ((valid >= 0) & (valid < 1)).all() and not np.allclose(valid, plain[~np.isnan(plain)])
     assert np.array_equal(SignalScorer(ChampionScorer(tmp_path), "random", 1)(ep).per_step, scores, equal_nan=True)
     assert not np.array_equal(SignalScorer(champion, "random", 1)(other).per_step, scores, equal_nan=True)
+
+
+def test_the_error_and_variance_head_signals_rank_by_what_they_name(tmp_path):
+    """``--signal error``: the champion's actual error; ``predicted``/``total``: its variance head's."""
+    from orchestrator.champion import ChampionScorer
+    from orchestrator.loopbench import SignalScorer
+    from storage.models import ModelRegistry
+    from tests.uncertainty.synth import make_episode as synth_episode
+    from uncertainty.checkpoint import save_candidate
+    from uncertainty.ensemble import Ensemble
+    from uncertainty.model import PredictorConfig
+    from uncertainty.score import predicted_variance, prediction_error
+    registry = ModelRegistry(tmp_path)
+    ens = Ensemble(PredictorConfig(image_size=16, widths=(4, 8, 8), action_hidden=8, predict_variance=True),
+                   members=2, seed=0)
+    ens.set_action_stats([256.0, 250.0], [100.0, 90.0])
+    assert registry.promote(save_candidate(registry, ens, {"h1_mse": 0.02}, "snap", "split")).promoted
+    champion = ChampionScorer(tmp_path)
+    ep = synth_episode(0, steps=12, size=16)
+    assert champion.reload() is not None and champion.ensemble is not None
+    error = SignalScorer(champion, "error", 1)(ep).per_step
+    np.testing.assert_array_equal(error, prediction_error(champion.ensemble, ep.frames, ep.actions))
+    assert not np.array_equal(
+        error, SignalScorer(champion, "disagreement", 1)(ep).per_step, equal_nan=True)
+    np.testing.assert_array_equal(SignalScorer(champion, "error", 3)(ep).per_step,
+                                  prediction_error(champion.ensemble, ep.frames, ep.actions, horizon=3))
+    predicted = SignalScorer(champion, "predicted", 1)(ep).per_step
+    total = SignalScorer(champion, "total", 1)(ep).per_step
+    np.testing.assert_array_equal(predicted, predicted_variance(champion.ensemble, ep.frames, ep.actions))
+    np.testing.assert_array_equal(total, predicted_variance(champion.ensemble, ep.frames, ep.actions, total=True))
+    valid = ~np.isnan(total)
+    assert valid.any() and (total[valid] > predicted[valid]).all()

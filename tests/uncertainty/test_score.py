@@ -5,8 +5,10 @@ import pytest
 
 from tests.uncertainty.synth import make_episode
 from uncertainty.errors import ConfigError
-from uncertainty.score import (change_disagreement, colour_disagreement, pick_top, prediction_error, score_episode,
-                                state_dict)
+from uncertainty.ensemble import Ensemble
+from uncertainty.model import PredictorConfig
+from uncertainty.score import (change_disagreement, colour_disagreement, pick_top, predicted_variance,
+                               prediction_error, score_episode, state_dict)
 from uncertainty.train import evaluate_episodes
 from workers.env import SimState
 
@@ -71,6 +73,26 @@ def test_prediction_error_over_a_horizon_averages_the_mean_rollouts_error(traine
     with torch.inference_mode():
         mean = ens.rollout(x[None, step - c + 1:step + 1], actions[None]).mean(dim=0)[0]  # (3, 3, H, W)
     assert error[step] == pytest.approx(float(((mean - x[step + 1:step + 4]) ** 2).mean()), rel=1e-5)
+
+
+def test_predicted_variance_is_the_evals_step_by_step_and_total_adds_the_disagreement():
+    ens = Ensemble(PredictorConfig(image_size=16, widths=(4, 8, 8), action_hidden=8, predict_variance=True),
+                   members=3, seed=3)
+    ep = make_episode(7, "disk", steps=12)
+    predicted = predicted_variance(ens, ep.frames, ep.actions, batch_size=4)  # batches of 4: 10 steps in 3
+    total = predicted_variance(ens, ep.frames, ep.actions, total=True)
+    plain = ens.disagreement(ep.frames, ep.actions)
+    assert np.array_equal(np.isnan(predicted), np.isnan(plain)) and np.isnan(predicted).any()
+    assert (predicted[~np.isnan(predicted)] > 0).all()
+    np.testing.assert_allclose(total, predicted + plain, rtol=1e-5)
+    h1 = evaluate_episodes(ens, [ep], "h", horizons=(1,))
+    assert np.nanmean(predicted) == pytest.approx(h1["h1_predicted_variance"], rel=1e-5)
+
+
+def test_predicted_variance_needs_a_variance_head(trained):
+    ep = make_episode(7, "disk", steps=12)
+    with pytest.raises(ConfigError, match="no variance head"):
+        predicted_variance(trained[0], ep.frames, ep.actions)
 
 
 def test_change_disagreement_counts_only_pixels_that_move(trained):
