@@ -24,7 +24,7 @@ from orchestrator.metrics import ServiceMetrics
 from orchestrator.protocol import ErrorCode, EventKind, ProtocolError
 from orchestrator.transport import Incoming
 from storage.catalog import Catalog
-from storage.episodes import EpisodeInfo, decoded_limit, read_episode
+from storage.episode_reader import EpisodeInfo, decoded_limit, read_episode
 from storage.errors import (EpisodeError, OversizedEpisodeError, QueueError, StaleLeaseError, StorageError,
                             StorageUnavailableError)
 from storage.queue import RequestQueue

@@ -36,14 +36,8 @@ from datetime import datetime
 from pathlib import Path
 from typing import Any
 
-from storage.episodes import (
-    EpisodeInfo,
-    encode_episode,
-    inspect_episode,
-    read_episode,
-    read_file,
-    verify_episode,
-)
+from storage.episode_reader import EpisodeInfo, inspect_episode, read_episode, read_file, verify_episode
+from storage.episodes import encode_episode
 from storage.database import (DB_NAME, EPISODES_DIR, Migration, connection, ensure_schema, refuse_lost_database,
                               storage_error, transaction)
 from storage.errors import CatalogError, CorruptEpisodeError, EpisodeError, MissingEpisodeError, UnknownEpisodeError

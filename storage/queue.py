@@ -21,8 +21,9 @@ which the threads of a process take in turn (a Python lock, not SQLite's busy ha
 sleeps were the p99 of a lease under load; one connection also keeps its page cache warm where
 per-thread writers re-read every page the other threads had changed). Reads use per-thread connections.
 SQLite specifics (the connection, pragmas, ``BEGIN IMMEDIATE``) stay inside
-``RequestQueue``; its SQL is otherwise plain, so a PostgreSQL backend can take its place
-behind the same methods (``lease`` becomes ``SELECT ... FOR UPDATE SKIP LOCKED``).
+``RequestQueue``; its SQL (the table and the transitions' statements are ``storage.request_table``'s)
+is otherwise plain, so a PostgreSQL backend can take its place behind the same methods (``lease``
+becomes ``SELECT ... FOR UPDATE SKIP LOCKED``).
 Durability: WAL with ``synchronous=NORMAL`` survives a crash of the process (SIGKILL).
 What a caller is told is stored -- an enqueue, an operator's cancel / retry / prioritize --
 is committed with ``synchronous=FULL`` (fsynced) and also survives a power loss; the
@@ -39,8 +40,6 @@ thread of their own (``storage.wal``) instead of inside whichever transition cro
 
 from __future__ import annotations
 
-import json
-import re
 import sqlite3
 import threading
 import time
@@ -54,96 +53,13 @@ from storage.database import configure, storage_error
 from storage.errors import QueueError, StaleLeaseError
 from storage.requests import (Lease, NewRequest, Request, RequestStatus, UnknownRequestError, check_transition,
                               finite_number)
+from storage.request_table import (COLS, COMPLETE_SQL, COUNTS_SQL, DROPPED_INDEXES, END_ONE_SQL, FAIL_SQL,
+                                   INSERT_SQL, LEASE_SQL, RELEASE_SQL, RENEW_SQL, SCHEMA, SCHEMA_OBJECTS, SELECT,
+                                   TERMINAL_SQL, dumps, row_to_request)
 from storage.wal import Checkpointer
 
 _Q, _L, _D, _X, _C = (RequestStatus.QUEUED, RequestStatus.LEASED, RequestStatus.DONE,
                       RequestStatus.DEAD, RequestStatus.CANCELLED)
-
-_COLUMNS = ("id", "created", "updated", "priority", "task", "shape", "start_state", "policy",
-            "policy_params", "action_prefix", "steps", "reason", "attempts", "max_attempts", "status",
-            "worker_id", "token", "lease_expires", "last_error", "idempotency_key", "episode_id")
-_COLS = ", ".join(_COLUMNS)
-_SELECT = f"SELECT {_COLS} FROM requests"
-_TERMINAL_SQL = "('done', 'dead', 'cancelled')"
-
-_SCHEMA = (
-    """CREATE TABLE IF NOT EXISTS requests (
-        id TEXT PRIMARY KEY,
-        created REAL NOT NULL,
-        updated REAL NOT NULL,
-        priority REAL NOT NULL,
-        task TEXT NOT NULL,
-        shape TEXT NOT NULL,
-        start_state TEXT NOT NULL,
-        policy TEXT NOT NULL,
-        policy_params TEXT NOT NULL,
-        action_prefix TEXT NOT NULL,
-        steps INTEGER NOT NULL,
-        reason TEXT NOT NULL,
-        attempts INTEGER NOT NULL DEFAULT 0,
-        max_attempts INTEGER NOT NULL,
-        status TEXT NOT NULL,
-        worker_id TEXT,
-        token INTEGER NOT NULL DEFAULT 0,
-        lease_expires REAL,
-        last_error TEXT,
-        idempotency_key TEXT UNIQUE,
-        episode_id TEXT
-    )""",
-    # Full indexes of the first version: every one of them was rewritten by every transition.
-    "DROP INDEX IF EXISTS requests_ready",
-    "DROP INDEX IF EXISTS requests_expiry",
-    "DROP INDEX IF EXISTS requests_worker",
-    "DROP INDEX IF EXISTS requests_status",
-    # Partial indexes: a row is in the one index of its status, so a transition rewrites the table
-    # page and at most two index pages. Queries name the status as a literal so SQLite can use them.
-    # Leasing walks this one in (priority, age) order and stops at the first capable row.
-    "CREATE INDEX IF NOT EXISTS requests_queued ON requests (priority DESC, created) WHERE status = 'queued'",
-    # Expiry and a lost worker's leases (a handful of rows: one per busy worker).
-    "CREATE INDEX IF NOT EXISTS requests_leased ON requests (lease_expires) WHERE status = 'leased'",
-    "CREATE INDEX IF NOT EXISTS requests_finished ON requests (status, updated) WHERE status IN "
-    + _TERMINAL_SQL,
-)
-# What a current file has and must not have, read off _SCHEMA (so the two cannot drift apart).
-_SCHEMA_OBJECTS = {m[1] for sql in _SCHEMA if (m := re.match(r"CREATE \w+ IF NOT EXISTS (\w+)", sql))}
-_DROPPED_INDEXES = {m[1] for sql in _SCHEMA if (m := re.match(r"DROP INDEX IF EXISTS (\w+)", sql))}
-
-# Each transition is one statement (prepared once per connection by sqlite3's statement cache).
-_LIVE = "id = ? AND status = 'leased' AND token = ? AND (? IS NULL OR worker_id = ?)"
-_LEASE_SQL = ("UPDATE requests SET status = 'leased', worker_id = ?, token = token + 1, lease_expires = ?,"
-              " updated = ? WHERE id = (SELECT id FROM requests WHERE status = 'queued'{filters}"
-              f" ORDER BY priority DESC, created, rowid LIMIT 1) RETURNING {_COLS}")
-_RENEW_SQL = f"UPDATE requests SET lease_expires = ?, updated = ? WHERE {_LIVE} RETURNING id"
-_COMPLETE_SQL = ("UPDATE requests SET status = 'done', episode_id = ?, lease_expires = NULL, updated = ?"
-                 f" WHERE {_LIVE} RETURNING id")
-_RELEASE_SQL = (f"UPDATE requests SET status = 'queued', lease_expires = NULL, updated = ? WHERE {_LIVE}"
-                f" RETURNING {_COLS}")
-# Ends a lease without an episode: one attempt more, dead once attempts reach max_attempts.
-_END_SQL = ("UPDATE requests SET status = CASE WHEN attempts + 1 >= max_attempts THEN 'dead' ELSE 'queued' END,"
-            " attempts = attempts + 1, last_error = ?, lease_expires = NULL, updated = ? WHERE {where}"
-            f" RETURNING {_COLS}")
-_FAIL_SQL = _END_SQL.format(where=_LIVE)
-_END_ONE_SQL = _END_SQL.format(where="id = ? AND status = 'leased'")
-_INSERT_SQL = ("INSERT INTO requests (id, created, updated, priority, task, shape, start_state, policy,"
-               " policy_params, action_prefix, steps, reason, attempts, max_attempts, status,"
-               f" idempotency_key) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, 0, ?, 'queued', ?) RETURNING {_COLS}")
-
-# One count per partial index (each a covering scan of its own index, never of the table).
-_COUNTS_SQL = ("SELECT 'queued', COUNT(*) FROM requests WHERE status = 'queued' UNION ALL "
-               "SELECT 'leased', COUNT(*) FROM requests WHERE status = 'leased' UNION ALL "
-               f"SELECT status, COUNT(*) FROM requests WHERE status IN {_TERMINAL_SQL} GROUP BY status")
-
-_STATUS = {s.value: s for s in RequestStatus}
-_loads = json.loads
-
-
-def _row_to_request(row: Sequence[Any]) -> Request:
-    (rid, created, updated, priority, task, shape, start_state, policy, policy_params, action_prefix, steps,
-     reason, attempts, max_attempts, status, worker_id, token, lease_expires, last_error, idempotency_key,
-     episode_id) = row
-    return Request(rid, created, updated, priority, task, shape, _loads(start_state), policy, _loads(policy_params),
-                   _loads(action_prefix), steps, _loads(reason), attempts, max_attempts, _STATUS[status],
-                   worker_id, token, lease_expires, last_error, idempotency_key, episode_id)
 
 
 class RequestQueue:
@@ -178,16 +94,16 @@ class RequestQueue:
         self._checkpointer: Checkpointer | None = None
         if not self._schema_current():  # a read first: opening a current file takes no write lock
             with self._tx() as conn:
-                for statement in _SCHEMA:
+                for statement in SCHEMA:
                     conn.execute(statement)
         if background_checkpoint:
             self._checkpointer = Checkpointer(self.db_path, self._busy_timeout_ms, checkpoint_every)
 
     def _schema_current(self) -> bool:
-        """Whether the file already has exactly ``_SCHEMA``'s table and indexes."""
+        """Whether the file already has exactly ``SCHEMA``'s table and indexes."""
         with self._reading() as conn:
             names = {r[0] for r in conn.execute("SELECT name FROM sqlite_master WHERE tbl_name = 'requests'")}
-        return _SCHEMA_OBJECTS <= names and not names & _DROPPED_INDEXES
+        return SCHEMA_OBJECTS <= names and not names & DROPPED_INDEXES
 
     # --- connections -----------------------------------------------------
 
@@ -305,10 +221,10 @@ class RequestQueue:
     # --- reading ---------------------------------------------------------
 
     def _fetch(self, conn: sqlite3.Connection, request_id: str) -> Request:
-        row = conn.execute(f"{_SELECT} WHERE id = ?", (request_id,)).fetchone()
+        row = conn.execute(f"{SELECT} WHERE id = ?", (request_id,)).fetchone()
         if row is None:
             raise UnknownRequestError(f"expected a known request id, found {request_id!r}")
-        return _row_to_request(row)
+        return row_to_request(row)
 
     def get(self, request_id: str) -> Request:
         """The request with this id; UnknownRequestError if none."""
@@ -336,7 +252,7 @@ class RequestQueue:
 
     def list(self, status: RequestStatus | str | None = None, limit: int | None = None) -> list[Request]:
         """Requests, newest change first; queued ones in the order they will be leased."""
-        sql, args = _SELECT, []
+        sql, args = SELECT, []
         if status is not None:
             try:
                 status = RequestStatus(status)
@@ -347,20 +263,20 @@ class RequestQueue:
             # WHERE term spelled out in the query to know requests_finished holds the rows.
             sql += f" WHERE status = '{status.value}'"
             if status in (_D, _X, _C):
-                sql += f" AND status IN {_TERMINAL_SQL}"
+                sql += f" AND status IN {TERMINAL_SQL}"
         sql += (" ORDER BY priority DESC, created, rowid" if status == _Q
                 else " ORDER BY updated DESC, rowid DESC")
         if limit is not None:
             sql += " LIMIT ?"
             args.append(int(limit))
         with self._reading() as conn:
-            return [_row_to_request(r) for r in conn.execute(sql, args)]
+            return [row_to_request(r) for r in conn.execute(sql, args)]
 
     def counts(self) -> dict[str, int]:
         """Number of requests in every status (zeros included)."""
         out = {s.value: 0 for s in RequestStatus}
         with self._reading() as conn:
-            for status, n in conn.execute(_COUNTS_SQL):
+            for status, n in conn.execute(COUNTS_SQL):
                 out[status] = n
         return out
 
@@ -377,15 +293,15 @@ class RequestQueue:
         with self._tx(durable=True) as conn:
             for new in news:
                 if new.idempotency_key is not None:
-                    row = conn.execute(f"{_SELECT} WHERE idempotency_key = ?", (new.idempotency_key,)).fetchone()
+                    row = conn.execute(f"{SELECT} WHERE idempotency_key = ?", (new.idempotency_key,)).fetchone()
                     if row is not None:
-                        out.append((_row_to_request(row), False))
+                        out.append((row_to_request(row), False))
                         continue
-                row = conn.execute(_INSERT_SQL, (
-                    uuid.uuid4().hex, t, t, new.priority, new.task, new.shape, _dumps(new.start_state), new.policy,
-                    _dumps(new.policy_params), _dumps(new.action_prefix), new.steps, _dumps(new.reason),
+                row = conn.execute(INSERT_SQL, (
+                    uuid.uuid4().hex, t, t, new.priority, new.task, new.shape, dumps(new.start_state), new.policy,
+                    dumps(new.policy_params), dumps(new.action_prefix), new.steps, dumps(new.reason),
                     new.max_attempts, new.idempotency_key)).fetchall()[0]
-                out.append((_row_to_request(row), True))
+                out.append((row_to_request(row), True))
         return out
 
     # --- the lease -------------------------------------------------------
@@ -396,7 +312,7 @@ class RequestQueue:
         if sql is None:
             filters = "".join(f" AND {column} IN ({', '.join('?' * n)})"
                               for column, n in (("task", n_tasks), ("shape", n_shapes)) if n)
-            sql = self._lease_sql[key] = _LEASE_SQL.format(filters=filters)
+            sql = self._lease_sql[key] = LEASE_SQL.format(filters=filters)
         return sql
 
     def lease(self, worker_id: str, tasks: Sequence[str] = (), shapes: Sequence[str] = (),
@@ -415,7 +331,7 @@ class RequestQueue:
             rows = conn.execute(sql, (worker_id, t + lease_s, t, *tasks, *shapes)).fetchall()
         if not rows:
             return None
-        request = _row_to_request(rows[0])
+        request = row_to_request(rows[0])
         return Lease(request=request, token=request.token, expires_at=t + lease_s)
 
     def _stale(self, conn: sqlite3.Connection, action: str, request_id: str, token: int,
@@ -435,7 +351,7 @@ class RequestQueue:
         t = self._now(now)
         check_transition("renew", _L, _L)
         with self._tx() as conn:
-            if not conn.execute(_RENEW_SQL, (t + lease_s, t, request_id, token, worker_id, worker_id)).fetchall():
+            if not conn.execute(RENEW_SQL, (t + lease_s, t, request_id, token, worker_id, worker_id)).fetchall():
                 raise self._stale(conn, "renew", request_id, token, worker_id)
         return t + lease_s
 
@@ -450,7 +366,7 @@ class RequestQueue:
         t = self._now(now)
         check_transition("complete", _L, _D)
         with self._tx(conn) as c:
-            if c.execute(_COMPLETE_SQL, (episode_id, t, request_id, token, worker_id, worker_id)).fetchall():
+            if c.execute(COMPLETE_SQL, (episode_id, t, request_id, token, worker_id, worker_id)).fetchall():
                 return True
             request = self._fetch(c, request_id)
             if request.status == _D and request.token == token and request.episode_id == episode_id:
@@ -462,10 +378,10 @@ class RequestQueue:
         """A worker gives its lease back with an error (counts an attempt). Returns the request after."""
         t = self._now(now)
         with self._tx() as conn:
-            rows = conn.execute(_FAIL_SQL, (str(error), t, request_id, token, worker_id, worker_id)).fetchall()
+            rows = conn.execute(FAIL_SQL, (str(error), t, request_id, token, worker_id, worker_id)).fetchall()
             if not rows:
                 raise self._stale(conn, "fail", request_id, token, worker_id)
-            request = _row_to_request(rows[0])
+            request = row_to_request(rows[0])
             check_transition("fail", _L, request.status)  # raising here rolls the change back
         return request
 
@@ -475,18 +391,18 @@ class RequestQueue:
         t = self._now(now)
         check_transition("release", _L, _Q)
         with self._tx() as conn:
-            rows = conn.execute(_RELEASE_SQL, (t, request_id, token, worker_id, worker_id)).fetchall()
+            rows = conn.execute(RELEASE_SQL, (t, request_id, token, worker_id, worker_id)).fetchall()
             if not rows:
                 raise self._stale(conn, "release", request_id, token, worker_id)
-        return _row_to_request(rows[0])
+        return row_to_request(rows[0])
 
     def _end_leases(self, conn: sqlite3.Connection, leased: list[Request], action: str,
                     why: Callable[[Request], str], t: float) -> list[Request]:
         """Back to queued (or dead once attempts reach max_attempts), keeping the error; the requests after."""
         out = []
         for request in leased:
-            rows = conn.execute(_END_ONE_SQL, (why(request), t, request.id)).fetchall()
-            after = _row_to_request(rows[0])
+            rows = conn.execute(END_ONE_SQL, (why(request), t, request.id)).fetchall()
+            after = row_to_request(rows[0])
             check_transition(action, request.status, after.status)
             out.append(after)
         return out
@@ -495,8 +411,8 @@ class RequestQueue:
         """End every lease past its expiry (an attempt each); the requests after the change."""
         t = self._now(now)
         with self._tx() as conn:
-            rows = conn.execute(f"{_SELECT} WHERE status = 'leased' AND lease_expires <= ?", (t,)).fetchall()
-            return self._end_leases(conn, [_row_to_request(r) for r in rows], "expire",
+            rows = conn.execute(f"{SELECT} WHERE status = 'leased' AND lease_expires <= ?", (t,)).fetchall()
+            return self._end_leases(conn, [row_to_request(r) for r in rows], "expire",
                                     lambda r: f"lease expired (worker {r.worker_id}, token {r.token})", t)
 
     def extend_leases(self, lease_s: float, now: float | None = None) -> int:
@@ -517,8 +433,8 @@ class RequestQueue:
         """End every lease a lost worker holds (an attempt each); the requests after the change."""
         t = self._now(now)
         with self._tx() as conn:
-            rows = conn.execute(f"{_SELECT} WHERE status = 'leased' AND worker_id = ?", (worker_id,)).fetchall()
-            return self._end_leases(conn, [_row_to_request(r) for r in rows], "worker_lost",
+            rows = conn.execute(f"{SELECT} WHERE status = 'leased' AND worker_id = ?", (worker_id,)).fetchall()
+            return self._end_leases(conn, [row_to_request(r) for r in rows], "worker_lost",
                                     lambda r: f"worker {worker_id} lost (token {r.token})", t)
 
     def release_worker(self, worker_id: str, now: float | None = None) -> int:
@@ -533,9 +449,9 @@ class RequestQueue:
         with self._tx(durable=True) as conn:
             request = self._fetch(conn, request_id)
             check_transition(action, request.status, target or request.status)
-            rows = conn.execute(f"UPDATE requests SET {sets}, updated = ? WHERE id = ? RETURNING {_COLS}",
+            rows = conn.execute(f"UPDATE requests SET {sets}, updated = ? WHERE id = ? RETURNING {COLS}",
                                 (*args, t, request_id)).fetchall()
-        return _row_to_request(rows[0])
+        return row_to_request(rows[0])
 
     def cancel(self, request_id: str, now: float | None = None) -> Request:
         """Cancel a queued or leased request (a leased one's worker then gets StaleLeaseError)."""
@@ -549,13 +465,3 @@ class RequestQueue:
         """Set a request's priority (any status but done)."""
         return self._operator("prioritize", request_id, None, "priority = ?", (finite_number("priority", priority),),
                               now)
-
-
-_ENCODER = json.JSONEncoder(allow_nan=False, separators=(",", ":"))
-
-
-def _dumps(value: Any) -> str:
-    try:
-        return _ENCODER.encode(value)
-    except (TypeError, ValueError) as exc:
-        raise QueueError(f"expected JSON-encodable finite values, found {value!r:.80} ({exc})") from None

@@ -20,7 +20,7 @@ from typing import TYPE_CHECKING, Any
 from orchestrator.cli import common
 from orchestrator.scheduler import EXIT_BUSY, RetrainBusyError, quarantined_note
 from storage.catalog import Catalog
-from storage.episodes import read_episode
+from storage.episode_reader import read_episode
 from storage.errors import CorruptCheckpointError, EpisodeError, NotFoundError, RegistryError, StorageError
 from storage.models import ModelRecord, ModelRegistry, PruneResult
 from storage.records import Episode

@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from storage import episodes, files
+from storage import episode_reader, episodes, files
 from storage.catalog import Catalog
 from storage.models import ModelRegistry
 from storage.queue import RequestQueue
@@ -122,7 +122,7 @@ def test_sha_mismatch_refused(cat, rng):
 
 def test_ingest_with_caller_verified_info_indexes_the_same_row(cat, rng, tmp_path):
     data = episodes.encode_episode(make_episode(rng))
-    info = episodes.inspect_episode(data)  # what the service learns reading an upload once
+    info = episode_reader.inspect_episode(data)  # what the service learns reading an upload once
     res = cat.ingest_bytes(data, expected_sha256=files.sha256_hex(data), verified=info)
     plain_cat = Catalog(tmp_path / "plain")
     plain = plain_cat.ingest_bytes(data)  # the catalog verifies on its own
@@ -130,10 +130,10 @@ def test_ingest_with_caller_verified_info_indexes_the_same_row(cat, rng, tmp_pat
     assert [getattr(cat.get(res.episode_id), f) for f in fields] == \
         [getattr(plain_cat.get(plain.episode_id), f) for f in fields]
     assert cat.meta(res.episode_id) == plain_cat.meta(plain.episode_id)
-    assert_same(cat.load(res.episode_id), episodes.read_episode(data))
+    assert_same(cat.load(res.episode_id), episode_reader.read_episode(data))
     other = episodes.encode_episode(make_episode(rng))
     with pytest.raises(CorruptEpisodeError, match="sha256 mismatch"):  # the hash is still checked
-        cat.ingest_bytes(other, expected_sha256="00" * 32, verified=episodes.inspect_episode(other))
+        cat.ingest_bytes(other, expected_sha256="00" * 32, verified=episode_reader.inspect_episode(other))
     assert cat.count() == 1
 
 

@@ -24,7 +24,7 @@ from mcap.records import Chunk
 from mcap.writer import CompressionType, Writer
 from mcap_protobuf.decoder import DecoderFactory
 
-from storage import episodes, files
+from storage import episode_reader, episodes, files
 from storage.catalog import Catalog
 from storage.errors import (
     CorruptEpisodeError,
@@ -82,13 +82,13 @@ def data(ep) -> bytes:
 
 
 def test_round_trip_bytes_and_path(ep, data, tmp_path):
-    assert_same(episodes.read_episode(data), ep)
+    assert_same(episode_reader.read_episode(data), ep)
     path = tmp_path / "a" / "ep.mcap"
     sha = episodes.write_episode(path, ep)
     assert sha == files.sha256_hex(path.read_bytes()) == files.sha256_hex(data)
-    assert_same(episodes.read_episode(path), ep)
-    assert_same(episodes.read_episode(str(path)), ep)
-    assert episodes.verify_episode(path) == ep.meta
+    assert_same(episode_reader.read_episode(path), ep)
+    assert_same(episode_reader.read_episode(str(path)), ep)
+    assert episode_reader.verify_episode(path) == ep.meta
 
 
 def test_same_episode_same_bytes(ep, data):
@@ -98,7 +98,7 @@ def test_same_episode_same_bytes(ep, data):
 @pytest.mark.parametrize("steps,size", [(1, 4), (30, 16)])
 def test_round_trip_sizes(rng, steps, size):
     ep = make_episode(rng, steps=steps, size=size, request_id="r1", worker_id="w1", model_version="m3")
-    assert_same(episodes.read_episode(episodes.encode_episode(ep)), ep)
+    assert_same(episode_reader.read_episode(episodes.encode_episode(ep)), ep)
 
 
 def test_multi_chunk_round_trip(rng, monkeypatch):
@@ -107,7 +107,7 @@ def test_multi_chunk_round_trip(rng, monkeypatch):
     data = episodes.encode_episode(ep)
     summary = make_reader(io.BytesIO(data)).get_summary()
     assert len(summary.chunk_indexes) > 5
-    assert_same(episodes.read_episode(data), ep)
+    assert_same(episode_reader.read_episode(data), ep)
 
 
 def test_time_stamps_follow_control_hz(rng):
@@ -168,14 +168,14 @@ def test_camera_message_parses_like_protobufs_own(ep, data):
 def test_truncated_file_refused(data, keep):
     cut = int(len(data) * keep) if isinstance(keep, float) else (keep if keep >= 0 else len(data) + keep)
     with pytest.raises(TruncatedEpisodeError, match="bytes"):
-        episodes.read_episode(data[:cut])
+        episode_reader.read_episode(data[:cut])
 
 
 def test_truncated_file_on_disk_names_the_file(data, tmp_path):
     path = tmp_path / "cut.mcap"
     path.write_bytes(data[: len(data) // 3])
     with pytest.raises(TruncatedEpisodeError, match="cut.mcap.*without an MCAP footer"):
-        episodes.verify_episode(path)
+        episode_reader.verify_episode(path)
 
 
 def _flip(data: bytes, pos: int, bit: int = 0) -> bytes:
@@ -191,7 +191,7 @@ def test_every_flipped_bit_refused_as_corrupt(data):
     for pos in positions:
         bad = _flip(data, pos, bit=pos % 8)
         with pytest.raises(CorruptEpisodeError) as info:
-            episodes.read_episode(bad)
+            episode_reader.read_episode(bad)
         assert str(info.value).startswith("<bytes>: "), (pos, info.value)
 
 
@@ -203,7 +203,7 @@ def test_bit_flip_in_pixels_names_the_crc(rng, tmp_path):
     data = path.read_bytes()
     path.write_bytes(_flip(data, len(data) // 2, 3))
     with pytest.raises(CorruptEpisodeError, match="flip.mcap: data section CRC mismatch"):
-        episodes.read_episode(path)
+        episode_reader.read_episode(path)
 
 
 @pytest.mark.parametrize("blob", [
@@ -213,7 +213,7 @@ def test_bit_flip_in_pixels_names_the_crc(rng, tmp_path):
 ])
 def test_foreign_bytes_refused(blob):
     with pytest.raises(ForeignFileError, match="not an MCAP file"):
-        episodes.read_episode(blob)
+        episode_reader.read_episode(blob)
 
 
 def _plain_mcap(topic: str = "/foo", with_meta: bool = False) -> bytes:
@@ -232,7 +232,7 @@ def _plain_mcap(topic: str = "/foo", with_meta: bool = False) -> bytes:
 
 def test_valid_mcap_without_our_channels_refused():
     with pytest.raises(ForeignFileError, match="not an activecollect episode"):
-        episodes.read_episode(_plain_mcap())
+        episode_reader.read_episode(_plain_mcap())
 
 
 def test_valid_mcap_with_our_metadata_but_no_channels_refused(ep):
@@ -242,7 +242,7 @@ def test_valid_mcap_with_our_metadata_but_no_channels_refused(ep):
     w.add_metadata("episode", episodes._metadata_record(ep))
     w.finish()
     with pytest.raises(ForeignFileError, match="no /camera channel"):
-        episodes.read_episode(buf.getvalue())
+        episode_reader.read_episode(buf.getvalue())
 
 
 def test_camera_with_other_schema_refused(ep):
@@ -254,7 +254,7 @@ def test_camera_with_other_schema_refused(ep):
     w.add_metadata("episode", episodes._metadata_record(ep))
     w.finish()
     with pytest.raises(ForeignFileError, match="expected 'protobuf' 'foxglove.RawImage'"):
-        episodes.read_episode(buf.getvalue())
+        episode_reader.read_episode(buf.getvalue())
 
 
 def _episode_like_mcap(ep: Episode, skip: tuple[str, int] | None = None,
@@ -290,7 +290,7 @@ def _episode_like_mcap(ep: Episode, skip: tuple[str, int] | None = None,
 @pytest.mark.parametrize("compression", list(CompressionType))
 def test_canonical_protobuf_encoding_reads_back(ep, compression):
     """Another writer's canonical protobuf (zeros omitted, fields in order) reads the same."""
-    assert_same(episodes.read_episode(_episode_like_mcap(ep, compression=compression)), ep)
+    assert_same(episode_reader.read_episode(_episode_like_mcap(ep, compression=compression)), ep)
 
 
 @pytest.mark.parametrize("compression", [CompressionType.ZSTD, CompressionType.LZ4])
@@ -300,13 +300,13 @@ def test_a_chunk_that_inflates_past_what_the_frames_need_is_refused_before_infla
     tracemalloc.start()
     try:
         with pytest.raises(OversizedEpisodeError, match=r"inflates to 335\d+ bytes; the episode's frames need at most"):
-            episodes.read_episode(data)
+            episode_reader.read_episode(data)
         peak = tracemalloc.get_traced_memory()[1]
     finally:
         tracemalloc.stop()
     assert peak < 4 * len(data) + (1 << 20)
     with pytest.raises(OversizedEpisodeError, match="frames need at most 1000 more"):
-        episodes.read_episode(_episode_like_mcap(ep), max_decoded=1000)  # what an upload's caller allows
+        episode_reader.read_episode(_episode_like_mcap(ep), max_decoded=1000)  # what an upload's caller allows
 
 
 @pytest.mark.parametrize("compression", ["zstd", "lz4"])
@@ -316,9 +316,9 @@ def test_a_chunk_holding_more_than_it_declares_is_not_inflated_past_it(compressi
     chunk = Chunk(compression=compression, data=packed, message_start_time=0, message_end_time=0,
                   uncompressed_crc=0, uncompressed_size=100)
     with pytest.raises(CorruptEpisodeError, match="declares 100 bytes of content and holds more"):
-        episodes._inflate(chunk, "x")
+        episode_reader._inflate(chunk, "x")
     with pytest.raises(ForeignFileError, match="compression 'bz2'"):
-        episodes._inflate(Chunk(compression="bz2", data=b"", message_start_time=0, message_end_time=0,
+        episode_reader._inflate(Chunk(compression="bz2", data=b"", message_start_time=0, message_end_time=0,
                                 uncompressed_crc=0, uncompressed_size=0), "x")
 
 
@@ -326,7 +326,7 @@ def test_missing_messages_refused_not_read_partially(ep):
     """A well-formed file whose /state channel lacks a step is refused, not returned short."""
     data = _episode_like_mcap(ep, skip=("/state", len(ep) - 1))
     with pytest.raises(CorruptEpisodeError, match=r"/state holds 5 messages, summary says 5, metadata says 6"):
-        episodes.read_episode(data)
+        episode_reader.read_episode(data)
 
 
 def test_errors_are_storage_errors_not_raw(data):
@@ -337,14 +337,14 @@ def test_errors_are_storage_errors_not_raw(data):
         start = int(rng.integers(0, len(data)))
         bad[start:start + 16] = rng.integers(0, 256, len(bad[start:start + 16]), dtype=np.uint8).tobytes()
         try:
-            episodes.read_episode(bytes(bad))
+            episode_reader.read_episode(bytes(bad))
         except StorageError:
             pass
 
 
 def test_missing_path_is_episode_error(tmp_path):
     with pytest.raises(EpisodeError, match="no such file"):
-        episodes.read_episode(tmp_path / "nope.mcap")
+        episode_reader.read_episode(tmp_path / "nope.mcap")
 
 
 # --- writing safely ----------------------------------------------------------------------------
@@ -396,7 +396,7 @@ def test_a_metadata_image_size_the_images_cannot_hold_is_refused_before_allocati
     ep = make_episode(rng)
     ep.meta.image_size = size
     with pytest.raises(CorruptEpisodeError, match="cannot hold"):
-        episodes.read_episode(_encode_unchecked(ep, monkeypatch))
+        episode_reader.read_episode(_encode_unchecked(ep, monkeypatch))
 
 
 def test_non_finite_actions_or_states_are_refused_on_read_as_on_write(rng, monkeypatch, tmp_path):
@@ -406,7 +406,7 @@ def test_non_finite_actions_or_states_are_refused_on_read_as_on_write(rng, monke
         episodes.encode_episode(ep)
     data = _encode_unchecked(ep, monkeypatch)
     with pytest.raises(CorruptEpisodeError, match="/state step 1: non-finite"):
-        episodes.read_episode(data)
+        episode_reader.read_episode(data)
     cat = Catalog(tmp_path)
     with pytest.raises(CorruptEpisodeError):
         cat.ingest_bytes(data)
@@ -448,12 +448,12 @@ def test_metadata_the_catalog_cannot_hold_is_refused_on_write_and_on_read(rng, m
 ])
 def test_steps_logged_out_of_time_order_are_refused(ep, times, words):
     with pytest.raises(CorruptEpisodeError, match=re.escape(words)):
-        episodes.read_episode(_episode_like_mcap(ep, times=times))
+        episode_reader.read_episode(_episode_like_mcap(ep, times=times))
 
 
 def test_a_chunk_without_a_crc_is_refused(ep):
     with pytest.raises(CorruptEpisodeError, match="has no CRC"):
-        episodes.read_episode(_episode_like_mcap(ep, crcs=False))
+        episode_reader.read_episode(_episode_like_mcap(ep, crcs=False))
 
 
 def test_a_chunk_record_longer_than_its_index_says_is_refused(ep):
@@ -462,7 +462,7 @@ def test_a_chunk_record_longer_than_its_index_says_is_refused(ep):
     assert data[at] == Opcode.CHUNK
     struct.pack_into("<Q", data, at + 1, 1 << 62)
     with pytest.raises(CorruptEpisodeError, match=r"says it is 4611686018427387904 bytes long, its index"):
-        episodes.read_episode(bytes(data))
+        episode_reader.read_episode(bytes(data))
 
 
 def test_a_model_trains_on_multiples_of_8_from_16_to_1024() -> None:

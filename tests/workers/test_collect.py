@@ -12,7 +12,8 @@ import numpy as np
 import pytest
 
 from storage.catalog import Catalog
-from storage.episodes import encode_episode, read_episode
+from storage.episode_reader import read_episode
+from storage.episodes import encode_episode
 from storage.records import STATE_DIM
 from workers.collect import EvalSplitConflict, collect_episode, create_eval_split
 from workers.env import PHYSICS_RANGES, SHAPE_PALETTE, PushSim, SimState, sample_state
