@@ -31,7 +31,8 @@ from orchestrator.messages import AdminRequest, Event
 from orchestrator.planner import ActivePlanner, ActivePlannerConfig
 from orchestrator.uniform import UniformPlanner, UniformPlannerConfig, uniform_start_state
 from orchestrator.protocol import Keys, ProtocolError
-from orchestrator.service import PlannerFactory, Service, ServiceConfig, ServiceContext, ServiceError
+from orchestrator.service import Service
+from orchestrator.serviceconfig import PlannerFactory, ServiceConfig, ServiceContext, ServiceError
 from orchestrator.signals import on_stop_signals
 from storage.requests import RequestStatus
 from workers import agent
