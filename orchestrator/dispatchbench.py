@@ -59,7 +59,8 @@ import zenoh
 
 from orchestrator import messages, protocol, transport
 from orchestrator.protocol import Keys
-from orchestrator.service import Service, ServiceConfig
+from orchestrator.service import Service
+from orchestrator.serviceconfig import ServiceConfig
 from storage.catalog import Catalog
 from storage.episodes import encode_episode
 from storage.queue import RequestQueue

@@ -34,7 +34,8 @@ from orchestrator.uniform import UniformPlanner, UniformPlannerConfig
 from orchestrator.protocol import EventKind
 from orchestrator.report import ReportInputs, write_report
 from orchestrator.scheduler import RetrainRecord, RetrainScheduler, ScheduleConfig, die_with_parent
-from orchestrator.service import Service, ServiceConfig
+from orchestrator.service import Service
+from orchestrator.serviceconfig import ServiceConfig
 from storage.catalog import Catalog
 from storage.models import ModelRegistry
 from storage.queue import RequestQueue

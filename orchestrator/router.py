@@ -17,10 +17,10 @@ from typing import Callable, TextIO
 
 import zenoh
 
+from orchestrator.endpoints import endpoint_problem
 from orchestrator.secure import is_secure_profile
 from orchestrator.signals import on_stop_signals
-from orchestrator.transport import (SecureConfigError, cap_incoming, endpoint_problem, read_config,
-                                    validate_secure_config)
+from orchestrator.transport import SecureConfigError, cap_incoming, read_config, validate_secure_config
 
 #: Where a router listens when given neither --listen nor a config: loopback only, so an
 #: unconfigured router is never reachable (in plaintext) from other hosts.

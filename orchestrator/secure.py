@@ -30,8 +30,9 @@ from cryptography.hazmat.primitives import hashes, serialization
 from cryptography.hazmat.primitives.asymmetric import ec
 from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 
+from orchestrator.endpoints import endpoint_problem
 from orchestrator.protocol import Keys, ProtocolError
-from orchestrator.transport import SecureConfigError, endpoint_problem, lookup_key
+from orchestrator.transport import SecureConfigError, lookup_key
 
 #: Roles that get a config, a certificate and a password. The router is the only listener.
 CLIENT_ROLES: tuple[str, ...] = ("orchestrator", "worker", "operator")

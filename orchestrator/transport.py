@@ -3,6 +3,8 @@
 A leaf module: it imports nothing else of ours, so workers on any host can use
 it. It knows bytes, keys and endpoints, not the JSON messages riding on them
 (those are the business of ``orchestrator.protocol`` and ``orchestrator.messages``).
+The command-line flags that name endpoints, a config file and a timeout live
+in ``orchestrator.endpoints``.
 
 Two things about zenoh-python 1.x shape this module:
 
@@ -20,10 +22,8 @@ Two things about zenoh-python 1.x shape this module:
 
 from __future__ import annotations
 
-import argparse
 import json
 import logging
-import math
 import os
 import queue as queue_mod
 import threading
@@ -414,102 +414,3 @@ class Server:
         except Exception as exc:  # noqa: BLE001 -- boundary: one bad query must not take the service down
             log.exception("handler for %s failed", key)
             return Response(self._error_body("internal", f"{type(exc).__name__}: {exc}"))
-
-
-# --------------------------------------------------------------------------- command-line flags
-
-#: Where ``serve`` listens and everyone else connects when no endpoint or config file is given.
-DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
-#: Longest ``--timeout`` (a day): Zenoh refuses durations past about 1e19 s, and no one waits longer.
-MAX_TIMEOUT_S = 86400.0
-
-
-def timeout_seconds(text: str) -> float:
-    """A ``--timeout``: seconds in (0, MAX_TIMEOUT_S]; nan and inf are refused (argparse exits 2)."""
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected seconds, found {text!r}") from None
-    if not (math.isfinite(value) and 0 < value <= MAX_TIMEOUT_S):
-        raise argparse.ArgumentTypeError(f"expected seconds in (0, {MAX_TIMEOUT_S:g}], found {text!r}")
-    return value
-
-
-#: Zenoh's link protocols; the first group's addresses are HOST:PORT.
-_INET_PROTOCOLS = ("tcp", "udp", "tls", "quic", "ws")
-_OTHER_PROTOCOLS = ("unixsock-stream",)  # (this build of Zenoh has no unixpipe, serial or vsock links)
-
-
-def endpoint_problem(text: str) -> str:
-    """What is wrong with a Zenoh endpoint's shape ('' when nothing), checked before Zenoh sees it.
-
-    ``PROTOCOL/ADDRESS[?metadata][#config]``; for tcp, udp, tls, quic and ws the address is
-    ``HOST:PORT`` (an IPv6 host in brackets) with a port in 0-65535. Zenoh would refuse the rest
-    only when the session opens, with a message from its Rust internals.
-    """
-    proto, slash, rest = text.partition("/")
-    if not slash or not proto or not rest:
-        return f"expected PROTOCOL/ADDRESS like tcp/10.0.0.5:7447, found {text!r}"
-    known = _INET_PROTOCOLS + _OTHER_PROTOCOLS
-    if proto not in known:
-        return f"unknown protocol {proto!r} in {text!r}; expected one of {', '.join(known)}"
-    if proto in _INET_PROTOCOLS:
-        address = rest.split("#", 1)[0].split("?", 1)[0]
-        host, colon, port = address.rpartition(":")
-        if not colon or not host or host in ("[", "[]") or (address.startswith("[") and not host.endswith("]")):
-            return f"expected HOST:PORT after {proto}/, found {text!r}"
-        if not (port.isascii() and port.isdigit() and int(port) <= 65535):
-            return f"port must be 0-65535, found {port!r} in {text!r}"
-    return ""
-
-
-def endpoint(text: str) -> str:
-    """A ``--listen`` / ``--connect`` value (argparse type): a bad shape exits 2 saying what is wrong."""
-    problem = endpoint_problem(text)
-    if problem:
-        raise argparse.ArgumentTypeError(problem)
-    return text
-
-
-def add_connection_args(parser: argparse.ArgumentParser, *, listen: bool = False, timeout: float = 5.0) -> None:
-    """The flags every process that talks Zenoh shares: endpoints, config file, namespace, timeout.
-
-    ``listen=True`` (the service) adds ``--listen`` and leaves ``--timeout`` out (the service answers
-    queries, it waits on none); ``--connect`` is always there.
-    """
-    if listen:
-        parser.add_argument("--listen", action="append", default=[], metavar="EP", type=endpoint,
-                            help=f"Zenoh endpoint to listen on (repeatable; default {DEFAULT_ENDPOINT} "
-                                 "when no --connect or --zenoh-config is given)")
-    parser.add_argument("--connect", action="append", default=[], metavar="EP", type=endpoint,
-                        help="Zenoh endpoint to connect to, e.g. tcp/10.0.0.5:7447 (repeatable"
-                             + ("" if listen else f"; default {DEFAULT_ENDPOINT} without --zenoh-config") + ")")
-    parser.add_argument("--zenoh-config", type=Path, default=None, metavar="FILE",
-                        help="Zenoh JSON5 config file, used as written (routers, TLS, passwords, ACL); "
-                             f"incoming messages are capped at {RX_MAX_MESSAGE_BYTES >> 20} MiB unless it "
-                             f"sets {RX_MAX_MESSAGE_SIZE_KEY}")
-    parser.add_argument("--mode", choices=MODES, default="peer",
-                        help="Zenoh mode when no config file is given (default peer)")
-    parser.add_argument("--namespace", default="activecollect",
-                        help="key prefix of the deployment (default activecollect)")
-    if not listen:
-        parser.add_argument("--timeout", type=timeout_seconds, default=timeout, metavar="S",
-                            help=f"seconds to wait for a reply (default {timeout:g})")
-
-
-def endpoints_from_args(args: argparse.Namespace) -> tuple[tuple[str, ...], tuple[str, ...]]:
-    """(listen, connect) from :func:`add_connection_args` flags, defaults applied.
-
-    Every process calls this first, so a ``--zenoh-config`` whose certificate, key or
-    password file is missing stops it here: raises ``SecureConfigError`` (one line).
-    """
-    if args.zenoh_config is not None:
-        validate_secure_config(args.zenoh_config)
-    listen = tuple(getattr(args, "listen", None) or ())
-    connect = tuple(args.connect or ())
-    if args.zenoh_config is None and not listen and not connect:
-        if hasattr(args, "listen"):
-            listen = (DEFAULT_ENDPOINT,)
-        else:
-            connect = (DEFAULT_ENDPOINT,)
-    return listen, connect

@@ -6,7 +6,7 @@ import argparse
 
 import pytest
 
-from orchestrator import transport
+from orchestrator import endpoints
 from orchestrator.cli import build_parser, common
 from storage.catalog import Catalog
 from tests.conftest import free_port, run_cli
@@ -219,7 +219,7 @@ def test_retrain_without_train_episodes_fails_in_one_line(capsys, tmp_path) -> N
                                   "tcp/10.0.0.5:7447#iface=eth0", "tcp/10.0.0.5:7447?prio=1-7",
                                   "unixsock-stream//tmp/zenoh.sock"])
 def test_zenoh_endpoints_zenoh_accepts_pass_the_check(text) -> None:
-    assert transport.endpoint(text) == text
+    assert endpoints.endpoint(text) == text
 
 
 

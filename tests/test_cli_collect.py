@@ -10,7 +10,8 @@ import sys
 import numpy as np
 import pytest
 
-from orchestrator.service import Service, ServiceConfig
+from orchestrator.service import Service
+from orchestrator.serviceconfig import ServiceConfig
 from storage import episodes
 from storage.catalog import Catalog
 from tests.conftest import free_port, run_cli

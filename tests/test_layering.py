@@ -1,8 +1,8 @@
 """Imports point one way (DESIGN.md): every import of ours, module level or inside a function, is checked.
 
 storage <- uncertainty <- orchestrator; workers import storage and only the wire contract of
-orchestrator (protocol, messages, transport) and how a process is asked to stop (signals), which
-import nothing else of ours.
+orchestrator (protocol, messages, transport, and endpoints: the flags that name them) and how a
+process is asked to stop (signals), which import nothing of ours outside that set.
 """
 
 from __future__ import annotations
@@ -15,7 +15,8 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 PACKAGES = ("storage", "uncertainty", "workers", "orchestrator")
 #: What workers may import of the orchestrator: the wire contract, and how a process is asked to stop.
-SHARED = {"orchestrator.protocol", "orchestrator.messages", "orchestrator.transport", "orchestrator.signals"}
+SHARED = {"orchestrator.protocol", "orchestrator.messages", "orchestrator.transport", "orchestrator.endpoints",
+          "orchestrator.signals"}
 
 #: For each package (or module), which of our modules it may import, besides its own package.
 ALLOWED = {
@@ -29,6 +30,7 @@ LEAVES = {
     "orchestrator.protocol": set(),
     "orchestrator.messages": {"orchestrator.protocol"},
     "orchestrator.transport": set(),
+    "orchestrator.endpoints": {"orchestrator.transport"},
     "orchestrator.signals": set(),
     "uncertainty.model": {"uncertainty.errors"},
 }

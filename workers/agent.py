@@ -22,8 +22,9 @@ the worker exits; a second signal gives the current request back at once
 (``release``: queued again, no attempt counted -- the request did nothing wrong)
 and exits.
 
-Imports only ``storage``, ``workers``, ``orchestrator.protocol``, ``orchestrator.messages``
-and ``orchestrator.transport`` -- the wire contract -- so it runs on any host.
+Imports only ``storage``, ``workers``, ``orchestrator.protocol``, ``orchestrator.messages``,
+``orchestrator.transport`` and ``orchestrator.endpoints`` -- the wire contract -- and
+``orchestrator.signals``, so it runs on any host.
 """
 
 from __future__ import annotations
@@ -45,7 +46,7 @@ from typing import Any
 import numpy as np
 import zenoh
 
-from orchestrator import messages, protocol, signals, transport
+from orchestrator import endpoints, messages, protocol, signals, transport
 from orchestrator.messages import LeaseGrant
 from orchestrator.protocol import ErrorCode, Keys, ProtocolError
 from storage.episodes import encode_episode
@@ -430,7 +431,7 @@ def _frame_size(text: str) -> int:
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """The worker's flags."""
-    transport.add_connection_args(parser, timeout=10.0)
+    endpoints.add_connection_args(parser, timeout=10.0)
     parser.add_argument("--id", default="", help="worker id (default <host>-<pid>)")
     parser.add_argument("--capabilities", default="", metavar="C",
                         help='what it can collect: "push:T,box", "T,box" or "push" (default: anything)')
@@ -448,7 +449,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def config_from_args(args: argparse.Namespace) -> WorkerConfig:
     """Build the WorkerConfig; WorkerError for a bad value."""
-    listen, connect = transport.endpoints_from_args(args)
+    listen, connect = endpoints.endpoints_from_args(args)
     tasks, shapes = parse_capabilities(args.capabilities)
     return WorkerConfig(worker_id=args.id, namespace=args.namespace, mode=args.mode, listen=listen,
                         connect=connect, zenoh_config=args.zenoh_config, tasks=tasks, shapes=shapes,

@@ -17,7 +17,7 @@ from orchestrator.cli import collect, common, loop, models, secure, service
 from storage.database import space_note
 from storage.errors import StorageError
 
-_MODULES = (collect, models, service, loop, secure)
+_MODULES = (collect, models, service, loop, secure)  # collect adds cli/episodes.py's commands after its own
 
 
 def build_parser() -> common.Parser:

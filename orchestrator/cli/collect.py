@@ -1,26 +1,25 @@
-"""CLI: ``collect``, ``episodes ls|show|verify|quarantine|restore``, ``ingest``, ``eval-split create|show``,
-``backup``, ``bench sim``."""
+"""CLI: ``collect``, ``ingest``, ``eval-split create|show``, ``backup``, ``bench sim``.
+
+``episodes ls|show|verify|quarantine|restore`` lives in ``orchestrator.cli.episodes``; ``register`` adds
+it after ``collect``, where ``activecollect --help`` has always listed it."""
 
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
-from datetime import datetime, timezone
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 from tqdm import tqdm
 
-from orchestrator.cli import common
+from orchestrator.cli import common, episodes as episodes_cli
 from orchestrator.protocol import MAX_EPISODE_STEPS, POLICIES, SHAPES, episode_problem, one_line
 from storage.backup import backup, check_dest
-from storage.catalog import ORPHANS_DIR, SPLITS, Catalog, EpisodeRow
+from storage.catalog import SPLITS, Catalog
 from storage.database import DB_NAME
-from storage.errors import (DAMAGED_EPISODE_ERRORS, BackupError, CatalogError, NotFoundError, StorageError,
-                            StorageUnavailableError)
+from storage.errors import BackupError, CatalogError, StorageError, StorageUnavailableError
 from storage.records import MAX_FRAME_SIZE, MIN_FRAME_SIZE, TRAINABLE_SIZES
 from workers import simbench
 from workers.collect import EvalSplitConflict, check_eval_split, collect_episode, create_eval_split
@@ -91,7 +90,7 @@ def _made_with(key: str, value: Any) -> str:
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    """Adds ``collect``, ``episodes``, ``ingest``, ``eval-split`` and ``backup``."""
+    """Adds ``collect``, ``episodes`` (``orchestrator.cli.episodes``), ``ingest``, ``eval-split`` and ``backup``."""
     p = sub.add_parser("collect", help="record pushing episodes locally and index them")
     p.add_argument("--episodes", type=common.positive_int, default=10, metavar="N", help="how many (default 10)")
     p.add_argument("--shape", choices=(*SHAPES, "all"), default="all",
@@ -107,47 +106,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     common.add_json_arg(p)
     p.set_defaults(func=_collect)
 
-    episodes = sub.add_parser("episodes", help="the episode catalog: list, show, verify, quarantine, restore")
-    esub = episodes.add_subparsers(dest="episodes_command", metavar="ACTION", parser_class=common.Parser)
-    esub.required = True
-    p = esub.add_parser("ls", help="list indexed episodes, oldest first")
-    p.add_argument("--split", choices=SPLITS, help="only episodes of this split (default: all)")
-    p.add_argument("--shape", choices=SHAPES, help="only episodes of this object shape (default: all)")
-    p.add_argument("--limit", type=common.positive_int, metavar="N", help="only the N newest")
-    p.add_argument("--quarantined", action="store_true", help="only the episodes taken out of training")
-    p.set_defaults(func=_episodes_ls)
-    p = esub.add_parser("show", help="one episode: catalog row and provenance")
-    p.add_argument("episode_id", metavar="ID", help="episode id or a unique prefix of it")
-    p.set_defaults(func=_episodes_show)
-    p = esub.add_parser("verify", help="re-hash and re-verify episode files (all when no ID); exit 1 if any is bad",
-                        description="Re-hash and re-verify the files of the episodes named (all not quarantined "
-                                    "when none is). Exit 1 when any is bad (missing, other bytes than indexed, "
-                                    "unreadable); with --quarantine the bad train episodes are also taken out "
-                                    "of training (exit 0 when that took care of every bad one).")
-    p.add_argument("episode_ids", nargs="*", metavar="ID",
-                   help="episode ids or unique prefixes (default: every episode not quarantined)")
-    p.add_argument("--quarantine", action="store_true",
-                   help="quarantine the bad train episodes found (as a retrain would)")
-    p.set_defaults(func=_episodes_verify)
-    p = esub.add_parser(
-        "quarantine", help="take episodes out of training; their files move to DATA/quarantine/",
-        description="Take episodes out of training: the catalog keeps their rows, their files move to "
-                    "DATA/quarantine/<day>/ and no snapshot includes them. Retrains do this themselves for "
-                    "files found missing or damaged. Episodes of the pinned eval split cannot be "
-                    "quarantined. `episodes restore`, or ingesting the same bytes again, brings them back.")
-    p.add_argument("episode_ids", nargs="+", metavar="ID", help="episode ids or unique prefixes")
-    p.add_argument("--reason", required=True, help="why (kept with the episode, one line)")
-    p.set_defaults(func=_episodes_quarantine)
-    p = esub.add_parser("restore", help="put quarantined episodes back into training",
-                        description="Move quarantined episodes' files back (when they still hold the bytes "
-                                    "indexed) and let training use them again. For one whose file is gone or "
-                                    "damaged, ingest its original bytes again instead (`activecollect ingest`).")
-    p.add_argument("episode_ids", nargs="*", metavar="ID", help="episode ids or unique prefixes")
-    p.add_argument("--all", action="store_true", help="every quarantined episode (e.g. after a disk came back)")
-    p.set_defaults(func=_episodes_restore)
-    for p in esub.choices.values():
-        common.add_data_arg(p)
-        common.add_json_arg(p)
+    episodes_cli.register(sub)  # between collect and ingest in --help's list
 
     p = sub.add_parser("ingest", help="verify and index MCAP episode files collected elsewhere")
     p.add_argument("paths", nargs="+", type=Path, metavar="PATH", help="MCAP files, or directories of them")
@@ -203,19 +162,6 @@ def register_bench(bench_sub: argparse._SubParsersAction) -> None:
 # -- helpers -----------------------------------------------------------------------------------
 
 
-def _existing_catalog(args: argparse.Namespace) -> Catalog:
-    data = Path(args.data)
-    common.require_catalog(data)
-    return Catalog(data)
-
-
-def _resolve(cat: Catalog, episode_id: str) -> EpisodeRow:
-    try:
-        return cat.resolve(episode_id)
-    except NotFoundError as exc:  # (a damaged catalog is not a usage error: exit 1)
-        raise common.UsageError(str(exc)) from None
-
-
 def _megabytes(n: int) -> str:
     return f"{n / 1e6:.1f} MB"
 
@@ -251,127 +197,6 @@ def _collect(args: argparse.Namespace) -> int:
     print(f"episodes: {cat.episodes_dir}/<date>/<episode_id>.mcap")
     print(f"catalog:  {cat.db_path} ({out['total_episodes']} episodes)")
     return 0
-
-
-# -- episodes ----------------------------------------------------------------------------------
-
-
-def _episodes_ls(args: argparse.Namespace) -> int:
-    cat = _existing_catalog(args)
-    quarantined = True if args.quarantined else None
-    rows = cat.list(split=args.split, shape=args.shape, limit=args.limit, newest_first=args.limit is not None,
-                    quarantined=quarantined)
-    if args.limit is not None:
-        rows.reverse()
-    if args.json:
-        common.print_json([r.to_json() for r in rows])
-        return 0
-    if not rows:
-        print(f"no {'quarantined ' if args.quarantined else ''}episodes in {cat.data_dir}")
-        return 0
-    print(f"{'EPISODE':<32}  {'SHAPE':<5} {'FRAMES':>6}  {'SPLIT':<5}  {'CREATED':<19}  {'SIZE':>8}  REQUEST")
-    for r in rows:
-        print(f"{r.episode_id:<32}  {r.shape:<5} {r.frames:>6}  {r.split:<5}  {r.created[:19]:<19}  "
-              f"{r.size_bytes / 1e3:>6.0f}KB  {r.request_id or '-'}")
-        if r.quarantined:
-            print(f"  quarantined: {r.quarantined}")
-    held = cat.count(quarantined=True)
-    print(f"{len(rows)} of {cat.count()} episodes" + (f" ({held} quarantined)" if held else ""))
-    return 0
-
-
-def _episodes_show(args: argparse.Namespace) -> int:
-    cat = _existing_catalog(args)
-    row = _resolve(cat, args.episode_id)
-    out: dict[str, Any] = {**row.to_json(), "meta": vars(cat.meta(row.episode_id))}
-    if args.json:
-        common.print_json(out)
-        return 0
-    text = {**{k: v for k, v in out.items() if k != "meta"}, **out["meta"]}
-    text["ingested"] = datetime.fromtimestamp(row.ingested, timezone.utc).isoformat(timespec="seconds")
-    for key, value in text.items():
-        shown = json.dumps(value, sort_keys=True) if isinstance(value, (dict, list)) else value
-        print(f"{key:<18} {shown if shown != '' else '-'}")
-    return 0
-
-
-def _episodes_verify(args: argparse.Namespace) -> int:
-    cat = _existing_catalog(args)
-    rows = [_resolve(cat, i) for i in args.episode_ids] if args.episode_ids else cat.list(quarantined=False)
-    report = []
-    for row in tqdm(rows, unit="ep", desc="verify", file=sys.stderr, disable=None):
-        entry = {"episode_id": row.episode_id, "ok": True, "error": "", "quarantined": bool(row.quarantined)}
-        try:
-            cat.verify(row.episode_id)
-        except StorageError as exc:
-            entry.update(ok=False, error=f"{type(exc).__name__}: {exc}")
-            if args.quarantine and not row.quarantined and isinstance(exc, DAMAGED_EPISODE_ERRORS):
-                entry["quarantined"] = _quarantine_bad(cat, row, exc)
-        report.append(entry)
-    bad = [r for r in report if not r["ok"]]
-    unresolved = [r for r in bad if not r["quarantined"]]
-    strays = cat.strays() if not args.episode_ids else None
-    stray_paths = [str(p) for p in (strays.staging + strays.unindexed)] if strays else []
-    if args.json:
-        common.print_json({"checked": len(report), "bad": len(bad), "episodes": report, "strays": stray_paths,
-                           "quarantined": cat.count(quarantined=True)})
-    else:
-        for r in bad:
-            print(f"BAD {r['episode_id']}: {r['error']}" + (" (quarantined)" if r["quarantined"] else ""))
-        held = cat.count(quarantined=True)
-        print(f"verified {len(report)} episodes: {len(report) - len(bad)} ok, {len(bad)} bad"
-              + (f"; {held} quarantined in all (`episodes ls --quarantined`)" if held else ""))
-        if stray_paths:  # never acknowledged, so not an error; `serve` moves them aside when it starts
-            print(f"{len(stray_paths)} file(s) left by a crashed ingest, not in the catalog "
-                  f"(`serve` moves them to {ORPHANS_DIR}/ at start-up):")
-            for path in stray_paths:
-                print(f"  {path}")
-    return 1 if (unresolved if args.quarantine else bad) else 0
-
-
-def _quarantine_bad(cat: Catalog, row: EpisodeRow, exc: StorageError) -> bool:
-    """Quarantines a bad episode ``verify`` found; False (with a line on stderr) when it cannot be."""
-    try:  # (a repair that came in since it was read wins: then it is not quarantined)
-        return bool(cat.quarantine(row.episode_id, f"found by episodes verify: {exc}", only_if_damaged=True).quarantined)
-    except CatalogError as why:
-        print(one_line(f"activecollect: cannot quarantine {row.episode_id}: {why}"), file=sys.stderr)
-        return False
-
-
-def _episodes_quarantine(args: argparse.Namespace) -> int:
-    cat = _existing_catalog(args)
-    if not args.reason.strip():
-        raise common.UsageError("--reason must say why")
-    rows = [_resolve(cat, i) for i in args.episode_ids]  # all known before any changes
-    return _each(args, rows, lambda row: cat.quarantine(row.episode_id, args.reason), "quarantined")
-
-
-def _episodes_restore(args: argparse.Namespace) -> int:
-    if bool(args.episode_ids) == args.all:
-        raise common.UsageError("give the episodes to restore, or --all (not both)")
-    cat = _existing_catalog(args)
-    rows = cat.list(quarantined=True) if args.all else [_resolve(cat, i) for i in args.episode_ids]
-    if not rows and not args.json:
-        print(f"nothing is quarantined in {cat.data_dir}")
-    return _each(args, rows, lambda row: cat.restore(row.episode_id), "restored")
-
-
-def _each(args: argparse.Namespace, rows: list[EpisodeRow], change: Callable[[EpisodeRow], EpisodeRow],
-          done: str) -> int:
-    """Applies ``change`` to each row, reporting each; exit 1 when any was refused."""
-    report = []
-    for row in rows:
-        try:
-            now = change(row)
-            report.append({"episode_id": row.episode_id, "ok": True, "quarantined": now.quarantined})
-            if not args.json:
-                print(f"{done} {row.episode_id}" + (f": {now.quarantined}" if now.quarantined else ""))
-        except StorageError as exc:
-            report.append({"episode_id": row.episode_id, "ok": False, "error": str(exc)})
-            print(one_line(f"activecollect: {exc}"), file=sys.stderr)
-    if args.json:
-        common.print_json(report)
-    return 0 if all(r["ok"] for r in report) else 1
 
 
 # -- ingest ------------------------------------------------------------------------------------
@@ -447,7 +272,7 @@ def _eval_split_create(args: argparse.Namespace) -> int:
 
 
 def _eval_split_show(args: argparse.Namespace) -> int:
-    cat = _existing_catalog(args)
+    cat = common.existing_catalog(args)
     split = cat.eval_split()
     if split is None:
         print(f"activecollect: no eval split is pinned in {cat.data_dir} "

@@ -272,3 +272,11 @@ def require_catalog(data: Path) -> None:
     """UsageError (exit 2) unless ``data`` holds a catalog; nothing is created."""
     if not (data / DB_NAME).is_file():
         raise UsageError(f"no catalog at {data} (give --data DIR, or collect episodes first)")
+
+
+def existing_catalog(args: argparse.Namespace) -> Catalog:
+    """The catalog at ``args.data`` (for the commands that only read it); UsageError (exit 2) unless
+    there is one, nothing is created."""
+    data = Path(args.data)
+    require_catalog(data)
+    return Catalog(data)

@@ -9,7 +9,8 @@ from pathlib import Path
 from orchestrator.cli.common import Parser, UsageError, add_json_arg, config_error, print_json, positive_int
 from orchestrator.router import RouterConfig, RouterError, run_router
 from orchestrator.secure import DEFAULT_NAMESPACE, DEFAULT_ROUTER_ENDPOINT, SecureInitConfig, init_secure
-from orchestrator.transport import SecureConfigError, endpoint, validate_secure_config
+from orchestrator.endpoints import endpoint
+from orchestrator.transport import SecureConfigError, validate_secure_config
 
 
 def register(sub) -> None:

@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 import zenoh
 
-from orchestrator import admin, dispatchbench, protocol, transport
+from orchestrator import admin, dispatchbench, endpoints, protocol, transport
 from orchestrator.champion import ChampionScorer
 from orchestrator.cli import common
 from orchestrator.cli.loop import add_retrain_args_arg
@@ -31,7 +31,8 @@ from orchestrator.messages import AdminRequest, Event
 from orchestrator.planner import ActivePlanner, ActivePlannerConfig
 from orchestrator.uniform import UniformPlanner, UniformPlannerConfig, uniform_start_state
 from orchestrator.protocol import Keys, ProtocolError
-from orchestrator.service import PlannerFactory, Service, ServiceConfig, ServiceContext, ServiceError
+from orchestrator.service import Service
+from orchestrator.serviceconfig import PlannerFactory, ServiceConfig, ServiceContext, ServiceError
 from orchestrator.signals import on_stop_signals
 from storage.requests import RequestStatus
 from workers import agent
@@ -50,7 +51,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--init", action="store_true",
                    help="start a new data directory at --data when there is none (without it, a --data that "
                         "does not exist is refused: a misspelt path must not start a new, empty catalog)")
-    transport.add_connection_args(p, listen=True)
+    endpoints.add_connection_args(p, listen=True)
     p.add_argument("--lease-s", type=common.positive_float, default=30.0, metavar="S",
                    help="seconds a worker holds a request before it must renew the lease or lose it (default 30)")
     p.add_argument("--reap-interval-s", type=common.positive_float, default=1.0, metavar="S",
@@ -170,7 +171,7 @@ def register_bench(bench_sub: argparse._SubParsersAction) -> None:
 
 
 def _operator_args(p: argparse.ArgumentParser) -> None:
-    transport.add_connection_args(p)
+    endpoints.add_connection_args(p)
     common.add_json_arg(p)
 
 
@@ -233,7 +234,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
     min_queued = _min_queued(args)
     _keys(args)
     logging.basicConfig(level=args.log_level, format="%(asctime)s %(name)s %(levelname)s %(message)s")
-    listen, connect = transport.endpoints_from_args(args)
+    listen, connect = endpoints.endpoints_from_args(args)
     try:
         extras = CompanionConfig(dashboard_port=args.dashboard_port, dashboard_max_connections=args.max_connections,
                                  dashboard_request_timeout_s=args.request_timeout, retrain_every=args.retrain_every,
@@ -291,7 +292,7 @@ class _NoService(Exception):
 
 @contextmanager
 def _session(args: argparse.Namespace) -> Iterator[zenoh.Session]:
-    listen, connect = transport.endpoints_from_args(args)
+    listen, connect = endpoints.endpoints_from_args(args)
     try:
         session = transport.open_session(args.mode, listen, connect, args.zenoh_config)
     except transport.TransportError as exc:

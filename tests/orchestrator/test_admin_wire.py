@@ -11,7 +11,8 @@ from orchestrator import protocol, transport
 from orchestrator.cli import main
 from orchestrator.messages import AdminRequest
 from orchestrator.protocol import Keys
-from orchestrator.service import Service, ServiceConfig
+from orchestrator.service import Service
+from orchestrator.serviceconfig import ServiceConfig
 from storage.requests import NewRequest
 
 START = {"shape": "box", "agent": [100.0, 100.0], "object": [256.0, 256.0, 0.3]}

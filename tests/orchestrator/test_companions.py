@@ -13,7 +13,8 @@ import pytest
 
 from orchestrator.companions import CompanionConfig, Companions
 from orchestrator.uniform import UniformPlanner, UniformPlannerConfig
-from orchestrator.service import Service, ServiceConfig
+from orchestrator.service import Service
+from orchestrator.serviceconfig import ServiceConfig
 from storage.models import ModelRegistry
 from tests.conftest import wait_for
 from workers.collect import collect_episode, create_eval_split

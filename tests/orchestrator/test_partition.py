@@ -210,7 +210,8 @@ SERVICE = """
 import logging, signal, sys, threading
 from pathlib import Path
 from orchestrator.transport import validate_secure_config
-from orchestrator.service import Service, ServiceConfig
+from orchestrator.service import Service
+from orchestrator.serviceconfig import ServiceConfig
 logging.basicConfig(level=logging.INFO, stream=sys.stdout, format="%(name)s %(levelname)s %(message)s")
 validate_secure_config(sys.argv[1])
 service = Service(ServiceConfig(data_dir=Path(sys.argv[2]), zenoh_config=Path(sys.argv[1]),

@@ -28,7 +28,8 @@ from orchestrator.protocol import Keys
 from orchestrator.secure import (CLIENT_ROLES, ROLES, SecureConfigError, SecureInitConfig, SecureSet,
                                  build_acl, init_secure, private_mode_ok)
 from orchestrator.transport import validate_secure_config
-from orchestrator.service import Service, ServiceConfig
+from orchestrator.service import Service
+from orchestrator.serviceconfig import ServiceConfig
 from storage.requests import RequestStatus
 from tests.conftest import free_port, wait_for
 

@@ -19,7 +19,8 @@ from orchestrator import messages, protocol, transport
 from orchestrator.messages import LeaseGrant
 from orchestrator.uniform import UniformPlanner, UniformPlannerConfig
 from orchestrator.protocol import ErrorCode, Keys, ProtocolError
-from orchestrator.service import Service, ServiceConfig, ServiceError
+from orchestrator.service import Service
+from orchestrator.serviceconfig import ServiceConfig, ServiceError
 from orchestrator.uploads import StoredEpisode
 from storage.catalog import Catalog
 from storage.models import ModelRegistry

@@ -11,7 +11,8 @@ import pytest
 
 from orchestrator import dispatchbench
 from orchestrator.cli import main
-from orchestrator.service import Service, ServiceConfig
+from orchestrator.service import Service
+from orchestrator.serviceconfig import ServiceConfig
 from storage.catalog import Catalog
 from storage.requests import RequestStatus
 from tests.conftest import free_port, wait_for

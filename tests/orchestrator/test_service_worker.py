@@ -7,7 +7,8 @@ from pathlib import Path
 
 import pytest
 
-from orchestrator.service import Service, ServiceConfig
+from orchestrator.service import Service
+from orchestrator.serviceconfig import ServiceConfig
 from storage.catalog import Catalog
 from storage.errors import CatalogUnavailableError
 from storage.requests import RequestStatus
