@@ -86,3 +86,18 @@ def test_figure_scripts_refuse_a_frame_size_no_model_trains_on_in_one_line(tmp_p
     assert proc.stderr.splitlines() == [f"{script}: error: argument {flag}: expected a multiple of 8 from 16 to "
                                         "1024 (what a model trains on), found 12"]
     assert not data.exists()  # refused before anything was made
+
+
+def test_torch_threads_times_every_setting_and_refuses_no_steps(tmp_path):
+    out = tmp_path / "threads.json"
+    script = str(ROOT / "bench" / "torch_threads.py")
+    proc = subprocess.run([sys.executable, script, "--steps", "3", "--json", str(out)],
+                          cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    settings = json.loads(out.read_text())["settings"]
+    assert [len(s["seconds"]) for s in settings.values()] == [1, 2, 1, 2, 1, 2]
+    assert settings["alone"]["over_alone"] == 1.0 and all(s["over_alone"] > 0 for s in settings.values())
+    assert settings["one thread, two at once"]["threads"] == 1
+    bad = subprocess.run([sys.executable, script, "--steps", "0"], cwd=ROOT, capture_output=True, text=True,
+                         timeout=60)
+    assert bad.returncode == 2 and "--steps must be at least 1" in bad.stderr
