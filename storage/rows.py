@@ -94,4 +94,5 @@ class Snapshot:
 
     def without(self, drop: Sequence[str]) -> Snapshot:
         """This snapshot less the episodes ``drop`` (those a job found damaged and quarantined)."""
-        return Snapshot.of([(i, s) for i, s in zip(self.ids, self.sha256s) if i not in set(drop)])
+        dropped = set(drop)
+        return Snapshot.of([(i, s) for i, s in zip(self.ids, self.sha256s) if i not in dropped])

@@ -202,7 +202,7 @@ class Ensemble(nn.Module):
         Steps without ``C-1`` earlier frames or without ``horizon`` successors are NaN.
         Raises ``DataError`` on mismatched shapes.
         """
-        return self.score_steps(frames, actions, horizon, _member_variance, fused, batch_size)
+        return self.score_steps(frames, actions, horizon, member_variance, fused, batch_size)
 
     @torch.inference_mode()
     def score_steps(self, frames: np.ndarray, actions: np.ndarray, horizon: int, score: StepScore,
@@ -249,7 +249,9 @@ StepScore = Callable[[torch.Tensor, torch.Tensor, torch.Tensor], torch.Tensor]
 WindowScore = Callable[[torch.Tensor, torch.Tensor, torch.Tensor], torch.Tensor]
 
 
-def _member_variance(preds: torch.Tensor, context: torch.Tensor, real: torch.Tensor) -> torch.Tensor:
+def member_variance(preds: torch.Tensor, context: torch.Tensor, real: torch.Tensor) -> torch.Tensor:
+    """The disagreement of a batch of member rollouts (a ``StepScore``): the variance across members, averaged
+    over the horizon and the pixels."""
     return preds.var(dim=0, unbiased=False).mean(dim=(1, 2, 3, 4))                     # (B,)
 
 

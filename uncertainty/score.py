@@ -15,7 +15,7 @@ import numpy as np
 import torch
 
 from storage.records import STATE_FIELDS, Episode
-from uncertainty.ensemble import Ensemble
+from uncertainty.ensemble import Ensemble, member_variance
 from uncertainty.errors import ConfigError
 
 _COL = {name: i for i, name in enumerate(STATE_FIELDS)}
@@ -109,8 +109,8 @@ def predicted_variance(ensemble: Ensemble, frames: np.ndarray, actions: np.ndarr
     def variance(context: torch.Tensor, actions: torch.Tensor, real: torch.Tensor) -> torch.Tensor:
         preds, logvar = ensemble.forward_dist(context, actions[:, 0])                 # (K, B, 3, H, W) each
         out = logvar.exp().mean(dim=(0, 2, 3, 4))                                       # (B,)
-        if total:  # the members' frames clamped to [0, 1], as every rollout's (and eval's)
-            out = out + preds.clamp(0.0, 1.0).var(dim=0, unbiased=False).mean(dim=(1, 2, 3))
+        if total:  # the disagreement of the members' frames clamped to [0, 1], as a rollout's (and eval's)
+            out = out + member_variance(preds.clamp(0.0, 1.0)[:, :, None], context, real)  # (B,)
         return out
 
     return ensemble.score_windows(frames, actions, 1, variance, batch_size)
