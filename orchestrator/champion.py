@@ -33,6 +33,24 @@ if TYPE_CHECKING:
 log = logging.getLogger(__name__)
 
 
+def limit_torch_threads(threads: int) -> None:
+    """Give torch at most ``threads`` intra-op threads in this process (0: leave its setting alone).
+
+    ``serve`` scores in its own process while each retrain runs in a child process. Both busy
+    with torch's default, a thread per core each, their OpenMP threads spin against each other:
+    on 2 cores the retrain took 2.85x as long as alone and the scoring ran at 0.31 of its speed;
+    with one scoring thread and the retrain on the other core, 1.24x and 0.99 (BENCHMARKS.md,
+    "Scoring beside a retrain"; ``serve --scoring-threads``, ``--retrain-threads``).
+
+    Process-wide, with torch's one exception: a thread takes the setting on its first torch
+    call, so one that used torch before keeps its count (call this before starting threads).
+    """
+    if threads:
+        import torch  # (only ever called where torch is being loaded anyway)
+        if torch.get_num_threads() != threads:
+            torch.set_num_threads(threads)
+
+
 class ChampionScorer:
     """Scores episodes with the current champion; None while there is none.
 
@@ -50,9 +68,14 @@ class ChampionScorer:
 
     def __init__(self, data_dir: Path, device: str = "cpu",
                  observe: Callable[[float], None] = lambda seconds: None, with_error: bool = False,
-                 error_horizon: int = 1) -> None:
+                 error_horizon: int = 1, threads: int = 0) -> None:
+        if threads < 0:
+            raise ValueError(f"threads must be >= 0, found {threads}")
         self.data_dir = Path(data_dir)
         self.device = device
+        self.threads = threads
+        """Torch's intra-op threads in this whole process, set when a champion is loaded (0: leave torch's own
+        setting, one per core). See ``limit_torch_threads``."""
         self.observe = observe
         self.with_error = with_error
         """Scores also carry the ensemble mean's error per step and whether the champion trained on the episode."""
@@ -90,6 +113,7 @@ class ChampionScorer:
             if attempt == self._failed and time.monotonic() - self._failed_at < self.RETRY_S:
                 return self.version  # nothing has changed since it failed: not read (and hashed) again yet
             from uncertainty.checkpoint import load_ensemble  # torch: start-up cost, see the module docstring
+            limit_torch_threads(self.threads)
             try:
                 ensemble = load_ensemble(registry, champion, self.device)
             except RegistryError as exc:  # a corrupt checkpoint: keep scoring with the one we have

@@ -42,16 +42,27 @@ class CompanionConfig:
     """A retrain running longer than this is killed and changes nothing."""
     retrain_args: tuple[str, ...] = ()
     """Extra ``activecollect retrain`` arguments (training and gate settings)."""
+    retrain_threads: int = 0
+    """Torch threads of each retrain job (``ScheduleConfig.threads``; 0 = torch's default, one per core)."""
+    scoring_threads: int = 0
+    """Torch threads of the dashboard's champion (``ChampionScorer.threads``; 0 = torch's default)."""
 
     def __post_init__(self) -> None:
         if not -1 <= self.dashboard_port <= 65535:
             raise ValueError(f"dashboard_port must be -1 (none) or in [0, 65535], found {self.dashboard_port}")
         self.dashboard_config()  # its own checks, before anything starts
+        if self.scoring_threads < 0:
+            raise ValueError(f"scoring_threads must be >= 0, found {self.scoring_threads}")
         if self.retrain_every < 0:
             raise ValueError(f"retrain_every must be >= 0, found {self.retrain_every}")
         # The schedule's own checks (cron syntax, timeout), before anything starts.
-        ScheduleConfig(every_episodes=self.retrain_every, cron=self.retrain_cron,
-                       timeout_s=self.retrain_timeout_s, retrain_args=self.retrain_args)
+        self.schedule()
+
+    def schedule(self) -> ScheduleConfig:
+        """The retrain schedule's settings (raises ValueError for a bad one)."""
+        return ScheduleConfig(every_episodes=self.retrain_every, cron=self.retrain_cron,
+                              timeout_s=self.retrain_timeout_s, retrain_args=self.retrain_args,
+                              threads=self.retrain_threads)
 
     def dashboard_config(self) -> DashboardConfig:
         """The dashboard's settings (raises ValueError for a bad one; port -1, no dashboard, gives 0)."""
@@ -73,13 +84,11 @@ class Companions:
         """Raises ``ValueError`` for a bad schedule and ``OSError`` when the dashboard port is taken."""
         cfg, ctx = self.cfg, self.service.context
         if cfg.retrain_every or cfg.retrain_cron:
-            schedule = ScheduleConfig(every_episodes=cfg.retrain_every, cron=cfg.retrain_cron,
-                                      timeout_s=cfg.retrain_timeout_s, retrain_args=cfg.retrain_args)
-            self.scheduler = RetrainScheduler(schedule, ctx.data_dir, lambda: ctx.catalog.count(split="train"),
+            self.scheduler = RetrainScheduler(cfg.schedule(), ctx.data_dir, lambda: ctx.catalog.count(split="train"),
                                               on_promoted=self._promoted, on_finished=self._finished)
             self.scheduler.start()
         if cfg.dashboard_port >= 0:
-            scorer = ChampionScorer(ctx.data_dir)
+            scorer = ChampionScorer(ctx.data_dir, threads=cfg.scoring_threads)
             sources = DataSources(ctx.data_dir, workers=lambda: [{"id": w} for w in self.service.workers()],
                                   metrics_text=self.service.metrics.render,
                                   frames_png=FramesSource(scorer, ctx.catalog),

@@ -77,8 +77,13 @@ class ScheduleConfig:
     """How often the scheduler thread checks whether a job is due or done."""
     retrain_args: tuple[str, ...] = ()
     """Extra arguments given to ``activecollect retrain`` (training and gate settings)."""
+    threads: int = 0
+    """Torch threads of each job (``retrain --threads``, given before ``retrain_args``, so a ``--threads``
+    there wins; 0 = torch's default, one per core)."""
 
     def __post_init__(self) -> None:
+        if self.threads < 0:
+            raise ValueError(f"threads must be >= 0, found {self.threads}")
         if self.every_episodes < 0:
             raise ValueError(f"every_episodes must be >= 0, found {self.every_episodes}")
         if self.cron and not croniter.is_valid(self.cron):
@@ -307,6 +312,11 @@ class RetrainScheduler:
             return "cron"
         return ""
 
+    def job_args(self) -> tuple[str, ...]:
+        """What each job is given after ``--data`` and ``--json``: ``--threads`` when set, then ``retrain_args``."""
+        threads = ("--threads", str(self.cfg.threads)) if self.cfg.threads else ()
+        return (*threads, *self.cfg.retrain_args)
+
     def _launch(self, trigger: str) -> RetrainRecord:
         episodes = self.count_episodes()
         self._last_count = episodes
@@ -316,7 +326,7 @@ class RetrainScheduler:
         try:
             logs.mkdir(parents=True, exist_ok=True)
             with open(rec.log_path + ".out", "wb") as out, open(rec.log_path, "wb") as err:
-                proc = subprocess.Popen(self.command(self.data_dir, self.cfg.retrain_args),
+                proc = subprocess.Popen(self.command(self.data_dir, self.job_args()),
                                         stdout=out, stderr=err, stdin=subprocess.DEVNULL)
         except OSError as exc:  # no log folder, no such program, no processes left: a failed job, recorded
             rec.finished, rec.status = time.time(), RetrainStatus.failed

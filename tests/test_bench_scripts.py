@@ -8,6 +8,7 @@ from pathlib import Path
 import pytest
 
 from storage.catalog import Catalog
+from storage.models import ModelRegistry
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -101,3 +102,47 @@ def test_torch_threads_times_every_setting_and_refuses_no_steps(tmp_path):
     bad = subprocess.run([sys.executable, script, "--steps", "0"], cwd=ROOT, capture_output=True, text=True,
                          timeout=60)
     assert bad.returncode == 2 and "--steps must be at least 1" in bad.stderr
+
+
+def _data_with_a_champion(data: Path) -> None:
+    """A tiny catalog (eval split, 3 training episodes) and a champion trained on it."""
+    import numpy as np
+    from orchestrator.uniform import UniformPlanner, UniformPlannerConfig
+    from uncertainty.config import TrainConfig
+    from uncertainty.train import train_candidate
+    from workers.collect import collect_episode, create_eval_split
+    catalog = Catalog(data)
+    create_eval_split(catalog, episodes=2, seed=1, steps=8, image_size=16)
+    for i, r in enumerate(UniformPlanner(UniformPlannerConfig(steps=8), np.random.default_rng(0)).seed(3)):
+        catalog.add_episode(collect_episode(start_state=r.start_state, policy=r.policy, policy_params=r.policy_params,
+                                            seed=i, steps=8, image_size=16))
+    train_candidate(catalog, ModelRegistry(data), TrainConfig(members=2, widths=(4, 4, 4), batch_size=8, epochs=1,
+                                                              device="cpu", progress=False))
+
+
+@pytest.mark.timeout(300)
+def test_scoring_threads_times_each_setting_against_its_alone_figure_and_leaves_the_data_alone(tmp_path):
+    data, out = tmp_path / "data", tmp_path / "threads.json"
+    script = str(ROOT / "bench" / "scoring_threads.py")
+    bad = subprocess.run([sys.executable, script, "--data", str(data)], cwd=ROOT, capture_output=True, text=True,
+                         timeout=60)
+    assert bad.returncode == 2 and "no catalog in" in bad.stderr.splitlines()[-1]
+    _data_with_a_champion(data)
+    files = lambda: sorted((p.relative_to(data), p.stat().st_size) for p in data.rglob("*")  # noqa: E731
+                           if p.is_file() and not p.name.endswith(("-wal", "-shm")))  # (SQLite's, while open)
+    before = files()
+    proc = subprocess.run([sys.executable, script, "--data", str(data), "--repeats", "1", "--score-seconds", "0.5",
+                           "--threads", "1", "--retrain-args", "--members 2 --epochs 1 --widths 4,4,4 --device cpu",
+                           "--json", str(out)], cwd=ROOT, capture_output=True, text=True, timeout=280)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    result = json.loads(out.read_text())
+    settings = result["settings"]
+    assert len(settings) == 7 and all(len(s["each"]) == 1 for s in settings.values())
+    assert settings["retrain alone"]["retrain_over_alone"] == 1.0
+    assert settings["scorer alone, 1 threads"] == {**settings["scorer alone, 1 threads"], "threads": 1,
+                                                   "scoring_over_alone": 1.0}
+    fitted = max(1, result["cores"] - 1)
+    both = settings[f"scorer 1 threads, retrain {fitted} (fitted)"]
+    assert both["threads"] == 1 and both["retrain_s"] > 0 and both["scored_per_s"] > 0
+    assert settings["both default threads"]["threads"] >= 1  # torch's own choice
+    assert files() == before and len(ModelRegistry(data).list()) == 1  # every retrain trained a copy

@@ -136,6 +136,8 @@ def _connect() -> list[str]:
     (["retrain", "--min-improvement", "nan", "--data", "DATA"], "expected a finite number"),
     (["train", "--min-improvement", "inf", "--data", "DATA"], "expected a finite number"),
     (["run", "--seed", "-1", "--data", "DATA"], "expected an integer >= 0"),
+    (["serve", "--retrain-threads", "-1", "--data", "DATA"], "argument --retrain-threads: expected an integer >= 0"),
+    (["serve", "--scoring-threads", "x", "--data", "DATA"], "argument --scoring-threads: expected an integer"),
     # --retrain-args is checked by the retrain job's parser up front, not at every retrain
     (["run", "--retrain-args=--epochs x", "--data", "DATA"], "argument --epochs: expected a positive integer"),
     (["run", "--retrain-args=--bogus 1", "--data", "DATA"], "unrecognized arguments: --bogus"),

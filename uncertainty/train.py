@@ -305,7 +305,8 @@ def train_candidate(catalog: CatalogLike, registry: ModelRegistry, cfg: TrainCon
     train_s = time.perf_counter() - start
     metrics = evaluate_episodes(ensemble, eval_episodes, eval_hash, rollout_stride=cfg.eval_rollout_stride)
     metrics.update({"train_episodes": len(data.episodes), "train_windows": len(windows),
-                    "train_seconds": round(train_s, 2), "train_loss": losses[-1], "epochs": cfg.epochs})
+                    "train_seconds": round(train_s, 2), "train_threads": torch.get_num_threads(),
+                    "train_loss": losses[-1], "epochs": cfg.epochs})
     # A warm start keeps the champion's shape: record what was trained, not what was asked for.
     used = cfg.to_dict() | {"members": ensemble.members, "context": ensemble.config.context,
                             "widths": list(ensemble.config.widths),

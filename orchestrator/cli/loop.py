@@ -24,7 +24,7 @@ from collections import Counter
 from pathlib import Path
 from typing import Mapping
 
-from orchestrator.champion import ChampionScorer, FramesSource
+from orchestrator.champion import ChampionScorer, FramesSource, limit_torch_threads
 from orchestrator.cli import collect as collect_cli, common
 from orchestrator.dashboard import Dashboard, DashboardConfig, DataSources
 from orchestrator.loopconfig import PALETTES, SIGNALS, LoopBenchConfig, RunConfig
@@ -287,6 +287,9 @@ def _retrain_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--keep-models", type=common.positive_int, default=None, metavar="N",
                    help="after the gate, delete the files of retired and rejected models except the champion's "
                         "rollback chain of N (as 'models prune --keep N'; default: keep every model)")
+    p.add_argument("--threads", type=common.non_negative_int, default=0, metavar="N",
+                   help="torch threads to train with (default 0: torch's own, one per core; serve gives its jobs "
+                        "the cores its scoring leaves, see serve --retrain-threads)")
 
 
 class _RetrainArgsParser(common.Parser):
@@ -414,6 +417,7 @@ def _retrain(args: argparse.Namespace) -> int:
     common.require_catalog(args.data)  # checked before the retrain lock would make the directory
     # torch: imported once the arguments are known good (start-up cost)
     from orchestrator.retrain import abandoned_note, run_retrain
+    limit_torch_threads(args.threads)
     try:
         result = run_retrain(args.data, cfg, wait=args.wait, keep_models=args.keep_models)
     except RetrainBusyError as exc:

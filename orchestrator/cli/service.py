@@ -11,6 +11,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import os
 import sys
 import threading
 import time
@@ -38,6 +39,8 @@ from storage.requests import RequestStatus
 from workers import agent
 
 PLANNERS = ("active", "uniform", "none")
+#: ``serve``'s torch threads for scoring (``ChampionScorer.threads``); its retrain jobs get the other cores.
+SCORING_THREADS = 1
 #: ``serve``'s queue floor: an idle worker of two finds work at once while the planner catches up.
 MIN_QUEUED = 2
 #: The planners ``serve`` builds stop adding requests once this many are queued (their configs' default).
@@ -68,6 +71,14 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help=f"steps per planned episode, at least {common.MIN_EPISODE_STEPS} (default 50)")
     p.add_argument("--seed", type=common.non_negative_int, default=0, metavar="K",
                    help="seed of the planner's generator (default 0)")
+    p.add_argument("--scoring-threads", type=common.non_negative_int, default=SCORING_THREADS, metavar="N",
+                   help=f"torch threads the service scores episodes with (default {SCORING_THREADS}; 0 = torch's "
+                        f"default, one per core)")
+    p.add_argument("--retrain-threads", type=common.non_negative_int, default=None, metavar="N",
+                   help="torch threads of each retrain job (default: the cores the scoring leaves, here "
+                        f"{fitted_retrain_threads(SCORING_THREADS)}; 0 = torch's default, one per core; a --threads "
+                        "in --retrain-args wins). Two processes with more threads than cores between them slow "
+                        "each other several times over")
     d = CompanionConfig()
     p.add_argument("--dashboard-port", type=common.dashboard_port, default=d.dashboard_port, metavar="PORT",
                    help=f"dashboard on 127.0.0.1:PORT (0 = any free port, -1 = none; default {d.dashboard_port})")
@@ -200,8 +211,8 @@ def _json_object(text: str) -> dict:
 
 # --- serve ---------------------------------------------------------------------------------------
 
-def planner_factory(name: str, steps: int, seed: int) -> PlannerFactory | None:
-    """The factory ``serve --planner`` names (None for ``none``)."""
+def planner_factory(name: str, steps: int, seed: int, threads: int = 0) -> PlannerFactory | None:
+    """The factory ``serve --planner`` names (None for ``none``); ``threads`` is the champion scorer's."""
     if name == "none":
         return None
 
@@ -211,10 +222,31 @@ def planner_factory(name: str, steps: int, seed: int) -> PlannerFactory | None:
         uniform = UniformPlannerConfig(steps=steps)
         if name == "uniform":
             return UniformPlanner(uniform, rng, depth)
-        scorer = ChampionScorer(ctx.data_dir, observe=ctx.metrics.observe_scoring)
+        scorer = ChampionScorer(ctx.data_dir, observe=ctx.metrics.observe_scoring, threads=threads)
         return ActivePlanner(ActivePlannerConfig(steps=steps, seed_uniform=uniform), scorer, rng, depth)
 
     return build
+
+
+def fitted_retrain_threads(scoring_threads: int, cores: int | None = None) -> int:
+    """The retrain job's torch threads that, with the scoring's, fill the machine's cores (at least 1);
+    0 (torch's default) when the scoring takes torch's default itself: there is nothing to fit."""
+    if not scoring_threads:
+        return 0
+    return max(1, (cores or len(os.sched_getaffinity(0))) - scoring_threads)
+
+
+def companion_config(args: argparse.Namespace) -> CompanionConfig:
+    """``serve``'s dashboard and retrain schedule (a bad one is a usage error)."""
+    retrain_threads = fitted_retrain_threads(args.scoring_threads) if args.retrain_threads is None \
+        else args.retrain_threads
+    try:
+        return CompanionConfig(dashboard_port=args.dashboard_port, dashboard_max_connections=args.max_connections,
+                               dashboard_request_timeout_s=args.request_timeout, retrain_every=args.retrain_every,
+                               retrain_cron=args.retrain_cron, retrain_args=args.retrain_args,
+                               retrain_threads=retrain_threads, scoring_threads=args.scoring_threads)
+    except ValueError as exc:
+        raise common.config_error(exc) from None
 
 
 def _min_queued(args: argparse.Namespace) -> int:
@@ -235,18 +267,13 @@ def cmd_serve(args: argparse.Namespace) -> int:
     _keys(args)
     logging.basicConfig(level=args.log_level, format="%(asctime)s %(name)s %(levelname)s %(message)s")
     listen, connect = endpoints.endpoints_from_args(args)
-    try:
-        extras = CompanionConfig(dashboard_port=args.dashboard_port, dashboard_max_connections=args.max_connections,
-                                 dashboard_request_timeout_s=args.request_timeout, retrain_every=args.retrain_every,
-                                 retrain_cron=args.retrain_cron, retrain_args=args.retrain_args)
-    except ValueError as exc:
-        raise common.config_error(exc) from None
+    extras = companion_config(args)
     try:
         config = ServiceConfig(data_dir=args.data, namespace=args.namespace, mode=args.mode, listen=listen,
                                connect=connect, zenoh_config=args.zenoh_config, lease_s=args.lease_s,
                                reap_interval_s=args.reap_interval_s, seed_requests=args.seed_requests,
                                min_queued=min_queued,
-                               planner=planner_factory(args.planner, args.steps, args.seed))
+                               planner=planner_factory(args.planner, args.steps, args.seed, args.scoring_threads))
     except ServiceError as exc:
         raise common.config_error(exc, {"namespace": "--namespace", "mode": "--mode"}) from None
     if not args.init and not args.data.is_dir():  # (data_dir has refused a file there)

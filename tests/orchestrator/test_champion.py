@@ -3,8 +3,12 @@
 from __future__ import annotations
 
 import logging
+import subprocess
+import sys
+from pathlib import Path
 
 import numpy as np
+import pytest
 
 from orchestrator.champion import ChampionScorer
 from storage.errors import RegistryUnavailableError
@@ -127,3 +131,41 @@ def test_the_scorer_tries_again_after_a_read_error(tmp_path, monkeypatch):
     _failing_reads_of(registry.get(version).weights_path, monkeypatch, times=1)
     assert scorer.reload() is None and "Input/output error" in scorer.problem
     assert scorer.reload() == version and scorer.problem is None
+
+
+THREADS_PROBE = """
+import sys, threading, torch
+from orchestrator.champion import ChampionScorer
+from tests.uncertainty.synth import make_episode
+scorer = ChampionScorer(sys.argv[1], threads=int(sys.argv[2]))
+seen = {}
+def default():  # (each thread takes torch's setting on its first call: the main thread is kept for the end)
+    seen["default"] = torch.get_num_threads()
+def score():  # the service scores in its planner's thread, not the main one
+    seen["version"] = scorer(make_episode(0, size=16)).model_version
+    seen["scoring"] = torch.get_num_threads()
+def later():
+    seen["later"] = torch.get_num_threads()
+for target in (default, score, later):
+    thread = threading.Thread(target=target)
+    thread.start()
+    thread.join()
+print(seen["default"], seen["version"], seen["scoring"], seen["later"], torch.get_num_threads())
+"""
+
+
+def test_threads_sets_torchs_threads_for_the_whole_process_when_the_champion_loads_and_zero_leaves_them(tmp_path):
+    version = _promoted(ModelRegistry(tmp_path), 0, 0.02)
+    root = Path(__file__).resolve().parents[2]
+    for threads in (3, 0):  # (3: a count torch would not pick by itself on this 2-core machine or a 1-core one)
+        proc = subprocess.run([sys.executable, "-c", THREADS_PROBE, str(tmp_path), str(threads)], cwd=root,
+                              capture_output=True, text=True, timeout=120)
+        assert proc.returncode == 0, proc.stderr[-2000:]
+        default, loaded, *after = proc.stdout.split()
+        assert loaded == version
+        assert after == [str(threads or default)] * 3  # the scoring thread, one started later, the main one
+
+
+def test_threads_must_not_be_negative(tmp_path):
+    with pytest.raises(ValueError, match="threads must be >= 0, found -1"):
+        ChampionScorer(tmp_path, threads=-1)

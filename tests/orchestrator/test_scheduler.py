@@ -358,3 +358,20 @@ def test_a_retrain_in_text_says_what_it_pruned(trained, tmp_path):
     assert "pruned the files of " in done.stdout and done.stdout.splitlines()[0].startswith("m0")
     verdict = done.stdout.splitlines()[0].split(": ")
     assert verdict[1] in ("promoted", "not promoted") and verdict[2] != "promoted", done.stdout  # said once
+
+
+def test_jobs_train_with_the_threads_the_schedule_gives_unless_their_own_args_say_otherwise(trained, tmp_path):
+    assert RetrainScheduler(ScheduleConfig(retrain_args=TINY), tmp_path, Counter()).job_args() == TINY
+    with pytest.raises(ValueError, match="threads must be >= 0, found -1"):
+        ScheduleConfig(threads=-1)
+    for name, own, threads in (("given", (), 3), ("own", ("--threads", "2"), 2)):
+        data = tmp_path / name
+        shutil.copytree(trained, data)
+        sched = RetrainScheduler(ScheduleConfig(retrain_args=(*TINY, "--epochs", "1", *own), threads=3), data,
+                                 Counter())
+        assert sched.job_args()[:2] == ("--threads", "3")
+        sched.request()
+        rec = sched.tick()
+        assert sched.wait_idle(timeout=240)
+        assert rec.status in (RetrainStatus.promoted, RetrainStatus.rejected), rec.reason
+        assert rec.metrics["train_threads"] == threads

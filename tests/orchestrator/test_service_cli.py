@@ -168,3 +168,22 @@ def test_dispatch_bench_runs_every_phase(tmp_path) -> None:
     assert set(result["dispatch_lease_fail"]["latency"]) == {"lease", "fail", "cycle"}
     assert "lease_p99_over_raw_p99" in result["goals"]
     assert "lease -> fail" in dispatchbench.format_result(result)
+
+
+def test_serve_scores_with_one_torch_thread_and_gives_its_retrains_the_other_cores(service) -> None:
+    """Both processes busy with more threads than cores slow each other several times over (BENCHMARKS: scoring
+    beside a retrain)."""
+    from orchestrator.cli import build_parser
+    from orchestrator.cli.service import companion_config, fitted_retrain_threads, planner_factory
+    assert [fitted_retrain_threads(scoring, cores) for scoring, cores in ((1, 2), (1, 16), (4, 2), (0, 16))] == \
+        [1, 15, 1, 0]  # (0: the scoring takes torch's default, one thread per core, so the retrain does too)
+    args = build_parser().parse_args(["serve"])
+    assert args.scoring_threads == 1 and args.retrain_threads is None
+    cfg = companion_config(args)
+    assert (cfg.scoring_threads, cfg.retrain_threads) == (1, fitted_retrain_threads(1))
+    assert cfg.schedule().threads == cfg.retrain_threads
+    cfg = companion_config(build_parser().parse_args(["serve", "--scoring-threads", "0", "--retrain-threads", "3"]))
+    assert (cfg.scoring_threads, cfg.retrain_threads) == (0, 3)
+    assert companion_config(build_parser().parse_args(["serve", "--scoring-threads", "0"])).retrain_threads == 0
+    assert planner_factory("active", 20, 0, 3)(service.context).scorer.threads == 3
+    assert planner_factory("active", 20, 0)(service.context).scorer.threads == 0  # the library leaves torch alone
