@@ -18,7 +18,10 @@ The scorer is ``orchestrator.champion.ChampionScorer`` with its ``threads`` sett
 the worst case (two workers at real time keep it busy about 1 % of the time). Figures are medians
 over --repeats, and ratios to the alone figures of the same run.
 
-Usage: .venv/bin/python bench/scoring_threads.py --data DIR [--repeats 3] [--threads 1]
+With --rate the scorer is paced as a fleet's uploads arrive (one episode every 1/rate s) instead: the usual
+case, where it is busy a few per cent of the time; the figures then say what the retrain pays for its threads.
+
+Usage: .venv/bin/python bench/scoring_threads.py --data DIR [--repeats 3] [--threads 1] [--rate EPS]
        [--score-seconds 10] [--retrain-args 'ARGS'] [--json out.json]
 """
 
@@ -47,7 +50,7 @@ SCORER = """
 import json, sys, threading, time
 from orchestrator.champion import ChampionScorer
 from storage.catalog import Catalog
-data, threads = sys.argv[1], int(sys.argv[2])
+data, threads, rate = sys.argv[1], int(sys.argv[2]), float(sys.argv[3])
 catalog = Catalog(data)
 episodes = [catalog.load(row.episode_id) for row in catalog.list(split="train", limit=50)]
 scorer = ChampionScorer(data, threads=threads)
@@ -59,23 +62,33 @@ sys.stdin.readline()  # go
 stop = threading.Event()
 threading.Thread(target=lambda: (sys.stdin.readline(), stop.set()), daemon=True).start()
 n, start = 0, time.perf_counter()
+busy = 0.0
 while not stop.is_set():
+    begin = time.perf_counter()
     scorer(episodes[n % len(episodes)])
+    busy += time.perf_counter() - begin
     n += 1
-print(json.dumps({"episodes": n, "seconds": time.perf_counter() - start, "threads": torch.get_num_threads()}))
+    if rate:  # a fleet's pace: the next episode arrives n / rate after the start
+        stop.wait(max(0.0, start + n / rate - time.perf_counter()))
+print(json.dumps({"episodes": n, "seconds": time.perf_counter() - start, "busy_s": busy,
+                  "threads": torch.get_num_threads()}))
 """
 
 
 class Scorer:
-    """A scoring process, loaded and waiting; ``go()`` starts it, ``stop()`` returns its episodes per second."""
+    """A scoring process, loaded and waiting; ``go()`` starts it, ``stop()`` returns its episodes per second
+    (``rate``: at most that many, one every 1/rate s, as a fleet's uploads arrive; 0: back to back)."""
 
-    def __init__(self, data: Path, threads: int) -> None:
-        self.proc = subprocess.Popen([sys.executable, "-c", SCORER, str(data), str(threads)], cwd=ROOT, env=ENV,
+    def __init__(self, data: Path, threads: int, rate: float = 0.0) -> None:
+        self.proc = subprocess.Popen([sys.executable, "-c", SCORER, str(data), str(threads), str(rate)], cwd=ROOT,
+                                     env=ENV,
                                      stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
         if self.proc.stdout.readline().strip() != "ready":
             self.proc.kill()
             raise SystemExit(f"scoring_threads.py: the scorer did not start (exit {self.proc.wait()})")
         self.threads = None
+        self.busy_share = None
+        """The share of the time it spent scoring (1.0 back to back)."""
 
     def go(self) -> None:
         self.proc.stdin.write("go\n")
@@ -85,6 +98,7 @@ class Scorer:
         out, _ = self.proc.communicate("stop\n", timeout=120)
         result = json.loads(out.strip().splitlines()[-1])
         self.threads = result["threads"]
+        self.busy_share = result["busy_s"] / result["seconds"]
         return result["episodes"] / result["seconds"]
 
 
@@ -124,19 +138,20 @@ def settings(threads: int) -> dict[str, tuple[int | None, int | None]]:
 
 
 def measure(data: Path, template: Path, scorer_threads: int | None, retrain_threads: int | None,
-            score_seconds: float, retrain_args: list[str]) -> dict:
-    """One setting once: {"retrain_s": ...} and/or {"scored_per_s": ..., "threads": the scorer's}. The scorer
-    reads ``data``, the retrain a copy of ``template``."""
+            score_seconds: float, retrain_args: list[str], rate: float = 0.0) -> dict:
+    """One setting once: {"retrain_s": ...} and/or {"scored_per_s": ..., "threads": the scorer's, "busy_share":
+    the share of its time it scored}. The scorer reads ``data`` (at ``rate``), the retrain a copy of ``template``."""
     if scorer_threads is None:
         return {"retrain_s": retrain(template, retrain_args, retrain_threads)}
-    scorer = Scorer(data, scorer_threads)
+    scorer = Scorer(data, scorer_threads, rate)
     scorer.go()
     if retrain_threads is None:
         time.sleep(score_seconds)
         out = {}
     else:
         out = {"retrain_s": retrain(template, retrain_args, retrain_threads)}
-    return {**out, "scored_per_s": scorer.stop(), "threads": scorer.threads}
+    scored = scorer.stop()
+    return {**out, "scored_per_s": scored, "threads": scorer.threads, "busy_share": scorer.busy_share}
 
 
 def main() -> int:
@@ -150,10 +165,13 @@ def main() -> int:
                    help="how long the scorer alone is timed (default 10)")
     p.add_argument("--retrain-args", default=RETRAIN_ARGS, metavar="'ARGS'",
                    help=f"arguments of each retrain job (default '{RETRAIN_ARGS}': run's, without its gate)")
+    p.add_argument("--rate", type=float, default=0.0, metavar="EPS",
+                   help="the scorer scores at most EPS episodes per second, as a fleet's uploads arrive (default 0: "
+                        "back to back, the worst case; two workers at real time upload about 0.66)")
     p.add_argument("--json", type=Path, default=None, help="also write the results here")
     args = p.parse_args()
-    if args.threads < 1 or args.repeats < 1 or not args.score_seconds > 0:
-        p.error("--threads and --repeats must be at least 1 and --score-seconds positive")
+    if args.threads < 1 or args.repeats < 1 or not args.score_seconds > 0 or args.rate < 0:
+        p.error("--threads and --repeats must be at least 1, --score-seconds positive and --rate not negative")
     if not (args.data / "catalog.sqlite").is_file():
         p.error(f"no catalog in {args.data}: give the data directory of a `make run` (or a soak)")
     cores = len(os.sched_getaffinity(0))
@@ -166,12 +184,12 @@ def main() -> int:
         for rep in range(args.repeats):
             for name in names[rep % len(names):] + names[:rep % len(names)]:
                 runs[name].append(measure(args.data, template, *plan[name], args.score_seconds,
-                                          shlex.split(args.retrain_args)))
+                                          shlex.split(args.retrain_args), args.rate))
                 print(f"{name}: {runs[name][-1]}", file=sys.stderr, flush=True)
     median = {name: {k: statistics.median(r[k] for r in rs) for k in rs[0]} for name, rs in runs.items()}
     alone_scoring = {m["threads"]: m["scored_per_s"] for name, m in median.items() if plan[name][1] is None}
     summary = {"data": str(args.data), "cores": cores, "repeats": args.repeats, "retrain_args": args.retrain_args,
-               "settings": {}}
+               "rate": args.rate, "settings": {}}
     for name in names:
         m = median[name]
         summary["settings"][name] = {

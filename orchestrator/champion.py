@@ -38,8 +38,8 @@ def limit_torch_threads(threads: int) -> None:
 
     ``serve`` scores in its own process while each retrain runs in a child process. Both busy
     with torch's default, a thread per core each, their OpenMP threads spin against each other:
-    on 2 cores the retrain took 2.85x as long as alone and the scoring ran at 0.31 of its speed;
-    with one scoring thread and the retrain on the other core, 1.24x and 0.99 (BENCHMARKS.md,
+    on 2 cores the retrain took 9x as long as alone and the scoring ran at 0.10 of its speed;
+    with one scoring thread and the retrain on the other core, 1.33x and 0.95 (BENCHMARKS.md,
     "Scoring beside a retrain"; ``serve --scoring-threads``, ``--retrain-threads``).
 
     Process-wide, with torch's one exception: a thread takes the setting on its first torch

@@ -133,7 +133,7 @@ def test_scoring_threads_times_each_setting_against_its_alone_figure_and_leaves_
     before = files()
     proc = subprocess.run([sys.executable, script, "--data", str(data), "--repeats", "1", "--score-seconds", "0.5",
                            "--threads", "1", "--retrain-args", "--members 2 --epochs 1 --widths 4,4,4 --device cpu",
-                           "--json", str(out)], cwd=ROOT, capture_output=True, text=True, timeout=280)
+                           "--rate", "2", "--json", str(out)], cwd=ROOT, capture_output=True, text=True, timeout=280)
     assert proc.returncode == 0, proc.stderr[-2000:]
     result = json.loads(out.read_text())
     settings = result["settings"]
@@ -145,4 +145,8 @@ def test_scoring_threads_times_each_setting_against_its_alone_figure_and_leaves_
     both = settings[f"scorer 1 threads, retrain {fitted} (fitted)"]
     assert both["threads"] == 1 and both["retrain_s"] > 0 and both["scored_per_s"] > 0
     assert settings["both default threads"]["threads"] >= 1  # torch's own choice
+    scored = [s for s in settings.values() if "scored_per_s" in s]
+    assert len(scored) == 5 and result["rate"] == 2.0
+    # Paced: one episode every 0.5 s from the start (unpaced, this tiny model scores hundreds a second).
+    assert all(0 < s["scored_per_s"] < 10 and 0 < s["busy_share"] <= 1 for s in scored), scored
     assert files() == before and len(ModelRegistry(data).list()) == 1  # every retrain trained a copy
