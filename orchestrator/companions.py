@@ -79,6 +79,8 @@ class Companions:
         self.service = service
         self.scheduler: RetrainScheduler | None = None
         self.dashboard: Dashboard | None = None
+        self.scorer: ChampionScorer | None = None
+        """The dashboard's champion (for its predicted-vs-real frames): the planner's when it has one."""
 
     def start(self) -> None:
         """Raises ``ValueError`` for a bad schedule and ``OSError`` when the dashboard port is taken."""
@@ -88,10 +90,14 @@ class Companions:
                                               on_promoted=self._promoted, on_finished=self._finished)
             self.scheduler.start()
         if cfg.dashboard_port >= 0:
-            scorer = ChampionScorer(ctx.data_dir, threads=cfg.scoring_threads)
+            # One champion in memory, loaded once per promotion: the planner's scorer when it has one (it is
+            # thread-safe; the dashboard only reads its ensemble), else one of our own.
+            planner_scorer = getattr(self.service.planner, "scorer", None)
+            self.scorer = planner_scorer if isinstance(planner_scorer, ChampionScorer) \
+                else ChampionScorer(ctx.data_dir, threads=cfg.scoring_threads)
             sources = DataSources(ctx.data_dir, workers=lambda: [{"id": w} for w in self.service.workers()],
                                   metrics_text=self.service.metrics.render,
-                                  frames_png=FramesSource(scorer, ctx.catalog),
+                                  frames_png=FramesSource(self.scorer, ctx.catalog),
                                   retrains=self._retrains)
             dashboard = Dashboard(cfg.dashboard_config(), sources.sources())
             dashboard.start()

@@ -37,6 +37,7 @@ from typing import Any
 import zenoh
 
 from orchestrator import admin, messages, protocol, transport
+from orchestrator.heap import HeapTrimmer
 from orchestrator.metrics import ServiceMetrics
 from orchestrator.planner import Planner
 from orchestrator.protocol import ErrorCode, EventKind, Keys, ProtocolError
@@ -81,6 +82,8 @@ class Service:
         self._writes = threading.Lock()
         #: When a write first failed with the storage unavailable (monotonic); None while it works.
         self._storage_down_since: float | None = None
+        self.heap = HeapTrimmer()
+        """Gives the heap's free memory back after the planner's batches (scoring's tensors), every few seconds."""
 
     # --- lifecycle -----------------------------------------------------------------------------
 
@@ -409,6 +412,7 @@ class Service:
             batch = [b for b in batch if b is not None]
             if batch:
                 self._handle_stored(batch)
+                self.heap()
             if done:
                 return
             self._top_up()

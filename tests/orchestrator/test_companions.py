@@ -11,12 +11,14 @@ import urllib.request
 import numpy as np
 import pytest
 
+from orchestrator.champion import ChampionScorer
+from orchestrator.cli.service import planner_factory
 from orchestrator.companions import CompanionConfig, Companions
 from orchestrator.uniform import UniformPlanner, UniformPlannerConfig
 from orchestrator.service import Service
 from orchestrator.serviceconfig import ServiceConfig
 from storage.models import ModelRegistry
-from tests.conftest import wait_for
+from tests.conftest import free_port, wait_for
 from workers.collect import collect_episode, create_eval_split
 
 TINY = ("--members", "2", "--widths", "4,4,4", "--batch-size", "8", "--device", "cpu",
@@ -69,3 +71,20 @@ def test_new_episodes_trigger_a_retrain_and_the_dashboard_shows_the_champion(dat
     finally:
         companions.stop()
         service.stop()
+
+
+def test_the_dashboard_draws_with_the_planners_champion_scorer_so_the_champion_is_loaded_once(tmp_path, namespace):
+    for name in ("active", "uniform"):
+        endpoint = f"tcp/127.0.0.1:{free_port()}"
+        service = Service(ServiceConfig(data_dir=tmp_path / name, namespace=namespace, listen=(endpoint,),
+                                        planner=planner_factory(name, steps=12, seed=0, threads=1)))
+        companions = Companions(CompanionConfig(dashboard_port=0, scoring_threads=1), service)
+        service.start()
+        try:
+            companions.start()
+            assert isinstance(companions.scorer, ChampionScorer) and companions.scorer.threads == 1
+            assert (companions.scorer is getattr(service.planner, "scorer", None)) == (name == "active")
+            assert _get(companions.dashboard.url + "api/stats")  # it serves
+        finally:
+            companions.stop()
+            service.stop()

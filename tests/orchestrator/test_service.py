@@ -490,9 +490,11 @@ def test_planner_and_callbacks_run_off_the_query_path(make_service, client, keys
     upload(client, keys, grant, episode_bytes(grant))
     second = lease(client, keys)  # answered while the planner is still blocked
     assert second.shape == "disk"
+    assert service.heap.trims == 0  # the heap's free memory is given back after a batch (what scoring freed)
     gate.set()
     wait_for(lambda: len(seen) == 1, message="the on_episode callback ran")
     assert seen[0].request_id == grant.request_id and seen[0].episode.frames.shape[1:] == (16, 16, 3)
+    wait_for(lambda: service.heap.trims == 1 or not service.heap.available, message="the heap trimmed")
     wait_for(lambda: service.queue.counts()["queued"] == 1, message="the planner's request is queued")
     assert lease(client, keys).shape == "L"
 
