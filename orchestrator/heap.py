@@ -2,13 +2,14 @@
 
 glibc's malloc raises its mmap threshold each time a large block it had mapped is freed, so before
 long the tensors of every scoring pass come from the heap instead, and the memory they free between
-longer-lived small objects stays with the process. ``serve``'s resident memory grew by ~130 MiB over
-its first ~600 episodes that way (and levelled off there); the planner alone, fed the same episodes
-in one process, grew 385 -> 531 MiB, and 379 -> 380 MiB with ``malloc_trim(0)`` after every episode.
-Trimming costs ~2 ms, plus the page faults of taking the memory back, so ``HeapTrimmer`` does it at
-most every ``interval_s`` (once a second in that loop: within 380-411 MiB, scoring 1-3 % slower).
-Fixing the threshold instead (``MALLOC_MMAP_THRESHOLD_``) kept it flat too but made scoring 25 %
-slower: every pass mapped its buffers anew. BENCHMARKS.md, "A soak with serve's thread settings".
+longer-lived small objects stays with the process. ``serve``'s resident memory grew 435 -> 564 MiB over
+a 15-minute soak's 600 episodes that way (428 -> 442 MiB with this); ``serve``'s planner alone, fed the
+same episodes in one process, 388 -> 521 MiB, and 379 -> 380 MiB with ``malloc_trim(0)`` after every
+episode, which made it 0.79 as fast (~2 ms a trim, then the page faults of taking the memory back).
+At most once a second it kept within 419 MiB at full speed (1.01), so ``HeapTrimmer`` trims at most
+every ``interval_s``. Fixing the threshold instead (``MALLOC_MMAP_THRESHOLD_``) kept it flat too but
+made planning 0.77 as fast: every pass mapped its buffers anew. BENCHMARKS.md, "The service's memory:
+the heap handed back" (``bench/heap_trim.py``).
 
 On a C library without ``malloc_trim`` (not glibc) it does nothing.
 """

@@ -150,3 +150,24 @@ def test_scoring_threads_times_each_setting_against_its_alone_figure_and_leaves_
     # Paced: one episode every 0.5 s from the start (unpaced, this tiny model scores hundreds a second).
     assert all(0 < s["scored_per_s"] < 10 and 0 < s["busy_share"] <= 1 for s in scored), scored
     assert files() == before and len(ModelRegistry(data).list()) == 1  # every retrain trained a copy
+
+
+def test_heap_trim_plays_the_episodes_through_the_planner_in_each_setting(tmp_path):
+    data, out = tmp_path / "data", tmp_path / "heap.json"
+    script = str(ROOT / "bench" / "heap_trim.py")
+    bad = subprocess.run([sys.executable, script, "--data", str(data), "--episodes", "1"], cwd=ROOT,
+                         capture_output=True, text=True, timeout=60)
+    assert bad.returncode == 2 and "--episodes must be at least 2" in bad.stderr.splitlines()[-1]
+    _data_with_a_champion(data)
+    proc = subprocess.run([sys.executable, script, "--data", str(data), "--episodes", "3", "--repeats", "1",
+                           "--interval", "1000", "--json", str(out)], cwd=ROOT, capture_output=True, text=True,
+                          timeout=280)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    settings = json.loads(out.read_text())["settings"]
+    assert list(settings) == ["no trim", "trim after every episode", "trim at most every 1000 s",
+                              "no trim, MALLOC_MMAP_THRESHOLD_=131072"]
+    assert all(s["episodes"] == 3 and s["per_s"] > 0 and s["rss_max_mib"] >= s["rss_first_mib"] > 0
+               for s in settings.values())
+    assert settings["no trim"]["per_s_over_no_trim"] == 1.0
+    trims = [s["trims"] for s in settings.values()]
+    assert trims in ([0, 3, 1, 0], [0, 0, 0, 0])  # (all 0: a C library without malloc_trim)
