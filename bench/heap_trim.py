@@ -25,6 +25,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+from jsonout import emit
+
 ROOT = Path(__file__).resolve().parents[1]
 
 CHILD = """
@@ -104,11 +106,7 @@ def main() -> int:
             "rss_max_mib": statistics.median(max(s[1] for s in r["rss"]) for r in rs),
             "rss_last_mib": statistics.median(r["rss"][-1][1] for r in rs),
             "trims": statistics.median(r["trims"] for r in rs), "each": rs}
-    text = json.dumps(summary, indent=1)
-    print(text)
-    if args.json:
-        args.json.write_text(text + "\n")
-    return 0
+    return emit(summary, args.json)
 
 
 if __name__ == "__main__":

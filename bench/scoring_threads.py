@@ -39,6 +39,7 @@ import tempfile
 import time
 from pathlib import Path
 
+from jsonout import emit
 from orchestrator.cli.service import fitted_retrain_threads
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -193,17 +194,13 @@ def main() -> int:
     for name in names:
         m = median[name]
         summary["settings"][name] = {
-            **{k: round(v, 2) for k, v in m.items()},
+            **{k: round(v, 4 if k == "busy_share" else 2) for k, v in m.items()},
             **({"retrain_over_alone": round(m["retrain_s"] / median["retrain alone"]["retrain_s"], 2)}
                if "retrain_s" in m else {}),
             **({"scoring_over_alone": round(m["scored_per_s"] / alone_scoring[m["threads"]], 2)}
                if "scored_per_s" in m else {}),
             "each": runs[name]}
-    text = json.dumps(summary, indent=1)
-    print(text)
-    if args.json:
-        args.json.write_text(text + "\n")
-    return 0
+    return emit(summary, args.json)
 
 
 if __name__ == "__main__":

@@ -12,11 +12,12 @@ Usage: .venv/bin/python bench/torch_threads.py [--steps 3000] [--json out.json]
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import subprocess
 import sys
 from pathlib import Path
+
+from jsonout import emit
 
 WORK = """
 import sys, time, torch
@@ -70,11 +71,7 @@ def main() -> int:
                "settings": {name: {"threads": r[0]["threads"], "seconds": [round(x["seconds"], 2) for x in r],
                                    "over_alone": round(max(x["seconds"] for x in r) / base, 2)}
                             for name, r in results.items()}}
-    text = json.dumps(summary, indent=2)
-    print(text)
-    if args.json:
-        args.json.write_text(text + "\n")
-    return 0
+    return emit(summary, args.json, indent=2)
 
 
 if __name__ == "__main__":

@@ -148,7 +148,7 @@ def test_scoring_threads_times_each_setting_against_its_alone_figure_and_leaves_
     scored = [s for s in settings.values() if "scored_per_s" in s]
     assert len(scored) == 5 and result["rate"] == 2.0
     # Paced: one episode every 0.5 s from the start (unpaced, this tiny model scores hundreds a second).
-    assert all(0 < s["scored_per_s"] < 10 and 0 < s["busy_share"] <= 1 for s in scored), scored
+    assert all(0 < s["scored_per_s"] < 10 and 0 <= s["busy_share"] <= 1 for s in scored), scored
     assert files() == before and len(ModelRegistry(data).list()) == 1  # every retrain trained a copy
 
 
