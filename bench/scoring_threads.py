@@ -40,7 +40,7 @@ import time
 from pathlib import Path
 
 from jsonout import emit
-from orchestrator.cli.service import fitted_retrain_threads
+from orchestrator.companions import fitted_retrain_threads
 
 ROOT = Path(__file__).resolve().parents[1]
 RETRAIN_ARGS = "--members 4 --epochs 6 --widths 8,16,32 --max-windows 1200 --from-champion --device cpu"

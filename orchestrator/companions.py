@@ -11,6 +11,7 @@ and the scorer loads it with the first champion.
 from __future__ import annotations
 
 import logging
+import os
 from dataclasses import dataclass
 
 from orchestrator.champion import ChampionScorer, FramesSource
@@ -20,6 +21,14 @@ from orchestrator.scheduler import RetrainRecord, RetrainScheduler, ScheduleConf
 from orchestrator.service import Service
 
 log = logging.getLogger(__name__)
+
+
+def fitted_retrain_threads(scoring_threads: int, cores: int | None = None) -> int:
+    """The retrain job's torch threads that, with the scoring's, fill the machine's cores (at least 1);
+    0 (torch's default) when the scoring takes torch's default itself: there is nothing to fit."""
+    if not scoring_threads:
+        return 0
+    return max(1, (cores or len(os.sched_getaffinity(0))) - scoring_threads)
 
 
 @dataclass
@@ -42,8 +51,9 @@ class CompanionConfig:
     """A retrain running longer than this is killed and changes nothing."""
     retrain_args: tuple[str, ...] = ()
     """Extra ``activecollect retrain`` arguments (training and gate settings)."""
-    retrain_threads: int = 0
-    """Torch threads of each retrain job (``ScheduleConfig.threads``; 0 = torch's default, one per core)."""
+    retrain_threads: int | None = None
+    """Torch threads of each retrain job (``ScheduleConfig.threads``; 0 = torch's default, one per core; None,
+    set at construction: the cores the scoring leaves, ``fitted_retrain_threads``)."""
     scoring_threads: int = 0
     """Torch threads of the dashboard's champion (``ChampionScorer.threads``; 0 = torch's default)."""
 
@@ -53,6 +63,8 @@ class CompanionConfig:
         self.dashboard_config()  # its own checks, before anything starts
         if self.scoring_threads < 0:
             raise ValueError(f"scoring_threads must be >= 0, found {self.scoring_threads}")
+        if self.retrain_threads is None:
+            self.retrain_threads = fitted_retrain_threads(self.scoring_threads)
         if self.retrain_every < 0:
             raise ValueError(f"retrain_every must be >= 0, found {self.retrain_every}")
         # The schedule's own checks (cron syntax, timeout), before anything starts.

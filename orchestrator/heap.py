@@ -17,12 +17,9 @@ On a C library without ``malloc_trim`` (not glibc) it does nothing.
 from __future__ import annotations
 
 import ctypes
-import logging
 import threading
 import time
 from typing import Callable
-
-log = logging.getLogger(__name__)
 
 #: The service's trims are at least this many seconds apart.
 TRIM_INTERVAL_S = 5.0

@@ -11,7 +11,6 @@ from __future__ import annotations
 import argparse
 import json
 import logging
-import os
 import sys
 import threading
 import time
@@ -27,7 +26,7 @@ from orchestrator import admin, dispatchbench, endpoints, protocol, transport
 from orchestrator.champion import ChampionScorer
 from orchestrator.cli import common
 from orchestrator.cli.loop import add_retrain_args_arg
-from orchestrator.companions import CompanionConfig, Companions
+from orchestrator.companions import CompanionConfig, Companions, fitted_retrain_threads
 from orchestrator.messages import AdminRequest, Event
 from orchestrator.planner import ActivePlanner, ActivePlannerConfig
 from orchestrator.uniform import UniformPlanner, UniformPlannerConfig, uniform_start_state
@@ -229,23 +228,13 @@ def planner_factory(name: str, steps: int, seed: int, threads: int = 0) -> Plann
     return build
 
 
-def fitted_retrain_threads(scoring_threads: int, cores: int | None = None) -> int:
-    """The retrain job's torch threads that, with the scoring's, fill the machine's cores (at least 1);
-    0 (torch's default) when the scoring takes torch's default itself: there is nothing to fit."""
-    if not scoring_threads:
-        return 0
-    return max(1, (cores or len(os.sched_getaffinity(0))) - scoring_threads)
-
-
 def companion_config(args: argparse.Namespace) -> CompanionConfig:
     """``serve``'s dashboard and retrain schedule (a bad one is a usage error)."""
-    retrain_threads = fitted_retrain_threads(args.scoring_threads) if args.retrain_threads is None \
-        else args.retrain_threads
     try:
         return CompanionConfig(dashboard_port=args.dashboard_port, dashboard_max_connections=args.max_connections,
                                dashboard_request_timeout_s=args.request_timeout, retrain_every=args.retrain_every,
                                retrain_cron=args.retrain_cron, retrain_args=args.retrain_args,
-                               retrain_threads=retrain_threads, scoring_threads=args.scoring_threads)
+                               retrain_threads=args.retrain_threads, scoring_threads=args.scoring_threads)
     except ValueError as exc:
         raise common.config_error(exc) from None
 

@@ -174,7 +174,8 @@ def test_serve_scores_with_one_torch_thread_and_gives_its_retrains_the_other_cor
     """Both processes busy with more threads than cores slow each other several times over (BENCHMARKS: scoring
     beside a retrain)."""
     from orchestrator.cli import build_parser
-    from orchestrator.cli.service import companion_config, fitted_retrain_threads, planner_factory
+    from orchestrator.cli.service import companion_config, planner_factory
+    from orchestrator.companions import fitted_retrain_threads
     assert [fitted_retrain_threads(scoring, cores) for scoring, cores in ((1, 2), (1, 16), (4, 2), (0, 16))] == \
         [1, 15, 1, 0]  # (0: the scoring takes torch's default, one thread per core, so the retrain does too)
     args = build_parser().parse_args(["serve"])
