@@ -26,6 +26,10 @@ from storage.requests import IllegalTransitionError, NewRequest, Request, Reques
 
 #: Most requests one ``queue.ls`` may ask for.
 MAX_LIST = 200
+#: What a request asks a worker to do: a second ``queue.add`` with the same idempotency key must ask for the
+#: same, or it is refused (a retry is answered with the first request; a reused key is a mistake). Priority
+#: and reason are left out: ``queue.prioritize`` may have changed the one, and the other only explains.
+_SAME_ASK = ("task", "shape", "start_state", "policy", "policy_params", "action_prefix", "steps", "max_attempts")
 #: Encoded bytes the rows of one ``queue.ls`` / ``models.ls`` reply may take: a request summary may
 #: carry 16 KB each of reason, policy_params and start_state, so MAX_LIST of them would not fit in
 #: MAX_MESSAGE_BYTES. What is left is for the counts and the envelope; rows past it are left out
@@ -156,6 +160,8 @@ def _queue_op(op: str, args: Mapping[str, Any], queue: RequestQueue) -> dict[str
     if op == "queue.add":
         spec = RequestSpec.from_dict({"reason": dict(_MANUAL_REASON), **args})
         request, created = queue.enqueue(NewRequest(**spec.to_dict()))
+        if not created:
+            _refuse_other_ask(spec, request)
         return {"request": request_summary(request), "created": created}
     request_id = protocol.check_id("id", args["id"])
     priority = _priority_arg(op, args["priority"]) if op == "queue.prioritize" else None
@@ -169,6 +175,16 @@ def _queue_op(op: str, args: Mapping[str, Any], queue: RequestQueue) -> dict[str
     if op == "queue.prioritize":
         return {"request": request_summary(queue.prioritize(request_id, priority))}
     raise ProtocolError(ErrorCode.UNKNOWN_OP, f"expected a queue op, found {op!r}")  # pragma: no cover
+
+
+def _refuse_other_ask(spec: RequestSpec, request: Request) -> None:
+    """BAD_FIELD when ``request``, found by ``spec``'s idempotency key, asks for something else than ``spec``."""
+    differ = [name for name in _SAME_ASK if getattr(spec, name) != getattr(request, name)]
+    if differ:
+        raise ProtocolError(ErrorCode.BAD_FIELD,
+                            f"idempotency_key {spec.idempotency_key!r:.80} already names request {request.id}, "
+                            f"which asks for another {', '.join(differ)}: use a new key for a new request "
+                            f"(`queue show {request.id}` shows the first)")
 
 
 def _workers_ls(queue: RequestQueue, workers: Callable[[], Iterable[str]] | None) -> dict[str, Any]:

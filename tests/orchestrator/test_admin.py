@@ -58,6 +58,22 @@ def test_add_show_ls(queue: RequestQueue) -> None:
     assert len(call("queue.ls", queue=queue)["requests"]) == 1
 
 
+@pytest.mark.parametrize("change", [{"shape": "T", "start_state": dict(START, shape="T")},
+                                    {"start_state": dict(START, agent=[101.0, 100.0])}, {"steps": 21},
+                                    {"policy": "random_waypoints"}, {"policy_params": {"seed": 1}},
+                                    {"action_prefix": [[1.0, 0.0]]}, {"max_attempts": 5}])
+def test_a_reused_idempotency_key_asking_for_another_request_is_refused(queue: RequestQueue, change: dict) -> None:
+    first = call("queue.add", SPEC, queue=queue)["request"]
+    err = refused(ErrorCode.BAD_FIELD, "queue.add", dict(SPEC, **change), queue=queue)
+    assert f"already names request {first['id']}" in err.message
+    assert err.message.split("another ")[1].startswith(", ".join(k for k in admin._SAME_ASK if k in change))
+    assert [r.id for r in queue.list()] == [first["id"]] and queue.get(first["id"]).to_dict()["steps"] == 20
+    # what only explains or orders the request may differ: a retry after a prioritize is still the same ask
+    call("queue.prioritize", {"id": first["id"], "priority": 4.0}, queue=queue)
+    again = call("queue.add", dict(SPEC, reason={"planner": "manual", "note": "retry"}), queue=queue)
+    assert not again["created"] and again["request"]["id"] == first["id"] and again["request"]["priority"] == 4.0
+
+
 def test_add_validates_through_the_protocol(queue: RequestQueue) -> None:
     refused(ErrorCode.BAD_FIELD, "queue.add", dict(SPEC, shape="hexagon"), queue=queue)
     refused(ErrorCode.BAD_FIELD, "queue.add", dict(SPEC, start_state=dict(START, agent=[600.0, 1.0])), queue=queue)

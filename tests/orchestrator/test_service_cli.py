@@ -47,8 +47,12 @@ def test_queue_commands_round_trip(service, cli) -> None:
     added = json.loads(out)
     rid = added["request"]["id"]
     assert added["created"] and added["request"]["steps"] == 7
-    rc, out, _ = cli("queue", "add", "--shape", "T", "--idempotency-key", "op-1")
-    assert rc == 0 and "already queued" in out
+    rc, out, _ = cli("queue", "add", "--shape", "T", "--seed", "3", "--steps", "7", "--priority", "2",
+                     "--idempotency-key", "op-1")
+    assert rc == 0 and "already queued" in out  # a retry
+    rc, _, err = cli("queue", "add", "--shape", "T", "--idempotency-key", "op-1")
+    assert rc == 1 and err.count("\n") == 1 and "bad_field" in err and f"already names request {rid}" in err
+    assert "start_state, steps" in err  # a reused key: another start state and length
     rc, out, _ = cli("queue", "ls")
     assert rc == 0 and rid in out and "queued=1" in out
     rc, out, _ = cli("queue", "prioritize", rid, "9.5", "--json")
@@ -61,6 +65,18 @@ def test_queue_commands_round_trip(service, cli) -> None:
     assert rc == 0 and service.queue.get(rid).status == RequestStatus.QUEUED
     rc, out, _ = cli("queue", "show", rid)
     assert rc == 0 and '"shape": "T"' in out and "idempotency_key: op-1" in out
+
+
+def test_a_retried_add_without_a_seed_asks_for_the_same_start_state(service, cli) -> None:
+    rc, out, _ = cli("queue", "add", "--shape", "L", "--idempotency-key", "retry-me", "--json")
+    first = json.loads(out)["request"]
+    rc, out, _ = cli("queue", "add", "--shape", "L", "--idempotency-key", "retry-me", "--json")
+    again = json.loads(out)
+    assert rc == 0 and not again["created"] and again["request"]["id"] == first["id"]
+    rc, out, _ = cli("queue", "add", "--shape", "L", "--idempotency-key", "other-key", "--json")
+    other = json.loads(out)["request"]
+    assert other["start_state"] != first["start_state"]  # the key draws the start state
+    assert service.queue.counts()["queued"] == 2
 
 
 def test_refusals_and_usage_errors(service, cli) -> None:

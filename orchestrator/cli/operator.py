@@ -1,0 +1,335 @@
+"""The operator commands that talk to a running service: ``queue``, ``workers``, ``stats``, ``watch``.
+
+Each is a Zenoh query to ``NS/admin/**`` (``orchestrator.admin`` answers it); when no service answers
+they say so in one line and exit 1. (``serve`` and ``worker`` are in ``orchestrator.cli.service``.)
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+import sys
+import threading
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from typing import Any
+
+import numpy as np
+import zenoh
+
+from orchestrator import admin, endpoints, protocol, transport
+from orchestrator.cli import common
+from orchestrator.messages import AdminRequest, Event
+from orchestrator.protocol import Keys, ProtocolError
+from orchestrator.uniform import uniform_start_state
+from storage.requests import RequestStatus
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    """Adds queue, workers, stats and watch."""
+    _register_queue(sub)
+    p = sub.add_parser("workers", help="workers known to the service")
+    wsub = p.add_subparsers(dest="workers_command", metavar="CMD", parser_class=common.Parser)
+    wsub.required = True
+    p = wsub.add_parser("ls", help="workers alive and the leases they hold")
+    _operator_args(p)
+    p.set_defaults(func=cmd_workers_ls)
+    p = sub.add_parser("stats", help="queue counts, episodes, champion, workers")
+    _operator_args(p)
+    p.set_defaults(func=cmd_stats)
+    p = sub.add_parser("watch", help="follow the service's events (Ctrl-C to stop)")
+    _operator_args(p)
+    p.add_argument("--count", type=common.positive_int, default=None, metavar="N", help="exit after N events")
+    p.set_defaults(func=cmd_watch)
+
+
+def _register_queue(sub: argparse._SubParsersAction) -> None:
+    q = sub.add_parser("queue", help="the collection request queue of a running service")
+    qsub = q.add_subparsers(dest="queue_command", metavar="CMD", parser_class=common.Parser)
+    qsub.required = True
+    p = qsub.add_parser("ls", help="requests, newest change first (queued: in lease order)")
+    _operator_args(p)
+    p.add_argument("--status", choices=[s.value for s in RequestStatus], default=None,
+                   help="only requests in this state (default: all)")
+    p.add_argument("--limit", type=_list_limit, default=50, metavar="N",
+                   help=f"most requests to list, at most {admin.MAX_LIST} (default 50)")
+    p.set_defaults(func=cmd_queue_ls)
+    p = qsub.add_parser("show", help="one request in full")
+    _operator_args(p)
+    p.add_argument("id", metavar="ID", help="a request id, or a unique prefix of one")
+    p.set_defaults(func=lambda a: _print_op(a, "queue.show", {"id": a.id}, _print_request))
+    p = qsub.add_parser("add", help="queue a manual request (a uniform start state unless --start-state)")
+    _operator_args(p)
+    p.add_argument("--shape", required=True, choices=protocol.SHAPES, help="the object to push (required)")
+    p.add_argument("--task", default="push", choices=protocol.TASKS, help="the task (default push)")
+    p.add_argument("--policy", default="push", choices=protocol.POLICIES,
+                   help="the scripted policy the worker runs (default push)")
+    p.add_argument("--policy-params", type=_json_object, default={}, metavar="JSON",
+                   help="the policy's parameters as a JSON object, e.g. '{\"side\": \"left\"}' (default: its defaults)")
+    p.add_argument("--start-state", type=_json_object, default=None, metavar="JSON",
+                   help="start state as a JSON object: shape (as --shape), agent [x, y] (the pusher), object "
+                        f"[x, y, angle in radians], positions in 0..{protocol.WORLD_SIZE:g}; optional agent_vel "
+                        "[vx, vy], object_vel [vx, vy, omega] (default at rest) and physics {mass, friction, "
+                        "ground_friction} (default the defaults). E.g. '{\"shape\": \"T\", \"agent\": [100, 100], "
+                        "\"object\": [256, 256, 0]}' (default: drawn uniformly with --seed)")
+    p.add_argument("--seed", type=common.non_negative_int, default=None, metavar="K",
+                   help="seed of the uniform start state (default: drawn from --idempotency-key when given, "
+                        "so a retried add asks for the same start state; else random)")
+    p.add_argument("--steps", type=common.episode_steps, default=50, metavar="T",
+                   help=f"steps to record, at least {common.MIN_EPISODE_STEPS} (default 50)")
+    p.add_argument("--priority", type=common.finite_float, default=0.0, metavar="P",
+                   help="higher is leased first (default 0; planned requests carry their score)")
+    p.add_argument("--max-attempts", type=common.positive_int, default=3, metavar="N",
+                   help="leases that may fail or expire before the request is dead (default 3)")
+    p.add_argument("--idempotency-key", default=None, metavar="KEY",
+                   help="a repeated add with the same key returns the first request instead of a new one; "
+                        "one that asks for something else (another shape, start state, policy, steps...) is "
+                        "refused")
+    p.set_defaults(func=cmd_queue_add)
+    for name, op, help_text in (("cancel", "queue.cancel", "cancel a queued or leased request"),
+                                ("retry", "queue.retry", "put a dead or cancelled request back in the queue")):
+        p = qsub.add_parser(name, help=help_text)
+        _operator_args(p)
+        p.add_argument("id", metavar="ID", help="a request id, or a unique prefix of one")
+        p.set_defaults(func=lambda a, op=op: _print_op(a, op, {"id": a.id}, _print_request))
+    p = qsub.add_parser("prioritize", help="set a request's priority (higher is leased first)")
+    _operator_args(p)
+    p.add_argument("id", metavar="ID", help="a request id, or a unique prefix of one")
+    p.add_argument("priority", type=common.finite_float, metavar="PRIORITY",
+                   help="the new priority, any finite number; higher is leased first (manual requests start at 0, "
+                        "planned ones at their score)")
+    p.set_defaults(func=lambda a: _print_op(a, "queue.prioritize", {"id": a.id, "priority": a.priority},
+                                            _print_request))
+
+
+def _operator_args(p: argparse.ArgumentParser) -> None:
+    endpoints.add_connection_args(p)
+    common.add_json_arg(p)
+
+
+def _list_limit(text: str) -> int:
+    value = common.positive_int(text)
+    if value > admin.MAX_LIST:
+        raise argparse.ArgumentTypeError(f"expected at most {admin.MAX_LIST}, found {value}")
+    return value
+
+
+def _no_constant(name: str) -> None:
+    raise ValueError(f"{name} is not a JSON number")
+
+
+def _json_object(text: str) -> dict:
+    try:
+        value = json.loads(text, parse_constant=_no_constant)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(f"expected a JSON object, found {text!r:.60} ({exc})") from None
+    except RecursionError:
+        raise argparse.ArgumentTypeError(f"expected a JSON object, found {text!r:.60} (nested too deeply)") from None
+    if not isinstance(value, dict):
+        raise argparse.ArgumentTypeError(f"expected a JSON object, found {type(value).__name__}")
+    return value
+
+
+# --- operator commands -----------------------------------------------------------------------------
+
+class _NoService(Exception):
+    """Nobody answered: printed as one line, exit 1."""
+
+
+@contextmanager
+def _session(args: argparse.Namespace) -> Iterator[zenoh.Session]:
+    listen, connect = endpoints.endpoints_from_args(args)
+    try:
+        session = transport.open_session(args.mode, listen, connect, args.zenoh_config)
+    except transport.TransportError as exc:
+        raise _NoService(str(exc)) from None
+    try:
+        yield session
+    finally:
+        session.close()
+
+
+def admin_call(session: zenoh.Session, keys: Keys, op: str, args: dict[str, Any], timeout: float,
+               secure: bool = False) -> dict[str, Any]:
+    """One admin op over Zenoh; the reply body. Raises _NoService, ProtocolError (refused).
+
+    ``secure``: the session runs under a secure profile, whose router drops a query its ACL denies
+    without a word, so no answer may also mean that this role may not make it.
+    """
+    try:
+        reply = transport.query(session, keys.admin(op), AdminRequest(op=op, args=args).to_json(), timeout=timeout)
+    except transport.NoReplyError:
+        denied = (" or your role may not be allowed this operation: the router's ACL drops a denied request "
+                  "unanswered") if secure else ""
+        raise _NoService(f"no orchestrator answered on {keys.admin(op)} within {timeout:g} s "
+                         f"(is `activecollect serve` running and reachable?{denied})") from None
+    except transport.RemoteError as exc:
+        raise ProtocolError(protocol.ErrorCode.INTERNAL, str(exc)) from None
+    return protocol.parse_reply(reply)
+
+
+def namespace_keys(args: argparse.Namespace) -> Keys:
+    """The keys of ``--namespace``; a usage error naming the flag when it is not a namespace."""
+    try:
+        return Keys(args.namespace)
+    except ProtocolError as exc:
+        raise common.UsageError(f"--{exc.message}" if exc.message.startswith("namespace:") else exc.message) from None
+
+
+def _secure_profile(args: argparse.Namespace) -> bool:
+    """Whether ``--zenoh-config`` is a secure profile (it names certificate, key or password files)."""
+    return args.zenoh_config is not None and bool(transport.validate_secure_config(args.zenoh_config))
+
+
+def _run_op(args: argparse.Namespace, op: str, op_args: dict[str, Any]) -> dict[str, Any]:
+    keys = namespace_keys(args)
+    with _session(args) as session:
+        return admin_call(session, keys, op, op_args, args.timeout, secure=_secure_profile(args))
+
+
+def _failed(exc: Exception, op: str) -> int:
+    """One line on stderr for a service that did not answer or refused ``op``; the exit status 1."""
+    if isinstance(exc, ProtocolError):
+        print(f"activecollect: {op} refused: {exc.code.value}: {exc.message}", file=sys.stderr)
+    else:
+        print(f"activecollect: {exc}", file=sys.stderr)
+    return 1
+
+
+def _print_op(args: argparse.Namespace, op: str, op_args: dict[str, Any], show) -> int:
+    try:
+        body = _run_op(args, op, op_args)
+    except (_NoService, ProtocolError) as exc:
+        return _failed(exc, op)
+    if args.json:
+        common.print_json(body)
+    else:
+        show(body)
+    return 0
+
+
+def _fmt_time(t: float | None) -> str:
+    return time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(t)) if t else "-"
+
+
+def _print_request(body: dict[str, Any]) -> None:
+    r = body["request"]
+    created = body.get("created")
+    if created is not None:
+        print("queued" if created else "already queued (same idempotency key)")
+    for k in ("id", "status", "priority", "task", "shape", "policy", "steps", "attempts", "max_attempts",
+              "worker_id", "token", "episode_id", "last_error", "idempotency_key"):
+        if k in r:
+            value = r[k]
+            shown = "-" if value is None else format(value, "g") if k == "priority" else value
+            print(f"{k:>16}: {shown}")
+    for k in ("created", "updated", "lease_expires"):
+        if k in r:
+            print(f"{k:>16}: {_fmt_time(r[k])}")
+    for k in ("policy_params", "reason", "start_state"):
+        if k in r:
+            print(f"{k:>16}: {json.dumps(r[k], sort_keys=True)}")
+
+
+def cmd_queue_ls(args: argparse.Namespace) -> int:
+    def show(body: dict[str, Any]) -> None:
+        print(" ".join(f"{k}={v}" for k, v in body["counts"].items()))
+        print(f"{'ID':32}  {'STATUS':9} {'PRIO':>7} {'SHAPE':5} {'POLICY':16} {'FAILS':>5} {'WORKER':16} UPDATED")
+        for r in body["requests"]:
+            tries = f"{r['attempts']}/{r['max_attempts']}"
+            print(f"{r['id']:32}  {r['status']:9} {r['priority']:7.3g} {r['shape']:5} {r['policy']:16} "
+                  f"{tries:>5} {(r['worker_id'] or '-')[:16]:16} {_fmt_time(r['updated'])}")
+        shown, total = len(body["requests"]), body.get("total")  # total: absent from older services
+        if body.get("truncated"):
+            print(f"list cut at {shown} of {total} requests to fit in one reply: narrow it with --status; "
+                  "`queue show ID` shows one in full")
+        elif total is not None and shown < total:
+            print(f"{shown} of {total} requests (--limit N shows up to {admin.MAX_LIST})")
+    op_args: dict[str, Any] = {"limit": args.limit}
+    if args.status:
+        op_args["status"] = args.status
+    return _print_op(args, "queue.ls", op_args, show)
+
+
+def _start_seed(seed: int | None, idempotency_key: str | None) -> int | None:
+    """The uniform start state's seed: --seed, else one drawn from the idempotency key (so the same command,
+    retried, asks for the same start state), else None (random)."""
+    if seed is not None or idempotency_key is None:
+        return seed
+    return int.from_bytes(hashlib.sha256(idempotency_key.encode()).digest()[:8], "big")
+
+
+def cmd_queue_add(args: argparse.Namespace) -> int:
+    start = args.start_state
+    if start is None:
+        start = uniform_start_state(np.random.default_rng(_start_seed(args.seed, args.idempotency_key)), args.shape)
+    op_args = {"task": args.task, "shape": args.shape, "start_state": start, "policy": args.policy,
+               "policy_params": args.policy_params, "steps": args.steps, "priority": args.priority,
+               "max_attempts": args.max_attempts}
+    if args.idempotency_key is not None:
+        op_args["idempotency_key"] = args.idempotency_key
+    return _print_op(args, "queue.add", op_args, _print_request)
+
+
+def cmd_workers_ls(args: argparse.Namespace) -> int:
+    def show(body: dict[str, Any]) -> None:
+        print(f"{'WORKER':32} {'ALIVE':5} LEASES")
+        for w in body["workers"]:
+            print(f"{w['id']:32} {'yes' if w['alive'] else 'no':5} {' '.join(w['leases']) or '-'}")
+    return _print_op(args, "workers.ls", {}, show)
+
+
+def cmd_stats(args: argparse.Namespace) -> int:
+    def show(body: dict[str, Any]) -> None:
+        print("requests: " + " ".join(f"{k}={v}" for k, v in body["requests"].items()))
+        episodes = body.get("episodes") or {}
+        print("episodes: " + (" ".join(f"{k}={v}" for k, v in episodes.items()) or "-"))
+        problem = body.get("champion_problem")
+        print(f"champion: {body.get('champion') or '-'}" + (f" (CANNOT BE SERVED: {problem})" if problem else ""))
+        print(f"workers:  {body.get('workers', 0)} alive")
+        print(f"disk:     {disk_line(body.get('disk'))}")
+    return _print_op(args, "stats", {}, show)
+
+
+def disk_line(disk: dict[str, int] | None) -> str:
+    """``12.3 GiB free of 50.0 GiB (25 %)`` for a ``storage.database.disk_json`` value; '-' when unknown."""
+    if not disk or not disk.get("size_bytes"):
+        return "-"
+    free, size = disk["free_bytes"], disk["size_bytes"]
+    return f"{free / 2**30:.1f} GiB free of {size / 2**30:.1f} GiB ({100 * free / size:.0f} %)"
+
+
+def cmd_watch(args: argparse.Namespace) -> int:
+    """Print events as they come; first checks that a service answers."""
+    keys = namespace_keys(args)
+    seen = threading.Semaphore(0)
+    try:
+        with _session(args) as session:
+            admin_call(session, keys, "stats", {}, args.timeout, secure=_secure_profile(args))
+            sub = session.declare_subscriber(keys.events_all, lambda s: _print_event(s, args.json, seen))
+            if not args.json:
+                print(f"watching {keys.events_all} (Ctrl-C to stop)", flush=True)
+            try:
+                for _ in range(args.count or sys.maxsize):
+                    seen.acquire()
+            finally:
+                sub.undeclare()
+    except (_NoService, ProtocolError) as exc:
+        return _failed(exc, "stats")
+    return 0
+
+
+def _print_event(sample: zenoh.Sample, as_json: bool, seen: threading.Semaphore) -> None:
+    try:
+        event = Event.from_json(sample.payload.to_bytes())
+    except ProtocolError as exc:
+        print(f"# unreadable event on {sample.key_expr}: {exc}", file=sys.stderr, flush=True)
+        return
+    if as_json:
+        print(json.dumps(event.to_dict(), sort_keys=True), flush=True)
+    else:
+        data = " ".join(f"{k}={v}" for k, v in sorted(event.data.items()))
+        print(f"{_fmt_time(event.at)} {event.kind:20} {data}", flush=True)
+    seen.release()
