@@ -307,7 +307,7 @@ def test_an_episode_restored_during_the_backup_is_in_training_in_it(tmp_path, rn
 
 
 def test_a_file_left_in_quarantine_by_a_crash_is_backed_up(tmp_path, rng) -> None:
-    from tests.storage.test_catalog import _killed_in_quarantine
+    from tests.storage.test_quarantine import _killed_in_quarantine
     data, dest = tmp_path / "data", tmp_path / "b"
     want = _filled(data, rng)
     cat = Catalog(data)
