@@ -1,4 +1,5 @@
-"""Fixtures the storage tests share: a seeded generator and a catalog in a fresh data directory."""
+"""Fixtures the storage tests share: a seeded generator, and a catalog and a model registry in a fresh data
+directory."""
 
 from __future__ import annotations
 
@@ -6,6 +7,7 @@ import numpy as np
 import pytest
 
 from storage.catalog import Catalog
+from storage.models import ModelRegistry
 
 
 @pytest.fixture
@@ -16,3 +18,8 @@ def rng() -> np.random.Generator:
 @pytest.fixture
 def cat(tmp_path) -> Catalog:
     return Catalog(tmp_path / "data")
+
+
+@pytest.fixture
+def reg(tmp_path) -> ModelRegistry:
+    return ModelRegistry(tmp_path / "data")

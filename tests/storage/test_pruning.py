@@ -1,0 +1,236 @@
+"""Pruning the registry: which models keep their weights (the champion, the rollback chain, candidates), dry
+runs, crashes mid-prune, and prunes that land during a rollback, a promote or another prune."""
+
+from __future__ import annotations
+
+import math
+import sqlite3
+import threading
+
+import pytest
+
+from storage.errors import PrunedCheckpointError, RegistryError
+from storage.models import ModelRegistry, ModelStatus
+from tests.storage.test_models import _flip_byte, _register
+
+
+def _history_of_five(reg: ModelRegistry) -> list[str]:
+    """a..e promoted in turn (e is champion), then a rejected r and a fresh candidate c."""
+    promoted = [_register(reg, mse) for mse in (0.010, 0.008, 0.006, 0.004, 0.002)]
+    for v in promoted:
+        assert reg.gate(v).promoted
+    rejected = _register(reg, 0.5)
+    assert not reg.gate(rejected).promoted
+    candidate = _register(reg, 0.001)  # registered, not yet gated: a retrain job in flight
+    return promoted + [rejected, candidate]
+
+
+def test_prune_keeps_the_champion_the_rollback_chain_and_candidates(reg: ModelRegistry) -> None:
+    a, b, c, d, e, rejected, candidate = _history_of_five(reg)
+    before = {v: reg.get(v).size_bytes for v in (a, b, rejected)}
+    result = reg.prune(keep=3)
+    assert result.kept == [e, d, c] and sorted(result.pruned) == sorted([a, b, rejected])
+    assert result.freed_bytes >= sum(before.values())
+    assert sorted(p.name for p in reg.models_dir.iterdir()) == sorted([c, d, e, candidate])
+    for v in (a, b, rejected):  # the rows, metrics and statuses stay; only the weights are gone
+        rec = reg.get(v)
+        assert rec.pruned_at is not None and rec.metrics["h1_mse"] > 0
+        assert rec.to_json()["pruned_at"] == rec.pruned_at
+        with pytest.raises(PrunedCheckpointError, match=f"{v}: weights pruned at"):
+            reg.load_weights(v)
+        with pytest.raises(PrunedCheckpointError, match=f"{v}: weights pruned at"):
+            reg.snapshot(v)  # its files went with the weights
+    assert reg.get(a).status is ModelStatus.RETIRED and reg.get(rejected).status is ModelStatus.REJECTED
+    assert reg.get(candidate).pruned_at is None and reg.load_weights(candidate)
+    assert reg.gate(candidate).promoted  # the job in flight still finishes
+    # the chain is now candidate, e, d, c: rolls back three times, then says why it stops
+    assert [reg.rollback() for _ in range(3)] == [e, d, c]
+    with pytest.raises(RegistryError, match=rf"no previous champion.*{b}.*weights pruned"):
+        reg.rollback()
+    assert reg.champion() == c
+
+
+def test_prune_keep_one_keeps_only_the_champion_and_is_idempotent(reg: ModelRegistry) -> None:
+    a, b, c, d, e, rejected, candidate = _history_of_five(reg)
+    assert sorted(reg.prune(keep=1).pruned) == sorted([a, b, c, d, rejected])
+    again = reg.prune(keep=1)
+    assert again.pruned == [] and again.freed_bytes == 0 and again.kept == [e]
+    assert reg.load_weights(e) and reg.champion() == e
+
+
+def test_prune_dry_run_changes_nothing(reg: ModelRegistry) -> None:
+    a, b, c, d, e, rejected, candidate = _history_of_five(reg)
+    listing = sorted(p.name for p in reg.models_dir.iterdir())
+    result = reg.prune(keep=2, dry_run=True)
+    assert sorted(result.pruned) == sorted([a, b, c, rejected]) and result.kept == [e, d]
+    assert result.freed_bytes > 0
+    assert sorted(p.name for p in reg.models_dir.iterdir()) == listing
+    assert all(r.pruned_at is None for r in reg.list())
+
+
+def test_prune_refuses_a_bad_keep(reg: ModelRegistry) -> None:
+    _history_of_five(reg)
+    for keep in (0, -1, 1.5, True):
+        with pytest.raises(RegistryError, match="keep must be a whole number of at least 1"):
+            reg.prune(keep=keep)
+    assert all(r.pruned_at is None for r in reg.list())
+
+
+def test_prune_without_a_champion_keeps_everything_but_rejected(reg: ModelRegistry) -> None:
+    bad = _register(reg, math.nan)
+    assert not reg.gate(bad).promoted
+    fresh = _register(reg, 0.01)
+    assert reg.prune(keep=1).pruned == [bad] and reg.load_weights(fresh)
+
+
+def test_prune_finishes_deleting_what_a_crash_left(reg: ModelRegistry) -> None:
+    a, b, c, d, e, rejected, candidate = _history_of_five(reg)
+    with sqlite3.connect(reg.db_path) as conn:  # as if a prune committed and died before deleting
+        conn.execute("UPDATE models SET pruned_at = '2026-11-21T00:00:00+00:00' WHERE version = ?", (a,))
+    result = reg.prune(keep=5)
+    assert result.pruned == [a, rejected] and result.kept == [e, d, c, b]
+    assert result.freed_bytes > 0 and not reg.get(a).path.exists()
+
+
+def test_promote_refuses_a_pruned_model(reg: ModelRegistry) -> None:
+    a, b, c, d, e, rejected, candidate = _history_of_five(reg)
+    reg.prune(keep=2)
+    with pytest.raises(PrunedCheckpointError, match="weights pruned"):
+        reg.promote(b)
+    assert reg.champion() == e
+
+
+def test_a_prune_that_lands_during_a_rollback_stops_it(reg: ModelRegistry, monkeypatch) -> None:
+    a, b, c, d, e, rejected, candidate = _history_of_five(reg)
+    verify = reg.verify
+
+    def verify_then_prune(version: str) -> None:  # the rollback checked d's weights; then a prune removes them
+        verify(version)
+        ModelRegistry(reg.data_dir).prune(keep=1)
+
+    monkeypatch.setattr(reg, "verify", verify_then_prune)
+    with pytest.raises(RegistryError, match="changed while rolling back"):
+        reg.rollback()
+    assert reg.champion() == e and reg.get(e).status is ModelStatus.CHAMPION
+
+
+def test_a_registry_made_before_pruning_existed_is_migrated(tmp_path) -> None:
+    from storage.database import DB_NAME, connection, ensure_schema
+    from storage.models import _MIGRATIONS
+    data = tmp_path / "old"
+    data.mkdir()
+    with connection(data / DB_NAME, RegistryError) as conn:
+        ensure_schema(conn, "models", _MIGRATIONS[:1])
+        conn.execute("INSERT INTO models (version, seq, status, reason, parent, snapshot_id, eval_split_hash, "
+                     "weights_sha256, size_bytes, created, updated, metrics, config) VALUES "
+                     "('m000001-00000000', 1, 'retired', '', NULL, 's', 'h', 'x', 1, 't', 't', '{}', '{}')")
+    reg = ModelRegistry(data)
+    assert reg.get("m000001-00000000").pruned_at is None
+    assert reg.prune(keep=1).pruned == ["m000001-00000000"]
+
+
+def test_promote_stops_when_a_prune_lands_after_its_check(reg: ModelRegistry, monkeypatch) -> None:
+    a, b, c, d, e, rejected, candidate = _history_of_five(reg)
+    read = reg._read_verified
+    calls = []
+
+    def read_then_prune(rec):  # promote checked b's weights; then a prune (another process) removes them
+        data = read(rec)
+        if not calls:
+            calls.append(rec.version)
+            ModelRegistry(reg.data_dir).prune(keep=1)
+            return data
+        return read(reg.get(rec.version))
+
+    monkeypatch.setattr(reg, "_read_verified", read_then_prune)
+    with pytest.raises(PrunedCheckpointError, match="weights pruned"):
+        reg.promote(b)
+    assert calls == [b] and reg.champion() == e and reg.get(b).status is ModelStatus.RETIRED
+
+
+def test_a_corrupt_model_of_the_chain_does_not_use_up_a_keep_slot(reg: ModelRegistry) -> None:
+    a, b, c = (_register(reg, mse) for mse in (0.010, 0.008, 0.006))
+    for v in (a, b, c):
+        reg.gate(v)
+    _flip_byte(reg, b)
+    result = reg.prune(keep=2)
+    assert result.kept == [c, a] and result.pruned == [b]  # b could never be rolled back to
+    assert reg.rollback() == a
+
+
+def test_two_prunes_at_once_both_finish(reg: ModelRegistry) -> None:
+    a, b, c, d, e, rejected, candidate = _history_of_five(reg)
+    total = sum(f.stat().st_size for v in (a, b, c, d, rejected) for f in reg.get(v).path.iterdir())
+    results, errors = [], []
+
+    def work() -> None:
+        try:
+            results.append(ModelRegistry(reg.data_dir).prune(keep=1))
+        except BaseException as exc:  # noqa: BLE001 - reported by the assert below
+            errors.append(exc)
+
+    threads = [threading.Thread(target=work) for _ in range(4)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert errors == []
+    assert set().union(*(r.pruned for r in results)) == {a, b, c, d, rejected}
+    assert sum(r.freed_bytes for r in results) == total  # each directory deleted, and counted, once
+    assert sorted(p.name for p in reg.models_dir.iterdir()) == sorted([e, candidate])
+
+
+def test_a_dry_run_also_shows_what_a_crashed_prune_left(reg: ModelRegistry) -> None:
+    a, b, c, d, e, rejected, candidate = _history_of_five(reg)
+    with sqlite3.connect(reg.db_path) as conn:
+        conn.execute("UPDATE models SET pruned_at = '2026-11-21T00:00:00+00:00' WHERE version = ?", (a,))
+    dry = reg.prune(keep=5, dry_run=True)
+    real = reg.prune(keep=5)
+    assert dry.pruned == real.pruned == [a, rejected] and dry.freed_bytes == real.freed_bytes > 0
+
+
+def test_gating_a_pruned_model_changes_nothing(reg: ModelRegistry) -> None:
+    a, b, c, d, e, rejected, candidate = _history_of_five(reg)
+    reg.prune(keep=1)
+    before = reg.get(a)
+    decision = reg.gate(a)
+    assert not decision.promoted and "not a candidate" in decision.reason
+    assert reg.get(a) == before
+
+
+
+def test_prune_sweeps_the_dot_folders_crashed_calls_left(reg: ModelRegistry) -> None:
+    import os
+    import time
+    _history_of_five(reg)
+    old, fresh = reg.models_dir / ".tmp-crashed", reg.models_dir / ".tmp-live"
+    half_deleted = reg.models_dir / ".prune-m000001-abcdef12-0a0b0c0d"
+    for d in (old, fresh, half_deleted):
+        d.mkdir()
+        (d / "weights.pt").write_bytes(b"x" * 100)
+    hours_ago = time.time() - 2 * 3600
+    for d in (old, half_deleted):
+        os.utime(d, (hours_ago, hours_ago))
+    reg.prune(keep=5)
+    assert not old.exists() and not half_deleted.exists() and fresh.exists()
+
+
+def test_after_a_rollback_prune_keeps_the_model_rolled_back_from_while_slots_remain(reg: ModelRegistry) -> None:
+    a, b, c, d = (_register(reg, mse) for mse in (0.010, 0.008, 0.006, 0.004))
+    for v in (a, b, c, d):
+        reg.gate(v)
+    assert reg.prune(keep=2).kept == [d, c]
+    assert reg.rollback() == c  # the chain is now c alone (a and b were pruned)
+    result = reg.prune(keep=2)
+    assert result.kept == [c, d] and result.pruned == []  # d can still be promoted again by hand
+    assert reg.promote(d).promoted
+
+
+def test_a_corrupt_rolled_back_champion_does_not_take_a_slot_either(reg: ModelRegistry) -> None:
+    a, b, c = (_register(reg, mse) for mse in (0.010, 0.008, 0.006))
+    for v in (a, b, c):
+        reg.gate(v)
+    assert reg.rollback() == b  # c out of service
+    _flip_byte(reg, c)
+    result = reg.prune(keep=3)
+    assert result.kept == [b, a] and result.pruned == [c]
