@@ -26,13 +26,6 @@ def service(data_dir: Path, endpoint: str, namespace: str):
     svc.stop()
 
 
-@pytest.fixture
-def client(endpoint: str):
-    session = transport.open_session(connect=[endpoint])
-    yield session
-    session.close()
-
-
 def _answer(client, key: str, payload: bytes) -> dict:
     """The reply to ``payload`` on ``key`` as JSON (error replies included)."""
     return json.loads(transport.query(client, key, payload, timeout=10))

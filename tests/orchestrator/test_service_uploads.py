@@ -1,0 +1,179 @@
+"""Uploads to orchestrator.service over a real Zenoh client session: stored, indexed and completed once, and
+every upload that is not exactly what its lease asked for refused before anything is written."""
+
+from __future__ import annotations
+
+import hashlib
+import threading
+
+import pytest
+
+from orchestrator import messages, protocol
+from orchestrator.messages import LeaseGrant
+from orchestrator.protocol import ErrorCode
+from storage.catalog import Catalog
+from storage.requests import RequestStatus
+from tests.orchestrator.test_service import (DEFAULT_PHYSICS, call, episode_bytes, lease, new_request, refused,
+                                             upload)
+
+
+def test_upload_stores_indexes_and_completes_once(service, client, keys, data_dir) -> None:
+    request, _ = service.queue.enqueue(new_request())
+    grant = lease(client, keys)
+    data = episode_bytes(grant)
+    body = upload(client, keys, grant, data)
+    assert body["request_id"] == request.id and "duplicate" not in body
+    done = service.queue.get(request.id)
+    assert (done.status, done.episode_id) == (RequestStatus.DONE, body["episode_id"])
+    row = Catalog(data_dir).get(body["episode_id"])
+    assert row.sha256 == hashlib.sha256(data).hexdigest() and row.request_id == request.id
+    again = upload(client, keys, grant, data)  # e.g. the reply was lost and the worker retried
+    assert again == {**body, "duplicate": True}
+    refused(ErrorCode.BAD_FIELD, call, client, keys.upload, b"junk",  # the right header, other bytes
+            protocol.encode({"v": 1, **messages.UploadHeader.for_payload(data, request_id=grant.request_id,
+                                                                         token=grant.token, worker_id="w1").to_dict()}))
+    assert Catalog(data_dir).count() == 1
+    assert len(list((data_dir / "episodes").rglob("*.mcap"))) == 1
+
+
+def test_concurrent_identical_uploads_store_one_episode(service, client, keys, data_dir) -> None:
+    service.queue.enqueue(new_request())
+    grant = lease(client, keys)
+    data = episode_bytes(grant)
+    results: list[dict] = []
+    threads = [threading.Thread(target=lambda: results.append(upload(client, keys, grant, data))) for _ in range(4)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert len(results) == 4 and len({r["episode_id"] for r in results}) == 1
+    assert sum(1 for r in results if not r.get("duplicate")) == 1
+    assert Catalog(data_dir).count() == 1
+
+
+def test_stale_token_upload_is_refused_before_anything_is_written(service, client, keys, data_dir) -> None:
+    service.queue.enqueue(new_request())
+    old = lease(client, keys, worker="slow")
+    data = episode_bytes(old, worker="slow")
+    call(client, keys.fail, messages.FailRequest(request_id=old.request_id, token=old.token, worker_id="slow",
+                                                 error="boom").to_json())
+    new = lease(client, keys, worker="fast")
+    assert new.token == old.token + 1
+    message = refused(ErrorCode.STALE_TOKEN, upload, client, keys, old, data, worker="slow")
+    assert "token 1" in message
+    upload(client, keys, new, episode_bytes(new, worker="fast"), worker="fast")
+    assert service.queue.get(new.request_id).worker_id == "fast"
+    assert Catalog(data_dir).count() == 1
+
+
+@pytest.mark.parametrize("damage", ["truncated", "flipped", "not_mcap"])
+def test_corrupt_uploads_are_refused_and_nothing_is_indexed(service, client, keys, data_dir, damage) -> None:
+    service.queue.enqueue(new_request())
+    grant = lease(client, keys)
+    data = bytearray(episode_bytes(grant))
+    if damage == "truncated":
+        data = data[: len(data) // 2]
+    elif damage == "flipped":
+        data[len(data) // 2] ^= 0xFF
+    else:
+        data = bytearray(b"hello, this is not an episode" * 10)
+    message = refused(ErrorCode.CORRUPT_EPISODE, upload, client, keys, grant, bytes(data))
+    assert message
+    assert Catalog(data_dir).count() == 0
+    assert not list((data_dir / "episodes").rglob("*")) or not list((data_dir / "episodes").rglob("*.mcap"))
+    assert service.queue.get(grant.request_id).status == RequestStatus.LEASED  # still the worker's to fix
+
+
+def test_hash_size_and_provenance_mismatches_are_refused(service, client, keys, data_dir) -> None:
+    service.queue.enqueue(new_request())
+    other, _ = service.queue.enqueue(new_request())
+    grant = lease(client, keys)
+    data = episode_bytes(grant)
+    refused(ErrorCode.HASH_MISMATCH, upload, client, keys, grant, data, sha256="0" * 64)
+    refused(ErrorCode.BAD_FIELD, upload, client, keys, grant, data, size=len(data) + 1)
+    foreign = LeaseGrant.from_dict({**grant.to_dict(), "request_id": other.id})
+    message = refused(ErrorCode.BAD_FIELD, upload, client, keys, grant, episode_bytes(foreign))
+    assert "provenance" in message
+    assert Catalog(data_dir).count() == 0
+
+
+@pytest.mark.parametrize("change, words", [
+    (lambda g: {"shape": "L", "start_state": {**g.start_state, "shape": "L"}}, "found 'L'"),
+    (lambda g: {"steps": g.steps + 1}, "steps, found"),
+    (lambda g: {"policy": "random_waypoints", "policy_params": {}}, "expected policy 'push'"),
+    (lambda g: {"start_state": {**g.start_state, "agent": [101.0, 100.0]}}, "start_state.agent[0] differs"),
+    (lambda g: {"worker": "someone-else"}, "expected worker_id 'w1'"),
+    (lambda g: {"seed": g.seed + 1}, "expected the lease's seed"),
+    (lambda g: {"meta": {"physics": {"mass": 1e308}}}, "physics.mass: expected a finite number in [0.2, 5]"),
+    (lambda g: {"meta": {"physics": {"mass": 1.0, "gravity": -5.0}}}, "found gravity (outside the task space)"),
+    (lambda g: {"meta": {"created": "9999-99-99"}}, "created: expected an ISO 8601 time, found '9999-99-99'"),
+    (lambda g: {"meta": {"physics": {**DEFAULT_PHYSICS, "mass": DEFAULT_PHYSICS["mass"] * 1.5}}},
+     "physics.mass differs"),
+])
+def test_an_upload_that_is_not_what_the_request_asked_for_is_refused(service, client, keys, data_dir,
+                                                                     change, words) -> None:
+    service.queue.enqueue(new_request())
+    grant = lease(client, keys)
+    asked = change(grant)
+    worker, meta = asked.pop("worker", "w1"), asked.pop("meta", {})
+    wrong = episode_bytes(LeaseGrant.from_dict({**grant.to_dict(), **asked}), worker=worker, **meta)
+    message = refused(ErrorCode.BAD_FIELD, upload, client, keys, grant, wrong)
+    assert "provenance" in message and words in message, message
+    assert Catalog(data_dir).count() == 0
+    assert service.queue.get(grant.request_id).status == RequestStatus.LEASED
+    assert "duplicate" not in upload(client, keys, grant, episode_bytes(grant))  # the right one still goes in
+    assert service.queue.get(grant.request_id).status == RequestStatus.DONE
+
+
+def test_an_upload_of_another_frame_size_than_the_catalogs_is_refused(service, client, keys, data_dir) -> None:
+    for _ in range(3):
+        service.queue.enqueue(new_request())
+    first = lease(client, keys, image_size=24)
+    assert first.image_size == 0  # an empty catalog: the worker's own size
+    upload(client, keys, first, episode_bytes(first))  # the catalog's frames are 16 px from now on
+    grant = lease(client, keys, image_size=24)
+    assert grant.image_size == 16  # what a worker that says its own size records at
+    older = call(client, keys.lease, messages.LeaseRequest(worker_id="w2").to_json())["grant"]
+    assert "image_size" not in older  # workers from before the field refuse unknown fields: not sent to them
+    message = refused(ErrorCode.BAD_FIELD, upload, client, keys, grant, episode_bytes(grant, size=24))
+    assert "24px frames; this catalog holds 16px episodes" in message
+    assert Catalog(data_dir).count() == 1 and service.queue.get(grant.request_id).status == RequestStatus.LEASED
+
+
+def test_a_first_upload_at_a_size_no_model_trains_on_is_refused_and_changes_nothing(service, client, keys,
+                                                                                   data_dir) -> None:
+    """It would fix the empty catalog's size (a worker from before ``--size`` was checked can send one)."""
+    service.queue.enqueue(new_request())
+    grant = lease(client, keys, image_size=12)
+    assert grant.image_size == 0  # an empty catalog: the worker's own size
+    message = refused(ErrorCode.BAD_FIELD, upload, client, keys, grant, episode_bytes(grant, size=12))
+    assert "12px frames; the first episode fixes this catalog's frame size, which must be a multiple of 8 " \
+           "from 16 to 1024" in message, message
+    catalog = Catalog(data_dir)
+    assert catalog.count() == 0 and catalog.frame_size() is None
+    assert [p for p in catalog.episodes_dir.rglob("*") if p.is_file()] == []
+    assert service.queue.get(grant.request_id).status == RequestStatus.LEASED
+    assert "duplicate" not in upload(client, keys, grant, episode_bytes(grant))  # 16 px still goes in
+    assert catalog.frame_size() == 16
+
+
+def test_an_upload_that_would_inflate_past_what_the_request_needs_is_refused_before(service, client, keys,
+                                                                                    data_dir) -> None:
+    for _ in range(2):
+        service.queue.enqueue(new_request())
+    first = lease(client, keys)
+    upload(client, keys, first, episode_bytes(first))  # the catalog holds 16 px frames from now on
+    grant = lease(client, keys)
+    data = episode_bytes(grant, size=1024)  # 15 MiB of pixels in a small file
+    assert len(data) < 1 << 20
+    message = refused(ErrorCode.TOO_LARGE, upload, client, keys, grant, data)
+    assert "inflates to" in message and "frames need at most" in message, message
+    assert Catalog(data_dir).count() == 1 and service.queue.get(grant.request_id).status == RequestStatus.LEASED
+
+
+def test_oversized_upload_is_refused(make_service, client, keys, data_dir) -> None:
+    service = make_service(max_upload_bytes=1000)
+    service.queue.enqueue(new_request())
+    grant = lease(client, keys)
+    refused(ErrorCode.TOO_LARGE, upload, client, keys, grant, episode_bytes(grant))
+    assert Catalog(data_dir).count() == 0
