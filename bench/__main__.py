@@ -29,16 +29,19 @@ BENCHES: dict[str, list[str]] = {
 
 
 def _last_json(text: str) -> object:
-    """The last line of output that parses as JSON (benchmarks may log before it)."""
-    for line in reversed(text.strip().splitlines()):
-        try:
-            return json.loads(line)
-        except json.JSONDecodeError:
-            continue
-    try:
-        return json.loads(text)
-    except json.JSONDecodeError:
-        return {"error": "no JSON in output", "tail": text[-2000:]}
+    """The last JSON object or list in the output that starts a line, compact or indented over many lines
+    (benchmarks may log before it); an error record when there is none."""
+    decoder = json.JSONDecoder()
+    starts = [0]
+    for line in text.splitlines(keepends=True):
+        starts.append(starts[-1] + len(line))
+    for start in reversed(starts[:-1]):  # a nested line of an indented document starts with a space
+        if text.startswith(("{", "["), start):
+            try:
+                return decoder.raw_decode(text, start)[0]
+            except json.JSONDecodeError:
+                continue
+    return {"error": "no JSON in output", "tail": text[-2000:]}
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -171,3 +171,15 @@ def test_heap_trim_plays_the_episodes_through_the_planner_in_each_setting(tmp_pa
     assert settings["no trim"]["per_s_over_no_trim"] == 1.0
     trims = [s["trims"] for s in settings.values()]
     assert trims in ([0, 3, 1, 0], [0, 0, 0, 0])  # (all 0: a C library without malloc_trim)
+
+
+def test_make_bench_keeps_each_benchmarks_whole_json_indented_or_compact():
+    from bench.__main__ import _last_json
+
+    result = {"fused": {"frames_per_s": 551.0}, "speedup_per_round": [1.4, 1.5, 1.49], "note": "x"}
+    logged = "loading the model\n[info] 3 rounds\n"
+    assert _last_json(logged + json.dumps(result, indent=2) + "\n") == result  # not the list's last item
+    assert _last_json(logged + json.dumps(result) + "\n") == result
+    assert _last_json(json.dumps([{"seed": 0}, {"seed": 1}], indent=1)) == [{"seed": 0}, {"seed": 1}]
+    assert _last_json(json.dumps({"a": 1}) + "\n" + json.dumps({"b": 2}, indent=2)) == {"b": 2}
+    assert _last_json("no figures\n42\n")["error"] == "no JSON in output"
