@@ -23,6 +23,7 @@ from storage.errors import QueueError, StaleLeaseError, StorageError, StorageUna
 from storage.models import ModelStatus
 from storage.queue import RequestQueue
 from storage.requests import IllegalTransitionError, NewRequest, Request, RequestStatus, UnknownRequestError
+from workers.policies import check_policy_params
 
 #: Most requests one ``queue.ls`` may ask for.
 MAX_LIST = 200
@@ -119,7 +120,7 @@ def _int_arg(op: str, name: str, value: Any, lo: int, hi: int) -> int:
 
 
 def _priority_arg(op: str, value: Any) -> float:
-    return protocol.check_float(f"{op}: priority", value, -1e12, 1e12)
+    return protocol.check_float(f"{op}: priority", value, -protocol.MAX_PRIORITY, protocol.MAX_PRIORITY)
 
 
 def _status_arg(op: str, value: Any, choices: Iterable[str]) -> str | None:
@@ -159,6 +160,10 @@ def _queue_op(op: str, args: Mapping[str, Any], queue: RequestQueue) -> dict[str
                 "total": counts[status] if status is not None else sum(counts.values())}
     if op == "queue.add":
         spec = RequestSpec.from_dict({"reason": dict(_MANUAL_REASON), **args})
+        try:  # what a worker would refuse after leasing it, again and again until the request is dead
+            check_policy_params(spec.policy, spec.policy_params)
+        except ValueError as exc:
+            raise ProtocolError(ErrorCode.BAD_FIELD, f"policy_params: {exc}") from None
         request, created = queue.enqueue(NewRequest(**spec.to_dict()))
         if not created:
             _refuse_other_ask(spec, request)

@@ -28,7 +28,7 @@ from typing import Any
 
 from orchestrator.protocol import (ADMIN_OPS, MAX_ATTEMPTS, MAX_EPISODE_STEPS, MAX_ERROR_CHARS, MAX_FRAME_SIZE,
                                    MAX_UPLOAD_BYTES, MIN_EPISODE_STEPS, MIN_FRAME_SIZE, POLICIES, PROTOCOL_VERSION,
-                                   SHAPES, TASKS,
+                                   MAX_PRIORITY, SHAPES, TASKS,
                                    ErrorCode, EventKind, ProtocolError, bad_field, check_float, check_id, check_int,
                                    check_obj, check_str, check_str_list, decode, encode,
                                    validate_action_prefix, validate_start_state)
@@ -269,7 +269,7 @@ class RequestSpec(Message):
 
     def validate(self) -> None:
         _check_collection(self)
-        self.priority = check_float("priority", self.priority, -1e12, 1e12)
+        self.priority = check_float("priority", self.priority, -MAX_PRIORITY, MAX_PRIORITY)
         self.reason = check_obj("reason", self.reason)
         if self.reason.get("model_version") is not None:  # it goes into every grant, which workers check
             check_str("reason.model_version", self.reason["model_version"], allow_empty=True)

@@ -78,6 +78,8 @@ MAX_OMEGA = 100.0
 MAX_CAPABILITIES = 32
 #: Most attempts a request may be given.
 MAX_ATTEMPTS = 100
+#: Largest priority (either sign) a request may be given.
+MAX_PRIORITY = 1e12
 
 _ID_RE = re.compile(r"^[A-Za-z0-9_.\-]{1,128}$")
 _NAMESPACE_RE = re.compile(r"^[A-Za-z0-9_\-]+(/[A-Za-z0-9_\-]+)*$")

@@ -9,6 +9,7 @@ in, so one seed gives one action sequence for one start state.
 
 from __future__ import annotations
 
+import json
 import math
 from typing import Any, Mapping, Protocol
 
@@ -296,3 +297,15 @@ def make_policy(name: str, params: Mapping[str, Any] | None, rng: np.random.Gene
     except (KeyError, TypeError):
         raise ValueError(f"policy must be one of {list(POLICIES)}, found {name!r}") from None
     return cls(params, rng)
+
+
+def check_policy_params(name: str, params: Mapping[str, Any] | None) -> None:
+    """ValueError, as ``make_policy`` raises it, unless policy ``name`` takes ``params``: what a request is checked
+    with before it is queued, so that no worker refuses it later."""
+    make_policy(name, params, np.random.default_rng(0))
+
+
+def policy_params_help() -> str:
+    """Each policy's parameters with their defaults as JSON, for a ``--help``."""
+    return "; ".join(f"{name}: " + ", ".join(f"{k}={json.dumps(v)}" for k, v in cls.DEFAULTS.items())
+                     for name, cls in _REGISTRY.items())

@@ -25,6 +25,7 @@ from orchestrator.messages import AdminRequest, Event
 from orchestrator.protocol import Keys, ProtocolError
 from orchestrator.uniform import uniform_start_state
 from storage.requests import RequestStatus
+from workers.policies import check_policy_params, policy_params_help
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -67,7 +68,9 @@ def _register_queue(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--policy", default="push", choices=protocol.POLICIES,
                    help="the scripted policy the worker runs (default push)")
     p.add_argument("--policy-params", type=_json_object, default={}, metavar="JSON",
-                   help="the policy's parameters as a JSON object, e.g. '{\"side\": \"left\"}' (default: its defaults)")
+                   help="the policy's parameters as a JSON object, e.g. '{\"side\": \"left\"}'; each policy's, "
+                        f"with its defaults: {policy_params_help()}; push's side is left, right, top or bottom "
+                        "(null: drawn) (default: the policy's defaults)")
     p.add_argument("--start-state", type=_json_object, default=None, metavar="JSON",
                    help="start state as a JSON object: shape (as --shape), agent [x, y] (the pusher), object "
                         f"[x, y, angle in radians], positions in 0..{protocol.WORLD_SIZE:g}; optional agent_vel "
@@ -79,10 +82,10 @@ def _register_queue(sub: argparse._SubParsersAction) -> None:
                         "so a retried add asks for the same start state; else random)")
     p.add_argument("--steps", type=common.episode_steps, default=50, metavar="T",
                    help=f"steps to record, at least {common.MIN_EPISODE_STEPS} (default 50)")
-    p.add_argument("--priority", type=common.finite_float, default=0.0, metavar="P",
-                   help="higher is leased first (default 0; planned requests carry their score)")
-    p.add_argument("--max-attempts", type=common.positive_int, default=3, metavar="N",
-                   help="leases that may fail or expire before the request is dead (default 3)")
+    p.add_argument("--priority", type=_priority, default=0.0, metavar="P",
+                   help=f"higher is leased first, within ±{protocol.MAX_PRIORITY:g} (default 0; planned requests carry their score)")
+    p.add_argument("--max-attempts", type=_max_attempts, default=3, metavar="N",
+                   help=f"leases that may fail or expire before the request is dead, at most {protocol.MAX_ATTEMPTS} (default 3)")
     p.add_argument("--idempotency-key", default=None, metavar="KEY",
                    help="a repeated add with the same key returns the first request instead of a new one; "
                         "one that asks for something else (another shape, start state, policy, steps...) is "
@@ -97,8 +100,8 @@ def _register_queue(sub: argparse._SubParsersAction) -> None:
     p = qsub.add_parser("prioritize", help="set a request's priority (higher is leased first)")
     _operator_args(p)
     p.add_argument("id", metavar="ID", help="a request id, or a unique prefix of one")
-    p.add_argument("priority", type=common.finite_float, metavar="PRIORITY",
-                   help="the new priority, any finite number; higher is leased first (manual requests start at 0, "
+    p.add_argument("priority", type=_priority, metavar="PRIORITY",
+                   help=f"the new priority, a number within ±{protocol.MAX_PRIORITY:g}; higher is leased first (manual requests start at 0, "
                         "planned ones at their score)")
     p.set_defaults(func=lambda a: _print_op(a, "queue.prioritize", {"id": a.id, "priority": a.priority},
                                             _print_request))
@@ -107,6 +110,20 @@ def _register_queue(sub: argparse._SubParsersAction) -> None:
 def _operator_args(p: argparse.ArgumentParser) -> None:
     endpoints.add_connection_args(p)
     common.add_json_arg(p)
+
+
+def _priority(text: str) -> float:
+    value = common.finite_float(text)
+    if abs(value) > protocol.MAX_PRIORITY:
+        raise argparse.ArgumentTypeError(f"expected a number within ±{protocol.MAX_PRIORITY:g}, found {text!r}")
+    return value
+
+
+def _max_attempts(text: str) -> int:
+    value = common.positive_int(text)
+    if value > protocol.MAX_ATTEMPTS:
+        raise argparse.ArgumentTypeError(f"expected at most {protocol.MAX_ATTEMPTS}, found {value}")
+    return value
 
 
 def _list_limit(text: str) -> int:
@@ -262,6 +279,10 @@ def _start_seed(seed: int | None, idempotency_key: str | None) -> int | None:
 
 
 def cmd_queue_add(args: argparse.Namespace) -> int:
+    try:
+        check_policy_params(args.policy, args.policy_params)
+    except ValueError as exc:
+        raise common.UsageError(f"--policy-params: {exc}") from None
     start = args.start_state
     if start is None:
         start = uniform_start_state(np.random.default_rng(_start_seed(args.seed, args.idempotency_key)), args.shape)

@@ -60,7 +60,7 @@ def test_add_show_ls(queue: RequestQueue) -> None:
 
 @pytest.mark.parametrize("change", [{"shape": "T", "start_state": dict(START, shape="T")},
                                     {"start_state": dict(START, agent=[101.0, 100.0])}, {"steps": 21},
-                                    {"policy": "random_waypoints"}, {"policy_params": {"seed": 1}},
+                                    {"policy": "random_waypoints"}, {"policy_params": {"noise": 3.0}},
                                     {"action_prefix": [[1.0, 0.0]]}, {"max_attempts": 5}])
 def test_a_reused_idempotency_key_asking_for_another_request_is_refused(queue: RequestQueue, change: dict) -> None:
     first = call("queue.add", SPEC, queue=queue)["request"]
@@ -75,6 +75,10 @@ def test_a_reused_idempotency_key_asking_for_another_request_is_refused(queue: R
 
 
 def test_add_validates_through_the_protocol(queue: RequestQueue) -> None:
+    # policy parameters a worker would refuse after every lease until the request is dead
+    err = refused(ErrorCode.BAD_FIELD, "queue.add", dict(SPEC, policy_params={"side": "up"}), queue=queue)
+    assert err.message.startswith("policy_params: policy 'push'") and "'up'" in err.message
+    refused(ErrorCode.BAD_FIELD, "queue.add", dict(SPEC, policy_params={"sid": "left"}), queue=queue)
     refused(ErrorCode.BAD_FIELD, "queue.add", dict(SPEC, shape="hexagon"), queue=queue)
     refused(ErrorCode.BAD_FIELD, "queue.add", dict(SPEC, start_state=dict(START, agent=[600.0, 1.0])), queue=queue)
     refused(ErrorCode.BAD_FIELD, "queue.add", dict(SPEC, steps=protocol.MAX_EPISODE_STEPS + 1), queue=queue)
