@@ -133,6 +133,33 @@ def test_ingest_directory_and_split(capsys, data, rng, tmp_path):
     assert Catalog(data).count(split="eval") == 2
 
 
+def test_episodes_ingested_as_eval_are_pinned_by_eval_split_pin(capsys, data, rng, tmp_path):
+    src, other = tmp_path / "src", tmp_path / "other"
+    for i in range(3):
+        episodes.write_episode(src / f"ep{i}.mcap", make_episode(rng))
+    episodes.write_episode(other / "train.mcap", make_episode(rng))
+    assert run_cli(capsys, "ingest", str(other), "--data", str(data))[0] == 0  # a train episode
+    rc, _, err = run_cli(capsys, "eval-split", "pin", "--data", str(data))
+    assert rc == 2 and err.count("\n") == 1 and "no eval episodes to pin" in err and "--split eval" in err
+    assert run_cli(capsys, "ingest", str(src), "--split", "eval", "--data", str(data))[0] == 0
+    rc, _, err = run_cli(capsys, "eval-split", "show", "--data", str(data))
+    assert rc == 1 and "3 eval episodes are indexed: pin them with activecollect eval-split pin" in err
+    cat = Catalog(data)
+    evals, train = sorted(cat.snapshot("eval").ids), cat.snapshot("train").ids
+    rc, _, err = run_cli(capsys, "eval-split", "pin", evals[0], train[0][:12], "--data", str(data))
+    assert rc == 1 and "split 'train'" in err and cat.eval_split() is None  # changes nothing
+    rc, out, err = run_cli(capsys, "eval-split", "pin", evals[0], evals[1][:12], "--data", str(data), "--json")
+    assert rc == 0, err
+    pinned = json.loads(out)
+    split = cat.eval_split()
+    assert split.ids == evals[:2] and pinned == {"hash": split.hash, "episodes": 2}
+    assert split.params["image_size"] == cat.frame_size()
+    assert run_cli(capsys, "eval-split", "pin", evals[1], evals[0], "--data", str(data))[0] == 0  # the same: a no-op
+    rc, _, err = run_cli(capsys, "eval-split", "pin", "--data", str(data))  # all three: another set
+    assert rc == 1 and err.count("\n") == 1 and "already pinned" in err and cat.eval_split().ids == evals[:2]
+    assert cat.snapshot("train").ids == train  # training never sees them
+
+
 def test_eval_split_create_and_show(capsys, data):
     rc, out, err = run_cli(capsys, "eval-split", "show", "--data", str(data))
     assert rc == 2 and "no catalog" in err

@@ -110,7 +110,9 @@ def register(sub: argparse._SubParsersAction) -> None:
 
     p = sub.add_parser("ingest", help="verify and index MCAP episode files collected elsewhere")
     p.add_argument("paths", nargs="+", type=Path, metavar="PATH", help="MCAP files, or directories of them")
-    p.add_argument("--split", choices=SPLITS, default="train", help="split to index them in (default train)")
+    p.add_argument("--split", choices=SPLITS, default="train",
+                   help="split to index them in (default train); eval episodes are neither trained nor evaluated "
+                        "on until `eval-split pin` pins them")
     common.add_data_arg(p)
     common.add_json_arg(p)
     p.set_defaults(func=_ingest)
@@ -129,6 +131,16 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--steps", type=common.episode_steps, default=50, metavar="T",
                    help=f"steps per episode, at least {common.MIN_EPISODE_STEPS} (default 50)")
     p.set_defaults(func=_eval_split_create)
+    p = ssub.add_parser("pin", help="pin the eval split to episodes ingested with --split eval",
+                        description="Pin the evaluation split to episodes collected elsewhere and indexed with "
+                                    "`activecollect ingest PATH --split eval` (eval-split create collects its own "
+                                    "instead). Once pinned, the split never changes: every model of the directory "
+                                    "is measured on it and none trains on it. Pinning the same episodes again "
+                                    "is a no-op.")
+    p.add_argument("episode_ids", nargs="*", metavar="EPISODE",
+                   help="episode ids or unique prefixes, all of split eval (default: every eval episode indexed "
+                        "and not quarantined)")
+    p.set_defaults(func=_eval_split_pin)
     p = ssub.add_parser("show", help="the pinned split's hash and episodes")
     p.set_defaults(func=_eval_split_show)
     for p in ssub.choices.values():
@@ -271,12 +283,37 @@ def _eval_split_create(args: argparse.Namespace) -> int:
     return 0
 
 
+def _eval_split_pin(args: argparse.Namespace) -> int:
+    cat = common.existing_catalog(args)
+    if args.episode_ids:
+        rows = [episodes_cli.resolve(cat, i) for i in args.episode_ids]
+        ids = [r.episode_id for r in rows]
+    else:
+        ids = cat.snapshot("eval").ids
+        if not ids:
+            raise common.UsageError(f"no eval episodes to pin in {cat.data_dir}: index them with `activecollect "
+                                    "ingest PATH --split eval`, or collect a split with `eval-split create`")
+    try:
+        digest = cat.pin_eval_split(ids, params={"image_size": cat.frame_size(), "pinned": "ingested episodes"})
+    except CatalogError as exc:
+        print(one_line(f"activecollect: {exc}"), file=sys.stderr)
+        return 1
+    split = cat.eval_split()
+    if args.json:
+        common.print_json({"hash": digest, "episodes": len(split.ids)})
+    else:
+        print(f"eval split pinned: {len(split.ids)} episodes, hash {digest}")
+    return 0
+
+
 def _eval_split_show(args: argparse.Namespace) -> int:
     cat = common.existing_catalog(args)
     split = cat.eval_split()
     if split is None:
-        print(f"activecollect: no eval split is pinned in {cat.data_dir} "
-              "(create one: activecollect eval-split create)", file=sys.stderr)
+        waiting = len(cat.snapshot("eval").ids)
+        hint = (f"{waiting} eval episodes are indexed: pin them with activecollect eval-split pin" if waiting
+                else "create one: activecollect eval-split create")
+        print(f"activecollect: no eval split is pinned in {cat.data_dir} ({hint})", file=sys.stderr)
         return 1
     if args.json:
         common.print_json({"hash": split.hash, "created": split.created, "params": split.params,

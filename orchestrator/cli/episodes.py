@@ -62,7 +62,8 @@ def register(sub: argparse._SubParsersAction) -> None:
         common.add_json_arg(p)
 
 
-def _resolve(cat: Catalog, episode_id: str) -> EpisodeRow:
+def resolve(cat: Catalog, episode_id: str) -> EpisodeRow:
+    """The episode ``episode_id`` names (an id or a unique prefix); a usage error (exit 2) when none does."""
     try:
         return cat.resolve(episode_id)
     except NotFoundError as exc:  # (a damaged catalog is not a usage error: exit 1)
@@ -95,7 +96,7 @@ def _episodes_ls(args: argparse.Namespace) -> int:
 
 def _episodes_show(args: argparse.Namespace) -> int:
     cat = common.existing_catalog(args)
-    row = _resolve(cat, args.episode_id)
+    row = resolve(cat, args.episode_id)
     out: dict[str, Any] = {**row.to_json(), "meta": vars(cat.meta(row.episode_id))}
     if args.json:
         common.print_json(out)
@@ -110,7 +111,7 @@ def _episodes_show(args: argparse.Namespace) -> int:
 
 def _episodes_verify(args: argparse.Namespace) -> int:
     cat = common.existing_catalog(args)
-    rows = [_resolve(cat, i) for i in args.episode_ids] if args.episode_ids else cat.list(quarantined=False)
+    rows = [resolve(cat, i) for i in args.episode_ids] if args.episode_ids else cat.list(quarantined=False)
     report = []
     for row in tqdm(rows, unit="ep", desc="verify", file=sys.stderr, disable=None):
         entry = {"episode_id": row.episode_id, "ok": True, "error": "", "quarantined": bool(row.quarantined)}
@@ -155,7 +156,7 @@ def _episodes_quarantine(args: argparse.Namespace) -> int:
     cat = common.existing_catalog(args)
     if not args.reason.strip():
         raise common.UsageError("--reason must say why")
-    rows = [_resolve(cat, i) for i in args.episode_ids]  # all known before any changes
+    rows = [resolve(cat, i) for i in args.episode_ids]  # all known before any changes
     return _each(args, rows, lambda row: cat.quarantine(row.episode_id, args.reason), "quarantined")
 
 
@@ -163,7 +164,7 @@ def _episodes_restore(args: argparse.Namespace) -> int:
     if bool(args.episode_ids) == args.all:
         raise common.UsageError("give the episodes to restore, or --all (not both)")
     cat = common.existing_catalog(args)
-    rows = cat.list(quarantined=True) if args.all else [_resolve(cat, i) for i in args.episode_ids]
+    rows = cat.list(quarantined=True) if args.all else [resolve(cat, i) for i in args.episode_ids]
     if not rows and not args.json:
         print(f"nothing is quarantined in {cat.data_dir}")
     return _each(args, rows, lambda row: cat.restore(row.episode_id), "restored")
