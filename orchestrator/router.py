@@ -20,7 +20,7 @@ import zenoh
 from orchestrator.endpoints import endpoint_problem
 from orchestrator.secure import is_secure_profile
 from orchestrator.signals import on_stop_signals
-from orchestrator.transport import SecureConfigError, cap_incoming, read_config, validate_secure_config
+from orchestrator.transport import SecureConfigError, cap_incoming, read_config, validate_secure_config, zenoh_error
 
 #: Where a router listens when given neither --listen nor a config: loopback only, so an
 #: unconfigured router is never reachable (in plaintext) from other hosts.
@@ -69,7 +69,7 @@ def build_router_config(cfg: RouterConfig) -> zenoh.Config:
         except SecureConfigError as exc:
             raise RouterError(str(exc)) from exc
         except zenoh.ZError as exc:
-            raise RouterError(f"Zenoh refuses {cfg.zenoh_config}: {_first_line(exc)}") from exc
+            raise RouterError(f"Zenoh refuses {cfg.zenoh_config}: {zenoh_error(exc)}") from exc
     else:
         config = zenoh.Config()
         config.insert_json5("scouting/multicast/enabled", "false")
@@ -88,13 +88,8 @@ def build_router_config(cfg: RouterConfig) -> zenoh.Config:
         if cfg.connect:
             config.insert_json5("connect/endpoints", json.dumps(list(cfg.connect)))
     except zenoh.ZError as exc:
-        raise RouterError(f"Zenoh refuses the endpoints: {_first_line(exc)}") from exc
+        raise RouterError(f"Zenoh refuses the endpoints: {zenoh_error(exc)}") from exc
     return config
-
-
-def _first_line(exc: BaseException) -> str:
-    text = str(exc).strip()
-    return text.splitlines()[0] if text else type(exc).__name__
 
 
 def listen_endpoints(config: zenoh.Config) -> list[str]:
@@ -119,7 +114,7 @@ class Router:
             self.session = zenoh.open(self.config)
         except zenoh.ZError as exc:
             raise RouterError(f"cannot start the router on {', '.join(self.endpoints) or '(none)'}: "
-                              f"{_first_line(exc)}") from exc
+                              f"{zenoh_error(exc)}") from exc
 
     @property
     def zid(self) -> str:

@@ -26,6 +26,7 @@ import json
 import logging
 import os
 import queue as queue_mod
+import re
 import threading
 import time
 from collections.abc import Callable, Sequence
@@ -64,6 +65,18 @@ class RemoteError(TransportError):
         self.payload = payload
         self.code, self.message = _parse_error(payload)
         super().__init__(f"{key}: {self.code}: {self.message}")
+
+
+#: Where in Zenoh's Rust source an error was made (`` at /root/.cargo/.../unicast.rs:338.``): noise to a user.
+_RUST_LOCATION = re.compile(r"\s+at \S+\.rs:\d+\.?")
+
+
+def zenoh_error(exc: BaseException) -> str:
+    """What a Zenoh error says, for a user: its first line, without the Rust source locations."""
+    text = str(exc).strip()
+    text = _RUST_LOCATION.sub("", text.splitlines()[0] if text else "").strip()
+    return text or type(exc).__name__
+
 
 # ---------------------------------------------------------------- config files
 
@@ -234,7 +247,7 @@ def make_config(mode: str = "peer", listen: Sequence[str] = (), connect: Sequenc
         try:
             config = zenoh.Config.from_file(str(config_file))
         except (zenoh.ZError, OSError, ValueError) as exc:
-            raise TransportError(f"cannot load Zenoh config {config_file}: {exc}") from exc
+            raise TransportError(f"cannot load Zenoh config {config_file}: {zenoh_error(exc)}") from exc
         cap_incoming(config, written)
         _add_endpoints(config, "listen", listen)
         _add_endpoints(config, "connect", connect)
@@ -252,7 +265,8 @@ def make_config(mode: str = "peer", listen: Sequence[str] = (), connect: Sequenc
         config.insert_json5("listen/endpoints", json.dumps(list(listen)))
         config.insert_json5("connect/endpoints", json.dumps(list(connect)))
     except zenoh.ZError as exc:
-        raise TransportError(f"bad endpoint in listen={list(listen)} connect={list(connect)}: {exc}") from exc
+        raise TransportError(f"bad endpoint in listen={list(listen)} connect={list(connect)}: "
+                             f"{zenoh_error(exc)}") from exc
     return config
 
 
@@ -270,7 +284,7 @@ def _add_endpoints(config: zenoh.Config, section: str, endpoints: Sequence[str])
     try:
         config.insert_json5(f"{section}/endpoints", json.dumps(merged))
     except zenoh.ZError as exc:
-        raise TransportError(f"bad {section} endpoint in {list(endpoints)}: {exc}") from exc
+        raise TransportError(f"bad {section} endpoint in {list(endpoints)}: {zenoh_error(exc)}") from exc
 
 
 def open_session(mode: str = "peer", listen: Sequence[str] = (), connect: Sequence[str] = (),
@@ -284,7 +298,7 @@ def open_session(mode: str = "peer", listen: Sequence[str] = (), connect: Sequen
         return zenoh.open(config)
     except zenoh.ZError as exc:
         raise TransportError(f"cannot open Zenoh session (listen={list(listen)}, "
-                             f"connect={list(connect)}, config={config_file}): {exc}") from exc
+                             f"connect={list(connect)}, config={config_file}): {zenoh_error(exc)}") from exc
 
 
 # --------------------------------------------------------------------------- querying

@@ -11,7 +11,7 @@ import zenoh
 
 from orchestrator import transport
 from orchestrator.transport import Incoming, NoReplyError, RemoteError, Response, Server
-from tests.conftest import wait_for
+from tests.conftest import free_port, wait_for
 
 
 @pytest.fixture
@@ -221,3 +221,20 @@ def test_liveliness_token_loss_is_seen(pair) -> None:
     token.undeclare()
     wait_for(lambda: ("t/workers/w1", False) in events, message="token disappears")
     sub.undeclare()
+
+
+def test_a_session_zenoh_cannot_open_is_one_line_without_rust_source_locations() -> None:
+    closed = f"tcp/127.0.0.1:{free_port()}"  # nobody listens there: a client session cannot open
+    with pytest.raises(transport.TransportError) as info:
+        transport.open_session("client", connect=[closed])
+    message = str(info.value)
+    assert closed in message and "\n" not in message and ".rs:" not in message and "/root/" not in message, message
+
+
+def test_zenoh_error_keeps_the_first_line_less_the_rust_locations() -> None:
+    raw = ("Can not create a new TCP listener bound to tcp/8.8.8.8:7447: [8.8.8.8:7447: Cannot assign requested "
+           "address (os error 99) at /root/.cargo/git/checkouts/zenoh-9c5/cc8/io/zenoh-link-commons/src/tcp.rs:61.] "
+           "at /root/.cargo/git/checkouts/zenoh-9c5/cc8/io/zenoh-links/zenoh-link-tcp/src/unicast.rs:338.\nmore")
+    assert transport.zenoh_error(Exception(raw)) == ("Can not create a new TCP listener bound to tcp/8.8.8.8:7447: "
+                                                     "[8.8.8.8:7447: Cannot assign requested address (os error 99)]")
+    assert transport.zenoh_error(ValueError("")) == "ValueError"
