@@ -83,6 +83,8 @@ def _connect() -> list[str]:
     (["queue", "add", "--shape", "T", "--policy-params", '{"a": NaN}'], "NaN is not a JSON number"),
     (["queue", "add", "--shape", "T", "--policy-params", "[" * 100_000 + "]" * 100_000], "nested too deeply"),
     (["queue", "prioritize", "r1", "nan"], "expected a finite number"),
+    (["serve", "--retrain-args", "--from-champion", "--data", "DATA"],
+     "argument --retrain-args: expected one argument (a value that starts with '-' needs '=': --retrain-args=VALUE)"),
     (["queue", "prioritize", "r1", "1e13"], "expected a number within ±1e+12, found '1e13'"),
     (["queue", "add", "--shape", "T", "--priority=-2e12"], "expected a number within ±1e+12"),
     (["queue", "add", "--shape", "T", "--max-attempts", "101"], "expected at most 100, found 101"),

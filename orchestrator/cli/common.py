@@ -37,6 +37,9 @@ class Parser(argparse.ArgumentParser):
     """
 
     def error(self, message: str) -> NoReturn:
+        flag = re.fullmatch(r"argument (--[\w-]+): expected one argument", message)
+        if flag:  # e.g. --retrain-args '--from-champion': argparse took the value for an option
+            message += f" (a value that starts with '-' needs '=': {flag[1]}=VALUE)"
         self.exit(2, f"{self.prog}: error: {one_line(message)}\n")
 
     def parse_known_args(self, args=None, namespace=None):  # type: ignore[override]
