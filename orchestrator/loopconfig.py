@@ -152,10 +152,11 @@ class LoopBenchConfig:
         if self.signal not in SIGNALS or self.signal_horizon < 1:
             raise ValueError(f"signal must be one of {SIGNALS} and signal_horizon >= 1, found "
                              f"{self.signal!r} and {self.signal_horizon}")
-        if self.signal in HEAD_SIGNALS and not (self.train.variance_head and self.signal_horizon == 1):
-            raise ValueError(f"signal {self.signal} ranks by a variance head: it needs variance_head and "
-                             f"signal_horizon 1, found variance_head={self.train.variance_head}, "
-                             f"signal_horizon={self.signal_horizon}")
+        if self.signal in HEAD_SIGNALS and not self.train.variance_head:
+            raise ValueError(f"signal {self.signal} ranks by a variance head: it needs variance_head")
+        if self.signal in HEAD_SIGNALS and self.signal_horizon != 1:
+            raise ValueError(f"signal {self.signal} ranks by a variance head's next-frame variance: it needs "
+                             f"signal_horizon 1, found {self.signal_horizon}")
         if self.shapes_by_progress and self.active.progress_horizon > self.steps - self.train.context:
             raise ValueError(f"progress_horizon must be at most {self.steps - self.train.context} (the steps of an "
                              f"episode less the model's {self.train.context} context frames: no step has a longer "

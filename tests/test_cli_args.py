@@ -83,6 +83,7 @@ def _connect() -> list[str]:
     (["queue", "add", "--shape", "T", "--policy-params", '{"a": NaN}'], "NaN is not a JSON number"),
     (["queue", "add", "--shape", "T", "--policy-params", "[" * 100_000 + "]" * 100_000], "nested too deeply"),
     (["queue", "prioritize", "r1", "nan"], "expected a finite number"),
+    (["bench", "loop", "--signal", "total"], "error: --signal total ranks by a variance head: it needs --variance-head"),
     (["serve", "--retrain-args", "--from-champion", "--data", "DATA"],
      "argument --retrain-args: expected one argument (a value that starts with '-' needs '=': --retrain-args=VALUE)"),
     (["queue", "prioritize", "r1", "1e13"], "expected a number within ±1e+12, found '1e13'"),
