@@ -97,6 +97,22 @@ def test_ingest_one_good_one_bad(capsys, data, rng, tmp_path):
     assert rc == 0 and json.loads(out)["files"][0]["duplicate"] is True
 
 
+def test_an_ingest_that_refuses_every_file_makes_no_catalog(capsys, data, rng, tmp_path):
+    good, bad, odd = tmp_path / "good.mcap", tmp_path / "bad.mcap", tmp_path / "odd.mcap"
+    episodes.write_episode(good, make_episode(rng))
+    bad.write_bytes(good.read_bytes()[:-50])
+    episodes.write_episode(odd, make_episode(rng, size=12))  # a size no model trains on
+    rc, out, err = run_cli(capsys, "ingest", str(bad), str(odd), str(tmp_path / "notes.txt"), "--data", str(data))
+    assert rc == 2 and "no such file" in err and not data.exists()  # (a usage error before any file is read)
+    (tmp_path / "notes.txt").write_text("not an episode")
+    rc, out, err = run_cli(capsys, "ingest", str(bad), str(odd), str(tmp_path / "notes.txt"), "--data", str(data))
+    assert rc == 1 and "0 of 3 files indexed" in out and "not made" in out
+    assert err.count("refused") == 3 and "no model trains on" in err
+    assert not data.exists()  # a misspelt --data with bad files leaves nothing behind
+    rc, out, err = run_cli(capsys, "ingest", str(bad), str(good), "--data", str(data))
+    assert rc == 1 and "1 of 2 files indexed" in out and Catalog(data).count() == 1
+
+
 def test_ingest_refuses_physics_outside_the_task_space(capsys, data, rng, tmp_path):
     ep = make_episode(rng)
     ep.meta.physics = {**ep.meta.physics, "mass": 50.0}  # the planner would ask workers for it

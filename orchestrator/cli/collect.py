@@ -19,8 +19,9 @@ from orchestrator.protocol import MAX_EPISODE_STEPS, POLICIES, SHAPES, episode_p
 from storage.backup import backup, check_dest
 from storage.catalog import SPLITS, Catalog
 from storage.database import DB_NAME
-from storage.errors import BackupError, CatalogError, StorageError, StorageUnavailableError
-from storage.records import MAX_FRAME_SIZE, MIN_FRAME_SIZE, TRAINABLE_SIZES
+from storage.episode_reader import inspect_episode, read_file
+from storage.errors import BackupError, CatalogError, EpisodeError, StorageError, StorageUnavailableError
+from storage.records import MAX_FRAME_SIZE, MIN_FRAME_SIZE, TRAINABLE_SIZES, trainable_size
 from workers import simbench
 from workers.collect import EvalSplitConflict, check_eval_split, collect_episode, create_eval_split
 from workers.env import sample_state
@@ -164,9 +165,10 @@ def register(sub: argparse._SubParsersAction) -> None:
 def register_bench(bench_sub: argparse._SubParsersAction) -> None:
     """Adds ``bench sim``."""
     p = bench_sub.add_parser("sim", help="recorded frames per second of one process (simulate + render + write MCAP)")
-    p.add_argument("--size", type=rendered_size, default=96, metavar="PX", help="frame size (default 96)")
+    p.add_argument("--size", type=rendered_size, default=96, metavar="PX",
+                   help=f"frame size in pixels, {MIN_FRAME_SIZE}..{MAX_FRAME_SIZE} (default 96)")
     p.add_argument("--seconds", type=common.positive_float, default=5.0, metavar="S",
-                   help="how long to measure (default 5)")
+                   help="how long to measure, in seconds (default 5)")
     common.add_json_arg(p)
     p.set_defaults(func=_bench_sim)
 
@@ -229,12 +231,26 @@ def _expand(paths: list[Path]) -> list[Path]:
     return files
 
 
+def _would_start_a_catalog(path: Path) -> None:
+    """The checks of ``Catalog.ingest_file`` that a new catalog would make of its first file, without making one
+    (a misspelt --data and a bad file must leave nothing behind); the ``StorageError`` it would raise."""
+    info = inspect_episode(read_file(path, CatalogError), name=str(path))
+    refusal = episode_problem(info.meta) or ("" if trainable_size(info.meta.image_size) else
+                                             f"{info.meta.image_size}px frames: no model trains on that size "
+                                             f"({TRAINABLE_SIZES})")
+    if refusal:
+        raise EpisodeError(f"{path}: {refusal}")
+
+
 def _ingest(args: argparse.Namespace) -> int:
     files = _expand(args.paths)
-    cat = Catalog(args.data)
+    cat = Catalog(args.data) if (Path(args.data) / DB_NAME).is_file() else None  # made with the first good file
     report = []
     for path in files:
         try:
+            if cat is None:
+                _would_start_a_catalog(path)
+                cat = Catalog(args.data)
             res = cat.ingest_file(path, split=args.split, admit=episode_problem)
         except StorageError as exc:
             report.append({"path": str(path), "ok": False, "error": f"{type(exc).__name__}: {exc}"})
@@ -253,7 +269,8 @@ def _ingest(args: argparse.Namespace) -> int:
     if args.json:
         common.print_json({"ingested": len(report) - refused, "refused": refused, "files": report})
     else:
-        print(f"{len(report) - refused} of {len(report)} files indexed in {cat.db_path}")
+        where = cat.db_path if cat is not None else f"{Path(args.data) / DB_NAME} (not made: nothing to index)"
+        print(f"{len(report) - refused} of {len(report)} files indexed in {where}")
     return 1 if refused else 0
 
 

@@ -46,9 +46,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "does not exist is refused: a misspelt path must not start a new, empty catalog)")
     endpoints.add_connection_args(p, listen=True)
     p.add_argument("--lease-s", type=common.positive_float, default=30.0, metavar="S",
-                   help="seconds a worker holds a request before it must renew the lease or lose it (default 30)")
+                   help="seconds a worker holds a request before it must renew the lease or lose it, 0.05..86400 "
+                        "(default 30)")
     p.add_argument("--reap-interval-s", type=common.positive_float, default=1.0, metavar="S",
-                   help="seconds between looks for expired leases (default 1)")
+                   help="seconds between looks for expired leases, 0.01..3600 (default 1)")
     p.add_argument("--planner", choices=PLANNERS, default="active",
                    help="what turns stored episodes into requests (default active)")
     p.add_argument("--seed-requests", type=common.non_negative_int, default=0, metavar="N",
