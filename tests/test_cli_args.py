@@ -182,9 +182,9 @@ def test_a_worker_refuses_a_size_no_model_trains_on(capsys, size) -> None:
         build_parser().parse_args(["worker", "--size", size])
     err = capsys.readouterr().err
     assert exc.value.code == 2 and err == f"activecollect worker: error: {words}\n"
-    with pytest.raises(SystemExit) as exc:  # python -m workers.agent: argparse's own usage, then the error
+    with pytest.raises(SystemExit) as exc:  # python -m workers.agent: the same, in one line too
         agent.main(["--size", size])
-    assert exc.value.code == 2 and words in capsys.readouterr().err
+    assert exc.value.code == 2 and capsys.readouterr().err == f"python -m workers.agent: error: {words}\n"
 
 
 @pytest.mark.parametrize("argv, prog", [

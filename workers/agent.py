@@ -51,8 +51,10 @@ from orchestrator.messages import LeaseGrant
 from orchestrator.protocol import ErrorCode, Keys, ProtocolError
 from storage.episodes import encode_episode
 from storage.records import TRAINABLE_SIZES, trainable_size
+from workers import flags
 from workers.collect import collect_episode
 from workers.env import CONTROL_HZ
+from workers.flags import MAX_REALTIME
 
 log = logging.getLogger("workers.agent")  # also when run as __main__
 
@@ -92,9 +94,10 @@ class WorkerConfig:
     max_episodes: int | None = None
     """Exit after uploading this many episodes (None: run until stopped)."""
     once: bool = False
-    """Handle at most one request, then exit; also exit at once if there is no work."""
+    """Handle at most one request, then exit; also exit at once if the service has no work for it."""
     realtime: float = 0.0
-    """Pace episodes like a real robot: 1.0 takes steps / control_hz seconds per episode; 0 = flat out."""
+    """A slow-down, 0 to MAX_REALTIME: an episode lasts at least realtime * steps / CONTROL_HZ seconds
+    (1 = a real robot's pace, 2 = half speed); 0 = flat out."""
     timeout_s: float = 10.0
     """How long one query waits for the service's reply."""
     idle_poll_s: float = 0.5
@@ -122,11 +125,14 @@ class WorkerConfig:
             raise WorkerError(f"image_size: expected {TRAINABLE_SIZES} pixels (what a model trains on), "
                               f"found {self.image_size}")
         if self.max_episodes is not None and self.max_episodes < 1:
-            raise WorkerError(f"max_episodes: expected >= 1 or None, found {self.max_episodes}")
-        for name in ("realtime", "timeout_s", "idle_poll_s", "max_backoff_s"):
+            raise WorkerError(f"max_episodes: expected a positive integer (None: no limit), found {self.max_episodes}")
+        if not 0 <= self.realtime <= MAX_REALTIME:  # nan fails too; inf would overflow the wait in _pace
+            raise WorkerError(f"realtime: expected a number from 0 (flat out) to {MAX_REALTIME:g}, "
+                              f"found {self.realtime!r}")
+        for name in ("timeout_s", "idle_poll_s", "max_backoff_s"):
             value = getattr(self, name)
-            if not value >= 0 or (name != "realtime" and value == 0):
-                raise WorkerError(f"{name}: expected a positive number, found {value!r}")
+            if not 0 < value <= endpoints.MAX_TIMEOUT_S:  # a wait longer than a day is a mistake, inf an overflow
+                raise WorkerError(f"{name}: expected seconds in (0, {endpoints.MAX_TIMEOUT_S:g}], found {value!r}")
         if self.report_attempts < 1:
             raise WorkerError(f"report_attempts: expected >= 1, found {self.report_attempts}")
 
@@ -418,66 +424,70 @@ def parse_capabilities(text: str) -> tuple[tuple[str, ...], tuple[str, ...]]:
     return tasks, shapes
 
 
-def _frame_size(text: str) -> int:
-    """``--size``: a frame size a model trains on (the first upload fixes the catalog's)."""
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a size in pixels, found {text!r}") from None
-    if not trainable_size(value):
-        raise argparse.ArgumentTypeError(f"expected {TRAINABLE_SIZES} (what a model trains on), found {value}")
-    return value
-
-
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    """The worker's flags."""
+    """The worker's flags; errors are labelled with ``parser.prog`` (the program the user ran)."""
     endpoints.add_connection_args(parser, timeout=10.0)
     parser.add_argument("--id", default="", help="worker id (default <host>-<pid>)")
     parser.add_argument("--capabilities", default="", metavar="C",
                         help='what it can collect: "push:T,box", "T,box" or "push" (default: anything)')
-    parser.add_argument("--once", action="store_true", help="handle at most one request, then exit")
-    parser.add_argument("--max-episodes", type=int, default=None, metavar="N", help="exit after N uploads")
-    parser.add_argument("--size", type=_frame_size, default=64, metavar="PX",
+    parser.add_argument("--once", action="store_true",
+                        help="handle at most one request, then exit; exit at once when the service has no work "
+                             "for this worker (a service that does not answer is waited for)")
+    parser.add_argument("--max-episodes", type=flags.positive_int, default=None, metavar="N",
+                        help="exit after N uploads (default: run until stopped)")
+    parser.add_argument("--size", type=flags.frame_size, default=64, metavar="PX",
                         help="frame side in pixels while the service's catalog holds no episode yet, "
                              f"{TRAINABLE_SIZES} (default 64); after that every grant names the catalog's size, "
                              "which the worker records at")
-    parser.add_argument("--realtime", type=float, default=0.0, metavar="X",
-                        help="pace episodes to X times real time (1.0 = steps / 10 Hz seconds; default 0 = flat out)")
+    parser.add_argument("--realtime", type=flags.realtime, default=0.0, metavar="X",
+                        help=f"slow each episode to last at least X * steps / {CONTROL_HZ} seconds ({CONTROL_HZ} Hz "
+                             f"control): 1 = a real robot's pace, 2 = half speed, 0.5 = double speed; 0 to "
+                             f"{MAX_REALTIME:g} (default 0 = flat out)")
     parser.add_argument("--log-level", default="INFO", choices=("DEBUG", "INFO", "WARNING", "ERROR"),
                         help="least severe log messages written to stderr (default INFO)")
+    parser.set_defaults(worker_prog=parser.prog)
 
 
 def config_from_args(args: argparse.Namespace) -> WorkerConfig:
-    """Build the WorkerConfig; WorkerError for a bad value."""
+    """Build the WorkerConfig; WorkerError naming the flag (``--id: expected ...``) for a bad value."""
     listen, connect = endpoints.endpoints_from_args(args)
-    tasks, shapes = parse_capabilities(args.capabilities)
-    return WorkerConfig(worker_id=args.id, namespace=args.namespace, mode=args.mode, listen=listen,
-                        connect=connect, zenoh_config=args.zenoh_config, tasks=tasks, shapes=shapes,
-                        image_size=args.size, max_episodes=args.max_episodes, once=args.once,
-                        realtime=args.realtime, timeout_s=args.timeout)
+    try:
+        tasks, shapes = parse_capabilities(args.capabilities)
+        return WorkerConfig(worker_id=args.id, namespace=args.namespace, mode=args.mode, listen=listen,
+                            connect=connect, zenoh_config=args.zenoh_config, tasks=tasks, shapes=shapes,
+                            image_size=args.size, max_episodes=args.max_episodes, once=args.once,
+                            realtime=args.realtime, timeout_s=args.timeout)
+    except WorkerError as exc:
+        raise WorkerError(flags.naming_flag(str(exc))) from None
 
 
 def run_from_args(args: argparse.Namespace) -> int:
     """Run a worker from parsed flags until it is done or stopped; exit status (2: bad flags)."""
+    prog = getattr(args, "worker_prog", "activecollect worker")
     logging.basicConfig(level=args.log_level, format="%(asctime)s %(name)s %(levelname)s %(message)s")
     try:
         worker = Worker(config_from_args(args))
     except (WorkerError, transport.SecureConfigError) as exc:
-        print(f"activecollect worker: error: {exc}", file=sys.stderr)
+        print(f"{prog}: error: {protocol.one_line(str(exc))}", file=sys.stderr)  # a path may hold a newline
         return 2
     worker.install_signal_handlers()
     try:
         worker.run()
     except WorkerError as exc:
-        print(f"activecollect worker: {exc}", file=sys.stderr)
+        print(f"{prog}: {protocol.one_line(str(exc))}", file=sys.stderr)
         return 1
     return 0
 
 
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m workers.agent", description=__doc__.splitlines()[0])
+def build_parser() -> argparse.ArgumentParser:
+    """``python -m workers.agent``'s parser: a bad flag exits 2 in one line, like ``activecollect worker``."""
+    parser = flags.Parser(prog="python -m workers.agent", description=__doc__.splitlines()[0])
     add_arguments(parser)
-    return run_from_args(parser.parse_args(argv))
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    return run_from_args(build_parser().parse_args(argv))
 
 
 if __name__ == "__main__":
