@@ -53,6 +53,7 @@ import numpy as np
 from orchestrator.cli.common import Parser
 from storage.catalog import ORPHANS_DIR, STAGING_MAX_AGE_S
 from storage.database import DB_NAME
+from workers import flags
 
 REPO = Path(__file__).resolve().parents[1]
 ACTIVECOLLECT = str(Path(sys.executable).parent / "activecollect")
@@ -412,7 +413,7 @@ def main(argv=None) -> int:
     p.add_argument("--seed", type=int, default=None, metavar="S",
                    help="seeds kill timings and targets (default random)")
     p.add_argument("--steps", type=int, default=20, metavar="N", help="simulation steps per request (default 20)")
-    p.add_argument("--realtime", type=float, default=0.5, metavar="X",
+    p.add_argument("--realtime", type=flags.realtime, default=0.5, metavar="X",
                    help="workers' --realtime: an episode takes X * steps / 10 s (default 0.5; 0 = flat out)")
     p.add_argument("--triggers", default="random,tmp,mcap", metavar="LIST",
                    help=f"comma list cycled over the service kills, of {', '.join(TRIGGERS)} (default random,tmp,mcap)")

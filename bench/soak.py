@@ -47,6 +47,7 @@ from chaos import ACTIVECOLLECT, Cluster, check_episode_rows, check_files, free_
 from orchestrator.cli.common import Parser, trainable_image_size
 from storage.database import DB_NAME
 from storage.records import TRAINABLE_SIZES
+from workers import flags
 
 RETRAIN_ARGS = ("--members 3 --epochs 2 --widths 8,16,32 --batch-size 16 --max-windows 1500 --from-champion "
                 "--device cpu --min-improvement 0.005")
@@ -266,7 +267,7 @@ def main(argv=None) -> int:
                    help=f"frame size, {TRAINABLE_SIZES} (default 32)")
     p.add_argument("--steps", type=int, default=30, help="steps per episode (default 30)")
     p.add_argument("--eval-episodes", type=int, default=8, help="episodes in the eval split (default 8)")
-    p.add_argument("--realtime", type=float, default=1.0, metavar="X",
+    p.add_argument("--realtime", type=flags.realtime, default=1.0, metavar="X",
                    help="workers' --realtime (default 1: an episode takes steps / 10 s)")
     p.add_argument("--retrain-every", type=int, default=96, metavar="N",
                    help="retrain each time N more episodes are stored (default 96)")
