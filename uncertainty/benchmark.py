@@ -24,9 +24,10 @@ from dataclasses import asdict, dataclass
 import torch
 from torch.utils.flop_counter import FlopCounterMode
 
-from uncertainty.ensemble import Ensemble, default_device
+from uncertainty.ensemble import Ensemble
 from uncertainty.errors import ConfigError
 from uncertainty.model import PredictorConfig
+from uncertainty.train import resolve_device
 
 
 @dataclass
@@ -95,12 +96,13 @@ def run_score_bench(members: int = 5, image_size: int = 64, seconds: float = 10.
     vmap_fps, max_abs_diff (fused vs loop), per-round figures, and the arithmetic:
     gflop_per_frame, <path>_gflops,
     ceiling_gflops (a wide convolution's, measured in the same rounds) and <path>_share_of_ceiling
-    (a path's GFLOP/s over the ceiling's).
+    (a path's GFLOP/s over the ceiling's). Raises ``ConfigError`` for a bad setting, cuda without CUDA
+    included.
     """
     cfg = ScoreBenchConfig(members, image_size, batch, seconds, threads, device, include_vmap, seed)
+    dev = resolve_device(device)  # ConfigError, not torch's assertion, when cuda is asked for without CUDA
     if threads is not None:
         torch.set_num_threads(threads)
-    dev = default_device() if device == "auto" else torch.device(device)
     sync = torch.cuda.synchronize if dev.type == "cuda" else (lambda: None)
     ens = Ensemble(PredictorConfig(image_size=image_size), members=members, seed=seed).to(dev).eval()
     gen = torch.Generator().manual_seed(seed)

@@ -237,6 +237,29 @@ def positive_float(text: str) -> float:
     return value
 
 
+#: What every ``--device`` takes: the devices ``TrainConfig.device`` names (it takes no ``cuda:N``).
+DEVICES = ("auto", "cpu", "cuda")
+
+
+def torch_device(text: str) -> str:
+    """A ``--device``: auto (CUDA when there is one, else the CPU), cpu, or cuda where torch sees CUDA.
+
+    Checked when the arguments are parsed, so a command refuses in one line (exit 2) before it loads
+    a model or starts training. torch is imported only to check ``cuda``: argparse runs this on the
+    default too, and most commands never need torch.
+    """
+    if text not in DEVICES:
+        hint = " (pick a GPU with CUDA_VISIBLE_DEVICES=N and --device cuda)" if text.startswith("cuda:") else ""
+        raise argparse.ArgumentTypeError(f"expected one of {', '.join(DEVICES)}{hint}, found {text!r}")
+    if text == "cuda":
+        import torch  # (only here: the start-up cost of every command that does not ask for cuda)
+
+        if not torch.cuda.is_available():
+            raise argparse.ArgumentTypeError(f"cuda: CUDA is not available on this machine (torch "
+                                             f"{torch.__version__}); use --device cpu or leave it out")
+    return text
+
+
 def _request_timeout(text: str) -> float:
     value = positive_float(text)
     if value > MAX_REQUEST_TIMEOUT_S:

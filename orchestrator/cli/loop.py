@@ -114,8 +114,9 @@ def register_bench(bench: argparse._SubParsersAction) -> None:
                    help=f"training epochs per retrain (default {d.train.epochs})")
     p.add_argument("--members", type=common.positive_int, default=d.train.members, metavar="K",
                    help=f"ensemble size (default {d.train.members})")
-    p.add_argument("--device", choices=("auto", "cpu", "cuda"), default=d.train.device,
-                   help=f"torch device (default {d.train.device}; auto: cuda when there is one)")
+    p.add_argument("--device", type=common.torch_device, default=d.train.device,
+                   help=f"torch device: auto, cpu or cuda (default {d.train.device}; auto: cuda when there is "
+                        "one)")
     p.add_argument("--signal", choices=SIGNALS, default=d.signal,
                    help=f"what the active arm ranks steps by (default {d.signal}; error: the champion's actual "
                         "error on the recorded frames; predicted, total: the variance head's, needs "
@@ -266,8 +267,9 @@ def add_train_args(p: argparse.ArgumentParser, defaults: TrainConfig | None = No
                    help="cap on training windows (a seeded subset; default all)")
     p.add_argument("--seed", type=common.non_negative_int, default=d.seed, metavar="K",
                    help=f"training seed (default {d.seed})")
-    p.add_argument("--device", choices=("auto", "cpu", "cuda"), default=d.device,
-                   help=f"torch device (default {d.device}{': cuda when there is one' if d.device == 'auto' else ''})")
+    p.add_argument("--device", type=common.torch_device, default=d.device,
+                   help=f"torch device: auto, cpu or cuda (default {d.device}"
+                        f"{': cuda when there is one' if d.device == 'auto' else ''})")
     p.add_argument("--from-champion", action="store_true", default=d.from_champion,
                    help="warm-start from the champion's weights")
     p.add_argument("--variance-head", action="store_true", default=d.variance_head,

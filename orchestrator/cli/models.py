@@ -31,9 +31,6 @@ from uncertainty.errors import ConfigError, UncertaintyError
 if TYPE_CHECKING:
     from uncertainty.ensemble import Ensemble
 
-_DEVICES = ("auto", "cpu", "cuda")
-
-
 def register(sub: argparse._SubParsersAction) -> None:
     """Adds ``train``, ``eval``, ``score`` and ``models``."""
     p = sub.add_parser("train", help="train a candidate ensemble, evaluate it, run it through the gate",
@@ -52,7 +49,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "reports the calibration of the total predictive variance next to the disagreement's")
     p.add_argument("--seed", type=common.non_negative_int, default=TrainConfig.seed, metavar="K",
                    help=f"seed of the initialisation and the shuffling (default {TrainConfig.seed})")
-    p.add_argument("--device", choices=_DEVICES, default="auto", help="torch device (default auto: cuda when there is one)")
+    p.add_argument("--device", type=common.torch_device, default="auto",
+                   help="torch device: auto, cpu or cuda (default auto: cuda when there is one)")
     p.add_argument("--min-improvement", type=common.fraction, default=TrainConfig.min_rel_improvement,
                    metavar="FRAC",
                    help="the gate's minimum relative improvement of h1_mse over the champion "
@@ -64,7 +62,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("eval", help="evaluate a model (default: the champion) on the pinned eval split")
     p.add_argument("version", nargs="?", metavar="VERSION",
                    help="a registered version or a unique prefix of one (default: the champion)")
-    p.add_argument("--device", choices=_DEVICES, default="auto", help="torch device (default auto: cuda when there is one)")
+    p.add_argument("--device", type=common.torch_device, default="auto",
+                   help="torch device: auto, cpu or cuda (default auto: cuda when there is one)")
     p.set_defaults(func=_eval)
     p = sub.add_parser("score", help="per-step disagreement of an episode and its most uncertain states")
     p.add_argument("episode", metavar="EPISODE", help="an episode id (or unique prefix) in the catalog, "
@@ -73,7 +72,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="how many top states to show (default 5)")
     p.add_argument("--horizon", type=common.positive_int, default=1, metavar="H",
                    help="roll each member out H steps (default 1)")
-    p.add_argument("--device", choices=_DEVICES, default="auto", help="torch device (default auto: cuda when there is one)")
+    p.add_argument("--device", type=common.torch_device, default="auto",
+                   help="torch device: auto, cpu or cuda (default auto: cuda when there is one)")
     p.set_defaults(func=_score)
     for p in (sub.choices["train"], sub.choices["eval"], sub.choices["score"]):
         common.add_data_arg(p)
@@ -310,7 +310,8 @@ def register_bench(bench_sub: argparse._SubParsersAction) -> None:
                    help="rough total measuring time (default 10)")
     p.add_argument("--threads", type=common.positive_int, default=None, metavar="N",
                    help="torch intra-op threads (default: torch's)")
-    p.add_argument("--device", choices=_DEVICES, default="auto", help="torch device (default auto: cuda when there is one)")
+    p.add_argument("--device", type=common.torch_device, default="auto",
+                   help="torch device: auto, cpu or cuda (default auto: cuda when there is one)")
     common.add_json_arg(p)
     p.set_defaults(func=_bench_score)
 
