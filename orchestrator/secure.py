@@ -18,8 +18,11 @@ import datetime
 import ipaddress
 import json
 import os
+import re
 import secrets
+import shutil
 import stat
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -43,6 +46,58 @@ ACL_MESSAGES: tuple[str, ...] = ("put", "delete", "declare_subscriber", "query",
                                  "declare_liveliness_subscriber", "liveliness_query")
 DEFAULT_NAMESPACE = "activecollect"
 DEFAULT_ROUTER_ENDPOINT = "tls/127.0.0.1:7447"
+#: Longest certificate lifetime ``secure init`` writes (a hundred years; far past it, dates overflow).
+MAX_VALID_DAYS = 36500
+#: One label of a DNS name (RFC 1123): letters, digits and inner hyphens, at most 63 characters.
+_DNS_LABEL = re.compile(r"[A-Za-z0-9](?:[A-Za-z0-9-]{0,61}[A-Za-z0-9])?")
+
+
+def host_problem(host: str) -> str:
+    """What keeps ``host`` from naming the router in its certificate ('' when nothing): it must be
+    an IP address or a DNS name (dot-separated labels of letters, digits and inner hyphens)."""
+    try:
+        ipaddress.ip_address(host)
+        return ""
+    except ValueError:
+        pass  # not an address: a name, then
+    labels = host.split(".")  # (no trailing dot either: a certificate names the host without one)
+    if (not host or len(host) > 253 or not all(_DNS_LABEL.fullmatch(label) for label in labels)
+            or labels[-1].isdigit()):  # (an all-digit last label is a mistyped address such as 10.0.0.300)
+        return f"expected a DNS name or an IP address, found {host!r}"
+    return ""
+
+
+def tls_endpoint(endpoint: str, what: str = "router endpoint") -> tuple[str, int]:
+    """(HOST, PORT) of a ``tls/HOST:PORT`` endpoint, brackets removed from an IPv6 HOST: its shape
+    checked as ``orchestrator.endpoints`` checks every endpoint, its HOST as ``host_problem``.
+
+    Raises SecureConfigError naming ``what`` when it is not one.
+    """
+    if problem := endpoint_problem(endpoint):
+        raise SecureConfigError(f"expected a {what} like tls/HOST:PORT: {problem}")
+    if not endpoint.startswith("tls/"):
+        raise SecureConfigError(f"expected a {what} like tls/HOST:PORT, found {endpoint!r}")
+    address = endpoint.removeprefix("tls/").split("#", 1)[0].split("?", 1)[0]
+    host, _, port = address.rpartition(":")
+    if host.startswith("[") and host.endswith("]"):
+        host = host[1:-1]
+        if ":" not in host:
+            raise SecureConfigError(f"{what} {endpoint!r}: brackets are for an IPv6 address, found {host!r}")
+    elif ":" in host:
+        raise SecureConfigError(f"{what} {endpoint!r}: an IPv6 address goes in brackets, as in tls/[::1]:7447")
+    if problem := host_problem(host):
+        raise SecureConfigError(f"{what} {endpoint!r}: {problem}")
+    return host, int(port)
+
+
+def router_endpoint_host(endpoint: str) -> str:
+    """The HOST of a router endpoint clients connect to, ``tls/HOST:PORT`` (``tls_endpoint``) with a port
+    other than 0. Raises SecureConfigError when it is not one."""
+    host, port = tls_endpoint(endpoint)
+    if port == 0:
+        raise SecureConfigError(f"expected a router endpoint like tls/HOST:PORT with a port clients can "
+                                f"connect to (1-65535), found {endpoint!r}")
+    return host
 
 
 @dataclass
@@ -72,22 +127,16 @@ class SecureInitConfig:
             raise SecureConfigError(exc.message) from exc
         self.router_host()  # validates router_endpoint
         if self.router_listen is not None:
-            if not self.router_listen.startswith("tls/"):
-                raise SecureConfigError(f"expected the router to listen on a tls/ endpoint, "
-                                        f"found {self.router_listen!r}")
-            if problem := endpoint_problem(self.router_listen):
-                raise SecureConfigError(f"router listen endpoint: {problem}")
-        if self.valid_days <= 0:
-            raise SecureConfigError(f"expected valid_days > 0, found {self.valid_days}")
+            tls_endpoint(self.router_listen, "router listen endpoint")
+        for host in self.extra_hosts:
+            if problem := host_problem(host):
+                raise SecureConfigError(f"router host: {problem}")
+        if not 0 < self.valid_days <= MAX_VALID_DAYS:
+            raise SecureConfigError(f"expected valid_days in 1..{MAX_VALID_DAYS}, found {self.valid_days}")
 
     def router_host(self) -> str:
-        """The HOST of ``tls/HOST:PORT`` (brackets removed for IPv6)."""
-        proto, _, rest = self.router_endpoint.partition("/")
-        host, sep, port = rest.rpartition(":")
-        if proto != "tls" or not sep or not host or not port.isdigit() or not 0 < int(port) < 65536:
-            raise SecureConfigError(f"expected a router endpoint like tls/HOST:PORT, "
-                                    f"found {self.router_endpoint!r}")
-        return host.strip("[]")
+        """The HOST of ``router_endpoint`` (``router_endpoint_host``)."""
+        return router_endpoint_host(self.router_endpoint)
 
 
 @dataclass
@@ -289,9 +338,14 @@ def _json5_text(role: str, cfg: SecureInitConfig, body: dict[str, Any]) -> str:
     return header + json.dumps(body, indent=2) + "\n"
 
 
-def _write(path: Path, data: bytes, secret: bool) -> None:
-    """Writes via a temporary name created with its final mode, so a secret is never readable by others."""
-    tmp = path.with_name(f".{path.name}.tmp")
+def _staged_name(path: Path) -> Path:
+    return path.with_name(f".{path.name}.tmp")
+
+
+def _stage(path: Path, data: bytes, secret: bool) -> Path:
+    """Writes ``data`` under a temporary name next to ``path``, created with its final mode (so a secret
+    is never readable by others); returns that name, for ``os.replace`` onto ``path``."""
+    tmp = _staged_name(path)
     tmp.unlink(missing_ok=True)
     fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600 if secret else 0o644)
     with os.fdopen(fd, "wb") as f:
@@ -299,7 +353,7 @@ def _write(path: Path, data: bytes, secret: bool) -> None:
         f.flush()
         os.fsync(f.fileno())
     os.chmod(tmp, 0o600 if secret else 0o644)  # umask may have narrowed the public ones
-    os.replace(tmp, path)
+    return tmp
 
 
 def planned_files(directory: Path) -> list[Path]:
@@ -310,11 +364,38 @@ def planned_files(directory: Path) -> list[Path]:
     return [directory / n for n in names]
 
 
+def _render(cfg: SecureInitConfig) -> tuple[SecureSet, dict[Path, tuple[bytes, bool]]]:
+    """The whole profile in memory: what ``init_secure`` returns, and each file's bytes and secrecy."""
+    d = cfg.directory
+    out = SecureSet(directory=d, ca_certificate=d / "ca.pem")
+    ca_key, ca_cert = make_ca(valid_days=cfg.valid_days)
+    files: dict[Path, tuple[bytes, bool]] = {d / "ca.pem": (cert_pem(ca_cert), False)}
+    router_hosts = (cfg.router_host(), *cfg.extra_hosts, "localhost", "127.0.0.1")
+    for role in ROLES:
+        key, cert = issue_certificate(ca_key, ca_cert, role,
+                                      hosts=router_hosts if role == "router" else (),
+                                      valid_days=cfg.valid_days)
+        files[d / f"{role}.pem"] = (cert_pem(cert), False)
+        files[d / f"{role}-key.pem"] = (key_pem(key), True)
+    del ca_key  # not kept: a new role certificate means a new `secure init --force`
+    out.credentials = {role: (role, secrets.token_urlsafe(24)) for role in ROLES}
+    users = "".join(f"{user}:{password}\n" for user, password in out.credentials.values())
+    files[d / "users.txt"] = (users.encode(), True)
+    for role in ROLES:
+        password = out.credentials[role][1]
+        body = router_config(cfg, password) if role == "router" else client_config(cfg, role, password)
+        out.configs[role] = d / f"{role}.json5"
+        files[out.configs[role]] = (_json5_text(role, cfg, body).encode(), True)
+    return out, files
+
+
 def init_secure(cfg: SecureInitConfig) -> SecureSet:
     """Writes a ready secure profile: CA, per-role certificates and passwords, four Zenoh configs.
 
+    All or nothing: every file is made first, staged under a temporary name, and only then put in
+    place; when anything fails, what this call made (staged files, directories) is removed again.
     Raises SecureConfigError when the directory already holds a profile and ``force`` is off,
-    or when it cannot be created.
+    or when it cannot be created; OSError when a file cannot be written (a full disk).
     """
     planned = planned_files(cfg.directory)
     if cfg.directory.is_dir():  # it becomes 0700: never take over a directory holding other things
@@ -326,32 +407,31 @@ def init_secure(cfg: SecureInitConfig) -> SecureSet:
     if existing and not cfg.force:
         raise SecureConfigError(f"{cfg.directory} already holds a secure profile "
                                 f"({existing[0].name}, ...); pass --force to replace it")
+    out, files = _render(cfg)  # before anything touches the disk
+    made = [p for p in (cfg.directory, *cfg.directory.parents) if not p.exists()][::-1]  # outermost first
+    done = False
     try:
-        cfg.directory.mkdir(parents=True, exist_ok=True)
-        os.chmod(cfg.directory, 0o700)
-    except OSError as exc:
-        raise SecureConfigError(f"cannot create {cfg.directory}: {exc.strerror}") from exc
-    out = SecureSet(directory=cfg.directory)
-    ca_key, ca_cert = make_ca(valid_days=cfg.valid_days)
-    _write(cfg.directory / "ca.pem", cert_pem(ca_cert), secret=False)
-    out.ca_certificate = cfg.directory / "ca.pem"
-    router_hosts = (cfg.router_host(), *cfg.extra_hosts, "localhost", "127.0.0.1")
-    for role in ROLES:
-        key, cert = issue_certificate(ca_key, ca_cert, role,
-                                      hosts=router_hosts if role == "router" else (),
-                                      valid_days=cfg.valid_days)
-        _write(cfg.directory / f"{role}.pem", cert_pem(cert), secret=False)
-        _write(cfg.directory / f"{role}-key.pem", key_pem(key), secret=True)
-    del ca_key  # not kept: a new role certificate means a new `secure init --force`
-    out.credentials = {role: (role, secrets.token_urlsafe(24)) for role in ROLES}
-    users = "".join(f"{user}:{password}\n" for user, password in out.credentials.values())
-    _write(cfg.directory / "users.txt", users.encode(), secret=True)
-    for role in ROLES:
-        password = out.credentials[role][1]
-        body = router_config(cfg, password) if role == "router" else client_config(cfg, role, password)
-        out.configs[role] = cfg.directory / f"{role}.json5"
-        _write(out.configs[role], _json5_text(role, cfg, body).encode(), secret=True)
+        try:
+            cfg.directory.mkdir(parents=True, exist_ok=True)
+            os.chmod(cfg.directory, 0o700)
+        except OSError as exc:
+            raise SecureConfigError(f"cannot create {cfg.directory}: {exc.strerror}") from exc
+        staged = {path: _stage(path, data, secret) for path, (data, secret) in files.items()}
+        for path, tmp in staged.items():
+            os.replace(tmp, path)
+        done = True
+    finally:
+        if not done:
+            _undo(files, made)
     return out
+
+
+def _undo(files: Iterable[Path], made: list[Path]) -> None:
+    """Removes the staged copies of ``files`` (those not yet in place) and the directories ``init_secure`` made."""
+    for path in files:
+        _staged_name(path).unlink(missing_ok=True)
+    if made and made[0].is_dir():  # the outermost one this call made: all under it is this call's
+        shutil.rmtree(made[0])
 
 
 # ---------------------------------------------------------------- start-up check

@@ -8,7 +8,8 @@ from pathlib import Path
 
 from orchestrator.cli.common import Parser, UsageError, add_json_arg, config_error, print_json, positive_int
 from orchestrator.router import RouterConfig, RouterError, run_router
-from orchestrator.secure import DEFAULT_NAMESPACE, DEFAULT_ROUTER_ENDPOINT, SecureInitConfig, init_secure
+from orchestrator.secure import (DEFAULT_NAMESPACE, DEFAULT_ROUTER_ENDPOINT, MAX_VALID_DAYS, SecureInitConfig,
+                                 host_problem, init_secure, router_endpoint_host, tls_endpoint)
 from orchestrator.endpoints import endpoint
 from orchestrator.transport import SecureConfigError, validate_secure_config
 
@@ -34,14 +35,15 @@ def register(sub) -> None:
                       help="where to write the profile: a new or empty directory (made private, mode 0700: it "
                            "holds the keys), or one holding a profile to replace with --force")
     init.add_argument("--namespace", default=DEFAULT_NAMESPACE, help=f"key namespace the ACL protects (default {DEFAULT_NAMESPACE})")
-    init.add_argument("--router-endpoint", default=DEFAULT_ROUTER_ENDPOINT, metavar="tls/HOST:PORT",
+    init.add_argument("--router-endpoint", type=_router_endpoint, default=DEFAULT_ROUTER_ENDPOINT,
+                      metavar="tls/HOST:PORT",
                       help=f"where clients reach the router (default {DEFAULT_ROUTER_ENDPOINT})")
-    init.add_argument("--router-listen", metavar="tls/ADDR:PORT",
+    init.add_argument("--router-listen", type=_router_listen, metavar="tls/ADDR:PORT",
                       help="what the router binds, e.g. tls/0.0.0.0:7447 (default: --router-endpoint)")
-    init.add_argument("--host", action="append", default=[], dest="hosts", metavar="NAME",
-                      help="another name or address of the router for its certificate (repeatable)")
-    init.add_argument("--valid-days", type=positive_int, default=825, metavar="DAYS",
-                      help="certificate lifetime in days (default 825)")
+    init.add_argument("--host", action="append", type=_host, default=[], dest="hosts", metavar="NAME",
+                      help="another DNS name or IP address of the router for its certificate (repeatable)")
+    init.add_argument("--valid-days", type=_valid_days, default=825, metavar="DAYS",
+                      help=f"certificate lifetime in days, at most {MAX_VALID_DAYS} (default 825)")
     init.add_argument("--force", action="store_true", help="replace an existing profile in DIR")
     add_json_arg(init)
     init.set_defaults(func=_init)
@@ -49,6 +51,39 @@ def register(sub) -> None:
     check.add_argument("config", type=Path, metavar="FILE",
                        help="a Zenoh JSON5 config, e.g. DIR/worker.json5 from `secure init`")
     check.set_defaults(func=_check)
+
+
+def _host(text: str) -> str:
+    """A ``--host``: a DNS name or an IP address, as a certificate names the router."""
+    if problem := host_problem(text):
+        raise argparse.ArgumentTypeError(problem)
+    return text
+
+
+def _router_endpoint(text: str) -> str:
+    """A ``--router-endpoint``: tls/HOST:PORT that clients connect to."""
+    try:
+        router_endpoint_host(text)
+    except SecureConfigError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+    return text
+
+
+def _router_listen(text: str) -> str:
+    """A ``--router-listen``: the tls/ADDR:PORT the router binds."""
+    try:
+        tls_endpoint(text, "router listen endpoint")
+    except SecureConfigError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+    return text
+
+
+def _valid_days(text: str) -> int:
+    """A ``--valid-days``: 1..MAX_VALID_DAYS (past about 2.9 million days a certificate's date overflows)."""
+    days = positive_int(text)
+    if days > MAX_VALID_DAYS:
+        raise argparse.ArgumentTypeError(f"expected at most {MAX_VALID_DAYS} days (a hundred years), found {days}")
+    return days
 
 
 def _router(args: argparse.Namespace) -> int:

@@ -1,0 +1,107 @@
+"""`secure init` refuses what would make an unusable profile when the arguments are parsed (exit 2,
+one line, nothing written), and a failure while it writes leaves no half-made directory behind."""
+
+from __future__ import annotations
+
+import datetime
+import errno
+
+import pytest
+from cryptography import x509
+
+import orchestrator.secure as secure
+from orchestrator.secure import MAX_VALID_DAYS, SecureConfigError, SecureInitConfig, init_secure, planned_files
+from tests.conftest import run_cli
+
+BAD = [
+    ("--valid-days", "10000000", "at most 36500 days"),
+    ("--valid-days", str(MAX_VALID_DAYS + 1), "at most 36500 days"),
+    ("--valid-days", "0", "positive integer"),
+    ("--host", "", "DNS name or an IP address"),
+    ("--host", "bad host name!", "DNS name or an IP address"),
+    ("--host", "10.0.0.300", "DNS name or an IP address"),
+    ("--host", "a..b", "DNS name or an IP address"),
+    ("--host", "router.lan.", "DNS name or an IP address"),
+    ("--host", "under_score.lan", "DNS name or an IP address"),
+    ("--host", "x" * 64 + ".lan", "DNS name or an IP address"),
+    ("--router-endpoint", "tls/bad host:7447", "DNS name or an IP address"),
+    ("--router-endpoint", "tls/:7447", "tls/HOST:PORT"),
+    ("--router-endpoint", "tcp/127.0.0.1:7447", "tls/HOST:PORT"),
+    ("--router-endpoint", "tls/127.0.0.1:70000", "port must be 0-65535"),
+    ("--router-endpoint", "tls/127.0.0.1:0", "1-65535"),
+    ("--router-endpoint", "tls/::1:7447", "in brackets"),
+    ("--router-endpoint", "tls/[router.lan]:7447", "brackets are for an IPv6 address"),
+    ("--router-listen", "tls/bad host:7447", "DNS name or an IP address"),
+    ("--router-listen", "tcp/0.0.0.0:7447", "tls/ADDR:PORT"),
+]
+
+
+@pytest.mark.parametrize("flag,value,expected", BAD, ids=[f"{f}={v[:20]}" for f, v, _ in BAD])
+def test_a_bad_argument_exits_2_in_one_line_and_writes_nothing(capsys, tmp_path, flag, value, expected):
+    directory = tmp_path / "new" / "profile"
+    rc, out, err = run_cli(capsys, "secure", "init", str(directory), f"{flag}={value}")
+    lines = err.strip().splitlines()
+    assert rc == 2 and not out and len(lines) == 1, (rc, out, err)
+    assert flag in lines[0] and expected.replace("ADDR", "HOST") in lines[0], lines[0]
+    assert not (tmp_path / "new").exists()
+
+
+def test_names_addresses_and_a_century_are_taken(capsys, tmp_path):
+    directory = tmp_path / "p"
+    rc, _, err = run_cli(capsys, "secure", "init", str(directory), "--router-endpoint", "tls/[::1]:7447",
+                         "--router-listen", "tls/[::]:7447", "--host", "router.lan", "--host", "10.0.0.5",
+                         "--host", "fd00::5", "--host", "Router-2.Example.COM", "--valid-days", str(MAX_VALID_DAYS))
+    assert rc == 0, err
+    cert = x509.load_pem_x509_certificate((directory / "router.pem").read_bytes())
+    san = cert.extensions.get_extension_for_class(x509.SubjectAlternativeName).value
+    assert {"router.lan", "Router-2.Example.COM"} <= set(san.get_values_for_type(x509.DNSName))
+    assert {"::1", "10.0.0.5", "fd00::5"} <= {str(ip) for ip in san.get_values_for_type(x509.IPAddress)}
+    lifetime = cert.not_valid_after_utc - datetime.datetime.now(datetime.timezone.utc)
+    assert MAX_VALID_DAYS - 1 <= lifetime.days <= MAX_VALID_DAYS
+
+
+@pytest.mark.parametrize("change,match", [
+    ({"extra_hosts": ("ok.lan", "not ok")}, "DNS name"),
+    ({"valid_days": 10_000_000}, "valid_days"),
+    ({"router_listen": "tls/bad host:7447"}, "router listen endpoint"),
+])
+def test_the_library_refuses_what_the_flags_refuse(tmp_path, change, match):
+    with pytest.raises(SecureConfigError, match=match):
+        SecureInitConfig(tmp_path / "p", **change)
+    assert not (tmp_path / "p").exists()
+
+
+def _disk_full_at(monkeypatch, call: int) -> None:
+    """``init_secure``'s ``call``-th file write fails as on a full disk, after making its temporary file
+    (as a write that fills the disk does); the ones before it are real."""
+    real, calls = secure._stage, []
+
+    def stage(path, data, secret):
+        calls.append(path)
+        tmp = real(path, data, secret)
+        if len(calls) == call:
+            raise OSError(errno.ENOSPC, "No space left on device")
+        return tmp
+
+    monkeypatch.setattr(secure, "_stage", stage)
+
+
+def test_a_failed_write_removes_the_directories_it_made(capsys, monkeypatch, tmp_path):
+    _disk_full_at(monkeypatch, 5)
+    rc, out, err = run_cli(capsys, "secure", "init", str(tmp_path / "new" / "deeper" / "profile"))
+    lines = err.strip().splitlines()
+    assert rc == 1 and not out and len(lines) == 1 and "No space left on device" in lines[0], (rc, out, err)
+    assert sorted(tmp_path.iterdir()) == []
+
+
+def test_a_failed_write_into_an_existing_directory_leaves_it_and_no_temporary_files(monkeypatch, tmp_path):
+    directory = tmp_path / "profile"
+    directory.mkdir()
+    _disk_full_at(monkeypatch, 3)
+    with pytest.raises(OSError, match="No space left on device"):
+        init_secure(SecureInitConfig(directory))
+    assert directory.is_dir() and list(directory.iterdir()) == []  # not this call's to remove; nothing left in it
+    monkeypatch.undo()
+    first = init_secure(SecureInitConfig(directory))  # and a later init works there
+    assert sorted(p.name for p in directory.iterdir()) == sorted(p.name for p in planned_files(directory))
+    assert first.configs["worker"].is_file()
