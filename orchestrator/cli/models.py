@@ -303,11 +303,12 @@ def register_bench(bench_sub: argparse._SubParsersAction) -> None:
     """Adds ``bench score``."""
     p = bench_sub.add_parser("score", help="frames/s of the fused ensemble and of the per-member loop")
     p.add_argument("--members", type=common.positive_int, default=5, metavar="K", help="ensemble size (default 5)")
-    p.add_argument("--size", type=common.positive_int, default=64, metavar="PX", help="frame size (default 64)")
+    p.add_argument("--size", type=common.positive_int, default=64, metavar="PX",
+                   help="frame size in pixels, a multiple of 8 from 8 to 1024 (default 64)")
     p.add_argument("--batch", type=common.positive_int, default=48, metavar="B",
                    help="windows per forward (default 48: one 50-step episode; 1: online, one step at a time)")
     p.add_argument("--seconds", type=common.positive_float, default=10.0, metavar="S",
-                   help="rough total measuring time (default 10)")
+                   help="rough total measuring time, in seconds (default 10)")
     p.add_argument("--threads", type=common.positive_int, default=None, metavar="N",
                    help="torch intra-op threads (default: torch's)")
     p.add_argument("--device", type=common.torch_device, default="auto",
