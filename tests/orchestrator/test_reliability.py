@@ -18,7 +18,7 @@ from orchestrator.protocol import ErrorCode, Keys, ProtocolError
 from storage.catalog import Catalog
 from storage.episodes import encode_episode
 from storage.queue import RequestQueue
-from storage.requests import Request, RequestStatus
+from storage.requests import NewRequest, Request, RequestStatus
 from tests.conftest import wait_for
 from workers.collect import collect_episode
 
@@ -242,7 +242,12 @@ def test_malformed_messages_on_every_key_get_errors_and_the_service_stays_up(spa
 def test_poison_request_ends_dead_after_max_attempts_and_never_loops(spawn_service, spawn_worker, ops) -> None:
     spawn_service("--lease-s", "5")
     ops.wait_up()
-    poison = ops.add(policy_params={"fail": True}, max_attempts=3, priority=5.0)
+    with pytest.raises(ProtocolError) as refused:  # queue.add refuses what no worker can do ...
+        ops.add(policy_params={"fail": True})
+    assert refused.value.code == ErrorCode.BAD_FIELD and "unknown parameter" in refused.value.message
+    # ... so it goes straight into the queue file, as a request of an older version would be there
+    poison = ops.queue.enqueue(NewRequest(task="push", shape="box", start_state=START, policy="push",
+                                          policy_params={"fail": True}, steps=10, max_attempts=3, priority=5.0))[0].id
     w = spawn_worker("W")
     wait_for(lambda: ops.get(poison).status == RequestStatus.DEAD, timeout=60, message="the poison request dies")
     r = ops.get(poison)
