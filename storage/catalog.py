@@ -10,8 +10,9 @@ Layout::
 Ingest is idempotent (the same file twice is one episode) and atomic: the file is
 verified, staged under a temporary name and fsynced outside any lock; then, inside
 one ``BEGIN IMMEDIATE`` transaction, it is renamed into place, its row inserted and
-the caller's ``in_transaction`` hook run. Any failure removes the renamed file before
-the write lock is released, so an ingest never leaves a row without its file and no
+the caller's ``in_transaction`` hook run. A failure that leaves the row uncommitted removes the
+renamed file under the write lock (``storage.database.undo_unless_committed``: a Ctrl-C raised as
+the COMMIT returns keeps both), so an ingest never leaves a row without its file and no
 other ingest can have claimed the name in between. (A quarantined episode keeps its row
 while its file is away, or gone: ``quarantine`` records where it went, see ``storage.quarantine``.)
 
@@ -33,13 +34,14 @@ import time
 from collections.abc import Callable, Sequence
 from contextlib import AbstractContextManager, nullcontext
 from datetime import datetime
+from functools import partial
 from pathlib import Path
 from typing import Any
 
 from storage.episode_reader import EpisodeInfo, inspect_episode, read_episode, read_file, verify_episode
 from storage.episodes import encode_episode
 from storage.database import (DB_NAME, EPISODES_DIR, Migration, connection, ensure_schema, refuse_lost_database,
-                              storage_error, transaction)
+                              storage_error, transaction, undo_unless_committed)
 from storage.errors import CatalogError, CorruptEpisodeError, EpisodeError, MissingEpisodeError, UnknownEpisodeError
 from storage.files import holds, move, publish, sha256_hex, stage_bytes
 from storage import episode_table
@@ -218,11 +220,11 @@ class Catalog:
             if in_transaction is not None:
                 in_transaction(conn)
             conn.execute("COMMIT")
-        except BaseException:
-            # Remove the file while still holding the write lock: nobody can have indexed it.
-            if published:
-                final.unlink(missing_ok=True)
-            if conn.in_transaction:
+        except BaseException as exc:
+            if published:  # removed under the write lock unless its row committed: nobody else can index it
+                undo_unless_committed(conn, lambda c: stray_files.indexed(c, rel),
+                                      lambda: final.unlink(missing_ok=True), exc, str(final))
+            elif conn.in_transaction:
                 conn.execute("ROLLBACK")
             raise
         return IngestResult(meta.episode_id, final, sha, duplicate=False)
@@ -395,28 +397,30 @@ class Catalog:
         bytes instead. ``only_if_damaged``: unless its file holds the bytes indexed by the time the write
         lock is ours (a repair that came in between wins); the row returned then is not quarantined.
 
-        The file moves inside the write transaction and back if it does not commit; after a crash in
-        between, the next read of the episode moves it back (``storage.quarantine.heal``).
+        The file moves inside the write transaction and back, under the write lock, if it does not commit;
+        after a crash in between, the next read of the episode moves it back (``storage.quarantine.heal``).
         """
         reason = quarantines.clean_reason(reason)
         row = self.get(episode_id)
         kept = self._kept(row)
         moved = False
         try:
-            try:
-                with self._connect() as conn, transaction(conn):
-                    quarantines.refuse_pinned(conn, row.episode_id)
-                    if quarantines.is_quarantined(conn, row.episode_id):
-                        return self.get(row.episode_id)  # another process's quarantine, committed
-                    if only_if_damaged and holds(row.path, row.sha256):
-                        return row
-                    if quarantines.record(conn, row, kept, self.data_dir, reason):
-                        move(row.path, kept)  # (over a damaged leftover there)
-                        moved = True
-            except BaseException as exc:
-                if moved:  # not committed: the file goes back where its row says it is
-                    self._move_back(kept, row, exc)
-                raise
+            with self._connect() as conn:
+                try:
+                    with transaction(conn):
+                        quarantines.refuse_pinned(conn, row.episode_id)
+                        if quarantines.is_quarantined(conn, row.episode_id):
+                            return self.get(row.episode_id)  # another process's quarantine, committed
+                        if only_if_damaged and holds(row.path, row.sha256):
+                            return row
+                        if quarantines.record(conn, row, kept, self.data_dir, reason):
+                            move(row.path, kept)  # (over a damaged leftover there)
+                            moved = True
+                except BaseException as error:
+                    if moved:  # unless the quarantine committed, the file goes back where its row says it is
+                        undo_unless_committed(conn, lambda c: quarantines.is_quarantined(c, row.episode_id),
+                                              partial(self._move_back, kept, row, error), error, str(kept))
+                    raise
         except OSError as exc:
             raise storage_error(exc, CatalogError, f"cannot move {row.path} to {kept}: {exc.strerror or exc}",
                                 kept) from exc
@@ -424,15 +428,14 @@ class Catalog:
 
     @staticmethod
     def _move_back(kept: Path, row: EpisodeRow, error: BaseException) -> None:
-        """After a quarantine that did not commit (``error``): its file back from ``kept``. That move's own
-        failure is noted on ``error``, which stays the one raised: the move is outside the write lock, so
-        another process's read may have moved the file back first (``quarantine.heal``), and otherwise the
-        next read does."""
+        """After a quarantine that did not commit (``error``), under the write lock: its file back from ``kept``.
+        That move's own failure is noted on ``error``, which stays the one raised: the next read of the episode
+        moves it back (``quarantine.heal``)."""
         try:
             move(kept, row.path)
         except OSError as exc:
-            error.add_note(f"{kept} could not be moved back to {row.path} ({exc.strerror or exc}); unless a "
-                           f"read of episode {row.episode_id} already did, the next one does")
+            error.add_note(f"{kept} could not be moved back to {row.path} ({exc.strerror or exc}); the next "
+                           f"read of episode {row.episode_id} moves it back")
 
     def restore(self, episode_id: str) -> EpisodeRow:
         """Puts a quarantined episode back into training; returns its row as it is now.

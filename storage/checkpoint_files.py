@@ -100,7 +100,7 @@ def read_weights(rec: ModelRecord) -> bytes:
     """The weights bytes of ``rec``, checked against their recorded sha256.
 
     Raises ``PrunedCheckpointError`` when they were pruned and ``CorruptCheckpointError`` when the file is
-    missing, unreadable or does not match its sha256.
+    missing, unreadable or does not match its sha256 (``lasting`` tells a read that failed from the rest).
     """
     refuse_pruned(rec)
     try:
@@ -117,6 +117,12 @@ def read_weights(rec: ModelRecord) -> bytes:
             f"checkpoint {rec.version}: weights sha256 mismatch: expected {rec.weights_sha256}, "
             f"found {found} ({len(data)} bytes, registered {rec.size_bytes}) in {rec.weights_path}")
     return data
+
+
+def lasting(exc: CorruptCheckpointError) -> bool:
+    """Whether ``read_weights``'s ``exc`` is a verdict on the checkpoint (not its sha256, the file missing,
+    pruned) rather than a read that failed and may pass (an I/O error, too many open files, a permission)."""
+    return not isinstance(exc.__cause__, OSError)
 
 
 def read_snapshot(rec: ModelRecord) -> Snapshot | None:
@@ -155,10 +161,11 @@ def weights_problem(rec: ModelRecord) -> str | None:
             return _CHECKED[key][0]
     try:
         read_weights(rec)
-        problem, lasting = None, True
     except CorruptCheckpointError as exc:
-        problem, lasting = str(exc), not isinstance(exc.__cause__, OSError)
-    if key is not None and lasting:
+        problem, remembered = str(exc), lasting(exc)
+    else:
+        problem, remembered = None, True
+    if key is not None and remembered:
         with _CHECKED_LOCK:
             if len(_CHECKED) >= _CHECKED_MAX:
                 _CHECKED.clear()

@@ -16,7 +16,7 @@ from __future__ import annotations
 import errno
 import shutil
 import sqlite3
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
 from datetime import datetime, timezone
@@ -185,7 +185,10 @@ def connection(db_path: str | Path, error: type[StorageError]) -> Iterator[sqlit
     try:
         yield conn
     except sqlite3.Error as exc:
-        raise storage_error(exc, error, f"database {db_path}: {exc}", db_path) from exc
+        converted = storage_error(exc, error, f"database {db_path}: {exc}", db_path)
+        for note in getattr(exc, "__notes__", ()):  # e.g. what undo_unless_committed left in place
+            converted.add_note(note)
+        raise converted from exc
     finally:
         conn.close()
 
@@ -201,6 +204,34 @@ def transaction(conn: sqlite3.Connection) -> Iterator[sqlite3.Connection]:
             conn.execute("ROLLBACK")
         raise
     conn.execute("COMMIT")
+
+
+def undo_unless_committed(conn: sqlite3.Connection, committed: Callable[[sqlite3.Connection], bool],
+                          undo: Callable[[], None], error: BaseException, left: str) -> None:
+    """After ``error``, raised inside a write transaction on ``conn`` or by its ``COMMIT``: runs ``undo()``, which
+    takes back what the transaction put in place outside the database (``left``: a file published, moved), unless
+    the transaction committed. No transaction is open on ``conn`` after it.
+
+    Whether it committed is not whether one is still open: a signal's exception (``KeyboardInterrupt`` on Ctrl-C)
+    that arrives while ``COMMIT`` runs its fsync is raised once the call has returned, committed; and SQLite rolls
+    back by itself on some errors (a full disk). So when none is open the write lock is taken again and
+    ``committed(conn)`` reads the rows while no other writer can be half-way through the same change; ``undo``
+    runs under the write lock either way. When that cannot be read, or ``undo`` fails, a note on ``error`` (which
+    stays the one raised) says what is left; a file no row names is a stray (``storage.strays``).
+    """
+    try:
+        if not conn.in_transaction:
+            conn.execute("BEGIN IMMEDIATE")
+            if committed(conn):
+                return
+        undo()
+    except sqlite3.Error as exc:
+        error.add_note(f"{left} is left in place: whether its row committed cannot be read ({exc})")
+    except OSError as exc:
+        error.add_note(f"{left} is left in place: {exc.strerror or exc}")
+    finally:
+        if conn.in_transaction:
+            conn.execute("ROLLBACK")
 
 
 def ensure_schema(conn: sqlite3.Connection, component: str,

@@ -27,7 +27,6 @@ import json
 import os
 import shutil
 import sqlite3
-import time
 from collections.abc import Iterator
 from contextlib import AbstractContextManager, contextmanager
 from datetime import datetime, timezone
@@ -36,9 +35,9 @@ from typing import Any
 
 from storage import checkpoint_files, pruning
 from storage.database import (DB_NAME, MODELS_DIR, Migration, connection, ensure_schema, refuse_lost_database,
-                              storage_error, transaction)
+                              storage_error, transaction, undo_unless_committed)
 from storage.errors import CorruptCheckpointError, RegistryError, UnknownModelError
-from storage.files import fsync_dir, write_synced
+from storage.files import write_synced
 from storage.gate import DEFAULT_METRIC, DEFAULT_MIN_REL_IMPROVEMENT, GateDecision, judge
 from storage.model_rows import (CONFIG_FILE, META_FILE, METRICS_FILE, SNAPSHOT_FILE, WEIGHTS_FILE, ChampionEntry,
                                 ModelRecord, ModelStatus, PruneResult)
@@ -138,6 +137,10 @@ class ModelRegistry:
             hint = f"; latest: {', '.join(known)}" if known else "; the registry is empty"
             raise UnknownModelError(f"unknown model version {version!r}{hint}")
         return self._record(row)
+
+    @staticmethod
+    def _registered(conn: sqlite3.Connection, version: str) -> bool:
+        return conn.execute("SELECT 1 FROM models WHERE version = ?", (version,)).fetchone() is not None
 
     def get(self, version: str) -> ModelRecord:
         """The record of ``version``; raises ``RegistryError`` if it is not registered."""
@@ -256,29 +259,32 @@ class ModelRegistry:
         try:
             tmp = checkpoint_files.stage(self.models_dir, {WEIGHTS_FILE: weights, CONFIG_FILE: config_bytes,
                                                            METRICS_FILE: metrics_bytes, **files})
-            with self._transaction() as conn:
-                if parent is not None:
-                    self._get(conn, parent)
-                seq = conn.execute("SELECT COALESCE(MAX(seq), 0) + 1 FROM models").fetchone()[0]
-                version = f"m{seq:06d}-{sha[:8]}"
-                meta = {"version": version, "snapshot_id": snapshot_id, "eval_split_hash": eval_split_hash,
-                        "parent": parent, "created": created, "weights_sha256": sha,
-                        "size_bytes": len(weights), "weights_file": WEIGHTS_FILE}
-                write_synced(tmp / META_FILE, _dump(meta, "meta"))
-                final = checkpoint_files.publish(self.models_dir, tmp, version)
-                conn.execute(
-                    "INSERT INTO models (version, seq, status, reason, parent, snapshot_id, "
-                    "eval_split_hash, weights_sha256, size_bytes, created, updated, metrics, config) "
-                    "VALUES (?, ?, ?, '', ?, ?, ?, ?, ?, ?, ?, ?, ?)",
-                    (version, seq, ModelStatus.CANDIDATE.value, parent, snapshot_id, eval_split_hash,
-                     sha, len(weights), created, created, metrics_bytes.decode(), config_bytes.decode()))
-        except BaseException as exc:
-            if final is not None:  # published, but the INSERT or the COMMIT failed: no row names it
-                shutil.rmtree(final, ignore_errors=True)
-            if isinstance(exc, OSError):  # a full disk: nothing registered
-                raise storage_error(exc, RegistryError, f"cannot store a checkpoint in {self.models_dir}: "
-                                    f"{exc.strerror or exc}", self.models_dir) from exc
-            raise
+            with self._connect() as conn:
+                try:
+                    with transaction(conn):
+                        if parent is not None:
+                            self._get(conn, parent)
+                        seq = conn.execute("SELECT COALESCE(MAX(seq), 0) + 1 FROM models").fetchone()[0]
+                        version = f"m{seq:06d}-{sha[:8]}"
+                        meta = {"version": version, "snapshot_id": snapshot_id, "eval_split_hash": eval_split_hash,
+                                "parent": parent, "created": created, "weights_sha256": sha,
+                                "size_bytes": len(weights), "weights_file": WEIGHTS_FILE}
+                        write_synced(tmp / META_FILE, _dump(meta, "meta"))
+                        final = checkpoint_files.publish(self.models_dir, tmp, version)
+                        conn.execute(
+                            "INSERT INTO models (version, seq, status, reason, parent, snapshot_id, "
+                            "eval_split_hash, weights_sha256, size_bytes, created, updated, metrics, config) "
+                            "VALUES (?, ?, ?, '', ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                            (version, seq, ModelStatus.CANDIDATE.value, parent, snapshot_id, eval_split_hash,
+                             sha, len(weights), created, created, metrics_bytes.decode(), config_bytes.decode()))
+                except BaseException as exc:
+                    if final is not None:  # published: removed under the write lock unless its row committed
+                        undo_unless_committed(conn, lambda c: self._registered(c, version),
+                                              lambda: shutil.rmtree(final, ignore_errors=True), exc, str(final))
+                    raise
+        except OSError as exc:  # a full disk: nothing registered
+            raise storage_error(exc, RegistryError, f"cannot store a checkpoint in {self.models_dir}: "
+                                f"{exc.strerror or exc}", self.models_dir) from exc
         finally:
             if tmp is not None and tmp.exists():
                 shutil.rmtree(tmp, ignore_errors=True)
@@ -437,12 +443,12 @@ class ModelRegistry:
         """Delete the files of retired and rejected models, except the ``keep`` newest of the rollback chain.
 
         Kept always: the champion (``keep`` counts it), the ``keep - 1`` earlier champions that
-        ``rollback`` walks back to (one whose weights fail their sha256 does not count: rollback
-        would skip it), and every candidate (a retrain job may be about to gate it). Slots the chain
-        leaves go to the latest champions a rollback took out of service (so they can be promoted
-        again). Pruned rows
-        stay, with ``pruned_at`` set: their metrics and history remain, their weights are refused
-        with ``PrunedCheckpointError`` and ``rollback`` skips them. The rows are marked in one
+        ``rollback`` walks back to (one whose weights fail their sha256 or are missing does not count:
+        rollback would skip it), and every candidate (a retrain job may be about to gate it). One whose
+        weights cannot be read now (an I/O error, which may pass) is kept too, and does not count either.
+        Slots the chain leaves go to the latest champions a rollback took out of service (so they can be
+        promoted again). Pruned rows stay, with ``pruned_at`` set: their metrics and history remain, their
+        weights are refused with ``PrunedCheckpointError`` and ``rollback`` skips them. The rows are marked in one
         transaction before any file is deleted, so a crash between leaves marked rows whose files
         the next ``prune`` deletes; each directory is claimed by a rename before it is deleted, so
         two prunes at once delete (and count) it once. Also sweeps the dot folders crashed calls
@@ -454,20 +460,12 @@ class ModelRegistry:
         # (a model promoted meanwhile is not in `unusable` and is kept).
         with self._connect() as conn:
             wanted = self._keep_order(conn)
-        unusable = pruning.unusable(wanted, keep, self.verify)
+        unusable, unread = pruning.check(wanted, keep, self.verify)
         with self._transaction() as conn:
-            kept = [v for v in self._keep_order(conn) if v not in unusable][:keep]
+            kept = pruning.kept(self._keep_order(conn), keep, unusable, unread)
             chosen = pruning.mark(conn, kept, None if dry_run else _now())
             marked = pruning.marked(conn)
-        leftover = [v for v in marked if v not in chosen and (self.models_dir / v).exists()]
-        if dry_run:
-            return PruneResult(pruned=sorted(chosen + leftover), kept=kept, dry_run=True,
-                               freed_bytes=sum(pruning.tree_size(self.models_dir / v) for v in chosen + leftover))
-        deleted, freed = pruning.delete(self.models_dir, chosen + leftover)
-        pruning.sweep_stale(self.models_dir, time.time())
-        if deleted:
-            fsync_dir(self.models_dir)
-        return PruneResult(pruned=sorted(set(chosen) | set(deleted)), kept=kept, freed_bytes=freed)
+        return pruning.finish(self.models_dir, chosen, marked, kept, dry_run)
 
     def _keep_order(self, conn: sqlite3.Connection) -> list[str]:
         """What ``prune`` keeps first (``storage.pruning.keep_order``)."""

@@ -5,6 +5,9 @@ rollback took out of service; it marks the rest of the retired and rejected mode
 one transaction, then deletes their directories, each claimed first by a rename to ``.prune-*`` so that of
 two prunes at once one deletes (and counts) it. Rows stay, so every model's metrics and history remain.
 
+A model whose weights cannot be read right now (an I/O error) is kept, and does not count as one of the
+chain's: only a lasting verdict (not their sha256, the file missing) lets a prune delete a rollback target.
+
 These are the registry's steps: ``keep_order``, ``mark`` and ``marked`` over a connection it opened (the
 last two inside its ``BEGIN IMMEDIATE`` transaction), the sha256 checks and the deletes outside any lock
 (``storage.models`` owns connections and transactions).
@@ -15,13 +18,15 @@ from __future__ import annotations
 import os
 import shutil
 import sqlite3
+import time
 import uuid
 from collections.abc import Callable, Iterable
 from pathlib import Path
 
+from storage import checkpoint_files
 from storage.errors import CorruptCheckpointError
-from storage.files import age_s
-from storage.model_rows import ModelStatus
+from storage.files import age_s, fsync_dir
+from storage.model_rows import ModelStatus, PruneResult
 
 #: A staging or deleting dot folder under ``models/`` this old belongs to no live call (they take seconds).
 STALE_AGE_S = 3600.0
@@ -38,19 +43,33 @@ def keep_order(conn: sqlite3.Connection, champion: str | None, live_history: lis
     return [v for v in order if v not in pruned]
 
 
-def unusable(wanted: Iterable[str], keep: int, verify: Callable[[str], None]) -> set[str]:
-    """Those of ``wanted`` (in keep order) whose weights ``verify`` refuses (``CorruptCheckpointError``),
-    checked until ``keep`` have passed: rollback would skip them, so they take no keep slot."""
-    found, intact = set(), 0
+def check(wanted: Iterable[str], keep: int, verify: Callable[[str], None]) -> tuple[set[str], set[str]]:
+    """``(unusable, unread)``: those of ``wanted`` (in keep order) whose weights ``verify`` refuses
+    (``CorruptCheckpointError``), checked until ``keep`` have passed.
+
+    Unusable: a lasting verdict (not their sha256, the file missing; ``checkpoint_files.lasting``): rollback
+    would skip them, so they take no keep slot. Unread: the read failed in a way that may pass (an I/O
+    error, too many open files): they may well be intact, so a prune never deletes them on that, yet they
+    take no slot either, so the ``keep`` the chain is sure of are kept besides (``kept``)."""
+    unusable: set[str] = set()
+    unread: set[str] = set()
+    intact = 0
     for version in wanted:
         if intact == keep:
             break
         try:
             verify(version)
             intact += 1
-        except CorruptCheckpointError:
-            found.add(version)
-    return found
+        except CorruptCheckpointError as exc:
+            (unusable if checkpoint_files.lasting(exc) else unread).add(version)
+    return unusable, unread
+
+
+def kept(order: list[str], keep: int, unusable: set[str], unread: set[str]) -> list[str]:
+    """What a prune keeps of ``order`` (``keep_order``, read under the write lock): the first ``keep`` that
+    ``check`` found intact (or did not check: promoted since), and every one it could not read."""
+    intact = [v for v in order if v not in unusable and v not in unread][:keep]
+    return [v for v in order if v in intact or v in unread]
 
 
 def mark(conn: sqlite3.Connection, kept: list[str], now: str | None) -> list[str]:
@@ -87,6 +106,21 @@ def delete(models_dir: Path, versions: Iterable[str]) -> tuple[list[str], int]:
         shutil.rmtree(claimed)
         deleted.append(version)
     return deleted, freed
+
+
+def finish(models_dir: Path, chosen: list[str], every_marked: list[str], kept: list[str],
+           dry_run: bool) -> PruneResult:
+    """Once the rows are marked: deletes the directories of ``chosen`` and of those of ``every_marked`` an
+    earlier prune left (with ``dry_run``, only sizes them) and sweeps the dot folders crashed calls left."""
+    leftover = [v for v in every_marked if v not in chosen and (models_dir / v).exists()]
+    if dry_run:
+        return PruneResult(pruned=sorted(chosen + leftover), kept=kept, dry_run=True,
+                           freed_bytes=sum(tree_size(models_dir / v) for v in chosen + leftover))
+    deleted, freed = delete(models_dir, chosen + leftover)
+    sweep_stale(models_dir, time.time())
+    if deleted:
+        fsync_dir(models_dir)
+    return PruneResult(pruned=sorted(set(chosen) | set(deleted)), kept=kept, freed_bytes=freed)
 
 
 def sweep_stale(models_dir: Path, now: float) -> None:

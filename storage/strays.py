@@ -46,11 +46,17 @@ def unindexed(conn: sqlite3.Connection, data_dir: Path, files: list[Path], move_
     """In a write transaction: those of ``files`` (under ``DATA/episodes/``) still there with no row; moved
     under ``move_to`` (at the same path below it) when given."""
     episodes_dir = data_dir / EPISODES_DIR
-    indexed = {r["path"] for r in conn.execute("SELECT path FROM episodes")}
-    found = [p for p in files if p.relative_to(data_dir).as_posix() not in indexed and p.exists()]
+    rows = {r["path"] for r in conn.execute("SELECT path FROM episodes")}
+    found = [p for p in files if p.relative_to(data_dir).as_posix() not in rows and p.exists()]
     for path in found if move_to is not None else ():
         move(path, move_to / path.relative_to(episodes_dir))
     return found
+
+
+def indexed(conn: sqlite3.Connection, rel: str) -> bool:
+    """Whether a row indexes the episode file at ``rel`` (relative to the data directory, posix): after a
+    failed ingest, whether its file is an episode or a stray."""
+    return conn.execute("SELECT 1 FROM episodes WHERE path = ?", (rel,)).fetchone() is not None
 
 
 def staging_files(episodes_dir: Path, min_age_s: float, now: float) -> list[Path]:

@@ -3,9 +3,12 @@ runs, crashes mid-prune, and prunes that land during a rollback, a promote or an
 
 from __future__ import annotations
 
+import errno
 import math
+import os
 import sqlite3
 import threading
+from pathlib import Path
 
 import pytest
 
@@ -148,14 +151,40 @@ def test_promote_stops_when_a_prune_lands_after_its_check(reg: ModelRegistry, mo
     assert calls == [b] and reg.champion() == e and reg.get(b).status is ModelStatus.RETIRED
 
 
-def test_a_corrupt_model_of_the_chain_does_not_use_up_a_keep_slot(reg: ModelRegistry) -> None:
+@pytest.mark.parametrize("damage", ["flip a byte", "delete"])
+def test_a_corrupt_model_of_the_chain_does_not_use_up_a_keep_slot(reg: ModelRegistry, damage: str) -> None:
     a, b, c = (_register(reg, mse) for mse in (0.010, 0.008, 0.006))
     for v in (a, b, c):
         reg.gate(v)
-    _flip_byte(reg, b)
+    if damage == "delete":
+        reg.get(b).weights_path.unlink()
+    else:
+        _flip_byte(reg, b)
     result = reg.prune(keep=2)
     assert result.kept == [c, a] and result.pruned == [b]  # b could never be rolled back to
     assert reg.rollback() == a
+
+
+@pytest.mark.parametrize("code", [errno.EIO, errno.EMFILE, errno.EACCES])
+def test_a_read_error_on_a_rollback_target_keeps_it(reg: ModelRegistry, monkeypatch, code: int) -> None:
+    a, b, c = (_register(reg, mse) for mse in (0.010, 0.008, 0.006))
+    for v in (a, b, c):
+        reg.gate(v)
+    target, real_read, failed = reg.get(b).weights_path, Path.read_bytes, []
+
+    def fails_once(path: Path) -> bytes:
+        if path == target and not failed:
+            failed.append(path)
+            raise OSError(code, os.strerror(code))
+        return real_read(path)
+    monkeypatch.setattr(Path, "read_bytes", fails_once)
+    result = reg.prune(keep=2)
+    assert failed and result.pruned == []
+    assert result.kept == [c, b, a]  # b, unread, takes no slot: a is kept too, in case b is damaged after all
+    assert reg.get(b).pruned_at is None and reg.load_weights(b)
+    again = reg.prune(keep=2)  # b reads now
+    assert again.kept == [c, b] and again.pruned == [a]
+    assert reg.rollback() == b
 
 
 def test_two_prunes_at_once_both_finish(reg: ModelRegistry) -> None:

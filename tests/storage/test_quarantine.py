@@ -172,17 +172,18 @@ def test_a_failed_commit_is_the_error_even_when_moving_the_file_back_fails(cat, 
         conn.execute("INSERT INTO eval_split_members(episode_id) VALUES ('no-such-episode')")
         return real_record(conn, *args)
 
-    def move_back_after_a_heal(src, dst):
-        if dst == row.path:  # after the rollback: another process's read moves the file back first
-            Catalog(cat.data_dir).load(row.episode_id)
+    def move_back_fails(src, dst):
+        if dst == row.path:  # the move back, under the write lock
+            raise OSError(5, "Input/output error")
         files.move(src, dst)
     monkeypatch.setattr(quarantine, "record", record_then_break_the_commit)
-    monkeypatch.setattr("storage.catalog.move", move_back_after_a_heal)
+    monkeypatch.setattr("storage.catalog.move", move_back_fails)
     with pytest.raises(CatalogError, match="FOREIGN KEY constraint failed") as raised:
         cat.quarantine(ep.meta.episode_id, "bad")
     assert "cannot move" not in str(raised.value)
     assert any("could not be moved back" in note for note in getattr(raised.value, "__notes__", []))
-    assert cat.count(quarantined=True) == 0 and cat.verify(ep.meta.episode_id) == ep.meta
+    assert not row.path.exists() and cat.count(quarantined=True) == 0
+    assert Catalog(cat.data_dir).verify(ep.meta.episode_id) == ep.meta  # the next read moves it back
 
 
 def test_an_intact_kept_copy_is_never_overwritten_by_a_damaged_file(cat, rng):
