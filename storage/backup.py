@@ -2,10 +2,14 @@
 
 The SQLite file (episodes, eval split, request queue, model registry) is copied with SQLite's online
 backup API in one step: a snapshot at one instant, while writers go on (in WAL mode a reader does
-not block them). Then the files that snapshot names are copied: every indexed episode and the
-checkpoint folder of every model whose files are kept, each episode and each set of weights checked
-against its recorded sha256 as it is read. Files written after the snapshot are not in it and are
-not copied; a model pruned between the snapshot and its copy is marked pruned in the copy too.
+not block them). Then the files that snapshot names are copied: first the checkpoint folder of every
+model whose files are kept (a few small folders, so right after the snapshot), then every indexed
+episode (the long part), each episode and each set of weights checked against its recorded sha256 as
+it is read. Files written after the snapshot are not in it and are not copied. A model pruned between
+the snapshot and its copy is marked pruned in the copy too, unless the copy needs it (its champion, or
+an earlier champion its rollback returns to): then a retrain promoted and pruned meanwhile, and the
+snapshot is taken again (``SNAPSHOT_TRIES`` in all, then the backup names it in ``problems``), so a
+backup that reports none serves its champion.
 A quarantined episode's file is copied from ``quarantine/`` as it is (it may be what was damaged), and
 one quarantined between the snapshot and its copy is quarantined in the copy too.
 
@@ -33,7 +37,11 @@ from storage.catalog import Catalog
 from storage.quarantine import quarantine_path
 from storage.errors import BackupError, StorageError
 from storage.files import ensure_dir, fsync_dir, holds, sha256_hex, write_synced
-from storage.models import MODELS_DIR, WEIGHTS_FILE, ModelRegistry
+from storage.models import CHAMPION, MODELS_DIR, WEIGHTS_FILE, ModelRegistry
+
+#: Snapshots a backup takes before it reports a champion (or an earlier champion its rollback needs)
+#: pruned between its snapshot and its copy; each retake copies only the checkpoints again (seconds).
+SNAPSHOT_TRIES = 3
 
 
 @dataclass(frozen=True)
@@ -52,8 +60,8 @@ class BackupResult:
     """Wall time of the whole backup."""
     problems: list[str] = field(default_factory=list)
     """Files the snapshot names that could not be copied intact (missing, unreadable, failing their
-    sha256), one line each; the backup holds everything else. ``episodes verify`` on the source shows
-    the same."""
+    sha256; or the copy's champion or rollback chain, pruned while the backup ran and every retake),
+    one line each; the backup holds everything else. ``episodes verify`` on the source shows the same."""
 
 
 def check_dest(data_dir: str | os.PathLike[str], dest: str | os.PathLike[str]) -> None:
@@ -202,56 +210,129 @@ def backup(data_dir: str | os.PathLike[str], dest: str | os.PathLike[str],
                         seconds=round(time.perf_counter() - t0, 3))
 
 
+class _Tally:
+    """What one backup has copied so far, and its progress (``done`` goes on across retakes)."""
+
+    def __init__(self, progress: Callable[[int, int], None] | None) -> None:
+        self.progress, self.done, self.total = progress, 0, 0
+        self.restart()
+
+    def restart(self) -> None:
+        self.episodes, self.models, self.bytes = 0, 0, 0
+        self.problems: list[str] = []
+        self.dirs: set[Path] = set()
+
+    def expect(self, files: int) -> None:
+        """A snapshot names ``files`` more files to copy."""
+        self.total = self.done + files
+        if self.progress is not None:
+            self.progress(self.done, self.total)
+
+    def tick(self) -> None:
+        self.done += 1
+        if self.progress is not None:
+            self.progress(self.done, self.total)
+
+
 def _fill(data_dir: Path, work: Path, progress: Callable[[int, int], None] | None
           ) -> tuple[int, int, int, list[str]]:
-    """The backup's contents under ``work``: (episodes, models, bytes, problems)."""
+    """The backup's contents under ``work``: (episodes, models, bytes, problems).
+
+    The checkpoints first, right after the snapshot (a few small folders), then the episodes (the long
+    part). A checkpoint the copy's registry needs (its champion, or an earlier champion its rollback
+    walks back to) that was pruned between the snapshot and its copy means the registry moved on (a
+    retrain promoted and pruned): the snapshot is taken again, up to ``SNAPSHOT_TRIES`` times, then the
+    backup names it in ``problems`` rather than hand over a copy that cannot serve."""
     source_db = data_dir / DB_NAME
-    db = work / DB_NAME
-    _snapshot_db(source_db, db)
-    Catalog(work)  # the copy at this code's schema (an older source has fewer columns)
-    ModelRegistry(work)
-    size = 0
-    with connection(db, BackupError) as conn:
-        episodes = conn.execute("SELECT e.episode_id, e.path, e.sha256, q.moved_to FROM episodes e "
-                                "LEFT JOIN quarantine q USING (episode_id) ORDER BY e.path").fetchall()
-        models = conn.execute("SELECT version, weights_sha256 FROM models WHERE pruned_at IS NULL "
-                              "ORDER BY seq").fetchall()
-        total, done, problems, n_episodes, n_models = len(episodes) + len(models), 0, [], 0, 0
-        dirs: set[Path] = set()
-        for row in episodes:
-            try:
-                copied, in_training = _copy_episode(conn, source_db, work, row, dirs)
-                size += copied
-                n_episodes += in_training
-            except _Unusable as exc:
-                problems.append(f"episode {row['episode_id']}: {exc}")
-            done += 1
-            if progress is not None:
-                progress(done, total)
-        for version, sha in models:
-            folder, copy = data_dir / MODELS_DIR / version, work / MODELS_DIR / version
-            try:
+    tally = _Tally(progress)
+    for attempt in range(1, SNAPSHOT_TRIES + 1):
+        if attempt > 1:  # a retake: start again from an empty folder (the progress count goes on)
+            shutil.rmtree(work)
+            work.mkdir()
+            tally.restart()
+        db = work / DB_NAME
+        _snapshot_db(source_db, db)
+        Catalog(work)  # the copy at this code's schema (an older source has fewer columns)
+        ModelRegistry(work)
+        with connection(db, BackupError) as conn:
+            episodes = conn.execute("SELECT e.episode_id, e.path, e.sha256, q.moved_to FROM episodes e "
+                                    "LEFT JOIN quarantine q USING (episode_id) ORDER BY e.path").fetchall()
+            models = conn.execute("SELECT version, weights_sha256 FROM models WHERE pruned_at IS NULL "
+                                  "ORDER BY seq").fetchall()
+            tally.expect(len(episodes) + len(models))
+            if not _copy_models(conn, source_db, work, models, tally, last=attempt == SNAPSHOT_TRIES):
+                continue
+            for row in episodes:
                 try:
-                    files = sorted(p for p in folder.iterdir() if p.is_file())
-                except FileNotFoundError:
-                    raise _Unusable(f"{folder} is missing") from None
-                if WEIGHTS_FILE not in {p.name for p in files}:
-                    raise _Unusable(f"{folder / WEIGHTS_FILE} is missing")
-                for src in files:
-                    size += _copy_checked(src, copy / src.name, sha if src.name == WEIGHTS_FILE else None, dirs)
-                n_models += 1
-            except _Unusable as exc:
-                shutil.rmtree(copy, ignore_errors=True)
-                if _pruned_in_source(source_db, version):  # pruned since the snapshot: as the source is now
+                    copied, in_training = _copy_episode(conn, source_db, work, row, tally.dirs)
+                    tally.bytes += copied
+                    tally.episodes += in_training
+                except _Unusable as exc:
+                    tally.problems.append(f"episode {row['episode_id']}: {exc}")
+                tally.tick()
+        break
+    # closed: the copy's WAL is checkpointed into the file and removed
+    tally.bytes += sum(p.stat().st_size for p in work.glob(f"{DB_NAME}*"))
+    for d in sorted(tally.dirs | {work}):
+        fsync_dir(d)
+    return tally.episodes, tally.models, tally.bytes, tally.problems
+
+
+_CHAMPION, _EARLIER = "its champion", "an earlier champion its rollback returns to"
+
+
+def _needed(conn: sqlite3.Connection) -> dict[str, str]:
+    """In the copy: the models its registry serves or rolls back to (the champion, then the earlier
+    champions not rolled back), each with what it is to the copy."""
+    champion = conn.execute("SELECT version FROM model_aliases WHERE alias = ?", (CHAMPION,)).fetchone()
+    chain = [r[0] for r in conn.execute(
+        "SELECT version FROM champion_history WHERE rolled_back_at IS NULL ORDER BY id DESC")]
+    needed = dict.fromkeys(chain, _EARLIER)
+    if champion is not None:
+        needed[champion[0]] = _CHAMPION
+    return needed
+
+
+def _copy_models(conn: sqlite3.Connection, source_db: Path, work: Path, models: list[sqlite3.Row],
+                 tally: _Tally, last: bool) -> bool:
+    """Copy the checkpoint folders the snapshot keeps; False when one the copy needs (``_needed``) was
+    pruned since the snapshot and this is not the ``last`` try (the snapshot is to be taken again)."""
+    needed = _needed(conn)
+    for version, sha in models:
+        try:
+            tally.bytes += _copy_model(source_db.parent / MODELS_DIR / version, work / MODELS_DIR / version,
+                                       sha, tally.dirs)
+            tally.models += 1
+        except _Unusable as exc:
+            if not _pruned_in_source(source_db, version):
+                tally.problems.append(f"model {version}: {exc}")
+            elif version in needed and not last:
+                return False
+            else:  # pruned since the snapshot: as the source is now (a champion stays one: no prune takes it)
+                if needed.get(version) != _CHAMPION:
                     now = datetime.now(timezone.utc).isoformat(timespec="microseconds")
                     conn.execute("UPDATE models SET pruned_at = ? WHERE version = ?", (now, version))
-                else:
-                    problems.append(f"model {version}: {exc}")
-            done += 1
-            if progress is not None:
-                progress(done, total)
-    # closed: the copy's WAL is checkpointed into the file and removed
-    size += sum(p.stat().st_size for p in work.glob(f"{DB_NAME}*"))
-    for d in sorted(dirs | {work}):
-        fsync_dir(d)
-    return n_episodes, n_models, size, problems
+                if version in needed:
+                    tally.problems.append(
+                        f"model {version}, {needed[version]} in the backup: pruned in the source while the "
+                        f"backup ran ({SNAPSHOT_TRIES} snapshots, each outrun by a retrain or `models prune`); "
+                        "back up again")
+        tally.tick()
+    return True
+
+
+def _copy_model(folder: Path, copy: Path, sha: str, dirs: set[Path]) -> int:
+    """Copy one checkpoint folder, its weights checked against ``sha``; returns the bytes copied. Raises
+    ``_Unusable`` (leaving no partial copy) when a file is missing, unreadable or fails its sha256."""
+    try:
+        try:
+            files = sorted(p for p in folder.iterdir() if p.is_file())
+        except FileNotFoundError:
+            raise _Unusable(f"{folder} is missing") from None
+        if WEIGHTS_FILE not in {p.name for p in files}:
+            raise _Unusable(f"{folder / WEIGHTS_FILE} is missing")
+        return sum(_copy_checked(src, copy / src.name, sha if src.name == WEIGHTS_FILE else None, dirs)
+                   for src in files)
+    except _Unusable:
+        shutil.rmtree(copy, ignore_errors=True)
+        raise

@@ -129,8 +129,8 @@ def test_a_damaged_file_is_named_and_the_rest_is_backed_up(tmp_path, rng, capsys
     assert rc == 1 and "could not be copied intact" in err
     report = json.loads(out)
     assert report["episodes"] == 4 and report["models"] == 1 and len(report["problems"]) == 2
-    assert want["train"][1] in report["problems"][0] and "sha256" in report["problems"][0]
-    assert want["versions"][2] in report["problems"][1]
+    assert want["versions"][2] in report["problems"][0]  # the checkpoints are copied first
+    assert want["train"][1] in report["problems"][1] and "sha256" in report["problems"][1]
     copy = Catalog(tmp_path / "b")
     with pytest.raises(EpisodeError, match="missing"):
         copy.verify(want["train"][1])
@@ -142,17 +142,71 @@ def test_a_model_pruned_during_the_backup_is_pruned_in_it(tmp_path, rng) -> None
     data, dest = tmp_path / "data", tmp_path / "b"
     want = _filled(data, rng)
     reg = ModelRegistry(data)
+    worse = reg.register(b"worse" * 50, {}, {"h1_mse": 0.5}, snapshot_id="snap", eval_split_hash=want["split"])
+    assert not reg.gate(worse).promoted
+    calls = []
 
     def prune_once(done: int, total: int) -> None:  # after the snapshot, before the models are copied
-        if done == 1:
-            assert reg.prune(keep=1).pruned == [want["versions"][1]]
+        calls.append((done, total))
+        if len(calls) == 1:
+            assert reg.prune(keep=2).pruned == [worse]
 
     result = backup(data, dest, progress=prune_once)
 
-    assert result.problems == [] and result.models == 1
+    assert result.problems == [] and result.models == 2
+    assert calls == [(n, 8) for n in range(9)]  # one snapshot: a model the copy does not need is no reason to retake
     copy = ModelRegistry(dest)
-    assert copy.get(want["versions"][1]).pruned_at is not None
-    assert copy.load_weights(want["versions"][2])
+    assert copy.get(worse).pruned_at is not None and not (dest / "models" / worse).exists()
+    assert copy.load_weights(want["versions"][2]) and copy.load_weights(want["versions"][1])
+
+
+def test_a_champion_pruned_during_the_backup_is_backed_up_as_the_source_is_now(tmp_path, rng) -> None:
+    """A retrain that promotes and prunes (``retrain --keep-models 1``) after the snapshot takes the
+    snapshot's champion and its rollback chain away: the backup retakes it, so it serves the new champion."""
+    data, dest = tmp_path / "data", tmp_path / "b"
+    want = _filled(data, rng)
+    reg = ModelRegistry(data)
+    new = []
+
+    def retrain_once(done: int, total: int) -> None:  # after the snapshot, before the models are copied
+        if not new:
+            new.append(reg.register(b"new" * 50, {}, {"h1_mse": 0.001}, snapshot_id="snap",
+                                    eval_split_hash=want["split"]))
+            assert reg.gate(new[0]).promoted
+            assert reg.prune(keep=1).pruned == want["versions"][1:]
+
+    result = backup(data, dest, progress=retrain_once)
+
+    assert result.problems == [] and result.models == 1 and result.episodes == 5
+    copy = ModelRegistry(dest)
+    assert copy.champion() == new[0] and copy.load_weights(new[0]) == b"new" * 50
+    assert copy.weights_problem(new[0]) is None
+    assert all(copy.get(v).pruned_at is not None for v in want["versions"])
+    assert sorted(p.name for p in (dest / "models").iterdir()) == [new[0]]
+
+
+def test_a_champion_pruned_after_every_snapshot_is_named(tmp_path, rng, capsys) -> None:
+    """When retrains outrun every retake, the backup says its champion cannot serve (exit 1)."""
+    from storage import backup as backup_module
+    data, dest = tmp_path / "data", tmp_path / "b"
+    want = _filled(data, rng)
+    reg = ModelRegistry(data)
+    new: list[str] = []
+
+    def retrain_while_models_wait(done: int, total: int) -> None:
+        if total - done > len(want["train"] + want["eval"]):  # checkpoints are yet to be copied
+            version = reg.register(f"new {len(new)}".encode() * 50, {}, {"h1_mse": 0.01 / (len(new) + 2)},
+                                   snapshot_id="snap", eval_split_hash=want["split"])
+            assert reg.gate(version).promoted and reg.prune(keep=1).pruned
+            new.append(version)
+
+    result = backup(data, dest, progress=retrain_while_models_wait)
+
+    copy = ModelRegistry(dest)
+    champion = copy.champion()
+    assert len(result.problems) == 1 and champion in result.problems[0] and "its champion" in result.problems[0]
+    assert champion == new[-2] and copy.weights_problem(champion) is not None
+    assert len(new) == backup_module.SNAPSHOT_TRIES and result.models == 0 and result.episodes == 5
 
 
 def test_the_destination_must_be_new_and_outside(tmp_path, rng, capsys) -> None:
