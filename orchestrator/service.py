@@ -95,6 +95,7 @@ class Service:
             self.catalog = Catalog(cfg.data_dir)
             self._sweep()  # before any upload is answered
             self.queue = RequestQueue(self.catalog.db_path, background_checkpoint=True)
+            self._carry_leases_over()  # before the first reap
             registry = ModelRegistry(cfg.data_dir)
         except (StorageError, OSError) as exc:
             raise ServiceError(f"cannot open the data directory {cfg.data_dir}: {exc}") from exc
@@ -358,11 +359,35 @@ class Service:
 
     def _sweep(self) -> None:
         """Files crashed ingests left: unindexed episodes to orphans/, staging files older than
-        STAGING_MAX_AGE_S deleted (younger ones may be a live ingest's: the next sweep takes them)."""
-        swept = self.catalog.sweep_strays()
+        STAGING_MAX_AGE_S deleted (younger ones may be a live ingest's: the next sweep takes them).
+
+        One that cannot move them (a full disk cannot make ``orphans/<day>/``) leaves them where they are
+        and says so: no row indexes them, so nothing reads them, an upload of the same episode replaces
+        one, and the next sweep (or start) tries again. It is no reason to refuse to start."""
+        try:
+            swept = self.catalog.sweep_strays()
+        except OSError as exc:
+            log.warning("cannot move the files crashed ingests left aside (%s: %s); they stay where they are, "
+                        "unindexed, until a later sweep", exc.filename or self.config.data_dir,
+                        exc.strerror or exc)
+            return
         if swept:
             log.warning("moved %d unindexed episode file(s) to %s/ and deleted %d staging file(s) left by a "
                         "crash (none was acknowledged)", len(swept.unindexed), ORPHANS_DIR, len(swept.staging))
+
+    def _carry_leases_over(self) -> None:
+        """At start-up: every live lease gets a full term from now. No worker could renew while the service
+        was down; reaped at once, each request would go back to the queue (an attempt counted, ``dead`` after
+        a few restarts) and its worker would drop the episode it collected but has not yet uploaded. A worker
+        that is gone lets its lease run out one term later."""
+        try:
+            extended = self.queue.extend_leases(self.config.lease_s)
+        except StorageUnavailableError as exc:  # a full disk: the reaper extends them once writes work again
+            self._storage_down(exc)
+            return
+        if extended:
+            log.info("%d lease(s) from before the start extended by %.0f s so their workers can renew",
+                     extended, self.config.lease_s)
 
     def _reap(self) -> None:
         with self._writes:

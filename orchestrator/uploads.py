@@ -4,13 +4,15 @@
 MCAP bytes). It checks the lease (token and worker) before a byte is written, the size and
 the sha256, verifies the MCAP once, then writes the file atomically, indexes it and completes
 the request in one catalog transaction. A repeat of an upload that already completed its
-request is acknowledged as a duplicate; anything else that does not fit is refused with the
+request is acknowledged as a duplicate (once its file holds those bytes: a file lost or damaged
+on disk since is put back from the repeat's); anything else that does not fit is refused with the
 reason, and nothing of it is indexed. Stored episodes are handed to ``on_stored`` (the
 service's background thread: scoring and planning never run on this path).
 """
 
 from __future__ import annotations
 
+import logging
 import math
 import threading
 from collections.abc import Callable
@@ -27,10 +29,13 @@ from storage.catalog import Catalog
 from storage.episode_reader import EpisodeInfo, decoded_limit, read_episode
 from storage.errors import (EpisodeError, OversizedEpisodeError, QueueError, StaleLeaseError, StorageError,
                             StorageUnavailableError)
+from storage.files import holds
 from storage.queue import RequestQueue
 from storage.records import Episode
 from storage.requests import IllegalTransitionError, Request, RequestStatus
 from workers.env import resolve_physics
+
+log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -76,7 +81,8 @@ class UploadHandler:
             raise ProtocolError(ErrorCode.TOO_LARGE, f"payload: expected at most {self.max_upload_bytes} "
                                 f"bytes, found {max(header.size, len(msg.payload))}")
         data = header.check_payload(msg.payload)  # a repeat too: it is acknowledged for these bytes
-        if self._is_duplicate(request, header):
+        if self._is_duplicate(request, header):  # e.g. the reply was lost and the worker sends it again
+            self._restore_if_lost(request.episode_id, data, header)  # before the worker lets go of its bytes
             self.metrics.upload("duplicate")
             return protocol.duplicate_reply(request_id=request.id, episode_id=request.episode_id)
         self._check_live(request, header)  # before a byte is written
@@ -120,6 +126,27 @@ class UploadHandler:
             return False
         row = self.catalog.find(request.episode_id)
         return row is not None and row.sha256 == header.sha256
+
+    def _restore_if_lost(self, episode_id: str, data: bytes, header: messages.UploadHeader) -> None:
+        """Before a repeat is acknowledged: when the episode's file no longer holds its bytes (lost or
+        damaged on disk) and it is not quarantined, ``data`` (its sha256 is the row's) puts it back, by
+        the catalog's restore of a duplicate ingest. A quarantine (an operator's or a training job's
+        decision) is not ended by a worker's retry. Refused ``unavailable`` when the restore cannot be
+        written (a full disk), so the worker keeps its bytes and sends them again."""
+        row = self.catalog.find(episode_id)
+        if row is None or row.quarantined or holds(row.path, row.sha256):
+            return
+        try:
+            result = self.catalog.ingest_bytes(data, expected_sha256=header.sha256, split=row.split,
+                                               write_lock=self.write_lock)
+        except StorageError as exc:  # the bytes hash to a verified episode's: the disk, not the upload
+            code = ErrorCode.UNAVAILABLE if isinstance(exc, StorageUnavailableError) else ErrorCode.INTERNAL
+            raise self._reject(ProtocolError(code, f"episode {episode_id}: its file does not hold the bytes "
+                                             f"indexed, and restoring it from this upload failed: {exc}"),
+                               header) from exc
+        if result.restored:
+            log.warning("episode %s: its file %s was missing or damaged; restored from a repeated upload of %s",
+                        episode_id, row.path, header.request_id)
 
     def _check_live(self, request: Request, header: messages.UploadHeader) -> None:
         if (request.status != RequestStatus.LEASED or request.token != header.token

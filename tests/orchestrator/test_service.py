@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import dataclasses
+import errno
 import json
 import logging
+import os
 import threading
 import time
 from pathlib import Path
@@ -349,3 +351,58 @@ def test_after_a_storage_outage_live_leases_get_a_full_term_before_any_expires(m
     after = service.queue.get(request.id)
     assert (after.status, after.token, after.attempts) == (RequestStatus.LEASED, lease.token, 0)
     assert after.lease_expires > time.time() + 20
+
+
+def test_leases_taken_before_a_restart_get_a_full_term_after_it(make_service, client, keys) -> None:
+    """No worker can renew while the service is down: a lease that ran out meanwhile is not ended at start-up
+    (an attempt counted, the worker's collected episode dropped); its worker renews and uploads."""
+    service = make_service(lease_s=30.0)
+    request, _ = service.queue.enqueue(new_request())
+    grant = lease(client, keys)
+    service.stop()
+    down = RequestQueue(Catalog(service.config.data_dir).db_path)
+    down.renew(grant.request_id, grant.token, "w1", lease_s=1.0, now=time.time() - 60)  # ran out while down
+    assert down.get(request.id).lease_expires < time.time()
+    down.close()
+
+    service = make_service(lease_s=30.0)
+
+    after = service.queue.get(request.id)
+    assert (after.status, after.token, after.attempts) == (RequestStatus.LEASED, grant.token, 0)
+    assert after.lease_expires > time.time() + 20
+    renew = messages.RenewRequest(request_id=grant.request_id, token=grant.token, worker_id="w1").to_json()
+    assert call(client, keys.renew, renew)["expires_at"] > time.time() + 20  # (the query waits for the reconnect)
+    assert upload(client, keys, grant, episode_bytes(grant))["request_id"] == request.id
+    assert service.queue.get(request.id).status == RequestStatus.DONE
+
+
+@pytest.mark.parametrize("cause", ["a file where orphans/ goes", "no space left on the device"])
+def test_a_start_that_cannot_move_strays_aside_leaves_them_and_serves(make_service, client, keys, data_dir,
+                                                                      monkeypatch, caplog, cause) -> None:
+    """The start-up sweep moves unindexed episode files to orphans/<day>/; when that folder cannot be made
+    the strays stay where they are (no row indexes them) and the service starts all the same."""
+    Catalog(data_dir)
+    stray = data_dir / "episodes" / "2026-01-01" / "0123456789abcdef0123456789abcdef.mcap"
+    stray.parent.mkdir(parents=True)
+    stray.write_bytes(b"renamed into place, then a crash before the commit")
+    if cause.startswith("a file"):
+        (data_dir / "orphans").write_text("in the way")
+    else:
+        real_mkdir = Path.mkdir
+
+        def full_disk(self: Path, *args: Any, **kw: Any) -> None:
+            if "orphans" in self.parts:
+                raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(self))
+            real_mkdir(self, *args, **kw)
+
+        monkeypatch.setattr(Path, "mkdir", full_disk)
+
+    with caplog.at_level(logging.WARNING, logger="orchestrator.service"):
+        service = make_service()
+    monkeypatch.undo()
+
+    assert stray.read_bytes() == b"renamed into place, then a crash before the commit"
+    assert "cannot move the files crashed ingests left aside" in caplog.text and "orphans" in caplog.text
+    request, _ = service.queue.enqueue(new_request())
+    grant = lease(client, keys)
+    assert upload(client, keys, grant, episode_bytes(grant))["request_id"] == request.id

@@ -177,3 +177,56 @@ def test_oversized_upload_is_refused(make_service, client, keys, data_dir) -> No
     grant = lease(client, keys)
     refused(ErrorCode.TOO_LARGE, upload, client, keys, grant, episode_bytes(grant))
     assert Catalog(data_dir).count() == 0
+
+
+@pytest.mark.parametrize("damage", ["deleted", "truncated"])
+def test_a_repeated_upload_puts_back_a_file_lost_since_before_it_is_acknowledged(service, client, keys, data_dir,
+                                                                               damage) -> None:
+    """The worker sends again when the first reply was lost; if the stored file was lost or damaged meanwhile,
+    its bytes are the last intact copy: they restore the file before the worker is told it can drop them."""
+    service.queue.enqueue(new_request())
+    grant = lease(client, keys)
+    data = episode_bytes(grant)
+    body = upload(client, keys, grant, data)
+    path = Catalog(data_dir).get(body["episode_id"]).path
+    if damage == "deleted":
+        path.unlink()
+    else:
+        path.write_bytes(data[:-10])
+
+    assert upload(client, keys, grant, data) == {**body, "duplicate": True}
+
+    assert path.read_bytes() == data
+    assert Catalog(data_dir).verify(body["episode_id"])
+
+
+def test_a_repeated_upload_does_not_end_a_quarantine(service, client, keys, data_dir) -> None:
+    service.queue.enqueue(new_request())
+    grant = lease(client, keys)
+    data = episode_bytes(grant)
+    body = upload(client, keys, grant, data)
+    catalog = Catalog(data_dir)
+    catalog.quarantine(body["episode_id"], "operator: wrong object")
+
+    assert upload(client, keys, grant, data) == {**body, "duplicate": True}
+
+    row = catalog.get(body["episode_id"])
+    assert row.quarantined == "operator: wrong object" and not row.path.exists()
+
+
+def test_a_repeat_whose_lost_file_cannot_be_put_back_is_not_acknowledged(service, client, keys, data_dir) -> None:
+    """Acknowledged, the worker would drop the last intact copy: it is refused (the worker sends it again)."""
+    service.queue.enqueue(new_request())
+    grant = lease(client, keys)
+    data = episode_bytes(grant)
+    body = upload(client, keys, grant, data)
+    path = Catalog(data_dir).get(body["episode_id"]).path
+    path.unlink()
+    path.parent.rmdir()
+    path.parent.write_text("a file where the day's folder was")  # the restore cannot be written
+
+    message = refused(ErrorCode.INTERNAL, upload, client, keys, grant, data)
+
+    assert "restoring it from this upload failed" in message
+    path.parent.unlink()
+    assert upload(client, keys, grant, data) == {**body, "duplicate": True} and path.read_bytes() == data
