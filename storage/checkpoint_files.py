@@ -22,7 +22,7 @@ import time
 import uuid
 from pathlib import Path
 
-from storage.errors import CorruptCheckpointError, PrunedCheckpointError, RegistryError
+from storage.errors import CorruptCheckpointError, PrunedCheckpointError, RegistryError, RegistryUnavailableError
 from storage.files import fsync_dir, write_synced
 from storage.model_rows import SNAPSHOT_FILE, ModelRecord
 from storage.rows import Snapshot
@@ -123,6 +123,15 @@ def lasting(exc: CorruptCheckpointError) -> bool:
     """Whether ``read_weights``'s ``exc`` is a verdict on the checkpoint (not its sha256, the file missing,
     pruned) rather than a read that failed and may pass (an I/O error, too many open files, a permission)."""
     return not isinstance(exc.__cause__, OSError)
+
+
+def raise_unless_lasting(exc: CorruptCheckpointError, doing: str) -> None:
+    """``RegistryUnavailableError`` (nothing changed; the same call may succeed later) when ``exc`` is a read
+    that failed rather than a verdict on the weights (``lasting``): no model is rejected, skipped or replaced
+    for an I/O error that passes."""
+    if not lasting(exc):
+        raise RegistryUnavailableError(f"cannot {doing} now: {exc} (nothing changed; run it again once the "
+                                       "file can be read)") from exc
 
 
 def read_snapshot(rec: ModelRecord) -> Snapshot | None:

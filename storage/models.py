@@ -302,7 +302,7 @@ class ModelRegistry:
         The first model needs only the first three. A refused candidate is kept with status
         ``rejected`` and the reason; a version that is no longer a candidate (rejected, retired) is
         refused without any change. Raises ``RegistryError`` for an unknown version or a bad
-        ``min_rel_improvement``.
+        ``min_rel_improvement``, ``RegistryUnavailableError`` when a weights file cannot be read now.
         """
         if not 0 <= min_rel_improvement < 1:
             raise RegistryError(f"min_rel_improvement must be in [0, 1), found {min_rel_improvement}")
@@ -312,6 +312,7 @@ class ModelRegistry:
         try:
             self._read_verified(rec)
         except CorruptCheckpointError as exc:
+            checkpoint_files.raise_unless_lasting(exc, f"gate {version}")  # it stays a candidate
             return self._refuse(rec, f"corrupt checkpoint: {exc}", metric)
         # A champion whose weights fail their sha256 serves nothing: any sound candidate replaces it
         # (checked before the write lock: it reads files).
@@ -320,6 +321,7 @@ class ModelRegistry:
             try:
                 self.verify(checked)
             except CorruptCheckpointError as exc:
+                checkpoint_files.raise_unless_lasting(exc, f"gate {version} against champion {checked}")
                 unusable = str(exc)
         with self._transaction() as conn:
             current = self._champion(conn)
@@ -384,7 +386,7 @@ class ModelRegistry:
 
         Previous champions with corrupt or missing weights are skipped. The rolled-back champion
         becomes ``retired``. Raises ``RegistryError`` when there is no champion or no earlier one to
-        return to (nothing changes then).
+        return to, ``RegistryUnavailableError`` when one's weights cannot be read now (nothing changes).
         """
         with self._connect() as conn:
             current = self._champion(conn)
@@ -400,6 +402,7 @@ class ModelRegistry:
             try:
                 self.verify(version)
             except CorruptCheckpointError as exc:
+                checkpoint_files.raise_unless_lasting(exc, f"roll back past {version}")
                 skipped.append(f"{version} ({exc})")
                 continue
             target = version
