@@ -3,34 +3,15 @@
 from __future__ import annotations
 
 import signal
-from pathlib import Path
 
 import pytest
 
-from orchestrator.service import Service
-from orchestrator.serviceconfig import ServiceConfig
 from storage.catalog import Catalog
 from storage.errors import CatalogUnavailableError
 from storage.requests import RequestStatus
 from tests.conftest import disposition, ignoring_sigint, wait_for
 from tests.orchestrator.test_service import new_request
 from workers.agent import WorkerConfig, WorkerError
-
-
-@pytest.fixture
-def start_service(data_dir: Path, endpoint: str, namespace: str):
-    services: list[Service] = []
-
-    def start(lease_s: float = 30.0) -> Service:
-        svc = Service(ServiceConfig(data_dir=data_dir, namespace=namespace, listen=(endpoint,), lease_s=lease_s,
-                                    reap_interval_s=0.05))
-        svc.start()
-        services.append(svc)
-        return svc
-
-    yield start
-    for svc in services:
-        svc.stop()
 
 
 def test_worker_config_is_validated() -> None:
@@ -48,8 +29,8 @@ def test_worker_config_is_validated() -> None:
     assert WorkerConfig().worker_id  # <host>-<pid>
 
 
-def test_renewals_keep_a_lease_alive_past_lease_s(start_service, spawn_worker) -> None:
-    service = start_service(lease_s=0.6)
+def test_renewals_keep_a_lease_alive_past_lease_s(make_service, spawn_worker) -> None:
+    service = make_service(lease_s=0.6)
     request, _ = service.queue.enqueue(new_request(steps=20))  # 2 s of paced collection > 3 leases
     w = spawn_worker("R", "--realtime", "1", "--once")
     assert w.wait(60) == 0, w.log()
@@ -61,11 +42,11 @@ def test_renewals_keep_a_lease_alive_past_lease_s(start_service, spawn_worker) -
     CatalogUnavailableError("database catalog.sqlite: database or disk is full"),  # what a full disk gives now
     OSError(28, "No space left on device"),  # anything unforeseen: `internal`
 ], ids=["unavailable", "internal"])
-def test_an_upload_the_service_could_not_store_is_retried_not_failed(start_service, spawn_worker, data_dir,
+def test_an_upload_the_service_could_not_store_is_retried_not_failed(make_service, spawn_worker, data_dir,
                                                                      error) -> None:
     """``unavailable`` (a full disk, a busy database) and ``internal`` are transient: the same bytes again,
     no attempt spent."""
-    service = start_service()
+    service = make_service()
     request, _ = service.queue.enqueue(new_request())
     real, refused = service.catalog.ingest_bytes, []
 
@@ -83,8 +64,8 @@ def test_an_upload_the_service_could_not_store_is_retried_not_failed(start_servi
     assert Catalog(data_dir).count() == 1
 
 
-def test_sigterm_drains_the_current_request(start_service, spawn_worker, data_dir) -> None:
-    service = start_service()
+def test_sigterm_drains_the_current_request(make_service, spawn_worker, data_dir) -> None:
+    service = make_service()
     request, _ = service.queue.enqueue(new_request(steps=20))
     other, _ = service.queue.enqueue(new_request(steps=5))
     w = spawn_worker("D", "--realtime", "1")
@@ -97,10 +78,10 @@ def test_sigterm_drains_the_current_request(start_service, spawn_worker, data_di
     assert Catalog(data_dir).count() == 1
 
 
-def test_a_worker_started_ignoring_sigint_keeps_ignoring_it(start_service, spawn_worker) -> None:
+def test_a_worker_started_ignoring_sigint_keeps_ignoring_it(make_service, spawn_worker) -> None:
     """As `activecollect run` started in a script's background does (the shell starts it so): its workers
     must not stop on a SIGINT their run ignores."""
-    start_service()
+    make_service()
     with ignoring_sigint():
         ignoring = spawn_worker("I")
     plain = spawn_worker("P")
@@ -110,8 +91,8 @@ def test_a_worker_started_ignoring_sigint_keeps_ignoring_it(start_service, spawn
     assert disposition(plain.pid, signal.SIGINT) == "caught"
 
 
-def test_second_sigterm_gives_the_request_back(start_service, spawn_worker) -> None:
-    service = start_service()
+def test_second_sigterm_gives_the_request_back(make_service, spawn_worker) -> None:
+    service = make_service()
     request, _ = service.queue.enqueue(new_request(steps=100))  # 10 s of paced collection
     w = spawn_worker("G", "--realtime", "1")
     wait_for(lambda: service.queue.get(request.id).status == RequestStatus.LEASED, timeout=30,
@@ -126,18 +107,18 @@ def test_second_sigterm_gives_the_request_back(start_service, spawn_worker) -> N
     assert f"released {request.id}" in w.log()
 
 
-def test_worker_started_before_the_service_waits_and_then_works(start_service, spawn_worker) -> None:
+def test_worker_started_before_the_service_waits_and_then_works(make_service, spawn_worker) -> None:
     w = spawn_worker("E", "--max-episodes", "1")
     wait_for(lambda: "worker E up" in w.log(), timeout=30, message="the worker is up, no service yet")
-    service = start_service()
+    service = make_service()
     request, _ = service.queue.enqueue(new_request(steps=5))
     assert w.wait(60) == 0, w.log()
     assert service.queue.get(request.id).status == RequestStatus.DONE
 
 
-def test_a_worker_records_at_the_frame_size_the_service_holds(start_service, spawn_worker, data_dir) -> None:
+def test_a_worker_records_at_the_frame_size_the_service_holds(make_service, spawn_worker, data_dir) -> None:
     """A worker started with another --size still records what the catalog holds (its grant says so)."""
-    service = start_service()
+    service = make_service()
     service.queue.enqueue(new_request())
     first = spawn_worker("F", "--once")  # 16 px: the catalog's first episode fixes its size
     assert first.wait(60) == 0, first.log()
