@@ -99,10 +99,12 @@ class ChampionScorer:
         return self._local.registry
 
     def reload(self) -> str | None:
-        """Load the registry's champion if it is not the one loaded; returns its version."""
+        """Load the registry's champion if it is not the one loaded; returns the version loaded."""
         registry = self._registry()
-        champion = registry.champion()
         with self._lock:
+            # Read under the lock: a value read before it may be one that another thread, holding it, has
+            # already replaced by a newer champion, and loading it would switch back to a retired model.
+            champion = registry.champion()
             if champion == self.version:
                 self.problem = None
                 return champion
@@ -125,6 +127,11 @@ class ChampionScorer:
             self.version, self.ensemble, self.problem, self._failed = champion, ensemble, None, None
             log.info("scorer now uses champion %s", champion)
             return champion
+
+    def loaded(self) -> tuple[str | None, Ensemble | None]:
+        """The version loaded and its ensemble, read together (another thread may swap them at any time)."""
+        with self._lock:
+            return self.version, self.ensemble
 
     def _training_episodes(self, version: str) -> frozenset[str] | None:
         """The episodes ``version`` was trained on (None: not recorded, or not readable), read once per champion;
@@ -151,8 +158,7 @@ class ChampionScorer:
 
     def __call__(self, episode: Episode) -> Scores | None:
         self.reload()
-        with self._lock:
-            ensemble, version = self.ensemble, self.version
+        version, ensemble = self.loaded()
         if ensemble is None or version is None:
             return None
         if ensemble.config.image_size != episode.frames.shape[1]:
@@ -187,9 +193,9 @@ class FramesSource:
         self._lock = threading.Lock()
 
     def __call__(self) -> bytes:
-        version = self.scorer.reload()
+        self.scorer.reload()
         split = self.catalog.eval_split()
-        ensemble = self.scorer.ensemble
+        version, ensemble = self.scorer.loaded()  # one pair: the picture is cached under its ensemble's version
         if version is None or split is None or ensemble is None:
             return b""
         from orchestrator.report import frames_png  # torch: start-up cost, see the module docstring

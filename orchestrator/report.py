@@ -105,7 +105,8 @@ def frames_png(ensemble: Ensemble, episodes: Sequence[Episode], samples: int = 3
         i = int(rng.integers(len(steps)))
         x = frames_to_tensor(ep.frames, ensemble.device)                                # (T, 3, H, W)
         ctx = x[torch.as_tensor(ctx_idx[i:i + 1])]                                       # (1, C, 3, H, W)
-        act = ensemble.normalize_actions(torch.as_tensor(ep.actions[act_idx[i, 0]][None], dtype=torch.float32))
+        act = ensemble.normalize_actions(torch.as_tensor(ep.actions[act_idx[i, 0]][None], dtype=torch.float32,
+                                                         device=ensemble.device))                # (1, A)
         preds = ensemble(ctx, act).clamp(0, 1)[:, 0]                                     # (K, 3, H, W)
         mean = preds.mean(0).permute(1, 2, 0).cpu().numpy()                              # (H, W, 3)
         var = preds.var(0, unbiased=False).mean(0).cpu().numpy()                         # (H, W)

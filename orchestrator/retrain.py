@@ -50,16 +50,20 @@ def run_retrain(data_dir: Path, cfg: TrainConfig, wait: bool = False, keep_model
     """One retrain job under the lock: train on the train snapshot, evaluate, register, gate.
 
     With ``cfg.from_champion`` the champion's weights are fine-tuned on all the data (a
-    fresh model while there is no champion yet). With ``keep_models`` the registry is then
-    pruned to the champion's rollback chain of that many (``ModelRegistry.prune``).
+    fresh model while there is no champion yet; when the champion's checkpoint is damaged, the newest sound
+    model of its rollback chain or a fresh one, which the gate lets replace it: see
+    ``uncertainty.train.warm_start``). With ``keep_models`` the registry is then pruned to the champion's
+    rollback chain of that many (``ModelRegistry.prune``).
 
     Returns ``{"version", "promoted", "reason", "metrics", "champion", "pruned", "prune_error", "abandoned",
-    "quarantined"}`` (``abandoned``: candidates earlier jobs left, rejected first, see ``training_job``;
-    ``quarantined``: train episodes found missing or damaged, see ``uncertainty.data.load_train``); a
-    prune that fails does not fail the job (the gate has decided by then): ``prune_error`` says why. Raises
+    "quarantined", "warnings"}`` (``abandoned``: candidates earlier jobs left, rejected first, see
+    ``training_job``; ``quarantined``: train episodes found missing or damaged, see
+    ``uncertainty.data.load_train``; ``warnings``: ``TrainResult.warnings``, one line each); a prune that
+    fails does not fail the job (the gate has decided by then): ``prune_error`` says why. Raises
     ``orchestrator.scheduler.RetrainBusyError`` when another job holds the lock (and ``wait`` is False), and
-    whatever training raises (``uncertainty`` and ``storage`` errors); in every failure
-    the champion is untouched, because only the gate at the very end promotes.
+    whatever training raises (``uncertainty`` and ``storage`` errors; ``RegistryUnavailableError`` when the
+    checkpoint to warm-start from cannot be read now); in every failure the champion is untouched, because
+    only the gate at the very end promotes.
     """
     with training_job(data_dir, wait=wait) as (catalog, registry, abandoned):
         if cfg.from_champion and registry.champion() is None:  # the first retrain has nothing to start from
@@ -74,4 +78,5 @@ def run_retrain(data_dir: Path, cfg: TrainConfig, wait: bool = False, keep_model
         return {"version": result.version, "promoted": result.decision.promoted,
                 "reason": result.decision.reason, "champion": registry.champion(), "pruned": pruned,
                 "prune_error": prune_error, "abandoned": abandoned, "quarantined": result.quarantined,
+                "warnings": result.warnings,
                 "metrics": {k: v for k, v in result.metrics.items() if not isinstance(v, (list, dict))}}

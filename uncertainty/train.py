@@ -3,11 +3,13 @@
 ``train_candidate`` is the whole retrain job: load the train snapshot, fit the
 members (one fused forward and backward per step; each member draws its own
 shuffled batch), evaluate on the eval split, register the candidate and run it
-through the registry's promotion gate.
+through the registry's promotion gate. A warm start (``--from-champion``) begins from the
+champion's weights, or from ``warm_start``'s choice when they are damaged.
 """
 
 from __future__ import annotations
 
+import logging
 import math
 import sys
 import time
@@ -18,6 +20,8 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from storage.checkpoint_files import raise_unless_lasting
+from storage.errors import CorruptCheckpointError
 from storage.gate import GateDecision
 from storage.models import ModelRegistry
 from storage.records import Episode
@@ -27,8 +31,10 @@ from uncertainty.config import TrainConfig  # defined torch-free for the CLI; im
 from uncertainty.data import (CatalogLike, Windows, action_stats, build_windows, load_eval, load_train,
                               member_indices)
 from uncertainty.ensemble import Ensemble, default_device
-from uncertainty.errors import ConfigError, DataError
+from uncertainty.errors import CheckpointError, ConfigError, DataError
 from uncertainty.model import PredictorConfig
+
+log = logging.getLogger(__name__)
 
 
 def resolve_device(device: str) -> torch.device:
@@ -54,6 +60,9 @@ class TrainResult:
     """Mean training loss per epoch."""
     quarantined: list[str] = field(default_factory=list)
     """Train episodes whose files were found missing or damaged, quarantined and left out."""
+    warnings: list[str] = field(default_factory=list)
+    """One line each for what the run did other than asked: a warm start from another model than the
+    champion (or none), settings a warm start overrode (also logged, and in the metrics as ``warm_start_*``)."""
 
 
 def _show_progress(flag: bool | None) -> bool:
@@ -274,30 +283,129 @@ def check_evaluable(config: PredictorConfig, eval_episodes: Sequence[Episode]) -
                         f"{M.SSIM_WINDOW}x{M.SSIM_WINDOW}")
 
 
+@dataclass
+class WarmStart:
+    """Where a ``--from-champion`` training starts: a registered model's weights, or a fresh model."""
+
+    ensemble: Ensemble | None
+    """The weights to fine-tune (None: train a fresh model)."""
+    version: str | None
+    """The model they are (None for a fresh model)."""
+    note: str | None = None
+    """Why it is not the champion, in one line (None when it is)."""
+
+
+def _rollback_chain(registry: ModelRegistry, champion: str) -> list[str]:
+    """The earlier champions ``ModelRegistry.rollback`` walks back to, newest first."""
+    live = [e.version for e in registry.history() if e.rolled_back_at is None]
+    return list(dict.fromkeys(v for v in reversed(live) if v != champion))
+
+
+def _load_parent(registry: ModelRegistry, version: str, device: torch.device) -> Ensemble:
+    """``load_ensemble``, with a read that failed and may pass raised as ``RegistryUnavailableError``."""
+    try:
+        return load_ensemble(registry, version, device)
+    except CheckpointError:  # bytes read and matching their sha256, yet no ensemble: a verdict
+        raise
+    except CorruptCheckpointError as exc:
+        raise_unless_lasting(exc, f"warm-start from {version}")
+        raise
+
+
+def warm_start(registry: ModelRegistry, device: torch.device) -> WarmStart:
+    """The champion's weights to fine-tune; when its checkpoint is damaged for good (its sha256, missing,
+    pruned, not an ensemble), the newest sound model of its rollback chain, or else none (a fresh model), so
+    that the gate can replace a damaged champion rather than every warm-started job failing on it.
+
+    Raises ``ConfigError`` when there is no champion and ``RegistryUnavailableError`` when a checkpoint
+    cannot be read now (an I/O error, which may pass: nothing is trained; the same job may succeed later).
+    """
+    champion = registry.champion()
+    if champion is None:
+        raise ConfigError("--from-champion given but there is no champion yet")
+    try:
+        return WarmStart(_load_parent(registry, champion, device), champion)
+    except CorruptCheckpointError as exc:
+        damage = f"champion {champion} cannot be loaded ({exc})"
+    for version in _rollback_chain(registry, champion):
+        try:
+            ensemble = _load_parent(registry, version, device)
+        except CorruptCheckpointError:
+            continue
+        return WarmStart(ensemble, version, f"{damage}: warm-started from {version}, the newest sound model "
+                                            "of its rollback chain")
+    return WarmStart(None, None, f"{damage}, nor any earlier champion: trained a fresh model")
+
+
+def warm_start_overrides(cfg: TrainConfig, ensemble: Ensemble) -> list[str]:
+    """The shape settings of ``cfg`` a warm start from ``ensemble`` does not take (it keeps its own), as
+    ``"members 3 (kept 2)"``."""
+    def shown(value: Any) -> str:
+        return ",".join(map(str, value)) if isinstance(value, (tuple, list)) else str(value)
+    pcfg = ensemble.config
+    pairs = {"members": (cfg.members, ensemble.members), "context": (cfg.context, pcfg.context),
+             "widths": (tuple(cfg.widths), tuple(pcfg.widths)),
+             "variance_head": (cfg.variance_head, pcfg.predict_variance)}
+    return [f"{name} {shown(asked)} (kept {shown(kept)})" for name, (asked, kept) in pairs.items() if asked != kept]
+
+
+def _check_warm_start(ensemble: Ensemble, label: str, cfg: TrainConfig, episodes: Sequence[Episode]) -> None:
+    size = int(episodes[0].frames.shape[1])
+    if ensemble.config.image_size != size:
+        raise ConfigError(f"{label} predicts {ensemble.config.image_size}px frames, the train snapshot has {size}px")
+    if cfg.variance_head and not ensemble.config.predict_variance:
+        raise ConfigError(f"{label} has no variance head to warm-start: "
+                          "train a fresh model for one (without --from-champion)")
+
+
+def starting_point(registry: ModelRegistry, cfg: TrainConfig,
+                   episodes: Sequence[Episode]) -> tuple[Ensemble, dict[str, Any], list[str]]:
+    """The ensemble to train, what to record of where it started, and the warnings to give.
+
+    A fresh model unless ``cfg.from_champion``; then ``warm_start``'s, checked against ``episodes``. The
+    record (for the metrics and the train config): ``warm_start_from`` (the version, None for a fresh
+    model), and when there is one to give ``warm_start_note`` (why not the champion) and
+    ``warm_start_overrode`` (``warm_start_overrides``); each warning is logged. Raises ``ConfigError``
+    (no champion, a model shaped for other images or without the variance head asked for) and
+    ``warm_start``'s errors.
+    """
+    if not cfg.from_champion:
+        return new_ensemble(cfg, episodes), {}, []
+    start = warm_start(registry, resolve_device(cfg.device))
+    record: dict[str, Any] = {"warm_start_from": start.version}
+    warnings = []
+    if start.note is not None:
+        record["warm_start_note"] = start.note
+        warnings.append(start.note)
+    if start.ensemble is None:
+        ensemble = new_ensemble(cfg, episodes)
+    else:
+        ensemble = start.ensemble
+        label = f"champion {start.version}" if start.note is None else f"{start.version} (for the damaged champion)"
+        _check_warm_start(ensemble, label, cfg, episodes)
+        overrode = warm_start_overrides(cfg, ensemble)
+        if overrode:
+            record["warm_start_overrode"] = "; ".join(overrode)
+            warnings.append(f"warm start from {start.version} keeps its shape, not the one asked for: "
+                            f"{record['warm_start_overrode']}")
+    for line in warnings:
+        log.warning("%s", line)
+    return ensemble, record, warnings
+
+
 def train_candidate(catalog: CatalogLike, registry: ModelRegistry, cfg: TrainConfig) -> TrainResult:
     """Train on the train snapshot, evaluate on the eval split, register, and run the gate.
 
-    Raises ``DataError`` (no train data, no eval split, eval episodes in the
-    snapshot, an eval split the model cannot be evaluated on), ``ConfigError`` (warm start without a champion, or from one shaped
-    for other images or without the variance head asked for) and the registry's errors.
+    With ``cfg.from_champion`` training starts from the champion (or, when its checkpoint is damaged, where
+    ``starting_point`` says; ``TrainResult.warnings`` tells). Raises ``DataError`` (no train data, no eval
+    split, eval episodes in the snapshot, an eval split the model cannot be evaluated on), ``ConfigError``
+    (warm start without a champion, or from one shaped for other images or without the variance head asked
+    for), ``RegistryUnavailableError`` (a checkpoint to warm-start from cannot be read now) and the
+    registry's errors.
     """
     data = load_train(catalog, cfg.max_episodes)
     eval_episodes, eval_hash = load_eval(catalog)
-    parent = None
-    if cfg.from_champion:
-        parent = registry.champion()
-        if parent is None:
-            raise ConfigError("--from-champion given but there is no champion yet")
-        ensemble = load_ensemble(registry, parent, resolve_device(cfg.device))
-        size = int(data.episodes[0].frames.shape[1])
-        if ensemble.config.image_size != size:
-            raise ConfigError(f"champion {parent} predicts {ensemble.config.image_size}px frames, "
-                              f"the train snapshot has {size}px")
-        if cfg.variance_head and not ensemble.config.predict_variance:
-            raise ConfigError(f"champion {parent} has no variance head to warm-start: "
-                              "train a fresh model for one (without --from-champion)")
-    else:
-        ensemble = new_ensemble(cfg, data.episodes)
+    ensemble, record, warnings = starting_point(registry, cfg, data.episodes)
     check_evaluable(ensemble.config, eval_episodes)  # before training, not after it
     windows = train_windows(data.episodes, ensemble, cfg)
     start = time.perf_counter()
@@ -306,12 +414,12 @@ def train_candidate(catalog: CatalogLike, registry: ModelRegistry, cfg: TrainCon
     metrics = evaluate_episodes(ensemble, eval_episodes, eval_hash, rollout_stride=cfg.eval_rollout_stride)
     metrics.update({"train_episodes": len(data.episodes), "train_windows": len(windows),
                     "train_seconds": round(train_s, 2), "train_threads": torch.get_num_threads(),
-                    "train_loss": losses[-1], "epochs": cfg.epochs})
-    # A warm start keeps the champion's shape: record what was trained, not what was asked for.
+                    "train_loss": losses[-1], "epochs": cfg.epochs} | record)
+    # A warm start keeps its model's shape: record what was trained, not what was asked for.
     used = cfg.to_dict() | {"members": ensemble.members, "context": ensemble.config.context,
                             "widths": list(ensemble.config.widths),
-                            "variance_head": ensemble.config.predict_variance}
-    version = save_candidate(registry, ensemble, metrics, data.snapshot_id, eval_hash, parent=parent,
-                             train_config=used, snapshot=data.snapshot)
+                            "variance_head": ensemble.config.predict_variance} | record
+    version = save_candidate(registry, ensemble, metrics, data.snapshot_id, eval_hash,
+                             parent=record.get("warm_start_from"), train_config=used, snapshot=data.snapshot)
     decision = registry.gate(version, cfg.min_rel_improvement, eval_split_hash=eval_hash)
-    return TrainResult(version, metrics, decision, losses, data.quarantined)
+    return TrainResult(version, metrics, decision, losses, data.quarantined, warnings)

@@ -5,12 +5,17 @@ from __future__ import annotations
 import logging
 import subprocess
 import sys
+import threading
 from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 
-from orchestrator.champion import ChampionScorer
+import orchestrator.report
+from orchestrator.champion import ChampionScorer, FramesSource
+from orchestrator.report import frames_png
+from storage.catalog import Catalog
 from storage.errors import RegistryUnavailableError
 from storage.models import ModelRegistry
 from storage.rows import Snapshot
@@ -169,3 +174,103 @@ def test_threads_sets_torchs_threads_for_the_whole_process_when_the_champion_loa
 def test_threads_must_not_be_negative(tmp_path):
     with pytest.raises(ValueError, match="threads must be >= 0, found -1"):
         ChampionScorer(tmp_path, threads=-1)
+
+
+class _WatchedLock:
+    """The scorer's lock, telling ``waiting`` when a thread has to wait for it."""
+
+    def __init__(self, waiting: threading.Event) -> None:
+        self._lock = threading.Lock()
+        self.waiting = waiting
+
+    def __enter__(self) -> "_WatchedLock":
+        if not self._lock.acquire(blocking=False):
+            self.waiting.set()
+            self._lock.acquire()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self._lock.release()
+
+
+def test_a_reload_that_read_the_champion_before_a_promotion_does_not_switch_back_to_it(tmp_path, monkeypatch):
+    registry = ModelRegistry(tmp_path)
+    first = _promoted(registry, 0, 0.02)
+    ens = Ensemble(CFG, members=2, seed=1)
+    ens.set_action_stats([256.0, 250.0], [100.0, 90.0])
+    second = save_candidate(registry, ens, {"h1_mse": 0.01}, "snap", "split")
+    scorer = ChampionScorer(tmp_path)
+    settled = threading.Event()  # the other reload has finished, or waits for the lock
+    scorer._lock = _WatchedLock(settled)
+    real, others, read = ModelRegistry.champion, [], []
+
+    def other() -> None:
+        scorer.reload()
+        settled.set()
+
+    def champion(self):  # thread "a"'s first read: a promotion and another thread's reload land right after it
+        value = real(self)
+        if threading.current_thread().name == "a" and not others:
+            read.append(value)
+            assert ModelRegistry(tmp_path).promote(second).promoted
+            others.append(threading.Thread(target=other, name="b"))
+            others[0].start()
+            assert settled.wait(30)
+        return value
+
+    monkeypatch.setattr(ModelRegistry, "champion", champion)
+    a = threading.Thread(target=scorer.reload, name="a")
+    a.start()
+    a.join(30)
+    others[0].join(30)
+    assert not a.is_alive() and not others[0].is_alive() and read == [first]
+    assert registry.champion() == second and scorer.problem is None
+    assert scorer.version == second and scorer.ensemble.version == second  # not back on the retired first
+
+
+def test_the_frames_are_cached_under_the_version_of_the_ensemble_that_drew_them(tmp_path, monkeypatch):
+    catalog = Catalog(tmp_path)
+    catalog.pin_eval_split([catalog.add_episode(make_episode(50, size=16), split="eval").episode_id])
+    registry = ModelRegistry(tmp_path)
+    first = _promoted(registry, 0, 0.02)
+    scorer = ChampionScorer(tmp_path)
+    real_split, drawn = catalog.eval_split, []
+
+    def eval_split():  # a promotion, and a reload by another caller, land while the picture is being drawn
+        if not drawn:
+            _promoted(registry, 1, 0.01)
+            scorer.reload()
+        return real_split()
+
+    def recording(ensemble, episodes):
+        drawn.append(ensemble.version)
+        return frames_png(ensemble, episodes)
+
+    monkeypatch.setattr(catalog, "eval_split", eval_split)
+    monkeypatch.setattr(orchestrator.report, "frames_png", recording)
+    assert scorer.reload() == first
+    source = FramesSource(scorer, catalog)
+    picture = source()
+    second = registry.champion()
+    assert picture.startswith(b"\x89PNG") and drawn == [second]
+    assert source() == picture and drawn == [second]  # cached
+    assert registry.rollback() == first
+    assert source() != picture and drawn == [second, first]  # not the second's picture, cached as the first's
+
+
+def test_frames_png_gives_the_ensemble_actions_on_its_own_device():
+    """No GPU here: an ensemble on the meta device stands for one on CUDA (a CPU tensor would not be on it)."""
+    ensemble = Ensemble(CFG, members=2, seed=0).to("meta")
+    seen = []
+
+    class Seen(Exception):
+        pass
+
+    def normalize_actions(actions):
+        seen.append(actions.device)
+        raise Seen  # (a meta tensor holds no values to draw)
+
+    ensemble.normalize_actions = normalize_actions
+    with pytest.raises(Seen):
+        frames_png(ensemble, [make_episode(0, size=16)])
+    assert seen == [torch.device("meta")] == [ensemble.device]
