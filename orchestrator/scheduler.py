@@ -402,6 +402,8 @@ class RetrainScheduler:
             log.warning("retrain %s: %s", rec.version or "-", result["prune_error"])
         if rc == 0 and result.get("quarantined"):
             log.warning("retrain %s: %s", rec.version or "-", quarantined_note([str(i) for i in result["quarantined"]]))
+        for line in (result.get("warnings") or []) if rc == 0 else []:  # e.g. a warm start past a damaged champion
+            log.warning("retrain %s: %s", rec.version or "-", line)
         if rec.status is RetrainStatus.promoted:
             self.on_promoted(rec.version)
         self.on_finished(rec)

@@ -93,6 +93,18 @@ def test_a_promotion_is_logged_with_the_gate_s_words_once(tmp_path, caplog):
         r.getMessage() for r in caplog.records]
 
 
+def test_a_jobs_warnings_reach_the_service_log(tmp_path, caplog):
+    warns = "import json; print(json.dumps({'version': 'm000004-ef', 'promoted': True, 'reason': 'better', " \
+            "'warnings': ['champion m000003 cannot be loaded (sha256): warm-started from m000002']}))"
+    sched = RetrainScheduler(ScheduleConfig(), tmp_path, Counter(), command=script_command(warns))
+    sched.request()
+    sched.tick()
+    with caplog.at_level(logging.INFO, logger="orchestrator.scheduler"):
+        assert sched.wait_idle(timeout=60)
+    assert ("WARNING", "retrain m000004-ef: champion m000003 cannot be loaded (sha256): warm-started from m000002") in [
+        (r.levelname, r.getMessage()) for r in caplog.records]
+
+
 def test_a_failed_job_is_logged_with_its_reason_and_promotes_nothing(tmp_path):
     promoted = []
     sched = RetrainScheduler(ScheduleConfig(), tmp_path, Counter(), promoted.append, command=script_command(FAILS))
