@@ -21,11 +21,12 @@ import socket
 import sys
 import threading
 import time
-from dataclasses import dataclass, field
+from contextlib import contextmanager
+from dataclasses import dataclass
 from http import HTTPStatus
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, Iterator
 from urllib.parse import urlsplit
 
 from orchestrator.dashboard_page import render_page
@@ -313,7 +314,7 @@ def _placeholder_png() -> bytes:
 
 @dataclass
 class DataSources:
-    """``DashboardSources`` read from a data directory (one SQLite connection set per thread).
+    """``DashboardSources`` read from a data directory (its stores opened for each read and closed after).
 
     ``workers``, ``metrics_text``, ``retrains`` and ``frames_png`` come from the running
     service when there is one; ``budget`` is the run's episode budget (0 = none). Without a
@@ -327,14 +328,14 @@ class DataSources:
     retrains: Callable[[], list[dict]] = lambda: []
     frames_png: Callable[[], bytes] = lambda: b""
     budget: int = 0
-    _local: threading.local = field(default_factory=threading.local)
 
-    def _stores(self) -> tuple[Catalog, RequestQueue, ModelRegistry]:
-        loc = self._local
-        if not hasattr(loc, "stores"):
-            catalog = Catalog(self.data_dir)
-            loc.stores = (catalog, RequestQueue(catalog.db_path), ModelRegistry(self.data_dir))
-        return loc.stores
+    @contextmanager
+    def _stores(self) -> Iterator[tuple[Catalog, RequestQueue, ModelRegistry]]:
+        """The data directory's stores for one read, the queue's connections closed after it: http.server runs
+        each connection on a new thread, so stores kept per thread held their files open until the GC ran."""
+        catalog = Catalog(self.data_dir)
+        with RequestQueue(catalog.db_path) as queue:
+            yield catalog, queue, ModelRegistry(self.data_dir)
 
     def sources(self) -> DashboardSources:
         return DashboardSources(stats=self.stats, queue=self.queue, workers=self.workers, models=self.models,
@@ -343,42 +344,46 @@ class DataSources:
 
     def data_metrics(self) -> str:
         """Prometheus text of the gauges read from the data directory (a dashboard without a service)."""
-        catalog, queue, registry = self._stores()
         metrics = ServiceMetrics()
-        metrics.read_stores(queue, catalog, registry)
+        with self._stores() as (catalog, queue, registry):
+            metrics.read_stores(queue, catalog, registry)
         return metrics.render()
 
     def stats(self) -> dict:
-        catalog, queue, registry = self._stores()
-        champion = registry.champion()
-        h1 = registry.get(champion).metrics.get("h1_mse") if champion else None
-        problem = registry.weights_problem(champion) if champion else None
+        with self._stores() as (catalog, queue, registry):
+            champion = registry.champion()
+            h1 = registry.get(champion).metrics.get("h1_mse") if champion else None
+            problem = registry.weights_problem(champion) if champion else None
+            episodes = {"train": catalog.count(split="train"), "eval": catalog.count(split="eval"),
+                        "quarantined": catalog.count(quarantined=True)}
+            counts = queue.counts()
         retrains = self.retrains()
-        return {"episodes": {"train": catalog.count(split="train"), "eval": catalog.count(split="eval"),
-                             "quarantined": catalog.count(quarantined=True)},
-                "budget": self.budget, "queue": queue.counts(), "workers_alive": len(self.workers()),
+        return {"episodes": episodes,
+                "budget": self.budget, "queue": counts, "workers_alive": len(self.workers()),
                 "champion": champion, "champion_h1_mse": h1, "champion_problem": problem,
                 "disk": disk_json(self.data_dir),
                 "retrains": len(retrains), "last_retrain": retrains[-1] if retrains else None}
 
     def queue(self, rows: int) -> dict:
-        _, queue, _ = self._stores()
-        latest = queue.list(limit=rows)
-        return {"counts": queue.counts(), "requests": [request_json(r) for r in latest]}
+        with self._stores() as (_, queue, _):
+            latest = queue.list(limit=rows)
+            counts = queue.counts()
+        return {"counts": counts, "requests": [request_json(r) for r in latest]}
 
     def models(self) -> dict:
-        _, _, registry = self._stores()
-        champion = registry.champion()
+        with self._stores() as (_, _, registry):
+            champion = registry.champion()
+            listed = registry.list()
         models = []
-        for m in registry.list():
+        for m in listed:
             d = m.to_json()
             d.pop("config", None)
             models.append(d)
         return {"champion": champion, "models": models}
 
     def curve(self) -> list[dict]:
-        catalog, _, registry = self._stores()
-        return learning_curve(catalog, registry)
+        with self._stores() as (catalog, _, registry):
+            return learning_curve(catalog, registry)
 
 
 def request_json(r: Any) -> dict:

@@ -9,6 +9,7 @@ server may all touch one instance.
 
 from __future__ import annotations
 
+import threading
 import time
 from collections.abc import Iterable, Iterator, Mapping
 from contextlib import contextmanager
@@ -75,6 +76,8 @@ class ServiceMetrics:
                                               namespace=ns, registry=r)
         self.champion_info = Gauge("champion_info", "The champion's version (value 1; label version).",
                                    ["version"], namespace=ns, registry=r)
+        self._champion: str | None = None  # the version champion_info shows
+        self._champion_lock = threading.Lock()
         self.disk_free_bytes = Gauge("data_disk_free_bytes", "Free bytes on the file system of the data directory.",
                                      namespace=ns, registry=r)
         self.disk_size_bytes = Gauge("data_disk_size_bytes", "Size in bytes of the file system of the data "
@@ -133,10 +136,18 @@ class ServiceMetrics:
             self.episodes.labels(split=split).set(n)
 
     def set_champion(self, version: str | None, h1_mse: float | None = None) -> None:
-        """Name the champion (None: there is none) and its eval error."""
-        self.champion_info.clear()
-        if version is not None:
-            self.champion_info.labels(version=version).set(1)
+        """Name the champion (None: there is none) and its eval error.
+
+        ``champion_info`` changes only when the version does, the new series set before the old one is
+        removed: a scrape between the two never finds none (an ``absent()`` alert would fire).
+        """
+        with self._champion_lock:
+            if version != self._champion:
+                if version is not None:
+                    self.champion_info.labels(version=version).set(1)
+                if self._champion is not None:
+                    self.champion_info.remove(self._champion)
+                self._champion = version
         self.champion_h1_mse.set(float("nan") if h1_mse is None else h1_mse)
 
     def set_disk(self, disk: Mapping[str, int] | None) -> None:

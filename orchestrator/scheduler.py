@@ -202,8 +202,9 @@ _prctl = ctypes.CDLL(ctypes.util.find_library("c"), use_errno=True).prctl  # res
 def die_with_parent() -> None:
     """``preexec_fn`` of a child process: SIGTERM it when the thread that started it dies (Linux).
 
-    Use it only from a process's main thread before other threads start (``preexec_fn``
-    runs between fork and exec, where a lock held by another thread could deadlock).
+    The *thread*, not the process: start the child from a thread that outlives it. ``preexec_fn``
+    runs between fork and exec, where a lock another thread held at the fork is never released;
+    this one only calls ``prctl`` (resolved before any fork) through ctypes, which takes none.
     """
     _prctl(_PR_SET_PDEATHSIG, signal.SIGTERM)
 
@@ -236,10 +237,14 @@ class RetrainScheduler:
         self._lock = threading.Lock()
         self._proc: subprocess.Popen | None = None
         self._current: RetrainRecord | None = None
+        # The time.monotonic() past which the running job is killed: a wall-clock step (NTP) must neither kill
+        # a healthy job nor spare a stuck one. ``RetrainRecord.started`` stays the Unix time shown to users.
+        self._deadline = 0.0
         self._last_count = count_episodes()
         self._next_cron = self._cron_after(time.time())
         self._pending_manual = ""
         self._stop = threading.Event()
+        self._outlive_job = False
         self._thread: threading.Thread | None = None
 
     # -- public -----------------------------------------------------------------
@@ -263,6 +268,7 @@ class RetrainScheduler:
 
     def stop(self, kill_running: bool = True) -> None:
         """Stop scheduling; a running job is terminated (it changes nothing) unless told otherwise."""
+        self._outlive_job = not kill_running
         self._stop.set()
         if self._thread is not None:
             self._thread.join()
@@ -296,6 +302,8 @@ class RetrainScheduler:
                 self.tick()
             except Exception:  # noqa: BLE001 -- one failure must not end scheduled retraining
                 log.exception("retrain scheduler: tick failed; will try again")
+        if self._outlive_job:  # the job's parent-death signal comes when this thread ends (die_with_parent)
+            self.wait_idle()
 
     def _cron_after(self, t: float) -> float | None:
         return croniter(self.cfg.cron, t).get_next(float) if self.cfg.cron else None
@@ -326,8 +334,9 @@ class RetrainScheduler:
         try:
             logs.mkdir(parents=True, exist_ok=True)
             with open(rec.log_path + ".out", "wb") as out, open(rec.log_path, "wb") as err:
-                proc = subprocess.Popen(self.command(self.data_dir, self.job_args()),
-                                        stdout=out, stderr=err, stdin=subprocess.DEVNULL)
+                proc = subprocess.Popen(self.command(self.data_dir, self.job_args()),  # (gone with us: see _run)
+                                        stdout=out, stderr=err, stdin=subprocess.DEVNULL,
+                                        preexec_fn=die_with_parent)
         except OSError as exc:  # no log folder, no such program, no processes left: a failed job, recorded
             rec.finished, rec.status = time.time(), RetrainStatus.failed
             rec.reason = f"could not start the retrain job: {exc}"
@@ -338,13 +347,14 @@ class RetrainScheduler:
             return rec
         with self._lock:
             self._proc, self._current = proc, rec
+            self._deadline = time.monotonic() + self.cfg.timeout_s
             self.history.append(rec)
         log.info("retrain started (%s, %d episodes, pid %d)", trigger, episodes, proc.pid)
         return rec
 
     def _reap(self, block_s: float = 0.0) -> None:
         with self._lock:
-            proc, rec = self._proc, self._current
+            proc, rec, deadline = self._proc, self._current, self._deadline
         if proc is None or rec is None:
             return
         try:
@@ -352,7 +362,7 @@ class RetrainScheduler:
         except subprocess.TimeoutExpired:
             rc = None
         if rc is None:
-            if time.time() - rec.started > self.cfg.timeout_s:
+            if time.monotonic() > deadline:
                 self._terminate(f"timed out after {self.cfg.timeout_s:.0f} s", RetrainStatus.timeout)
             return
         self._finish(proc, rec, rc)

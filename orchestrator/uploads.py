@@ -71,8 +71,26 @@ class UploadHandler:
         """The catalog's frame size (0 while unknown): bounds what an upload may inflate to."""
 
     def handle(self, msg: Incoming) -> bytes:
-        """Answer one ``NS/orch/upload`` query: store the episode and complete its request, or refuse."""
-        header = messages.UploadHeader.from_json(msg.attachment)
+        """Answer one ``NS/orch/upload`` query: store the episode and complete its request, or refuse.
+
+        Every refusal, whichever check raised it (the header, the request, the size, the hash, the
+        lease, the episode, the catalog), is counted ``uploads_total{result="refused"}`` and published
+        as ``episode.rejected`` here, once, so both agree with the service's ``refusals_total``: it
+        answers a ProtocolError with its code and anything else as ``internal``, and this re-raises
+        both. Raises ProtocolError for a refused upload.
+        """
+        header: messages.UploadHeader | None = None
+        try:
+            header = messages.UploadHeader.from_json(msg.attachment)
+            return self._store(msg, header)
+        except ProtocolError as exc:
+            self._refused(header, exc.code.value, exc.message)
+            raise
+        except Exception as exc:  # noqa: BLE001 -- counted and raised on: the service answers it "internal"
+            self._refused(header, ErrorCode.INTERNAL.value, f"{type(exc).__name__}: {exc}")
+            raise
+
+    def _store(self, msg: Incoming, header: messages.UploadHeader) -> bytes:
         try:
             request = self.queue.get(header.request_id)
         except QueueError as exc:
@@ -99,19 +117,19 @@ class UploadHandler:
             if self._is_duplicate(request, header):
                 self.metrics.upload("duplicate")
                 return protocol.duplicate_reply(request_id=request.id, episode_id=request.episode_id)
-            raise self._reject(admin.protocol_error(exc), header) from exc
+            raise admin.protocol_error(exc) from exc
         except EpisodeError as exc:
-            raise self._reject(ProtocolError(ErrorCode.CORRUPT_EPISODE, str(exc)), header) from exc
+            raise ProtocolError(ErrorCode.CORRUPT_EPISODE, str(exc)) from exc
         except StorageUnavailableError as exc:  # a full disk: nothing stored; the worker sends the same bytes again
-            raise self._reject(ProtocolError(ErrorCode.UNAVAILABLE, str(exc)), header) from exc
+            raise ProtocolError(ErrorCode.UNAVAILABLE, str(exc)) from exc
         except StorageError as exc:  # CatalogError: the id is indexed with other bytes, or a frame size it refuses
-            raise self._reject(ProtocolError(ErrorCode.BAD_FIELD, str(exc)), header) from exc
+            raise ProtocolError(ErrorCode.BAD_FIELD, str(exc)) from exc
         if result.duplicate:  # indexed before: by a racing identical upload, or for another request
             if self._is_duplicate(self.queue.get(header.request_id), header):
                 self.metrics.upload("duplicate")
                 return protocol.duplicate_reply(request_id=header.request_id, episode_id=result.episode_id)
-            raise self._reject(ProtocolError(ErrorCode.BAD_FIELD, f"episode {result.episode_id} is already "
-                               "in the catalog for another request"), header)
+            raise ProtocolError(ErrorCode.BAD_FIELD, f"episode {result.episode_id} is already "
+                                "in the catalog for another request")
         self.metrics.upload("stored")
         self.publish(EventKind.REQUEST_DONE, {"request_id": header.request_id, "worker_id": header.worker_id,
                                               "episode_id": result.episode_id})
@@ -141,9 +159,8 @@ class UploadHandler:
                                                write_lock=self.write_lock)
         except StorageError as exc:  # the bytes hash to a verified episode's: the disk, not the upload
             code = ErrorCode.UNAVAILABLE if isinstance(exc, StorageUnavailableError) else ErrorCode.INTERNAL
-            raise self._reject(ProtocolError(code, f"episode {episode_id}: its file does not hold the bytes "
-                                             f"indexed, and restoring it from this upload failed: {exc}"),
-                               header) from exc
+            raise ProtocolError(code, f"episode {episode_id}: its file does not hold the bytes "
+                                f"indexed, and restoring it from this upload failed: {exc}") from exc
         if result.restored:
             log.warning("episode %s: its file %s was missing or damaged; restored from a repeated upload of %s",
                         episode_id, row.path, header.request_id)
@@ -151,10 +168,10 @@ class UploadHandler:
     def _check_live(self, request: Request, header: messages.UploadHeader) -> None:
         if (request.status != RequestStatus.LEASED or request.token != header.token
                 or request.worker_id != header.worker_id):
-            raise self._reject(ProtocolError(
+            raise ProtocolError(
                 ErrorCode.STALE_TOKEN, f"upload {request.id}: expected the live lease, found token "
                 f"{header.token} from {header.worker_id} while the request is {request.status.value} "
-                f"with token {request.token} held by {request.worker_id}"), header)
+                f"with token {request.token} held by {request.worker_id}")
 
     def _decode(self, data: bytes, header: messages.UploadHeader, request: Request) -> Episode:
         try:
@@ -162,19 +179,21 @@ class UploadHandler:
             episode = read_episode(data, name=f"upload for {header.request_id}",  # no more than the request needs
                                    max_decoded=decoded_limit(len(request.action_prefix) + request.steps, size))
         except OversizedEpisodeError as exc:
-            raise self._reject(ProtocolError(ErrorCode.TOO_LARGE, str(exc)), header) from exc
+            raise ProtocolError(ErrorCode.TOO_LARGE, str(exc)) from exc
         except EpisodeError as exc:
-            raise self._reject(ProtocolError(ErrorCode.CORRUPT_EPISODE, str(exc)), header) from exc
+            raise ProtocolError(ErrorCode.CORRUPT_EPISODE, str(exc)) from exc
         mismatch = provenance_mismatch(episode, request, header.worker_id)
         if mismatch:
-            raise self._reject(ProtocolError(ErrorCode.BAD_FIELD, f"episode provenance: {mismatch}"), header)
+            raise ProtocolError(ErrorCode.BAD_FIELD, f"episode provenance: {mismatch}")
         return episode
 
-    def _reject(self, exc: ProtocolError, header: messages.UploadHeader) -> ProtocolError:
+    def _refused(self, header: messages.UploadHeader | None, code: str, message: str) -> None:
+        """Count and publish one refused upload (``header`` None: it was malformed, so whose is unknown)."""
         self.metrics.upload("refused")
-        self.publish(EventKind.EPISODE_REJECTED, {"request_id": header.request_id, "worker_id": header.worker_id,
-                                                  "error": exc.code.value, "message": exc.message[:500]})
-        return exc
+        self.publish(EventKind.EPISODE_REJECTED, {
+            "request_id": header.request_id if header is not None else None,
+            "worker_id": header.worker_id if header is not None else None,
+            "error": code, "message": message[:500]})
 
 
 def provenance_mismatch(episode: Episode, request: Request, worker_id: str) -> str:

@@ -70,6 +70,29 @@ def test_queue_depth_and_champion_are_replaced_not_accumulated() -> None:
     assert math.isnan(s[("activecollect_champion_h1_mse", ())])
 
 
+def test_a_scrape_always_finds_the_champion_while_it_is_named_again() -> None:
+    """The service names the champion on every reap; a scrape in between must not find no series (absent())."""
+    m = ServiceMetrics()
+    m.set_champion("m1", 0.1)
+    stop = threading.Event()
+
+    def reap() -> None:
+        while not stop.is_set():
+            m.set_champion("m1", 0.1)
+
+    reaper = threading.Thread(target=reap)
+    reaper.start()
+    try:
+        seen = [m.registry.get_sample_value("activecollect_champion_info", {"version": "m1"}) for _ in range(300)]
+    finally:
+        stop.set()
+        reaper.join()
+    assert seen.count(None) == 0, f"{seen.count(None)} of {len(seen)} scrapes found no champion_info"
+    m.set_champion("m2", 0.05)  # a new champion replaces the old series
+    s = _samples(m.render())
+    assert [labels for name, labels in s if name == "activecollect_champion_info"] == [(("version", "m2"),)]
+
+
 def test_no_champion_is_nan_not_a_perfect_zero() -> None:
     assert math.isnan(_samples(ServiceMetrics().render())[("activecollect_champion_h1_mse", ())])
 

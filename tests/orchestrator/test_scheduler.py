@@ -188,6 +188,23 @@ def test_a_job_past_its_timeout_is_killed(tmp_path):
     assert rec.status is RetrainStatus.timeout and "timed out" in rec.reason
 
 
+def test_a_wall_clock_step_does_not_kill_a_healthy_job(tmp_path, monkeypatch):
+    """An NTP step forward of an hour while a job runs: its timeout counts the time it ran, not the clock."""
+    sched = RetrainScheduler(ScheduleConfig(timeout_s=60), tmp_path, Counter(), command=script_command(HANGS))
+    sched.request()
+    rec = sched.tick()
+    try:
+        wait_for(lambda: (tmp_path / "started").exists(), message="the job to start")
+        wall = time.time
+        with monkeypatch.context() as clock:
+            clock.setattr(time, "time", lambda: wall() + 3600)  # the whole process's clock steps, as NTP's would
+            assert sched.tick() is None
+        assert sched.running and rec.status is RetrainStatus.running and rec.started <= wall()
+    finally:
+        sched.stop()
+    assert rec.status is RetrainStatus.killed  # by the stop, not the timeout
+
+
 def test_cron_schedule(tmp_path):
     sched = RetrainScheduler(ScheduleConfig(cron="*/5 * * * *"), tmp_path, Counter(),
                              command=script_command(PROMOTES))

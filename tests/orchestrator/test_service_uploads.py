@@ -4,6 +4,7 @@ every upload that is not exactly what its lease asked for refused before anythin
 from __future__ import annotations
 
 import hashlib
+import json
 import threading
 
 import pytest
@@ -13,6 +14,7 @@ from orchestrator.messages import LeaseGrant
 from orchestrator.protocol import ErrorCode
 from storage.catalog import Catalog
 from storage.requests import RequestStatus
+from tests.conftest import wait_for
 from tests.orchestrator.test_service import (DEFAULT_PHYSICS, call, episode_bytes, lease, new_request, refused,
                                              upload)
 
@@ -177,6 +179,42 @@ def test_oversized_upload_is_refused(make_service, client, keys, data_dir) -> No
     grant = lease(client, keys)
     refused(ErrorCode.TOO_LARGE, upload, client, keys, grant, episode_bytes(grant))
     assert Catalog(data_dir).count() == 0
+
+
+def test_every_refused_upload_is_counted_and_published_once(make_service, client, keys) -> None:
+    """uploads_total{result="refused"} and the episode.rejected events agree with refusals_total, whichever
+    check refused: the header, the request, the size, the hash (before the lease is looked at) or later ones."""
+    service = make_service(max_upload_bytes=1 << 20)
+    events: list[dict] = []
+    sub = client.declare_subscriber(keys.events("episode.rejected"),
+                                    lambda s: events.append(json.loads(s.payload.to_bytes())["data"]))
+    service.queue.enqueue(new_request())
+    grant = lease(client, keys)
+    data = episode_bytes(grant)
+    refusals = {
+        ErrorCode.BAD_JSON: lambda: call(client, keys.upload, data, b"{not json"),
+        ErrorCode.UNKNOWN_REQUEST: lambda: upload(client, keys, grant, data, request_id="r-no-such-request"),
+        ErrorCode.TOO_LARGE: lambda: upload(client, keys, grant, data, size=(1 << 20) + 1),
+        ErrorCode.BAD_FIELD: lambda: upload(client, keys, grant, data, size=len(data) + 1),
+        ErrorCode.HASH_MISMATCH: lambda: upload(client, keys, grant, data, sha256="0" * 64),
+        ErrorCode.STALE_TOKEN: lambda: upload(client, keys, grant, data, token=grant.token + 1),
+        ErrorCode.CORRUPT_EPISODE: lambda: upload(client, keys, grant, data[: len(data) // 2]),
+    }
+    for code, send in refusals.items():
+        refused(code, send)
+    assert "duplicate" not in upload(client, keys, grant, data)
+
+    def sample(name: str, **labels: str) -> float:
+        return service.metrics.registry.get_sample_value(f"activecollect_{name}", labels) or 0.0
+
+    assert sample("uploads_total", result="refused") == len(refusals)
+    assert all(sample("refusals_total", reason=code.value) == 1 for code in refusals)
+    assert sample("uploads_total", result="stored") == 1
+    wait_for(lambda: len(events) >= len(refusals), message="an episode.rejected event for each refusal")
+    sub.undeclare()
+    assert sorted(e["error"] for e in events) == sorted(code.value for code in refusals)
+    assert [e["request_id"] for e in events if e["error"] == "bad_json"] == [None]  # whose is unknown
+    assert {e["request_id"] for e in events if e["error"] == "hash_mismatch"} == {grant.request_id}
 
 
 @pytest.mark.parametrize("damage", ["deleted", "truncated"])
