@@ -122,7 +122,8 @@ class UploadHandler:
             raise ProtocolError(ErrorCode.CORRUPT_EPISODE, str(exc)) from exc
         except StorageUnavailableError as exc:  # a full disk: nothing stored; the worker sends the same bytes again
             raise ProtocolError(ErrorCode.UNAVAILABLE, str(exc)) from exc
-        except StorageError as exc:  # CatalogError: the id is indexed with other bytes, or a frame size it refuses
+        except StorageError as exc:  # CatalogError: the id is indexed with other bytes, a frame size it refuses,
+            # or a replay of an eval episode (training on it would leak the eval split)
             raise ProtocolError(ErrorCode.BAD_FIELD, str(exc)) from exc
         if result.duplicate:  # indexed before: by a racing identical upload, or for another request
             if self._is_duplicate(self.queue.get(header.request_id), header):

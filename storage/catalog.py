@@ -162,9 +162,9 @@ class Catalog:
         passes the lock they take, so they wait for this ingest on it, woken when it commits,
         rather than in SQLite's busy handler, which sleeps in steps of up to 100 ms.
 
-        Raises ``CorruptEpisodeError`` on a sha256 mismatch, the ``EpisodeError`` subclasses of
-        ``verify_episode``, ``CatalogError`` for an unknown split, an unsafe episode id, or an
-        id already indexed with different bytes or in another split.
+        Raises ``CorruptEpisodeError`` on a sha256 mismatch, the ``EpisodeError`` subclasses of ``verify_episode``,
+        ``CatalogError`` for an unknown split, an unsafe episode id, an id already indexed with different bytes or
+        in another split, or a replay of an episode of the other split (``storage.eval_split.refuse_replay``).
         """
         return self._ingest(data, expected_sha256, split, in_transaction, None, verified, write_lock)
 
@@ -214,6 +214,7 @@ class Catalog:
                 conn.execute("ROLLBACK")
                 return self._duplicate(known, sha, split, data)
             _check_frame_size(conn, meta)
+            eval_splits.refuse_replay(conn, meta, split)  # no split may hold a recording of the other's
             publish(staged, final)
             published = True
             episode_table.insert(conn, meta, rel, sha, frames, split, len(data))
@@ -491,3 +492,9 @@ class Catalog:
         _check_split(split)
         with self._connect() as conn:
             return eval_splits.snapshot(conn, split)
+
+    def replays(self, split: str = "train", metas: Sequence[EpisodeMeta] | None = None) -> dict[str, str]:
+        """Episodes of ``split`` (or ``metas``) replaying one of the other: {id: its id} (``eval_split.replays``)."""
+        _check_split(split)
+        with self._connect() as conn:
+            return eval_splits.replays(conn, split, metas)

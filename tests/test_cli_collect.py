@@ -404,3 +404,64 @@ def test_restore_refusals_are_one_line_whatever_the_path(capsys, rng, tmp_path):
     kept.write_bytes(b"damaged since")
     rc, _, err = run_cli(capsys, "episodes", "restore", row.episode_id, "--data", str(data))
     assert rc == 1 and err.count("\n") == 1 and "nl\\nX" in err, err
+
+
+def test_collect_with_the_eval_splits_seed_is_refused_in_one_line_and_changes_nothing(capsys, data):
+    """The eval split is a function of its seed: `collect --seed 1234` (eval-split create's default) would
+    record its episodes again, under new ids, as train episodes."""
+    tiny = ("--size", "16", "--steps", "3", "--data", str(data))
+    assert run_cli(capsys, "eval-split", "create", "--episodes", "2", *tiny)[0] == 0
+    evals = Catalog(data).eval_split().ids
+    files = sorted(data.rglob("*.mcap"))
+    for extra in ((), ("--steps", "5")):  # longer episodes start as the eval ones do
+        rc, out, err = run_cli(capsys, "collect", "--episodes", "3", "--seed", "1234", *tiny, *extra)
+        assert rc == 2 and out == "" and err.count("\n") == 1, err
+        assert "activecollect: error: --seed 1234 would record eval episode " in err
+        assert "replay eval episodes" in err and "would leak the eval split; give another --seed" in err
+        assert err.split("eval episode ")[1].split()[0] in evals
+        assert sorted(data.rglob("*.mcap")) == files and Catalog(data).count(split="train") == 0
+    rc, out, err = run_cli(capsys, "collect", "--episodes", "3", "--seed", "1235", *tiny, "--json")
+    assert rc == 0, err
+    rc, out, err = run_cli(capsys, "collect", "--episodes", "1", "--seed", "1234", "--policy", "random_waypoints",
+                           *tiny)
+    assert rc == 0, err  # another policy records other episodes
+    assert Catalog(data).count(split="train") == 4
+
+
+def test_eval_split_create_over_train_copies_of_its_episodes_is_refused_before_collecting(capsys, data):
+    tiny = ("--size", "16", "--steps", "3", "--data", str(data))
+    assert run_cli(capsys, "collect", "--episodes", "2", "--seed", "1234", *tiny)[0] == 0
+    train = Catalog(data).snapshot().ids
+    rc, out, err = run_cli(capsys, "eval-split", "create", "--episodes", "4", *tiny)
+    assert rc == 2 and out == "" and err.count("\n") == 1, err
+    assert "--seed 1234 would record train episode " in err and "again as an eval episode (2 of the 4" in err
+    assert err.split("train episode ")[1].split()[0] in train
+    assert Catalog(data).count() == 2 and Catalog(data).eval_split() is None
+    rc, out, err = run_cli(capsys, "eval-split", "create", "--episodes", "4", "--seed", "99", *tiny)
+    assert rc == 0, err
+
+
+def test_ingesting_another_directorys_eval_episodes_as_train_is_refused_per_file(capsys, data, tmp_path):
+    """Two data directories whose eval splits were made alike hold the same eval episodes under other ids."""
+    other = tmp_path / "other"
+    tiny = ("--size", "16", "--steps", "3")
+    assert run_cli(capsys, "eval-split", "create", "--episodes", "2", *tiny, "--data", str(other))[0] == 0
+    assert run_cli(capsys, "collect", "--episodes", "1", "--seed", "7", *tiny, "--data", str(other))[0] == 0
+    assert run_cli(capsys, "eval-split", "create", "--episodes", "2", *tiny, "--data", str(data))[0] == 0
+    theirs = Catalog(other).eval_split().ids
+    ours = Catalog(data).eval_split().ids
+    files = sorted(data.rglob("*.mcap"))
+    rc, out, err = run_cli(capsys, "ingest", str(other / "episodes"), "--data", str(data), "--json")
+    report = json.loads(out)
+    assert rc == 1 and report["ingested"] == 1 and report["refused"] == 2  # their train episode goes in
+    for entry in report["files"]:
+        refused_id = entry["path"].rsplit("/", 1)[1].removesuffix(".mcap")
+        assert entry["ok"] is (refused_id not in theirs)
+        if not entry["ok"]:
+            assert entry["error"].startswith(f"CatalogError: episode {refused_id} replays eval episode ")
+            assert entry["error"].split("eval episode ")[1].split()[0] in ours
+            assert "training on it would leak the eval split" in entry["error"]
+    assert err.count("\n") == 2 and err.count("refused") == 2 and "replays eval episode" in err
+    cat = Catalog(data)
+    assert len(sorted(data.rglob("*.mcap"))) == len(files) + 1 and cat.count(split="train") == 1
+    assert cat.eval_split().ids == ours

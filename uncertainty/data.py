@@ -6,11 +6,14 @@ episodes are kept once, as uint8, and windows are index arrays into them, so
 a few thousand windows cost no more memory than their episodes.
 
 Training reads only the catalog's ``train`` snapshot and refuses any episode that
-is also in the pinned eval split; evaluation reads only the eval split.
+is also in the pinned eval split, and leaves out (and reports) any that replays an eval
+episode under another id (``storage.eval_split.replays``: catalogs index none since they
+refuse them, older ones may hold some); evaluation reads only the eval split.
 """
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass, field
 from typing import Protocol, Sequence
 
@@ -23,6 +26,8 @@ from storage.rows import Snapshot
 from uncertainty.errors import DataError
 from uncertainty.model import PredictorConfig
 
+log = logging.getLogger(__name__)
+
 
 class CatalogLike(Protocol):
     """What this module needs of ``storage.catalog.Catalog``."""
@@ -31,6 +36,7 @@ class CatalogLike(Protocol):
     def eval_split(self): ...
     def load(self, episode_id: str) -> Episode: ...
     def quarantine(self, episode_id: str, reason: str, only_if_damaged: bool = False): ...
+    def replays(self, split: str = "train") -> dict[str, str]: ...
 
 
 @dataclass
@@ -150,16 +156,33 @@ class TrainData:
     """Their ids in training order."""
     quarantined: list[str] = field(default_factory=list)
     """Episodes of the snapshot whose files were found missing or damaged, and quarantined."""
+    replays: dict[str, str] = field(default_factory=dict)
+    """Episodes of the snapshot left out because they replay an eval episode: {id: the eval episode's id}."""
 
     @property
     def snapshot_id(self) -> str:
         return self.snapshot.snapshot_id
 
+    @property
+    def warnings(self) -> list[str]:
+        """One line each for what the snapshot held that was not trained on, other than ``quarantined``."""
+        return [replays_note(self.replays)] if self.replays else []
+
+
+def replays_note(replays: dict[str, str]) -> str:
+    """One line for the operator on the train episodes left out as replays of eval episodes ({id: eval id})."""
+    shown = ", ".join(f"{i} (of {e})" for i, e in sorted(replays.items())[:3])
+    return (f"left out {len(replays)} train episode(s) that replay eval episodes: {shown}"
+            f"{f' and {len(replays) - 3} more' if len(replays) > 3 else ''} (indexed before the catalog refused "
+            "such copies; training on them would leak the eval split: `activecollect episodes quarantine` them)")
+
 
 def load_train(catalog: CatalogLike, max_episodes: int | None = None) -> TrainData:
     """Loads the ``train`` snapshot; raises ``DataError`` if it is empty or overlaps the eval split.
 
-    An episode whose file is missing or no longer holds the bytes indexed is quarantined
+    An episode that replays an eval episode under another id (``Catalog.replays``: indexed before the catalog
+    refused such copies) is left out, named in ``TrainData.replays`` and in a warning, logged; the snapshot is
+    then that of the others. An episode whose file is missing or no longer holds the bytes indexed is quarantined
     (``Catalog.quarantine``, which keeps its row and whatever is left of its file) and left out, so one
     lost file does not stop every retrain: the snapshot is then that of the episodes kept (as with
     ``max_episodes``: of those loaded). When most
@@ -174,6 +197,14 @@ def load_train(catalog: CatalogLike, max_episodes: int | None = None) -> TrainDa
         if leaked:
             raise DataError(f"train snapshot {snap.snapshot_id} holds {len(leaked)} eval-split episodes "
                             f"(first {leaked[0]}); the eval split must never be trained on")
+    in_snapshot = set(ids)
+    replays = {i: e for i, e in catalog.replays("train").items() if i in in_snapshot}
+    if replays:
+        log.warning("%s", replays_note(replays))
+        ids = [i for i in ids if i not in replays]
+        if not ids:
+            raise DataError(f"every train episode ({len(replays)}) replays an eval episode: training on them would "
+                            "leak the eval split; collect others (another --seed)")
     if not ids:
         raise DataError("the catalog has no train episodes; collect some first")
     episodes, kept, damaged = [], [], []
@@ -200,7 +231,7 @@ def load_train(catalog: CatalogLike, max_episodes: int | None = None) -> TrainDa
         raise DataError(f"the files of all {len(lost)} train episodes are missing or damaged (quarantined "
                         "now); restore them from a backup (activecollect ingest), or collect new ones")
     sha256 = dict(zip(snap.ids, snap.sha256s))
-    return TrainData(episodes, Snapshot.of(sorted((i, sha256[i]) for i in kept)), kept, lost)
+    return TrainData(episodes, Snapshot.of(sorted((i, sha256[i]) for i in kept)), kept, lost, replays)
 
 
 def load_eval(catalog: CatalogLike) -> tuple[list[Episode], str]:

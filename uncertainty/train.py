@@ -61,8 +61,9 @@ class TrainResult:
     quarantined: list[str] = field(default_factory=list)
     """Train episodes whose files were found missing or damaged, quarantined and left out."""
     warnings: list[str] = field(default_factory=list)
-    """One line each for what the run did other than asked: a warm start from another model than the
-    champion (or none), settings a warm start overrode (also logged, and in the metrics as ``warm_start_*``)."""
+    """One line each for what the run did other than asked: train episodes left out as replays of eval episodes
+    (``train_replays_left_out`` in the metrics), a warm start from another model than the champion (or none),
+    settings a warm start overrode (also logged, and in the metrics as ``warm_start_*``)."""
 
 
 def _show_progress(flag: bool | None) -> bool:
@@ -412,7 +413,8 @@ def train_candidate(catalog: CatalogLike, registry: ModelRegistry, cfg: TrainCon
     losses = fit(ensemble, windows, cfg)
     train_s = time.perf_counter() - start
     metrics = evaluate_episodes(ensemble, eval_episodes, eval_hash, rollout_stride=cfg.eval_rollout_stride)
-    metrics.update({"train_episodes": len(data.episodes), "train_windows": len(windows),
+    metrics.update({"train_episodes": len(data.episodes), "train_replays_left_out": len(data.replays),
+                    "train_windows": len(windows),
                     "train_seconds": round(train_s, 2), "train_threads": torch.get_num_threads(),
                     "train_loss": losses[-1], "epochs": cfg.epochs} | record)
     # A warm start keeps its model's shape: record what was trained, not what was asked for.
@@ -422,4 +424,4 @@ def train_candidate(catalog: CatalogLike, registry: ModelRegistry, cfg: TrainCon
     version = save_candidate(registry, ensemble, metrics, data.snapshot_id, eval_hash,
                              parent=record.get("warm_start_from"), train_config=used, snapshot=data.snapshot)
     decision = registry.gate(version, cfg.min_rel_improvement, eval_split_hash=eval_hash)
-    return TrainResult(version, metrics, decision, losses, data.quarantined, warnings)
+    return TrainResult(version, metrics, decision, losses, data.quarantined, [*data.warnings, *warnings])

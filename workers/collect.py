@@ -1,8 +1,10 @@
 """Collecting episodes: reset to a start state, replay a prefix, run a policy, record everything.
 
 ``collect_episode`` is what a worker does for one collection request (and what
-``activecollect collect`` does locally); ``create_eval_split`` builds the pinned
-evaluation split from a fixed seed.
+``activecollect collect`` does locally, over a ``collect_plan``); ``create_eval_split`` builds the pinned
+evaluation split from a fixed seed. The simulator is deterministic, so an episode is a function of
+its metadata (``planned_meta``): ``plan_replays`` tells, before anything is collected, which episodes
+of a plan the catalog would refuse as replays of the other split's (``storage.eval_split``).
 """
 
 from __future__ import annotations
@@ -15,6 +17,7 @@ from typing import Any, Mapping
 import numpy as np
 
 from orchestrator.protocol import MAX_EPISODE_STEPS, MAX_PREFIX_STEPS, SHAPES, WORLD_SIZE
+from storage.errors import CatalogError
 from storage.records import ACTION_DIM, STATE_DIM, Episode, EpisodeMeta
 from workers.env import CONTROL_HZ, PushSim, SimState, sample_state
 from workers.policies import make_policy
@@ -108,27 +111,58 @@ def collect_episode(*, start_state: SimState | Mapping[str, Any], policy: str,
             actions[t] = pol.act(sim)
         sim.step(float(actions[t, 0]), float(actions[t, 1]))
 
-    meta = EpisodeMeta(
-        episode_id=uuid.uuid4().hex, task=TASK, shape=state.shape, physics=dict(state.physics),
-        seed=int(seed), policy=policy, policy_params=dict(pol.params), start_state=state.to_dict(),
-        action_prefix_len=n_prefix, image_size=image_size, control_hz=float(CONTROL_HZ),
-        worker_id=worker_id, request_id=request_id, model_version=model_version,
-        software_version=software_version(), created=datetime.now(timezone.utc).isoformat(),
-    )
+    meta = _meta(state, policy, pol.params, int(seed), n_prefix, image_size, worker_id=worker_id,
+                 request_id=request_id, model_version=model_version)
     return Episode(meta=meta, frames=frames, actions=actions, states=states)
+
+
+def _meta(state: SimState, policy: str, params: Mapping[str, Any], seed: int, n_prefix: int, image_size: int,
+          **who: str) -> EpisodeMeta:
+    return EpisodeMeta(
+        episode_id=uuid.uuid4().hex, task=TASK, shape=state.shape, physics=dict(state.physics),
+        seed=seed, policy=policy, policy_params=dict(params), start_state=state.to_dict(),
+        action_prefix_len=n_prefix, image_size=image_size, control_hz=float(CONTROL_HZ),
+        software_version=software_version(), created=datetime.now(timezone.utc).isoformat(), **who)
+
+
+def planned_meta(*, start_state: SimState, policy: str, seed: int, image_size: int = 64) -> EpisodeMeta:
+    """The metadata ``collect_episode`` records for these arguments (no prefix, a new id), without simulating.
+    Raises ValueError for an unknown policy."""
+    return _meta(start_state, policy, make_policy(policy, None, np.random.default_rng(seed)).params, seed, 0,
+                 image_size)
+
+
+def collect_plan(episodes: int, seed: int, shape: str | None = None,
+                 random_physics: bool = False) -> list[tuple[int, SimState]]:
+    """The (policy seed, start state) of ``episodes`` episodes drawn from ``seed``: of ``shape``, or (None)
+    shapes in turn; default physics, or physics drawn uniformly over the task space with ``random_physics``.
+    What ``activecollect collect`` and ``create_eval_split`` record: the same arguments, the same episodes."""
+    if isinstance(episodes, bool) or not isinstance(episodes, int) or episodes < 1:
+        raise ValueError(f"episodes: expected a positive int, found {episodes!r}")
+    rng = np.random.default_rng(seed)
+    out = []
+    for i in range(episodes):
+        start = sample_state(rng, shape=SHAPES[i % len(SHAPES)] if shape is None else shape,
+                             random_physics=random_physics)
+        out.append((int(rng.integers(2**31)), start))
+    return out
 
 
 def eval_split_plan(episodes: int = 24, seed: int = 1234, random_physics: bool = False) -> list[tuple[int, SimState]]:
     """The (policy seed, start state) of each evaluation episode: shapes in turn, default physics
     (or physics drawn uniformly over the task space with ``random_physics``)."""
-    if isinstance(episodes, bool) or not isinstance(episodes, int) or episodes < 1:
-        raise ValueError(f"episodes: expected a positive int, found {episodes!r}")
-    rng = np.random.default_rng(seed)
-    plan = []
-    for i in range(episodes):
-        start = sample_state(rng, shape=SHAPES[i % len(SHAPES)], random_physics=random_physics)
-        plan.append((int(rng.integers(2**31)), start))
-    return plan
+    return collect_plan(episodes, seed, None, random_physics)
+
+
+def plan_replays(catalog, planned: list[tuple[int, SimState]], policy: str, image_size: int,
+                 split: str = "train") -> dict[int, str]:
+    """Which episodes of ``planned`` (``collect_plan``), collected with ``policy`` and indexed in ``split``, the
+    catalog would refuse as replays of an episode of the other split: {their index: that episode's id}.
+    Collects nothing; the catalog's check when each is indexed stays the one that holds."""
+    metas = [planned_meta(start_state=start, policy=policy, seed=seed, image_size=image_size)
+             for seed, start in planned]
+    found = catalog.replays(split, metas)
+    return {i: found[m.episode_id] for i, m in enumerate(metas) if m.episode_id in found}
 
 
 def eval_split_params(episodes: int = 24, seed: int = 1234, steps: int = 50, image_size: int = 64,
@@ -171,7 +205,8 @@ def create_eval_split(catalog, episodes: int = 24, seed: int = 1234, steps: int 
     objects, ``random_physics`` draws each episode's physics uniformly over the task space; both
     are pinned with the other parameters. Returns the split's hash. When a split
     is already pinned, returns its hash if it was made with the same parameters and raises
-    ``EvalSplitConflict`` (a ValueError) otherwise (see ``check_eval_split``).
+    ``EvalSplitConflict`` (a ValueError) otherwise (see ``check_eval_split``). Raises ``CatalogError``,
+    collecting nothing, when train episodes already record some of the split's (``plan_replays``).
     """
     plan = eval_split_plan(episodes, seed, random_physics)
     params = eval_split_params(episodes, seed, steps, image_size, palette, random_physics)
@@ -179,6 +214,12 @@ def create_eval_split(catalog, episodes: int = 24, seed: int = 1234, steps: int 
     if existing is not None:
         _check_same_split(catalog, existing, params, plan)
         return existing.hash
+    replayed = plan_replays(catalog, plan, EVAL_POLICY, image_size, split="eval")
+    if replayed:  # refused before any is collected, not once some are indexed
+        i, train = min(replayed.items())
+        raise CatalogError(f"train episode {train} already records evaluation episode {i + 1} of seed {seed} "
+                           f"({len(replayed)} of the {episodes} are recorded as train episodes): models trained "
+                           "on them would be measured on their own training data; give another seed")
     ids = []
     for policy_seed, start in plan:
         ep = collect_episode(start_state=start, policy=EVAL_POLICY, seed=policy_seed, steps=steps,

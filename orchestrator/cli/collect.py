@@ -11,7 +11,6 @@ import time
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 from tqdm import tqdm
 
 from orchestrator.cli import common, episodes as episodes_cli
@@ -23,8 +22,8 @@ from storage.episode_reader import inspect_episode, read_file
 from storage.errors import BackupError, CatalogError, EpisodeError, StorageError, StorageUnavailableError
 from storage.records import MAX_FRAME_SIZE, MIN_FRAME_SIZE, TRAINABLE_SIZES, trainable_size
 from workers import simbench
-from workers.collect import EvalSplitConflict, check_eval_split, collect_episode, create_eval_split
-from workers.env import sample_state
+from workers.collect import (EVAL_POLICY, EvalSplitConflict, check_eval_split, collect_episode, collect_plan,
+                             create_eval_split, eval_split_plan, plan_replays)
 
 
 def rendered_size(text: str) -> int:
@@ -185,15 +184,14 @@ def _megabytes(n: int) -> str:
 
 def _collect(args: argparse.Namespace) -> int:
     common.require_frame_size(args.data, args.size, "--size")
+    plan = collect_plan(args.episodes, args.seed, None if args.shape == "all" else args.shape)
+    _refuse_replays(args.data, plan, args.policy, args.size, "train", args.seed)
     cat = Catalog(args.data)
-    rng = np.random.default_rng(args.seed)
     results, frames, size = [], 0, 0
     started = time.perf_counter()
     with tqdm(total=args.episodes, unit="ep", desc="collect", file=sys.stderr, disable=None) as bar:
-        for i in range(args.episodes):
-            shape = SHAPES[i % len(SHAPES)] if args.shape == "all" else args.shape
-            start = sample_state(rng, shape=shape)
-            ep = collect_episode(start_state=start, policy=args.policy, seed=int(rng.integers(2**31)),
+        for policy_seed, start in plan:
+            ep = collect_episode(start_state=start, policy=args.policy, seed=policy_seed,
                                  steps=args.steps, image_size=args.size)
             res = cat.add_episode(ep)
             results.append(res)
@@ -211,6 +209,25 @@ def _collect(args: argparse.Namespace) -> int:
     print(f"episodes: {cat.episodes_dir}/<date>/<episode_id>.mcap")
     print(f"catalog:  {cat.db_path} ({out['total_episodes']} episodes)")
     return 0
+
+
+def _refuse_replays(data: Path, plan: list, policy: str, size: int, split: str, seed: int) -> None:
+    """Before anything is collected: a usage error when episodes of ``plan`` (drawn from ``seed``), indexed in
+    ``split``, would replay episodes of the other split (the eval split's seed and policy make its episodes
+    again, under new ids), which the catalog would refuse one by one (``plan_replays``)."""
+    if not (Path(data) / DB_NAME).is_file():
+        return
+    replayed = plan_replays(Catalog(data), plan, policy, size, split)
+    if not replayed:
+        return
+    other, many = replayed[min(replayed)], f"{len(replayed)} of the {len(plan)} episodes asked for"
+    if split == "train":
+        raise common.UsageError(f"--seed {seed} would record eval episode {other} again ({many} replay eval "
+                                f"episodes of {data}): training on them would leak the eval split; give another "
+                                "--seed")
+    raise common.UsageError(f"--seed {seed} would record train episode {other} again as an eval episode ({many} "
+                            f"replay train episodes of {data}): models trained on those would be measured on their "
+                            "own training data; give another --seed")
 
 
 # -- ingest ------------------------------------------------------------------------------------
@@ -281,6 +298,9 @@ def _eval_split_create(args: argparse.Namespace) -> int:
     settings = dict(episodes=args.episodes, seed=args.seed, steps=args.steps, image_size=args.size)
     # a pinned split is never replaced: checked before collecting
     pinned = refuse_other_settings(args.data, EVAL_SPLIT_FLAGS, "eval-split create", "asked for", "--size", **settings)
+    if pinned is None:
+        plan = eval_split_plan(args.episodes, args.seed)
+        _refuse_replays(args.data, plan, EVAL_POLICY, args.size, "eval", args.seed)
     cat = Catalog(args.data)
     if pinned is None:
         print(f"collecting {args.episodes} evaluation episodes ({args.steps} steps, {args.size}px) ...",

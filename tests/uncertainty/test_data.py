@@ -1,11 +1,17 @@
+import dataclasses
+
 import numpy as np
 import pytest
 
+import storage.eval_split
 from storage.catalog import Catalog
+from storage.models import ModelRegistry
+from tests.uncertainty.conftest import TINY
 from tests.uncertainty.synth import make_episode
 from uncertainty.data import action_stats, build_windows, load_eval, load_train, member_indices
 from uncertainty.errors import DataError
 from uncertainty.model import PredictorConfig
+from uncertainty.train import TrainConfig, train_candidate
 
 CFG = PredictorConfig(image_size=16, context=2)
 
@@ -126,3 +132,57 @@ def test_when_most_train_files_are_gone_nothing_is_quarantined(tmp_path):
                                         "nothing was quarantined"):
         load_train(cat)
     assert cat.count(quarantined=True) == 0
+
+
+
+def copy_in_an_old_catalog(monkeypatch, cat: Catalog, ep, episode_id: str) -> str:
+    """Index ``ep`` again under ``episode_id``, as train, as a catalog made before ingests refused replays of
+    eval episodes did."""
+    with monkeypatch.context() as m:
+        m.setattr(storage.eval_split, "refuse_replay", lambda conn, meta, split: None, raising=False)
+        copy = dataclasses.replace(ep, meta=dataclasses.replace(ep.meta, episode_id=episode_id))
+        return cat.add_episode(copy).episode_id
+
+
+def test_a_train_copy_of_an_eval_episode_an_old_catalog_holds_is_left_out_and_reported(tmp_path, monkeypatch,
+                                                                                       caplog):
+    """Training leaves the copy out (so the model is not measured on what it trained on) and says so."""
+    cat = Catalog(tmp_path)
+    ev = make_episode(10, steps=5)
+    cat.add_episode(ev, split="eval")
+    cat.pin_eval_split([ev.meta.episode_id])
+    ids = sorted(cat.add_episode(make_episode(s, steps=5)).episode_id for s in range(2))
+    copy = copy_in_an_old_catalog(monkeypatch, cat, ev, "c0ffee" * 5 + "00")
+    assert copy in cat.snapshot().ids
+    with caplog.at_level("WARNING", logger="uncertainty.data"):
+        train = load_train(cat)
+    assert train.episode_ids == ids and [e.meta.episode_id for e in train.episodes] == ids
+    assert train.replays == {copy: ev.meta.episode_id}
+    assert train.snapshot_id == cat.snapshot().without([copy]).snapshot_id
+    assert train.warnings == [caplog.records[-1].getMessage()]
+    assert f"left out 1 train episode(s) that replay eval episodes: {copy} (of {ev.meta.episode_id})" in caplog.text
+    assert cat.count(quarantined=True) == 0  # left out, not moved: the operator decides
+    assert load_train(cat, max_episodes=1).episode_ids == ids[:1]  # counts the episodes loaded, not those left out
+
+
+def test_a_train_split_of_nothing_but_eval_copies_is_refused(tmp_path, monkeypatch):
+    cat = Catalog(tmp_path)
+    ev = make_episode(10, steps=5)
+    cat.add_episode(ev, split="eval")  # not pinned yet: still the eval split's, once pinned
+    copy_in_an_old_catalog(monkeypatch, cat, ev, "ab" * 16)
+    with pytest.raises(DataError, match=r"every train episode \(1\) replays an eval episode"):
+        load_train(cat)
+
+
+def test_a_retrain_on_an_old_catalog_with_an_eval_copy_trains_without_it_and_says_so(tmp_path, monkeypatch):
+    cat = Catalog(tmp_path)
+    ev = make_episode(10, steps=6)
+    cat.add_episode(ev, split="eval")
+    cat.pin_eval_split([ev.meta.episode_id])
+    ids = sorted(cat.add_episode(make_episode(s, steps=6)).episode_id for s in range(2))
+    copy = copy_in_an_old_catalog(monkeypatch, cat, ev, "c0ffee" * 5 + "00")
+    registry = ModelRegistry(tmp_path)
+    result = train_candidate(cat, registry, TrainConfig(epochs=1, **TINY))
+    assert result.metrics["train_episodes"] == 2 and result.metrics["train_replays_left_out"] == 1
+    assert registry.snapshot(result.version).ids == ids  # what it was trained on
+    assert any(f"{copy} (of {ev.meta.episode_id})" in line for line in result.warnings)  # retrain --json's
