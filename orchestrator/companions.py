@@ -95,7 +95,9 @@ class Companions:
         """The dashboard's champion (for its predicted-vs-real frames): the planner's when it has one."""
 
     def start(self) -> None:
-        """Raises ``ValueError`` for a bad schedule and ``OSError`` when the dashboard port is taken."""
+        """Raises ``ValueError`` for a bad schedule, ``StorageError`` when the catalog cannot be read (the
+        scheduler counts its training episodes) and ``OSError`` when the dashboard port is taken. What it had
+        started by then is left to ``stop``."""
         cfg, ctx = self.cfg, self.service.context
         if cfg.retrain_every or cfg.retrain_cron:
             self.scheduler = RetrainScheduler(cfg.schedule(), ctx.data_dir, lambda: ctx.catalog.count(split="train"),

@@ -42,6 +42,7 @@ from orchestrator.metrics import ServiceMetrics
 from orchestrator.planner import Planner
 from orchestrator.protocol import ErrorCode, EventKind, Keys, ProtocolError
 from orchestrator.serviceconfig import ServiceConfig, ServiceContext, ServiceError
+from orchestrator.storagehealth import StorageHealth
 from orchestrator.transport import Incoming, Response
 from orchestrator.uploads import StoredEpisode, UploadHandler
 from storage.catalog import ORPHANS_DIR, STAGING_MAX_AGE_S, Catalog
@@ -80,15 +81,22 @@ class Service:
         # transaction) take turns here instead of inside SQLite, whose busy handler sleeps in
         # steps of up to 100 ms: that was the p99 of a lease under load.
         self._writes = threading.Lock()
-        #: When a write first failed with the storage unavailable (monotonic); None while it works.
-        self._storage_down_since: float | None = None
+        self.storage = StorageHealth(log)
+        """Whether writes fail for now (no lease expires meanwhile) and which reads fail (warnings only)."""
         self.heap = HeapTrimmer()
         """Gives the heap's free memory back after the planner's batches (scoring's tensors), every few seconds."""
 
     # --- lifecycle -----------------------------------------------------------------------------
 
     def start(self) -> None:
-        """Open storage and Zenoh and start answering. Raises ServiceError."""
+        """Open storage and Zenoh and start answering. Raises ServiceError (after stopping what it had started)."""
+        try:
+            self._start()
+        except BaseException:
+            self.stop()
+            raise
+
+    def _start(self) -> None:
         cfg = self.config
         try:
             cfg.data_dir.mkdir(parents=True, exist_ok=True)
@@ -110,7 +118,10 @@ class Service:
         self._publishers = {kind: self.session.declare_publisher(self.keys.events(kind)) for kind in EventKind}
         if cfg.planner is not None:
             self.planner = cfg.planner(self.context)
-            self._seed_queue()
+            try:
+                self._seed_queue()
+            except StorageError as exc:  # e.g. a full disk: nothing was queued
+                raise ServiceError(f"cannot seed the queue with {cfg.seed_requests} request(s): {exc}") from exc
         self._uploads = UploadHandler(self.queue, self.catalog, self.metrics, self.publish, self._writes,
                                       cfg.max_upload_bytes, self._episode_stored, self._frame_size)
         self._threads = [threading.Thread(target=self._maintain, name="maintenance", daemon=True),
@@ -199,7 +210,9 @@ class Service:
         frame_size = self._frame_size() if req.image_size else 0  # before the lease: it must not fail after
         try:
             with self._writes:
-                lease = self.queue.lease(req.worker_id, req.tasks, req.shapes, lease_s)
+                # One lease per worker: a query it asked again (the first one's answer came too late, e.g.
+                # behind another process's write lock) gets the lease the first one granted, not a second.
+                lease = self.queue.lease(req.worker_id, req.tasks, req.shapes, lease_s, one_per_worker=True)
         except QueueError as exc:
             raise admin.protocol_error(exc) from exc
         if lease is None:
@@ -215,9 +228,13 @@ class Service:
                  "seed": messages.request_seed(r.id, lease.token)}
         if req.image_size:  # a worker that records at the catalog's size (older ones refuse the field)
             grant["image_size"] = frame_size
-        self.metrics.lease()
-        self.publish(EventKind.REQUEST_LEASED, {"request_id": r.id, "worker_id": req.worker_id,
-                                                "token": lease.token, "shape": r.shape})
+        if lease.again:
+            log.info("lease of %s (token %d) answered again for %s, which asked again", r.id, lease.token,
+                     req.worker_id)
+        else:
+            self.metrics.lease()
+            self.publish(EventKind.REQUEST_LEASED, {"request_id": r.id, "worker_id": req.worker_id,
+                                                    "token": lease.token, "shape": r.shape})
         return protocol.ok_reply(grant=grant)
 
     def _episode_stored(self, stored: StoredEpisode) -> None:
@@ -248,7 +265,7 @@ class Service:
                 expires = self.queue.renew(req.request_id, req.token, req.worker_id, self.config.lease_s)
         except QueueError as exc:
             if isinstance(exc, StorageUnavailableError):  # the lease cannot be kept alive: no expiry until back
-                self._storage_down(exc)
+                self.storage.write_failed(exc)
             raise admin.protocol_error(exc) from exc
         return protocol.ok_reply(expires_at=expires)
 
@@ -344,18 +361,10 @@ class Service:
                 return
             try:
                 task()
-            except StorageUnavailableError as exc:  # said once per outage, not once a second
-                self._storage_down(exc)
+            except StorageUnavailableError as exc:  # a write (the tasks' reads go through storage.read)
+                self.storage.write_failed(exc)
             except Exception:  # noqa: BLE001 -- lease expiry must outlive any one failure
                 log.exception("maintenance task failed; will try again")
-
-    def _storage_down(self, exc: StorageUnavailableError) -> None:
-        """The storage refused a write for a reason that passes (a full disk): no lease expires until it
-        is back, and then every live lease gets a full term first (no worker could renew meanwhile)."""
-        if self._storage_down_since is None:
-            self._storage_down_since = time.monotonic()
-            log.error("storage unavailable: %s; leases will not expire and uploads are refused as "
-                      "'unavailable' (workers keep their episodes and retry) until it is back", exc)
 
     def _sweep(self) -> None:
         """Files crashed ingests left: unindexed episodes to orphans/, staging files older than
@@ -383,7 +392,7 @@ class Service:
         try:
             extended = self.queue.extend_leases(self.config.lease_s)
         except StorageUnavailableError as exc:  # a full disk: the reaper extends them once writes work again
-            self._storage_down(exc)
+            self.storage.write_failed(exc)
             return
         if extended:
             log.info("%d lease(s) from before the start extended by %.0f s so their workers can renew",
@@ -391,18 +400,18 @@ class Service:
 
     def _reap(self) -> None:
         with self._writes:
-            if self._storage_down_since is not None:
+            if self.storage.down_since is not None:
                 extended = self.queue.extend_leases(self.config.lease_s)
+                down_s = self.storage.writes_work()
                 if extended:  # (with no live lease this write changed nothing, so it proves little: no line)
                     log.warning("storage writable again after %.0f s; %d live lease(s) extended by %.0f s so "
-                                "their workers can renew", time.monotonic() - self._storage_down_since, extended,
-                                self.config.lease_s)
-                self._storage_down_since = None
+                                "their workers can renew", down_s, extended, self.config.lease_s)
             expired = self.queue.expire_leases()
         for request in expired:
             log.info("lease of %s expired (attempt %d)", request.id, request.attempts)
             self._publish_lease_end(request, "lease expired")
-        self.metrics.read_stores(self.queue, self.catalog, self.context.registry)
+        self.storage.read("the queue, catalog and registry for the metrics",
+                          lambda: self.metrics.read_stores(self.queue, self.catalog, self.context.registry))
 
     def _seed_queue(self) -> None:
         counts = self.queue.counts()
@@ -443,28 +452,32 @@ class Service:
             self._top_up()
 
     def _top_up(self) -> None:
-        """Tops the queue up to ``min_queued`` with the planner's seed draws (in the planner's own thread)."""
+        """Tops the queue up to ``min_queued`` with the planner's seed draws (in the planner's own thread);
+        one that fails is tried again at the next interval."""
         if self.planner is None or not self.config.min_queued:
             return
+        missing = self.storage.read("the queue's depth",
+                                    lambda: self.config.min_queued - self.queue.counts()["queued"])
+        if missing is not None and missing > 0:
+            news = self.storage.read(f"what planner {self.planner.name} seeds with",
+                                     lambda: self.planner.seed(missing, "top-up"))
+            self._queue_up(news or [], "top-up")
+
+    def _queue_up(self, news: Sequence[NewRequest], source: str) -> None:
+        """``_enqueue`` from a background thread: a failed write is logged (and, passing, storage down)."""
         try:
-            missing = self.config.min_queued - self.queue.counts()["queued"]
-            if missing > 0:
-                self._enqueue(self.planner.seed(missing, "top-up"), "top-up")
-        except StorageUnavailableError as exc:  # tried again at the next interval
-            self._storage_down(exc)
-        except Exception:  # noqa: BLE001 -- a failed top-up is tried again at the next interval; it is logged
-            log.exception("topping the queue up to %d failed", self.config.min_queued)
+            self._enqueue(news, source)
+        except StorageUnavailableError as exc:  # these requests are lost; the queue floor tops up later
+            self.storage.write_failed(exc)
+            log.warning("%d request(s) of %s could not be queued: %s", len(news), source, exc)
+        except Exception:  # noqa: BLE001 -- must not stop ingest or the top-ups; it is logged
+            log.exception("queueing %d request(s) of %s failed", len(news), source)
 
     def _handle_stored(self, batch: list[StoredEpisode]) -> None:
-        if self.planner is not None:
-            try:
-                self._enqueue(self.planner.plan([b.episode for b in batch]), self.planner.name)
-            except StorageUnavailableError as exc:  # its requests are lost; the queue floor tops up later
-                self._storage_down(exc)
-                log.warning("planner %s: %d episode(s) planned, but their requests could not be queued: %s",
-                            self.planner.name, len(batch), exc)
-            except Exception:  # noqa: BLE001 -- a planner bug must not stop ingest; it is logged
-                log.exception("planner %s failed on %d episode(s)", self.planner.name, len(batch))
+        if self.planner is not None:  # the planner only reads (its scorer: the catalog, the registry; the depth)
+            news = self.storage.read(f"what planner {self.planner.name} plans with",
+                                     lambda: self.planner.plan([b.episode for b in batch]))
+            self._queue_up(news or [], self.planner.name)
         for stored in batch:
             for callback in self.config.on_episode:
                 try:

@@ -9,6 +9,9 @@ Lifecycle (the only legal moves are in ``storage.requests.TRANSITIONS``)::
     queued | leased --cancel--> cancelled
     dead | cancelled --retry--> queued                (attempts reset to 0)
 
+With ``lease(one_per_worker=True)`` (the service's) a worker that already holds a live lease is answered
+with that one again (same token, a full term from now) rather than granted a second.
+
 Attempts count the leases that ended *without* an episode, whatever ended them: a
 ``fail``, a lease that expired, or a worker whose liveliness was lost. So a request
 that kills its worker every time still ends ``dead`` after ``max_attempts`` and never
@@ -53,7 +56,7 @@ from storage.database import configure, storage_error
 from storage.errors import QueueError, StaleLeaseError
 from storage.requests import (Lease, NewRequest, Request, RequestStatus, UnknownRequestError, check_transition,
                               finite_number)
-from storage.request_table import (COLS, COMPLETE_SQL, COUNTS_SQL, DROPPED_INDEXES, END_ONE_SQL, FAIL_SQL,
+from storage.request_table import (COLS, COMPLETE_SQL, COUNTS_SQL, DROPPED_INDEXES, END_ONE_SQL, FAIL_SQL, HELD_SQL,
                                    INSERT_SQL, LEASE_SQL, RELEASE_SQL, RENEW_SQL, SCHEMA, SCHEMA_OBJECTS, SELECT,
                                    TERMINAL_SQL, dumps, row_to_request)
 from storage.wal import Checkpointer
@@ -316,23 +319,32 @@ class RequestQueue:
         return sql
 
     def lease(self, worker_id: str, tasks: Sequence[str] = (), shapes: Sequence[str] = (),
-              lease_s: float = 30.0, now: float | None = None) -> Lease | None:
+              lease_s: float = 30.0, now: float | None = None, *, one_per_worker: bool = False) -> Lease | None:
         """Lease the best queued request this worker can do, or None.
 
         Highest priority first, oldest first among equals; ``tasks`` / ``shapes`` empty means any.
+        ``one_per_worker``: a worker that already holds a live lease gets that one back (``Lease.again``),
+        with the same token and its expiry moved to at least now + lease_s, instead of a second one -- for
+        workers that hold one lease at a time (the service's), whose lease query asked again after a reply
+        came too late must not leave a lease behind that no worker knows of. Checked and granted in one
+        transaction, so two such calls for one worker never both grant.
         """
         if not worker_id:
             raise QueueError("worker_id: expected a non-empty string, found ''")
         lease_s = finite_number("lease_s", lease_s, positive=True)
-        t = self._now(now)
         sql = self._lease_statement(len(tasks), len(shapes))
         check_transition("lease", _Q, _L)
+        check_transition("renew", _L, _L)  # what answering a held lease again does
         with self._tx() as conn:
-            rows = conn.execute(sql, (worker_id, t + lease_s, t, *tasks, *shapes)).fetchall()
+            t = self._now(now)  # once the write lock is ours: a lease that waited for it gets its full term
+            rows = conn.execute(HELD_SQL, (t + lease_s, t, worker_id)).fetchall() if one_per_worker else []
+            again = bool(rows)
+            if not again:
+                rows = conn.execute(sql, (worker_id, t + lease_s, t, *tasks, *shapes)).fetchall()
         if not rows:
             return None
         request = row_to_request(rows[0])
-        return Lease(request=request, token=request.token, expires_at=t + lease_s)
+        return Lease(request=request, token=request.token, expires_at=request.lease_expires, again=again)
 
     def _stale(self, conn: sqlite3.Connection, action: str, request_id: str, token: int,
                worker_id: str | None) -> StaleLeaseError:

@@ -5,7 +5,8 @@ version and makes the partial ones); ``SCHEMA_OBJECTS`` and ``DROPPED_INDEXES``,
 file from one that needs it. Each lease-bound statement (``RENEW_SQL``, ``COMPLETE_SQL``, ``RELEASE_SQL``,
 ``FAIL_SQL``) matches only the live lease -- the id, ``leased``, the fencing token and, when given, the
 worker -- and most return the row after the change (``COLS``), which ``row_to_request`` makes a
-``storage.requests.Request``; ``dumps`` writes a request's JSON fields.
+``storage.requests.Request``; ``HELD_SQL`` answers a worker's live lease again. ``dumps`` writes a request's
+JSON fields.
 
 This is SQL text and row conversion only: ``storage.queue.RequestQueue`` owns the connections, the
 transactions and the checks of ``storage.requests.TRANSITIONS``.
@@ -75,6 +76,11 @@ _LIVE = "id = ? AND status = 'leased' AND token = ? AND (? IS NULL OR worker_id 
 LEASE_SQL = ("UPDATE requests SET status = 'leased', worker_id = ?, token = token + 1, lease_expires = ?,"
              " updated = ? WHERE id = (SELECT id FROM requests WHERE status = 'queued'{filters}"
              f" ORDER BY priority DESC, created, rowid LIMIT 1) RETURNING {COLS}")
+# The live lease a worker already holds, answered again instead of a second one (``lease(one_per_worker=True)``):
+# its token unchanged, its expiry never shortened. The newest, should a worker hold several (leased before).
+HELD_SQL = ("UPDATE requests SET lease_expires = MAX(lease_expires, ?), updated = ? WHERE id = (SELECT id FROM"
+            " requests WHERE status = 'leased' AND worker_id = ? ORDER BY lease_expires DESC LIMIT 1)"
+            f" RETURNING {COLS}")
 RENEW_SQL = f"UPDATE requests SET lease_expires = ?, updated = ? WHERE {_LIVE} RETURNING id"
 COMPLETE_SQL = ("UPDATE requests SET status = 'done', episode_id = ?, lease_expires = NULL, updated = ?"
                 f" WHERE {_LIVE} RETURNING id")

@@ -164,3 +164,5 @@ class Lease:
     request: Request
     token: int
     expires_at: float
+    again: bool = False
+    """The worker already held this lease (``RequestQueue.lease(one_per_worker=True)``): answered again, same token."""

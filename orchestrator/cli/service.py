@@ -21,10 +21,12 @@ from orchestrator.cli.loop import add_retrain_args_arg
 from orchestrator.cli.operator import namespace_keys
 from orchestrator.companions import CompanionConfig, Companions, fitted_retrain_threads
 from orchestrator.planner import ActivePlanner, ActivePlannerConfig
+from orchestrator.protocol import one_line
 from orchestrator.uniform import UniformPlanner, UniformPlannerConfig
 from orchestrator.service import Service
 from orchestrator.serviceconfig import PlannerFactory, ServiceConfig, ServiceContext, ServiceError
 from orchestrator.signals import on_stop_signals
+from storage.errors import StorageError
 from storage.requests import RequestStatus
 from workers import agent
 
@@ -167,12 +169,15 @@ def cmd_serve(args: argparse.Namespace) -> int:
     service = Service(config)
     companions = Companions(extras, service)
     try:
-        service.start()
-        companions.start()
-    except (ServiceError, ValueError, OSError) as exc:
-        print(f"activecollect serve: {exc}", file=sys.stderr)
-        companions.stop()
-        service.stop()
+        try:
+            service.start()
+            companions.start()
+        except BaseException:  # whatever it is, nothing keeps running behind it
+            companions.stop()
+            service.stop()
+            raise
+    except (ServiceError, StorageError, ValueError, OSError) as exc:  # StorageError: the scheduler's count
+        print(f"activecollect serve: {one_line(str(exc))}", file=sys.stderr)
         return 1
     if companions.dashboard is not None:
         print(f"dashboard at {companions.dashboard.url}", flush=True)

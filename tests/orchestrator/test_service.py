@@ -91,7 +91,9 @@ def test_lease_grants_the_best_matching_request_or_says_no_work(service, client,
     assert (grant.request_id, grant.token, grant.shape) == (low.id, 1, "box")
     assert grant.seed == messages.request_seed(low.id, 1) and grant.lease_s == 30.0
     assert lease(client, keys, worker="w2").request_id == high.id
-    refused(ErrorCode.NO_WORK, lease, client, keys)
+    refused(ErrorCode.NO_WORK, lease, client, keys, worker="w3")
+    again = lease(client, keys)  # a worker holds one lease at a time: asking again answers it again
+    assert (again.request_id, again.token, again.seed) == (low.id, 1, grant.seed)
     r = service.queue.get(low.id)
     assert (r.status, r.worker_id) == (RequestStatus.LEASED, "w1")
 
@@ -300,7 +302,7 @@ def test_planner_and_callbacks_run_off_the_query_path(make_service, client, keys
     assert seen[0].request_id == grant.request_id and seen[0].episode.frames.shape[1:] == (16, 16, 3)
     wait_for(lambda: service.heap.trims == 1 or not service.heap.available, message="the heap trimmed")
     wait_for(lambda: service.queue.counts()["queued"] == 1, message="the planner's request is queued")
-    assert lease(client, keys).shape == "L"
+    assert lease(client, keys, worker="w2").shape == "L"  # (w1 still holds the second)
 
 
 def test_the_queue_is_topped_up_when_the_planner_asks_for_nothing(make_service, client, keys) -> None:
@@ -346,8 +348,8 @@ def test_after_a_storage_outage_live_leases_get_a_full_term_before_any_expires(m
     request, _ = service.queue.enqueue(new_request())
     with service._writes:  # the reaper waits while the outage is set up
         lease = service.queue.lease("w1", lease_s=1.0, now=time.time() - 10)  # ran out during the outage
-        service._storage_down(QueueUnavailableError("queue transaction failed: database or disk is full"))
-    wait_for(lambda: service._storage_down_since is None, message="the reaper to see the storage back")
+        service.storage.write_failed(QueueUnavailableError("queue transaction failed: database or disk is full"))
+    wait_for(lambda: service.storage.down_since is None, message="the reaper to see the storage back")
     after = service.queue.get(request.id)
     assert (after.status, after.token, after.attempts) == (RequestStatus.LEASED, lease.token, 0)
     assert after.lease_expires > time.time() + 20

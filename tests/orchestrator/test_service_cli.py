@@ -14,6 +14,7 @@ from orchestrator.cli import main
 from orchestrator.service import Service
 from orchestrator.serviceconfig import ServiceConfig
 from storage.catalog import Catalog
+from storage.errors import CatalogUnavailableError
 from storage.requests import RequestStatus
 from tests.conftest import free_port, wait_for
 from tests.orchestrator.test_service import new_request
@@ -204,3 +205,28 @@ def test_serve_scores_with_one_torch_thread_and_gives_its_retrains_the_other_cor
     assert companion_config(build_parser().parse_args(["serve", "--scoring-threads", "0"])).retrain_threads == 0
     assert planner_factory("active", 20, 0, 3)(service.context).scorer.threads == 3
     assert planner_factory("active", 20, 0)(service.context).scorer.threads == 0  # the library leaves torch alone
+
+
+@pytest.mark.parametrize("failing", ["seed", "scheduler"])
+def test_serve_reports_a_storage_error_at_start_in_one_line_and_stops_what_it_started(
+        failing, capsys, monkeypatch, data_dir, endpoint, port, namespace) -> None:
+    """A full disk under ``--seed-requests``, a catalog the retrain scheduler cannot count: exit 1, one line,
+    and nothing left serving (the Zenoh listener is closed)."""
+    from tests.orchestrator.test_service_storage import port_free, refuse_inserts
+    monkeypatch.setattr("orchestrator.cli.service.on_stop_signals", lambda stop: None)  # keep pytest's handlers
+    argv = ["serve", "--data", str(data_dir), "--listen", endpoint, "--namespace", namespace, "--dashboard-port",
+            "-1"]
+    if failing == "seed":  # a real refusal, by SQLite
+        refuse_inserts(Catalog(data_dir).db_path)
+        argv += ["--planner", "uniform", "--seed-requests", "2", "--min-queued", "0"]
+    else:
+        def unreadable(self, *args, **kw) -> int:
+            raise CatalogUnavailableError(f"cannot read the catalog {self.db_path}: disk I/O error")
+
+        monkeypatch.setattr(Catalog, "count", unreadable)
+        argv += ["--planner", "none", "--retrain-every", "5"]
+    rc = main(argv)
+    err = capsys.readouterr().err
+    wait_for(lambda: port_free(port), message="the service's Zenoh listener to close")
+    assert rc == 1 and err.count("\n") == 1 and err.startswith("activecollect serve: "), err
+    assert ("no new requests here" if failing == "seed" else "disk I/O error") in err

@@ -1,0 +1,155 @@
+"""The service when its storage is slow or failing: a lease query that waits behind another process's write
+lock past the worker's timeout, reads that fail while writes work, a seed that cannot be queued."""
+
+from __future__ import annotations
+
+import logging
+import socket
+import sqlite3
+import threading
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from orchestrator import messages, protocol, transport
+from orchestrator.messages import LeaseGrant
+from orchestrator.metrics import ServiceMetrics
+from orchestrator.serviceconfig import ServiceConfig, ServiceError
+from orchestrator.service import Service
+from orchestrator.uniform import UniformPlanner, UniformPlannerConfig
+from storage.catalog import Catalog
+from storage.errors import CatalogUnavailableError
+from storage.queue import RequestQueue
+from storage.requests import NewRequest, RequestStatus
+from tests.conftest import wait_for
+from tests.orchestrator.test_service import episode_bytes, lease, new_request, upload
+
+
+def port_free(port: int) -> bool:
+    """Whether nothing listens on 127.0.0.1:``port`` any more (a closed Zenoh session's listener is gone)."""
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        try:
+            s.bind(("127.0.0.1", port))
+        except OSError:
+            return False
+    return True
+
+
+def warnings(caplog) -> list[str]:
+    return [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING and r.name == "orchestrator.service"]
+
+
+def refuse_inserts(db_path: Path) -> None:
+    """The catalog's requests table refuses every insert from now on (a real SQLite error, raised by SQLite)."""
+    RequestQueue(db_path).close()  # the table exists
+    with sqlite3.connect(db_path) as conn:
+        conn.execute("CREATE TRIGGER refuse_inserts BEFORE INSERT ON requests "
+                     "BEGIN SELECT RAISE(ABORT, 'no new requests here'); END")
+
+
+def test_a_lease_query_asked_again_behind_a_write_lock_leaves_one_lease(service, client, keys, data_dir) -> None:
+    """Another process holds the catalog's write lock past the worker's timeout; the worker asks again (as
+    ``Worker._lease`` does); once the lock goes, both queries are answered. The worker holds one lease, the
+    one its answer names, with no attempt counted -- not a second lease it never heard of, which would
+    expire and count an attempt against a request no worker failed."""
+    first, _ = service.queue.enqueue(new_request(priority=1.0))
+    other, _ = service.queue.enqueue(new_request())
+    msg = messages.LeaseRequest(worker_id="w1").to_json()
+    writer = sqlite3.connect(Catalog(data_dir).db_path, isolation_level=None)  # a CLI's write, a backup, ...
+    writer.execute("BEGIN IMMEDIATE")
+    replies: list[bytes] = []
+    try:
+        with pytest.raises(transport.NoReplyError):
+            transport.query(client, keys.lease, msg, timeout=0.5)  # the service waits for the lock
+        again = threading.Thread(target=lambda: replies.append(transport.query(client, keys.lease, msg, timeout=30)))
+        again.start()
+    finally:
+        writer.execute("COMMIT")  # released once the first query has timed out and the second is asked
+        writer.close()
+    again.join(30)
+    grant = LeaseGrant.from_dict(protocol.parse_reply(replies[0])["grant"])
+    leased = service.queue.list(RequestStatus.LEASED)
+    assert [(r.id, r.worker_id, r.token, r.attempts) for r in leased] == [(first.id, "w1", grant.token, 0)]
+    assert grant.request_id == first.id and service.queue.get(other.id).status == RequestStatus.QUEUED
+    assert upload(client, keys, grant, episode_bytes(grant))["request_id"] == first.id
+    done = service.queue.get(first.id)
+    assert (done.status, done.attempts) == (RequestStatus.DONE, 0)
+
+
+class FailingReads(ServiceMetrics):
+    """Gauges whose reads fail every time (a catalog that cannot be read for now), while writes work."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.reads = 0
+
+    def read_stores(self, queue, catalog, registry) -> None:
+        self.reads += 1
+        raise CatalogUnavailableError("cannot read the catalog: disk I/O error")
+
+
+def test_failing_reads_are_a_warning_and_hold_no_lease(make_service, client, keys, caplog) -> None:
+    """Only a failed write means no worker can renew; a read that keeps failing must not keep every lease
+    alive (extended at each reap), nor say ERROR every reap interval."""
+    metrics = FailingReads()
+    with caplog.at_level(logging.INFO, logger="orchestrator.service"):
+        service = make_service(lease_s=0.5, metrics=metrics)
+        request, _ = service.queue.enqueue(new_request())
+        lease(client, keys)  # and never renewed
+        expired = wait_for(lambda: (r := service.queue.get(request.id)).status == RequestStatus.QUEUED and r,
+                           message="the unrenewed lease to expire")
+        reads = metrics.reads
+        wait_for(lambda: metrics.reads >= reads + 5, message="more reaps")
+    assert expired.attempts == 1
+    assert not [r for r in caplog.records if r.levelno >= logging.ERROR], caplog.text
+    warned = warnings(caplog)
+    assert len(warned) == 1, warned  # said once, not once a reap
+    assert warned[0].startswith("cannot read the queue, catalog and registry for the metrics: cannot read the "
+                                "catalog: disk I/O error"), warned
+    assert service.storage.down_since is None
+
+
+def test_a_planner_whose_reads_fail_is_a_warning_until_they_work(make_service, client, keys, caplog) -> None:
+    failures = [CatalogUnavailableError("cannot read the champion: disk I/O error")] * 2
+    planned = threading.Semaphore(0)
+
+    class Scoring:
+        name = "scoring"
+
+        def seed(self, n: int) -> list[NewRequest]:
+            return [new_request() for _ in range(n)]
+
+        def plan(self, episodes) -> list[NewRequest]:
+            try:
+                if failures:
+                    raise failures.pop()
+                return [new_request("L") for _ in episodes]
+            finally:
+                planned.release()
+
+    with caplog.at_level(logging.INFO, logger="orchestrator.service"):
+        service = make_service(planner=lambda ctx: Scoring(), seed_requests=3)
+        for _ in range(3):
+            grant = lease(client, keys)
+            upload(client, keys, grant, episode_bytes(grant))
+            assert planned.acquire(timeout=30)
+        wait_for(lambda: service.queue.counts()["queued"] == 1, message="the third plan's request")
+    assert not [r for r in caplog.records if r.levelno >= logging.ERROR], caplog.text
+    warned = warnings(caplog)
+    assert len(warned) == 1 and warned[0].startswith("cannot read what planner scoring plans with: cannot read "
+                                                     "the champion"), warned
+    assert "reading what planner scoring plans with works again" in caplog.text
+    assert service.storage.down_since is None
+
+
+def test_a_seed_that_cannot_be_queued_stops_what_the_start_had_started(data_dir, endpoint, port, namespace) -> None:
+    refuse_inserts(Catalog(data_dir).db_path)
+    service = Service(ServiceConfig(data_dir=data_dir, namespace=namespace, listen=(endpoint,), seed_requests=2,
+                                    planner=lambda ctx: UniformPlanner(UniformPlannerConfig(steps=5),
+                                                                       np.random.default_rng(0))))
+    with pytest.raises(ServiceError, match="cannot seed the queue with 2 request.s.: .*no new requests here"):
+        service.start()
+    assert service.session.is_closed()
+    wait_for(lambda: port_free(port), message="the service's Zenoh listener to close")
+    service.stop()  # (idempotent: the CLI stops what it started whatever the start did)
