@@ -7,7 +7,9 @@ configuration ``orchestrator.loopconfig.RunConfig``):
   episodes and plans the next round when a retrain has finished.
 - ``LoopRun``: ``activecollect run``: the service, N worker processes over Zenoh on
   loopback, the eval split, the seed requests, the retrain scheduler, the dashboard
-  and a progress line, until the episode budget is spent; then the report.
+  and a progress line, until the episode budget is spent; then the report. Ctrl-C
+  (KeyboardInterrupt) and SIGTERM stop it early the same way: workers drained, a
+  running retrain stopped, the report written.
 """
 
 from __future__ import annotations
@@ -36,6 +38,7 @@ from orchestrator.report import ReportInputs, write_report
 from orchestrator.scheduler import RetrainRecord, RetrainScheduler, ScheduleConfig, die_with_parent
 from orchestrator.service import Service
 from orchestrator.serviceconfig import ServiceConfig
+from orchestrator.signals import on_stop_signals
 from storage.catalog import Catalog
 from storage.models import ModelRegistry
 from storage.queue import RequestQueue
@@ -152,6 +155,8 @@ class LoopRun:
         self.service: Service | None = None
         self.dashboard: Dashboard | None = None
         self._shown: tuple[str, int] = ("", -1)
+        self._terminated = threading.Event()
+        """Set by SIGTERM: stop as Ctrl-C does."""
 
     # -- set-up ---------------------------------------------------------------------------------
     def _setup(self) -> None:
@@ -160,6 +165,8 @@ class LoopRun:
         self.queue = RequestQueue(self.catalog.db_path)
         self.registry = ModelRegistry(cfg.data_dir)
         self.make_eval_split(self.catalog, cfg.eval_episodes, cfg.eval_seed, cfg.steps, cfg.image_size)
+        if self._terminated.is_set():  # (during the eval split: set-up's slow part)
+            return
         self.scorer = ChampionScorer(cfg.data_dir, observe=self.metrics.observe_scoring)
         rng = np.random.default_rng(cfg.seed + self.catalog.count(split="train"))  # a resumed run draws anew
         depth = lambda: self.queue.counts().get("queued", 0)  # noqa: E731
@@ -169,8 +176,8 @@ class LoopRun:
                                 max_queue_depth=cfg.round_episodes, seed_uniform=uniform), self.scorer, rng, depth))
         self.planner = RoundPlanner(inner, cfg.round_episodes, cfg.budget, self._count, self._outstanding)
         endpoint = f"tcp/127.0.0.1:{cfg.zenoh_port or free_port()}"
-        # Workers first, while this process has no other threads yet (see die_with_parent); they
-        # retry until the service below answers.
+        # Workers first, while this process has no other threads yet but the stop-signals one, which
+        # holds no lock (see die_with_parent); they retry until the service below answers.
         logs = cfg.data_dir / "logs"
         logs.mkdir(parents=True, exist_ok=True)
         for i in range(cfg.workers):
@@ -229,17 +236,33 @@ class LoopRun:
 
     # -- the loop -------------------------------------------------------------------------------
     def run(self) -> RunResult:
-        """Collect until the budget is spent and the last retrain is done; then write the report."""
+        """Collect until the budget is spent and the last retrain is done; then write the report.
+
+        Ctrl-C (KeyboardInterrupt) or SIGTERM (taken while this runs, on the main thread) stop it
+        early: the workers finish and upload the episode in hand, a running retrain is stopped, the
+        report is written, and the result says ``interrupted``.
+        """
+        restore = on_stop_signals(self._terminated.set, sigint=False)  # Ctrl-C stays a KeyboardInterrupt
+        try:
+            return self._run()
+        finally:
+            restore()
+
+    def _run(self) -> RunResult:
         start = time.time()
-        interrupted = False
+        ctrl_c = False
         try:
             self._setup()
-            self._wait_until_done()
+            if not self._terminated.is_set():
+                self._wait_until_done()
         except KeyboardInterrupt:
-            interrupted = True
-            log.warning("interrupted: stopping workers; the next run resumes from the catalog")
+            ctrl_c = True
         finally:
-            self._teardown(interrupted)
+            interrupted = ctrl_c or self._terminated.is_set()
+            if interrupted:
+                log.warning("interrupted (%s): stopping workers; the next run resumes from the catalog",
+                            "Ctrl-C" if ctrl_c else "SIGTERM")
+            self._teardown(interrupted, workers_told=ctrl_c)
         return self._finish(start, interrupted)
 
     def _trained_on(self) -> int:
@@ -269,7 +292,8 @@ class LoopRun:
                     else:  # mid-round and nothing outstanding (a request died): fill this round only
                         self._release(cfg.round_episodes - count % cfg.round_episodes)
                 self._check_workers()
-                time.sleep(0.5)  # the progress line's refresh period, not a synchronisation
+                if self._terminated.wait(0.5):  # (0.5 s: the progress line's refresh period)
+                    return
         finally:
             self._show(bar, self._count())
             bar.close()
@@ -290,7 +314,7 @@ class LoopRun:
 
     def _check_workers(self) -> None:
         dead = [p for p in self.procs if p.poll() is not None]
-        if len(dead) == len(self.procs):
+        if len(dead) == len(self.procs) and not self._terminated.is_set():  # (a SIGTERM to the whole group)
             raise LoopError(f"all {len(self.procs)} workers exited (codes {[p.returncode for p in dead]}); "
                             f"see {self.cfg.data_dir / 'logs'}")
 
@@ -309,9 +333,12 @@ class LoopRun:
             bar.set_postfix_str(text, refresh=True)
 
     # -- tear-down ------------------------------------------------------------------------------
-    def _teardown(self, interrupted: bool) -> None:
-        if interrupted:  # a terminal's Ctrl-C reached the workers too: they are draining already, and a
-            for p in self.procs:  # second signal would make them give their request back unfinished
+    def _teardown(self, interrupted: bool, workers_told: bool = False) -> None:
+        """Stop the workers (each finishes and uploads its episode), the dashboard, the scheduler (a running
+        retrain too when ``interrupted``) and the service. ``workers_told``: a terminal's Ctrl-C reached
+        the workers too."""
+        if workers_told:  # they are draining already, and a second signal would make them give their
+            for p in self.procs:  # request back unfinished
                 try:
                     p.wait(timeout=10)
                 except subprocess.TimeoutExpired:

@@ -1,4 +1,4 @@
-"""How our long-running processes (``serve``, ``router``, ``worker``) are asked to stop.
+"""How our long-running processes (``serve``, ``router``, ``worker``, ``run``) are asked to stop.
 
 SIGTERM, and SIGINT unless the process was started ignoring it. A shell starts a script's
 background jobs with SIGINT ignored (a terminal's Ctrl-C is not theirs), an ignored signal stays
@@ -7,29 +7,76 @@ processes keep to the same, so a SIGINT their parent ignores does not stop them 
 workers of an ``activecollect run`` started in a script's background). A supervisor stops them
 with SIGTERM either way.
 
+The stop callback never runs inside the signal handler. Python runs a handler on the main thread
+between two bytecodes, wherever that thread was, maybe inside ``Event.wait`` holding the Event's
+lock; a callback that took the same lock there (``Event.set``) would wait on its own thread for
+ever. So the signal only wakes a watcher thread, through ``signal.set_wakeup_fd`` (written by
+the C-level handler, which takes no lock and does not wait for the main thread to reach a
+bytecode), and the watcher thread calls the callback, once per signal it is told of.
+
 Imports nothing of ours: workers use it too.
 """
 
 from __future__ import annotations
 
+import logging
+import os
 import signal
 import threading
 from typing import Callable
 
+log = logging.getLogger(__name__)
 
-def on_stop_signals(handler: Callable[[], None]) -> Callable[[], None]:
+
+def on_stop_signals(handler: Callable[[], None], sigint: bool = True) -> Callable[[], None]:
     """Calls ``handler`` on SIGTERM and on SIGINT, unless SIGINT is ignored when this is called (as it is in
     a process started ignoring it, before anything of ours installs a handler): then it stays ignored.
-    Returns a function that puts the previous handlers back. Outside the main thread, where Python takes
-    no signal handlers, it installs nothing."""
+    ``sigint=False``: SIGTERM alone (the caller keeps Python's KeyboardInterrupt for Ctrl-C).
+
+    ``handler`` runs on a thread of its own ("stop-signals"), one call per signal (two signals that
+    arrive before the first is handled may count as one); it may take locks. Returns a function that
+    puts the previous handlers (and the previous ``signal.set_wakeup_fd``) back and ends that thread:
+    restore in the reverse order of installing. Outside the main thread, where Python takes no signal
+    handlers, it installs nothing.
+    """
     if threading.current_thread() is not threading.main_thread():
         return lambda: None
-    sigs = [signal.SIGTERM] + ([signal.SIGINT] if signal.getsignal(signal.SIGINT) != signal.SIG_IGN else [])
+    sigs = [signal.SIGTERM]
+    if sigint and signal.getsignal(signal.SIGINT) != signal.SIG_IGN:
+        sigs.append(signal.SIGINT)
+    wanted = {int(sig) for sig in sigs}
+    read_fd, write_fd = os.pipe()  # (not inherited by child processes)
+    os.set_blocking(write_fd, False)  # set_wakeup_fd's demand: a signal must never wait on a full pipe
+
+    def watch() -> None:
+        while data := os.read(read_fd, 64):  # b"": restore closed the write end
+            for signum in data:  # the number of every signal Python has a handler for, ours or not
+                if signum in wanted:
+                    try:
+                        handler()
+                    except Exception:  # noqa: BLE001 -- the next signal must still be heard
+                        log.exception("stop-signal handler failed")
+        os.close(read_fd)
+
+    threading.Thread(target=watch, name="stop-signals", daemon=True).start()
     previous = {sig: signal.getsignal(sig) for sig in sigs}
+    # The Python-level handler does nothing: the C-level one has written the wake-up byte already.
     for sig in sigs:
-        signal.signal(sig, lambda signum, frame: handler())
+        signal.signal(sig, _noted)
+    previous_fd = signal.set_wakeup_fd(write_fd, warn_on_full_buffer=False)
+    restored = False
 
     def restore() -> None:
+        nonlocal restored
+        if restored:
+            return
+        restored = True
         for sig, old in previous.items():
             signal.signal(sig, old)
+        signal.set_wakeup_fd(previous_fd)
+        os.close(write_fd)  # after set_wakeup_fd: no handler writes to it any more
     return restore
+
+
+def _noted(signum: int, frame: object) -> None:
+    """The Python-level handler of a stop signal: nothing, and so no lock (see the module's docstring)."""

@@ -7,6 +7,7 @@ layers) so the whole loop fits in a test; the default settings are measured by h
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import signal
@@ -40,6 +41,27 @@ def train_count(data: Path) -> int:
     if not (data / "catalog.sqlite").exists():
         return 0
     return Catalog(data).count(split="train")
+
+
+def children(pid: int) -> dict[int, str]:
+    """The live child processes of ``pid``: {pid: command line}."""
+    found = {}
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()  # (after the command name, which may hold spaces)
+            cmdline = (stat.parent / "cmdline").read_bytes()
+        except OSError:  # gone meanwhile
+            continue
+        if int(fields[1]) == pid and fields[0] != "Z":
+            found[int(stat.parent.name)] = cmdline.replace(b"\0", b" ").decode(errors="replace")
+    return found
+
+
+def alive(pid: int) -> bool:
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
+    except OSError:
+        return False
 
 
 @pytest.mark.slow
@@ -108,6 +130,48 @@ def test_run_collects_retrains_promotes_reports_and_resumes_after_ctrl_c(tmp_pat
 
 
 @pytest.mark.slow
+@pytest.mark.timeout(120)
+@pytest.mark.parametrize("when, extra", [
+    ("collecting", ["--round", "40"]),  # a long first round: the workers hold episodes when it comes
+    ("retraining", ["--retrain-args", "--members 2 --epochs 100000 --widths 4,4,4 --device cpu"]),  # till stopped
+])
+def test_sigterm_stops_a_run_as_ctrl_c_does(tmp_path, when, extra):
+    """SIGTERM to `run` alone (kill, timeout, systemd, a CI runner): the workers finish and upload what they
+    hold, a running retrain job is stopped, the report is written, and nothing it started outlives it."""
+    data = tmp_path / "data"
+    run = subprocess.Popen(run_cmd(data, 400) + extra, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                           start_new_session=True)
+    try:
+        if when == "collecting":  # the first round's requests are leased: episodes in hand
+            wait_for(lambda: train_count(data) >= 1, 60, "the first uploads")
+        else:
+            wait_for(lambda: any(" retrain " in c for c in children(run.pid).values()), 60, "the first retrain job")
+        started = children(run.pid)
+        assert sum("workers.agent" in c for c in started.values()) == 2, started
+        run.send_signal(signal.SIGTERM)
+        out, err = run.communicate(timeout=60)
+        survivors = [c for pid, c in started.items() if alive(pid)]
+    finally:
+        with contextlib.suppress(ProcessLookupError):  # what outlived the run (its process group)
+            os.killpg(run.pid, signal.SIGKILL)
+        run.wait()
+    assert run.returncode == 130, f"{err[-3000:]}\n{out[-2000:]}"  # as Ctrl-C: interrupted
+    result = json.loads(out)
+    assert result["interrupted"] is True and Path(result["report"]).is_file()
+    assert survivors == []
+    if when == "retraining":
+        assert [r["status"] for r in result["retrains"]] == ["killed"]
+    catalog = Catalog(data)
+    queue = RequestQueue(catalog.db_path)
+    try:
+        assert queue.counts()["leased"] == 0  # every episode in hand was uploaded (or its lease given back)
+        done = queue.list(status="done")
+        assert done and all(catalog.get(r.episode_id).request_id == r.id for r in done)
+    finally:
+        queue.close()
+
+
+@pytest.mark.slow
 @pytest.mark.timeout(400)
 def test_a_run_whose_every_retrain_failed_exits_1_saying_so(tmp_path):
     """Another retrain (a stuck cron job, say) holds the lock all along: no retrain of the run trains a model,
@@ -139,6 +203,32 @@ def test_ctrl_c_during_set_up_ends_the_run_with_a_report(tmp_path):
     assert result.interrupted and result.episodes == 0 and result.retrains == [] and result.report.is_file()
     html = result.report.read_text()
     assert "<th>queue</th><td>queued=0 leased=0 " in html and "{" not in html.split("<th>queue</th>")[1][:80]
+
+
+def test_sigterm_during_set_up_ends_the_run_with_a_report(tmp_path):
+    """SIGTERM while the eval split is collected: the run goes no further (no worker started), reports, and
+    gives SIGTERM back to whoever had it."""
+    caught: list[int] = []
+
+    def ours(signum, frame):  # what SIGTERM does outside the run (here: not end the test's process)
+        caught.append(signum)
+
+    before = signal.signal(signal.SIGTERM, ours)
+
+    def terminated_eval_split(catalog, episodes, seed, steps, size):
+        os.kill(os.getpid(), signal.SIGTERM)
+        wait_for(lambda: run._terminated.is_set() or caught, message="the run to take the SIGTERM")
+        return ""
+
+    try:
+        run = LoopRun(RunConfig(data_dir=tmp_path / "data", budget=4, round_episodes=2, image_size=16, steps=8,
+                                eval_episodes=2, dashboard_port=-1, progress=False), terminated_eval_split)
+        result = run.run()
+        mine = signal.getsignal(signal.SIGTERM)
+    finally:
+        signal.signal(signal.SIGTERM, before)
+    assert caught == [] and mine is ours
+    assert result.interrupted and result.episodes == 0 and result.report.is_file() and run.procs == []
 
 
 def test_a_catalog_with_episodes_of_another_size_still_gets_its_report(tmp_path, monkeypatch):

@@ -18,9 +18,16 @@ the upload as corrupt. A lease that is no longer ours (the service says
 ``stale_token``) is dropped without a word: someone else owns the request now.
 
 SIGTERM / SIGINT drain: the current request is finished and uploaded, then
-the worker exits; a second signal gives the current request back at once
-(``release``: queued again, no attempt counted -- the request did nothing wrong)
-and exits.
+the worker exits; while draining, an upload nobody answers is given up once the
+lease has run out by the worker's clock (an episode never acknowledged is
+dropped; the service queues the request again). A second signal gives the
+current request back at once (``release``: queued again, no attempt counted --
+the request did nothing wrong; a query in flight is walked away from, the
+release waits at most ``RELEASE_TIMEOUT_S``) and exits. A worker of
+``activecollect run`` is also sent SIGTERM when ``run`` dies (its parent-death
+signal), which the kernel may send more than once (once per thread of ``run``
+that inherits the child as it exits): the worker then gives its request back at
+once, which is right there, since the service died with ``run``.
 
 Imports only ``storage``, ``workers``, ``orchestrator.protocol``, ``orchestrator.messages``,
 ``orchestrator.transport`` and ``orchestrator.endpoints`` -- the wire contract -- and
@@ -52,11 +59,18 @@ from orchestrator.protocol import ErrorCode, Keys, ProtocolError
 from storage.episodes import encode_episode
 from storage.records import TRAINABLE_SIZES, trainable_size
 from workers import flags
+from workers.abandon import Abandoned, Abandoner
 from workers.collect import collect_episode
 from workers.env import CONTROL_HZ
 from workers.flags import MAX_REALTIME
+from workers.lease import Renewer
 
 log = logging.getLogger("workers.agent")  # also when run as __main__
+
+#: Longest wait for the reply to a release (a second stop signal): a supervisor's grace is short.
+RELEASE_TIMEOUT_S = 2.0
+#: Shortest wait for an upload's reply while draining (each is cut to what is left of the lease).
+MIN_DRAIN_ATTEMPT_S = 0.5
 
 
 class WorkerError(Exception):
@@ -106,8 +120,8 @@ class WorkerConfig:
     """Longest wait between retries of a query nobody answered."""
     report_attempts: int = 8
     """Tries of a failure report nobody answers before giving up (the lease then expires on its own).
-    An upload has no such limit: it is retried until the service answers, the lease is lost, or a
-    second stop signal gives the request back."""
+    An upload has no such limit: it is retried until the service answers, the lease is lost (or, while
+    draining, runs out), or a second stop signal gives the request back."""
 
     def __post_init__(self) -> None:
         self.worker_id = self.worker_id or default_worker_id()
@@ -137,42 +151,6 @@ class WorkerConfig:
             raise WorkerError(f"report_attempts: expected >= 1, found {self.report_attempts}")
 
 
-class _Renewer:
-    """Renews one lease every lease_s / 3 on its own thread until stopped; notes when it is lost."""
-
-    def __init__(self, call: Callable[[str, bytes, float], dict[str, Any]], key: str, grant: LeaseGrant,
-                 worker_id: str) -> None:
-        self._call, self._key, self._grant = call, key, grant
-        self._msg = messages.RenewRequest(request_id=grant.request_id, token=grant.token,
-                                          worker_id=worker_id).to_json()
-        self._stop = threading.Event()
-        self.lost: str | None = None
-        self._thread = threading.Thread(target=self._run, name=f"renew:{grant.request_id}", daemon=True)
-        self._thread.start()
-
-    def _run(self) -> None:
-        # By the clock, not after each call: a renewal nobody answered must not push the next one
-        # back; and one call waits at most one interval, so two more tries fit in the lease.
-        interval = max(self._grant.lease_s / 3.0, 0.01)
-        due = time.monotonic() + interval
-        while not self._stop.wait(max(0.0, due - time.monotonic())):
-            due = max(due + interval, time.monotonic())
-            try:
-                self._call(self._key, self._msg, interval)
-            except transport.TransportError as exc:  # transient: try again next tick
-                log.warning("renew %s: %s", self._grant.request_id, exc)
-            except ProtocolError as exc:
-                if exc.code in (ErrorCode.STALE_TOKEN, ErrorCode.UNKNOWN_REQUEST):
-                    self.lost = exc.message
-                    log.warning("lease of %s lost (%s): %s", self._grant.request_id, exc.code.value, exc.message)
-                    return
-                log.warning("renew %s refused: %s", self._grant.request_id, exc)
-
-    def stop(self) -> None:
-        self._stop.set()
-        self._thread.join()
-
-
 class Worker:
     """One collector: ``run()`` until stopped, ``max_episodes`` reached, or (``once``) one request."""
 
@@ -183,6 +161,7 @@ class Worker:
         self._token: Any = None
         self._stop = threading.Event()
         self._abort = threading.Event()
+        self._calls = Abandoner()  # the queries a second signal walks away from
         self._rng = random.Random(config.worker_id)  # backoff jitter, reproducible per worker
         self.uploaded = 0
         self.failed = 0
@@ -192,9 +171,10 @@ class Worker:
 
     def stop(self) -> None:
         """Drain: finish the current request, then return from ``run``. A second call gives it back."""
-        # Runs in a signal handler: only events and logging (its handler lock is re-entrant).
+        # (On orchestrator.signals' thread, never inside the signal handler: it may take locks.)
         if self._stop.is_set():
             self._abort.set()
+            self._calls.abandon()
             log.info("stopping now: giving the current request back")
         else:
             self._stop.set()
@@ -245,10 +225,12 @@ class Worker:
     # --- talking to the service ----------------------------------------------------------------
 
     def _call(self, key: str, payload: bytes, attachment: bytes | None = None,
-              timeout: float | None = None) -> dict[str, Any]:
-        """One query; the reply body. Raises TransportError (nobody answered) or ProtocolError (refused)."""
-        reply = transport.query(self.session, key, payload, attachment, timeout=timeout or self.config.timeout_s)
-        return protocol.parse_reply(reply)
+              timeout: float | None = None, abandon: bool = True) -> dict[str, Any]:
+        """One query; the reply body. Raises TransportError (nobody answered; ``Abandoned``: a second stop
+        signal came first, unless ``abandon`` is False) or ProtocolError (refused)."""
+        def ask() -> bytes:
+            return transport.query(self.session, key, payload, attachment, timeout=timeout or self.config.timeout_s)
+        return protocol.parse_reply(self._calls.run(ask, key) if abandon else ask())
 
     def _retrying(self, what: str, fn: Callable[[], dict[str, Any]], attempts: int | None = None,
                   until_stopped: bool = False, give_up: Callable[[], bool] = lambda: False,
@@ -262,6 +244,8 @@ class Worker:
         while True:
             try:
                 return fn()
+            except Abandoned:
+                return None
             except (transport.TransportError, ProtocolError) as exc:
                 if isinstance(exc, ProtocolError) and exc.code not in transient:
                     raise
@@ -316,11 +300,13 @@ class Worker:
                      body.get("status"), body.get("attempts"))
 
     def _release(self, grant: LeaseGrant) -> None:
-        """Give a lease back unharmed (a second stop signal): one try, the service may be going too."""
+        """Give a lease back unharmed (a second stop signal): one short try, the service may be going too."""
         msg = messages.ReleaseRequest(request_id=grant.request_id, token=grant.token,
                                       worker_id=self.config.worker_id).to_json()
+        timeout = min(RELEASE_TIMEOUT_S, self.config.timeout_s)
         try:
-            body = self._retrying("release", lambda: self._call(self.keys.release, msg), 1)
+            body = self._retrying("release", lambda: self._call(self.keys.release, msg, timeout=timeout,
+                                                                abandon=False), 1)
         except ProtocolError as exc:  # stale: the request is not ours any more anyway
             log.warning("release of %s refused: %s", grant.request_id, exc)
             return
@@ -334,8 +320,8 @@ class Worker:
     # --- one request -----------------------------------------------------------------------------
 
     def _handle(self, grant: LeaseGrant) -> None:
-        renewer = _Renewer(lambda k, m, t: self._call(k, m, timeout=min(t, self.config.timeout_s)), self.keys.renew,
-                           grant, self.config.worker_id)
+        renewer = Renewer(lambda k, m, t: self._call(k, m, timeout=min(t, self.config.timeout_s), abandon=False),
+                          self.keys.renew, grant, self.config.worker_id)
         try:
             started = time.monotonic()
             try:
@@ -353,7 +339,7 @@ class Worker:
                 return
             self._upload(grant, data, renewer)
         finally:
-            renewer.stop()
+            renewer.stop(wait=not self._abort.is_set())  # given back: not after a renewal in flight
 
     def _collect(self, grant: LeaseGrant):
         prefix = np.asarray(grant.action_prefix, np.float32).reshape(-1, 2) if grant.action_prefix else None
@@ -368,18 +354,29 @@ class Worker:
         remaining = started + self.config.realtime * frames / CONTROL_HZ - time.monotonic()
         return not (remaining > 0 and self._abort.wait(remaining)) and not self._abort.is_set()
 
-    def _upload(self, grant: LeaseGrant, data: bytes, renewer: "_Renewer") -> None:
+    def _upload(self, grant: LeaseGrant, data: bytes, renewer: Renewer) -> None:
         """Upload until the service acknowledges it, refuses the data, or the lease is lost.
 
         No reply, ``internal`` and ``unavailable`` (a full disk, a busy database, a service going
         down) are retried with the same bytes: a collected episode is not dropped while its lease
-        is ours. A second stop signal gives the request back instead.
+        is ours. While draining, no longer than the lease lasts by this worker's clock (no reply
+        after that: the service is gone, or will give the request to someone else). A second stop
+        signal gives the request back instead.
         """
         header = messages.UploadHeader.for_payload(data, request_id=grant.request_id, token=grant.token,
                                                    worker_id=self.config.worker_id).to_json()
+
+        def attempt() -> dict[str, Any]:
+            timeout = self.config.timeout_s
+            if self._stop.is_set():  # draining: no wait past the end of the lease
+                timeout = min(timeout, max(renewer.remaining(), MIN_DRAIN_ATTEMPT_S))
+            return self._call(self.keys.upload, data, header, timeout=timeout)
+
+        def ran_out() -> bool:
+            return self._stop.is_set() and renewer.remaining() <= 0
+
         try:
-            body = self._retrying("upload", lambda: self._call(self.keys.upload, data, header),
-                                  give_up=lambda: renewer.lost is not None,
+            body = self._retrying("upload", attempt, give_up=lambda: renewer.lost is not None or ran_out(),
                                   transient=(ErrorCode.INTERNAL, ErrorCode.UNAVAILABLE))
         except ProtocolError as exc:
             if exc.code in (ErrorCode.STALE_TOKEN, ErrorCode.UNKNOWN_REQUEST):
@@ -394,6 +391,9 @@ class Worker:
                      " (duplicate)" if body.get("duplicate") else "")
         elif self._abort.is_set():
             self._release(grant)
+        elif renewer.lost is None:
+            log.warning("dropping the episode of %s: draining, and the service did not acknowledge it before the "
+                        "lease ran out", grant.request_id)
         else:
             log.warning("dropping the episode of %s: the lease is no longer ours (%s)", grant.request_id, renewer.lost)
 

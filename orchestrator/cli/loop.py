@@ -398,7 +398,7 @@ def _run(args: argparse.Namespace) -> int:
               f"{len(result.retrains)} retrains{how}, champion {result.champion or '-'} (eval h1 MSE {h1}), "
               f"{result.seconds:.0f} s")
         print(f"report: {result.report}")
-    if result.interrupted:
+    if result.interrupted:  # by Ctrl-C or SIGTERM alike, as serve makes no difference between them
         return 130
     learned = [r for r in result.retrains if r["status"] in ("promoted", "rejected")]
     if result.retrains and not learned:  # no model came of this run: not a success, whatever it collected

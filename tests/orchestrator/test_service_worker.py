@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import signal
+import threading
+import time
 
 import pytest
 
@@ -98,7 +100,7 @@ def test_second_sigterm_gives_the_request_back(make_service, spawn_worker) -> No
     wait_for(lambda: service.queue.get(request.id).status == RequestStatus.LEASED, timeout=30,
              message="the worker leases the request")
     w.signal(signal.SIGTERM)
-    wait_for(lambda: "draining" in w.log(), message="the first signal is taken")  # two at once merge into one
+    wait_for(lambda: "draining" in w.log(), message="the first signal is taken")  # two at once may count as one
     w.signal(signal.SIGTERM)
     assert w.wait(30) == 0, w.log()
     back = service.queue.get(request.id)
@@ -128,3 +130,52 @@ def test_a_worker_records_at_the_frame_size_the_service_holds(make_service, spaw
     done = service.queue.get(request.id)
     assert (done.status, done.attempts) == (RequestStatus.DONE, 0), other.log()
     assert Catalog(data_dir).load(done.episode_id).frames.shape[1:3] == (16, 16)
+
+
+def test_a_second_sigterm_walks_away_from_an_upload_in_flight(make_service, spawn_worker) -> None:
+    """The service takes the upload and never answers it (the worker's query waits its whole 10 s timeout):
+    a second SIGTERM must not wait that out, nor a renewal in flight: the request is given back at once."""
+    service = make_service()
+    request, _ = service.queue.enqueue(new_request())
+    entered, hang = threading.Event(), threading.Event()
+
+    def never_answered(*args, **kw):
+        entered.set()
+        hang.wait(60)
+        raise CatalogUnavailableError("the test's hung upload ends (nothing stored)")
+
+    service.catalog.ingest_bytes = never_answered
+    w = spawn_worker("H")
+    try:
+        assert entered.wait(30), w.log()
+        w.signal(signal.SIGTERM)
+        wait_for(lambda: "draining" in w.log(), message="the first signal is taken")
+        w.signal(signal.SIGTERM)
+        started = time.monotonic()
+        assert w.wait(6) == 0, w.log()  # (the old worker waited out the upload's 10 s, then the release's)
+        assert time.monotonic() - started < 6
+    finally:
+        hang.set()
+    back = service.queue.get(request.id)
+    assert (back.status, back.attempts, back.last_error) == (RequestStatus.QUEUED, 0, None), w.log()
+    assert f"released {request.id}" in w.log()
+
+
+def test_a_draining_worker_gives_up_an_upload_nobody_answers_when_its_lease_runs_out(make_service, spawn_worker,
+                                                                                    data_dir) -> None:
+    """SIGTERM, then the service goes away before the episode is uploaded: the worker does not retry for ever
+    (a supervisor would SIGKILL it); it drops the episode nobody acknowledged once its lease has run out."""
+    lease_s = 2.0
+    service = make_service(lease_s=lease_s)
+    request, _ = service.queue.enqueue(new_request(steps=30))  # 3 s of paced collection
+    w = spawn_worker("L", "--realtime", "1")
+    wait_for(lambda: service.queue.get(request.id).status == RequestStatus.LEASED, timeout=30,
+             message="the worker leases the request")
+    w.signal(signal.SIGTERM)
+    wait_for(lambda: "draining" in w.log(), message="the first signal is taken")
+    service.stop()
+    stopped = time.monotonic()
+    assert w.wait(30) == 0, w.log()  # (the old worker retried until killed)
+    assert time.monotonic() - stopped < 3 * lease_s + 5, w.log()
+    assert f"dropping the episode of {request.id}: draining" in w.log()
+    assert Catalog(data_dir).count() == 0

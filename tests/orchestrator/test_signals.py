@@ -5,10 +5,12 @@ from __future__ import annotations
 
 import os
 import signal
+import subprocess
+import sys
 import threading
 
 from orchestrator.signals import on_stop_signals
-from tests.conftest import disposition, free_port, ignoring_sigint, wait_for
+from tests.conftest import REPO, disposition, free_port, ignoring_sigint, wait_for
 from tests.orchestrator.test_router import start, start_plain_router
 
 
@@ -23,6 +25,56 @@ def test_sigterm_and_sigint_call_the_handler_and_restore_puts_the_old_ones_back(
     finally:
         restore()
     assert {s: signal.getsignal(s) for s in before} == before
+
+
+def test_the_handler_runs_off_the_main_thread_and_restore_puts_the_wakeup_fd_back() -> None:
+    threads: list[threading.Thread] = []
+    read_fd, write_fd = os.pipe()
+    os.set_blocking(write_fd, False)
+    old_fd = signal.set_wakeup_fd(write_fd)
+    try:
+        restore = on_stop_signals(lambda: threads.append(threading.current_thread()), sigint=False)
+        try:
+            assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # sigint=False: left alone
+            os.kill(os.getpid(), signal.SIGTERM)
+            wait_for(lambda: threads, message="SIGTERM handled")
+        finally:
+            restore()
+        assert threads[0] is not threading.main_thread() and threads[0].name == "stop-signals"
+        assert signal.set_wakeup_fd(write_fd) == write_fd
+    finally:
+        signal.set_wakeup_fd(old_fd)
+        os.close(read_fd)
+        os.close(write_fd)
+
+
+#: A process whose main thread takes and lets go of an Event's lock in a tight loop while another thread
+#: SIGTERMs it: a stop callback run inside the signal handler (on the main thread) that sets the same
+#: Event finds the lock held by the very thread it interrupted, and waits for ever (or, with the signals
+#: still coming, recurses until RecursionError).
+HAMMERED = """
+import os, signal, sys, threading, time
+from orchestrator.signals import on_stop_signals
+stop, handled, sent = threading.Event(), [], []
+on_stop_signals(lambda: (handled.append(1), stop.set()))
+def send():
+    for _ in range(2000):
+        os.kill(os.getpid(), signal.SIGTERM)
+        time.sleep(0.0005)
+    sent.append(1)
+threading.Thread(target=send, daemon=True).start()
+while not sent:
+    stop.wait(0)
+    stop.clear()
+print("survived", len(handled), flush=True)
+"""
+
+
+def test_a_signal_that_lands_while_the_main_thread_holds_the_events_lock_does_not_deadlock() -> None:
+    proc = subprocess.run([sys.executable, "-c", HAMMERED], cwd=REPO, capture_output=True, text=True,
+                          timeout=30, env=dict(os.environ, PYTHONPATH=str(REPO)))
+    assert proc.returncode == 0 and proc.stdout.startswith("survived "), proc.stderr[-2000:]
+    assert int(proc.stdout.split()[1]) > 0
 
 
 def test_a_sigint_ignored_when_called_stays_ignored() -> None:

@@ -1,0 +1,78 @@
+"""A worker's hold on one leased request: renewed every lease_s / 3 on its own thread, and how long it lasts.
+
+Imports only the wire contract (``orchestrator.messages``, ``protocol``, ``transport``) and Zenoh.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections.abc import Callable
+from typing import Any
+
+import zenoh
+
+from orchestrator import messages, transport
+from orchestrator.messages import LeaseGrant
+from orchestrator.protocol import ErrorCode, ProtocolError
+
+log = logging.getLogger("workers.agent")
+
+
+class Renewer:
+    """Renews one lease every lease_s / 3 on its own thread until stopped; notes when it is lost.
+
+    ``call(key, message, timeout)`` sends one renewal and raises ``TransportError`` (nobody
+    answered) or ``ProtocolError`` (refused). Started at once: construct it when the grant arrives.
+    """
+
+    def __init__(self, call: Callable[[str, bytes, float], dict[str, Any]], key: str, grant: LeaseGrant,
+                 worker_id: str) -> None:
+        self._call, self._key, self._grant = call, key, grant
+        self._msg = messages.RenewRequest(request_id=grant.request_id, token=grant.token,
+                                          worker_id=worker_id).to_json()
+        self._stop = threading.Event()
+        self.lost: str | None = None
+        """Why the lease is not ours any more (the service said so), or None."""
+        self._until = time.monotonic() + grant.lease_s
+        self._thread = threading.Thread(target=self._run, name=f"renew:{grant.request_id}", daemon=True)
+        self._thread.start()
+
+    def remaining(self) -> float:
+        """Seconds until the lease runs out by this worker's clock: lease_s after the sending of the last
+        renewal the service acknowledged (or after the grant); <= 0 once it has."""
+        return self._until - time.monotonic()
+
+    def _run(self) -> None:
+        # By the clock, not after each call: a renewal nobody answered must not push the next one
+        # back; and one call waits at most one interval, so two more tries fit in the lease.
+        interval = max(self._grant.lease_s / 3.0, 0.01)
+        due = time.monotonic() + interval
+        while not self._stop.wait(max(0.0, due - time.monotonic())):
+            due = max(due + interval, time.monotonic())
+            sent = time.monotonic()
+            try:
+                self._call(self._key, self._msg, interval)
+            except transport.TransportError as exc:  # transient: try again next tick
+                log.warning("renew %s: %s", self._grant.request_id, exc)
+                continue
+            except zenoh.ZError:
+                if self._stop.is_set():  # the worker gave its request back and closed the session under us
+                    return
+                raise
+            except ProtocolError as exc:
+                if exc.code in (ErrorCode.STALE_TOKEN, ErrorCode.UNKNOWN_REQUEST):
+                    self.lost = exc.message
+                    log.warning("lease of %s lost (%s): %s", self._grant.request_id, exc.code.value, exc.message)
+                    return
+                log.warning("renew %s refused: %s", self._grant.request_id, exc)
+                continue
+            self._until = sent + self._grant.lease_s  # (the service extended it after we sent)
+
+    def stop(self, wait: bool = True) -> None:
+        """No more renewals; ``wait``: also for one in flight (a worker giving its request back at once does
+        not: the thread is a daemon)."""
+        self._stop.set()
+        if wait:
+            self._thread.join()
