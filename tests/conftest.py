@@ -6,6 +6,7 @@ the fixtures are found by pytest on their own.
 
 from __future__ import annotations
 
+import errno
 import os
 import signal
 import socket
@@ -208,3 +209,17 @@ def run_cli(capsys, *argv: str) -> tuple[int, str, str]:
         rc = exc.code
     out, err = capsys.readouterr()
     return rc, out, err
+
+
+def failing_reads_of(path: Path, monkeypatch, times: int = 1, code: int = errno.EIO) -> list[Path]:
+    """The next ``times`` ``read_bytes`` of ``path`` raise ``OSError(code)``, as a flaky disk's would (a read that
+    may pass); the list returned records each failed read."""
+    real, failed = Path.read_bytes, []
+
+    def read_bytes(self: Path) -> bytes:
+        if self == path and len(failed) < times:
+            failed.append(self)
+            raise OSError(code, os.strerror(code))
+        return real(self)
+    monkeypatch.setattr(Path, "read_bytes", read_bytes)
+    return failed

@@ -19,6 +19,7 @@ from storage.catalog import Catalog
 from storage.errors import RegistryUnavailableError
 from storage.models import ModelRegistry
 from storage.rows import Snapshot
+from tests.conftest import failing_reads_of
 from tests.uncertainty.synth import make_episode
 from uncertainty.checkpoint import save_candidate
 from uncertainty.ensemble import Ensemble
@@ -106,24 +107,10 @@ def test_with_error_the_scores_carry_the_error_and_whether_the_champion_trained_
     assert scorer(seen).error is not None
 
 
-def _failing_reads_of(path, monkeypatch, times: int) -> None:
-    """The next ``times`` reads of ``path`` fail with EIO, as a flaky disk's would."""
-    import errno
-    import pathlib
-    real, left = pathlib.Path.read_bytes, [times]
-
-    def read_bytes(self):
-        if self == path and left[0] > 0:
-            left[0] -= 1
-            raise OSError(errno.EIO, "Input/output error")
-        return real(self)
-    monkeypatch.setattr(pathlib.Path, "read_bytes", read_bytes)
-
-
 def test_a_read_error_is_not_remembered_as_damage(tmp_path, monkeypatch):
     registry = ModelRegistry(tmp_path)
     version = _promoted(registry, 0, 0.02)
-    _failing_reads_of(registry.get(version).weights_path, monkeypatch, times=1)
+    failing_reads_of(registry.get(version).weights_path, monkeypatch)
     assert "Input/output error" in registry.weights_problem(version)
     assert registry.weights_problem(version) is None  # the same file, read again: it was the disk, not the bytes
 
@@ -133,7 +120,7 @@ def test_the_scorer_tries_again_after_a_read_error(tmp_path, monkeypatch):
     version = _promoted(registry, 0, 0.02)
     scorer = ChampionScorer(tmp_path)
     scorer.RETRY_S = 0.0  # (a minute in service)
-    _failing_reads_of(registry.get(version).weights_path, monkeypatch, times=1)
+    failing_reads_of(registry.get(version).weights_path, monkeypatch)
     assert scorer.reload() is None and "Input/output error" in scorer.problem
     assert scorer.reload() == version and scorer.problem is None
 

@@ -2,11 +2,9 @@
 
 from __future__ import annotations
 
-import errno
 import hashlib
 import json
 import math
-import os
 import sqlite3
 import threading
 
@@ -16,6 +14,7 @@ from storage.errors import CorruptCheckpointError, RegistryError, RegistryUnavai
 from storage.gate import GateDecision
 from storage.models import ModelRegistry, ModelStatus
 from storage.rows import Snapshot
+from tests.conftest import failing_reads_of
 
 SPLIT = "split-aaaa"
 
@@ -344,24 +343,11 @@ def test_a_champion_with_damaged_weights_is_replaced_by_the_next_sound_candidate
     assert not reg.gate(_register(reg, 0.9)).promoted  # and a sound champion is judged as before
 
 
-def _read_fails_once(monkeypatch, path) -> list:
-    """``path``'s next read raises EIO (a read that may pass), once; the list records it."""
-    real_read, failed = type(path).read_bytes, []
-
-    def read(p):
-        if p == path and not failed:
-            failed.append(p)
-            raise OSError(errno.EIO, os.strerror(errno.EIO))
-        return real_read(p)
-    monkeypatch.setattr(type(path), "read_bytes", read)
-    return failed
-
-
 def test_a_read_error_on_a_candidate_leaves_it_a_candidate(reg: ModelRegistry, monkeypatch) -> None:
     champ = _register(reg, 0.1)
     assert reg.gate(champ).promoted
     cand = _register(reg, 0.05)
-    failed = _read_fails_once(monkeypatch, reg.get(cand).weights_path)
+    failed = failing_reads_of(reg.get(cand).weights_path, monkeypatch)
     with pytest.raises(RegistryUnavailableError, match=f"cannot gate {cand} now"):
         reg.gate(cand)
     assert failed and reg.get(cand).status == ModelStatus.CANDIDATE and reg.champion() == champ
@@ -372,7 +358,7 @@ def test_a_read_error_on_the_champion_does_not_let_a_worse_candidate_replace_it(
     champ = _register(reg, 0.1)
     assert reg.gate(champ).promoted
     worse = _register(reg, 0.5)
-    failed = _read_fails_once(monkeypatch, reg.get(champ).weights_path)
+    failed = failing_reads_of(reg.get(champ).weights_path, monkeypatch)
     with pytest.raises(RegistryUnavailableError, match=f"against champion {champ}"):
         reg.gate(worse)
     assert failed and reg.champion() == champ and reg.get(worse).status == ModelStatus.CANDIDATE
@@ -383,7 +369,7 @@ def test_a_read_error_on_the_rollback_target_changes_nothing(reg: ModelRegistry,
     a, b, c = (_register(reg, mse) for mse in (0.010, 0.008, 0.006))
     for v in (a, b, c):
         assert reg.gate(v).promoted
-    failed = _read_fails_once(monkeypatch, reg.get(b).weights_path)
+    failed = failing_reads_of(reg.get(b).weights_path, monkeypatch)
     with pytest.raises(RegistryUnavailableError, match=f"roll back past {b}"):
         reg.rollback()
     assert failed and reg.champion() == c and reg.get(a).status == ModelStatus.RETIRED

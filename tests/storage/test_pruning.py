@@ -5,15 +5,14 @@ from __future__ import annotations
 
 import errno
 import math
-import os
 import sqlite3
 import threading
-from pathlib import Path
 
 import pytest
 
 from storage.errors import PrunedCheckpointError, RegistryError
 from storage.models import ModelRegistry, ModelStatus
+from tests.conftest import failing_reads_of
 from tests.storage.test_models import _flip_byte, _register
 
 
@@ -170,14 +169,7 @@ def test_a_read_error_on_a_rollback_target_keeps_it(reg: ModelRegistry, monkeypa
     a, b, c = (_register(reg, mse) for mse in (0.010, 0.008, 0.006))
     for v in (a, b, c):
         reg.gate(v)
-    target, real_read, failed = reg.get(b).weights_path, Path.read_bytes, []
-
-    def fails_once(path: Path) -> bytes:
-        if path == target and not failed:
-            failed.append(path)
-            raise OSError(code, os.strerror(code))
-        return real_read(path)
-    monkeypatch.setattr(Path, "read_bytes", fails_once)
+    failed = failing_reads_of(reg.get(b).weights_path, monkeypatch, code=code)
     result = reg.prune(keep=2)
     assert failed and result.pruned == []
     assert result.kept == [c, b, a]  # b, unread, takes no slot: a is kept too, in case b is damaged after all

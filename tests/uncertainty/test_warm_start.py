@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import errno
 import logging
 import pathlib
 
@@ -12,6 +11,7 @@ from orchestrator.retrain import run_retrain
 from storage.catalog import Catalog
 from storage.errors import RegistryUnavailableError
 from storage.models import ModelRegistry, ModelStatus
+from tests.conftest import failing_reads_of
 from tests.uncertainty.conftest import TINY
 from tests.uncertainty.synth import make_episode
 from uncertainty.checkpoint import save_candidate
@@ -45,18 +45,6 @@ def _flip_a_byte(registry: ModelRegistry, version: str) -> None:
     data = bytearray(weights.read_bytes())
     data[-100] ^= 0xFF
     weights.write_bytes(bytes(data))
-
-
-def _failing_reads_of(path: pathlib.Path, monkeypatch, times: int) -> None:
-    """The next ``times`` reads of ``path`` fail with EIO, as a flaky disk's would."""
-    real, left = pathlib.Path.read_bytes, [times]
-
-    def read_bytes(self):
-        if self == path and left[0] > 0:
-            left[0] -= 1
-            raise OSError(errno.EIO, "Input/output error")
-        return real(self)
-    monkeypatch.setattr(pathlib.Path, "read_bytes", read_bytes)
 
 
 def test_a_damaged_champion_is_replaced_by_a_warm_start_from_the_newest_sound_earlier_champion(tmp_path, caplog):
@@ -109,14 +97,14 @@ def test_a_read_error_on_the_model_to_warm_start_from_fails_the_retrain_for_now(
     champion = _champion(cat, registry, 1)
     before = [(m.version, m.status) for m in registry.list()]
     with monkeypatch.context() as m:
-        _failing_reads_of(registry.get(champion).weights_path, m, times=1)
+        failing_reads_of(registry.get(champion).weights_path, m)
         with pytest.raises(RegistryUnavailableError, match=f"cannot warm-start from {champion} now: .*Input/output"):
             run_retrain(tmp_path, WARM)
     assert [(m.version, m.status) for m in registry.list()] == before and registry.champion() == champion
     # the same for the earlier champion a damaged one would be replaced from: not skipped for a passing error
     _flip_a_byte(registry, champion)
     with monkeypatch.context() as m:
-        _failing_reads_of(registry.get(earlier).weights_path, m, times=1)
+        failing_reads_of(registry.get(earlier).weights_path, m)
         with pytest.raises(RegistryUnavailableError, match=f"cannot warm-start from {earlier} now"):
             run_retrain(tmp_path, WARM)
     assert [(m.version, m.status) for m in registry.list()] == before and registry.champion() == champion
