@@ -177,7 +177,7 @@ def _episode(rng: np.random.Generator, steps: int = 12, size: int = 16) -> Episo
         states[t, 4:6] = pos
         pos = pos + 0.2 * (actions[t] - pos)
     meta = EpisodeMeta(episode_id=uuid.UUID(bytes=rng.bytes(16)).hex, task="push", shape="box",
-                       physics={"mass": 1.0, "friction": 0.5, "ground_friction": 0.3}, seed=0,
+                       physics={"mass": 1.0, "friction": 0.5, "ground_friction": 0.3}, seed=int(rng.integers(2**31)),
                        policy="random_waypoints", image_size=size, created="2026-01-01T00:00:00+00:00")
     return Episode(meta, frames, actions, states)
 
