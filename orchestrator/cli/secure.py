@@ -50,6 +50,7 @@ def register(sub) -> None:
     check = ssub.add_parser("check", help="check that every file a Zenoh config names exists and is readable")
     check.add_argument("config", type=Path, metavar="FILE",
                        help="a Zenoh JSON5 config, e.g. DIR/worker.json5 from `secure init`")
+    add_json_arg(check)
     check.set_defaults(func=_check)
 
 
@@ -122,6 +123,9 @@ def _check(args: argparse.Namespace) -> int:
         files = validate_secure_config(args.config)
     except SecureConfigError as exc:
         raise UsageError(str(exc)) from exc
+    if args.json:
+        print_json({"config": str(args.config), "files": [str(path) for path in files]})
+        return 0
     print(f"{args.config}: {len(files)} referenced file(s) present and readable")
     for path in files:
         print(f"  {path}")

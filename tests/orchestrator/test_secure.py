@@ -273,6 +273,18 @@ def test_validate_refuses_missing_or_unreadable_files(tmp_path, breakage, messag
     assert "\n" not in text and "connect_private_key" in text and str(victim) in text
 
 
+def test_check_lists_the_files_a_sound_profile_names_in_text_and_json(tmp_path, capsys):
+    secure = init_secure(SecureInitConfig(tmp_path / "p", router_endpoint=f"tls/127.0.0.1:{free_port()}"))
+    config = secure.configs["worker"]
+    assert main(["secure", "check", str(config), "--json"]) == 0
+    body = json.loads(capsys.readouterr().out)
+    assert body["config"] == str(config) and body["files"] == [str(p) for p in validate_secure_config(config)]
+    assert body["files"] and all(Path(f).is_file() for f in body["files"])
+    assert main(["secure", "check", str(config)]) == 0
+    out = capsys.readouterr().out
+    assert f"{len(body['files'])} referenced file(s) present and readable" in out and body["files"][0] in out
+
+
 def test_router_and_check_refuse_a_broken_profile_with_exit_2(tmp_path, capfd):
     secure = init_secure(SecureInitConfig(tmp_path / "p", router_endpoint=f"tls/127.0.0.1:{free_port()}"))
     (tmp_path / "p" / "users.txt").unlink()
