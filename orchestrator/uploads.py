@@ -33,6 +33,7 @@ from storage.files import holds
 from storage.queue import RequestQueue
 from storage.records import Episode
 from storage.requests import IllegalTransitionError, Request, RequestStatus
+from storage.rows import EpisodeRow
 from workers.env import resolve_physics
 
 log = logging.getLogger(__name__)
@@ -99,8 +100,9 @@ class UploadHandler:
             raise ProtocolError(ErrorCode.TOO_LARGE, f"payload: expected at most {self.max_upload_bytes} "
                                 f"bytes, found {max(header.size, len(msg.payload))}")
         data = header.check_payload(msg.payload)  # a repeat too: it is acknowledged for these bytes
-        if self._is_duplicate(request, header):  # e.g. the reply was lost and the worker sends it again
-            self._restore_if_lost(request.episode_id, data, header)  # before the worker lets go of its bytes
+        row = self._duplicate_of(request, header)
+        if row is not None:  # e.g. the reply was lost and the worker sends it again
+            self._restore_if_lost(row, data, header)  # before the worker lets go of its bytes
             self.metrics.upload("duplicate")
             return protocol.duplicate_reply(request_id=request.id, episode_id=request.episode_id)
         self._check_live(request, header)  # before a byte is written
@@ -114,7 +116,7 @@ class UploadHandler:
                 verified=EpisodeInfo(meta=episode.meta, frames=len(episode)), write_lock=self.write_lock)
         except (StaleLeaseError, IllegalTransitionError) as exc:
             request = self.queue.get(header.request_id)  # a racing identical upload may have won
-            if self._is_duplicate(request, header):
+            if self._duplicate_of(request, header) is not None:
                 self.metrics.upload("duplicate")
                 return protocol.duplicate_reply(request_id=request.id, episode_id=request.episode_id)
             raise admin.protocol_error(exc) from exc
@@ -126,7 +128,7 @@ class UploadHandler:
             # or a replay of an eval episode (training on it would leak the eval split)
             raise ProtocolError(ErrorCode.BAD_FIELD, str(exc)) from exc
         if result.duplicate:  # indexed before: by a racing identical upload, or for another request
-            if self._is_duplicate(self.queue.get(header.request_id), header):
+            if self._duplicate_of(self.queue.get(header.request_id), header) is not None:
                 self.metrics.upload("duplicate")
                 return protocol.duplicate_reply(request_id=header.request_id, episode_id=result.episode_id)
             raise ProtocolError(ErrorCode.BAD_FIELD, f"episode {result.episode_id} is already "
@@ -139,32 +141,32 @@ class UploadHandler:
         self.on_stored(StoredEpisode(result.episode_id, header.request_id, header.worker_id, episode))
         return protocol.ok_reply(request_id=header.request_id, episode_id=result.episode_id)
 
-    def _is_duplicate(self, request: Request, header: messages.UploadHeader) -> bool:
-        """A repeat of the upload that completed ``request``: same token, same bytes."""
+    def _duplicate_of(self, request: Request, header: messages.UploadHeader) -> EpisodeRow | None:
+        """The row of the episode that completed ``request`` when this is a repeat of that upload (same token,
+        same bytes); None otherwise."""
         if request.status != RequestStatus.DONE or request.token != header.token or not request.episode_id:
-            return False
+            return None
         row = self.catalog.find(request.episode_id)
-        return row is not None and row.sha256 == header.sha256
+        return row if row is not None and row.sha256 == header.sha256 else None
 
-    def _restore_if_lost(self, episode_id: str, data: bytes, header: messages.UploadHeader) -> None:
+    def _restore_if_lost(self, row: EpisodeRow, data: bytes, header: messages.UploadHeader) -> None:
         """Before a repeat is acknowledged: when the episode's file no longer holds its bytes (lost or
         damaged on disk) and it is not quarantined, ``data`` (its sha256 is the row's) puts it back, by
         the catalog's restore of a duplicate ingest. A quarantine (an operator's or a training job's
         decision) is not ended by a worker's retry. Refused ``unavailable`` when the restore cannot be
         written (a full disk), so the worker keeps its bytes and sends them again."""
-        row = self.catalog.find(episode_id)
-        if row is None or row.quarantined or holds(row.path, row.sha256):
+        if row.quarantined or holds(row.path, row.sha256):
             return
         try:
             result = self.catalog.ingest_bytes(data, expected_sha256=header.sha256, split=row.split,
                                                write_lock=self.write_lock)
         except StorageError as exc:  # the bytes hash to a verified episode's: the disk, not the upload
             code = ErrorCode.UNAVAILABLE if isinstance(exc, StorageUnavailableError) else ErrorCode.INTERNAL
-            raise ProtocolError(code, f"episode {episode_id}: its file does not hold the bytes "
+            raise ProtocolError(code, f"episode {row.episode_id}: its file does not hold the bytes "
                                 f"indexed, and restoring it from this upload failed: {exc}") from exc
         if result.restored:
             log.warning("episode %s: its file %s was missing or damaged; restored from a repeated upload of %s",
-                        episode_id, row.path, header.request_id)
+                        row.episode_id, row.path, header.request_id)
 
     def _check_live(self, request: Request, header: messages.UploadHeader) -> None:
         if (request.status != RequestStatus.LEASED or request.token != header.token

@@ -12,7 +12,7 @@ import json
 import sys
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from typing import Any
 
@@ -119,18 +119,18 @@ def _priority(text: str) -> float:
     return value
 
 
-def _max_attempts(text: str) -> int:
-    value = common.positive_int(text)
-    if value > protocol.MAX_ATTEMPTS:
-        raise argparse.ArgumentTypeError(f"expected at most {protocol.MAX_ATTEMPTS}, found {value}")
-    return value
+def _positive_int_at_most(limit: int) -> Callable[[str], int]:
+    """An argparse type: a positive integer no larger than ``limit`` (what the service accepts)."""
+    def check(text: str) -> int:
+        value = common.positive_int(text)
+        if value > limit:
+            raise argparse.ArgumentTypeError(f"expected at most {limit}, found {value}")
+        return value
+    return check
 
 
-def _list_limit(text: str) -> int:
-    value = common.positive_int(text)
-    if value > admin.MAX_LIST:
-        raise argparse.ArgumentTypeError(f"expected at most {admin.MAX_LIST}, found {value}")
-    return value
+_max_attempts = _positive_int_at_most(protocol.MAX_ATTEMPTS)
+_list_limit = _positive_int_at_most(admin.MAX_LIST)
 
 
 def _no_constant(name: str) -> None:
