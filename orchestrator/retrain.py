@@ -11,6 +11,7 @@ import contextlib
 import dataclasses
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 from orchestrator.scheduler import note_phase, retrain_lock
 from storage.catalog import Catalog
@@ -21,6 +22,19 @@ from uncertainty.train import train_candidate
 
 #: The reason a candidate left by an earlier job gets when the next job finds it.
 ABANDONED = "abandoned: the job that registered it ended before its gate (rejected by the next training job)"
+
+
+class JobRegistry(ModelRegistry):
+    """The registry as a training job uses it: the version it registers is noted in the lock file at once.
+
+    So a job that dies before reporting, its gate passed or not, can still be told by what it left: the
+    scheduler reads the version there and the model's fate in the registry (``RetrainScheduler``).
+    """
+
+    def register(self, *args: Any, **kwargs: Any) -> str:
+        version = super().register(*args, **kwargs)
+        note_phase(self.data_dir, "registered", version=version)
+        return version
 
 
 def abandoned_note(versions: list[str]) -> str:
@@ -34,12 +48,13 @@ def training_job(data_dir: Path, wait: bool = False) -> Iterator[tuple[Catalog, 
 
     Every job registers and gates its candidate under this lock, so a ``candidate`` found
     now was left by a job that died (or whose gate failed) in between: it is rejected with
-    ``ABANDONED`` first, so that ``prune`` may free it. Yields the catalog, the registry and
-    the versions so rejected. Raises ``RetrainBusyError`` like ``retrain_lock``.
+    ``ABANDONED`` first, so that ``prune`` may free it. Yields the catalog, the registry (a
+    ``JobRegistry``: what it registers is noted in the lock file) and the versions so rejected.
+    Raises ``RetrainBusyError`` like ``retrain_lock``.
     """
     data_dir = Path(data_dir)
     with retrain_lock(data_dir, wait=wait):
-        registry = ModelRegistry(data_dir)
+        registry = JobRegistry(data_dir)
         abandoned = registry.reject_candidates(ABANDONED)
         note_phase(data_dir, "training")
         yield Catalog(data_dir), registry, abandoned

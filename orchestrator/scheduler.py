@@ -4,10 +4,12 @@
 episodes and/or on a cron expression), starts at most one job at a time as a
 child process (``python -m orchestrator retrain --data DIR --json ...``), so
 training never shares a GIL or a core budget with the request path, and reads
-its one-line JSON result when it exits. A job that fails, times out or is killed
-changes nothing: promotion happens only at the very end of a job, through the
-registry's gate. When a job promotes a new champion, ``on_promoted(version)`` lets
-the service hot-swap its scorer.
+its one-line JSON result when it exits. When a job promotes a new champion,
+``on_promoted(version)`` lets the service hot-swap its scorer and announce it.
+A job that fails, times out or is killed before its gate changes nothing; one that
+ends without reporting *after* it (a prune stalled past the timeout, a crash) has:
+the model it registered, noted in the lock file, is looked up in the registry, so a
+promotion is still recorded and announced (``RetrainScheduler._read_what_it_left``).
 
 The lock that keeps two retrains from training at once is taken by the job
 itself (``retrain_lock``, held by ``orchestrator.retrain.run_retrain``), so it also
@@ -37,6 +39,9 @@ from pathlib import Path
 from typing import Callable, Iterator
 
 from croniter import croniter
+
+from storage.errors import StorageError
+from storage.models import ModelRegistry, ModelStatus
 
 log = logging.getLogger(__name__)
 
@@ -72,7 +77,7 @@ class ScheduleConfig:
     cron: str = ""
     """Also retrain on this cron expression, e.g. ``*/10 * * * *`` ('' = never on time)."""
     timeout_s: float = 1800.0
-    """A job running longer than this is killed (and changes nothing)."""
+    """A job running longer than this is killed (changing nothing, unless its gate had already decided)."""
     poll_s: float = 0.5
     """How often the scheduler thread checks whether a job is due or done."""
     retrain_args: tuple[str, ...] = ()
@@ -145,7 +150,7 @@ def retrain_lock(data_dir: Path, wait: bool = False) -> Iterator[Path]:
             holder = read_lock_info(data_dir)
             raise RetrainBusyError(f"another retrain holds {path} (pid {holder.get('pid', '?')}, "
                                    f"phase {holder.get('phase', '?')}); not training") from None
-        note_phase(data_dir, "locked", fd=fd)
+        note_phase(data_dir, "locked", fd=fd, version="")  # a new holder: nothing registered yet
         try:
             yield path
         except BaseException:
@@ -158,9 +163,18 @@ def retrain_lock(data_dir: Path, wait: bool = False) -> Iterator[Path]:
         os.close(fd)  # closing releases the flock
 
 
-def note_phase(data_dir: Path, phase: str, fd: int | None = None) -> None:
-    """Record the lock holder's pid and phase in the lock file (for operators and tests)."""
-    info = json.dumps({"pid": os.getpid(), "phase": phase, "time": time.time()}).encode()
+def note_phase(data_dir: Path, phase: str, fd: int | None = None, version: str | None = None) -> None:
+    """Record the lock holder's pid and phase in the lock file (for operators, tests and the scheduler).
+
+    ``version``: the model the holder registered, kept through its later phases, so that a job that dies
+    before reporting can be told by what it left (``RetrainScheduler``); None keeps the one this process
+    noted since it took the lock.
+    """
+    if version is None:
+        noted = read_lock_info(data_dir)
+        version = noted.get("version", "") if noted.get("pid") == os.getpid() else ""
+    info = json.dumps({"pid": os.getpid(), "phase": phase, "time": time.time()}
+                      | ({"version": version} if version else {})).encode()
     own = fd is None
     if own:
         fd = os.open(Path(data_dir) / LOCK_NAME, os.O_RDWR | os.O_CREAT, 0o644)
@@ -175,9 +189,10 @@ def note_phase(data_dir: Path, phase: str, fd: int | None = None) -> None:
 def read_lock_info(data_dir: Path) -> dict:
     """What the lock file says about its holder ({} when empty or unreadable)."""
     try:
-        return json.loads((Path(data_dir) / LOCK_NAME).read_text() or "{}")
+        info = json.loads((Path(data_dir) / LOCK_NAME).read_text() or "{}")
     except (OSError, json.JSONDecodeError):
         return {}
+    return info if isinstance(info, dict) else {}
 
 
 def lock_held(data_dir: Path) -> bool:
@@ -219,8 +234,8 @@ class RetrainScheduler:
 
     ``count_episodes`` returns the number of training episodes in the catalog (so the
     schedule survives restarts); ``on_promoted(version)`` runs in the scheduler's
-    thread after a job promoted a new champion; ``on_finished(record)`` after every job,
-    whatever its outcome.
+    thread after a job promoted a new champion (also one that ended without reporting
+    after its gate promoted); ``on_finished(record)`` after every job, whatever its outcome.
     """
 
     def __init__(self, cfg: ScheduleConfig, data_dir: Path, count_episodes: Callable[[], int],
@@ -267,7 +282,7 @@ class RetrainScheduler:
         self._thread.start()
 
     def stop(self, kill_running: bool = True) -> None:
-        """Stop scheduling; a running job is terminated (it changes nothing) unless told otherwise."""
+        """Stop scheduling; a running job is terminated unless told otherwise (what it did by then is recorded)."""
         self._outlive_job = not kill_running
         self._stop.set()
         if self._thread is not None:
@@ -388,13 +403,14 @@ class RetrainScheduler:
             self._proc = None
         rec.finished, rec.returncode = time.time(), rc
         result = _last_json(Path(rec.log_path + ".out"))
-        if status is not None:
-            rec.status, rec.reason = status, reason
-        elif rc == 0 and result:
+        reported = rc == 0 and bool(result)
+        if reported:  # also when a stop or the timeout came after it had exited: it finished
             rec.version = str(result.get("version", ""))
             rec.metrics = dict(result.get("metrics") or {})
             rec.status = RetrainStatus.promoted if result.get("promoted") else RetrainStatus.rejected
             rec.reason = str(result.get("reason", ""))
+        elif status is not None:
+            rec.status, rec.reason = status, reason
         elif rc == EXIT_BUSY:
             rec.status, rec.reason = RetrainStatus.busy, _tail(Path(rec.log_path))
         elif rc < 0:
@@ -403,20 +419,48 @@ class RetrainScheduler:
         else:
             rec.status = RetrainStatus.failed
             rec.reason = f"exit status {rc}: {_tail(Path(rec.log_path))}"
-        level = logging.INFO if rec.status in (RetrainStatus.promoted, RetrainStatus.rejected) else logging.WARNING
-        pruned = (result.get("pruned") or []) if rc == 0 else []
+        if not reported:
+            self._read_what_it_left(proc.pid, rec)
+        level = logging.INFO if reported else logging.WARNING
+        pruned = (result.get("pruned") or []) if reported else []
         log.log(level, "retrain %s%s: %s%s", rec.status.value, f" {rec.version}" if rec.version else "",
                 rec.reason.removeprefix(f"{rec.status.value}: ") or "-",
                 f" (pruned the files of {len(pruned)} older models)" if pruned else "")
-        if rc == 0 and result.get("prune_error"):
+        if reported and result.get("prune_error"):
             log.warning("retrain %s: %s", rec.version or "-", result["prune_error"])
-        if rc == 0 and result.get("quarantined"):
+        if reported and result.get("quarantined"):
             log.warning("retrain %s: %s", rec.version or "-", quarantined_note([str(i) for i in result["quarantined"]]))
-        for line in (result.get("warnings") or []) if rc == 0 else []:  # e.g. a warm start past a damaged champion
+        for line in (result.get("warnings") or []) if reported else []:  # e.g. a warm start past a damaged champion
             log.warning("retrain %s: %s", rec.version or "-", line)
         if rec.status is RetrainStatus.promoted:
             self.on_promoted(rec.version)
         self.on_finished(rec)
+
+    def _read_what_it_left(self, pid: int, rec: RetrainRecord) -> None:
+        """Complete the record of a job that ended without reporting: the lock file names the model it registered
+        (when it got that far and no job has taken the lock since), the registry what its gate made of it. A
+        promotion is recorded as one, with how the job ended, so that the history and ``on_promoted`` follow the
+        champion; a rejection, which changed nothing, keeps the job's own ending."""
+        info = read_lock_info(self.data_dir)
+        version = info.get("version")
+        if info.get("pid") != pid or not isinstance(version, str) or not version:
+            return
+        rec.version, ended = version, rec.reason
+        try:
+            registry = ModelRegistry(self.data_dir)
+            model = registry.get(version)
+            promotions = [entry.reason for entry in registry.history() if entry.version == version]
+        except (StorageError, OSError) as exc:
+            rec.reason = f"{ended}; it had registered {version}, whose gate's verdict cannot be read now: {exc}"
+            return
+        rec.metrics = {k: v for k, v in model.metrics.items() if not isinstance(v, (list, dict))}
+        if promotions:
+            rec.status = RetrainStatus.promoted
+            rec.reason = f"{promotions[-1]} (then the job ended without reporting it: {ended})"
+        elif model.status is ModelStatus.REJECTED:
+            rec.reason = f"{ended}, after its gate had rejected {version}: {model.reason}"
+        else:
+            rec.reason = f"{ended} before its gate judged {version} (the next retrain rejects it as abandoned)"
 
 
 def _last_json(path: Path) -> dict:

@@ -320,6 +320,16 @@ def test_two_retrains_at_once_train_once(trained):
     assert len(models(trained)) == len(versions) + 1 and json.loads(out)["version"] not in versions
 
 
+def test_a_retrain_notes_the_model_it_registered_in_the_lock_file(trained, tmp_path):
+    """What the scheduler reads when a job ends without reporting (see test_scheduler_after_gate.py)."""
+    data = tmp_path / "copy"
+    shutil.copytree(trained, data)
+    done = retrain(data, "--epochs", "1")
+    assert done.returncode == 0, done.stderr
+    info = read_lock_info(data)
+    assert (info["phase"], info["version"]) == ("done", json.loads(done.stdout)["version"]) and not lock_held(data)
+
+
 def test_a_retrain_with_keep_models_prunes_after_its_gate(trained, tmp_path):
     from orchestrator.retrain import ABANDONED
     data = tmp_path / "copy"
