@@ -48,7 +48,7 @@ class CompanionConfig:
     retrain_cron: str = ""
     """Also retrain on this cron expression, e.g. ``0 * * * *`` ('' = not on time)."""
     retrain_timeout_s: float = 1800.0
-    """A retrain running longer than this is killed and changes nothing."""
+    """A retrain running longer than this is killed (changing nothing, unless its gate had already decided)."""
     retrain_args: tuple[str, ...] = ()
     """Extra ``activecollect retrain`` arguments (training and gate settings)."""
     retrain_threads: int | None = None
