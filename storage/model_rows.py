@@ -1,8 +1,8 @@
 """The model registry's rows: plain dataclasses of what ``storage.models.ModelRegistry`` answers with.
 
 ``ModelStatus`` (where a model stands), ``ModelRecord`` (one registered model), ``ChampionEntry`` (one
-promotion) and ``PruneResult`` (what a prune did), with the names of a checkpoint directory's files. They
-import nothing of the registry; ``storage.models`` re-exports them.
+promotion) and ``PruneResult`` (what a prune did, stray folders moved aside included), with the names of a
+checkpoint directory's files. They import nothing of the registry; ``storage.models`` re-exports them.
 """
 
 from __future__ import annotations
@@ -103,6 +103,9 @@ class PruneResult:
     freed_bytes: int
     """Total size of the files this call deleted (or would delete)."""
     dry_run: bool = False
+    orphaned: list[str] = field(default_factory=list)
+    """Checkpoint folders no row names (a ``register`` that died before its commit), moved aside to
+    ``DATA/orphans/models/`` (with ``dry_run``: found, left in place); their files are kept, for the operator."""
 
 
 def _finite(obj: Any) -> Any:

@@ -13,7 +13,8 @@ The tables are created through ``storage.database.ensure_schema`` (component ``m
 
 Retention: nothing is deleted unless asked. ``prune(keep=N)`` deletes the files of retired and
 rejected models outside the champion's rollback chain of N; their rows stay (``pruned_at`` set), so
-``models ls`` and the dashboard still show every model's metrics and history.
+``models ls`` and the dashboard still show every model's metrics and history. Folders no row names (a
+register killed before its commit) go aside to ``DATA/orphans/models/`` (``sweep_strays``, ``prune``).
 
 The rows the registry answers with are ``storage.model_rows``'s dataclasses (re-exported here), the steps
 of a prune ``storage.pruning``'s functions; a checkpoint directory's files are written, read back and checked
@@ -33,7 +34,7 @@ from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
 
-from storage import checkpoint_files, pruning
+from storage import checkpoint_files, pruning, strays
 from storage.database import (DB_NAME, MODELS_DIR, Migration, connection, ensure_schema, refuse_lost_database,
                               storage_error, transaction, undo_unless_committed)
 from storage.errors import CorruptCheckpointError, RegistryError, UnknownModelError
@@ -455,7 +456,8 @@ class ModelRegistry:
         transaction before any file is deleted, so a crash between leaves marked rows whose files
         the next ``prune`` deletes; each directory is claimed by a rename before it is deleted, so
         two prunes at once delete (and count) it once. Also sweeps the dot folders crashed calls
-        left. Raises ``RegistryError`` for a ``keep`` below 1.
+        left, and moves the folders no row names aside (``sweep_strays``; ``orphaned``). Raises
+        ``RegistryError`` for a ``keep`` below 1.
         """
         if isinstance(keep, bool) or not isinstance(keep, int) or keep < 1:
             raise RegistryError(f"keep must be a whole number of at least 1 (the champion), found {keep!r}")
@@ -464,11 +466,24 @@ class ModelRegistry:
         with self._connect() as conn:
             wanted = self._keep_order(conn)
         unusable, unread = pruning.check(wanted, keep, self.verify)
+        folders = strays.model_folders(self.models_dir)
         with self._transaction() as conn:
             kept = pruning.kept(self._keep_order(conn), keep, unusable, unread)
             chosen = pruning.mark(conn, kept, None if dry_run else _now())
             marked = pruning.marked(conn)
-        return pruning.finish(self.models_dir, chosen, marked, kept, dry_run)
+            orphaned = strays.unregistered(conn, folders, self._orphans(dry_run))
+        return pruning.finish(self.models_dir, chosen, marked, kept, dry_run, [p.name for p in orphaned])
+
+    def sweep_strays(self, dry_run: bool = False) -> list[str]:
+        """Move the checkpoint folders no row names (a register killed before its commit: nothing acknowledged)
+        to ``DATA/orphans/models/``; return their versions (``dry_run``: only find them). Checked under the write
+        lock, so never a live register's, in any process (``storage.strays.unregistered``). For start-up."""
+        folders = strays.model_folders(self.models_dir)  # listed before the write lock, checked under it
+        with self._transaction() as conn:
+            return [p.name for p in strays.unregistered(conn, folders, self._orphans(dry_run))]
+
+    def _orphans(self, dry_run: bool) -> Path | None:
+        return None if dry_run else self.data_dir / strays.MODEL_ORPHANS_DIR
 
     def _keep_order(self, conn: sqlite3.Connection) -> list[str]:
         """What ``prune`` keeps first (``storage.pruning.keep_order``)."""

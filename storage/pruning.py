@@ -3,7 +3,8 @@
 A prune keeps the champion, the earlier champions ``rollback`` walks back to, then the latest champions a
 rollback took out of service; it marks the rest of the retired and rejected models (``pruned_at``), all in
 one transaction, then deletes their directories, each claimed first by a rename to ``.prune-*`` so that of
-two prunes at once one deletes (and counts) it. Rows stay, so every model's metrics and history remain.
+two prunes at once one deletes (and counts) it. Rows stay, so every model's metrics and history remain. In the
+same transaction the folders no row names are moved aside (``storage.strays.unregistered``).
 
 A model whose weights cannot be read right now (an I/O error) is kept, and does not count as one of the
 chain's: only a lasting verdict (not their sha256, the file missing) lets a prune delete a rollback target.
@@ -109,18 +110,19 @@ def delete(models_dir: Path, versions: Iterable[str]) -> tuple[list[str], int]:
 
 
 def finish(models_dir: Path, chosen: list[str], every_marked: list[str], kept: list[str],
-           dry_run: bool) -> PruneResult:
-    """Once the rows are marked: deletes the directories of ``chosen`` and of those of ``every_marked`` an
-    earlier prune left (with ``dry_run``, only sizes them) and sweeps the dot folders crashed calls left."""
+           dry_run: bool, orphaned: list[str]) -> PruneResult:
+    """Once the rows are marked (and the folders no row names, ``orphaned``, moved aside): deletes the
+    directories of ``chosen`` and of those of ``every_marked`` an earlier prune left (with ``dry_run``, only
+    sizes them) and sweeps the dot folders crashed calls left."""
     leftover = [v for v in every_marked if v not in chosen and (models_dir / v).exists()]
     if dry_run:
-        return PruneResult(pruned=sorted(chosen + leftover), kept=kept, dry_run=True,
+        return PruneResult(pruned=sorted(chosen + leftover), kept=kept, dry_run=True, orphaned=orphaned,
                            freed_bytes=sum(tree_size(models_dir / v) for v in chosen + leftover))
     deleted, freed = delete(models_dir, chosen + leftover)
     sweep_stale(models_dir, time.time())
     if deleted:
         fsync_dir(models_dir)
-    return PruneResult(pruned=sorted(set(chosen) | set(deleted)), kept=kept, freed_bytes=freed)
+    return PruneResult(pruned=sorted(set(chosen) | set(deleted)), kept=kept, freed_bytes=freed, orphaned=orphaned)
 
 
 def sweep_stale(models_dir: Path, now: float) -> None:

@@ -5,21 +5,34 @@ file into place and inserts its row. A crash before the rename leaves a staging 
 rename and the commit, an episode file no row indexes. Neither was acknowledged (the row is the one commit
 point), so a sweep deletes staging files and moves unindexed files aside to ``DATA/orphans/``.
 
-These are the catalog's steps: the directory walks outside any lock, ``unindexed`` over a connection it
-opened, inside its ``BEGIN IMMEDIATE`` transaction (``storage.catalog`` owns connections and transactions).
+The model registry's ``register`` works the same way (a ``.tmp-*`` folder staged, renamed to its version and
+its row inserted in one write transaction), so a register that dies between the rename and the commit, or whose
+undo cannot delete the folder, leaves a checkpoint folder no row names: ``unregistered`` finds those and moves
+them aside to ``DATA/orphans/models/`` (``ModelRegistry.sweep_strays``, and every ``prune``).
+
+These are the catalog's and the registry's steps: the directory walks outside any lock, ``unindexed`` and
+``unregistered`` over a connection they opened, inside its ``BEGIN IMMEDIATE`` transaction (``storage.catalog``
+and ``storage.models`` own connections and transactions).
 """
 
 from __future__ import annotations
 
+import re
 import sqlite3
 from dataclasses import dataclass
 from pathlib import Path
 
-from storage.database import EPISODES_DIR
+from storage.database import EPISODES_DIR, MODELS_DIR
 from storage.files import age_s, move
 
 #: Where ``sweep_strays`` moves episode files that have no catalog row.
 ORPHANS_DIR = "orphans"
+#: Where ``unregistered`` moves checkpoint folders no registry row names: ``DATA/orphans/models/<version>``.
+MODEL_ORPHANS_DIR = f"{ORPHANS_DIR}/{MODELS_DIR}"
+#: What ``ModelRegistry.register`` names a checkpoint folder (``m<seq>-<8 hex of the weights' sha256>``); a
+#: folder named otherwise under ``models/`` is no version of the registry's (the ``.tmp-*`` and ``.prune-*``
+#: ones are live or crashed calls', which ``storage.pruning.sweep_stale`` takes by age).
+_VERSION = re.compile(r"m[0-9]{6,}-[0-9a-f]{8}")
 #: A staging file older than this belongs to no live ingest (an ingest stages, then commits, in seconds).
 STAGING_MAX_AGE_S = 300.0
 
@@ -62,3 +75,33 @@ def indexed(conn: sqlite3.Connection, rel: str) -> bool:
 def staging_files(episodes_dir: Path, min_age_s: float, now: float) -> list[Path]:
     """The staging files under ``episodes_dir`` older than ``min_age_s`` at ``now`` (unix seconds), sorted."""
     return sorted(p for p in episodes_dir.rglob(".*.mcap.*.tmp") if age_s(p, now) > min_age_s)
+
+
+def model_folders(models_dir: Path) -> list[Path]:
+    """The checkpoint folders under ``models_dir`` (named as versions), sorted."""
+    return sorted(p for p in models_dir.iterdir() if _VERSION.fullmatch(p.name) and p.is_dir())
+
+
+def unregistered(conn: sqlite3.Connection, folders: list[Path], move_to: Path | None) -> list[Path]:
+    """In a write transaction: those of ``folders`` (``model_folders``) still there that no row of the registry
+    names; moved under ``move_to`` (as ``<version>``, ``<version>.1`` ... when an earlier sweep took the name)
+    when given.
+
+    Certain under the write lock, however the folders were listed: a register renames its folder into place
+    and inserts its row in one write transaction, so by now every listed folder's register has committed (a
+    row), rolled back and taken it away, or died (an orphan). One whose undo is still to come (it too takes the
+    write lock) failed: moving its folder aside takes nothing that was acknowledged."""
+    rows = {r[0] for r in conn.execute("SELECT version FROM models")}
+    found = [p for p in folders if p.name not in rows and p.is_dir()]
+    for path in found if move_to is not None else ():
+        move(path, _free_name(move_to / path.name))
+    return found
+
+
+def _free_name(path: Path) -> Path:
+    """``path``, or ``path.1``, ``path.2`` ... the first that does not exist."""
+    n, free = 0, path
+    while free.exists():
+        n += 1
+        free = path.with_name(f"{path.name}.{n}")
+    return free

@@ -136,6 +136,19 @@ def test_models_prune_dry_run_then_prune(capsys, data, reg) -> None:
     assert rc == 0 and "nothing to delete" in out
 
 
+def test_models_prune_names_the_folders_it_moves_aside(capsys, data, reg) -> None:
+    """A folder no row names (what a register killed before its commit leaves) is moved aside, and said so."""
+    a = _register(reg, 0.01)
+    reg.gate(a)
+    shutil.copytree(reg.get(a).path, reg.models_dir / "m000009-0badf00d")
+    rc, out, _ = run_cli(capsys, "models", "prune", "--keep", "1", "--dry-run", "--data", str(data))
+    assert rc == 0 and "would move 1 checkpoint folder(s) no model row names" in out and "m000009-0badf00d" in out
+    assert (reg.models_dir / "m000009-0badf00d").is_dir()
+    rc, out, _ = run_cli(capsys, "models", "prune", "--keep", "1", "--data", str(data))
+    assert rc == 0 and out.startswith("nothing to delete") and "moved 1 checkpoint folder(s)" in out
+    assert (data / "orphans" / "models" / "m000009-0badf00d").is_dir() and not (reg.models_dir / "m000009-0badf00d").exists()
+
+
 @pytest.mark.parametrize("argv, words", [
     (("models",), "required"),
     (("models", "frobnicate"), "invalid choice"),

@@ -25,6 +25,7 @@ from storage.errors import CorruptCheckpointError, EpisodeError, NotFoundError, 
 from storage.models import ModelRecord, ModelRegistry, PruneResult
 from storage.records import Episode
 from storage.rows import Snapshot
+from storage.strays import MODEL_ORPHANS_DIR
 from uncertainty.config import TrainConfig
 from uncertainty.errors import ConfigError, UncertaintyError
 
@@ -285,12 +286,17 @@ def _models_prune(args: argparse.Namespace) -> int:
 def prune_summary(result: PruneResult) -> str:
     """One line on what a prune deleted (or would delete) and what it kept."""
     kept = f"kept {', '.join(result.kept)}" if result.kept else "no champion yet"
+    moved = ""
+    if result.orphaned:  # folders a register killed before its commit left: kept, out of the way
+        verb = "would move" if result.dry_run else "moved"
+        moved = (f"; {verb} {len(result.orphaned)} checkpoint folder(s) no model row names to "
+                 f"{MODEL_ORPHANS_DIR}/: {', '.join(result.orphaned)}")
     if not result.pruned:
-        return f"nothing to delete ({kept})"
+        return f"nothing to delete ({kept}){moved}"
     verb = "would delete" if result.dry_run else "deleted"
     what = "1 model's files" if len(result.pruned) == 1 else f"{len(result.pruned)} models' files"
     return (f"{verb} {what} ({result.freed_bytes / 2**20:.1f} MiB): "
-            f"{', '.join(result.pruned)}; {kept}")
+            f"{', '.join(result.pruned)}; {kept}{moved}")
 
 
 def _current_split(data: Path) -> str | None:

@@ -1,0 +1,161 @@
+"""Checkpoint folders no registry row names: a register killed between its rename and its commit leaves one;
+``sweep_strays`` and ``prune`` move it aside to ``DATA/orphans/models/``, and never the folder of a register in
+progress in another process (real processes, a real SIGKILL, the real SQLite write lock)."""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import signal
+import subprocess
+import sys
+import threading
+from pathlib import Path
+
+import storage.database
+from storage.models import ModelRegistry
+from tests.conftest import REPO, wait_for
+
+SPLIT = "split-aaaa"
+ENV = {**os.environ, "PYTHONPATH": str(REPO)}
+
+# A register that dies as a crash does between renaming its folder into place and committing its row.
+KILLED_BEFORE_COMMIT = """
+import os, signal, sys
+from storage import checkpoint_files
+from storage.models import ModelRegistry
+
+real = checkpoint_files.publish
+def publish(*args):
+    real(*args)
+    os.kill(os.getpid(), signal.SIGKILL)  # the folder renamed into place, its row not committed
+checkpoint_files.publish = publish
+ModelRegistry(sys.argv[1]).register(sys.argv[2].encode(), {}, {"h1_mse": 0.1}, "snap", "split-aaaa")
+"""
+
+# A register that stops between renaming its folder into place and committing its row (holding the write lock)
+# until the file argv[3] exists; it says its version in argv[2] first.
+PAUSED_BEFORE_COMMIT = """
+import sys, time
+from pathlib import Path
+from storage import checkpoint_files
+from storage.models import ModelRegistry
+
+real = checkpoint_files.publish
+def publish(*args):
+    final = real(*args)
+    Path(sys.argv[2]).write_text(final.name)
+    while not Path(sys.argv[3]).exists():
+        time.sleep(0.01)
+    return final
+checkpoint_files.publish = publish
+print(ModelRegistry(sys.argv[1]).register(b"in progress", {}, {"h1_mse": 0.1}, "snap", "split-aaaa"))
+"""
+
+
+def _register(reg: ModelRegistry, name: str) -> str:
+    return reg.register(name.encode() * 10, {}, {"h1_mse": 0.1}, "snap", SPLIT)
+
+
+def _killed_register(data: Path, weights: bytes) -> str:
+    """Runs a register that is killed before its commit; returns the version its folder is named."""
+    done = subprocess.run([sys.executable, "-c", KILLED_BEFORE_COMMIT, str(data), weights.decode()], cwd=REPO,
+                          capture_output=True, text=True, timeout=60, env=ENV)
+    assert done.returncode == -signal.SIGKILL, done.stderr
+    [version] = [p.name for p in (data / "models").iterdir() if hashlib.sha256(weights).hexdigest()[:8] in p.name]
+    return version
+
+
+def _orphan(data: Path, name: str) -> Path:
+    return data / "orphans" / "models" / name
+
+
+def test_a_register_killed_before_its_commit_leaves_a_folder_that_the_sweep_moves_aside(tmp_path):
+    data = tmp_path / "data"
+    reg = ModelRegistry(data)
+    kept = _register(reg, "kept")
+    stray = _killed_register(data, b"killed before commit")
+    assert (reg.models_dir / stray / "weights.pt").read_bytes() == b"killed before commit"
+    assert [r.version for r in reg.list()] == [kept]  # no row names it
+
+    assert reg.sweep_strays(dry_run=True) == [stray] and (reg.models_dir / stray).is_dir()
+    assert reg.sweep_strays() == [stray]
+    assert not (reg.models_dir / stray).exists()
+    assert (_orphan(data, stray) / "weights.pt").read_bytes() == b"killed before commit"  # kept, not deleted
+    assert reg.sweep_strays() == [] and reg.load_weights(kept) == b"kept" * 10
+    assert sorted(p.name for p in reg.models_dir.iterdir()) == [kept]
+
+
+def test_prune_moves_aside_the_folders_no_row_names(tmp_path):
+    data = tmp_path / "data"
+    reg = ModelRegistry(data)
+    champion = _register(reg, "champion")
+    reg.gate(champion)
+    stray = _killed_register(data, b"killed before commit")
+
+    result = reg.prune(keep=1)
+    assert not (reg.models_dir / stray).exists() and (_orphan(data, stray) / "weights.pt").is_file()
+    assert result.orphaned == [stray] and reg.prune(keep=1).orphaned == []
+    later = _killed_register(data, b"killed later")
+    assert reg.prune(keep=1, dry_run=True).orphaned == [later] and (reg.models_dir / later).is_dir()
+    assert reg.champion() == champion and reg.load_weights(champion) == b"champion" * 10
+
+
+def test_a_name_taken_in_orphans_gets_a_suffix(tmp_path):
+    """The same weights registered under the same sequence number, killed twice: both copies are kept."""
+    data = tmp_path / "data"
+    reg = ModelRegistry(data)
+    first = _killed_register(data, b"same bytes")
+    assert reg.sweep_strays() == [first]
+    second = _killed_register(data, b"same bytes")
+    assert second == first and reg.sweep_strays() == [first]
+    assert _orphan(data, first).is_dir() and _orphan(data, f"{first}.1").is_dir()
+
+
+def test_only_version_named_folders_are_the_registrys(tmp_path):
+    data = tmp_path / "data"
+    reg = ModelRegistry(data)
+    others = [reg.models_dir / ".tmp-0123abcd", reg.models_dir / ".prune-m000001-0123abcd-0123abcd",
+              reg.models_dir / "notes", reg.models_dir / "m1-0123abcd"]
+    for path in others:
+        path.mkdir()
+    (reg.models_dir / "m000002-0123abcd").write_bytes(b"a file, not a checkpoint folder")
+    assert reg.sweep_strays() == []
+    assert all(path.is_dir() for path in others) and (reg.models_dir / "m000002-0123abcd").is_file()
+    assert not (data / "orphans").exists()
+
+
+def _waiting_for_the_write_lock(thread: threading.Thread) -> bool:
+    """Whether ``thread`` is inside ``storage.database.transaction``'s ``BEGIN IMMEDIATE`` (where it waits while
+    another process holds the write lock)."""
+    frame = sys._current_frames().get(thread.ident)
+    return frame is not None and frame.f_code is storage.database.transaction.__wrapped__.__code__
+
+
+def test_a_sweep_never_takes_the_folder_of_a_register_in_progress(tmp_path):
+    """The register's folder is in place and its row not yet committed when the sweep starts: the sweep waits
+    for the write lock the register holds, then finds the row."""
+    data, published, go = tmp_path / "data", tmp_path / "published", tmp_path / "go"
+    reg = ModelRegistry(data)
+    register = subprocess.Popen([sys.executable, "-c", PAUSED_BEFORE_COMMIT, str(data), str(published), str(go)],
+                                cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=ENV)
+    try:
+        version = wait_for(lambda: published.exists() and published.read_text(), 60, "the register to publish")
+        assert (reg.models_dir / version).is_dir() and reg.list() == []  # in place, no row yet
+        swept: list[list[str]] = []
+        sweeper = threading.Thread(target=lambda: swept.append(reg.sweep_strays()))
+        sweeper.start()
+        wait_for(lambda: not sweeper.is_alive() or _waiting_for_the_write_lock(sweeper), 60,
+                 "the sweep to finish or wait for the write lock")
+        assert sweeper.is_alive()  # waiting for the write lock the register holds
+        go.touch()
+        out, err = register.communicate(timeout=60)
+        sweeper.join()
+    finally:
+        go.touch()
+        if register.poll() is None:
+            register.kill()
+            register.wait()
+    assert register.returncode == 0 and out.strip() == version, err
+    assert swept == [[]]
+    assert reg.load_weights(version) == b"in progress" and not (data / "orphans").exists()
