@@ -36,6 +36,7 @@ from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 from orchestrator.endpoints import endpoint_problem
 from orchestrator.protocol import Keys, ProtocolError
 from orchestrator.transport import SecureConfigError, lookup_key
+from storage.files import fsync_dir
 
 #: Roles that get a config, a certificate and a password. The router is the only listener.
 CLIENT_ROLES: tuple[str, ...] = ("orchestrator", "worker", "operator")
@@ -151,6 +152,8 @@ class SecureSet:
     """role -> (user, password)."""
     ca_certificate: Path | None = None
     """The private CA's certificate (the CA's key is not kept)."""
+    left_over: Path | None = None
+    """Where the profile ``force`` replaced is left when it could not be deleted after (it holds the old keys)."""
 
 
 # ---------------------------------------------------------------- certificates
@@ -343,17 +346,22 @@ def _staged_name(path: Path) -> Path:
 
 
 def _stage(path: Path, data: bytes, secret: bool) -> Path:
-    """Writes ``data`` under a temporary name next to ``path``, created with its final mode (so a secret
-    is never readable by others); returns that name, for ``os.replace`` onto ``path``."""
+    """``_write`` under a temporary name next to ``path``; returns that name, for ``os.replace`` onto ``path``."""
     tmp = _staged_name(path)
     tmp.unlink(missing_ok=True)
-    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600 if secret else 0o644)
+    _write(tmp, data, secret)
+    return tmp
+
+
+def _write(path: Path, data: bytes, secret: bool) -> None:
+    """Writes ``data`` to the new file ``path``, fsynced, created with its final mode (so a secret is never
+    readable by others)."""
+    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600 if secret else 0o644)
     with os.fdopen(fd, "wb") as f:
         f.write(data)
         f.flush()
         os.fsync(f.fileno())
-    os.chmod(tmp, 0o600 if secret else 0o644)  # umask may have narrowed the public ones
-    return tmp
+    os.chmod(path, 0o600 if secret else 0o644)  # umask may have narrowed the public ones
 
 
 def planned_files(directory: Path) -> list[Path]:
@@ -393,9 +401,11 @@ def init_secure(cfg: SecureInitConfig) -> SecureSet:
     """Writes a ready secure profile: CA, per-role certificates and passwords, four Zenoh configs.
 
     All or nothing: every file is made first, staged under a temporary name, and only then put in
-    place; when anything fails, what this call made (staged files, directories) is removed again.
-    Raises SecureConfigError when the directory already holds a profile and ``force`` is off,
-    or when it cannot be created; OSError when a file cannot be written (a full disk).
+    place; when anything fails, what this call made (staged files, files put in place, directories) is
+    removed again. A profile that ``force`` replaces is swapped whole (``_replace``): a failure leaves the
+    old one, never old and new files mixed. Raises SecureConfigError when the directory already holds a
+    profile and ``force`` is off, or when it cannot be created; OSError when a file cannot be written (a
+    full disk) or the old profile cannot be set aside (the directory is a mount point).
     """
     planned = planned_files(cfg.directory)
     if cfg.directory.is_dir():  # it becomes 0700: never take over a directory holding other things
@@ -408,30 +418,86 @@ def init_secure(cfg: SecureInitConfig) -> SecureSet:
         raise SecureConfigError(f"{cfg.directory} already holds a secure profile "
                                 f"({existing[0].name}, ...); pass --force to replace it")
     out, files = _render(cfg)  # before anything touches the disk
-    made = [p for p in (cfg.directory, *cfg.directory.parents) if not p.exists()][::-1]  # outermost first
-    done = False
-    try:
-        try:
-            cfg.directory.mkdir(parents=True, exist_ok=True)
-            os.chmod(cfg.directory, 0o700)
-        except OSError as exc:
-            raise SecureConfigError(f"cannot create {cfg.directory}: {exc.strerror}") from exc
-        staged = {path: _stage(path, data, secret) for path, (data, secret) in files.items()}
-        for path, tmp in staged.items():
-            os.replace(tmp, path)
-        done = True
-    finally:
-        if not done:
-            _undo(files, made)
+    if existing:
+        out.left_over = _replace(cfg.directory, files)
+    else:
+        _write_new(cfg.directory, files)
     return out
 
 
-def _undo(files: Iterable[Path], made: list[Path]) -> None:
-    """Removes the staged copies of ``files`` (those not yet in place) and the directories ``init_secure`` made."""
+def _write_new(directory: Path, files: dict[Path, tuple[bytes, bool]]) -> None:
+    """Writes a profile into ``directory``, made as needed, that holds none of its files yet."""
+    made = [p for p in (directory, *directory.parents) if not p.exists()][::-1]  # outermost first
+    placed: list[Path] = []
+    try:
+        try:
+            directory.mkdir(parents=True, exist_ok=True)
+            os.chmod(directory, 0o700)
+        except OSError as exc:
+            raise SecureConfigError(f"cannot create {directory}: {exc.strerror}") from exc
+        staged = {path: _stage(path, data, secret) for path, (data, secret) in files.items()}
+        for path, tmp in staged.items():
+            os.replace(tmp, path)
+            placed.append(path)
+    except BaseException:
+        _undo(files, placed, made)
+        raise
+
+
+def _undo(files: Iterable[Path], placed: list[Path], made: list[Path]) -> None:
+    """Removes the staged copies of ``files``, those ``placed`` (the directory held none of them before) and
+    the directories ``init_secure`` made."""
     for path in files:
         _staged_name(path).unlink(missing_ok=True)
+    for path in placed:
+        path.unlink(missing_ok=True)
     if made and made[0].is_dir():  # the outermost one this call made: all under it is this call's
         shutil.rmtree(made[0])
+
+
+def _replace(directory: Path, files: dict[Path, tuple[bytes, bool]]) -> Path | None:
+    """Replaces the profile in ``directory`` whole; returns where the old one is left when it cannot be deleted.
+
+    The new one is written into a sibling ``.NAME.new-*`` folder, then swapped in by two renames, the old one
+    kept aside (``.NAME.old-*``) until the new one is in place, put back when it cannot be. A failure leaves the
+    old profile; a crash the old one or the new one (between the renames: the old one aside), never a mix. Done
+    where a link to ``directory`` points: the configs name the files by their resolved paths."""
+    target = directory.resolve()
+    new, old = (target.with_name(f".{target.name}.{kind}-{secrets.token_hex(4)}") for kind in ("new", "old"))
+    try:
+        new.mkdir(mode=0o700)
+        os.chmod(new, 0o700)
+        for path, (data, secret) in files.items():
+            _write(new / path.name, data, secret)
+        fsync_dir(new)
+        _swap_in(new, target, old)
+    except BaseException:
+        shutil.rmtree(new, ignore_errors=True)  # never in place: this call's own files
+        raise
+    fsync_dir(target.parent)
+    try:
+        shutil.rmtree(old)
+    except OSError:
+        return old
+    return None
+
+
+def _swap_in(new: Path, target: Path, old: Path) -> None:
+    """Renames ``target`` to ``old``, then ``new`` to ``target``; when that fails, ``old`` back to ``target``."""
+    try:
+        os.rename(target, old)
+    except OSError as exc:  # e.g. a mount point, which cannot be renamed
+        raise OSError(exc.errno, f"cannot set the profile in {target} aside to replace it whole: {exc.strerror} "
+                                 "(nothing changed)") from exc
+    try:
+        os.rename(new, target)
+    except BaseException as exc:
+        try:
+            os.rename(old, target)
+        except OSError as again:
+            raise OSError(again.errno, f"cannot put the new profile in place ({exc}), nor the old one back ("
+                                       f"{again.strerror}): it is whole at {old}; rename it back to {target}") from exc
+        raise
 
 
 # ---------------------------------------------------------------- start-up check

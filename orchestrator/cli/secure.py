@@ -104,9 +104,13 @@ def _init(args: argparse.Namespace) -> int:
         result = init_secure(cfg)
     except SecureConfigError as exc:
         raise config_error(exc, {"namespace": "--namespace"} if str(exc).startswith("namespace:") else {}) from exc
+    if result.left_over is not None:
+        print(f"activecollect secure init: warning: the replaced profile could not be deleted; it holds the old "
+              f"keys: delete {result.left_over}", file=sys.stderr)
     if args.json:
         print_json({"directory": str(result.directory), "ca_certificate": str(result.ca_certificate),
-                    "configs": {role: str(p) for role, p in result.configs.items()}})
+                    "configs": {role: str(p) for role, p in result.configs.items()},
+                    "left_over": None if result.left_over is None else str(result.left_over)})
         return 0
     print(f"wrote a secure profile to {result.directory} (namespace {cfg.namespace}, "
           f"router {cfg.router_listen or cfg.router_endpoint})")
