@@ -20,9 +20,7 @@ import json
 import os
 import re
 import secrets
-import shutil
 import stat
-from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -33,10 +31,10 @@ from cryptography.hazmat.primitives import hashes, serialization
 from cryptography.hazmat.primitives.asymmetric import ec
 from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 
+from orchestrator import secure_files
 from orchestrator.endpoints import endpoint_problem
 from orchestrator.protocol import Keys, ProtocolError
 from orchestrator.transport import SecureConfigError, lookup_key
-from storage.files import fsync_dir
 
 #: Roles that get a config, a certificate and a password. The router is the only listener.
 CLIENT_ROLES: tuple[str, ...] = ("orchestrator", "worker", "operator")
@@ -341,29 +339,6 @@ def _json5_text(role: str, cfg: SecureInitConfig, body: dict[str, Any]) -> str:
     return header + json.dumps(body, indent=2) + "\n"
 
 
-def _staged_name(path: Path) -> Path:
-    return path.with_name(f".{path.name}.tmp")
-
-
-def _stage(path: Path, data: bytes, secret: bool) -> Path:
-    """``_write`` under a temporary name next to ``path``; returns that name, for ``os.replace`` onto ``path``."""
-    tmp = _staged_name(path)
-    tmp.unlink(missing_ok=True)
-    _write(tmp, data, secret)
-    return tmp
-
-
-def _write(path: Path, data: bytes, secret: bool) -> None:
-    """Writes ``data`` to the new file ``path``, fsynced, created with its final mode (so a secret is never
-    readable by others)."""
-    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600 if secret else 0o644)
-    with os.fdopen(fd, "wb") as f:
-        f.write(data)
-        f.flush()
-        os.fsync(f.fileno())
-    os.chmod(path, 0o600 if secret else 0o644)  # umask may have narrowed the public ones
-
-
 def planned_files(directory: Path) -> list[Path]:
     """Every file ``init_secure`` writes into ``directory``."""
     names = ["ca.pem", "users.txt"]
@@ -402,7 +377,7 @@ def init_secure(cfg: SecureInitConfig) -> SecureSet:
 
     All or nothing: every file is made first, staged under a temporary name, and only then put in
     place; when anything fails, what this call made (staged files, files put in place, directories) is
-    removed again. A profile that ``force`` replaces is swapped whole (``_replace``): a failure leaves the
+    removed again. A profile that ``force`` replaces is swapped whole (``secure_files.replace``): a failure leaves the
     old one, never old and new files mixed. Raises SecureConfigError when the directory already holds a
     profile and ``force`` is off, or when it cannot be created; OSError when a file cannot be written (a
     full disk) or the old profile cannot be set aside (the directory is a mount point).
@@ -419,85 +394,10 @@ def init_secure(cfg: SecureInitConfig) -> SecureSet:
                                 f"({existing[0].name}, ...); pass --force to replace it")
     out, files = _render(cfg)  # before anything touches the disk
     if existing:
-        out.left_over = _replace(cfg.directory, files)
+        out.left_over = secure_files.replace(cfg.directory, files)
     else:
-        _write_new(cfg.directory, files)
+        secure_files.write_new(cfg.directory, files)
     return out
-
-
-def _write_new(directory: Path, files: dict[Path, tuple[bytes, bool]]) -> None:
-    """Writes a profile into ``directory``, made as needed, that holds none of its files yet."""
-    made = [p for p in (directory, *directory.parents) if not p.exists()][::-1]  # outermost first
-    placed: list[Path] = []
-    try:
-        try:
-            directory.mkdir(parents=True, exist_ok=True)
-            os.chmod(directory, 0o700)
-        except OSError as exc:
-            raise SecureConfigError(f"cannot create {directory}: {exc.strerror}") from exc
-        staged = {path: _stage(path, data, secret) for path, (data, secret) in files.items()}
-        for path, tmp in staged.items():
-            os.replace(tmp, path)
-            placed.append(path)
-    except BaseException:
-        _undo(files, placed, made)
-        raise
-
-
-def _undo(files: Iterable[Path], placed: list[Path], made: list[Path]) -> None:
-    """Removes the staged copies of ``files``, those ``placed`` (the directory held none of them before) and
-    the directories ``init_secure`` made."""
-    for path in files:
-        _staged_name(path).unlink(missing_ok=True)
-    for path in placed:
-        path.unlink(missing_ok=True)
-    if made and made[0].is_dir():  # the outermost one this call made: all under it is this call's
-        shutil.rmtree(made[0])
-
-
-def _replace(directory: Path, files: dict[Path, tuple[bytes, bool]]) -> Path | None:
-    """Replaces the profile in ``directory`` whole; returns where the old one is left when it cannot be deleted.
-
-    The new one is written into a sibling ``.NAME.new-*`` folder, then swapped in by two renames, the old one
-    kept aside (``.NAME.old-*``) until the new one is in place, put back when it cannot be. A failure leaves the
-    old profile; a crash the old one or the new one (between the renames: the old one aside), never a mix. Done
-    where a link to ``directory`` points: the configs name the files by their resolved paths."""
-    target = directory.resolve()
-    new, old = (target.with_name(f".{target.name}.{kind}-{secrets.token_hex(4)}") for kind in ("new", "old"))
-    try:
-        new.mkdir(mode=0o700)
-        os.chmod(new, 0o700)
-        for path, (data, secret) in files.items():
-            _write(new / path.name, data, secret)
-        fsync_dir(new)
-        _swap_in(new, target, old)
-    except BaseException:
-        shutil.rmtree(new, ignore_errors=True)  # never in place: this call's own files
-        raise
-    fsync_dir(target.parent)
-    try:
-        shutil.rmtree(old)
-    except OSError:
-        return old
-    return None
-
-
-def _swap_in(new: Path, target: Path, old: Path) -> None:
-    """Renames ``target`` to ``old``, then ``new`` to ``target``; when that fails, ``old`` back to ``target``."""
-    try:
-        os.rename(target, old)
-    except OSError as exc:  # e.g. a mount point, which cannot be renamed
-        raise OSError(exc.errno, f"cannot set the profile in {target} aside to replace it whole: {exc.strerror} "
-                                 "(nothing changed)") from exc
-    try:
-        os.rename(new, target)
-    except BaseException as exc:
-        try:
-            os.rename(old, target)
-        except OSError as again:
-            raise OSError(again.errno, f"cannot put the new profile in place ({exc}), nor the old one back ("
-                                       f"{again.strerror}): it is whole at {old}; rename it back to {target}") from exc
-        raise
 
 
 # ---------------------------------------------------------------- start-up check

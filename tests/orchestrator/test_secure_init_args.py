@@ -9,7 +9,7 @@ import errno
 import pytest
 from cryptography import x509
 
-import orchestrator.secure as secure
+import orchestrator.secure_files as secure_files
 from orchestrator.secure import MAX_VALID_DAYS, SecureConfigError, SecureInitConfig, init_secure, planned_files
 from tests.conftest import run_cli
 
@@ -74,7 +74,7 @@ def test_the_library_refuses_what_the_flags_refuse(tmp_path, change, match):
 def _disk_full_at(monkeypatch, call: int) -> None:
     """``init_secure``'s ``call``-th file write fails as on a full disk, after making its temporary file
     (as a write that fills the disk does); the ones before it are real."""
-    real, calls = secure._stage, []
+    real, calls = secure_files._stage, []
 
     def stage(path, data, secret):
         calls.append(path)
@@ -83,7 +83,7 @@ def _disk_full_at(monkeypatch, call: int) -> None:
             raise OSError(errno.ENOSPC, "No space left on device")
         return tmp
 
-    monkeypatch.setattr(secure, "_stage", stage)
+    monkeypatch.setattr(secure_files, "_stage", stage)
 
 
 def test_a_failed_write_removes_the_directories_it_made(capsys, monkeypatch, tmp_path):
