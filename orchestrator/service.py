@@ -31,7 +31,7 @@ import logging
 import queue as queue_mod
 import threading
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from typing import Any
 
 import zenoh
@@ -123,7 +123,8 @@ class Service:
             except StorageError as exc:  # e.g. a full disk: nothing was queued
                 raise ServiceError(f"cannot seed the queue with {cfg.seed_requests} request(s): {exc}") from exc
         self._uploads = UploadHandler(self.queue, self.catalog, self.metrics, self.publish, self._writes,
-                                      cfg.max_upload_bytes, self._episode_stored, self._frame_size)
+                                      cfg.max_upload_bytes, self._episode_stored, self._frame_size,
+                                      health=self.storage)
         self._threads = [threading.Thread(target=self._maintain, name="maintenance", daemon=True),
                          threading.Thread(target=self._after_episodes, name="episodes", daemon=True)]
         for t in self._threads:
@@ -185,6 +186,13 @@ class Service:
         except zenoh.ZError as exc:
             log.warning("cannot publish %s: %s", kind.value, exc)
 
+    @contextlib.contextmanager
+    def _writing(self) -> Iterator[None]:
+        """The writer turn (``_writes``) around a write of ours; one the storage refuses for a reason that passes
+        is ``storage``'s to know, whichever path wrote (no lease expires until a write works again)."""
+        with self.storage.writing(), self._writes:
+            yield
+
     # --- query handlers ------------------------------------------------------------------------
 
     def _serve(self, key: str, handler: Callable[[Incoming], bytes], threads: int) -> transport.Server:
@@ -209,7 +217,7 @@ class Service:
         lease_s = self.config.lease_s
         frame_size = self._frame_size() if req.image_size else 0  # before the lease: it must not fail after
         try:
-            with self._writes:
+            with self._writing():
                 # One lease per worker: a query it asked again (the first one's answer came too late, e.g.
                 # behind another process's write lock) gets the lease the first one granted, not a second.
                 lease = self.queue.lease(req.worker_id, req.tasks, req.shapes, lease_s, one_per_worker=True)
@@ -261,18 +269,16 @@ class Service:
     def _renew(self, msg: Incoming) -> bytes:
         req = messages.RenewRequest.from_json(msg.payload)
         try:
-            with self._writes:
+            with self._writing():
                 expires = self.queue.renew(req.request_id, req.token, req.worker_id, self.config.lease_s)
         except QueueError as exc:
-            if isinstance(exc, StorageUnavailableError):  # the lease cannot be kept alive: no expiry until back
-                self.storage.write_failed(exc)
             raise admin.protocol_error(exc) from exc
         return protocol.ok_reply(expires_at=expires)
 
     def _fail(self, msg: Incoming) -> bytes:
         req = messages.FailRequest.from_json(msg.payload)
         try:
-            with self._writes:
+            with self._writing():
                 request = self.queue.fail(req.request_id, req.token, req.error, worker_id=req.worker_id)
         except QueueError as exc:
             raise admin.protocol_error(exc) from exc
@@ -282,7 +288,7 @@ class Service:
     def _release(self, msg: Incoming) -> bytes:
         req = messages.ReleaseRequest.from_json(msg.payload)
         try:
-            with self._writes:
+            with self._writing():
                 request = self.queue.release(req.request_id, req.token, worker_id=req.worker_id)
         except QueueError as exc:
             raise admin.protocol_error(exc) from exc
@@ -301,7 +307,7 @@ class Service:
             request = messages.AdminRequest(op=op)
         # Reads (queue ls, stats, ...) run on their own connections beside the writer: an operator's
         # listing must not hold up leases.
-        with self._writes if request.op in admin.WRITE_OPS else contextlib.nullcontext():
+        with self._writing() if request.op in admin.WRITE_OPS else contextlib.nullcontext():
             body = admin.handle(request.op, request.args, queue=self.queue, catalog=self.catalog,
                                 registry=self.context.registry, workers=self.workers)
         event = admin.admin_event(request.op, body)
@@ -331,7 +337,7 @@ class Service:
         with self._alive_lock:
             if worker_id in self._alive:  # it came back before we got here
                 return
-        with self._writes:
+        with self._writing():
             released = self.queue.release_worker_leases(worker_id)
         log.info("worker %s lost; %d lease(s) released", worker_id, len(released))
         self.publish(EventKind.WORKER_LOST, {"worker_id": worker_id, "released": [r.id for r in released]})
@@ -361,8 +367,8 @@ class Service:
                 return
             try:
                 task()
-            except StorageUnavailableError as exc:  # a write (the tasks' reads go through storage.read)
-                self.storage.write_failed(exc)
+            except StorageUnavailableError:  # a write's, said by storage.writing (reads go through storage.read)
+                pass  # no lease expires until a write works again; the next reap tries one
             except Exception:  # noqa: BLE001 -- lease expiry must outlive any one failure
                 log.exception("maintenance task failed; will try again")
 
@@ -374,7 +380,8 @@ class Service:
         and says so: no row indexes them, so nothing reads them, an upload of the same episode replaces
         one, and the next sweep (or start) tries again. It is no reason to refuse to start."""
         try:
-            swept = self.catalog.sweep_strays()
+            with self.storage.writing():
+                swept = self.catalog.sweep_strays()
         except OSError as exc:
             log.warning("cannot move the files crashed ingests left aside (%s: %s); they stay where they are, "
                         "unindexed, until a later sweep", exc.filename or self.config.data_dir,
@@ -390,20 +397,20 @@ class Service:
         a few restarts) and its worker would drop the episode it collected but has not yet uploaded. A worker
         that is gone lets its lease run out one term later."""
         try:
-            extended = self.queue.extend_leases(self.config.lease_s)
-        except StorageUnavailableError as exc:  # a full disk: the reaper extends them once writes work again
-            self.storage.write_failed(exc)
+            with self.storage.writing():
+                extended = self.queue.extend_leases(self.config.lease_s)
+        except StorageUnavailableError:  # a full disk: the reaper extends them once writes work again
             return
         if extended:
             log.info("%d lease(s) from before the start extended by %.0f s so their workers can renew",
                      extended, self.config.lease_s)
 
     def _reap(self) -> None:
-        with self._writes:
+        with self._writing():
             if self.storage.down_since is not None:
                 extended = self.queue.extend_leases(self.config.lease_s)
                 down_s = self.storage.writes_work()
-                if extended:  # (with no live lease this write changed nothing, so it proves little: no line)
+                if extended and down_s is not None:  # (with no live lease this write proves little: no line)
                     log.warning("storage writable again after %.0f s; %d live lease(s) extended by %.0f s so "
                                 "their workers can renew", down_s, extended, self.config.lease_s)
             expired = self.queue.expire_leases()
@@ -421,7 +428,7 @@ class Service:
     def _enqueue(self, news: Sequence[NewRequest], source: str) -> None:
         if not news:
             return
-        with self._writes:
+        with self._writing():
             stored = self.queue.enqueue_many(news)
         for request, created in stored:
             if created:
@@ -468,7 +475,6 @@ class Service:
         try:
             self._enqueue(news, source)
         except StorageUnavailableError as exc:  # these requests are lost; the queue floor tops up later
-            self.storage.write_failed(exc)
             log.warning("%d request(s) of %s could not be queued: %s", len(news), source, exc)
         except Exception:  # noqa: BLE001 -- must not stop ingest or the top-ups; it is logged
             log.exception("queueing %d request(s) of %s failed", len(news), source)

@@ -5,9 +5,12 @@ MCAP bytes). It checks the lease (token and worker) before a byte is written, th
 the sha256, verifies the MCAP once, then writes the file atomically, indexes it and completes
 the request in one catalog transaction. A repeat of an upload that already completed its
 request is acknowledged as a duplicate (once its file holds those bytes: a file lost or damaged
-on disk since is put back from the repeat's); anything else that does not fit is refused with the
-reason, and nothing of it is indexed. Stored episodes are handed to ``on_stored`` (the
-service's background thread: scoring and planning never run on this path).
+on disk since is put back from the repeat's, unless the episode is quarantined); anything else that
+does not fit is refused with the reason, and nothing of it is indexed. A write the storage refuses
+for a reason that passes (a full disk, a lock held past the busy timeout) is the service's
+``StorageHealth``'s to know (no lease expires meanwhile) and the worker's to send again
+(``unavailable``). Stored episodes are handed to ``on_stored`` (the service's background thread:
+scoring and planning never run on this path).
 """
 
 from __future__ import annotations
@@ -24,12 +27,16 @@ import numpy as np
 from orchestrator import admin, messages, protocol
 from orchestrator.metrics import ServiceMetrics
 from orchestrator.protocol import ErrorCode, EventKind, ProtocolError
+from orchestrator.storagehealth import StorageHealth
 from orchestrator.transport import Incoming
 from storage.catalog import Catalog
+from storage.database import connection, storage_error, transaction
 from storage.episode_reader import EpisodeInfo, decoded_limit, read_episode
-from storage.errors import (EpisodeError, OversizedEpisodeError, QueueError, StaleLeaseError, StorageError,
-                            StorageUnavailableError)
-from storage.files import holds
+from storage.errors import (CatalogError, EpisodeError, OversizedEpisodeError, QueueError, StaleLeaseError,
+                            StorageError, StorageUnavailableError)
+from storage.files import holds, stage_bytes
+from storage.files import publish as publish_file
+from storage.quarantine import is_quarantined
 from storage.queue import RequestQueue
 from storage.records import Episode
 from storage.requests import IllegalTransitionError, Request, RequestStatus
@@ -59,13 +66,15 @@ class UploadHandler:
     def __init__(self, queue: RequestQueue, catalog: Catalog, metrics: ServiceMetrics,
                  publish: Callable[[EventKind, dict[str, Any]], None], write_lock: threading.Lock,
                  max_upload_bytes: int, on_stored: Callable[[StoredEpisode], None],
-                 frame_size: Callable[[], int] = lambda: 0) -> None:
+                 frame_size: Callable[[], int] = lambda: 0, *, health: StorageHealth) -> None:
         self.queue = queue
         self.catalog = catalog
         self.metrics = metrics
         self.publish = publish
         self.write_lock = write_lock
         """The service's writer turn: the ingest transaction takes it like every queue transition."""
+        self.health = health
+        """The service's: a write of an upload the storage refuses holds every lease, as a renew's does."""
         self.max_upload_bytes = max_upload_bytes
         self.on_stored = on_stored
         self.frame_size = frame_size
@@ -108,12 +117,13 @@ class UploadHandler:
         self._check_live(request, header)  # before a byte is written
         episode = self._decode(data, header, request)  # the one full read of the bytes; ingest reuses it
         try:
-            result = self.catalog.ingest_bytes(
-                data, expected_sha256=header.sha256, split="train",
-                in_transaction=lambda conn: self.queue.complete(
-                    header.request_id, header.token, episode.meta.episode_id, conn,
-                    worker_id=header.worker_id),
-                verified=EpisodeInfo(meta=episode.meta, frames=len(episode)), write_lock=self.write_lock)
+            with self.health.writing():
+                result = self.catalog.ingest_bytes(
+                    data, expected_sha256=header.sha256, split="train",
+                    in_transaction=lambda conn: self.queue.complete(
+                        header.request_id, header.token, episode.meta.episode_id, conn,
+                        worker_id=header.worker_id),
+                    verified=EpisodeInfo(meta=episode.meta, frames=len(episode)), write_lock=self.write_lock)
         except (StaleLeaseError, IllegalTransitionError) as exc:
             request = self.queue.get(header.request_id)  # a racing identical upload may have won
             if self._duplicate_of(request, header) is not None:
@@ -151,22 +161,45 @@ class UploadHandler:
 
     def _restore_if_lost(self, row: EpisodeRow, data: bytes, header: messages.UploadHeader) -> None:
         """Before a repeat is acknowledged: when the episode's file no longer holds its bytes (lost or
-        damaged on disk) and it is not quarantined, ``data`` (its sha256 is the row's) puts it back, by
-        the catalog's restore of a duplicate ingest. A quarantine (an operator's or a training job's
-        decision) is not ended by a worker's retry. Refused ``unavailable`` when the restore cannot be
-        written (a full disk), so the worker keeps its bytes and sends them again."""
+        damaged on disk) and it is not quarantined, ``data`` (its sha256 is the row's) puts it back. A
+        quarantine (an operator's or a training job's decision) is not ended by a worker's retry, not even
+        one that commits while this repeat is checked (``_put_back``). Refused ``unavailable`` when the
+        restore cannot be written (a full disk), so the worker keeps its bytes and sends them again."""
         if row.quarantined or holds(row.path, row.sha256):
             return
         try:
-            result = self.catalog.ingest_bytes(data, expected_sha256=header.sha256, split=row.split,
-                                               write_lock=self.write_lock)
+            with self.health.writing():
+                restored = self._put_back(row, data)
         except StorageError as exc:  # the bytes hash to a verified episode's: the disk, not the upload
             code = ErrorCode.UNAVAILABLE if isinstance(exc, StorageUnavailableError) else ErrorCode.INTERNAL
             raise ProtocolError(code, f"episode {row.episode_id}: its file does not hold the bytes "
                                 f"indexed, and restoring it from this upload failed: {exc}") from exc
-        if result.restored:
+        if restored:
             log.warning("episode %s: its file %s was missing or damaged; restored from a repeated upload of %s",
                         row.episode_id, row.path, header.request_id)
+
+    def _put_back(self, row: EpisodeRow, data: bytes) -> bool:
+        """Writes ``data`` (the bytes ``row`` indexes) back to ``row``'s file, unless by the time the catalog's
+        write lock is ours the episode is quarantined or its file holds them again; True when it wrote.
+
+        Checked under the lock because an operator's quarantine (another process) may commit after ``row``
+        was read. Not the catalog's restore of a duplicate ingest: that ends a quarantine, as an operator's
+        ingest of the same bytes is meant to; a worker's retry is not. Raises ``CatalogError``
+        (``CatalogUnavailableError`` for a full disk)."""
+        staged = None
+        try:
+            staged = stage_bytes(row.path, data)  # the slow part (write + fsync), outside the write lock
+            with connection(self.catalog.db_path, CatalogError) as conn, self.write_lock, transaction(conn):
+                if is_quarantined(conn, row.episode_id) or holds(row.path, row.sha256):
+                    return False  # (the transaction wrote nothing: it only held the lock)
+                publish_file(staged, row.path)
+                return True
+        except OSError as exc:
+            raise storage_error(exc, CatalogError, f"cannot restore episode {row.episode_id} at {row.path}: "
+                                f"{exc.strerror or exc}", row.path) from exc
+        finally:
+            if staged is not None:
+                staged.unlink(missing_ok=True)
 
     def _check_live(self, request: Request, header: messages.UploadHeader) -> None:
         if (request.status != RequestStatus.LEASED or request.token != header.token

@@ -3,6 +3,10 @@ a Zenoh client session to it, and the test namespace's keys. A module that needs
 
 from __future__ import annotations
 
+import errno
+import os
+import stat
+import threading
 from pathlib import Path
 from typing import Any
 
@@ -46,3 +50,26 @@ def client(endpoint: str):
 @pytest.fixture
 def keys(namespace: str) -> Keys:
     return Keys(namespace)
+
+
+class FailingSyncs:
+    """``os.fsync`` of the files under ``directory`` fails with ``OSError(code)`` until ``heal()``: a disk that
+    is full, then has room again (file systems that allocate late, and NFS, say so at the fsync). Only the
+    files there: SQLite syncs its own files without Python's ``os.fsync``, so the catalog's rows stay
+    writable, as when the episodes are on a disk of their own."""
+
+    def __init__(self, directory: Path, monkeypatch, code: int = errno.ENOSPC) -> None:
+        self.directory, self.code, self.failed = directory, code, 0
+        self._real, self._healed = os.fsync, threading.Event()
+        monkeypatch.setattr(os, "fsync", self._fsync)
+
+    def _fsync(self, fd: int) -> None:
+        if (not self._healed.is_set() and stat.S_ISREG(os.fstat(fd).st_mode)  # a file's, not a folder's
+                and Path(os.readlink(f"/proc/self/fd/{fd}")).is_relative_to(self.directory)):
+            self.failed += 1
+            raise OSError(self.code, os.strerror(self.code))
+        self._real(fd)
+
+    def heal(self) -> None:
+        """The disk has room again: every fsync from now on goes through."""
+        self._healed.set()

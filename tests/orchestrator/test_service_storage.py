@@ -1,20 +1,25 @@
 """The service when its storage is slow or failing: a lease query that waits behind another process's write
-lock past the worker's timeout, reads that fail while writes work, a seed that cannot be queued."""
+lock past the worker's timeout, reads that fail while writes work, a seed that cannot be queued, writes that
+fail on any path (an upload, a lease, an operator's queue change), each an outage that holds every lease."""
 
 from __future__ import annotations
 
+import functools
 import logging
 import socket
 import sqlite3
 import threading
+import time
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 from orchestrator import messages, protocol, transport
+from orchestrator import service as service_module
 from orchestrator.messages import LeaseGrant
 from orchestrator.metrics import ServiceMetrics
+from orchestrator.protocol import ErrorCode
 from orchestrator.serviceconfig import ServiceConfig, ServiceError
 from orchestrator.service import Service
 from orchestrator.uniform import UniformPlanner, UniformPlannerConfig
@@ -23,7 +28,8 @@ from storage.errors import CatalogUnavailableError
 from storage.queue import RequestQueue
 from storage.requests import NewRequest, RequestStatus
 from tests.conftest import wait_for
-from tests.orchestrator.test_service import episode_bytes, lease, new_request, upload
+from tests.orchestrator.conftest import FailingSyncs
+from tests.orchestrator.test_service import START, call, episode_bytes, lease, new_request, refused, upload
 
 
 def port_free(port: int) -> bool:
@@ -153,3 +159,87 @@ def test_a_seed_that_cannot_be_queued_stops_what_the_start_had_started(data_dir,
     assert service.session.is_closed()
     wait_for(lambda: port_free(port), message="the service's Zenoh listener to close")
     service.stop()  # (idempotent: the CLI stops what it started whatever the start did)
+
+
+class CountedReaps(ServiceMetrics):
+    """The real gauges, noting when each reap has read them (once a reap, after its expiries)."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.reaps: list[float] = []
+
+    def read_stores(self, queue, catalog, registry) -> None:
+        super().read_stores(queue, catalog, registry)
+        self.reaps.append(time.time())
+
+
+def test_an_upload_the_disk_refuses_holds_every_lease_until_it_goes_in(make_service, client, keys, data_dir,
+                                                                       monkeypatch, caplog) -> None:
+    """The episodes' disk is full while the catalog's rows stay writable: uploads are refused `unavailable` (the
+    worker keeps its episode and sends it again) and nothing else fails. That is an outage of the storage as
+    much as one a renew meets: the reaper extends the lease instead of expiring it (an attempt counted, and
+    the upload then refused as stale: the episode dropped). Not renewed here, so that only the reaper keeps
+    it: a worker's renewals can fail or wait as its uploads do. Once the disk has room, the same upload
+    completes the request; the outage, ended by each reap and begun again by the next upload, is said once."""
+    metrics = CountedReaps()
+    with caplog.at_level(logging.INFO, logger="orchestrator"):
+        service = make_service(lease_s=1.0, metrics=metrics)
+        request, _ = service.queue.enqueue(new_request())
+        grant = lease(client, keys)
+        data = episode_bytes(grant)
+        disk = FailingSyncs(data_dir / "episodes", monkeypatch)
+
+        def sent_again() -> bool:  # as Worker._upload does after each `unavailable`
+            refused(ErrorCode.UNAVAILABLE, upload, client, keys, grant, data)
+            return sum(at > grant.expires_at for at in metrics.reaps) >= 3
+
+        wait_for(sent_again, message="three reaps after the end of the lease's first term")
+        held = service.queue.get(request.id)
+        assert (held.status, held.token, held.attempts) == (RequestStatus.LEASED, grant.token, 0)
+        disk.heal()
+        body = upload(client, keys, grant, data)
+        wait_for(lambda: service.storage.down_since is None, message="the reaper to see the storage back")
+    assert "duplicate" not in body and disk.failed >= 3
+    done = service.queue.get(request.id)
+    assert (done.status, done.episode_id, done.attempts) == (RequestStatus.DONE, body["episode_id"], 0)
+    assert Catalog(data_dir).verify(body["episode_id"])
+    errors = [r.getMessage() for r in caplog.records if r.levelno >= logging.ERROR]
+    assert len(errors) == 1 and errors[0].startswith("storage unavailable: cannot store episode"), errors
+    assert "No space left on device" in errors[0]
+
+
+@pytest.mark.parametrize("op", ["lease", "renew", "fail", "release", "queue.add"])
+def test_a_write_refused_past_the_busy_timeout_is_an_outage_whichever_path_met_it(make_service, client, keys,
+                                                                                 data_dir, monkeypatch, op) -> None:
+    """Another process holds the catalog's write lock past the service's busy timeout; whatever write met it
+    is refused `unavailable`, changes nothing, and the storage is down (no lease expires until a write works):
+    not only a renew's. (The reaper, which would meet the lock too, does not run meanwhile.)"""
+    monkeypatch.setattr(service_module, "RequestQueue", functools.partial(RequestQueue, busy_timeout_s=0.2))
+    metrics = CountedReaps()
+    service = make_service(reap_interval_s=120.0, metrics=metrics)  # (one reap now, the next long after)
+    wait_for(lambda: metrics.reaps, message="the first reap, at start")
+    request, _ = service.queue.enqueue(new_request())
+    grant = lease(client, keys)
+    before = service.queue.list()
+    messages_for = {
+        "lease": (keys.lease, messages.LeaseRequest(worker_id="w2")),
+        "renew": (keys.renew, messages.RenewRequest(request_id=request.id, token=grant.token, worker_id="w1")),
+        "fail": (keys.fail, messages.FailRequest(request_id=request.id, token=grant.token, worker_id="w1",
+                                                 error="boom")),
+        "release": (keys.release, messages.ReleaseRequest(request_id=request.id, token=grant.token,
+                                                          worker_id="w1")),
+        "queue.add": (keys.admin("queue.add"), messages.AdminRequest(op="queue.add", args={
+            "task": "push", "shape": "T", "start_state": {**START, "shape": "T"}})),
+    }
+    key, sent = messages_for[op]
+    writer = sqlite3.connect(Catalog(data_dir).db_path, isolation_level=None)  # a CLI's write, a backup, ...
+    writer.execute("BEGIN IMMEDIATE")
+    try:
+        why = refused(ErrorCode.UNAVAILABLE, call, client, key, sent.to_json())
+        down = service.storage.down_since
+    finally:
+        writer.execute("ROLLBACK")
+        writer.close()
+    assert "database is locked" in why, why
+    assert down is not None, f"a {op} refused for a locked database left the storage 'up'"
+    assert service.queue.list() == before

@@ -9,10 +9,11 @@ import threading
 
 import pytest
 
-from orchestrator import messages, protocol
+from orchestrator import messages, protocol, uploads
 from orchestrator.messages import LeaseGrant
 from orchestrator.protocol import ErrorCode
 from storage.catalog import Catalog
+from storage.quarantine import quarantine_path
 from storage.requests import RequestStatus
 from tests.conftest import wait_for
 from tests.orchestrator.test_service import (DEFAULT_PHYSICS, call, episode_bytes, lease, new_request, refused,
@@ -268,3 +269,39 @@ def test_a_repeat_whose_lost_file_cannot_be_put_back_is_not_acknowledged(service
     assert "restoring it from this upload failed" in message
     path.parent.unlink()
     assert upload(client, keys, grant, data) == {**body, "duplicate": True} and path.read_bytes() == data
+
+
+def test_an_operators_quarantine_that_commits_while_a_repeat_is_checked_stands(service, client, keys, data_dir,
+                                                                            monkeypatch) -> None:
+    """The first upload was acknowledged, its reply lost; the worker sends it again, and an operator's
+    `activecollect episodes quarantine` commits just after the repeat read the episode's row (not quarantined
+    then) and before the file was looked at (gone: moved to quarantine/). The repeat is acknowledged (the
+    worker must not collect it again) and the quarantine stands: the file stays in quarantine/, the row stays
+    quarantined, nothing is put back into episodes/ and nothing is indexed twice."""
+    request, _ = service.queue.enqueue(new_request())
+    grant = lease(client, keys)
+    data = episode_bytes(grant)
+    body = upload(client, keys, grant, data)
+    catalog = Catalog(data_dir)
+    row = catalog.get(body["episode_id"])
+    kept = data_dir / quarantine_path(row.path.relative_to(data_dir).as_posix())
+    real_holds, quarantined = uploads.holds, []
+
+    def holds_after_the_operator(path, sha256) -> bool:  # the CLI's call, on a connection of its own
+        if not quarantined:
+            quarantined.append(Catalog(data_dir).quarantine(row.episode_id, "operator: wrong object"))
+        return real_holds(path, sha256)
+
+    monkeypatch.setattr(uploads, "holds", holds_after_the_operator)
+
+    assert upload(client, keys, grant, data) == {**body, "duplicate": True}
+
+    assert quarantined and quarantined[0].quarantined == "operator: wrong object"
+    after = catalog.get(row.episode_id)
+    assert after.quarantined == "operator: wrong object", "the repeat ended the operator's quarantine"
+    assert not row.path.exists() and kept.read_bytes() == data
+    assert [p for p in catalog.episodes_dir.rglob("*") if p.is_file()] == []  # no staging file left either
+    assert catalog.count() == 1 and catalog.snapshot().ids == []
+    done = service.queue.get(request.id)
+    assert (done.status, done.episode_id, done.attempts) == (RequestStatus.DONE, body["episode_id"], 0)
+    assert not catalog.restore(row.episode_id).quarantined and row.path.read_bytes() == data  # nothing lost

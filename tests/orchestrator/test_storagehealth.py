@@ -4,8 +4,11 @@ from __future__ import annotations
 
 import logging
 
+import pytest
+
+from orchestrator.protocol import ErrorCode, ProtocolError
 from orchestrator.storagehealth import StorageHealth
-from storage.errors import CatalogUnavailableError, QueueUnavailableError
+from storage.errors import CatalogError, CatalogUnavailableError, QueueUnavailableError
 
 
 class Clock:
@@ -54,7 +57,7 @@ def test_a_read_returns_its_value_or_none(caplog) -> None:
 def test_a_write_outage_is_said_once_and_timed(caplog) -> None:
     clock = Clock()
     health = StorageHealth(logging.getLogger("test.storagehealth"), clock=clock)
-    assert health.writes_work() == 0.0
+    assert health.writes_work() is None  # no outage
     with caplog.at_level(logging.INFO, logger="test.storagehealth"):
         health.write_failed(QueueUnavailableError("database or disk is full"))
         clock.now += 5
@@ -62,3 +65,59 @@ def test_a_write_outage_is_said_once_and_timed(caplog) -> None:
     assert health.down_since == 100.0 and caplog.text.count("storage unavailable") == 1
     clock.now += 5
     assert health.writes_work() == 10.0 and health.down_since is None
+
+
+def test_writing_notes_an_outage_whatever_wraps_it_and_raises_on(caplog) -> None:
+    """Around every write of the service: one refused for a reason that passes is an outage, also when a
+    caller's own error was raised from it (an admin op's wire refusal); any other error is not. Nothing is
+    swallowed, and a write that works ends nothing (the reaper does, after extending the leases)."""
+    health = StorageHealth(logging.getLogger("test.storagehealth"))
+    with pytest.raises(KeyError), health.writing():
+        raise KeyError("a bug, or a refusal of the request itself")
+    with pytest.raises(CatalogError), health.writing():
+        raise CatalogError("episode e1 is already indexed with other bytes")
+    assert health.down_since is None
+    with pytest.raises(ProtocolError) as info, health.writing():
+        try:
+            raise QueueUnavailableError("database is locked")
+        except QueueUnavailableError as exc:
+            raise ProtocolError(ErrorCode.UNAVAILABLE, str(exc)) from exc
+    assert info.value.code == ErrorCode.UNAVAILABLE and health.down_since is not None
+    with health.writing():
+        pass
+    assert health.down_since is not None
+    caplog.clear()
+    with caplog.at_level(logging.INFO, logger="test.storagehealth"), pytest.raises(CatalogUnavailableError), \
+            health.writing():
+        raise CatalogUnavailableError("cannot store episode e2: No space left on device")
+    assert "storage unavailable" not in caplog.text  # the same outage: said once
+
+
+def test_an_outage_that_ends_at_every_reap_is_said_once_a_period(caplog) -> None:
+    """The episodes' disk is full, the catalog's is not: each upload's write fails, the reaper's next write
+    works. Said (and its end) once per ``warn_every_s``, not twice per upload; an outage that begins
+    within the period and lasts is said once the period has passed."""
+    clock = Clock()
+    health = StorageHealth(logging.getLogger("test.storagehealth"), warn_every_s=60.0, clock=clock)
+    exc = CatalogUnavailableError("cannot store episode e1: No space left on device")
+    ended = []
+    with caplog.at_level(logging.INFO, logger="test.storagehealth"):
+        for _ in range(11):  # an upload every 6 s, a reap 1 s after each
+            health.write_failed(exc)
+            clock.now += 1
+            ended.append(health.writes_work())
+            clock.now += 5
+        said = [r.getMessage() for r in caplog.records]
+        caplog.clear()
+        health.write_failed(exc)  # at 166: one that lasts
+        for _ in range(2):
+            clock.now += 30
+            health.write_failed(exc)  # e.g. the reaper's own write, failing too
+        lasting = [r.getMessage() for r in caplog.records]
+    assert ended == [1.0] + [None] * 9 + [1.0]
+    assert len(said) == 2 and said[0].startswith("storage unavailable: cannot store episode e1: No space left on "
+                                                 "device; leases will not expire"), said
+    assert said[1].startswith("storage unavailable: cannot store episode e1: No space left on device (9 shorter "
+                              "outage(s) since the last said); leases"), said
+    assert len(lasting) == 1 and "shorter" not in lasting[0], lasting  # at 226, 66 s after the last said
+    assert health.down_since == 166.0 and health.writes_work() == 60.0
