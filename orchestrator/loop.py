@@ -9,7 +9,10 @@ configuration ``orchestrator.loopconfig.RunConfig``):
   loopback, the eval split, the seed requests, the retrain scheduler, the dashboard
   and a progress line, until the episode budget is spent; then the report. Ctrl-C
   (KeyboardInterrupt) and SIGTERM stop it early the same way: workers drained, a
-  running retrain stopped, the report written.
+  running retrain stopped, the report written. The workers are told to drain with
+  ``workers.agent.DRAIN_SIGNAL``, never with a stop signal: a terminal's Ctrl-C,
+  systemd's stop and ``kill -TERM -PGID`` reach them too, and a second stop signal
+  would make them give their episode back unfinished.
 """
 
 from __future__ import annotations
@@ -44,6 +47,7 @@ from storage.models import ModelRegistry
 from storage.queue import RequestQueue
 from storage.requests import NewRequest
 from storage.records import Episode
+from workers.agent import DRAIN_SIGNAL
 
 log = logging.getLogger(__name__)
 
@@ -262,7 +266,7 @@ class LoopRun:
             if interrupted:
                 log.warning("interrupted (%s): stopping workers; the next run resumes from the catalog",
                             "Ctrl-C" if ctrl_c else "SIGTERM")
-            self._teardown(interrupted, workers_told=ctrl_c)
+            self._teardown(interrupted)
         return self._finish(start, interrupted)
 
     def _trained_on(self) -> int:
@@ -333,19 +337,12 @@ class LoopRun:
             bar.set_postfix_str(text, refresh=True)
 
     # -- tear-down ------------------------------------------------------------------------------
-    def _teardown(self, interrupted: bool, workers_told: bool = False) -> None:
+    def _teardown(self, interrupted: bool) -> None:
         """Stop the workers (each finishes and uploads its episode), the dashboard, the scheduler (a running
-        retrain too when ``interrupted``) and the service. ``workers_told``: a terminal's Ctrl-C reached
-        the workers too."""
-        if workers_told:  # they are draining already, and a second signal would make them give their
-            for p in self.procs:  # request back unfinished
-                try:
-                    p.wait(timeout=10)
-                except subprocess.TimeoutExpired:
-                    break
-        for p in self.procs:  # SIGTERM: a worker finishes and uploads its current episode, then exits
+        retrain too when ``interrupted``) and the service."""
+        for p in self.procs:  # drain, and nothing more for one that a stop signal reached already
             if p.poll() is None:
-                p.terminate()
+                p.send_signal(DRAIN_SIGNAL)
         for p in self.procs:
             try:
                 p.wait(timeout=30)

@@ -23,15 +23,18 @@ import logging
 import os
 import signal
 import threading
+from collections.abc import Mapping
 from typing import Callable
 
 log = logging.getLogger(__name__)
 
 
-def on_stop_signals(handler: Callable[[], None], sigint: bool = True) -> Callable[[], None]:
+def on_stop_signals(handler: Callable[[], None], sigint: bool = True,
+                    also: Mapping[signal.Signals, Callable[[], None]] | None = None) -> Callable[[], None]:
     """Calls ``handler`` on SIGTERM and on SIGINT, unless SIGINT is ignored when this is called (as it is in
     a process started ignoring it, before anything of ours installs a handler): then it stays ignored.
-    ``sigint=False``: SIGTERM alone (the caller keeps Python's KeyboardInterrupt for Ctrl-C).
+    ``sigint=False``: SIGTERM alone (the caller keeps Python's KeyboardInterrupt for Ctrl-C). ``also``: other
+    signals and their handlers, taken the same way (a worker's drain signal).
 
     ``handler`` runs on a thread of its own ("stop-signals"), one call per signal (two signals that
     arrive before the first is handled may count as one); it may take locks. Returns a function that
@@ -41,19 +44,20 @@ def on_stop_signals(handler: Callable[[], None], sigint: bool = True) -> Callabl
     """
     if threading.current_thread() is not threading.main_thread():
         return lambda: None
-    sigs = [signal.SIGTERM]
+    handlers = {int(signal.SIGTERM): handler}
     if sigint and signal.getsignal(signal.SIGINT) != signal.SIG_IGN:
-        sigs.append(signal.SIGINT)
-    wanted = {int(sig) for sig in sigs}
+        handlers[int(signal.SIGINT)] = handler
+    handlers |= {int(sig): call for sig, call in (also or {}).items()}
+    sigs = [signal.Signals(number) for number in handlers]
     read_fd, write_fd = os.pipe()  # (not inherited by child processes)
     os.set_blocking(write_fd, False)  # set_wakeup_fd's demand: a signal must never wait on a full pipe
 
     def watch() -> None:
         while data := os.read(read_fd, 64):  # b"": restore closed the write end
             for signum in data:  # the number of every signal Python has a handler for, ours or not
-                if signum in wanted:
+                if signum in handlers:
                     try:
-                        handler()
+                        handlers[signum]()
                     except Exception:  # noqa: BLE001 -- the next signal must still be heard
                         log.exception("stop-signal handler failed")
         os.close(read_fd)
@@ -79,4 +83,4 @@ def on_stop_signals(handler: Callable[[], None], sigint: bool = True) -> Callabl
 
 
 def _noted(signum: int, frame: object) -> None:
-    """The Python-level handler of a stop signal: nothing, and so no lock (see the module's docstring)."""
+    """The Python-level handler of a signal taken here: nothing, and so no lock (see the module's docstring)."""

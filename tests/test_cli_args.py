@@ -176,14 +176,14 @@ def test_a_worker_refuses_a_size_no_model_trains_on(capsys, size) -> None:
     """Its size becomes the catalog's when it uploads the first episode. Parsed only: a worker that got
     through would wait for a service for ever."""
     from orchestrator.cli import build_parser
-    from workers import agent
+    from workers import cli as agent_cli
     words = f"argument --size: expected a multiple of 8 from 16 to 1024 (what a model trains on), found {size}"
     with pytest.raises(SystemExit) as exc:
         build_parser().parse_args(["worker", "--size", size])
     err = capsys.readouterr().err
     assert exc.value.code == 2 and err == f"activecollect worker: error: {words}\n"
     with pytest.raises(SystemExit) as exc:  # python -m workers.agent: the same, in one line too
-        agent.main(["--size", size])
+        agent_cli.main(["--size", size])
     assert exc.value.code == 2 and capsys.readouterr().err == f"python -m workers.agent: error: {words}\n"
 
 

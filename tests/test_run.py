@@ -14,22 +14,40 @@ import signal
 import sqlite3
 import subprocess
 import sys
+import threading
 from pathlib import Path
 
 import pytest
 
-from orchestrator.loop import LoopRun
+from orchestrator.loop import LoopRun, worker_command
 from orchestrator.loopconfig import RunConfig
 from storage.catalog import Catalog
 from storage.models import ModelRegistry
 from storage.queue import RequestQueue
-from tests.conftest import wait_for
+from storage.requests import RequestStatus
+from tests.conftest import REPO, wait_for
+from tests.orchestrator import conftest as orchestrator_fixtures
+from tests.orchestrator.test_service import new_request
+
+make_service = orchestrator_fixtures.make_service  # its in-process service, for a test below too
 
 TINY = ["--round", "4", "--workers", "2", "--steps", "12", "--image-size", "16", "--eval-episodes", "4",
         "--dashboard-port", "0", "--no-progress", "--retrain-args",
         "--members 2 --epochs 2 --widths 4,4,4 --batch-size 8 --from-champion --device cpu --min-improvement 0"]
 
-
+#: ``activecollect run`` whose workers pace their episodes (``--realtime 1``: 30 steps last 3 s), so each holds
+#: one when the run is stopped. argv: DATA_DIR
+PACED_RUN = """
+import json, sys
+from orchestrator.loop import LoopRun, worker_command
+from orchestrator.loopconfig import RunConfig
+from workers.collect import create_eval_split
+cfg = RunConfig(data_dir=sys.argv[1], budget=400, round_episodes=40, steps=30, image_size=16, eval_episodes=1,
+                dashboard_port=-1, progress=False)
+run = LoopRun(cfg, lambda catalog, n, seed, steps, size: create_eval_split(catalog, n, seed, steps, size),
+              worker_cmd=lambda *args: worker_command(*args) + ["--realtime", "1"])
+print(json.dumps(run.run().to_json()), flush=True)
+"""
 
 
 def run_cmd(data: Path, budget: int) -> list[str]:
@@ -55,6 +73,12 @@ def children(pid: int) -> dict[int, str]:
         if int(fields[1]) == pid and fields[0] != "Z":
             found[int(stat.parent.name)] = cmdline.replace(b"\0", b" ").decode(errors="replace")
     return found
+
+
+def leased_by_each(queue: RequestQueue, workers: int) -> list:
+    """The leased requests once each of ``workers`` holds one; [] before."""
+    leased = queue.list(status="leased")
+    return leased if len({r.worker_id for r in leased}) == workers else []
 
 
 def alive(pid: int) -> bool:
@@ -169,6 +193,79 @@ def test_sigterm_stops_a_run_as_ctrl_c_does(tmp_path, when, extra):
         assert done and all(catalog.get(r.episode_id).request_id == r.id for r in done)
     finally:
         queue.close()
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(120)
+def test_sigterm_to_the_whole_process_group_lets_every_worker_upload_the_episode_in_hand(tmp_path):
+    """systemd (KillMode=control-group) or `kill -TERM -PGID`: run and its workers get SIGTERM at once. Run's own
+    stop must not be a worker's second signal (which gives the episode back unfinished): every episode in hand
+    is uploaded."""
+    data = tmp_path / "data"
+    run = subprocess.Popen([sys.executable, "-c", PACED_RUN, str(data)], stdout=subprocess.PIPE,
+                           stderr=subprocess.PIPE, text=True, cwd=REPO, start_new_session=True)
+    try:
+        wait_for(lambda: (data / "logs" / "run-w1.log").exists(), 60, "the run's workers")  # (after its queue)
+        queue = RequestQueue(data / "catalog.sqlite")
+        held = wait_for(lambda: leased_by_each(queue, 2), 60, "an episode in each worker's hands")
+        os.killpg(run.pid, signal.SIGTERM)
+        out, err = run.communicate(timeout=60)
+    finally:
+        with contextlib.suppress(ProcessLookupError):  # what outlived the run (its process group)
+            os.killpg(run.pid, signal.SIGKILL)
+        run.wait()
+    assert run.returncode == 0 and json.loads(out)["interrupted"] is True, err[-3000:]
+    logs = {p.name: p.read_text() for p in (data / "logs").glob("run-w*.log")}
+    try:
+        for request in held:  # uploaded, not given back
+            done = queue.get(request.id)
+            assert (done.status, done.token, done.attempts) == (RequestStatus.DONE, request.token, 0), logs
+        assert queue.counts()["leased"] == 0
+        assert not [r.id for r in queue.list(status="queued") if r.token], logs  # nothing else was given back
+    finally:
+        queue.close()
+    assert not [name for name, text in logs.items() if "INFO released " in text or "stopping now" in text], logs
+
+
+@pytest.mark.parametrize("first", ["the group's SIGTERM", "run's stop"])
+def test_a_worker_stopped_both_by_its_run_and_by_a_signal_to_the_group_uploads_its_episode(
+        make_service, endpoint, namespace, tmp_path, first):
+    """Whichever reaches a worker first, run's stop (its tear-down) and a SIGTERM to the whole group (systemd,
+    `kill -TERM -PGID`) are one stop, not two: the worker finishes and uploads the episode in hand."""
+    service = make_service()
+    for _ in range(4):
+        service.queue.enqueue(new_request(steps=30))  # 3 s of paced collection each
+    run = LoopRun(RunConfig(data_dir=tmp_path / "run", dashboard_port=-1, progress=False), lambda *args: "")
+    logs = [tmp_path / f"run-w{i}.log" for i in range(2)]
+    for i, log in enumerate(logs):  # as run starts them, pacing their episodes
+        cmd = worker_command(endpoint, namespace, f"run-w{i}", 16) + ["--realtime", "1"]
+        with open(log, "wb") as out:
+            run.procs.append(subprocess.Popen(cmd, stdout=out, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
+                                              cwd=REPO))
+    teardown = threading.Thread(target=run._teardown, kwargs={"interrupted": True})
+    try:
+        held = wait_for(lambda: leased_by_each(service.queue, 2), 30, "an episode in each worker's hands")
+        if first == "run's stop":
+            teardown.start()
+            wait_for(lambda: all("draining" in log.read_text() for log in logs), message="the workers to drain")
+        for p in run.procs:
+            p.send_signal(signal.SIGTERM)
+        if first == "the group's SIGTERM":
+            wait_for(lambda: all("draining" in log.read_text() for log in logs), message="the workers to drain")
+            teardown.start()
+        teardown.join(60)
+    finally:
+        for p in run.procs:
+            if p.poll() is None:
+                p.kill()
+                p.wait()
+    texts = [log.read_text() for log in logs]
+    assert [p.returncode for p in run.procs] == [0, 0], texts
+    for request in held:  # uploaded, not given back
+        done = service.queue.get(request.id)
+        assert (done.status, done.attempts) == (RequestStatus.DONE, 0), texts
+    assert service.queue.counts()["leased"] == 0
+    assert not [r.id for r in service.queue.list(status="queued") if r.token], texts  # nothing was given back
 
 
 @pytest.mark.slow

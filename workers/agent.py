@@ -18,15 +18,20 @@ the upload as corrupt. A lease that is no longer ours (the service says
 ``stale_token``) is dropped without a word: someone else owns the request now.
 
 SIGTERM / SIGINT drain: the current request is finished and uploaded, then
-the worker exits; while draining, an upload nobody answers is given up once the
-lease has run out by the worker's clock (an episode never acknowledged is
-dropped; the service queues the request again). A second signal gives the
-current request back at once (``release``: queued again, no attempt counted --
-the request did nothing wrong; a query in flight is walked away from, the
-release waits at most ``RELEASE_TIMEOUT_S``) and exits. A worker of
-``activecollect run`` is also sent SIGTERM when ``run`` dies (its parent-death
-signal), which the kernel may send more than once (once per thread of ``run``
-that inherits the child as it exits): the worker then gives its request back at
+the worker exits. The upload is then tried for one more lease term at most: an
+episode never acknowledged (held in memory only) is dropped, and the service
+queues the request again -- when nobody answers, once the lease has run out by
+the worker's clock (the service is gone: exit 0); when a live service would not
+store it (``unavailable``: a full disk), after that term, giving the request
+back (exit 1: collected work was lost). A second signal gives the current
+request back at once (``release``: queued again, no attempt counted -- the
+request did nothing wrong; a query in flight is walked away from, the release
+waits at most ``RELEASE_TIMEOUT_S``) and exits. ``DRAIN_SIGNAL`` drains too and
+never counts as a stop signal: ``activecollect run`` stops its workers with it,
+as systemd or ``kill -TERM -PGID`` may have sent them SIGTERM already. A worker
+of ``run`` is also sent SIGTERM when ``run`` dies (its parent-death signal),
+which the kernel may send more than once (once per thread of ``run`` that
+inherits the child as it exits): the worker then gives its request back at
 once, which is right there, since the service died with ``run``.
 
 Imports only ``storage``, ``workers``, ``orchestrator.protocol``, ``orchestrator.messages``,
@@ -36,11 +41,11 @@ Imports only ``storage``, ``workers``, ``orchestrator.protocol``, ``orchestrator
 
 from __future__ import annotations
 
-import argparse
 import logging
 import os
 import random
 import re
+import signal
 import socket
 import sys
 import threading
@@ -58,7 +63,6 @@ from orchestrator.messages import LeaseGrant
 from orchestrator.protocol import ErrorCode, Keys, ProtocolError
 from storage.episodes import encode_episode
 from storage.records import TRAINABLE_SIZES, trainable_size
-from workers import flags
 from workers.abandon import Abandoned, Abandoner
 from workers.collect import collect_episode
 from workers.env import CONTROL_HZ
@@ -69,8 +73,10 @@ log = logging.getLogger("workers.agent")  # also when run as __main__
 
 #: Longest wait for the reply to a release (a second stop signal): a supervisor's grace is short.
 RELEASE_TIMEOUT_S = 2.0
-#: Shortest wait for an upload's reply while draining (each is cut to what is left of the lease).
+#: Shortest wait for an upload's reply while draining (each is cut to what is left: ``Renewer.drain_left``).
 MIN_DRAIN_ATTEMPT_S = 0.5
+#: "Drain; if draining already, nothing": what ``activecollect run`` sends its workers to stop them.
+DRAIN_SIGNAL = signal.SIGUSR1
 
 
 class WorkerError(Exception):
@@ -121,7 +127,7 @@ class WorkerConfig:
     report_attempts: int = 8
     """Tries of a failure report nobody answers before giving up (the lease then expires on its own).
     An upload has no such limit: it is retried until the service answers, the lease is lost (or, while
-    draining, runs out), or a second stop signal gives the request back."""
+    draining, one more lease term is over), or a second stop signal gives the request back."""
 
     def __post_init__(self) -> None:
         self.worker_id = self.worker_id or default_worker_id()
@@ -161,30 +167,38 @@ class Worker:
         self._token: Any = None
         self._stop = threading.Event()
         self._abort = threading.Event()
+        self._stops = 0  # stop signals taken (the drain signal is not one)
         self._calls = Abandoner()  # the queries a second signal walks away from
         self._rng = random.Random(config.worker_id)  # backoff jitter, reproducible per worker
         self.uploaded = 0
         self.failed = 0
         self.released = 0
+        self.dropped = 0
+        """Episodes given up while draining because a live service would not store them (exit 1)."""
 
     # --- lifecycle -----------------------------------------------------------------------------
 
     def stop(self) -> None:
-        """Drain: finish the current request, then return from ``run``. A second call gives it back."""
-        # (On orchestrator.signals' thread, never inside the signal handler: it may take locks.)
-        if self._stop.is_set():
+        """A stop signal: drain; a second one gives the current request back, whether ``drain`` came first or not."""
+        # (On a thread of its own, never inside the signal handler: it may take locks.)
+        self._stops += 1
+        if self._stops == 1:
+            self.drain("(signal again to give it back)")
+        else:
             self._abort.set()
             self._calls.abandon()
             log.info("stopping now: giving the current request back")
-        else:
-            self._stop.set()
-            log.info("draining: finishing the current request (signal again to give it back)")
+
+    def drain(self, why: str = "(asked to drain)") -> None:
+        """Finish the current request, then return from ``run``; again: nothing (never gives the request back)."""
+        log.info("draining already %s" if self._stop.is_set() else "draining: finishing the current request %s", why)
+        self._stop.set()
 
     def install_signal_handlers(self) -> None:
-        """SIGTERM / SIGINT call ``stop`` (main thread only; ``orchestrator.signals``: a SIGINT this
-        process was started ignoring stays ignored, so a worker of ``activecollect run`` does not stop on
-        a SIGINT its run ignores)."""
-        signals.on_stop_signals(self.stop)
+        """SIGTERM / SIGINT call ``stop``, DRAIN_SIGNAL ``drain`` (main thread only; ``orchestrator.signals``:
+        a SIGINT this process was started ignoring stays ignored, so a worker of ``activecollect run`` does not
+        stop on a SIGINT its run ignores)."""
+        signals.on_stop_signals(self.stop, also={DRAIN_SIGNAL: self.drain})
 
     def run(self) -> int:
         """Work until stopped; returns the number of episodes uploaded. Raises WorkerError on start."""
@@ -202,8 +216,8 @@ class Worker:
             if self._token is not None:
                 self._token.undeclare()
             self.session.close()
-        log.info("worker %s done: %d uploaded, %d failed, %d released", cfg.worker_id, self.uploaded,
-                 self.failed, self.released)
+        log.info("worker %s done: %d uploaded, %d failed, %d released, %d given up", cfg.worker_id, self.uploaded,
+                 self.failed, self.released, self.dropped)
         return self.uploaded
 
     def _loop(self) -> None:
@@ -359,21 +373,25 @@ class Worker:
 
         No reply, ``internal`` and ``unavailable`` (a full disk, a busy database, a service going
         down) are retried with the same bytes: a collected episode is not dropped while its lease
-        is ours. While draining, no longer than the lease lasts by this worker's clock (no reply
-        after that: the service is gone, or will give the request to someone else). A second stop
-        signal gives the request back instead.
+        is ours. While draining, for one more lease term at most (``Renewer.drain_left``), then
+        ``_give_up``. A second stop signal gives the request back instead.
         """
         header = messages.UploadHeader.for_payload(data, request_id=grant.request_id, token=grant.token,
                                                    worker_id=self.config.worker_id).to_json()
+        last: list[Exception] = []  # the last try's failure
 
         def attempt() -> dict[str, Any]:
             timeout = self.config.timeout_s
-            if self._stop.is_set():  # draining: no wait past the end of the lease
-                timeout = min(timeout, max(renewer.remaining(), MIN_DRAIN_ATTEMPT_S))
-            return self._call(self.keys.upload, data, header, timeout=timeout)
+            if self._stop.is_set():  # draining: no wait past the end of the lease or of the drain's term
+                timeout = min(timeout, max(renewer.drain_left(), MIN_DRAIN_ATTEMPT_S))
+            try:
+                return self._call(self.keys.upload, data, header, timeout=timeout)
+            except (transport.TransportError, ProtocolError) as exc:
+                last[:] = [exc]
+                raise
 
         def ran_out() -> bool:
-            return self._stop.is_set() and renewer.remaining() <= 0
+            return self._stop.is_set() and renewer.drain_left() <= 0
 
         try:
             body = self._retrying("upload", attempt, give_up=lambda: renewer.lost is not None or ran_out(),
@@ -391,104 +409,25 @@ class Worker:
                      " (duplicate)" if body.get("duplicate") else "")
         elif self._abort.is_set():
             self._release(grant)
-        elif renewer.lost is None:
+        elif renewer.lost is not None:
+            log.warning("dropping the episode of %s: the lease is no longer ours (%s)", grant.request_id, renewer.lost)
+        else:
+            self._give_up(grant, len(data), last[0], renewer)
+
+    def _give_up(self, grant: LeaseGrant, size: int, last: Exception, renewer: Renewer) -> None:
+        """Draining, and the upload was not acknowledged in time: the episode (held in memory only) is dropped.
+        A service that is there (it answered, or still renews the lease) but would not store it is told,
+        by giving the request back, and the worker will exit 1: collected work was lost."""
+        if isinstance(last, ProtocolError) or renewer.remaining() > 0:
+            self.dropped += 1
+            log.error("giving up the episode of %s (%d bytes, never stored): draining, and the service did not "
+                      "store it within a lease term (last: %s); giving the request back", grant.request_id, size, last)
+            self._release(grant)
+        else:  # nobody answers (the service is gone): it queues the request again when its lease expires
             log.warning("dropping the episode of %s: draining, and the service did not acknowledge it before the "
                         "lease ran out", grant.request_id)
-        else:
-            log.warning("dropping the episode of %s: the lease is no longer ours (%s)", grant.request_id, renewer.lost)
 
 
-# --- command line (shared by ``activecollect worker`` and ``python -m workers.agent``) -----------
-# ``python -m workers.agent`` needs neither torch nor the service's code: a collector host
-# installs only what the simulator needs.
-
-def parse_capabilities(text: str) -> tuple[tuple[str, ...], tuple[str, ...]]:
-    """``"push:T,box"`` -> (("push",), ("T", "box")); ``"T,box"`` -> ((), ("T", "box")); ``""`` -> any.
-
-    Raises WorkerError naming the unknown task or shape.
-    """
-    text = text.strip()
-    if not text:
-        return (), ()
-    tasks: tuple[str, ...] = ()
-    if ":" in text:
-        task_part, text = text.split(":", 1)
-        tasks = tuple(t.strip() for t in task_part.split("+") if t.strip())
-    elif text in protocol.TASKS:
-        return (text,), ()
-    shapes = tuple(s.strip() for s in text.split(",") if s.strip())
-    bad = [t for t in tasks if t not in protocol.TASKS] + [s for s in shapes if s not in protocol.SHAPES]
-    if bad:
-        raise WorkerError(f"capabilities: expected TASK:SHAPE,... with tasks in {protocol.TASKS} and shapes in "
-                          f"{protocol.SHAPES}, found {', '.join(bad)}")
-    return tasks, shapes
-
-
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    """The worker's flags; errors are labelled with ``parser.prog`` (the program the user ran)."""
-    endpoints.add_connection_args(parser, timeout=10.0)
-    parser.add_argument("--id", default="", help="worker id (default <host>-<pid>)")
-    parser.add_argument("--capabilities", default="", metavar="C",
-                        help='what it can collect: "push:T,box", "T,box" or "push" (default: anything)')
-    parser.add_argument("--once", action="store_true",
-                        help="handle at most one request, then exit; exit at once when the service has no work "
-                             "for this worker (a service that does not answer is waited for)")
-    parser.add_argument("--max-episodes", type=flags.positive_int, default=None, metavar="N",
-                        help="exit after N uploads (default: run until stopped)")
-    parser.add_argument("--size", type=flags.frame_size, default=64, metavar="PX",
-                        help="frame side in pixels while the service's catalog holds no episode yet, "
-                             f"{TRAINABLE_SIZES} (default 64); after that every grant names the catalog's size, "
-                             "which the worker records at")
-    parser.add_argument("--realtime", type=flags.realtime, default=0.0, metavar="X",
-                        help=f"slow each episode to last at least X * steps / {CONTROL_HZ} seconds ({CONTROL_HZ} Hz "
-                             f"control): 1 = a real robot's pace, 2 = half speed, 0.5 = double speed; 0 to "
-                             f"{MAX_REALTIME:g} (default 0 = flat out)")
-    parser.add_argument("--log-level", default="INFO", choices=("DEBUG", "INFO", "WARNING", "ERROR"),
-                        help="least severe log messages written to stderr (default INFO)")
-    parser.set_defaults(worker_prog=parser.prog)
-
-
-def config_from_args(args: argparse.Namespace) -> WorkerConfig:
-    """Build the WorkerConfig; WorkerError naming the flag (``--id: expected ...``) for a bad value."""
-    listen, connect = endpoints.endpoints_from_args(args)
-    try:
-        tasks, shapes = parse_capabilities(args.capabilities)
-        return WorkerConfig(worker_id=args.id, namespace=args.namespace, mode=args.mode, listen=listen,
-                            connect=connect, zenoh_config=args.zenoh_config, tasks=tasks, shapes=shapes,
-                            image_size=args.size, max_episodes=args.max_episodes, once=args.once,
-                            realtime=args.realtime, timeout_s=args.timeout)
-    except WorkerError as exc:
-        raise WorkerError(flags.naming_flag(str(exc))) from None
-
-
-def run_from_args(args: argparse.Namespace) -> int:
-    """Run a worker from parsed flags until it is done or stopped; exit status (2: bad flags)."""
-    prog = getattr(args, "worker_prog", "activecollect worker")
-    logging.basicConfig(level=args.log_level, format="%(asctime)s %(name)s %(levelname)s %(message)s")
-    try:
-        worker = Worker(config_from_args(args))
-    except (WorkerError, transport.SecureConfigError) as exc:
-        print(f"{prog}: error: {protocol.one_line(str(exc))}", file=sys.stderr)  # a path may hold a newline
-        return 2
-    worker.install_signal_handlers()
-    try:
-        worker.run()
-    except WorkerError as exc:
-        print(f"{prog}: {protocol.one_line(str(exc))}", file=sys.stderr)
-        return 1
-    return 0
-
-
-def build_parser() -> argparse.ArgumentParser:
-    """``python -m workers.agent``'s parser: a bad flag exits 2 in one line, like ``activecollect worker``."""
-    parser = flags.Parser(prog="python -m workers.agent", description=__doc__.splitlines()[0])
-    add_arguments(parser)
-    return parser
-
-
-def main(argv: list[str] | None = None) -> int:
-    return run_from_args(build_parser().parse_args(argv))
-
-
-if __name__ == "__main__":
+if __name__ == "__main__":  # ``python -m workers.agent``: the command line lives in workers.cli
+    from workers.cli import main
     sys.exit(main())

@@ -1,4 +1,5 @@
-"""A worker's hold on one leased request: renewed every lease_s / 3 on its own thread, and how long it lasts.
+"""A worker's hold on one leased request: renewed every lease_s / 3 on its own thread, how long it lasts, and
+how long a draining worker may still try to upload.
 
 Imports only the wire contract (``orchestrator.messages``, ``protocol``, ``transport``) and Zenoh.
 """
@@ -36,6 +37,7 @@ class Renewer:
         self.lost: str | None = None
         """Why the lease is not ours any more (the service said so), or None."""
         self._until = time.monotonic() + grant.lease_s
+        self._drain_until: float | None = None
         self._thread = threading.Thread(target=self._run, name=f"renew:{grant.request_id}", daemon=True)
         self._thread.start()
 
@@ -43,6 +45,16 @@ class Renewer:
         """Seconds until the lease runs out by this worker's clock: lease_s after the sending of the last
         renewal the service acknowledged (or after the grant); <= 0 once it has."""
         return self._until - time.monotonic()
+
+    def drain_left(self) -> float:
+        """Seconds a draining worker may still try to upload: what is left of the lease, and of one lease term
+        from the first call, however often the service renews the lease meanwhile (a live service that renews it
+        but will not store the episode, ``unavailable``, must not hold a draining worker for ever); <= 0 once
+        either has run out. Renewals go on: the request stays this worker's while it tries."""
+        now = time.monotonic()
+        if self._drain_until is None:
+            self._drain_until = now + self._grant.lease_s
+        return min(self._until, self._drain_until) - now
 
     def _run(self) -> None:
         # By the clock, not after each call: a renewal nobody answered must not push the next one

@@ -28,7 +28,7 @@ from orchestrator.serviceconfig import PlannerFactory, ServiceConfig, ServiceCon
 from orchestrator.signals import on_stop_signals
 from storage.errors import StorageError
 from storage.requests import RequestStatus
-from workers import agent
+from workers import cli as worker_cli
 
 PLANNERS = ("active", "uniform", "none")
 #: ``serve``'s torch threads for scoring (``ChampionScorer.threads``); its retrain jobs get the other cores.
@@ -88,8 +88,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=cmd_serve)
 
     p = sub.add_parser("worker", help="run a collector worker: lease, simulate, record MCAP, upload")
-    agent.add_arguments(p)
-    p.set_defaults(func=agent.run_from_args)
+    worker_cli.add_arguments(p)
+    p.set_defaults(func=worker_cli.run_from_args)
 
 
 def register_bench(bench_sub: argparse._SubParsersAction) -> None:

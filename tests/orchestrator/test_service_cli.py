@@ -18,7 +18,8 @@ from storage.errors import CatalogUnavailableError
 from storage.requests import RequestStatus
 from tests.conftest import free_port, wait_for
 from tests.orchestrator.test_service import new_request
-from workers.agent import WorkerError, parse_capabilities
+from workers.agent import WorkerError
+from workers.cli import parse_capabilities
 
 
 @pytest.fixture

@@ -13,7 +13,7 @@ import pytest
 from orchestrator.cli import build_parser
 from orchestrator.protocol import MAX_CAPABILITIES
 from tests.conftest import REPO, free_port
-from workers import agent
+from workers import cli as worker_cli
 from workers.agent import Worker, WorkerConfig, WorkerError
 from workers.env import CONTROL_HZ
 
@@ -25,12 +25,12 @@ def _stops(capsys, prog: str, *argv: str) -> tuple[int, str]:
     wait for a service for ever (nobody listens on its --connect)."""
     argv = (*argv, "--connect", f"tcp/127.0.0.1:{free_port()}")
     try:
-        args = build_parser().parse_args(["worker", *argv]) if prog == CLI else agent.build_parser().parse_args(argv)
+        args = build_parser().parse_args(["worker", *argv]) if prog == CLI else worker_cli.build_parser().parse_args(argv)
     except SystemExit as exc:
         return exc.code, capsys.readouterr().err
     with pytest.raises(WorkerError):
-        agent.config_from_args(args)
-    return agent.run_from_args(args), capsys.readouterr().err
+        worker_cli.config_from_args(args)
+    return worker_cli.run_from_args(args), capsys.readouterr().err
 
 
 @pytest.mark.parametrize("prog", [CLI, MODULE])
@@ -69,13 +69,13 @@ def test_python_m_workers_agent_says_so_in_one_line(argv, words) -> None:
 
 
 def test_the_flags_take_their_whole_range() -> None:
-    args = agent.build_parser().parse_args(["--realtime", "0", "--max-episodes", "1", "--id", "w-1.a_b",
+    args = worker_cli.build_parser().parse_args(["--realtime", "0", "--max-episodes", "1", "--id", "w-1.a_b",
                                             "--capabilities", "push:T,box", "--namespace", "lab/a-1"])
-    config = agent.config_from_args(args)
+    config = worker_cli.config_from_args(args)
     assert (config.realtime, config.max_episodes, config.worker_id) == (0.0, 1, "w-1.a_b")
     assert (config.tasks, config.shapes, config.namespace) == (("push",), ("T", "box"), "lab/a-1")
-    assert agent.build_parser().parse_args(["--realtime", "1000"]).realtime == 1000.0
-    assert agent.build_parser().parse_args([]).max_episodes is None  # until stopped
+    assert worker_cli.build_parser().parse_args(["--realtime", "1000"]).realtime == 1000.0
+    assert worker_cli.build_parser().parse_args([]).max_episodes is None  # until stopped
 
 
 @pytest.mark.parametrize("field, value, words", [
@@ -95,7 +95,7 @@ def test_the_config_refuses_a_wait_that_would_overflow_or_never_end(field, value
 
 
 def _help(flag: str) -> str:
-    action = next(a for a in agent.build_parser()._actions if flag in a.option_strings)
+    action = next(a for a in worker_cli.build_parser()._actions if flag in a.option_strings)
     return " ".join(action.help.split())
 
 

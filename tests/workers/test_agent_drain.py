@@ -1,0 +1,96 @@
+"""A draining worker as a real subprocess: run's drain request (SIGUSR1) never escalates, an operator's second
+signal still does, and a live service that will not store the upload does not hold the worker for ever."""
+
+from __future__ import annotations
+
+import signal
+
+import pytest
+
+from storage.catalog import Catalog
+from storage.errors import CatalogUnavailableError, QueueUnavailableError
+from storage.requests import RequestStatus
+from tests.conftest import wait_for
+from tests.orchestrator import conftest as orchestrator_fixtures
+from tests.orchestrator.test_service import new_request
+
+make_service = orchestrator_fixtures.make_service  # its in-process service, for these tests too
+
+
+def leased(service, request) -> None:
+    wait_for(lambda: service.queue.get(request.id).status == RequestStatus.LEASED, timeout=30,
+             message="the worker leases the request")
+
+
+def send(w, sig: int, taken: str) -> None:
+    """Signal ``w`` and wait until it has taken the signal (its log says ``taken`` once more): two signals sent at
+    once may count as one."""
+    before = w.log().count(taken)
+    w.signal(sig)
+    wait_for(lambda: w.log().count(taken) > before, message=f"{signal.Signals(sig).name} is taken ({taken!r})")
+
+
+def test_the_drain_signal_twice_is_still_a_drain(make_service, spawn_worker, data_dir) -> None:
+    """What `activecollect run` sends its workers: drain; nothing more when draining already."""
+    service = make_service()
+    request, _ = service.queue.enqueue(new_request(steps=30))  # 3 s of paced collection
+    w = spawn_worker("U", "--realtime", "1")
+    leased(service, request)
+    send(w, signal.SIGUSR1, "draining:")
+    send(w, signal.SIGUSR1, "draining already")
+    assert w.wait(30) == 0, w.log()
+    done = service.queue.get(request.id)
+    assert (done.status, done.attempts) == (RequestStatus.DONE, 0), w.log()
+    assert Catalog(data_dir).count() == 1 and "INFO released " not in w.log()
+
+
+def test_after_the_drain_signal_an_operators_second_stop_signal_still_gives_the_request_back(make_service,
+                                                                                              spawn_worker) -> None:
+    """The drain request does not count as a stop signal: the operator's first SIGTERM drains (as it would have
+    anyway), the second gives the request back."""
+    service = make_service()
+    request, _ = service.queue.enqueue(new_request(steps=100))  # 10 s of paced collection
+    w = spawn_worker("O", "--realtime", "1")
+    leased(service, request)
+    send(w, signal.SIGUSR1, "draining:")
+    send(w, signal.SIGTERM, "draining already")
+    send(w, signal.SIGTERM, "stopping now")
+    assert w.wait(30) == 0, w.log()
+    back = service.queue.get(request.id)
+    assert (back.status, back.attempts, back.last_error) == (RequestStatus.QUEUED, 0, None), w.log()
+    assert f"released {request.id}" in w.log()
+
+
+@pytest.mark.parametrize("renewals", ["acknowledged", "refused"])
+def test_a_draining_worker_whose_uploads_a_live_service_refuses_gives_up_and_exits_1(make_service, spawn_worker,
+                                                                                     data_dir, renewals) -> None:
+    """The service answers every upload `unavailable`, and renews the lease all along (its episode disk is full,
+    its database's is not) or refuses renewals too (one full disk): the draining worker does not retry until
+    killed. Within a lease term it says what it gave up, gives the request back (no attempt spent: the request
+    did nothing wrong) and exits 1 (a live service would not store collected work: the operator must know)."""
+    lease_s = 2.0
+    service = make_service(lease_s=lease_s)
+    request, _ = service.queue.enqueue(new_request(steps=30))  # 3 s of paced collection: renewed meanwhile
+    refused: list[int] = []
+
+    def full_disk(*args, **kw):
+        refused.append(1)
+        raise CatalogUnavailableError("episodes: No space left on device")
+
+    service.catalog.ingest_bytes = full_disk
+    if renewals == "refused":
+        def renew_on_a_full_disk(*args, **kw):
+            raise QueueUnavailableError("database catalog.sqlite: database or disk is full")
+        service.queue.renew = renew_on_a_full_disk
+    w = spawn_worker("V", "--realtime", "1")
+    leased(service, request)
+    send(w, signal.SIGTERM, "draining:")
+    wait_for(lambda: not w.alive(), timeout=3 * lease_s + 15, message="the draining worker to give up")
+    assert w.wait() == 1, w.log()
+    assert refused, w.log()
+    log = w.log()
+    assert f"giving up the episode of {request.id}" in log and "unavailable" in log, log
+    back = service.queue.get(request.id)
+    assert (back.status, back.attempts, back.last_error) == (RequestStatus.QUEUED, 0, None), log
+    assert f"released {request.id}" in log
+    assert Catalog(data_dir).count() == 0

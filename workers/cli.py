@@ -1,0 +1,110 @@
+"""The worker's command line, shared by ``activecollect worker`` and ``python -m workers.agent``.
+
+``python -m workers.agent`` needs neither torch nor the service's code: a collector host installs only what
+the simulator needs. Imports what ``workers.agent`` does.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+
+from orchestrator import endpoints, protocol, transport
+from storage.records import TRAINABLE_SIZES
+from workers import agent, flags
+from workers.agent import Worker, WorkerConfig, WorkerError
+from workers.env import CONTROL_HZ
+from workers.flags import MAX_REALTIME
+
+
+def parse_capabilities(text: str) -> tuple[tuple[str, ...], tuple[str, ...]]:
+    """``"push:T,box"`` -> (("push",), ("T", "box")); ``"T,box"`` -> ((), ("T", "box")); ``""`` -> any.
+
+    Raises WorkerError naming the unknown task or shape.
+    """
+    text = text.strip()
+    if not text:
+        return (), ()
+    tasks: tuple[str, ...] = ()
+    if ":" in text:
+        task_part, text = text.split(":", 1)
+        tasks = tuple(t.strip() for t in task_part.split("+") if t.strip())
+    elif text in protocol.TASKS:
+        return (text,), ()
+    shapes = tuple(s.strip() for s in text.split(",") if s.strip())
+    bad = [t for t in tasks if t not in protocol.TASKS] + [s for s in shapes if s not in protocol.SHAPES]
+    if bad:
+        raise WorkerError(f"capabilities: expected TASK:SHAPE,... with tasks in {protocol.TASKS} and shapes in "
+                          f"{protocol.SHAPES}, found {', '.join(bad)}")
+    return tasks, shapes
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """The worker's flags; errors are labelled with ``parser.prog`` (the program the user ran)."""
+    endpoints.add_connection_args(parser, timeout=10.0)
+    parser.add_argument("--id", default="", help="worker id (default <host>-<pid>)")
+    parser.add_argument("--capabilities", default="", metavar="C",
+                        help='what it can collect: "push:T,box", "T,box" or "push" (default: anything)')
+    parser.add_argument("--once", action="store_true",
+                        help="handle at most one request, then exit; exit at once when the service has no work "
+                             "for this worker (a service that does not answer is waited for)")
+    parser.add_argument("--max-episodes", type=flags.positive_int, default=None, metavar="N",
+                        help="exit after N uploads (default: run until stopped)")
+    parser.add_argument("--size", type=flags.frame_size, default=64, metavar="PX",
+                        help="frame side in pixels while the service's catalog holds no episode yet, "
+                             f"{TRAINABLE_SIZES} (default 64); after that every grant names the catalog's size, "
+                             "which the worker records at")
+    parser.add_argument("--realtime", type=flags.realtime, default=0.0, metavar="X",
+                        help=f"slow each episode to last at least X * steps / {CONTROL_HZ} seconds ({CONTROL_HZ} Hz "
+                             f"control): 1 = a real robot's pace, 2 = half speed, 0.5 = double speed; 0 to "
+                             f"{MAX_REALTIME:g} (default 0 = flat out)")
+    parser.add_argument("--log-level", default="INFO", choices=("DEBUG", "INFO", "WARNING", "ERROR"),
+                        help="least severe log messages written to stderr (default INFO)")
+    parser.set_defaults(worker_prog=parser.prog)
+
+
+def config_from_args(args: argparse.Namespace) -> WorkerConfig:
+    """Build the WorkerConfig; WorkerError naming the flag (``--id: expected ...``) for a bad value."""
+    listen, connect = endpoints.endpoints_from_args(args)
+    try:
+        tasks, shapes = parse_capabilities(args.capabilities)
+        return WorkerConfig(worker_id=args.id, namespace=args.namespace, mode=args.mode, listen=listen,
+                            connect=connect, zenoh_config=args.zenoh_config, tasks=tasks, shapes=shapes,
+                            image_size=args.size, max_episodes=args.max_episodes, once=args.once,
+                            realtime=args.realtime, timeout_s=args.timeout)
+    except WorkerError as exc:
+        raise WorkerError(flags.naming_flag(str(exc))) from None
+
+
+def run_from_args(args: argparse.Namespace) -> int:
+    """Run a worker from parsed flags until it is done or stopped; exit status (2: bad flags)."""
+    prog = getattr(args, "worker_prog", "activecollect worker")
+    logging.basicConfig(level=args.log_level, format="%(asctime)s %(name)s %(levelname)s %(message)s")
+    try:
+        worker = Worker(config_from_args(args))
+    except (WorkerError, transport.SecureConfigError) as exc:
+        print(f"{prog}: error: {protocol.one_line(str(exc))}", file=sys.stderr)  # a path may hold a newline
+        return 2
+    worker.install_signal_handlers()
+    try:
+        worker.run()
+    except WorkerError as exc:
+        print(f"{prog}: {protocol.one_line(str(exc))}", file=sys.stderr)
+        return 1
+    if worker.dropped:
+        print(f"{prog}: gave up {worker.dropped} collected episode(s) the service would not store while draining "
+              "(see the log)", file=sys.stderr)
+        return 1
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """``python -m workers.agent``'s parser: a bad flag exits 2 in one line, like ``activecollect worker``."""
+    parser = flags.Parser(prog="python -m workers.agent", description=agent.__doc__.splitlines()[0])
+    add_arguments(parser)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    return run_from_args(build_parser().parse_args(argv))
