@@ -36,7 +36,7 @@ from typing import Any
 
 import zenoh
 
-from orchestrator import admin, messages, protocol, transport
+from orchestrator import admin, messages, protocol, sweeps, transport
 from orchestrator.heap import HeapTrimmer
 from orchestrator.metrics import ServiceMetrics
 from orchestrator.planner import Planner
@@ -45,7 +45,7 @@ from orchestrator.serviceconfig import ServiceConfig, ServiceContext, ServiceErr
 from orchestrator.storagehealth import StorageHealth
 from orchestrator.transport import Incoming, Response
 from orchestrator.uploads import StoredEpisode, UploadHandler
-from storage.catalog import ORPHANS_DIR, STAGING_MAX_AGE_S, Catalog
+from storage.catalog import STAGING_MAX_AGE_S, Catalog
 from storage.errors import QueueError, StorageError, StorageUnavailableError
 from storage.models import ModelRegistry
 from storage.queue import RequestQueue
@@ -373,23 +373,8 @@ class Service:
                 log.exception("maintenance task failed; will try again")
 
     def _sweep(self) -> None:
-        """Files crashed ingests left: unindexed episodes to orphans/, staging files older than
-        STAGING_MAX_AGE_S deleted (younger ones may be a live ingest's: the next sweep takes them).
-
-        One that cannot move them (a full disk cannot make ``orphans/<day>/``) leaves them where they are
-        and says so: no row indexes them, so nothing reads them, an upload of the same episode replaces
-        one, and the next sweep (or start) tries again. It is no reason to refuse to start."""
-        try:
-            with self.storage.writing():
-                swept = self.catalog.sweep_strays()
-        except OSError as exc:
-            log.warning("cannot move the files crashed ingests left aside (%s: %s); they stay where they are, "
-                        "unindexed, until a later sweep", exc.filename or self.config.data_dir,
-                        exc.strerror or exc)
-            return
-        if swept:
-            log.warning("moved %d unindexed episode file(s) to %s/ and deleted %d staging file(s) left by a "
-                        "crash (none was acknowledged)", len(swept.unindexed), ORPHANS_DIR, len(swept.staging))
+        """What crashes left (``orchestrator.sweeps``): before any upload is answered, then every STAGING_MAX_AGE_S."""
+        sweeps.sweep_leftovers(self.catalog, self.config.data_dir, self.storage, log)
 
     def _carry_leases_over(self) -> None:
         """At start-up: every live lease gets a full term from now. No worker could renew while the service

@@ -1,0 +1,45 @@
+"""What crashes leave in a data directory, moved out of the way by the running service (``Service._sweep``).
+
+Episode files no row indexes (an ingest killed between its file and its commit) go to ``orphans/<day>/``,
+staging files older than ``STAGING_MAX_AGE_S`` are deleted (younger ones may be a live ingest's), and
+checkpoint folders no model row names (a register killed before its commit, e.g. a retrain killed there)
+go to ``orphans/models/`` -- never a live register's, in any process (``ModelRegistry.sweep_strays``).
+None of them was acknowledged. One that cannot be moved (a full disk cannot make ``orphans/<day>/``)
+stays where it is and is said: nothing reads it, and the next sweep (or start) tries again; it is no
+reason to refuse to start.
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+from orchestrator.storagehealth import StorageHealth
+from storage.catalog import ORPHANS_DIR, Catalog
+from storage.models import ModelRegistry
+from storage.strays import MODEL_ORPHANS_DIR
+
+
+def sweep_leftovers(catalog: Catalog, data_dir: Path, health: StorageHealth, log: logging.Logger) -> None:
+    """Moves aside what crashed ingests and registers left (see the module); a write the storage refuses for a
+    reason that passes is ``health``'s and raised on."""
+    try:
+        with health.writing():
+            swept = catalog.sweep_strays()
+    except OSError as exc:
+        log.warning("cannot move the files crashed ingests left aside (%s: %s); they stay where they are, "
+                    "unindexed, until a later sweep", exc.filename or data_dir, exc.strerror or exc)
+    else:
+        if swept:
+            log.warning("moved %d unindexed episode file(s) to %s/ and deleted %d staging file(s) left by a "
+                        "crash (none was acknowledged)", len(swept.unindexed), ORPHANS_DIR, len(swept.staging))
+    try:
+        with health.writing():
+            models = ModelRegistry(data_dir).sweep_strays()
+    except OSError as exc:
+        log.warning("cannot move aside the checkpoint folders no model row names (%s); they stay until a later "
+                    "sweep or `models prune`", exc)
+        return
+    if models:
+        log.warning("moved %d checkpoint folder(s) no model row names to %s/ (a register killed before its "
+                    "commit; none was acknowledged): %s", len(models), MODEL_ORPHANS_DIR, ", ".join(models))
