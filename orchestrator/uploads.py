@@ -7,10 +7,11 @@ the request in one catalog transaction. A repeat of an upload that already compl
 request is acknowledged as a duplicate (once its file holds those bytes: a file lost or damaged
 on disk since is put back from the repeat's, unless the episode is quarantined); anything else that
 does not fit is refused with the reason, and nothing of it is indexed. A write the storage refuses
-for a reason that passes (a full disk, a lock held past the busy timeout) is the service's
-``StorageHealth``'s to know (no lease expires meanwhile) and the worker's to send again
-(``unavailable``). Stored episodes are handed to ``on_stored`` (the service's background thread:
-scoring and planning never run on this path).
+for a reason that passes (a full disk, a lock held past the busy timeout, a read-only file system) is
+the service's ``StorageHealth``'s to know (no lease expires meanwhile) and the worker's to send again
+(``unavailable``); one that does not pass is ``internal``, never ``bad_field``, which is for the
+upload's own content only. Stored episodes are handed to ``on_stored`` (the service's background
+thread: scoring and planning never run on this path).
 """
 
 from __future__ import annotations
@@ -132,11 +133,8 @@ class UploadHandler:
             raise admin.protocol_error(exc) from exc
         except EpisodeError as exc:
             raise ProtocolError(ErrorCode.CORRUPT_EPISODE, str(exc)) from exc
-        except StorageUnavailableError as exc:  # a full disk: nothing stored; the worker sends the same bytes again
-            raise ProtocolError(ErrorCode.UNAVAILABLE, str(exc)) from exc
-        except StorageError as exc:  # CatalogError: the id is indexed with other bytes, a frame size it refuses,
-            # or a replay of an eval episode (training on it would leak the eval split)
-            raise ProtocolError(ErrorCode.BAD_FIELD, str(exc)) from exc
+        except StorageError as exc:  # nothing stored
+            raise ProtocolError(_ingest_refusal(exc), str(exc)) from exc
         if result.duplicate:  # indexed before: by a racing identical upload, or for another request
             if self._duplicate_of(self.queue.get(header.request_id), header) is not None:
                 self.metrics.upload("duplicate")
@@ -230,6 +228,14 @@ class UploadHandler:
             "request_id": header.request_id if header is not None else None,
             "worker_id": header.worker_id if header is not None else None,
             "error": code, "message": message[:500]})
+
+
+def _ingest_refusal(exc: StorageError) -> ErrorCode:
+    """The wire code of an upload the catalog did not store. ``bad_field`` only for a refusal of the upload itself
+    (its id indexed with other bytes, a frame size the catalog refuses, a replay of an eval episode), on which
+    the worker fails the request and drops its episode; the disk or the database failing under it is
+    ``admin.storage_failure``'s (``unavailable`` or ``internal``), on which the worker sends the same bytes again."""
+    return admin.storage_failure(exc) or ErrorCode.BAD_FIELD
 
 
 def provenance_mismatch(episode: Episode, request: Request, worker_id: str) -> str:

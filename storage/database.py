@@ -67,10 +67,15 @@ class Migration:
             raise ValueError(f"compatible_with: expected a schema version >= 1, found {self.compatible_with}")
 
 
-#: SQLite's primary result codes for a condition that passes: BUSY, LOCKED, NOMEM, IOERR (also how a full
-#: disk shows when the WAL's shared-memory file cannot be made), FULL, PROTOCOL.
-_TRANSIENT_SQLITE = {5, 6, 7, 10, 13, 15}
-_TRANSIENT_ERRNO = {errno.ENOSPC, errno.EDQUOT, errno.EIO}
+#: SQLite's primary result codes for a condition that passes: BUSY, LOCKED, NOMEM, READONLY (a database file,
+#: or the file system under it, that cannot be written now: remounted read-only after disk errors, say),
+#: IOERR (also how a full disk shows when the WAL's shared-memory file cannot be made), FULL, PROTOCOL.
+_TRANSIENT_SQLITE = {5, 6, 7, 8, 10, 13, 15}
+#: Extended codes of those that do not pass: READONLY_DBMOVED, the file was moved or deleted under the
+#: connection, which never writes to it again.
+_LASTING_SQLITE = {1032}
+#: A full disk, a quota, an I/O error, a read-only file system (as after disk errors): all pass.
+_TRANSIENT_ERRNO = {errno.ENOSPC, errno.EDQUOT, errno.EIO, errno.EROFS}
 _UNAVAILABLE: dict[type[StorageError], type[StorageError]] = {
     CatalogError: CatalogUnavailableError, QueueError: QueueUnavailableError,
     RegistryError: RegistryUnavailableError}
@@ -80,10 +85,11 @@ LOW_SPACE_BYTES = 16 << 20
 
 def is_transient(exc: BaseException) -> bool:
     """Whether ``exc`` (an ``sqlite3.Error`` or ``OSError``) is a condition that passes: a full disk, an
-    I/O error, a busy database."""
+    I/O error, a busy database, a read-only one or a read-only file system (which an operator makes
+    writable again: refusing the write as bad input would make workers drop what they collected)."""
     if isinstance(exc, sqlite3.Error):
         code = getattr(exc, "sqlite_errorcode", None)
-        return code is not None and (code & 0xFF) in _TRANSIENT_SQLITE
+        return code is not None and (code & 0xFF) in _TRANSIENT_SQLITE and code not in _LASTING_SQLITE
     return isinstance(exc, OSError) and exc.errno in _TRANSIENT_ERRNO
 
 

@@ -52,9 +52,9 @@ class UnknownEpisodeError(CatalogError, NotFoundError):
 
 class StorageUnavailableError(StorageError):
     """The disk or the database could not be used for a reason that passes (no space left, an I/O error,
-    a lock held past the busy timeout): nothing was changed, and the same call can succeed later. Each
-    component raises its own subclass (``CatalogUnavailableError`` ...), so it is also that component's
-    error."""
+    a lock held past the busy timeout, a file system or database file that is read-only for now): nothing
+    was changed, and the same call can succeed later. Each component raises its own subclass
+    (``CatalogUnavailableError`` ...), so it is also that component's error."""
 
 
 class CatalogUnavailableError(CatalogError, StorageUnavailableError):
