@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import sqlite3
 import time
 from collections.abc import Callable, Iterable, Mapping
 from typing import Any
@@ -65,10 +66,22 @@ _EVENTS: dict[str, EventKind] = {
 }
 
 
+def storage_failure(exc: StorageError) -> ErrorCode | None:
+    """The wire code when the storage itself failed under a request, not the request: ``unavailable`` for a
+    failure that passes (a full disk, a busy or read-only database: ask again later; the service's
+    ``StorageHealth`` holds the leases meanwhile), ``internal`` for one raised from an ``OSError`` or
+    ``sqlite3.Error`` that does not (a damaged file). None for a refusal of the request itself."""
+    if isinstance(exc, StorageUnavailableError):
+        return ErrorCode.UNAVAILABLE
+    if isinstance(exc.__cause__, (OSError, sqlite3.Error)):
+        return ErrorCode.INTERNAL
+    return None
+
+
 def protocol_error(exc: StorageError) -> ProtocolError:
     """The wire error for a refused queue operation (also used by the service's lease / renew / fail)."""
-    if isinstance(exc, StorageUnavailableError):  # a full disk, a busy database: ask again later
-        code = ErrorCode.UNAVAILABLE
+    if (failed := storage_failure(exc)) is not None:  # not the request's fault: never bad_field
+        code = failed
     elif isinstance(exc, StaleLeaseError):
         code = ErrorCode.STALE_TOKEN
     elif isinstance(exc, UnknownRequestError):

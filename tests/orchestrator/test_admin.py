@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import errno
 import json
 import shutil
 import sqlite3
@@ -14,7 +15,7 @@ import pytest
 from orchestrator import admin, messages, protocol
 from orchestrator.protocol import ErrorCode, ProtocolError
 from storage.catalog import Catalog
-from storage.errors import QueueError, StaleLeaseError, StorageError
+from storage.errors import QueueError, QueueUnavailableError, StaleLeaseError, StorageError
 from storage.models import ModelRegistry
 from storage.queue import RequestQueue
 from storage.requests import IllegalTransitionError, NewRequest, UnknownRequestError
@@ -293,3 +294,25 @@ def test_only_write_ops_change_the_database(queue: RequestQueue, tmp_path: Path)
             assert (version() != before) == (op in admin.WRITE_OPS), op
     finally:
         watcher.close()
+
+
+def test_a_queue_operation_the_storage_failed_is_never_bad_field() -> None:
+    """bad_field makes a worker fail its request and drop its episode: only for a refusal of the request itself.
+    The storage failing under it is unavailable (it passes) or internal (it does not), and the worker asks again."""
+    def raised_from(cause: BaseException, error: type[StorageError]) -> StorageError:
+        try:
+            try:
+                raise cause
+            except BaseException as exc:
+                raise error(f"cannot renew: {exc}") from exc
+        except StorageError as exc:
+            return exc
+
+    try:
+        sqlite3.connect(":memory:").execute("select * from no_such_table")
+    except sqlite3.Error as exc:
+        damaged = exc
+    assert admin.protocol_error(raised_from(damaged, QueueError)).code == ErrorCode.INTERNAL
+    assert admin.protocol_error(raised_from(OSError(errno.ENOTDIR, "Not a directory"), QueueError)).code == ErrorCode.INTERNAL
+    assert admin.protocol_error(raised_from(damaged, QueueUnavailableError)).code == ErrorCode.UNAVAILABLE
+    assert admin.protocol_error(QueueError("priority: expected a number")).code == ErrorCode.BAD_FIELD
