@@ -13,7 +13,7 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
-from orchestrator.scheduler import note_phase, retrain_lock
+from orchestrator.retrainlock import note_phase, retrain_lock
 from storage.catalog import Catalog
 from storage.errors import StorageError
 from storage.models import ModelRegistry
@@ -75,7 +75,7 @@ def run_retrain(data_dir: Path, cfg: TrainConfig, wait: bool = False, keep_model
     ``training_job``; ``quarantined``: train episodes found missing or damaged, see
     ``uncertainty.data.load_train``; ``warnings``: ``TrainResult.warnings``, one line each); a prune that
     fails does not fail the job (the gate has decided by then): ``prune_error`` says why. Raises
-    ``orchestrator.scheduler.RetrainBusyError`` when another job holds the lock (and ``wait`` is False), and
+    ``orchestrator.retrainlock.RetrainBusyError`` when another job holds the lock (and ``wait`` is False), and
     whatever training raises (``uncertainty`` and ``storage`` errors; ``RegistryUnavailableError`` when the
     checkpoint to warm-start from cannot be read now); in every failure the champion is untouched, because
     only the gate at the very end promotes.

@@ -12,7 +12,7 @@ the model it registered, noted in the lock file, is looked up in the registry, s
 promotion is still recorded and announced (``RetrainScheduler._read_what_it_left``).
 
 The lock that keeps two retrains from training at once is taken by the job
-itself (``retrain_lock``, held by ``orchestrator.retrain.run_retrain``), so it also
+itself (``orchestrator.retrainlock``, held by ``orchestrator.retrain.run_retrain``), so it also
 holds against ``activecollect retrain`` started by system cron or by hand.
 
 This module imports no torch (the job does, in its own process), so ``serve`` and the
@@ -24,11 +24,11 @@ from __future__ import annotations
 import contextlib
 import ctypes
 import ctypes.util
-import fcntl
 import json
 import logging
 import os
 import signal
+import secrets
 import subprocess
 import sys
 import threading
@@ -36,27 +36,15 @@ import time
 from dataclasses import asdict, dataclass, field
 from enum import Enum
 from pathlib import Path
-from typing import Callable, Iterator
+from typing import Callable
 
 from croniter import croniter
 
+from orchestrator.retrainlock import EXIT_BUSY, JOB_ENV, read_lock_info
 from storage.errors import StorageError
 from storage.models import ModelRegistry, ModelStatus
 
 log = logging.getLogger(__name__)
-
-LOCK_NAME = "retrain.lock"
-#: Exit status of a retrain that found another one holding the lock.
-EXIT_BUSY = 3
-
-
-class SchedulerError(Exception):
-    """The retrain schedule or a retrain job could not be set up."""
-
-
-class RetrainBusyError(SchedulerError):
-    """Another retrain holds the lock."""
-
 
 class RetrainStatus(str, Enum):
     running = "running"
@@ -116,6 +104,8 @@ class RetrainRecord:
     metrics: dict = field(default_factory=dict)
     returncode: int | None = None
     log_path: str = ""
+    job: str = ""
+    """The id the job was given (``JOB_ENV``), by which its notes in the lock file are known."""
 
     def to_json(self) -> dict:
         d = asdict(self)
@@ -129,85 +119,6 @@ def quarantined_note(episode_ids: list[str]) -> str:
     return (f"quarantined {len(episode_ids)} train episode(s) whose files are missing or damaged: {shown} "
             "(trained without them; `activecollect episodes ls --quarantined` lists them, re-ingesting their "
             "bytes restores them)")
-
-
-@contextlib.contextmanager
-def retrain_lock(data_dir: Path, wait: bool = False) -> Iterator[Path]:
-    """Hold ``DATA/retrain.lock`` (``fcntl.flock``) for one retrain.
-
-    The kernel drops the lock when the holder dies, so a killed job never leaves a
-    stale lock. The file's content says who holds it and in which phase (see
-    ``note_phase``). Raises ``RetrainBusyError`` when another process holds it and
-    ``wait`` is False.
-    """
-    path = Path(data_dir) / LOCK_NAME
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
-    try:
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX | (0 if wait else fcntl.LOCK_NB))
-        except BlockingIOError:
-            holder = read_lock_info(data_dir)
-            raise RetrainBusyError(f"another retrain holds {path} (pid {holder.get('pid', '?')}, "
-                                   f"phase {holder.get('phase', '?')}); not training") from None
-        note_phase(data_dir, "locked", fd=fd, version="")  # a new holder: nothing registered yet
-        try:
-            yield path
-        except BaseException:
-            try:
-                note_phase(data_dir, "failed", fd=fd)  # not "training" for good after a failed job
-            except OSError:
-                pass  # the job's own error is the one to report
-            raise
-    finally:
-        os.close(fd)  # closing releases the flock
-
-
-def note_phase(data_dir: Path, phase: str, fd: int | None = None, version: str | None = None) -> None:
-    """Record the lock holder's pid and phase in the lock file (for operators, tests and the scheduler).
-
-    ``version``: the model the holder registered, kept through its later phases, so that a job that dies
-    before reporting can be told by what it left (``RetrainScheduler``); None keeps the one this process
-    noted since it took the lock.
-    """
-    if version is None:
-        noted = read_lock_info(data_dir)
-        version = noted.get("version", "") if noted.get("pid") == os.getpid() else ""
-    info = json.dumps({"pid": os.getpid(), "phase": phase, "time": time.time()}
-                      | ({"version": version} if version else {})).encode()
-    own = fd is None
-    if own:
-        fd = os.open(Path(data_dir) / LOCK_NAME, os.O_RDWR | os.O_CREAT, 0o644)
-    try:
-        os.ftruncate(fd, 0)
-        os.pwrite(fd, info, 0)
-    finally:
-        if own:
-            os.close(fd)
-
-
-def read_lock_info(data_dir: Path) -> dict:
-    """What the lock file says about its holder ({} when empty or unreadable)."""
-    try:
-        info = json.loads((Path(data_dir) / LOCK_NAME).read_text() or "{}")
-    except (OSError, json.JSONDecodeError):
-        return {}
-    return info if isinstance(info, dict) else {}
-
-
-def lock_held(data_dir: Path) -> bool:
-    """Whether some process holds the retrain lock right now."""
-    path = Path(data_dir) / LOCK_NAME
-    if not path.exists():
-        return False
-    fd = os.open(path, os.O_RDWR)
-    try:
-        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-    except BlockingIOError:
-        return True
-    finally:
-        os.close(fd)
-    return False
 
 
 _PR_SET_PDEATHSIG = 1  # linux/prctl.h
@@ -344,14 +255,14 @@ class RetrainScheduler:
         episodes = self.count_episodes()
         self._last_count = episodes
         logs = self.data_dir / "logs"
-        rec = RetrainRecord(trigger=trigger, started=time.time(), episodes=episodes)
+        rec = RetrainRecord(trigger=trigger, started=time.time(), episodes=episodes, job=secrets.token_hex(8))
         rec.log_path = str(logs / f"retrain-{time.strftime('%Y%m%dT%H%M%S')}-{len(self.history)}.log")
         try:
             logs.mkdir(parents=True, exist_ok=True)
             with open(rec.log_path + ".out", "wb") as out, open(rec.log_path, "wb") as err:
                 proc = subprocess.Popen(self.command(self.data_dir, self.job_args()),  # (gone with us: see _run)
                                         stdout=out, stderr=err, stdin=subprocess.DEVNULL,
-                                        preexec_fn=die_with_parent)
+                                        env={**os.environ, JOB_ENV: rec.job}, preexec_fn=die_with_parent)
         except OSError as exc:  # no log folder, no such program, no processes left: a failed job, recorded
             rec.finished, rec.status = time.time(), RetrainStatus.failed
             rec.reason = f"could not start the retrain job: {exc}"
@@ -443,8 +354,8 @@ class RetrainScheduler:
         champion; a rejection, which changed nothing, keeps the job's own ending."""
         info = read_lock_info(self.data_dir)
         version = info.get("version")
-        if info.get("pid") != pid or not isinstance(version, str) or not version:
-            return
+        if info.get("job") != rec.job or info.get("pid") != pid or not isinstance(version, str) or not version:
+            return  # (the job id, not the pid alone: an earlier holder's notes may carry a pid used again)
         rec.version, ended = version, rec.reason
         try:
             registry = ModelRegistry(self.data_dir)

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from orchestrator.cli import main
-from orchestrator.scheduler import EXIT_BUSY, retrain_lock
+from orchestrator.retrainlock import EXIT_BUSY, retrain_lock
 from tests.conftest import run_cli
 from storage.catalog import Catalog
 from storage.models import ModelRegistry, ModelStatus

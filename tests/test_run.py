@@ -273,7 +273,7 @@ def test_a_worker_stopped_both_by_its_run_and_by_a_signal_to_the_group_uploads_i
 def test_a_run_whose_every_retrain_failed_exits_1_saying_so(tmp_path):
     """Another retrain (a stuck cron job, say) holds the lock all along: no retrain of the run trains a model,
     so the run did not do its job, whatever it collected."""
-    from orchestrator.scheduler import retrain_lock
+    from orchestrator.retrainlock import retrain_lock
     data = tmp_path / "data"
     with retrain_lock(data):
         proc = subprocess.run([sys.executable, "-m", "orchestrator", "run", "--data", str(data), "--budget", "4",

@@ -28,7 +28,8 @@ from orchestrator.champion import ChampionScorer, FramesSource, limit_torch_thre
 from orchestrator.cli import collect as collect_cli, common
 from orchestrator.dashboard import Dashboard, DashboardConfig, DataSources
 from orchestrator.loopconfig import PALETTES, SIGNALS, LoopBenchConfig, RunConfig
-from orchestrator.scheduler import EXIT_BUSY, RetrainBusyError, quarantined_note
+from orchestrator.retrainlock import EXIT_BUSY, RetrainBusyError
+from orchestrator.scheduler import quarantined_note
 from orchestrator.protocol import SHAPES, one_line
 from storage.catalog import Catalog
 from storage.errors import StorageError

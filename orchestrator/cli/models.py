@@ -18,7 +18,8 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from orchestrator.cli import common
-from orchestrator.scheduler import EXIT_BUSY, RetrainBusyError, quarantined_note
+from orchestrator.retrainlock import EXIT_BUSY, RetrainBusyError
+from orchestrator.scheduler import quarantined_note
 from storage.catalog import Catalog
 from storage.episode_reader import read_episode
 from storage.errors import CorruptCheckpointError, EpisodeError, NotFoundError, RegistryError, StorageError

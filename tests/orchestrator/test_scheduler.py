@@ -16,10 +16,8 @@ import numpy as np
 import pytest
 
 from orchestrator.uniform import UniformPlanner, UniformPlannerConfig
-from orchestrator.scheduler import (
-    EXIT_BUSY, RetrainBusyError, RetrainScheduler, RetrainStatus, ScheduleConfig, lock_held, read_lock_info,
-    note_phase, retrain_lock,
-)
+from orchestrator.retrainlock import EXIT_BUSY, RetrainBusyError, lock_held, note_phase, read_lock_info, retrain_lock
+from orchestrator.scheduler import RetrainScheduler, RetrainStatus, ScheduleConfig
 from storage.catalog import Catalog
 from storage.models import ModelRegistry
 from workers.collect import collect_episode, create_eval_split
@@ -222,7 +220,7 @@ def test_cron_schedule(tmp_path):
 def test_the_lock_admits_one_holder_across_processes(tmp_path):
     holder = subprocess.Popen([sys.executable, "-c", (
         "import sys, time, pathlib\n"
-        "from orchestrator.scheduler import retrain_lock, note_phase\n"
+        "from orchestrator.retrainlock import retrain_lock, note_phase\n"
         "with retrain_lock(pathlib.Path(sys.argv[1])):\n"
         "    note_phase(pathlib.Path(sys.argv[1]), 'training')\n"
         "    time.sleep(600)\n"), str(tmp_path)])

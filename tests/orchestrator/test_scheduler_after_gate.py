@@ -11,8 +11,8 @@ from pathlib import Path
 
 import pytest
 
-from orchestrator.scheduler import (RetrainScheduler, RetrainStatus, ScheduleConfig, note_phase, read_lock_info,
-                                    retrain_lock)
+from orchestrator.retrainlock import note_phase, read_lock_info, retrain_lock
+from orchestrator.scheduler import RetrainScheduler, RetrainStatus, ScheduleConfig
 from storage.models import ModelRegistry
 from tests.conftest import wait_for
 
@@ -98,7 +98,7 @@ def test_a_promotion_by_another_holder_of_the_lock_is_not_the_killed_job_s(data)
     other = start(data, job(0.01))[0]  # another job, e.g. `activecollect retrain` from cron
     try:
         theirs = gated(data)
-        waits = ("import pathlib, sys\nfrom orchestrator.scheduler import retrain_lock\n"
+        waits = ("import pathlib, sys\nfrom orchestrator.retrainlock import retrain_lock\n"
                  "pathlib.Path(sys.argv[1], 'waiting').touch()\n"
                  "with retrain_lock(pathlib.Path(sys.argv[1]), wait=True):\n    pass\n")
         sched, promoted, finished = start(data, lambda d, extra: [sys.executable, "-c", waits, str(d)])
@@ -137,3 +137,24 @@ def test_the_lock_file_keeps_the_version_its_holder_registered_until_the_next_ho
     assert (info["phase"], info["version"], info["pid"]) == ("failed", "m000002-ab", os.getpid())
     with retrain_lock(tmp_path):  # the same process, a new job (bench loop): nothing registered yet
         assert "version" not in read_lock_info(tmp_path)
+
+
+#: A job that dies before taking the lock (a bad flag: exit 2), whose pid the lock file names with an earlier
+#: holder's notes: what the kernel's reuse of a pid (a restarted container) leaves. argv[2]: the earlier version.
+STALE_PID = """
+import json, os, pathlib, sys, time
+pathlib.Path(sys.argv[1], 'retrain.lock').write_text(json.dumps(
+    {'pid': os.getpid(), 'phase': 'done', 'time': time.time() - 86400, 'version': sys.argv[2]}))
+sys.exit(2)
+"""
+
+
+def test_an_earlier_holders_notes_under_a_pid_used_again_are_not_the_dead_jobs(data):
+    """The lock file outlives its holder; a later job that gets the same pid and dies before locking must not be
+    credited with the earlier job's promotion (recorded as promoted, announced again)."""
+    earlier = ModelRegistry(data).champion()
+    sched, promoted, finished = start(data, lambda d, extra: [sys.executable, "-c", STALE_PID, str(d), earlier])
+    assert sched.wait_idle(timeout=30)
+    rec = sched.history[0]
+    assert read_lock_info(data)["version"] == earlier  # the stale notes, under this job's pid
+    assert rec.status is RetrainStatus.failed and rec.version == "" and promoted == [], rec
