@@ -189,8 +189,9 @@ class Service:
     @contextlib.contextmanager
     def _writing(self) -> Iterator[None]:
         """The writer turn (``_writes``) around a write of ours; one the storage refuses for a reason that passes
-        is ``storage``'s to know, whichever path wrote (no lease expires until a write works again)."""
-        with self.storage.writing(), self._writes:
+        is ``storage``'s to know, whichever path wrote (no lease expires until a write works again). Known before
+        the turn passes on: a reap that took it in between would expire the leases nobody could renew."""
+        with self._writes, self.storage.writing():
             yield
 
     # --- query handlers ------------------------------------------------------------------------

@@ -243,3 +243,27 @@ def test_a_write_refused_past_the_busy_timeout_is_an_outage_whichever_path_met_i
     assert "database is locked" in why, why
     assert down is not None, f"a {op} refused for a locked database left the storage 'up'"
     assert service.queue.list() == before
+
+
+def test_an_outage_is_known_before_the_writer_turn_passes_on(make_service, client, keys, data_dir, monkeypatch) -> None:
+    """A write refused for a locked database is noted as an outage while its path still holds the writer turn:
+    a reap that took the turn in between would see the storage up and expire the leases nobody could renew."""
+    monkeypatch.setattr(service_module, "RequestQueue", functools.partial(RequestQueue, busy_timeout_s=0.2))
+    metrics = CountedReaps()
+    service = make_service(reap_interval_s=120.0, metrics=metrics)
+    wait_for(lambda: metrics.reaps, message="the first reap, at start")
+    request, _ = service.queue.enqueue(new_request())
+    grant = lease(client, keys)
+    held_when_noted = []
+    real = service.storage.write_failed
+    monkeypatch.setattr(service.storage, "write_failed",
+                        lambda exc: (held_when_noted.append(service._writes.locked()), real(exc)))
+    writer = sqlite3.connect(Catalog(data_dir).db_path, isolation_level=None)
+    writer.execute("BEGIN IMMEDIATE")
+    try:
+        refused(ErrorCode.UNAVAILABLE, call, client, keys.renew,
+                messages.RenewRequest(request_id=request.id, token=grant.token, worker_id="w1").to_json())
+    finally:
+        writer.execute("ROLLBACK")
+        writer.close()
+    assert held_when_noted == [True]
