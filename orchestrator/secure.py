@@ -378,22 +378,28 @@ def init_secure(cfg: SecureInitConfig) -> SecureSet:
     All or nothing: every file is made first, staged under a temporary name, and only then put in
     place; when anything fails, what this call made (staged files, files put in place, directories) is
     removed again. A profile that ``force`` replaces is swapped whole (``secure_files.replace``): a failure leaves the
-    old one, never old and new files mixed. Raises SecureConfigError when the directory already holds a
-    profile and ``force`` is off, or when it cannot be created; OSError when a file cannot be written (a
-    full disk) or the old profile cannot be set aside (the directory is a mount point).
+    old one, never old and new files mixed; so does a profile whose swap a crash cut short (its ``.new-*`` /
+    ``.old-*`` folders deleted then). Raises SecureConfigError when the directory already holds a profile
+    and ``force`` is off, or when it cannot be created; OSError when a file cannot be written (a full disk).
     """
     planned = planned_files(cfg.directory)
+    swaps: list[Path] = []
     if cfg.directory.is_dir():  # it becomes 0700: never take over a directory holding other things
-        others = sorted(p.name for p in cfg.directory.iterdir() if p not in planned)
+        swaps = secure_files.interrupted_swaps(cfg.directory)
+        others = sorted(p.name for p in cfg.directory.iterdir() if p not in planned and p not in swaps)
         if others:
             raise SecureConfigError(f"expected an empty directory or a secure profile at {cfg.directory}, "
                                     f"found other files ({', '.join(others[:3])})")
     existing = [p for p in planned if p.exists()]
+    if swaps and not cfg.force:
+        raise SecureConfigError(f"{cfg.directory} holds a secure profile whose replacement was cut short: the old "
+                                f"files set aside and the new ones not yet in place are in "
+                                f"{', '.join(p.name for p in swaps)}; pass --force to replace it whole (and delete those)")
     if existing and not cfg.force:
         raise SecureConfigError(f"{cfg.directory} already holds a secure profile "
                                 f"({existing[0].name}, ...); pass --force to replace it")
     out, files = _render(cfg)  # before anything touches the disk
-    if existing:
+    if existing or swaps:
         out.left_over = secure_files.replace(cfg.directory, files)
     else:
         secure_files.write_new(cfg.directory, files)

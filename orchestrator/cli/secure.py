@@ -44,7 +44,8 @@ def register(sub) -> None:
                       help="another DNS name or IP address of the router for its certificate (repeatable)")
     init.add_argument("--valid-days", type=_valid_days, default=825, metavar="DAYS",
                       help=f"certificate lifetime in days, at most {MAX_VALID_DAYS} (default 825)")
-    init.add_argument("--force", action="store_true", help="replace an existing profile in DIR")
+    init.add_argument("--force", action="store_true",
+                      help="replace an existing profile in DIR whole (also where DIR is a mount point)")
     add_json_arg(init)
     init.set_defaults(func=_init)
     check = ssub.add_parser("check", help="check that every file a Zenoh config names exists and is readable")

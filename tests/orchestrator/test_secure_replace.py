@@ -4,7 +4,8 @@ profile written into an existing empty directory likewise leaves nothing of itse
 
 Faults are injected at ``os.rename`` / ``os.replace`` (the N-th call of the two, counted together, fails as a
 full disk would, or kills the process with a real SIGKILL) and, once, at ``shutil.rmtree``; everything else is
-real files.
+real files. Where the profile's folder cannot be renamed (a mount point: EBUSY, injected, and a real tmpfs mounted
+in a mount namespace of the test's own where one can be made), the files are swapped inside it, all or nothing too.
 """
 
 from __future__ import annotations
@@ -125,16 +126,20 @@ def test_an_old_profile_that_cannot_be_deleted_is_named_in_a_warning(monkeypatch
 
 
 KILLED_AT_RENAME = """
-import os, signal, sys
+import errno, os, signal, sys
+from pathlib import Path
 from orchestrator.secure import SecureInitConfig, init_secure
 
 calls, kill_at = [0], int(sys.argv[2])
+busy = Path(sys.argv[1]).resolve() if sys.argv[3:] == ["busy"] else None  # renamed, as a mount point would be
 def killing(real):
-    def call(*args, **kwargs):
+    def call(src, *args, **kwargs):
         calls[0] += 1
         if calls[0] == kill_at:
             os.kill(os.getpid(), signal.SIGKILL)
-        return real(*args, **kwargs)
+        if Path(src) == busy:
+            raise OSError(errno.EBUSY, os.strerror(errno.EBUSY), str(src))
+        return real(src, *args, **kwargs)
     return call
 os.rename, os.replace = killing(os.rename), killing(os.replace)
 init_secure(SecureInitConfig(sys.argv[1], force=True))
@@ -181,3 +186,184 @@ def test_a_forced_init_through_a_link_replaces_the_profile_where_it_points(tmp_p
     named = validate_secure_config(second.configs["worker"])
     assert all(p.resolve().parent == real.resolve() for p in map(Path, named))
     assert sorted(p.name for p in tmp_path.iterdir()) == ["profile", "real-profile"]
+
+
+# ---------------------------------------------------------------- a folder that cannot be renamed: swapped inside it
+
+def _profile_files(directory: Path) -> dict[str, bytes]:
+    """``_files`` without the folders a swap inside ``directory`` makes."""
+    return {p.name: p.read_bytes() for p in sorted(directory.iterdir()) if not p.is_dir()}
+
+
+@contextmanager
+def _folder_swap_refused(monkeypatch: pytest.MonkeyPatch, directory: Path, at: str = "rename",
+                         code: int = errno.EBUSY) -> Iterator[None]:
+    """``directory`` cannot be renamed (``at="rename"``: as a mount point, EBUSY) or be given a sibling (``at="mkdir"``:
+    as in a parent that may not be written); every other call is real."""
+    target = directory.resolve()
+    real = getattr(os, at)
+
+    def refused_at(path: Path) -> bool:
+        if at == "rename":
+            return path == target
+        return path.parent == target.parent and path.name.startswith(f".{target.name}.new-")
+
+    def refused(path, *args, **kwargs):
+        if refused_at(Path(path)):
+            raise OSError(code, os.strerror(code), str(path))
+        return real(path, *args, **kwargs)
+
+    with monkeypatch.context() as m:
+        m.setattr(os, at, refused)
+        yield
+
+
+@pytest.mark.parametrize(("at", "code"), [("rename", errno.EBUSY), ("rename", errno.EXDEV), ("rename", errno.EPERM),
+                                          ("mkdir", errno.EACCES), ("mkdir", errno.EROFS)])
+def test_a_folder_that_cannot_be_swapped_has_its_files_swapped_inside_it(monkeypatch, tmp_path, capsys, at, code):
+    """A mount point (EBUSY), an overlay's lower layer (EXDEV), a parent that may not be written (EACCES, EROFS):
+    ``--force`` still replaces the profile whole, in the same folder, and leaves nothing else."""
+    directory = tmp_path / "profile"
+    init_secure(SecureInitConfig(directory))
+    old, inode = _files(directory), directory.stat().st_ino
+    with _folder_swap_refused(monkeypatch, directory, at, code):
+        rc, out, err = run_cli(capsys, "secure", "init", str(directory), "--force", "--json")
+    assert rc == 0 and json.loads(out)["left_over"] is None and not err, (rc, err)
+    _assert_whole_new_profile(directory, old)
+    assert directory.stat().st_ino == inode and oct(directory.stat().st_mode & 0o777) == oct(0o700)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["profile"]
+
+
+def test_a_rename_that_fails_anywhere_in_a_swap_inside_the_folder_leaves_the_old_profile_whole(monkeypatch,
+                                                                                              tmp_path):
+    """The folder is a mount point and each rename of the swap inside it fails in turn: the old profile stays, byte
+    for byte, and neither the new files nor the folders of the swap are left behind."""
+    directory = tmp_path / "profile"
+    init_secure(SecureInitConfig(directory))
+    old = _files(directory)
+    with _folder_swap_refused(monkeypatch, directory):
+        for call in range(2, 96):  # the 1st rename is the folder's, refused
+            with _rename_fails_at(monkeypatch, call) as count:
+                try:
+                    init_secure(SecureInitConfig(directory, force=True))
+                except OSError as exc:
+                    assert "No space left on device" in str(exc)
+                    assert _files(directory) == old, f"rename {call} failed: old and new files mixed"
+                    assert sorted(p.name for p in tmp_path.iterdir()) == ["profile"], call
+                    continue
+            assert count[0] < call  # a run with no failed rename: done
+            break
+    assert call > 2 * len(planned_files(directory))  # every file's two renames were made to fail
+    _assert_whole_new_profile(directory, old)
+
+
+def test_when_the_old_files_cannot_be_put_back_inside_the_folder_the_error_says_where_they_are(monkeypatch,
+                                                                                              tmp_path, capsys):
+    """The first new file cannot be renamed into the mount point, nor the second old one back: the error names the
+    folder that holds the old files not back; those and the one back in place make the old profile whole."""
+    directory = tmp_path / "profile"
+    init_secure(SecureInitConfig(directory))
+    old, n = _files(directory), len(planned_files(directory))
+    with _folder_swap_refused(monkeypatch, directory), _rename_fails_at(monkeypatch, n + 2, n + 4):
+        rc, out, err = run_cli(capsys, "secure", "init", str(directory), "--force")
+    lines = err.strip().splitlines()
+    assert rc == 1 and not out and len(lines) == 1, (rc, out, err)
+    [aside] = [p for p in directory.iterdir() if p.is_dir()]
+    assert aside.name.startswith(".old-") and str(aside) in lines[0] and "move the files" in lines[0], lines[0]
+    back = _profile_files(directory)
+    assert len(back) == 1 and {**back, **_files(aside)} == old
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["profile"]
+
+
+def test_old_files_that_cannot_be_deleted_after_a_swap_inside_the_folder_are_named(monkeypatch, tmp_path, capsys):
+    directory = tmp_path / "profile"
+    init_secure(SecureInitConfig(directory))
+    old = _files(directory)
+    real_rmtree = shutil.rmtree
+
+    def rmtree(path, *args, **kwargs):
+        if Path(path).name.startswith(".old-"):
+            raise OSError(errno.EACCES, "Permission denied", str(path))
+        return real_rmtree(path, *args, **kwargs)
+
+    with _folder_swap_refused(monkeypatch, directory), monkeypatch.context() as m:
+        m.setattr(shutil, "rmtree", rmtree)
+        rc, out, err = run_cli(capsys, "secure", "init", str(directory), "--force", "--json")
+    [aside] = [p for p in directory.iterdir() if p.is_dir()]
+    assert rc == 0 and json.loads(out)["left_over"] == str(aside) and _files(aside) == old
+    assert "warning" in err and str(aside) in err, err
+    assert _profile_files(directory).keys() == old.keys()
+
+
+@pytest.mark.parametrize("kill_at", ["first aside", "middle aside", "first in", "middle in"])
+def test_a_swap_inside_the_folder_killed_at_a_rename_never_mixes_profiles_and_force_finishes_it(tmp_path, capsys,
+                                                                                              monkeypatch, kill_at):
+    """After a real SIGKILL at a rename of the swap inside a mount point, the folder holds old files or new ones,
+    never both. A plain init then names the swap's folders and asks for --force; --force replaces the profile
+    whole and deletes them."""
+    directory = tmp_path / "profile"
+    init_secure(SecureInitConfig(directory))
+    old, n = _files(directory), len(planned_files(directory))
+    call = {"first aside": 2, "middle aside": 2 + n // 2, "first in": n + 2, "middle in": n + 2 + n // 2}[kill_at]
+    done = subprocess.run([sys.executable, "-c", KILLED_AT_RENAME, str(directory), str(call), "busy"], cwd=REPO,
+                          capture_output=True, text=True, timeout=120, env=ENV)
+    assert done.returncode == -signal.SIGKILL, done.stderr
+    left = _profile_files(directory)
+    assert (all(old[name] == data for name, data in left.items())
+            or all(old[name] != data for name, data in left.items())), "old and new files mixed"
+    swaps = sorted(p.name for p in directory.iterdir() if p.is_dir())
+    assert [name[:5] for name in swaps] == [".new-", ".old-"], swaps
+    rc, out, err = run_cli(capsys, "secure", "init", str(directory))
+    assert rc == 2 and all(name in err for name in swaps) and "--force" in err and "cut short" in err, err
+    with _folder_swap_refused(monkeypatch, directory):
+        rc, out, err = run_cli(capsys, "secure", "init", str(directory), "--force")
+    assert rc == 0, err
+    _assert_whole_new_profile(directory, old)
+
+
+# ---------------------------------------------------------------- a real mount point
+
+MOUNTED = r"""
+set -e
+P="$1/parent"; D="$P/profile"; PY="$2"
+mkdir "$P"; mount -t tmpfs none "$P" || exit 77
+mkdir "$D"; mount -t tmpfs -o mode=0700 none "$D" || exit 77
+if [ "$3" = read-only-parent ]; then mount -o remount,ro "$P" || exit 77; fi
+"$PY" -m orchestrator secure init "$D" > /dev/null
+cp -a "$D" "$1/before"
+"$PY" -m orchestrator secure init --force "$D" --json > "$1/force.json"
+cp -a "$D" "$1/after"
+"$PY" -m orchestrator secure check "$D/worker.json5" > /dev/null
+mountpoint -q "$D"
+"""
+
+
+def _unshare_mount() -> list[str] | str:
+    """The command that runs another in a mount namespace of its own, or why there is none here."""
+    if not all(shutil.which(tool) for tool in ("unshare", "mount", "mountpoint")):
+        return "needs util-linux's unshare, mount and mountpoint"
+    command = ["unshare", "--mount"] if os.geteuid() == 0 else ["unshare", "--map-root-user", "--mount"]
+    probe = subprocess.run([*command, "true"], capture_output=True, text=True, timeout=60)
+    if probe.returncode != 0:
+        return f"`{' '.join(command)}` is not permitted here: {probe.stderr.strip()}"
+    return command
+
+
+@pytest.mark.parametrize("case", ["mount-point", "read-only-parent"])
+def test_a_forced_init_replaces_a_profile_in_a_real_mount_point(tmp_path, case):
+    """A tmpfs mounted at the profile path (a Docker/Kubernetes volume), in a parent that may be written or not:
+    `secure init --force` replaces the profile whole, in place, and the new one checks out there."""
+    command = _unshare_mount()
+    if isinstance(command, str):
+        pytest.skip(command)
+    done = subprocess.run([*command, "bash", "-c", MOUNTED, "mounted", str(tmp_path), sys.executable, case],
+                          cwd=REPO, capture_output=True, text=True, timeout=300, env=ENV)
+    if done.returncode == 77:
+        pytest.skip(f"cannot mount a tmpfs here: {done.stderr.strip()}")
+    assert done.returncode == 0, done.stderr
+    assert json.loads((tmp_path / "force.json").read_text())["left_over"] is None
+    old, new = _files(tmp_path / "before"), _files(tmp_path / "after")
+    assert sorted(new) == sorted(old) and [name for name in new if new[name] == old[name]] == []
+    ca = x509.load_pem_x509_certificate(new["ca.pem"])
+    for role in ROLES:
+        x509.load_pem_x509_certificate(new[f"{role}.pem"]).verify_directly_issued_by(ca)
