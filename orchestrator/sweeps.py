@@ -3,10 +3,11 @@
 Episode files no row indexes (an ingest killed between its file and its commit) go to ``orphans/<day>/``,
 staging files older than ``STAGING_MAX_AGE_S`` are deleted (younger ones may be a live ingest's), and
 checkpoint folders no model row names (a register killed before its commit, e.g. a retrain killed there)
-go to ``orphans/models/`` -- never a live register's, in any process (``ModelRegistry.sweep_strays``).
+go to ``models/.orphans/`` -- never a live register's, in any process (``ModelRegistry.sweep_strays``).
 None of them was acknowledged. One that cannot be moved (a full disk cannot make ``orphans/<day>/``)
 stays where it is and is said: nothing reads it, and the next sweep (or start) tries again; it is no
-reason to refuse to start.
+reason to refuse to start. A checkpoint folder that cannot be moved holds up nothing else: the registry
+moves each as best it can, and ``models prune`` frees what it should all the same.
 """
 
 from __future__ import annotations
@@ -36,10 +37,16 @@ def sweep_leftovers(catalog: Catalog, data_dir: Path, health: StorageHealth, log
     try:
         with health.writing():
             models = ModelRegistry(data_dir).sweep_strays()
-    except OSError as exc:
-        log.warning("cannot move aside the checkpoint folders no model row names (%s); they stay until a later "
-                    "sweep or `models prune`", exc)
+    except OSError as exc:  # models/ could not be opened or listed: nothing was moved (a failed move is not raised)
+        log.warning("cannot look for checkpoint folders no model row names (%s); any stay where they are, unused, "
+                    "until a later sweep", exc)
         return
-    if models:
+    if models.moved:
         log.warning("moved %d checkpoint folder(s) no model row names to %s/ (a register killed before its "
-                    "commit; none was acknowledged): %s", len(models), MODEL_ORPHANS_DIR, ", ".join(models))
+                    "commit; none was acknowledged): %s", len(models.moved), MODEL_ORPHANS_DIR,
+                    ", ".join(models.moved))
+    if models.not_moved:
+        log.warning("cannot move %d checkpoint folder(s) no model row names to %s/ (a register killed before its "
+                    "commit; none was acknowledged); they stay where they are, unused, until a later sweep: %s",
+                    len(models.not_moved), MODEL_ORPHANS_DIR,
+                    ", ".join(f"{v} ({why})" for v, why in models.not_moved.items()))

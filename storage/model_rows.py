@@ -1,8 +1,9 @@
 """The model registry's rows: plain dataclasses of what ``storage.models.ModelRegistry`` answers with.
 
 ``ModelStatus`` (where a model stands), ``ModelRecord`` (one registered model), ``ChampionEntry`` (one
-promotion) and ``PruneResult`` (what a prune did, stray folders moved aside included), with the names of a
-checkpoint directory's files. They import nothing of the registry; ``storage.models`` re-exports them.
+promotion), ``StrayFolders`` (what a sweep did with the checkpoint folders no row names) and ``PruneResult``
+(what a prune did, those folders included), with the names of a checkpoint directory's files. They import
+nothing of the registry; ``storage.models`` re-exports them.
 """
 
 from __future__ import annotations
@@ -105,7 +106,24 @@ class PruneResult:
     dry_run: bool = False
     orphaned: list[str] = field(default_factory=list)
     """Checkpoint folders no row names (a ``register`` that died before its commit), moved aside to
-    ``DATA/orphans/models/`` (with ``dry_run``: found, left in place); their files are kept, for the operator."""
+    ``DATA/models/.orphans/`` (with ``dry_run``: found, left in place); their files are kept, for the operator."""
+    not_moved: dict[str, str] = field(default_factory=dict)
+    """Such folders that could not be moved (version: why), left where they are: no row names them, so nothing
+    serves them, and the next prune or sweep tries again. They took nothing from what this prune freed."""
+
+
+@dataclass(frozen=True)
+class StrayFolders:
+    """What ``ModelRegistry.sweep_strays`` did with the checkpoint folders no row names (a ``register`` that
+    died before its commit; none was acknowledged)."""
+
+    moved: list[str] = field(default_factory=list)
+    """Versions moved aside to ``DATA/models/.orphans/`` (with ``dry_run``: found, left in place), files kept."""
+    not_moved: dict[str, str] = field(default_factory=dict)
+    """Those that could not be moved (version: why), left where they are for the next sweep to try again."""
+
+    def __bool__(self) -> bool:
+        return bool(self.moved or self.not_moved)
 
 
 def _finite(obj: Any) -> Any:

@@ -14,7 +14,7 @@ The tables are created through ``storage.database.ensure_schema`` (component ``m
 Retention: nothing is deleted unless asked. ``prune(keep=N)`` deletes the files of retired and
 rejected models outside the champion's rollback chain of N; their rows stay (``pruned_at`` set), so
 ``models ls`` and the dashboard still show every model's metrics and history. Folders no row names (a
-register killed before its commit) go aside to ``DATA/orphans/models/`` (``sweep_strays``, ``prune``).
+register killed before its commit) go aside to ``DATA/models/.orphans/`` (``sweep_strays``, ``prune``).
 
 The rows the registry answers with are ``storage.model_rows``'s dataclasses (re-exported here), the steps
 of a prune ``storage.pruning``'s functions; a checkpoint directory's files are written, read back and checked
@@ -41,7 +41,7 @@ from storage.errors import CorruptCheckpointError, RegistryError, UnknownModelEr
 from storage.files import write_synced
 from storage.gate import DEFAULT_METRIC, DEFAULT_MIN_REL_IMPROVEMENT, GateDecision, judge
 from storage.model_rows import (CONFIG_FILE, META_FILE, METRICS_FILE, SNAPSHOT_FILE, WEIGHTS_FILE, ChampionEntry,
-                                ModelRecord, ModelStatus, PruneResult)
+                                ModelRecord, ModelStatus, PruneResult, StrayFolders)
 from storage.rows import Snapshot
 
 CHAMPION = "champion"
@@ -456,8 +456,8 @@ class ModelRegistry:
         transaction before any file is deleted, so a crash between leaves marked rows whose files
         the next ``prune`` deletes; each directory is claimed by a rename before it is deleted, so
         two prunes at once delete (and count) it once. Also sweeps the dot folders crashed calls
-        left, and moves the folders no row names aside (``sweep_strays``; ``orphaned``). Raises
-        ``RegistryError`` for a ``keep`` below 1.
+        left, and moves the folders no row names aside (``sweep_strays``; ``orphaned``, and ``not_moved``
+        those that could not be, which fail nothing). Raises ``RegistryError`` for a ``keep`` below 1.
         """
         if isinstance(keep, bool) or not isinstance(keep, int) or keep < 1:
             raise RegistryError(f"keep must be a whole number of at least 1 (the champion), found {keep!r}")
@@ -471,16 +471,16 @@ class ModelRegistry:
             kept = pruning.kept(self._keep_order(conn), keep, unusable, unread)
             chosen = pruning.mark(conn, kept, None if dry_run else _now())
             marked = pruning.marked(conn)
-            orphaned = strays.unregistered(conn, folders, self._orphans(dry_run))
-        return pruning.finish(self.models_dir, chosen, marked, kept, dry_run, [p.name for p in orphaned])
+            aside = strays.unregistered(conn, folders, self._orphans(dry_run))  # a failed move fails nothing
+        return pruning.finish(self.models_dir, chosen, marked, kept, dry_run, aside)
 
-    def sweep_strays(self, dry_run: bool = False) -> list[str]:
+    def sweep_strays(self, dry_run: bool = False) -> StrayFolders:
         """Move the checkpoint folders no row names (a register killed before its commit: nothing acknowledged)
-        to ``DATA/orphans/models/``; return their versions (``dry_run``: only find them). Checked under the write
-        lock, so never a live register's, in any process (``storage.strays.unregistered``). For start-up."""
+        to ``DATA/models/.orphans/``; say which moved and which could not (``dry_run``: only find them). Checked
+        under the write lock, so never a live register's, in any process (``storage.strays.unregistered``)."""
         folders = strays.model_folders(self.models_dir)  # listed before the write lock, checked under it
         with self._transaction() as conn:
-            return [p.name for p in strays.unregistered(conn, folders, self._orphans(dry_run))]
+            return strays.unregistered(conn, folders, self._orphans(dry_run))
 
     def _orphans(self, dry_run: bool) -> Path | None:
         return None if dry_run else self.data_dir / strays.MODEL_ORPHANS_DIR

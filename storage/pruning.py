@@ -4,7 +4,8 @@ A prune keeps the champion, the earlier champions ``rollback`` walks back to, th
 rollback took out of service; it marks the rest of the retired and rejected models (``pruned_at``), all in
 one transaction, then deletes their directories, each claimed first by a rename to ``.prune-*`` so that of
 two prunes at once one deletes (and counts) it. Rows stay, so every model's metrics and history remain. In the
-same transaction the folders no row names are moved aside (``storage.strays.unregistered``).
+same transaction the folders no row names are moved aside (``storage.strays.unregistered``), each as best it
+can: one that cannot be moved is said and left, and takes nothing from the marks or the deletes.
 
 A model whose weights cannot be read right now (an I/O error) is kept, and does not count as one of the
 chain's: only a lasting verdict (not their sha256, the file missing) lets a prune delete a rollback target.
@@ -27,7 +28,7 @@ from pathlib import Path
 from storage import checkpoint_files
 from storage.errors import CorruptCheckpointError
 from storage.files import age_s, fsync_dir
-from storage.model_rows import ModelStatus, PruneResult
+from storage.model_rows import ModelStatus, PruneResult, StrayFolders
 
 #: A staging or deleting dot folder under ``models/`` this old belongs to no live call (they take seconds).
 STALE_AGE_S = 3600.0
@@ -110,24 +111,26 @@ def delete(models_dir: Path, versions: Iterable[str]) -> tuple[list[str], int]:
 
 
 def finish(models_dir: Path, chosen: list[str], every_marked: list[str], kept: list[str],
-           dry_run: bool, orphaned: list[str]) -> PruneResult:
-    """Once the rows are marked (and the folders no row names, ``orphaned``, moved aside): deletes the
-    directories of ``chosen`` and of those of ``every_marked`` an earlier prune left (with ``dry_run``, only
+           dry_run: bool, aside: StrayFolders) -> PruneResult:
+    """Once the rows are marked (and the folders no row names moved aside as they could be, ``aside``): deletes
+    the directories of ``chosen`` and of those of ``every_marked`` an earlier prune left (with ``dry_run``, only
     sizes them) and sweeps the dot folders crashed calls left."""
     leftover = [v for v in every_marked if v not in chosen and (models_dir / v).exists()]
     if dry_run:
-        return PruneResult(pruned=sorted(chosen + leftover), kept=kept, dry_run=True, orphaned=orphaned,
+        return PruneResult(pruned=sorted(chosen + leftover), kept=kept, dry_run=True, orphaned=aside.moved,
                            freed_bytes=sum(tree_size(models_dir / v) for v in chosen + leftover))
     deleted, freed = delete(models_dir, chosen + leftover)
     sweep_stale(models_dir, time.time())
     if deleted:
         fsync_dir(models_dir)
-    return PruneResult(pruned=sorted(set(chosen) | set(deleted)), kept=kept, freed_bytes=freed, orphaned=orphaned)
+    return PruneResult(pruned=sorted(set(chosen) | set(deleted)), kept=kept, freed_bytes=freed,
+                       orphaned=aside.moved, not_moved=aside.not_moved)
 
 
 def sweep_stale(models_dir: Path, now: float) -> None:
     """Delete the dot folders a crashed ``register`` (``.tmp-*``) or ``prune`` (``.prune-*``) left, once
-    older than ``STALE_AGE_S`` at ``now`` (unix seconds; a younger one may be a live call's)."""
+    older than ``STALE_AGE_S`` at ``now`` (unix seconds; a younger one may be a live call's). Never
+    ``.orphans/`` (``storage.strays.MODEL_ORPHANS_DIR``): the folders there are kept for the operator."""
     for stale in (*models_dir.glob(".tmp-*"), *models_dir.glob(".prune-*")):
         if age_s(stale, now) > STALE_AGE_S:
             shutil.rmtree(stale, ignore_errors=True)

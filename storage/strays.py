@@ -8,7 +8,11 @@ point), so a sweep deletes staging files and moves unindexed files aside to ``DA
 The model registry's ``register`` works the same way (a ``.tmp-*`` folder staged, renamed to its version and
 its row inserted in one write transaction), so a register that dies between the rename and the commit, or whose
 undo cannot delete the folder, leaves a checkpoint folder no row names: ``unregistered`` finds those and moves
-them aside to ``DATA/orphans/models/`` (``ModelRegistry.sweep_strays``, and every ``prune``).
+them aside to ``DATA/models/.orphans/`` (``ModelRegistry.sweep_strays``, and every ``prune``). That folder is
+inside ``models/`` so that the move is a rename within one file system wherever ``models/`` lives (a link to,
+or a mount of, a volume of its own for checkpoints, where a rename to ``DATA/orphans/`` would fail with EXDEV),
+and needs no space but a directory entry. A folder that cannot be moved all the same stays where it is and is
+said (no row names it, so nothing serves it): it never fails the caller's transaction, a prune's marks included.
 
 These are the catalog's and the registry's steps: the directory walks outside any lock, ``unindexed`` and
 ``unregistered`` over a connection they opened, inside its ``BEGIN IMMEDIATE`` transaction (``storage.catalog``
@@ -24,11 +28,15 @@ from pathlib import Path
 
 from storage.database import EPISODES_DIR, MODELS_DIR
 from storage.files import age_s, move
+from storage.model_rows import StrayFolders
 
 #: Where ``sweep_strays`` moves episode files that have no catalog row.
 ORPHANS_DIR = "orphans"
-#: Where ``unregistered`` moves checkpoint folders no registry row names: ``DATA/orphans/models/<version>``.
-MODEL_ORPHANS_DIR = f"{ORPHANS_DIR}/{MODELS_DIR}"
+#: Where ``unregistered`` moves checkpoint folders no registry row names (relative to the data directory):
+#: ``DATA/models/.orphans/<version>``. A dot folder, so no walk of the registry's takes it for one of its own:
+#: ``model_folders`` lists version names only, ``storage.pruning.sweep_stale`` deletes ``.tmp-*`` and
+#: ``.prune-*`` only, and a backup copies the folders of rows only.
+MODEL_ORPHANS_DIR = f"{MODELS_DIR}/.orphans"
 #: What ``ModelRegistry.register`` names a checkpoint folder (``m<seq>-<8 hex of the weights' sha256>``); a
 #: folder named otherwise under ``models/`` is no version of the registry's (the ``.tmp-*`` and ``.prune-*``
 #: ones are live or crashed calls', which ``storage.pruning.sweep_stale`` takes by age).
@@ -82,20 +90,34 @@ def model_folders(models_dir: Path) -> list[Path]:
     return sorted(p for p in models_dir.iterdir() if _VERSION.fullmatch(p.name) and p.is_dir())
 
 
-def unregistered(conn: sqlite3.Connection, folders: list[Path], move_to: Path | None) -> list[Path]:
+def unregistered(conn: sqlite3.Connection, folders: list[Path], move_to: Path | None) -> StrayFolders:
     """In a write transaction: those of ``folders`` (``model_folders``) still there that no row of the registry
     names; moved under ``move_to`` (as ``<version>``, ``<version>.1`` ... when an earlier sweep took the name)
-    when given.
+    when given, else only found (``StrayFolders.moved``).
 
     Certain under the write lock, however the folders were listed: a register renames its folder into place
     and inserts its row in one write transaction, so by now every listed folder's register has committed (a
     row), rolled back and taken it away, or died (an orphan). One whose undo is still to come (it too takes the
-    write lock) failed: moving its folder aside takes nothing that was acknowledged."""
+    write lock) failed: moving its folder aside takes nothing that was acknowledged.
+
+    Best effort per folder: one whose move raises ``OSError`` (no space to make ``move_to``, a folder that is
+    a mount point) stays where it is, in ``not_moved`` with why, and the others still go; nothing is raised, so
+    the caller's transaction commits what else it did."""
     rows = {r[0] for r in conn.execute("SELECT version FROM models")}
     found = [p for p in folders if p.name not in rows and p.is_dir()]
-    for path in found if move_to is not None else ():
-        move(path, _free_name(move_to / path.name))
-    return found
+    if move_to is None:
+        return StrayFolders(moved=[p.name for p in found])
+    moved: list[str] = []
+    not_moved: dict[str, str] = {}
+    for path in found:
+        try:
+            move(path, _free_name(move_to / path.name))
+        except OSError as exc:
+            if path.is_dir():  # else renamed, and a folder's fsync after it failed: it is aside all the same
+                not_moved[path.name] = exc.strerror or str(exc)
+                continue
+        moved.append(path.name)
+    return StrayFolders(moved, not_moved)
 
 
 def _free_name(path: Path) -> Path:

@@ -2,13 +2,16 @@
 
 from __future__ import annotations
 
+import errno
 import json
 import math
+import os
 import shutil
 import subprocess
 import sys
 
 import uuid
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -146,7 +149,38 @@ def test_models_prune_names_the_folders_it_moves_aside(capsys, data, reg) -> Non
     assert (reg.models_dir / "m000009-0badf00d").is_dir()
     rc, out, _ = run_cli(capsys, "models", "prune", "--keep", "1", "--data", str(data))
     assert rc == 0 and out.startswith("nothing to delete") and "moved 1 checkpoint folder(s)" in out
-    assert (data / "orphans" / "models" / "m000009-0badf00d").is_dir() and not (reg.models_dir / "m000009-0badf00d").exists()
+    assert "to models/.orphans/" in out
+    assert (reg.models_dir / ".orphans" / "m000009-0badf00d").is_dir()
+    assert not (reg.models_dir / "m000009-0badf00d").exists()
+
+
+def test_models_prune_frees_all_the_same_when_a_folder_cannot_be_moved_aside(capsys, monkeypatch, data, reg) -> None:
+    """A full disk: the folder no row names cannot be moved aside; the prune deletes what it should (exit 0), says
+    which folder stayed and why, and --json has it under not_moved."""
+    a, b = _register(reg, 0.01), _register(reg, 0.008)
+    reg.gate(a)
+    reg.gate(b)
+    shutil.copytree(reg.get(b).path, reg.models_dir / "m000009-0badf00d")
+    real = os.replace
+
+    def full_disk(src, dst, **kw) -> None:
+        if Path(src).name == "m000009-0badf00d":
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(src))
+        real(src, dst, **kw)
+
+    monkeypatch.setattr(os, "replace", full_disk)
+    rc, out, err = run_cli(capsys, "models", "prune", "--keep", "1", "--data", str(data))
+    assert rc == 0 and err == "" and out.startswith("deleted 1 model's files") and a in out
+    assert ("could not move 1 checkpoint folder(s) no model row names to models/.orphans/, left where they are "
+            "(unused; the next prune tries again): m000009-0badf00d (No space left on device)") in out
+    assert not reg.get(a).path.exists() and (reg.models_dir / "m000009-0badf00d").is_dir()
+    rc, out, _ = run_cli(capsys, "models", "prune", "--keep", "1", "--data", str(data), "--json")
+    result = json.loads(out)
+    assert rc == 0 and result["not_moved"] == {"m000009-0badf00d": "No space left on device"}
+    assert result["orphaned"] == []
+    monkeypatch.undo()
+    rc, out, _ = run_cli(capsys, "models", "prune", "--keep", "1", "--data", str(data), "--json")
+    assert rc == 0 and json.loads(out)["orphaned"] == ["m000009-0badf00d"] and json.loads(out)["not_moved"] == {}
 
 
 @pytest.mark.parametrize("argv, words", [

@@ -285,13 +285,18 @@ def _models_prune(args: argparse.Namespace) -> int:
 
 
 def prune_summary(result: PruneResult) -> str:
-    """One line on what a prune deleted (or would delete) and what it kept."""
+    """One line on what a prune deleted (or would delete), what it kept, and the folders no row names it moved
+    aside or could not (left in place: nothing serves them, the next prune or service sweep tries again)."""
     kept = f"kept {', '.join(result.kept)}" if result.kept else "no champion yet"
     moved = ""
     if result.orphaned:  # folders a register killed before its commit left: kept, out of the way
         verb = "would move" if result.dry_run else "moved"
         moved = (f"; {verb} {len(result.orphaned)} checkpoint folder(s) no model row names to "
                  f"{MODEL_ORPHANS_DIR}/: {', '.join(result.orphaned)}")
+    if result.not_moved:
+        moved += (f"; could not move {len(result.not_moved)} checkpoint folder(s) no model row names to "
+                  f"{MODEL_ORPHANS_DIR}/, left where they are (unused; the next prune tries again): "
+                  + ", ".join(f"{v} ({why})" for v, why in result.not_moved.items()))
     if not result.pruned:
         return f"nothing to delete ({kept}){moved}"
     verb = "would delete" if result.dry_run else "deleted"

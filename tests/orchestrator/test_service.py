@@ -380,7 +380,7 @@ def test_leases_taken_before_a_restart_get_a_full_term_after_it(make_service, cl
 
 def test_a_start_moves_aside_the_checkpoint_folders_no_model_row_names(make_service, data_dir, caplog) -> None:
     """A retrain killed between renaming its checkpoint folder into place and committing the row leaves a folder
-    nothing names; the start-up sweep moves it to orphans/models/ (kept, not deleted) and leaves the models alone."""
+    nothing names; the start-up sweep moves it to models/.orphans/ (kept, not deleted) and leaves the models alone."""
     reg = ModelRegistry(data_dir)
     champion = reg.register(b"weights" * 10, {}, {"h1_mse": 0.1}, "snap", "split-aaaa")
     reg.gate(champion)
@@ -392,7 +392,7 @@ def test_a_start_moves_aside_the_checkpoint_folders_no_model_row_names(make_serv
         make_service()
 
     assert not stray.exists()
-    assert (data_dir / "orphans" / "models" / "m000007-0badf00d" / "weights.pt").read_bytes() == b"a killed register's"
+    assert (data_dir / "models" / ".orphans" / "m000007-0badf00d" / "weights.pt").read_bytes() == b"a killed register's"
     assert "moved 1 checkpoint folder(s) no model row names" in caplog.text and "m000007-0badf00d" in caplog.text
     assert reg.champion() == champion and reg.load_weights(champion) == b"weights" * 10
 

@@ -1,0 +1,43 @@
+"""The service's sweep of what crashed registers left (``orchestrator.sweeps``): a checkpoint folder no model row
+names that cannot be moved aside stays where it is and is said, with why, and holds up none of the others (a real
+catalog and registry on disk; the failing rename injected, as no disk here can be made to refuse one)."""
+
+from __future__ import annotations
+
+import errno
+import logging
+import os
+from pathlib import Path
+
+from orchestrator import sweeps
+from orchestrator.storagehealth import StorageHealth
+from storage.catalog import Catalog
+from storage.models import ModelRegistry
+
+
+def test_a_folder_that_cannot_be_moved_aside_is_said_and_the_others_are_moved(tmp_path, monkeypatch, caplog) -> None:
+    data = tmp_path / "data"
+    catalog, reg = Catalog(data), ModelRegistry(data)
+    stuck, free = reg.models_dir / "m000007-0badf00d", reg.models_dir / "m000008-0badf00d"
+    for folder in (stuck, free):
+        folder.mkdir()
+        (folder / "weights.pt").write_bytes(b"a killed register's")
+    real = os.replace
+
+    def across_file_systems(src, dst, **kw) -> None:
+        if Path(src) == stuck:
+            raise OSError(errno.EXDEV, os.strerror(errno.EXDEV), str(src), str(dst))
+        real(src, dst, **kw)
+
+    monkeypatch.setattr(os, "replace", across_file_systems)
+    log = logging.getLogger("test.sweeps")
+    with caplog.at_level(logging.WARNING, logger="test.sweeps"):
+        sweeps.sweep_leftovers(catalog, data, StorageHealth(log), log)
+
+    assert (stuck / "weights.pt").is_file() and (reg.models_dir / ".orphans" / free.name / "weights.pt").is_file()
+    assert [r.getMessage() for r in caplog.records] == [
+        "moved 1 checkpoint folder(s) no model row names to models/.orphans/ (a register killed before its commit; "
+        "none was acknowledged): m000008-0badf00d",
+        "cannot move 1 checkpoint folder(s) no model row names to models/.orphans/ (a register killed before its "
+        "commit; none was acknowledged); they stay where they are, unused, until a later sweep: m000007-0badf00d "
+        "(Invalid cross-device link)"]
