@@ -15,7 +15,7 @@ one quarantined between the snapshot and its copy is quarantined in the copy too
 
 The copy is built under a hidden name next to ``dest`` and renamed into place last, so ``dest``
 exists only when complete. Not copied: ``reports/`` (made again by ``run``), lock files, and what
-crashed calls left (staging files, ``orphans/``). To restore, stop the service and serve from the
+crashed calls left (staging files, ``orphans/``, ``models/.orphans/``). To restore, stop the service and serve from the
 backup (``--data DEST``) or move it into place.
 """
 
