@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import logging
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -16,9 +17,13 @@ from typing import Any
 from orchestrator.retrainlock import note_phase, retrain_lock
 from storage.catalog import Catalog
 from storage.errors import StorageError
-from storage.models import ModelRegistry
+from storage.database import MODELS_DIR
+from storage.models import ModelRegistry, PruneResult
+from storage.strays import MODEL_ORPHANS_DIR
 from uncertainty.config import TrainConfig
 from uncertainty.train import train_candidate
+
+log = logging.getLogger(__name__)
 
 #: The reason a candidate left by an earlier job gets when the next job finds it.
 ABANDONED = "abandoned: the job that registered it ended before its gate (rejected by the next training job)"
@@ -40,6 +45,18 @@ class JobRegistry(ModelRegistry):
 def abandoned_note(versions: list[str]) -> str:
     """One line for the operator on the candidates ``training_job`` rejected."""
     return f"rejected {', '.join(versions)}: left as candidates by a job that ended before its gate"
+
+
+def prune_warnings(result: PruneResult) -> list[str]:
+    """One line for the operator per checkpoint folder no row names that ``result``'s prune could not move aside
+    (``PruneResult.not_moved``): it stays in ``models/``, taking its space, which a prune is there to free. Logged
+    too, as ``uncertainty.train`` logs its own warnings (the scheduler logs a job's from its report)."""
+    lines = [f"checkpoint folder {MODELS_DIR}/{version} (no model row names it: a register killed before its "
+             f"commit) could not be moved aside to {MODEL_ORPHANS_DIR}/ ({why}); it stays where it is, unused, "
+             "until a later prune or sweep" for version, why in result.not_moved.items()]
+    for line in lines:
+        log.warning("%s", line)
+    return lines
 
 
 @contextlib.contextmanager
@@ -73,7 +90,8 @@ def run_retrain(data_dir: Path, cfg: TrainConfig, wait: bool = False, keep_model
     Returns ``{"version", "promoted", "reason", "metrics", "champion", "pruned", "prune_error", "abandoned",
     "quarantined", "warnings"}`` (``abandoned``: candidates earlier jobs left, rejected first, see
     ``training_job``; ``quarantined``: train episodes found missing or damaged, see
-    ``uncertainty.data.load_train``; ``warnings``: ``TrainResult.warnings``, one line each); a prune that
+    ``uncertainty.data.load_train``; ``warnings``: ``TrainResult.warnings``, one line each, then one per
+    checkpoint folder no row names that the prune could not move aside, see ``prune_warnings``); a prune that
     fails does not fail the job (the gate has decided by then): ``prune_error`` says why. Raises
     ``orchestrator.retrainlock.RetrainBusyError`` when another job holds the lock (and ``wait`` is False), and
     whatever training raises (``uncertainty`` and ``storage`` errors; ``RegistryUnavailableError`` when the
@@ -84,14 +102,17 @@ def run_retrain(data_dir: Path, cfg: TrainConfig, wait: bool = False, keep_model
         if cfg.from_champion and registry.champion() is None:  # the first retrain has nothing to start from
             cfg = dataclasses.replace(cfg, from_champion=False)
         result = train_candidate(catalog, registry, cfg)
-        pruned, prune_error = [], None
+        pruned, prune_error, warnings = [], None, list(result.warnings)
         if keep_models is not None:
             try:
-                pruned = registry.prune(keep_models).pruned
+                prune = registry.prune(keep_models)
             except (StorageError, OSError) as exc:
                 prune_error = f"pruning the registry failed: {exc}"
+            else:
+                pruned = prune.pruned
+                warnings += prune_warnings(prune)
         return {"version": result.version, "promoted": result.decision.promoted,
                 "reason": result.decision.reason, "champion": registry.champion(), "pruned": pruned,
                 "prune_error": prune_error, "abandoned": abandoned, "quarantined": result.quarantined,
-                "warnings": result.warnings,
+                "warnings": warnings,
                 "metrics": {k: v for k, v in result.metrics.items() if not isinstance(v, (list, dict))}}

@@ -4,10 +4,10 @@ Episode files no row indexes (an ingest killed between its file and its commit) 
 staging files older than ``STAGING_MAX_AGE_S`` are deleted (younger ones may be a live ingest's), and
 checkpoint folders no model row names (a register killed before its commit, e.g. a retrain killed there)
 go to ``models/.orphans/`` -- never a live register's, in any process (``ModelRegistry.sweep_strays``).
-None of them was acknowledged. One that cannot be moved (a full disk cannot make ``orphans/<day>/``)
-stays where it is and is said: nothing reads it, and the next sweep (or start) tries again; it is no
-reason to refuse to start. A checkpoint folder that cannot be moved holds up nothing else: the registry
-moves each as best it can, and ``models prune`` frees what it should all the same.
+None of them was acknowledged. One that cannot be moved (a full disk cannot make ``orphans/<day>/``, or
+copy it there from a volume of its own) stays where it is and is named: nothing reads it, and the next
+sweep (or start) tries again; it is no reason to refuse to start. Nor does it hold up the others: the catalog
+and the registry move each as best they can, and ``models prune`` frees what it should all the same.
 """
 
 from __future__ import annotations
@@ -16,7 +16,7 @@ import logging
 from pathlib import Path
 
 from orchestrator.storagehealth import StorageHealth
-from storage.catalog import ORPHANS_DIR, Catalog
+from storage.catalog import ORPHANS_DIR, Catalog, Strays
 from storage.models import ModelRegistry
 from storage.strays import MODEL_ORPHANS_DIR
 
@@ -31,9 +31,7 @@ def sweep_leftovers(catalog: Catalog, data_dir: Path, health: StorageHealth, log
         log.warning("cannot move the files crashed ingests left aside (%s: %s); they stay where they are, "
                     "unindexed, until a later sweep", exc.filename or data_dir, exc.strerror or exc)
     else:
-        if swept:
-            log.warning("moved %d unindexed episode file(s) to %s/ and deleted %d staging file(s) left by a "
-                        "crash (none was acknowledged)", len(swept.unindexed), ORPHANS_DIR, len(swept.staging))
+        _say_swept(swept, catalog.data_dir, log)
     try:
         with health.writing():
             models = ModelRegistry(data_dir).sweep_strays()
@@ -50,3 +48,15 @@ def sweep_leftovers(catalog: Catalog, data_dir: Path, health: StorageHealth, log
                     "commit; none was acknowledged); they stay where they are, unused, until a later sweep: %s",
                     len(models.not_moved), MODEL_ORPHANS_DIR,
                     ", ".join(f"{v} ({why})" for v, why in models.not_moved.items()))
+
+
+def _say_swept(swept: Strays, data_dir: Path, log: logging.Logger) -> None:
+    moved = len(swept.unindexed) - len(swept.not_moved)
+    if moved or swept.staging:
+        log.warning("moved %d unindexed episode file(s) to %s/ and deleted %d staging file(s) left by a "
+                    "crash (none was acknowledged)", moved, ORPHANS_DIR, len(swept.staging))
+    if swept.not_moved:
+        log.warning("cannot move the files crashed ingests left aside to %s/ (%d unindexed episode file(s), none "
+                    "acknowledged); they stay where they are, unindexed, until a later sweep: %s", ORPHANS_DIR,
+                    len(swept.not_moved), ", ".join(f"{path.relative_to(data_dir)} ({why})"
+                                                    for path, why in swept.not_moved.items()))

@@ -371,7 +371,7 @@ class Catalog:
         """``strays`` cleaned up: staging files deleted, unindexed episode files moved to ``DATA/orphans/``.
 
         Neither was ever acknowledged (the catalog row is the one commit point); a worker that still
-        holds the lease uploads the same bytes again. Orphans are kept, not deleted, for the operator.
+        holds the lease uploads the same bytes again. Orphans are kept for the operator (``not_moved``: left).
         The moves happen under the write lock, so an upload of the same episode cannot slip in between.
         """
         found = self._strays(min_tmp_age_s, now, move_to=self.data_dir / ORPHANS_DIR)
@@ -383,8 +383,8 @@ class Catalog:
         now = time.time() if now is None else now
         files = stray_files.episode_files(self.episodes_dir)
         with self._connect() as conn, transaction(conn):  # held briefly: no directory walk inside
-            unindexed = stray_files.unindexed(conn, self.data_dir, files, move_to)
-        return Strays(staging=stray_files.staging_files(self.episodes_dir, min_tmp_age_s, now), unindexed=unindexed)
+            unindexed, not_moved = stray_files.unindexed(conn, self.data_dir, files, move_to)
+        return Strays(stray_files.staging_files(self.data_dir, min_tmp_age_s, now), unindexed, not_moved)
 
     def quarantine(self, episode_id: str, reason: str, only_if_damaged: bool = False) -> EpisodeRow:
         """Takes an episode out of training; returns its row as it is now.

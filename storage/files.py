@@ -3,14 +3,25 @@
 A crash never leaves a partial file under a final name: readers see the old file or the new
 one. Used for episodes (``storage.episodes``, ``storage.catalog``) and model checkpoints
 (``storage.models``).
+
+A data directory's top-level folders may live on file systems of their own (``DATA/episodes`` a link to,
+or a mount of, a big volume): ``move`` copies a file across them where a rename cannot.
 """
 
 from __future__ import annotations
 
+import errno
 import hashlib
 import os
+import shutil
+import stat
 import tempfile
+from collections.abc import Callable
 from pathlib import Path
+from typing import BinaryIO
+
+#: Read and written at a time when ``move`` copies a file across file systems.
+_COPY_CHUNK = 1 << 20
 
 
 def age_s(path: Path, now: float) -> float:
@@ -60,12 +71,25 @@ def stage_bytes(path: str | os.PathLike, data: bytes) -> Path:
     The name (``.<name>.*.tmp``) never matches ``*.mcap``, so a leftover from a crash is
     never mistaken for an episode. On an exception the temporary file is removed.
     """
-    path = Path(path)
+    return _stage(Path(path), lambda f: f.write(data))
+
+
+def _stage_copy(src: Path, path: Path) -> Path:
+    """``stage_bytes`` of the bytes of the file ``src`` (streamed; its mode kept). Its times are the copy's own:
+    the sweeps of what crashes left tell a live call's staging file from a crash's by its age."""
+    def copy(f: BinaryIO) -> None:
+        with open(src, "rb") as source:
+            shutil.copyfileobj(source, f, _COPY_CHUNK)
+            os.chmod(f.fileno(), stat.S_IMODE(os.fstat(source.fileno()).st_mode))
+    return _stage(path, copy)
+
+
+def _stage(path: Path, write: Callable[[BinaryIO], object]) -> Path:
     ensure_dir(path.parent)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     try:
         with os.fdopen(fd, "wb") as f:
-            f.write(data)
+            write(f)
             f.flush()
             os.fsync(f.fileno())
     except BaseException:
@@ -82,12 +106,27 @@ def publish(staged: Path, path: str | os.PathLike) -> None:
 
 
 def move(src: str | os.PathLike, dst: str | os.PathLike) -> None:
-    """Renames ``src`` to ``dst`` (on the same file system; its folder made as needed), durably: both
-    folders are fsynced, so after a crash the file is under one name or the other."""
+    """Moves ``src`` to ``dst`` (over a file there; its folder made as needed), durably: after a crash the file
+    is under one name or the other, or, mid-way across file systems, under both; never under neither.
+
+    Within a file system a rename, both folders fsynced. Across two (EXDEV: a top-level folder of the data
+    directory on a volume of its own), a file is copied to ``.<name>.*.tmp`` beside ``dst`` and fsynced
+    (``stage_bytes``'s names: the catalog's sweep deletes a crash's leftover), renamed to ``dst`` (its folder
+    fsynced), and only then is ``src`` removed (its folder fsynced). Raises ``OSError``: a copy that fails (a
+    full disk) leaves ``src`` as it was and nothing beside ``dst``; a removal that fails leaves both. A
+    folder is not copied: across file systems it raises EXDEV.
+    """
     src, dst = Path(src), Path(dst)
     ensure_dir(dst.parent)
-    os.replace(src, dst)
-    fsync_dir(dst.parent)
+    try:
+        os.replace(src, dst)
+    except OSError as exc:
+        if exc.errno != errno.EXDEV or not stat.S_ISREG(os.lstat(src).st_mode):
+            raise
+        _publish_or_remove(_stage_copy(src, dst), dst)  # durable under its new name before the old one goes
+        os.unlink(src)
+    else:
+        fsync_dir(dst.parent)
     fsync_dir(src.parent)
 
 
@@ -106,7 +145,10 @@ def write_bytes_atomic(path: str | os.PathLike, data: bytes) -> None:
     A crash or an exception never leaves a partial file under ``path``, and the
     temporary file is removed on an exception.
     """
-    staged = stage_bytes(path, data)
+    _publish_or_remove(stage_bytes(path, data), path)
+
+
+def _publish_or_remove(staged: Path, path: str | os.PathLike) -> None:
     try:
         publish(staged, path)
     except BaseException:

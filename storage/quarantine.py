@@ -10,6 +10,11 @@ transaction) and an episode's row (``storage.rows.EpisodeRow``); ``storage.catal
 and transactions, and the move of a file into quarantine, which it undoes when the row does not commit.
 ``storage.backup`` reads a source's quarantine rows and writes its copy's with ``find``, ``insert`` and
 ``remove``.
+
+A move across file systems (``quarantine/`` or ``episodes/`` on a volume of its own) that a crash cuts short
+leaves the file in both places (``storage.files.move``), like a quarantine whose row did not commit leaves an
+intact copy in ``quarantine/``: ``record`` then moves the file in place over that copy, ``put_back`` and
+``readmit`` delete it, and a read in between finds the file in place.
 """
 
 from __future__ import annotations
@@ -87,13 +92,14 @@ def remove(conn: sqlite3.Connection, episode_id: str) -> None:
 
 def record(conn: sqlite3.Connection, row: EpisodeRow, kept: Path, data_dir: Path, reason: str) -> bool:
     """In a write transaction: records the quarantine of ``row``, its file kept at ``kept``. True when the
-    caller is to move the file there, inside the same transaction: it is present and no intact copy is
-    already kept (an intact copy is never overwritten)."""
+    caller is to move the file there, inside the same transaction: it is present, and no intact copy is
+    already kept or it is intact too (an intact copy is never overwritten by other bytes; the same bytes in
+    both places go, or they would stay in ``episodes/`` while quarantined)."""
     copy_kept = holds(kept, row.sha256)  # e.g. a quarantine a crash cut short
     present = row.path.exists()
     insert(conn, row.episode_id, reason, kept.relative_to(data_dir).as_posix() if present or copy_kept else "",
            time.time())
-    return present and not copy_kept
+    return present and (not copy_kept or holds(row.path, row.sha256))
 
 
 def put_back(conn: sqlite3.Connection, row: EpisodeRow, kept: Path) -> None:

@@ -3,7 +3,10 @@
 An ingest stages its bytes under a hidden temporary name, then, inside its write transaction, renames the
 file into place and inserts its row. A crash before the rename leaves a staging file; one between the
 rename and the commit, an episode file no row indexes. Neither was acknowledged (the row is the one commit
-point), so a sweep deletes staging files and moves unindexed files aside to ``DATA/orphans/``.
+point), so a sweep deletes staging files and moves unindexed files aside to ``DATA/orphans/``, each as best it
+can: one that cannot be moved (a full disk) stays where it is and is named, and the others still go. A move
+across file systems (``DATA/episodes`` on a volume of its own, see ``storage.files.move``) is a copy under a
+staging file's name, so the sweep deletes those a crash left in ``DATA/quarantine/`` and ``DATA/orphans/`` too.
 
 The model registry's ``register`` works the same way (a ``.tmp-*`` folder staged, renamed to its version and
 its row inserted in one write transaction), so a register that dies between the rename and the commit, or whose
@@ -23,10 +26,10 @@ from __future__ import annotations
 
 import re
 import sqlite3
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
-from storage.database import EPISODES_DIR, MODELS_DIR
+from storage.database import EPISODES_DIR, MODELS_DIR, QUARANTINE_DIR
 from storage.files import age_s, move
 from storage.model_rows import StrayFolders
 
@@ -50,9 +53,13 @@ class Strays:
     """Files a crashed ingest left under ``episodes/``."""
 
     staging: list[Path]
-    """``.<id>.mcap.*.tmp`` files: written before a crash, never renamed into place."""
+    """``.<id>.mcap.*.tmp`` files: written before a crash, never renamed into place (also those of copies across
+    file systems into ``quarantine/`` and ``orphans/``, see ``staging_files``)."""
     unindexed: list[Path]
     """Episode files with no catalog row: renamed into place, then a crash before the commit."""
+    not_moved: dict[Path, str] = field(default_factory=dict)
+    """Those of ``unindexed`` a sweep could not move aside (path: why, e.g. a full disk), left where they are,
+    unindexed, for the next sweep to try again."""
 
     def __bool__(self) -> bool:
         return bool(self.staging or self.unindexed)
@@ -63,15 +70,26 @@ def episode_files(episodes_dir: Path) -> list[Path]:
     return sorted(p for p in episodes_dir.rglob("*.mcap") if not p.name.startswith("."))
 
 
-def unindexed(conn: sqlite3.Connection, data_dir: Path, files: list[Path], move_to: Path | None) -> list[Path]:
+def unindexed(conn: sqlite3.Connection, data_dir: Path, files: list[Path],
+              move_to: Path | None) -> tuple[list[Path], dict[Path, str]]:
     """In a write transaction: those of ``files`` (under ``DATA/episodes/``) still there with no row; moved
-    under ``move_to`` (at the same path below it) when given."""
+    under ``move_to`` (at the same path below it) when given. With them, those that could not be moved (path:
+    why).
+
+    Best effort per file, as ``unregistered``: one whose move raises ``OSError`` (no space for ``move_to``'s
+    folder, or for the copy across file systems) stays where it is and the others still go; nothing is raised.
+    """
     episodes_dir = data_dir / EPISODES_DIR
     rows = {r["path"] for r in conn.execute("SELECT path FROM episodes")}
     found = [p for p in files if p.relative_to(data_dir).as_posix() not in rows and p.exists()]
+    not_moved: dict[Path, str] = {}
     for path in found if move_to is not None else ():
-        move(path, move_to / path.relative_to(episodes_dir))
-    return found
+        try:
+            move(path, move_to / path.relative_to(episodes_dir))
+        except OSError as exc:
+            if path.exists():  # else moved, and a folder's fsync after it failed: it is aside all the same
+                not_moved[path] = exc.strerror or str(exc)
+    return found, not_moved
 
 
 def indexed(conn: sqlite3.Connection, rel: str) -> bool:
@@ -80,9 +98,12 @@ def indexed(conn: sqlite3.Connection, rel: str) -> bool:
     return conn.execute("SELECT 1 FROM episodes WHERE path = ?", (rel,)).fetchone() is not None
 
 
-def staging_files(episodes_dir: Path, min_age_s: float, now: float) -> list[Path]:
-    """The staging files under ``episodes_dir`` older than ``min_age_s`` at ``now`` (unix seconds), sorted."""
-    return sorted(p for p in episodes_dir.rglob(".*.mcap.*.tmp") if age_s(p, now) > min_age_s)
+def staging_files(data_dir: Path, min_age_s: float, now: float) -> list[Path]:
+    """The staging files older than ``min_age_s`` at ``now`` (unix seconds) under ``DATA/episodes/`` and the
+    folders ``storage.files.move`` copies episode files into across file systems (``quarantine/``, ``orphans/``),
+    sorted."""
+    return sorted(p for folder in (EPISODES_DIR, QUARANTINE_DIR, ORPHANS_DIR)
+                  for p in (data_dir / folder).rglob(".*.mcap.*.tmp") if age_s(p, now) > min_age_s)
 
 
 def model_folders(models_dir: Path) -> list[Path]:

@@ -199,6 +199,20 @@ def test_an_intact_kept_copy_is_never_overwritten_by_a_damaged_file(cat, rng):
     assert cat.restore(ep.meta.episode_id).quarantined == "" and row.path.read_bytes() == good
 
 
+def test_the_same_bytes_in_both_places_leave_episodes_with_the_next_quarantine(cat, rng):
+    """As a move across file systems a crash cut short leaves them (test_cross_device.py): the file in place is
+    moved over the intact copy, or it would stay in episodes/ while quarantined."""
+    ep = make_episode(rng)
+    row = cat.get(cat.add_episode(ep).episode_id)
+    kept = cat.data_dir / "quarantine" / row.path.parent.name / row.path.name
+    kept.parent.mkdir(parents=True)
+    kept.write_bytes(row.path.read_bytes())
+    assert cat.quarantine(ep.meta.episode_id, "operator: blurred").quarantined == "operator: blurred"
+    assert not row.path.exists() and files.holds(kept, row.sha256)
+    assert cat.restore(ep.meta.episode_id).quarantined == "" and not kept.exists()
+    assert cat.verify(ep.meta.episode_id) == ep.meta
+
+
 def test_re_ingested_bytes_leave_no_copy_behind(cat, rng):
     ep = make_episode(rng)
     row = cat.quarantine(cat.add_episode(ep).episode_id, "operator: suspect")

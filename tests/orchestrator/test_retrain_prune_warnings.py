@@ -1,0 +1,59 @@
+"""A retrain that prunes (``keep_models``) says which checkpoint folders no row names it could not move aside: one
+line each in its ``warnings``, which the scheduler logs, and in its own log. A real training job on a real
+catalog (the pymunk simulation, a tiny ensemble on the CPU); the failing rename injected at its one OS call (a
+full disk), as no disk here can be made to refuse one."""
+
+from __future__ import annotations
+
+import errno
+import logging
+import os
+from pathlib import Path
+
+import numpy as np
+
+from orchestrator.retrain import run_retrain
+from orchestrator.uniform import UniformPlanner, UniformPlannerConfig
+from storage.catalog import Catalog
+from storage.models import ModelRegistry
+from uncertainty.config import TrainConfig
+from workers.collect import collect_episode, create_eval_split
+
+TINY = TrainConfig(members=2, widths=(4, 4, 4), batch_size=8, epochs=1, device="cpu", min_rel_improvement=0,
+                   progress=False)
+
+
+def _data(data: Path) -> None:
+    """An eval split and a few training episodes."""
+    catalog = Catalog(data)
+    create_eval_split(catalog, episodes=4, seed=1, steps=12, image_size=16)
+    planner = UniformPlanner(UniformPlannerConfig(steps=12), np.random.default_rng(0))
+    for i, r in enumerate(planner.seed(6)):
+        catalog.add_episode(collect_episode(start_state=r.start_state, policy=r.policy,
+                                            policy_params=r.policy_params, seed=i, steps=12, image_size=16))
+
+
+def test_a_retrain_whose_prune_cannot_move_a_folder_aside_warns_of_it(tmp_path, monkeypatch, caplog):
+    data = tmp_path / "data"
+    _data(data)
+    stuck = ModelRegistry(data).models_dir / "m000009-0badf00d"  # as a register killed before its commit leaves it
+    stuck.mkdir()
+    (stuck / "weights.pt").write_bytes(b"a killed register's")
+    real = os.replace
+
+    def full_disk(src, dst, **kw) -> None:
+        if Path(src) == stuck:
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(src), str(dst))
+        real(src, dst, **kw)
+    monkeypatch.setattr(os, "replace", full_disk)
+
+    with caplog.at_level(logging.WARNING, logger="orchestrator.retrain"):
+        result = run_retrain(data, TINY, keep_models=1)
+
+    line = ("checkpoint folder models/m000009-0badf00d (no model row names it: a register killed before its commit) "
+            "could not be moved aside to models/.orphans/ (No space left on device); it stays where it is, unused, "
+            "until a later prune or sweep")
+    assert result["prune_error"] is None and result["warnings"][-1:] == [line]
+    assert [r.getMessage() for r in caplog.records if r.name == "orchestrator.retrain"] == [line]
+    assert (stuck / "weights.pt").read_bytes() == b"a killed register's"
+    assert ModelRegistry(data).champion() == result["champion"] == result["version"]
