@@ -10,12 +10,16 @@ import threading
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
 
 from orchestrator import transport
 from orchestrator.protocol import Keys
 from orchestrator.service import Service
 from orchestrator.serviceconfig import ServiceConfig
+from orchestrator.uniform import UniformPlanner, UniformPlannerConfig
+from storage.catalog import Catalog
+from workers.collect import collect_episode, create_eval_split
 
 
 @pytest.fixture
@@ -73,3 +77,15 @@ class FailingSyncs:
     def heal(self) -> None:
         """The disk has room again: every fsync from now on goes through."""
         self._healed.set()
+
+
+def small_training_data(data: Path) -> Path:
+    """A data directory with a 4-episode eval split and 6 training episodes (16 px, 12 steps): enough for a tiny
+    retrain."""
+    catalog = Catalog(data)
+    create_eval_split(catalog, episodes=4, seed=1, steps=12, image_size=16)
+    planner = UniformPlanner(UniformPlannerConfig(steps=12), np.random.default_rng(0))
+    for i, r in enumerate(planner.seed(6)):
+        catalog.add_episode(collect_episode(start_state=r.start_state, policy=r.policy,
+                                            policy_params=r.policy_params, seed=i, steps=12, image_size=16))
+    return data

@@ -10,32 +10,19 @@ import logging
 import os
 from pathlib import Path
 
-import numpy as np
 
 from orchestrator.retrain import run_retrain
-from orchestrator.uniform import UniformPlanner, UniformPlannerConfig
-from storage.catalog import Catalog
 from storage.models import ModelRegistry
+from tests.orchestrator.conftest import small_training_data
 from uncertainty.config import TrainConfig
-from workers.collect import collect_episode, create_eval_split
 
 TINY = TrainConfig(members=2, widths=(4, 4, 4), batch_size=8, epochs=1, device="cpu", min_rel_improvement=0,
                    progress=False)
 
 
-def _data(data: Path) -> None:
-    """An eval split and a few training episodes."""
-    catalog = Catalog(data)
-    create_eval_split(catalog, episodes=4, seed=1, steps=12, image_size=16)
-    planner = UniformPlanner(UniformPlannerConfig(steps=12), np.random.default_rng(0))
-    for i, r in enumerate(planner.seed(6)):
-        catalog.add_episode(collect_episode(start_state=r.start_state, policy=r.policy,
-                                            policy_params=r.policy_params, seed=i, steps=12, image_size=16))
-
-
 def test_a_retrain_whose_prune_cannot_move_a_folder_aside_warns_of_it(tmp_path, monkeypatch, caplog):
     data = tmp_path / "data"
-    _data(data)
+    small_training_data(data)
     stuck = ModelRegistry(data).models_dir / "m000009-0badf00d"  # as a register killed before its commit leaves it
     stuck.mkdir()
     (stuck / "weights.pt").write_bytes(b"a killed register's")

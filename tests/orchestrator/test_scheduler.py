@@ -12,16 +12,14 @@ import sys
 import time
 from pathlib import Path
 
-import numpy as np
 import pytest
 
-from orchestrator.uniform import UniformPlanner, UniformPlannerConfig
 from orchestrator.retrainlock import EXIT_BUSY, RetrainBusyError, lock_held, note_phase, read_lock_info, retrain_lock
 from orchestrator.scheduler import RetrainScheduler, RetrainStatus, ScheduleConfig
 from storage.catalog import Catalog
 from storage.models import ModelRegistry
-from workers.collect import collect_episode, create_eval_split
 from tests.conftest import wait_for
+from tests.orchestrator.conftest import small_training_data
 
 
 
@@ -252,13 +250,7 @@ TINY = ("--members", "2", "--widths", "4,4,4", "--batch-size", "8", "--device", 
 @pytest.fixture(scope="module")
 def trained(tmp_path_factory):
     """A data dir with an eval split, a few training episodes and a champion."""
-    data = tmp_path_factory.mktemp("retrain")
-    catalog = Catalog(data)
-    create_eval_split(catalog, episodes=4, seed=1, steps=12, image_size=16)
-    planner = UniformPlanner(UniformPlannerConfig(steps=12), np.random.default_rng(0))
-    for i, r in enumerate(planner.seed(6)):
-        catalog.add_episode(collect_episode(start_state=r.start_state, policy=r.policy,
-                                            policy_params=r.policy_params, seed=i, steps=12, image_size=16))
+    data = small_training_data(tmp_path_factory.mktemp("retrain"))
     first = retrain(data, "--epochs", "1")
     assert first.returncode == 0, first.stderr
     assert json.loads(first.stdout)["promoted"] is True
