@@ -5,7 +5,6 @@ fails the request and drops the episode -- and a read-only store is an outage th
 
 from __future__ import annotations
 
-import errno
 import logging
 import time
 from pathlib import Path
@@ -17,9 +16,7 @@ from storage.episode_reader import read_episode
 from storage.episode_table import file_path
 from storage.requests import RequestStatus
 from tests.conftest import wait_for
-from tests.orchestrator.conftest import FailingSyncs
 from tests.orchestrator.test_service import call, episode_bytes, lease, new_request, refused, upload
-from tests.orchestrator.test_service_storage import CountedReaps
 from tests.storage.test_readonly import read_only_database, read_only_queue
 
 
@@ -61,33 +58,6 @@ def test_a_read_only_database_refuses_renew_and_upload_as_unavailable_and_holds_
     assert Catalog(data_dir).verify(body["episode_id"])
     errors = [r.getMessage() for r in caplog.records if r.levelno >= logging.ERROR]
     assert len(errors) == 1 and errors[0].startswith("storage unavailable:"), errors
-
-
-def test_an_upload_onto_a_read_only_episodes_disk_holds_the_lease_until_it_goes_in(
-        make_service, client, keys, data_dir, monkeypatch) -> None:
-    """The episodes' file system is read-only (EROFS at the file's write) while the catalog's rows stay
-    writable: the upload is refused `unavailable`, and the reaper extends the lease past its term instead of
-    expiring it (an attempt counted, the upload then refused as stale). Once writable, the same upload
-    completes the request."""
-    metrics = CountedReaps()
-    service = make_service(lease_s=1.0, metrics=metrics)
-    request, _ = service.queue.enqueue(new_request())
-    grant = lease(client, keys)
-    data = episode_bytes(grant)
-    disk = FailingSyncs(data_dir / "episodes", monkeypatch, code=errno.EROFS)
-
-    def sent_again() -> bool:  # as Worker._upload does after each `unavailable`
-        why = refused(ErrorCode.UNAVAILABLE, upload, client, keys, grant, data)
-        assert "Read-only file system" in why, why
-        return sum(at > grant.expires_at for at in metrics.reaps) >= 3
-
-    wait_for(sent_again, message="three reaps after the end of the lease's first term")
-    held = service.queue.get(request.id)
-    assert (held.status, held.token, held.attempts) == (RequestStatus.LEASED, grant.token, 0)
-    disk.heal()
-    body = upload(client, keys, grant, data)
-    done = service.queue.get(request.id)
-    assert (done.status, done.episode_id, done.attempts) == (RequestStatus.DONE, body["episode_id"], 0)
 
 
 def test_an_upload_the_disk_refuses_for_good_is_internal_not_bad_field(service, client, keys, data_dir) -> None:

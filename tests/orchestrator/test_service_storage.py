@@ -4,8 +4,10 @@ fail on any path (an upload, a lease, an operator's queue change), each an outag
 
 from __future__ import annotations
 
+import errno
 import functools
 import logging
+import os
 import socket
 import sqlite3
 import threading
@@ -173,9 +175,10 @@ class CountedReaps(ServiceMetrics):
         self.reaps.append(time.time())
 
 
+@pytest.mark.parametrize("code", [errno.ENOSPC, errno.EROFS], ids=["full", "read-only"])
 def test_an_upload_the_disk_refuses_holds_every_lease_until_it_goes_in(make_service, client, keys, data_dir,
-                                                                       monkeypatch, caplog) -> None:
-    """The episodes' disk is full while the catalog's rows stay writable: uploads are refused `unavailable` (the
+                                                                       monkeypatch, caplog, code) -> None:
+    """The episodes' disk is full (or read-only) while the catalog's rows stay writable: uploads are refused `unavailable` (the
     worker keeps its episode and sends it again) and nothing else fails. That is an outage of the storage as
     much as one a renew meets: the reaper extends the lease instead of expiring it (an attempt counted, and
     the upload then refused as stale: the episode dropped). Not renewed here, so that only the reaper keeps
@@ -187,10 +190,11 @@ def test_an_upload_the_disk_refuses_holds_every_lease_until_it_goes_in(make_serv
         request, _ = service.queue.enqueue(new_request())
         grant = lease(client, keys)
         data = episode_bytes(grant)
-        disk = FailingSyncs(data_dir / "episodes", monkeypatch)
+        disk = FailingSyncs(data_dir / "episodes", monkeypatch, code=code)
 
         def sent_again() -> bool:  # as Worker._upload does after each `unavailable`
-            refused(ErrorCode.UNAVAILABLE, upload, client, keys, grant, data)
+            why = refused(ErrorCode.UNAVAILABLE, upload, client, keys, grant, data)
+            assert os.strerror(code) in why, why
             return sum(at > grant.expires_at for at in metrics.reaps) >= 3
 
         wait_for(sent_again, message="three reaps after the end of the lease's first term")
@@ -205,7 +209,7 @@ def test_an_upload_the_disk_refuses_holds_every_lease_until_it_goes_in(make_serv
     assert Catalog(data_dir).verify(body["episode_id"])
     errors = [r.getMessage() for r in caplog.records if r.levelno >= logging.ERROR]
     assert len(errors) == 1 and errors[0].startswith("storage unavailable: cannot store episode"), errors
-    assert "No space left on device" in errors[0]
+    assert os.strerror(code) in errors[0]
 
 
 @pytest.mark.parametrize("op", ["lease", "renew", "fail", "release", "queue.add"])
