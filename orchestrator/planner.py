@@ -34,6 +34,11 @@ pusher's free motion, where most of the eval error is. By default (``redraw_agen
 a request keeps the state's object (shape, pose, physics) and draws the agent as a
 uniform start does; with that the arms are level on h1 and h5 (within the seed noise).
 ``ActivePlannerConfig.replay_prefix`` switches to exact replay.
+
+A redrawn agent is no part of what a request keeps, so it counts neither in the diversity distance
+nor in the task-space check: the steps before the pusher reaches the object all hold the object's
+start pose, and while the distance counted the source's agent, one pose passed as several states (in
+a 48-episode ``bench loop`` arm, 6 to 17 pairs of a round's 16 requests had the very same object).
 """
 
 from __future__ import annotations
@@ -112,9 +117,9 @@ class ActivePlannerConfig:
     at_rest: bool = True
     """Start at the uncertain pose with zero velocities (as uniform and eval episodes start)."""
     task_space_only: bool = True
-    """Only request states whose object and agent lie in OBJECT_RANGE / AGENT_RANGE: the model is
-    judged there, and an ensemble also disagrees where the data is thin for no useful reason
-    (objects pushed against the walls)."""
+    """Only request states whose object and agent (where the request keeps it) lie in OBJECT_RANGE /
+    AGENT_RANGE: the model is judged there, and an ensemble also disagrees where the data is thin for no
+    useful reason (objects pushed against the walls)."""
     redraw_agent: bool = True
     """Keep the uncertain state's object (shape, pose, physics) but draw the agent as a uniform start
     does (away from the object): starting next to the object, as contact states would, leaves the
@@ -179,19 +184,21 @@ class ActivePlannerConfig:
                              f"{self.policy_window} and {self.policy_floor}")
 
 
-def state_features(shape: str, agent: Sequence[float], obj: Sequence[float],
+def state_features(shape: str, agent: Sequence[float] | None, obj: Sequence[float],
                    physics: dict[str, float]) -> np.ndarray:
     """The normalised state a diversity distance is measured in.
 
     Object x, y and agent x, y over WORLD_SIZE; cos and sin of the object's angle; the
     shape one-hot; each physics parameter scaled to [0, 1] over its range. Two shapes
     are always at least sqrt(2) apart, more than any sensible ``min_distance``.
+    ``agent`` None: the request redraws the agent, so it does not count (its entries are 0).
     """
     w = protocol.WORLD_SIZE
+    ax, ay = (0.0, 0.0) if agent is None else (agent[0] / w, agent[1] / w)
     onehot = [1.0 if shape == s else 0.0 for s in protocol.SHAPES]
     phys = [(float(physics.get(k, d)) - lo) / (hi - lo) for k, (lo, hi, d) in protocol.PHYSICS_RANGES.items()]
     return np.array([obj[0] / w, obj[1] / w, math.cos(obj[2]), math.sin(obj[2]),
-                     agent[0] / w, agent[1] / w, *onehot, *phys], dtype=np.float64)
+                     ax, ay, *onehot, *phys], dtype=np.float64)
 
 
 @dataclass(frozen=True)
@@ -352,8 +359,12 @@ class ActivePlanner:
         for ep, s in scored:
             for step, value in enumerate(s.per_step):
                 if np.isfinite(value) and value > self.threshold and step < len(ep) and self._admissible(ep, step):
-                    out.append(Candidate(float(value), ep, step, _episode_features(ep, step)))
+                    out.append(Candidate(float(value), ep, step, _episode_features(ep, step, self._keeps_agent())))
         return out
+
+    def _keeps_agent(self) -> bool:
+        """Whether a request starts with its state's agent (replayed or kept), not a redrawn one."""
+        return self.cfg.replay_prefix or not self.cfg.redraw_agent
 
     def _update_policy_scores(self, scored: list[tuple[Episode, Scores]]) -> None:
         """Each new episode's mean score goes to its policy's recent scores (reset on a new champion)."""
@@ -399,8 +410,8 @@ class ActivePlanner:
             return True
         s = ep.states[step]
         (olo, ohi), (alo, ahi) = protocol.OBJECT_RANGE, protocol.AGENT_RANGE
-        return (olo <= s[_COL["obj_x"]] <= ohi and olo <= s[_COL["obj_y"]] <= ohi
-                and alo <= s[_COL["agent_x"]] <= ahi and alo <= s[_COL["agent_y"]] <= ahi)
+        agent_in = not self._keeps_agent() or (alo <= s[_COL["agent_x"]] <= ahi and alo <= s[_COL["agent_y"]] <= ahi)
+        return olo <= s[_COL["obj_x"]] <= ohi and olo <= s[_COL["obj_y"]] <= ohi and agent_in
 
     def _request(self, cand: Candidate, model_version: str) -> NewRequest:
         ep, step = cand.episode, cand.step
@@ -453,7 +464,7 @@ def state_at(ep: Episode, step: int) -> dict:
             "physics": {k: float(v) for k, v in ep.meta.physics.items()}}
 
 
-def _episode_features(ep: Episode, step: int) -> np.ndarray:
+def _episode_features(ep: Episode, step: int, with_agent: bool = True) -> np.ndarray:
     s = ep.states[step]
-    return state_features(ep.meta.shape, (s[_COL["agent_x"]], s[_COL["agent_y"]]),
+    return state_features(ep.meta.shape, (s[_COL["agent_x"]], s[_COL["agent_y"]]) if with_agent else None,
                           (s[_COL["obj_x"]], s[_COL["obj_y"]], s[_COL["obj_theta"]]), ep.meta.physics)
