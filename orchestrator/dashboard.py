@@ -318,8 +318,9 @@ class DataSources:
 
     ``workers``, ``metrics_text``, ``retrains`` and ``frames_png`` come from the running
     service when there is one; ``budget`` is the run's episode budget (0 = none). Without a
-    service's ``metrics_text``, ``/metrics`` gives the gauges the data directory holds (queue
-    depth, episodes, champion); its counters are this process's, so zero.
+    service's ``metrics_text``, ``/metrics`` gives only the gauges the data directory holds (queue
+    depth, episodes, champion, disk; ``metrics.STORE_GAUGES``): this process counts nothing, and
+    knows no workers.
     """
 
     data_dir: Path
@@ -347,7 +348,7 @@ class DataSources:
         metrics = ServiceMetrics()
         with self._stores() as (catalog, queue, registry):
             metrics.read_stores(queue, catalog, registry)
-        return metrics.render()
+        return metrics.render_stores()
 
     def stats(self) -> dict:
         with self._stores() as (catalog, queue, registry):
@@ -407,4 +408,7 @@ def learning_curve(catalog: Catalog, registry: ModelRegistry) -> list[dict]:
 
 
 def _episodes_before(catalog: Catalog, created: str) -> int:
-    return sum(1 for row in catalog.list(split="train") if row.created <= created)
+    """Training episodes indexed before ``created`` (ISO 8601): by the catalog's ingest time, not the episode's
+    own ``created``, which is when and by whose clock it was collected (one collected elsewhere long ago and
+    ingested after the model was made was no part of what the model could see)."""
+    return catalog.count(split="train") - catalog.count(split="train", since=created)

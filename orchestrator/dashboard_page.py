@@ -37,7 +37,7 @@ PAGE = """<!doctype html>
  <div class="card">last retrain<b id="last-retrain">-</b><span id="last-retrain-reason" class="muted"></span></div>
  <div class="card">disk free<b id="disk-free">-</b><span id="disk-size" class="muted"></span></div>
 </div>
-<h2>Learning curve (champion eval h1 MSE per training episodes)</h2>
+<h2>Learning curve (eval h1 MSE per training episodes: champions joined, other candidates grey)</h2>
 <svg id="curve" width="560" height="220" viewBox="0 0 560 220"></svg>
 <h2>Models</h2>
 <table id="models"><thead><tr><th>version</th><th>status</th><th>h1 MSE</th><th>h5 MSE</th>
@@ -75,8 +75,9 @@ function drawCurve(points) {
   const x0 = Math.min(...xs), x1 = Math.max(...xs) || 1, y0 = 0, y1 = Math.max(...ys) * 1.1 || 1;
   const sx = x => L + (W - L - 10) * (x1 === x0 ? 0.5 : (x - x0) / (x1 - x0));
   const sy = y => H - B - (H - B - 10) * (y - y0) / (y1 - y0);
+  // the line joins the champions only (as the report's curve): a rejected candidate is a dot, not the curve
   const line = document.createElementNS(ns, "polyline");
-  line.setAttribute("points", pts.map(p => sx(p.episodes) + "," + sy(p.h1_mse)).join(" "));
+  line.setAttribute("points", pts.filter(p => p.promoted).map(p => sx(p.episodes) + "," + sy(p.h1_mse)).join(" "));
   line.setAttribute("fill", "none"); line.setAttribute("stroke", "#1565c0"); line.setAttribute("stroke-width", 2);
   svg.appendChild(line);
   for (const p of pts) { const c = document.createElementNS(ns, "circle"); c.setAttribute("cx", sx(p.episodes));

@@ -33,6 +33,10 @@ UPLOAD_RESULTS: tuple[str, ...] = ("stored", "duplicate", "refused")
 RETRAIN_OUTCOMES: tuple[str, ...] = ("promoted", "rejected", "failed")
 #: Scoring one episode takes milliseconds (tiny CPU model) to seconds (big model, slow host).
 SCORING_BUCKETS: tuple[float, ...] = (0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0, 30.0)
+#: The gauges ``read_stores`` sets: all that a process without the service knows (see ``render_stores``).
+STORE_GAUGES: tuple[str, ...] = ("queue_depth", "episodes", "episodes_quarantined", "champion_h1_mse",
+                                 "champion_weights_damaged", "champion_info", "data_disk_free_bytes",
+                                 "data_disk_size_bytes")
 
 
 def _check(value: str, allowed: Iterable[str], what: str) -> str:
@@ -174,3 +178,10 @@ class ServiceMetrics:
     def render(self) -> str:
         """Every metric in Prometheus text exposition format 0.0.4 (HELP and TYPE lines, escaped labels)."""
         return generate_latest(self.registry).decode("utf-8")
+
+    def render_stores(self) -> str:
+        """``render`` of the ``STORE_GAUGES`` only, for a process that is not the service (``activecollect
+        dashboard``): its counters and ``workers_alive`` would read 0 whatever the service counted, and an alert
+        on a stalled upload rate or on no live workers would fire on them; absent, they are known to be unknown."""
+        names = [f"{NAMESPACE}_{name}" for name in STORE_GAUGES]
+        return generate_latest(self.registry.restricted_registry(names)).decode("utf-8")

@@ -162,8 +162,8 @@ def write_report(data_dir: Path, inputs: ReportInputs, when: float | None = None
         images["frames.png"] = frames_png(inputs.champion, inputs.eval_sample)
     for name, data in images.items():
         (out / name).write_bytes(data)
-    (out / "summary.json").write_text(json.dumps({"summary": inputs.summary, "curve": inputs.curve,
-                                                  "retrains": inputs.retrains}, indent=2, default=str))
+    summary = {"summary": inputs.summary, "curve": inputs.curve, "retrains": inputs.retrains}
+    (out / "summary.json").write_text(json.dumps(_finite(summary), indent=2, default=str, allow_nan=False))
     (out / "index.html").write_text(_html(inputs, images))
     return out / "index.html"
 
@@ -194,6 +194,18 @@ img{{max-width:100%;border:1px solid #ddd}}</style></head><body>
 <th>reason</th></tr>{retrain_rows}</table>
 </body></html>
 """
+
+
+def _finite(obj: Any) -> Any:
+    """A copy with NaN and infinities as None: a diverged candidate's NaN eval error would make summary.json
+    JSON that strict parsers (browsers, jq) refuse."""
+    if isinstance(obj, float):
+        return obj if np.isfinite(obj) else None
+    if isinstance(obj, dict):
+        return {k: _finite(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_finite(v) for v in obj]
+    return obj
 
 
 def _fmt(v: Any) -> str:
