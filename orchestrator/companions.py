@@ -16,6 +16,7 @@ from dataclasses import dataclass
 
 from orchestrator.champion import ChampionScorer, FramesSource
 from orchestrator.dashboard import Dashboard, DashboardConfig, DataSources
+from orchestrator.metrics import retrain_outcome
 from orchestrator.protocol import EventKind
 from orchestrator.scheduler import RetrainRecord, RetrainScheduler, ScheduleConfig
 from orchestrator.service import Service
@@ -132,6 +133,6 @@ class Companions:
 
     def _finished(self, record: RetrainRecord) -> None:
         status = record.status.value
-        self.service.metrics.retrain(status if status in ("promoted", "rejected") else "failed")
+        self.service.metrics.retrain(retrain_outcome(status))
         if status != "promoted":
             log.info("retrain ended %s: %s", status, record.reason)

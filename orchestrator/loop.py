@@ -33,7 +33,7 @@ from tqdm import tqdm
 from orchestrator.champion import ChampionScorer, FramesSource
 from orchestrator.dashboard import Dashboard, DashboardConfig, DataSources, learning_curve
 from orchestrator.loopconfig import RunConfig
-from orchestrator.metrics import ServiceMetrics
+from orchestrator.metrics import ServiceMetrics, retrain_outcome
 from orchestrator.planner import ActivePlanner, ActivePlannerConfig, Planner
 from orchestrator.uniform import UniformPlanner, UniformPlannerConfig
 from orchestrator.protocol import EventKind
@@ -229,8 +229,7 @@ class LoopRun:
         self.service.publish(EventKind.MODEL_PROMOTED, {"version": version, "h1_mse": h1})
 
     def _retrained(self, rec: RetrainRecord) -> None:
-        outcome = rec.status.value if rec.status.value in ("promoted", "rejected") else "failed"
-        self.metrics.retrain(outcome)
+        self.metrics.retrain(retrain_outcome(rec.status.value))
 
     def _metrics_text(self) -> str:
         self.metrics.set_queue_depth(self.queue.counts())

@@ -30,7 +30,14 @@ QUEUE_STATUSES: tuple[str, ...] = ("queued", "leased", "done", "dead", "cancelle
 #: Catalog splits the episode gauge (and ``stats``) count.
 SPLITS: tuple[str, ...] = ("train", "eval")
 UPLOAD_RESULTS: tuple[str, ...] = ("stored", "duplicate", "refused")
-RETRAIN_OUTCOMES: tuple[str, ...] = ("promoted", "rejected", "failed")
+RETRAIN_OUTCOMES: tuple[str, ...] = ("promoted", "rejected", "busy", "failed")
+
+
+def retrain_outcome(status: str) -> str:
+    """A finished retrain job's ``RetrainStatus`` value as a ``retrains_total`` outcome: ``busy`` (another job held
+    the lock: nothing went wrong) is its own, so an alert on ``failed`` (a failure, a timeout, a kill) does not fire
+    when a cron retrain meets a manual one."""
+    return status if status in ("promoted", "rejected", "busy") else "failed"
 #: Scoring one episode takes milliseconds (tiny CPU model) to seconds (big model, slow host).
 SCORING_BUCKETS: tuple[float, ...] = (0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0, 30.0)
 #: The gauges ``read_stores`` sets: all that a process without the service knows (see ``render_stores``).

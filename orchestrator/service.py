@@ -392,19 +392,21 @@ class Service:
                      extended, self.config.lease_s)
 
     def _reap(self) -> None:
-        with self._writing():
-            if self.storage.down_since is not None:
-                extended = self.queue.extend_leases(self.config.lease_s)
-                down_s = self.storage.writes_work()
-                if extended and down_s is not None:  # (with no live lease this write proves little: no line)
-                    log.warning("storage writable again after %.0f s; %d live lease(s) extended by %.0f s so "
-                                "their workers can renew", down_s, extended, self.config.lease_s)
-            expired = self.queue.expire_leases()
+        try:
+            with self._writing():
+                if self.storage.down_since is not None:
+                    extended = self.queue.extend_leases(self.config.lease_s)
+                    down_s = self.storage.writes_work()
+                    if extended and down_s is not None:  # (with no live lease this write proves little: no line)
+                        log.warning("storage writable again after %.0f s; %d live lease(s) extended by %.0f s so "
+                                    "their workers can renew", down_s, extended, self.config.lease_s)
+                expired = self.queue.expire_leases()
+        finally:  # the gauges also while writes fail: the disk's free space is what an operator is alerted on
+            self.storage.read("the queue, catalog and registry for the metrics",
+                              lambda: self.metrics.read_stores(self.queue, self.catalog, self.context.registry))
         for request in expired:
             log.info("lease of %s expired (attempt %d)", request.id, request.attempts)
             self._publish_lease_end(request, "lease expired")
-        self.storage.read("the queue, catalog and registry for the metrics",
-                          lambda: self.metrics.read_stores(self.queue, self.catalog, self.context.registry))
 
     def _seed_queue(self) -> None:
         counts = self.queue.counts()

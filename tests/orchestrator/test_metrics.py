@@ -139,3 +139,18 @@ def test_the_disk_gauges_say_unknown_until_read() -> None:
     s = _samples(m.render())
     assert s[("activecollect_data_disk_free_bytes", ())] == 5 << 30
     assert s[("activecollect_data_disk_size_bytes", ())] == 20 << 30
+
+
+def test_a_retrain_that_found_the_lock_taken_is_busy_not_failed() -> None:
+    """A cron retrain meeting a manual one did nothing wrong: an alert on failed retrains must not fire for it;
+    a failure, a timeout and a kill do count as failed."""
+    from orchestrator.metrics import retrain_outcome
+    from orchestrator.scheduler import RetrainStatus
+
+    outcomes = {status.value: retrain_outcome(status.value) for status in RetrainStatus if status.value != "running"}
+    assert outcomes == {"promoted": "promoted", "rejected": "rejected", "busy": "busy", "failed": "failed",
+                        "killed": "failed", "timeout": "failed"}
+    metrics = ServiceMetrics()
+    metrics.retrain(retrain_outcome("busy"))
+    assert 'activecollect_retrains_total{outcome="busy"} 1.0' in metrics.render()
+    assert 'activecollect_retrains_total{outcome="failed"} 0.0' in metrics.render()

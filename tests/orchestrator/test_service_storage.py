@@ -271,3 +271,22 @@ def test_an_outage_is_known_before_the_writer_turn_passes_on(make_service, clien
         writer.execute("ROLLBACK")
         writer.close()
     assert held_when_noted == [True]
+
+
+def test_the_gauges_are_read_while_writes_fail(make_service, data_dir, monkeypatch) -> None:
+    """A reap whose write meets the storage down still reads the gauges: the disk's free space (what an operator
+    is alerted on) must not freeze at its last value for the whole outage."""
+    monkeypatch.setattr(service_module, "RequestQueue", functools.partial(RequestQueue, busy_timeout_s=0.1))
+    metrics = CountedReaps()
+    service = make_service(reap_interval_s=0.2, metrics=metrics)
+    wait_for(lambda: metrics.reaps, message="the first reap, at start")
+    writer = sqlite3.connect(Catalog(data_dir).db_path, isolation_level=None)  # a CLI's write, a backup, ...
+    writer.execute("BEGIN IMMEDIATE")
+    try:
+        wait_for(lambda: service.storage.down_since is not None, message="a reap to meet the lock")
+        read = len(metrics.reaps)
+        wait_for(lambda: len(metrics.reaps) >= read + 2, message="the gauges read by two more reaps meanwhile")
+        assert service.storage.down_since is not None
+    finally:
+        writer.execute("ROLLBACK")
+        writer.close()
