@@ -107,7 +107,11 @@ class ActivePlannerConfig:
     max_queue_depth: int = 64
     """Never plan past this many queued requests."""
     min_distance: float = 0.15
-    """Two requests closer than this in the normalised state space are one too many."""
+    """Two requests closer than this in the normalised state space are one too many (see ``repeats``)."""
+    repeats: int = 1
+    """How many requests may fall within ``min_distance`` of one another (1: each pose once). With the agent
+    redrawn, a repeat is the same uncertain object pose pushed from elsewhere: new data, which in a world with a
+    rare shape is the most a round can ask of it (``bench loop --repeats``)."""
     memory: int = 256
     """How many recently requested states new candidates must also keep away from."""
     explore_fraction: float = 0.0
@@ -171,6 +175,8 @@ class ActivePlannerConfig:
         if not 0.0 <= self.progress_floor <= 1.0 or self.progress_memory < 1 or self.progress_horizon < 1:
             raise ValueError(f"progress_floor in [0, 1], progress_memory >= 1 and progress_horizon >= 1 expected, "
                              f"found {self.progress_floor}, {self.progress_memory} and {self.progress_horizon}")
+        if isinstance(self.repeats, bool) or not isinstance(self.repeats, int) or self.repeats < 1:
+            raise ValueError(f"repeats must be a whole number of at least 1, found {self.repeats!r}")
         if self.min_distance < 0 or not 0.0 <= self.explore_fraction <= 1.0:
             raise ValueError(f"min_distance >= 0 and explore_fraction in [0, 1] expected, found "
                              f"{self.min_distance} and {self.explore_fraction}")
@@ -212,8 +218,10 @@ class Candidate:
 
 
 def select_diverse(candidates: Sequence[Candidate], k: int, min_distance: float,
-                   taken: Sequence[np.ndarray] = (), max_per_shape: int | None = None) -> list[Candidate]:
-    """Greedy by score: keep a candidate only if it is ``min_distance`` from every kept one.
+                   taken: Sequence[np.ndarray] = (), max_per_shape: int | None = None,
+                   repeats: int = 1) -> list[Candidate]:
+    """Greedy by score: keep a candidate only if fewer than ``repeats`` kept ones lie within ``min_distance``
+    of it (``repeats`` 1: it is that far from every kept one).
 
     ``taken`` holds features of states requested earlier, which also count as kept;
     ``max_per_shape`` caps how many kept candidates share an object shape.
@@ -228,7 +236,7 @@ def select_diverse(candidates: Sequence[Candidate], k: int, min_distance: float,
         shape = cand.episode.meta.shape
         if max_per_shape is not None and per_shape.get(shape, 0) >= max_per_shape:
             continue
-        if all(np.linalg.norm(cand.features - o) >= min_distance for o in others):
+        if sum(np.linalg.norm(cand.features - o) < min_distance for o in others) < repeats:
             kept.append(cand)
             per_shape[shape] = per_shape.get(shape, 0) + 1
             others.append(cand.features)
@@ -301,7 +309,8 @@ class ActivePlanner:
             chosen, short = self._by_progress(scored, fresh, k)
         else:
             chosen, short = select_diverse(fresh, k, self.cfg.min_distance, list(self._requested),
-                                           max_per_shape=max(1, math.ceil(k * self.cfg.max_shape_share))), {}
+                                           max_per_shape=max(1, math.ceil(k * self.cfg.max_shape_share)),
+                                           repeats=self.cfg.repeats), {}
         requests = []
         for cand in chosen:
             self._requested.append(cand.features)
@@ -326,7 +335,7 @@ class ActivePlanner:
         chosen, short = [], {}
         for shape, quota in self.shape_quotas.items():
             picked = select_diverse([c for c in candidates if c.episode.meta.shape == shape], quota,
-                                    self.cfg.min_distance, list(self._requested))
+                                    self.cfg.min_distance, list(self._requested), repeats=self.cfg.repeats)
             chosen += picked
             if quota > len(picked):
                 short[shape] = quota - len(picked)

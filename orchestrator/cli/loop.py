@@ -152,6 +152,9 @@ def register_bench(bench: argparse._SubParsersAction) -> None:
                    help="the active planner gives at most this share of the requests it picks in a round to one "
                         f"shape, rounded up, at least 1 (default {d.active.max_shape_share}; 1 = no cap); a round it "
                         "leaves short is filled with uniform requests")
+    p.add_argument("--repeats", type=common.positive_int, default=d.active.repeats, metavar="N",
+                   help="the active planner may ask for one uncertain object pose up to N times (each with a new "
+                        f"pusher; default {d.active.repeats}: each pose once)")
     p.add_argument("--shapes-by-progress", action="store_true", default=d.shapes_by_progress,
                    help="instead of that cap, the active planner splits each round over the shapes by how much "
                         "the champion's error on a shape's recent episodes fell once it trained on them, beyond "
@@ -224,6 +227,7 @@ def _bench_loop(args: argparse.Namespace) -> int:
                               within_policy=args.within_policy, shape_weights=args.shape_weights,
                               palette=args.palette, shapes_by_progress=args.shapes_by_progress,
                               active=dataclasses.replace(d.active, max_shape_share=args.max_shape_share,
+                                                         repeats=args.repeats,
                                                          progress_floor=args.progress_floor,
                                                          progress_horizon=args.progress_horizon))
     except (ValueError, ConfigError) as exc:

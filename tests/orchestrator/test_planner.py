@@ -171,6 +171,25 @@ def test_select_diverse_keeps_highest_scores_and_respects_earlier_requests():
     assert [c.step for c in select_diverse(cands, 5, 0.1, taken=[f(0, 0.02)])] == [2]
 
 
+def test_select_diverse_allows_a_pose_as_many_times_as_repeats_says():
+    """``repeats`` N: a candidate is kept while fewer than N kept ones (earlier requests included) lie within
+    min_distance of it; 1 is each pose once."""
+    f = lambda *v: np.array(v, dtype=float)  # noqa: E731
+    ep = make_episode(np.random.default_rng(6))
+    cands = [Candidate(4.0 - i, ep, i, f(0.01 * i, 0)) for i in range(4)] + [Candidate(0.5, ep, 9, f(1, 0))]
+    assert [c.step for c in select_diverse(cands, 9, 0.1, repeats=3)] == [0, 1, 2, 9]
+    assert [c.step for c in select_diverse(cands, 9, 0.1, taken=[f(0, 0)], repeats=3)] == [0, 1, 9]
+    assert [c.step for c in select_diverse(cands, 9, 0.1, repeats=1)] == [0, 9]
+    with pytest.raises(ValueError, match="repeats"):
+        acfg(repeats=0)
+
+
+def test_bench_loop_takes_repeats(tmp_path):
+    from orchestrator.cli import build_parser
+    args = build_parser().parse_args(["bench", "loop", "--repeats", "3", "--out", str(tmp_path / "o")])
+    assert args.repeats == 3
+
+
 def test_budget_per_round_and_queue_depth_caps(tmp_path):
     rng = np.random.default_rng(8)
     queue = RequestQueue(tmp_path / "q.sqlite")
