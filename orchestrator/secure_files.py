@@ -122,16 +122,21 @@ def _replace_folder(target: Path, files: Files) -> Path | None:
             raise _NoFolderSwap from exc
         raise
     try:
-        os.chmod(new, 0o700)
-        for path, (data, secret) in files.items():
-            _write(new / path.name, data, secret)
-        fsync_dir(new)
+        _fill(new, files)
         _swap_in(new, target, old)
     except BaseException:
         shutil.rmtree(new, ignore_errors=True)  # never in place: this call's own files
         raise
     fsync_dir(target.parent)
     return _delete(old)
+
+
+def _fill(folder: Path, files: Files) -> None:
+    """Writes every file of ``files`` into the new, private (0700 whatever the umask) ``folder``, durably."""
+    os.chmod(folder, 0o700)
+    for path, (data, secret) in files.items():
+        _write(folder / path.name, data, secret)
+    fsync_dir(folder)
 
 
 def _swap_in(new: Path, target: Path, old: Path) -> None:
@@ -167,10 +172,7 @@ def _replace_inside(target: Path, files: Files) -> Path | None:
     new, old = (target / f".{kind}-{secrets.token_hex(4)}" for kind in ("new", "old"))
     try:
         new.mkdir(mode=0o700)
-        os.chmod(new, 0o700)
-        for path, (data, secret) in files.items():
-            _write(new / path.name, data, secret)
-        fsync_dir(new)
+        _fill(new, files)
         old.mkdir(mode=0o700)
         _swap_files(new, target, old, [path.name for path in files])
     except BaseException:

@@ -84,11 +84,8 @@ def unindexed(conn: sqlite3.Connection, data_dir: Path, files: list[Path],
     found = [p for p in files if p.relative_to(data_dir).as_posix() not in rows and p.exists()]
     not_moved: dict[Path, str] = {}
     for path in found if move_to is not None else ():
-        try:
-            move(path, move_to / path.relative_to(episodes_dir))
-        except OSError as exc:
-            if path.exists():  # else moved, and a folder's fsync after it failed: it is aside all the same
-                not_moved[path] = exc.strerror or str(exc)
+        if why := _aside(path, move_to / path.relative_to(episodes_dir)):
+            not_moved[path] = why
     return found, not_moved
 
 
@@ -131,14 +128,21 @@ def unregistered(conn: sqlite3.Connection, folders: list[Path], move_to: Path | 
     moved: list[str] = []
     not_moved: dict[str, str] = {}
     for path in found:
-        try:
-            move(path, _free_name(move_to / path.name))
-        except OSError as exc:
-            if path.is_dir():  # else renamed, and a folder's fsync after it failed: it is aside all the same
-                not_moved[path.name] = exc.strerror or str(exc)
-                continue
-        moved.append(path.name)
+        if why := _aside(path, _free_name(move_to / path.name)):
+            not_moved[path.name] = why
+        else:
+            moved.append(path.name)
     return StrayFolders(moved, not_moved)
+
+
+def _aside(path: Path, dest: Path) -> str | None:
+    """``move``s ``path`` to ``dest``; None once it is there, else why it stayed where it was (nothing raised)."""
+    try:
+        move(path, dest)
+    except OSError as exc:
+        if path.exists():  # else moved, and a folder's fsync after it failed: it is aside all the same
+            return exc.strerror or str(exc)
+    return None
 
 
 def _free_name(path: Path) -> Path:

@@ -223,3 +223,15 @@ def failing_reads_of(path: Path, monkeypatch, times: int = 1, code: int = errno.
         return real(self)
     monkeypatch.setattr(Path, "read_bytes", read_bytes)
     return failed
+
+
+def failing_renames_of(monkeypatch, fails: Callable[[Path], bool], code: int) -> None:
+    """``os.replace`` of a source for which ``fails(src)`` holds raises ``OSError(code)`` (EXDEV: to another file
+    system; ENOSPC: no room for one more directory entry); every other rename is real."""
+    real = os.replace
+
+    def replace(src, dst, **kw) -> None:
+        if fails(Path(src)):
+            raise OSError(code, os.strerror(code), str(src), str(dst))
+        real(src, dst, **kw)
+    monkeypatch.setattr(os, "replace", replace)

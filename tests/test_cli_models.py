@@ -5,20 +5,18 @@ from __future__ import annotations
 import errno
 import json
 import math
-import os
 import shutil
 import subprocess
 import sys
 
 import uuid
-from pathlib import Path
 
 import numpy as np
 import pytest
 
 from orchestrator.cli import main
 from orchestrator.retrainlock import EXIT_BUSY, retrain_lock
-from tests.conftest import run_cli
+from tests.conftest import failing_renames_of, run_cli
 from storage.catalog import Catalog
 from storage.models import ModelRegistry, ModelStatus
 from storage.records import Episode, EpisodeMeta
@@ -161,14 +159,7 @@ def test_models_prune_frees_all_the_same_when_a_folder_cannot_be_moved_aside(cap
     reg.gate(a)
     reg.gate(b)
     shutil.copytree(reg.get(b).path, reg.models_dir / "m000009-0badf00d")
-    real = os.replace
-
-    def full_disk(src, dst, **kw) -> None:
-        if Path(src).name == "m000009-0badf00d":
-            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(src))
-        real(src, dst, **kw)
-
-    monkeypatch.setattr(os, "replace", full_disk)
+    failing_renames_of(monkeypatch, lambda src: src.name == "m000009-0badf00d", errno.ENOSPC)
     rc, out, err = run_cli(capsys, "models", "prune", "--keep", "1", "--data", str(data))
     assert rc == 0 and err == "" and out.startswith("deleted 1 model's files") and a in out
     assert ("could not move 1 checkpoint folder(s) no model row names to models/.orphans/, left where they are "

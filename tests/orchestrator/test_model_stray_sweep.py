@@ -6,13 +6,12 @@ from __future__ import annotations
 
 import errno
 import logging
-import os
-from pathlib import Path
 
 from orchestrator import sweeps
 from orchestrator.storagehealth import StorageHealth
 from storage.catalog import Catalog
 from storage.models import ModelRegistry
+from tests.conftest import failing_renames_of
 
 
 def test_a_folder_that_cannot_be_moved_aside_is_said_and_the_others_are_moved(tmp_path, monkeypatch, caplog) -> None:
@@ -22,14 +21,7 @@ def test_a_folder_that_cannot_be_moved_aside_is_said_and_the_others_are_moved(tm
     for folder in (stuck, free):
         folder.mkdir()
         (folder / "weights.pt").write_bytes(b"a killed register's")
-    real = os.replace
-
-    def across_file_systems(src, dst, **kw) -> None:
-        if Path(src) == stuck:
-            raise OSError(errno.EXDEV, os.strerror(errno.EXDEV), str(src), str(dst))
-        real(src, dst, **kw)
-
-    monkeypatch.setattr(os, "replace", across_file_systems)
+    failing_renames_of(monkeypatch, lambda src: src == stuck, errno.EXDEV)
     log = logging.getLogger("test.sweeps")
     with caplog.at_level(logging.WARNING, logger="test.sweeps"):
         sweeps.sweep_leftovers(catalog, data, StorageHealth(log), log)

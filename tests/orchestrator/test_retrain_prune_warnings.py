@@ -7,12 +7,11 @@ from __future__ import annotations
 
 import errno
 import logging
-import os
-from pathlib import Path
 
 
 from orchestrator.retrain import run_retrain
 from storage.models import ModelRegistry
+from tests.conftest import failing_renames_of
 from tests.orchestrator.conftest import small_training_data
 from uncertainty.config import TrainConfig
 
@@ -26,13 +25,7 @@ def test_a_retrain_whose_prune_cannot_move_a_folder_aside_warns_of_it(tmp_path, 
     stuck = ModelRegistry(data).models_dir / "m000009-0badf00d"  # as a register killed before its commit leaves it
     stuck.mkdir()
     (stuck / "weights.pt").write_bytes(b"a killed register's")
-    real = os.replace
-
-    def full_disk(src, dst, **kw) -> None:
-        if Path(src) == stuck:
-            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(src), str(dst))
-        real(src, dst, **kw)
-    monkeypatch.setattr(os, "replace", full_disk)
+    failing_renames_of(monkeypatch, lambda src: src == stuck, errno.ENOSPC)
 
     with caplog.at_level(logging.WARNING, logger="orchestrator.retrain"):
         result = run_retrain(data, TINY, keep_models=1)

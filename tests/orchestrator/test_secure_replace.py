@@ -56,6 +56,21 @@ def _rename_fails_at(monkeypatch: pytest.MonkeyPatch, *calls: int) -> Iterator[l
         yield count
 
 
+@contextmanager
+def _undeletable(monkeypatch: pytest.MonkeyPatch, prefix: str) -> Iterator[None]:
+    """``shutil.rmtree`` of a folder whose name starts with ``prefix`` fails (EACCES); any other is real."""
+    real = shutil.rmtree
+
+    def rmtree(path, *args, **kwargs):
+        if Path(path).name.startswith(prefix):
+            raise OSError(errno.EACCES, "Permission denied", str(path))
+        return real(path, *args, **kwargs)
+
+    with monkeypatch.context() as m:
+        m.setattr(shutil, "rmtree", rmtree)
+        yield
+
+
 def _assert_whole_new_profile(directory: Path, old: dict[str, bytes]) -> None:
     """Every planned file is there and none is the old one's; every certificate is signed by the CA there."""
     new = _files(directory)
@@ -109,15 +124,7 @@ def test_an_old_profile_that_cannot_be_deleted_is_named_in_a_warning(monkeypatch
     directory = tmp_path / "profile"
     init_secure(SecureInitConfig(directory))
     old = _files(directory)
-    real_rmtree = shutil.rmtree
-
-    def rmtree(path, *args, **kwargs):
-        if Path(path).name.startswith(".profile.old-"):
-            raise OSError(errno.EACCES, "Permission denied", str(path))
-        return real_rmtree(path, *args, **kwargs)
-
-    with monkeypatch.context() as m:
-        m.setattr(shutil, "rmtree", rmtree)
+    with _undeletable(monkeypatch, ".profile.old-"):
         rc, out, err = run_cli(capsys, "secure", "init", str(directory), "--force", "--json")
     [aside] = [p for p in tmp_path.iterdir() if p.name.startswith(".profile.old-")]
     assert rc == 0 and json.loads(out)["left_over"] == str(aside) and _files(aside) == old
@@ -279,15 +286,7 @@ def test_old_files_that_cannot_be_deleted_after_a_swap_inside_the_folder_are_nam
     directory = tmp_path / "profile"
     init_secure(SecureInitConfig(directory))
     old = _files(directory)
-    real_rmtree = shutil.rmtree
-
-    def rmtree(path, *args, **kwargs):
-        if Path(path).name.startswith(".old-"):
-            raise OSError(errno.EACCES, "Permission denied", str(path))
-        return real_rmtree(path, *args, **kwargs)
-
-    with _folder_swap_refused(monkeypatch, directory), monkeypatch.context() as m:
-        m.setattr(shutil, "rmtree", rmtree)
+    with _folder_swap_refused(monkeypatch, directory), _undeletable(monkeypatch, ".old-"):
         rc, out, err = run_cli(capsys, "secure", "init", str(directory), "--force", "--json")
     [aside] = [p for p in directory.iterdir() if p.is_dir()]
     assert rc == 0 and json.loads(out)["left_over"] == str(aside) and _files(aside) == old

@@ -25,7 +25,7 @@ from storage.backup import backup
 from storage.catalog import Catalog
 from storage.models import ModelRegistry, PruneResult, StrayFolders
 from storage.pruning import STALE_AGE_S
-from tests.conftest import REPO, wait_for
+from tests.conftest import REPO, failing_renames_of, wait_for
 
 SPLIT = "split-aaaa"
 ENV = {**os.environ, "PYTHONPATH": str(REPO)}
@@ -193,14 +193,7 @@ def _refuse_moves(monkeypatch, models_dir: Path, code: int, at: str, only: str |
 
         monkeypatch.setattr(Path, "mkdir", mkdir)
         return
-    real = os.replace
-
-    def replace(src, dst, **kw) -> None:
-        if Path(src).parent == models_dir and only in (None, Path(src).name):
-            raise OSError(code, os.strerror(code), str(src), str(dst))
-        real(src, dst, **kw)
-
-    monkeypatch.setattr(os, "replace", replace)
+    failing_renames_of(monkeypatch, lambda src: src.parent == models_dir and only in (None, src.name), code)
 
 
 @pytest.mark.parametrize("code, at", [(errno.EXDEV, "rename"), (errno.ENOSPC, "rename"), (errno.ENOSPC, "mkdir")],

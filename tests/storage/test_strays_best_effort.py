@@ -14,6 +14,7 @@ from pathlib import Path
 from orchestrator import sweeps
 from orchestrator.storagehealth import StorageHealth
 from storage.catalog import Catalog
+from tests.conftest import failing_renames_of
 from tests.storage.test_episodes import make_episode
 
 
@@ -30,13 +31,7 @@ def _strays(cat: Catalog, rng, n: int) -> list[Path]:
 
 def _full_disk_for(monkeypatch, stuck: Path) -> None:
     """Renaming ``stuck`` fails as on a full disk (no room for one more directory entry in ``orphans/<day>/``)."""
-    real = os.replace
-
-    def replace(src, dst, **kw) -> None:
-        if Path(src) == stuck:
-            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(src), str(dst))
-        real(src, dst, **kw)
-    monkeypatch.setattr(os, "replace", replace)
+    failing_renames_of(monkeypatch, lambda src: src == stuck, errno.ENOSPC)
 
 
 def _orphan(cat: Catalog, path: Path) -> Path:
