@@ -4,8 +4,9 @@
 MCAP bytes). It checks the lease (token and worker) before a byte is written, the size and
 the sha256, verifies the MCAP once, then writes the file atomically, indexes it and completes
 the request in one catalog transaction. A repeat of an upload that already completed its
-request is acknowledged as a duplicate (once its file holds those bytes: a file lost or damaged
-on disk since is put back from the repeat's, unless the episode is quarantined); anything else that
+request is acknowledged as a duplicate once the catalog holds an intact copy of those bytes: a file lost or
+damaged on disk since is put back from the repeat's, or, for an episode quarantined meanwhile, the repeat's
+bytes are kept in quarantine (``Catalog.repair_file``: a worker's retry never ends a quarantine); anything else that
 does not fit is refused with the reason, and nothing of it is indexed. A write the storage refuses
 for a reason that passes (a full disk, a lock held past the busy timeout, a read-only file system) is
 the service's ``StorageHealth``'s to know (no lease expires meanwhile) and the worker's to send again
@@ -31,13 +32,10 @@ from orchestrator.protocol import ErrorCode, EventKind, ProtocolError
 from orchestrator.storagehealth import StorageHealth
 from orchestrator.transport import Incoming
 from storage.catalog import Catalog
-from storage.database import connection, storage_error, transaction
 from storage.episode_reader import EpisodeInfo, decoded_limit, read_episode
-from storage.errors import (CatalogError, EpisodeError, OversizedEpisodeError, QueueError, StaleLeaseError,
+from storage.errors import (EpisodeError, OversizedEpisodeError, QueueError, StaleLeaseError,
                             StorageError, StorageUnavailableError)
-from storage.files import holds, stage_bytes
-from storage.files import publish as publish_file
-from storage.quarantine import is_quarantined
+from storage.files import holds
 from storage.queue import RequestQueue
 from storage.records import Episode
 from storage.requests import IllegalTransitionError, Request, RequestStatus
@@ -158,46 +156,25 @@ class UploadHandler:
         return row if row is not None and row.sha256 == header.sha256 else None
 
     def _restore_if_lost(self, row: EpisodeRow, data: bytes, header: messages.UploadHeader) -> None:
-        """Before a repeat is acknowledged: when the episode's file no longer holds its bytes (lost or
-        damaged on disk) and it is not quarantined, ``data`` (its sha256 is the row's) puts it back. A
-        quarantine (an operator's or a training job's decision) is not ended by a worker's retry, not even
-        one that commits while this repeat is checked (``_put_back``). Refused ``unavailable`` when the
-        restore cannot be written (a full disk), so the worker keeps its bytes and sends them again."""
-        if row.quarantined or holds(row.path, row.sha256):
+        """Before a repeat is acknowledged: when the catalog no longer holds an intact copy of the episode's
+        bytes (its file lost or damaged on disk, and for a quarantined episode no intact copy kept in
+        quarantine either), ``data`` (its sha256 is the row's) is kept (``Catalog.repair_file``): the file is
+        put back, or, for a quarantined episode, the bytes are kept in quarantine for ``episodes restore``. A
+        quarantine (an operator's or a training job's decision) is not ended by a worker's retry, not even one
+        that commits while this repeat is checked. Refused ``unavailable`` when the bytes cannot be written (a
+        full disk), so the worker keeps them and sends them again."""
+        if not row.quarantined and holds(row.path, row.sha256):  # the common case, without the write lock
             return
         try:
             with self.health.writing():
-                restored = self._put_back(row, data)
+                written = self.catalog.repair_file(row.episode_id, data, write_lock=self.write_lock)
         except StorageError as exc:  # the bytes hash to a verified episode's: the disk, not the upload
             code = ErrorCode.UNAVAILABLE if isinstance(exc, StorageUnavailableError) else ErrorCode.INTERNAL
             raise ProtocolError(code, f"episode {row.episode_id}: its file does not hold the bytes "
                                 f"indexed, and restoring it from this upload failed: {exc}") from exc
-        if restored:
-            log.warning("episode %s: its file %s was missing or damaged; restored from a repeated upload of %s",
-                        row.episode_id, row.path, header.request_id)
-
-    def _put_back(self, row: EpisodeRow, data: bytes) -> bool:
-        """Writes ``data`` (the bytes ``row`` indexes) back to ``row``'s file, unless by the time the catalog's
-        write lock is ours the episode is quarantined or its file holds them again; True when it wrote.
-
-        Checked under the lock because an operator's quarantine (another process) may commit after ``row``
-        was read. Not the catalog's restore of a duplicate ingest: that ends a quarantine, as an operator's
-        ingest of the same bytes is meant to; a worker's retry is not. Raises ``CatalogError``
-        (``CatalogUnavailableError`` for a full disk)."""
-        staged = None
-        try:
-            staged = stage_bytes(row.path, data)  # the slow part (write + fsync), outside the write lock
-            with connection(self.catalog.db_path, CatalogError) as conn, self.write_lock, transaction(conn):
-                if is_quarantined(conn, row.episode_id) or holds(row.path, row.sha256):
-                    return False  # (the transaction wrote nothing: it only held the lock)
-                publish_file(staged, row.path)
-                return True
-        except OSError as exc:
-            raise storage_error(exc, CatalogError, f"cannot restore episode {row.episode_id} at {row.path}: "
-                                f"{exc.strerror or exc}", row.path) from exc
-        finally:
-            if staged is not None:
-                staged.unlink(missing_ok=True)
+        if written is not None:
+            log.warning("episode %s: its file %s was missing or damaged; %s written from a repeated upload of %s",
+                        row.episode_id, row.path, written, header.request_id)
 
     def _check_live(self, request: Request, header: messages.UploadHeader) -> None:
         if (request.status != RequestStatus.LEASED or request.token != header.token

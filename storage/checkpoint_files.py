@@ -20,6 +20,7 @@ import shutil
 import threading
 import time
 import uuid
+from collections.abc import Callable
 from pathlib import Path
 
 from storage.errors import CorruptCheckpointError, PrunedCheckpointError, RegistryError, RegistryUnavailableError
@@ -158,10 +159,10 @@ def read_snapshot(rec: ModelRecord) -> Snapshot | None:
     return snap
 
 
-def weights_problem(rec: ModelRecord) -> str | None:
-    """Why the weights of ``rec`` cannot be served (``read_weights``'s error), or None when they can. A
-    verdict on the bytes is remembered per ``file_state`` for ``WEIGHTS_RECHECK_S``; a read that failed
-    (which may pass) is not."""
+def weights_problem(rec: ModelRecord, read: Callable[[ModelRecord], bytes] = read_weights) -> str | None:
+    """Why the weights of ``rec`` cannot be served (the error of ``read``, the registry's reader: ``read_weights``
+    or what wraps it), or None when they can. A verdict on the bytes is remembered per ``file_state`` for
+    ``WEIGHTS_RECHECK_S``; a read that failed (which may pass) is not."""
     state = file_state(rec.weights_path)
     key = None if state is None else (str(rec.weights_path), rec.weights_sha256, rec.pruned_at, *state)
     now = time.monotonic()
@@ -169,7 +170,7 @@ def weights_problem(rec: ModelRecord) -> str | None:
         if key in _CHECKED and now - _CHECKED[key][1] < WEIGHTS_RECHECK_S:
             return _CHECKED[key][0]
     try:
-        read_weights(rec)
+        read(rec)
     except CorruptCheckpointError as exc:
         problem, remembered = str(exc), lasting(exc)
     else:

@@ -24,7 +24,8 @@ SNAPSHOT_FILE = "snapshot.json"
 
 
 class ModelStatus(str, Enum):
-    """Where a registered model stands. Transitions happen only in ``ModelRegistry``."""
+    """Where a registered model stands. Transitions happen only in ``ModelRegistry``, each through
+    ``storage.promotions.set_status``."""
 
     CANDIDATE = "candidate"
     """Registered, not yet through the gate."""

@@ -17,8 +17,9 @@ rejected models outside the champion's rollback chain of N; their rows stay (``p
 register killed before its commit) go aside to ``DATA/models/.orphans/`` (``sweep_strays``, ``prune``).
 
 The rows the registry answers with are ``storage.model_rows``'s dataclasses (re-exported here), the steps
-of a prune ``storage.pruning``'s functions; a checkpoint directory's files are written, read back and checked
-by ``storage.checkpoint_files`` (with the verdicts ``weights_problem`` remembers).
+of a prune ``storage.pruning``'s functions, the champion alias, its history and every status change
+``storage.promotions``'s, the gate's verdict ``storage.gate``'s; a checkpoint directory's files are written, read
+back and checked by ``storage.checkpoint_files`` (with the verdicts ``weights_problem`` remembers).
 """
 
 from __future__ import annotations
@@ -30,11 +31,10 @@ import shutil
 import sqlite3
 from collections.abc import Iterator
 from contextlib import AbstractContextManager, contextmanager
-from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
 
-from storage import checkpoint_files, pruning, strays
+from storage import checkpoint_files, promotions, pruning, strays
 from storage.database import (DB_NAME, MODELS_DIR, Migration, connection, ensure_schema, refuse_lost_database,
                               storage_error, transaction, undo_unless_committed)
 from storage.errors import CorruptCheckpointError, RegistryError, UnknownModelError
@@ -42,9 +42,11 @@ from storage.files import write_synced
 from storage.gate import DEFAULT_METRIC, DEFAULT_MIN_REL_IMPROVEMENT, GateDecision, judge
 from storage.model_rows import (CONFIG_FILE, META_FILE, METRICS_FILE, SNAPSHOT_FILE, WEIGHTS_FILE, ChampionEntry,
                                 ModelRecord, ModelStatus, PruneResult, StrayFolders)
+from storage.promotions import CHAMPION, now
 from storage.rows import Snapshot
 
-CHAMPION = "champion"
+__all__ = ["CHAMPION", "MODELS_DIR", "WEIGHTS_FILE", "ChampionEntry", "GateDecision", "ModelRecord", "ModelRegistry",
+           "ModelStatus", "PruneResult", "StrayFolders"]
 
 #: One entry per schema version; a change to the tables is a new entry at the end. Each says which older
 #: code may still use the file after it (``compatible_with``, see ``storage.database.Migration``): leave
@@ -80,10 +82,6 @@ _MIGRATIONS: tuple[Migration, ...] = (
     # rollback target, weights to serve.
     Migration(("ALTER TABLE models ADD COLUMN pruned_at TEXT",), compatible_with=2),
 )
-
-
-def _now() -> str:
-    return datetime.now(timezone.utc).isoformat(timespec="microseconds")
 
 
 def _dump(obj: Any, what: str) -> bytes:
@@ -177,21 +175,15 @@ class ModelRegistry:
                                     (ModelStatus(status).value,)).fetchall()
         return [self._record(r) for r in rows]
 
-    def _champion(self, conn: sqlite3.Connection) -> str | None:
-        row = conn.execute("SELECT version FROM model_aliases WHERE alias = ?", (CHAMPION,)).fetchone()
-        return None if row is None else row[0]
-
     def champion(self) -> str | None:
         """The version in service, or None before the first promotion."""
         with self._connect() as conn:
-            return self._champion(conn)
+            return promotions.champion(conn)
 
     def history(self) -> list[ChampionEntry]:
         """Every promotion, oldest first (rolled-back ones carry ``rolled_back_at``)."""
         with self._connect() as conn:
-            rows = conn.execute("SELECT version, promoted_at, reason, rolled_back_at "
-                                "FROM champion_history ORDER BY id").fetchall()
-        return [ChampionEntry(*tuple(r)) for r in rows]
+            return promotions.history(conn)
 
     def load_weights(self, version: str) -> bytes:
         """The weights bytes of ``version``, checked against their recorded sha256.
@@ -221,9 +213,10 @@ class ModelRegistry:
         (``file_state``) for ``WEIGHTS_RECHECK_S`` (both ``storage.checkpoint_files``'s), so what asks again
         and again (the dashboard, ``stats``) re-reads the file only when it has changed or that long has
         passed; a read that failed (which may pass) is not remembered."""
-        return checkpoint_files.weights_problem(self.get(version))
+        return checkpoint_files.weights_problem(self.get(version), self._read_verified)
 
     def _read_verified(self, rec: ModelRecord) -> bytes:
+        """Every read of a model's weights goes through here (``checkpoint_files.read_weights``)."""
         return checkpoint_files.read_weights(rec)
 
     # -- registering ---------------------------------------------------------------------------
@@ -254,7 +247,7 @@ class ModelRegistry:
         weights = bytes(weights)
         sha = hashlib.sha256(weights).hexdigest()
         config_bytes, metrics_bytes = _dump(config, "config"), _dump(metrics, "metrics")
-        created = _now()
+        created = now()
         # The big writes and their fsyncs happen before taking the write lock (leases wait on it).
         tmp = final = None
         try:
@@ -325,7 +318,7 @@ class ModelRegistry:
                 checkpoint_files.raise_unless_lasting(exc, f"gate {version} against champion {checked}")
                 unusable = str(exc)
         with self._transaction() as conn:
-            current = self._champion(conn)
+            current = promotions.champion(conn)
             if current == version:
                 return GateDecision(False, f"{version} is already the champion", version, current,
                                     metric)
@@ -336,9 +329,9 @@ class ModelRegistry:
             promoted, reason, champ_value = judge(rec, champ, metric, min_rel_improvement, eval_split_hash,
                                                   unusable if current == checked else "")
             if promoted:
-                self._switch(conn, version, reason)
+                promotions.switch(conn, version, reason)
             else:
-                self._set_status(conn, version, ModelStatus.REJECTED, reason)
+                promotions.set_status(conn, version, ModelStatus.REJECTED, reason)
         cand_value = rec.metrics.get(metric)
         return GateDecision(promoted, reason, version, current, metric,
                             cand_value if isinstance(cand_value, (int, float)) else None, champ_value)
@@ -350,9 +343,9 @@ class ModelRegistry:
 
     def _refuse(self, rec: ModelRecord, reason: str, metric: str) -> GateDecision:
         with self._transaction() as conn:
-            current = self._champion(conn)
+            current = promotions.champion(conn)
             if current != rec.version:
-                self._set_status(conn, rec.version, ModelStatus.REJECTED, reason)
+                promotions.set_status(conn, rec.version, ModelStatus.REJECTED, reason)
         value = rec.metrics.get(metric)
         return GateDecision(False, reason, rec.version, current, metric,
                             value if isinstance(value, (int, float)) else None)
@@ -368,7 +361,7 @@ class ModelRegistry:
         rec = self.get(version)
         self._read_verified(rec)
         with self._transaction() as conn:
-            current = self._champion(conn)
+            current = promotions.champion(conn)
             if current == version:
                 return GateDecision(False, f"{version} is already the champion", version, current)
             checkpoint_files.refuse_pruned(self._get(conn, version))  # a prune may have landed since the sha256 check
@@ -379,7 +372,7 @@ class ModelRegistry:
                 raise RegistryError(
                     f"refusing to promote {version}: it was evaluated on eval split "
                     f"{rec.eval_split_hash}, the current eval split is {expected}")
-            self._switch(conn, version, reason)
+            promotions.switch(conn, version, reason)
         return GateDecision(True, reason, version, current)
 
     def rollback(self) -> str:
@@ -390,40 +383,13 @@ class ModelRegistry:
         return to, ``RegistryUnavailableError`` when one's weights cannot be read now (nothing changes).
         """
         with self._connect() as conn:
-            current = self._champion(conn)
+            current, entries = promotions.champion(conn), promotions.live_history(conn)
         if current is None:
             raise RegistryError("no champion to roll back from: nothing has been promoted yet")
         # Checking sha256 reads files; do it before taking the write lock, then re-check the state.
-        entries = self._live_history()
-        skipped: list[str] = []
-        target = None
-        for _, version in reversed(entries[:-1]):
-            if version == current:
-                continue
-            try:
-                self.verify(version)
-            except CorruptCheckpointError as exc:
-                checkpoint_files.raise_unless_lasting(exc, f"roll back past {version}")
-                skipped.append(f"{version} ({exc})")
-                continue
-            target = version
-            break
-        if target is None:
-            why = f"; skipped, weights unusable: {'; '.join(skipped)}" if skipped else ""
-            raise RegistryError(f"no previous champion to roll back to from {current}{why}")
+        target = promotions.rollback_target(entries, current, self.verify)
         with self._transaction() as conn:
-            if (self._champion(conn) != current or self._live_history(conn) != entries
-                    or self._get(conn, target).pruned_at is not None):
-                raise RegistryError("the champion changed while rolling back; run rollback again")
-            now = _now()
-            last_of_target = max(eid for eid, v in entries if v == target)
-            later = [eid for eid, _ in entries if eid > last_of_target]
-            conn.executemany("UPDATE champion_history SET rolled_back_at = ? WHERE id = ?",
-                             [(now, eid) for eid in later])
-            self._set_status(conn, current, ModelStatus.RETIRED, f"rolled back to {target} at {now}")
-            self._set_status(conn, target, ModelStatus.CHAMPION, f"restored by rollback from {current}")
-            conn.execute("INSERT OR REPLACE INTO model_aliases (alias, version) VALUES (?, ?)",
-                         (CHAMPION, target))
+            promotions.roll_back(conn, current, target, entries)
         return target
 
     def reject_candidates(self, reason: str) -> list[str]:
@@ -438,7 +404,7 @@ class ModelRegistry:
             left = [r[0] for r in conn.execute("SELECT version FROM models WHERE status = ? ORDER BY seq",
                                                (ModelStatus.CANDIDATE.value,))]
             for version in left:
-                self._set_status(conn, version, ModelStatus.REJECTED, reason)
+                promotions.set_status(conn, version, ModelStatus.REJECTED, reason)
         return left
 
     # -- retention -----------------------------------------------------------------------------
@@ -469,7 +435,7 @@ class ModelRegistry:
         folders = strays.model_folders(self.models_dir)
         with self._transaction() as conn:
             kept = pruning.kept(self._keep_order(conn), keep, unusable, unread)
-            chosen = pruning.mark(conn, kept, None if dry_run else _now())
+            chosen = pruning.mark(conn, kept, None if dry_run else now())
             marked = pruning.marked(conn)
             aside = strays.unregistered(conn, folders, self._orphans(dry_run))  # a failed move fails nothing
         return pruning.finish(self.models_dir, chosen, marked, kept, dry_run, aside)
@@ -487,28 +453,4 @@ class ModelRegistry:
 
     def _keep_order(self, conn: sqlite3.Connection) -> list[str]:
         """What ``prune`` keeps first (``storage.pruning.keep_order``)."""
-        return pruning.keep_order(conn, self._champion(conn), self._live_history(conn))
-
-    def _live_history(self, conn: sqlite3.Connection | None = None) -> list[tuple[int, str]]:
-        """(id, version) of promotions not rolled back, oldest first."""
-        if conn is None:
-            with self._connect() as own:
-                return self._live_history(own)
-        return [(r[0], r[1]) for r in conn.execute(
-            "SELECT id, version FROM champion_history WHERE rolled_back_at IS NULL ORDER BY id")]
-
-    def _switch(self, conn: sqlite3.Connection, version: str, reason: str) -> None:
-        """Inside a transaction: retire the champion, crown ``version``, record the promotion."""
-        current = self._champion(conn)
-        if current is not None:
-            self._set_status(conn, current, ModelStatus.RETIRED, f"replaced by {version}")
-        self._set_status(conn, version, ModelStatus.CHAMPION, reason)
-        conn.execute("INSERT OR REPLACE INTO model_aliases (alias, version) VALUES (?, ?)",
-                     (CHAMPION, version))
-        conn.execute("INSERT INTO champion_history (version, promoted_at, reason) VALUES (?, ?, ?)",
-                     (version, _now(), reason))
-
-    @staticmethod
-    def _set_status(conn: sqlite3.Connection, version: str, status: ModelStatus, reason: str) -> None:
-        conn.execute("UPDATE models SET status = ?, reason = ?, updated = ? WHERE version = ?",
-                     (status.value, reason, _now(), version))
+        return pruning.keep_order(conn, promotions.champion(conn), promotions.live_history(conn))

@@ -3,11 +3,13 @@
 A quarantined episode has a row in the ``quarantine`` table (why, where its file went, when) and its
 file, when there is one, under ``DATA/quarantine/<yyyy-mm-dd>/<episode_id>.mcap`` (``quarantine_path``).
 Snapshots leave it out and the eval split cannot take it; ``Catalog.restore``, or ingesting the same bytes
-again, brings it back.
+again, brings it back. A worker's repeated upload of its bytes does not end a quarantine, but when no intact copy
+is kept it keeps one (``copy_wanted``, ``keep_copy``: ``Catalog.repair_file``), so ``restore`` can.
 
 These are the catalog's steps, over a connection it opened (those that write, inside its ``BEGIN IMMEDIATE``
-transaction) and an episode's row (``storage.rows.EpisodeRow``); ``storage.catalog`` owns the connections
-and transactions, and the move of a file into quarantine, which it undoes when the row does not commit.
+transaction) and an episode's row (``storage.rows.EpisodeRow``); the catalog owns the connections and
+transactions, and the moves of files into quarantine, which it undoes when the row does not commit
+(``storage.catalog_quarantine``, and ``storage.catalog`` for a repeated upload's copy).
 ``storage.backup`` reads a source's quarantine rows and writes its copy's with ``find``, ``insert`` and
 ``remove``.
 
@@ -31,7 +33,7 @@ from storage.rows import EpisodeRow
 
 #: The table, as the catalog's schema version 2 made it (``storage.catalog._CATALOG_MIGRATIONS``): a change
 #: to it is a new migration, never an edit here. Episodes taken out of training (see Catalog.quarantine);
-#: moved_to '' when the file was already gone.
+#: moved_to '' when the file was already gone (until a worker's repeated upload keeps a copy: ``keep_copy``).
 TABLE = """CREATE TABLE IF NOT EXISTS quarantine (
             episode_id TEXT PRIMARY KEY REFERENCES episodes(episode_id),
             reason TEXT NOT NULL,
@@ -141,6 +143,28 @@ def heal(conn: sqlite3.Connection, row: EpisodeRow, kept: Path) -> bool:
         return False
     move(kept, row.path)
     return True
+
+
+def copy_wanted(row: EpisodeRow, kept: Path, quarantined: bool) -> Path | None:
+    """Where the bytes ``row`` indexes are to be written for an intact copy of them to be where the catalog
+    looks, without changing whether the episode is in training (``Catalog.repair_file``): None when one is
+    there (its file, or, while ``quarantined``, the copy at ``kept``), else its file while it is in training
+    and ``kept`` while it is quarantined (``keep_copy`` records it there, so ``put_back`` finds it)."""
+    if holds(row.path, row.sha256) or (quarantined and holds(kept, row.sha256)):
+        return None
+    return kept if quarantined else row.path
+
+
+def keep_copy(conn: sqlite3.Connection, episode_id: str, moved_to: str) -> None:
+    """In a write transaction, once an intact copy of a quarantined episode's file is at ``moved_to`` (relative
+    to the data directory): its quarantine row says so (it said '' when the file was already gone)."""
+    conn.execute("UPDATE quarantine SET moved_to = ? WHERE episode_id = ?", (moved_to, episode_id))
+
+
+def keeps(conn: sqlite3.Connection, episode_id: str, moved_to: str) -> bool:
+    """Whether the quarantine row of ``episode_id`` names its file at ``moved_to`` (``keep_copy`` committed)."""
+    q = find(conn, episode_id)
+    return q is not None and q["moved_to"] == moved_to
 
 
 def quarantined_among(conn: sqlite3.Connection, ids: Sequence[str]) -> list[str]:

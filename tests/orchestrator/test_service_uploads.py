@@ -253,6 +253,33 @@ def test_a_repeated_upload_does_not_end_a_quarantine(service, client, keys, data
     assert row.quarantined == "operator: wrong object" and not row.path.exists()
 
 
+def test_a_repeated_upload_keeps_the_bytes_of_an_episode_lost_then_quarantined(service, client, keys,
+                                                                                data_dir) -> None:
+    """The stored file was lost, then a training job quarantined the episode (no file to move: nothing kept). The
+    worker's repeat is the last intact copy: acknowledged, its bytes are kept in quarantine/, the quarantine stands,
+    and `episodes restore` brings the episode back."""
+    service.queue.enqueue(new_request())
+    grant = lease(client, keys)
+    data = episode_bytes(grant)
+    body = upload(client, keys, grant, data)
+    catalog = Catalog(data_dir)
+    row = catalog.get(body["episode_id"])
+    row.path.unlink()
+    reason = "found by a training job: the file is missing"
+    assert catalog.quarantine(row.episode_id, reason, only_if_damaged=True).quarantined == reason
+    kept = data_dir / quarantine_path(row.path.relative_to(data_dir).as_posix())
+    assert not kept.exists()
+
+    assert upload(client, keys, grant, data) == {**body, "duplicate": True}
+
+    assert catalog.get(row.episode_id).quarantined == reason and not row.path.exists()
+    assert kept.read_bytes() == data and catalog.snapshot().ids == []
+    restored = catalog.restore(row.episode_id)
+    assert restored.quarantined == "" and not kept.exists()
+    assert hashlib.sha256(row.path.read_bytes()).hexdigest() == row.sha256 == hashlib.sha256(data).hexdigest()
+    assert catalog.verify(row.episode_id).episode_id == row.episode_id
+
+
 def test_a_repeat_whose_lost_file_cannot_be_put_back_is_not_acknowledged(service, client, keys, data_dir) -> None:
     """Acknowledged, the worker would drop the last intact copy: it is refused (the worker sends it again)."""
     service.queue.enqueue(new_request())

@@ -374,3 +374,13 @@ def test_a_read_error_on_the_rollback_target_changes_nothing(reg: ModelRegistry,
         reg.rollback()
     assert failed and reg.champion() == c and reg.get(a).status == ModelStatus.RETIRED
     assert reg.rollback() == b  # not past it to a
+
+
+def test_every_read_of_the_weights_goes_through_one_reader(reg: ModelRegistry, monkeypatch) -> None:
+    """weights_problem reads through _read_verified like load_weights and verify (the seam test_pruning wraps)."""
+    version = _register(reg, 0.1)
+    read, seen = reg._read_verified, []
+    monkeypatch.setattr(reg, "_read_verified", lambda rec: (seen.append(rec.version), read(rec))[1])
+    assert reg.weights_problem(version) is None and reg.load_weights(version)
+    reg.verify(version)
+    assert seen == [version] * 3

@@ -92,7 +92,7 @@ def test_a_failed_move_quarantines_nothing(cat, rng, monkeypatch):
 
     def full_disk(src, dst):
         raise OSError(28, "No space left on device")
-    monkeypatch.setattr("storage.catalog.move", full_disk)
+    monkeypatch.setattr("storage.catalog_quarantine.move", full_disk)
     with pytest.raises(CatalogError, match="No space left on device"):
         cat.quarantine(ep.meta.episode_id, "bad")
     assert cat.count(quarantined=True) == 0 and res.path.exists()
@@ -114,11 +114,11 @@ def test_a_version_1_catalog_is_migrated_with_its_episodes(tmp_path, rng):
 
 KILLED_IN_QUARANTINE = """
 import os, sys
-import storage.catalog as catalog, storage.files as files
+import storage.catalog as catalog, storage.catalog_quarantine as quarantining, storage.files as files
 def move_then_die(src, dst):  # the process dies after the rename, before the row commits
     files.move(src, dst)
     os._exit(9)
-catalog.move = move_then_die
+quarantining.move = move_then_die
 catalog.Catalog(sys.argv[1]).quarantine(sys.argv[2], "operator: blurred")
 """
 
@@ -154,7 +154,7 @@ def test_a_quarantine_whose_commit_fails_moves_the_file_back(cat, rng, monkeypat
         files.move(src, dst)
         if dst != row.path:  # (the move back succeeds)
             raise OSError(5, "Input/output error")
-    monkeypatch.setattr("storage.catalog.move", move_then_fail)
+    monkeypatch.setattr("storage.catalog_quarantine.move", move_then_fail)
     with pytest.raises(CatalogError, match="Input/output error"):
         cat.quarantine(ep.meta.episode_id, "bad")
     assert cat.count(quarantined=True) == 0 and cat.verify(ep.meta.episode_id) == ep.meta
@@ -177,7 +177,7 @@ def test_a_failed_commit_is_the_error_even_when_moving_the_file_back_fails(cat, 
             raise OSError(5, "Input/output error")
         files.move(src, dst)
     monkeypatch.setattr(quarantine, "record", record_then_break_the_commit)
-    monkeypatch.setattr("storage.catalog.move", move_back_fails)
+    monkeypatch.setattr("storage.catalog_quarantine.move", move_back_fails)
     with pytest.raises(CatalogError, match="FOREIGN KEY constraint failed") as raised:
         cat.quarantine(ep.meta.episode_id, "bad")
     assert "cannot move" not in str(raised.value)
