@@ -34,7 +34,7 @@ from orchestrator.champion import ChampionScorer, FramesSource
 from orchestrator.dashboard import Dashboard, DashboardConfig, DataSources, learning_curve
 from orchestrator.loopconfig import RunConfig
 from orchestrator.metrics import ServiceMetrics, retrain_outcome
-from orchestrator.planner import ActivePlanner, ActivePlannerConfig, Planner
+from orchestrator.planner import ActivePlanner, ActivePlannerConfig, Planner, in_eval_split
 from orchestrator.uniform import UniformPlanner, UniformPlannerConfig
 from orchestrator.protocol import EventKind
 from orchestrator.report import ReportInputs, write_report
@@ -177,7 +177,8 @@ class LoopRun:
         uniform = UniformPlannerConfig(steps=cfg.steps, max_queue_depth=cfg.round_episodes)
         inner: Planner = (UniformPlanner(uniform, rng, depth) if cfg.planner == "uniform" else ActivePlanner(
             ActivePlannerConfig(steps=cfg.steps, budget_per_round=cfg.round_episodes,
-                                max_queue_depth=cfg.round_episodes, seed_uniform=uniform), self.scorer, rng, depth))
+                                max_queue_depth=cfg.round_episodes, seed_uniform=uniform), self.scorer, rng, depth,
+            is_eval=in_eval_split(self.catalog)))
         self.planner = RoundPlanner(inner, cfg.round_episodes, cfg.budget, self._count, self._outstanding)
         endpoint = f"tcp/127.0.0.1:{cfg.zenoh_port or free_port()}"
         # Workers first, while this process has no other threads yet but the stop-signals one, which

@@ -53,6 +53,7 @@ import numpy as np
 from orchestrator import protocol
 from orchestrator.shapeprogress import ShapeProgress
 from orchestrator.uniform import MIX_POLICIES, UniformPlanner, UniformPlannerConfig, agent_away_from
+from storage.catalog import Catalog
 from storage.requests import NewRequest
 from storage.records import STATE_FIELDS, Episode
 
@@ -113,21 +114,25 @@ class ActivePlannerConfig:
     redrawn, a repeat is the same uncertain object pose pushed from elsewhere: new data, which in a world with a
     rare shape is the most a round can ask of it (``bench loop --repeats``)."""
     memory: int = 256
-    """How many recently requested states new candidates must also keep away from."""
+    """How many recent requests the planner remembers: new candidates keep away from their states, and their
+    (episode, step) is not requested again; older ones are forgotten, so a ``serve`` that runs for months holds
+    no more (the queue's idempotency key still refuses a step requested before)."""
     explore_fraction: float = 0.0
     """Share of each round's budget given to uniform requests (0 = pure active)."""
     replay_prefix: bool = False
     """Start from the episode's start and replay actions[:step] instead of starting at the state."""
     at_rest: bool = True
-    """Start at the uncertain pose with zero velocities (as uniform and eval episodes start)."""
+    """Start at the uncertain pose with zero velocities (as uniform and eval episodes start); False keeps the
+    state's velocities, but a redrawn agent starts at rest all the same (``redraw_agent``)."""
     task_space_only: bool = True
     """Only request states whose object and agent (where the request keeps it) lie in OBJECT_RANGE /
     AGENT_RANGE: the model is judged there, and an ensemble also disagrees where the data is thin for no
     useful reason (objects pushed against the walls)."""
     redraw_agent: bool = True
     """Keep the uncertain state's object (shape, pose, physics) but draw the agent as a uniform start
-    does (away from the object): starting next to the object, as contact states would, leaves the
-    active arm short of the pusher's free motion, which most of the eval error comes from."""
+    does (away from the object, at rest: the state's pusher velocity belongs to the pusher it replaces):
+    starting next to the object, as contact states would, leaves the active arm short of the pusher's free
+    motion, which most of the eval error comes from."""
     max_shape_share: float = 0.5
     """At most this share of the requests planned in one call may be of one shape (rounded up, at least 1):
     no collapse onto one shape. Not used with ``shapes_by_progress``, whose quotas take its place."""
@@ -244,21 +249,26 @@ def select_diverse(candidates: Sequence[Candidate], k: int, min_distance: float,
 
 
 class ActivePlanner:
-    """Requests the states the champion ensemble disagrees on most, diverse and budgeted."""
+    """Requests the states the champion ensemble disagrees on most, diverse and budgeted.
+
+    It never looks at episodes ``is_eval`` (``in_eval_split``) says are eval ones: a request from an eval state
+    re-enacts that episode (with ``replay_prefix`` step for step, under a seed the catalog's replay check misses)."""
 
     name = "active"
 
     def __init__(self, cfg: ActivePlannerConfig, scorer: Scorer, rng: np.random.Generator,
-                 queue_depth: Callable[[], int] = lambda: 0) -> None:
+                 queue_depth: Callable[[], int] = lambda: 0,
+                 is_eval: Callable[[str], bool] = lambda episode_id: False) -> None:
         self.cfg = cfg
         self.scorer = scorer
         self.rng = rng
         self.queue_depth = queue_depth
+        self.is_eval = is_eval
         self.uniform = UniformPlanner(cfg.seed_uniform, rng, queue_depth)
         self._recent: deque[float] = deque(maxlen=cfg.window)
         self._recent_version = ""
         self._requested: deque[np.ndarray] = deque(maxlen=cfg.memory)
-        self._requested_steps: set[tuple[str, int]] = set()
+        self._requested_steps: deque[tuple[str, int]] = deque(maxlen=cfg.memory)  # in step with _requested
         self.threshold = math.nan
         # per policy, the mean scores of its recent episodes under the current champion (any policy an
         # episode was collected with; choose_policy looks at MIX_POLICIES only)
@@ -278,7 +288,7 @@ class ActivePlanner:
         """With ``shapes_by_progress``, score ``episodes`` before the champion trains on them (their fresh error),
         for a caller that retrains before it plans (``bench loop``); otherwise nothing."""
         if self.cfg.shapes_by_progress:
-            for ep in episodes:
+            for ep in self._collected(episodes):
                 scores = self.scorer(ep)
                 if scores is not None:
                     self.progress.record(ep, scores)
@@ -288,11 +298,12 @@ class ActivePlanner:
 
         With no model yet, each new episode is replaced by one uniform request so the
         queue never runs dry. Returns at most ``budget_per_round`` requests and never
-        more than the room left under ``max_queue_depth``.
+        more than the room left under ``max_queue_depth``. Eval episodes (``is_eval``) are left out.
         """
         room = max(0, self.cfg.max_queue_depth - self.queue_depth())
         budget = min(self.cfg.budget_per_round, room)
-        if budget == 0 or not new_episodes:
+        new_episodes = self._collected(new_episodes) if budget else []
+        if not new_episodes:
             return []
         scored = [(ep, self.scorer(ep)) for ep in new_episodes]
         if any(s is None for _, s in scored):
@@ -302,8 +313,8 @@ class ActivePlanner:
             self._update_policy_scores(scored)
         n_explore = int(round(budget * self.cfg.explore_fraction))
         versions = {id(ep): s.model_version for ep, s in scored}
-        fresh = [c for c in self._candidates(scored)
-                 if (c.episode.meta.episode_id, c.step) not in self._requested_steps]
+        done = set(self._requested_steps)
+        fresh = [c for c in self._candidates(scored) if (c.episode.meta.episode_id, c.step) not in done]
         k = budget - n_explore
         if self.cfg.shapes_by_progress:
             chosen, short = self._by_progress(scored, fresh, k)
@@ -314,11 +325,15 @@ class ActivePlanner:
         requests = []
         for cand in chosen:
             self._requested.append(cand.features)
-            self._requested_steps.add((cand.episode.meta.episode_id, cand.step))
+            self._requested_steps.append((cand.episode.meta.episode_id, cand.step))
             requests.append(self._request(cand, versions[id(cand.episode)]))
         requests += [self.uniform.draw_request("shape-fill", shape) for shape, n in short.items() for _ in range(n)]
         requests += [self.uniform.draw_request("explore") for _ in range(n_explore)]
         return requests
+
+    def _collected(self, episodes: Sequence[Episode]) -> list[Episode]:
+        """``episodes`` less the eval split's."""
+        return [ep for ep in episodes if not self.is_eval(ep.meta.episode_id)]
 
     def _by_progress(self, scored: list[tuple[Episode, Scores]], candidates: list[Candidate],
                 k: int) -> tuple[list[Candidate], dict[str, int]]:
@@ -431,8 +446,8 @@ class ActivePlanner:
             start, prefix = state_at(ep, step), []
             if self.cfg.at_rest:
                 start["agent_vel"], start["object_vel"] = [0.0, 0.0], [0.0, 0.0, 0.0]
-            if self.cfg.redraw_agent:
-                start["agent"] = list(agent_away_from(self.rng, start["object"]))
+            if self.cfg.redraw_agent:  # a new pusher, at rest as a uniform start's: not the old one's speed
+                start["agent"], start["agent_vel"] = list(agent_away_from(self.rng, start["object"])), [0.0, 0.0]
         scale = self.threshold if self.threshold > 0 else 1.0
         reason = {"model_version": model_version, "score": cand.score, "source_episode": ep.meta.episode_id,
                   "step": step, "planner": "active", "threshold": self.threshold}
@@ -471,6 +486,11 @@ def state_at(ep: Episode, step: int) -> dict:
             "object": [float(s[_COL["obj_x"]]), float(s[_COL["obj_y"]]), float(s[_COL["obj_theta"]])],
             "object_vel": [float(s[_COL["obj_vx"]]), float(s[_COL["obj_vy"]]), float(s[_COL["obj_omega"]])],
             "physics": {k: float(v) for k, v in ep.meta.physics.items()}}
+
+
+def in_eval_split(catalog: Catalog) -> Callable[[str], bool]:
+    """``ActivePlanner``'s ``is_eval`` from ``catalog``: whether it indexes the episode in the eval split."""
+    return lambda episode_id: (row := catalog.find(episode_id)) is not None and row.split == "eval"
 
 
 def _episode_features(ep: Episode, step: int, with_agent: bool = True) -> np.ndarray:

@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 
 from orchestrator import protocol
-from orchestrator.planner import ActivePlanner, ActivePlannerConfig, Scores, state_features
+from orchestrator.planner import ActivePlanner, ActivePlannerConfig, Scores, state_at, state_features
 from storage.records import STATE_FIELDS, Episode
 from workers.collect import collect_episode
 
@@ -71,3 +71,20 @@ def test_a_redrawn_agent_is_not_held_to_the_task_space_but_a_kept_one_is():
     assert all(alo <= r.start_state["agent"][0] <= ahi for r in redrawn)
     kept_agent = ActivePlannerConfig(**cfg, redraw_agent=False)
     assert ActivePlanner(kept_agent, pusher_speed, np.random.default_rng(0)).plan([ep]) == []
+
+
+def test_without_at_rest_the_object_keeps_its_velocity_and_a_redrawn_pusher_starts_still():
+    """``at_rest=False``: the state's velocities are kept, but not the old pusher's for a pusher drawn elsewhere
+    (one far from the object flying at the speed the old one had next to it means nothing)."""
+    ep = approach([60.0, 60.0])
+    cfg = dict(percentile=0.0, budget_per_round=4, max_queue_depth=4, max_shape_share=1.0, at_rest=False)
+    reqs = ActivePlanner(ActivePlannerConfig(**cfg), pusher_speed, np.random.default_rng(0)).plan([ep])
+    source = [state_at(ep, r.reason["step"]) for r in reqs]
+    assert any(max(map(abs, s["agent_vel"])) > 100 for s in source)  # pushers that were moving fast
+    assert any(max(map(abs, s["object_vel"])) > 50 for s in source)  # and an object that was moving
+    assert all(r.start_state["agent_vel"] == [0.0, 0.0] for r in reqs)
+    assert [r.start_state["object_vel"] for r in reqs] == [s["object_vel"] for s in source]
+    # a kept pusher keeps its velocity (it is the state's own pusher, where it was)
+    kept_agent = ActivePlanner(ActivePlannerConfig(**cfg, redraw_agent=False), pusher_speed,
+                               np.random.default_rng(0)).plan([ep])
+    assert kept_agent and all(r.start_state == state_at(ep, r.reason["step"]) for r in kept_agent)

@@ -1,0 +1,28 @@
+"""The active planner's memory of what it requested (``ActivePlannerConfig.memory``): bounded, as a service that
+runs unattended for months needs, and within the bound no state is requested twice."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from orchestrator.planner import ActivePlanner
+from tests.orchestrator.test_planner import acfg, make_episode, step_scorer
+
+
+def test_the_planner_remembers_its_last_requests_only_and_never_repeats_one_of_them():
+    rng = np.random.default_rng(30)
+    cfg = acfg(percentile=0.0, budget_per_round=2, min_distance=0.0, memory=6, max_queue_depth=1000)
+    planner = ActivePlanner(cfg, step_scorer(), rng)
+    ep = make_episode(rng, steps=20)
+    steps = lambda reqs: [r.reason["step"] for r in reqs]  # noqa: E731 (the score is the step: highest first)
+    assert steps(planner.plan([ep])) == [19, 18]
+    other = planner.plan([make_episode(rng, steps=20)])
+    assert len(other) == 2
+    # within the memory (4 of 6 requests so far) the same episode gives its next states, not the same ones
+    assert steps(planner.plan([ep])) == [17, 16]
+    for _ in range(300):  # a long-running service: a new episode at a time
+        assert len(planner.plan([make_episode(rng, steps=20)])) == 2
+    assert len(planner._requested_steps) <= cfg.memory and len(planner._requested) <= cfg.memory
+    # the old requests are forgotten: the queue's idempotency key (the same for the same state) refuses them
+    again = planner.plan([ep])
+    assert steps(again) == [19, 18] and again[0].idempotency_key == f"active:{ep.meta.episode_id}:19"
