@@ -12,10 +12,19 @@ import sys
 
 from orchestrator import endpoints, protocol, transport
 from storage.records import TRAINABLE_SIZES
-from workers import agent, flags
+from workers import flags
 from workers.agent import Worker, WorkerConfig, WorkerError
 from workers.env import CONTROL_HZ
 from workers.flags import MAX_REALTIME
+
+
+#: ``--help``'s description of ``activecollect worker`` and ``python -m workers.agent``.
+DESCRIPTION = ("Run a collector worker: lease requests from the service over Zenoh, simulate and record each "
+               "episode as MCAP at the frame size the lease names, upload it; until stopped (or --once, "
+               "--max-episodes). SIGTERM / SIGINT drain it: it finishes and uploads the episode in hand, then "
+               "exits (a second one gives the request back at once); SIGUSR1 drains and never escalates. Exit 0 "
+               "when done or stopped; 1 when it cannot start, or when a service that was there would not store "
+               "an episode it collected while draining (the request goes back to the queue); 2 for bad flags.")
 
 
 def parse_capabilities(text: str) -> tuple[tuple[str, ...], tuple[str, ...]]:
@@ -101,7 +110,7 @@ def run_from_args(args: argparse.Namespace) -> int:
 
 def build_parser() -> argparse.ArgumentParser:
     """``python -m workers.agent``'s parser: a bad flag exits 2 in one line, like ``activecollect worker``."""
-    parser = flags.Parser(prog="python -m workers.agent", description=agent.__doc__.splitlines()[0])
+    parser = flags.Parser(prog="python -m workers.agent", description=DESCRIPTION)
     add_arguments(parser)
     return parser
 

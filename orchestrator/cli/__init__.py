@@ -13,11 +13,12 @@ import sys
 
 from orchestrator import transport
 from orchestrator.protocol import one_line
-from orchestrator.cli import collect, common, loop, models, operator, secure, service
+from orchestrator.cli import collect, common, loop, models, operator, registry, secure, service
 from storage.database import space_note
 from storage.errors import StorageError
 
-_MODULES = (collect, models, service, operator, loop, secure)  # collect adds cli/episodes.py's commands after its own
+# (collect adds cli/episodes.py's commands after its own)
+_MODULES = (collect, models, registry, service, operator, loop, secure)
 
 
 def build_parser() -> common.Parser:

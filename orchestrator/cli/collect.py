@@ -91,7 +91,11 @@ def _made_with(key: str, value: Any) -> str:
 
 def register(sub: argparse._SubParsersAction) -> None:
     """Adds ``collect``, ``episodes`` (``orchestrator.cli.episodes``), ``ingest``, ``eval-split`` and ``backup``."""
-    p = sub.add_parser("collect", help="record pushing episodes locally and index them")
+    p = sub.add_parser("collect", help="record pushing episodes locally and index them",
+                       description="Record pushing episodes with the simulator on this machine and index them as "
+                                   "train episodes in the catalog at --data (made when missing). Refused (exit 2) "
+                                   "before anything is recorded when --size differs from the frame size the "
+                                   "catalog holds, or when --seed would record eval episodes again.")
     p.add_argument("--episodes", type=common.positive_int, default=10, metavar="N", help="how many (default 10)")
     p.add_argument("--shape", choices=(*SHAPES, "all"), default="all",
                    help="object shape; 'all' takes the shapes in turn (default)")
@@ -108,7 +112,11 @@ def register(sub: argparse._SubParsersAction) -> None:
 
     episodes_cli.register(sub)  # between collect and ingest in --help's list
 
-    p = sub.add_parser("ingest", help="verify and index MCAP episode files collected elsewhere")
+    p = sub.add_parser("ingest", help="verify and index MCAP episode files collected elsewhere",
+                       description="Verify MCAP episode files collected elsewhere and index them at --data (each is "
+                                   "copied into DATA/episodes/). A bad file is refused with its reason and the rest "
+                                   "go on: exit 1 when any was refused. The bytes of an episode already indexed "
+                                   "repair its missing, damaged or quarantined file.")
     p.add_argument("paths", nargs="+", type=Path, metavar="PATH", help="MCAP files, or directories of them")
     p.add_argument("--split", choices=SPLITS, default="train",
                    help="split to index them in (default train); eval episodes are neither trained nor evaluated "
@@ -117,10 +125,15 @@ def register(sub: argparse._SubParsersAction) -> None:
     common.add_json_arg(p)
     p.set_defaults(func=_ingest)
 
-    split = sub.add_parser("eval-split", help="the pinned evaluation split: create, show")
+    split = sub.add_parser("eval-split", help="the pinned evaluation split: create, pin, show")
     ssub = split.add_subparsers(dest="eval_split_command", metavar="ACTION", parser_class=common.Parser)
     ssub.required = True
-    p = ssub.add_parser("create", help="collect the evaluation episodes (push policy, all shapes) and pin them")
+    p = ssub.add_parser("create", help="collect the evaluation episodes (push policy, all shapes) and pin them",
+                        description="Collect the evaluation episodes (push policy, the shapes in turn, from --seed) "
+                                    "and pin them: every model of --data is measured on them and none trains on "
+                                    "them. A pinned split is never replaced: the same settings again change "
+                                    "nothing, other settings exit 2 naming the flags to give, before anything is "
+                                    "collected.")
     p.add_argument("--episodes", type=common.positive_int, default=24, metavar="N",
                    help="evaluation episodes; shapes take turns (default 24)")
     p.add_argument("--seed", type=common.non_negative_int, default=1234, metavar="K",
@@ -141,7 +154,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="episode ids or unique prefixes, all of split eval (default: every eval episode indexed "
                         "and not quarantined)")
     p.set_defaults(func=_eval_split_pin)
-    p = ssub.add_parser("show", help="the pinned split's hash and episodes")
+    p = ssub.add_parser("show", help="the pinned split's hash and episodes",
+                        description="The pinned split's hash, when it was made and its episodes per shape; exit 1 "
+                                    "when none is pinned.")
     p.set_defaults(func=_eval_split_show)
     for p in ssub.choices.values():
         common.add_data_arg(p)

@@ -28,6 +28,17 @@ class UsageError(Exception):
     """A bad argument found after parsing (unknown episode, missing path): exit 2, one line."""
 
 
+class _Commands(argparse._SubParsersAction):
+    """Sub-commands whose ``--help`` opens with their one-line purpose (the ``help`` the command list shows)
+    when they are given no ``description`` of their own."""
+
+    def add_parser(self, name: str, **kwargs: Any) -> argparse.ArgumentParser:
+        purpose = kwargs.get("help")
+        if kwargs.get("description") is None and purpose:
+            kwargs["description"] = purpose[0].upper() + purpose[1:] + ("" if purpose.endswith(".") else ".")
+        return super().add_parser(name, **kwargs)
+
+
 class Parser(argparse.ArgumentParser):
     """argparse that reports a usage error as one line on stderr and exits 2.
 
@@ -35,6 +46,10 @@ class Parser(argparse.ArgumentParser):
     unrecognized arguments: ..."): argparse would hand them up to the top parser, whose
     message names no command. No command here passes unknown arguments on.
     """
+
+    def add_subparsers(self, **kwargs: Any) -> argparse._SubParsersAction:
+        kwargs.setdefault("action", _Commands)
+        return super().add_subparsers(**kwargs)
 
     def error(self, message: str) -> NoReturn:
         flag = re.fullmatch(r"argument (--[\w-]+): expected one argument", message)
@@ -49,8 +64,8 @@ class Parser(argparse.ArgumentParser):
         return namespace, extras
 
 
-def data_dir(text: str) -> Path:
-    """A ``--data`` path: a directory, or a path where one can be made (no file on the way).
+def directory_path(text: str, what: str = "a directory") -> Path:
+    """A directory, or a path where one can be made (no file on the way); ``what`` names it in the error.
 
     Checks only; nothing is created. Raises ArgumentTypeError (exit 2) for a file in the way.
     """
@@ -63,9 +78,14 @@ def data_dir(text: str) -> Path:
             raise argparse.ArgumentTypeError(f"cannot look at {step}: {exc.strerror}") from None
         if not step.is_dir():
             where = "" if step == path else f" on the way to {path}"
-            raise argparse.ArgumentTypeError(f"expected a data directory, found a file at {step}{where}")
+            raise argparse.ArgumentTypeError(f"expected {what}, found a file at {step}{where}")
         break
     return path
+
+
+def data_dir(text: str) -> Path:
+    """A ``--data`` path (``directory_path``)."""
+    return directory_path(text, "a data directory")
 
 
 def add_data_arg(p: argparse.ArgumentParser) -> None:

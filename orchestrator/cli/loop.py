@@ -47,10 +47,14 @@ def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("run", help="the whole loop on this machine: service, workers, retrains, report",
                        description="The whole loop on this machine: the service, worker processes over Zenoh on "
                                    "loopback, the eval split (made when missing), a retrain after every round and "
-                                   "a report. Each retrain trains "
+                                   "a report (DATA/reports/<time>/index.html). Each retrain trains "
                                    f"{retrain['members']} members, {retrain['epochs']} epochs, widths "
                                    f"{','.join(map(str, retrain['widths']))} (--retrain-args; `retrain` alone "
-                                   f"trains {train_defaults(TrainConfig())}).")
+                                   f"trains {train_defaults(TrainConfig())}). --budget counts the catalog's "
+                                   "training episodes, old and new: a run over a finished directory stops at once. "
+                                   "Ctrl-C or SIGTERM stops it cleanly (the workers upload the episode in hand, the "
+                                   "report is written; exit 130) and the next run resumes; exit 1 when every "
+                                   "retrain of the run failed.")
     common.add_data_arg(p)
     common.add_json_arg(p)
     p.add_argument("--budget", type=common.positive_int, default=d.budget, metavar="N",
@@ -79,11 +83,18 @@ def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("retrain", help="one retrain job (train, evaluate, gate) under DATA/retrain.lock, then exit",
                        description="One retrain job under DATA/retrain.lock: train a candidate on every train "
                                    "episode, evaluate it on the pinned eval split, and promote it when the gate "
-                                   f"allows; then exit. By default it trains {train_defaults(TrainConfig())}.")
+                                   f"allows; then exit. By default it trains {train_defaults(TrainConfig())}. "
+                                   f"Exit {EXIT_BUSY} while another job holds the lock (see --wait), 1 when "
+                                   "training fails; a job killed before its gate changes nothing.")
     _retrain_options(p)
     p.set_defaults(func=_retrain)
 
-    p = sub.add_parser("dashboard", help="serve the read-only dashboard over a data directory")
+    p = sub.add_parser("dashboard", help="serve the read-only dashboard over a data directory",
+                       description="Serve the read-only dashboard over --data until Ctrl-C: the HTML page, /api/... "
+                                   "JSON and /metrics for Prometheus (here only the gauges the data directory holds; "
+                                   "the service's counters come from serve's or run's dashboard). It has no "
+                                   "authentication: keep --host on loopback, or behind something that has. Exit 2 "
+                                   "when it cannot listen there.")
     common.add_data_arg(p)
     p.add_argument("--host", default="127.0.0.1", help="address to bind (default 127.0.0.1)")
     p.add_argument("--port", type=common.tcp_port, default=8765, help="TCP port (default 8765, 0 = any)")
@@ -102,7 +113,11 @@ def _add_episode_args(p: argparse.ArgumentParser, steps: int, image_size: int) -
 
 def register_bench(bench: argparse._SubParsersAction) -> None:
     d = LoopBenchConfig()
-    p = bench.add_parser("loop", help="active vs uniform planner: eval error per episodes collected")
+    p = bench.add_parser("loop", help="active vs uniform planner: eval error per episodes collected",
+                         description="Active vs uniform planner: for each seed, both arms collect --budget episodes "
+                                     "in rounds of --round with the simulator, retraining after each round, and "
+                                     "the eval error is recorded per episodes collected; summary.json and a plot "
+                                     "go to --out. Takes minutes.")
     common.add_json_arg(p)
     p.add_argument("--seeds", type=common.positive_int, default=len(d.seeds), metavar="N",
                    help=f"seeds 0..N-1, one run of each arm per seed (default {len(d.seeds)})")

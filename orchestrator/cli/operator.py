@@ -9,6 +9,7 @@ from __future__ import annotations
 import argparse
 import hashlib
 import json
+import math
 import sys
 import threading
 import time
@@ -37,10 +38,16 @@ def register(sub: argparse._SubParsersAction) -> None:
     p = wsub.add_parser("ls", help="workers alive and the leases they hold")
     _operator_args(p)
     p.set_defaults(func=cmd_workers_ls)
-    p = sub.add_parser("stats", help="queue counts, episodes, champion, workers")
+    p = sub.add_parser("stats", help="queue counts, episodes, champion, workers, free disk",
+                       description="What a running service holds: requests by status, episodes by split and how "
+                                   "many are quarantined, the champion and whether its weights can be served, "
+                                   "live workers, and the free space on the data directory's disk.")
     _operator_args(p)
     p.set_defaults(func=cmd_stats)
-    p = sub.add_parser("watch", help="follow the service's events (Ctrl-C to stop)")
+    p = sub.add_parser("watch", help="follow the service's events (Ctrl-C to stop)",
+                       description="Print the service's events as they happen (requests queued, leased, done or failed, "
+                                   "episodes stored, models trained and promoted, workers joining and lost), until "
+                                   "Ctrl-C or --count events. Checks first that a service answers.")
     _operator_args(p)
     p.add_argument("--count", type=common.positive_int, default=None, metavar="N", help="exit after N events")
     p.set_defaults(func=cmd_watch)
@@ -61,7 +68,10 @@ def _register_queue(sub: argparse._SubParsersAction) -> None:
     _operator_args(p)
     p.add_argument("id", metavar="ID", help="a request id, or a unique prefix of one")
     p.set_defaults(func=lambda a: _print_op(a, "queue.show", {"id": a.id}, _print_request))
-    p = qsub.add_parser("add", help="queue a manual request (a uniform start state unless --start-state)")
+    p = qsub.add_parser("add", help="queue a manual request (a uniform start state unless --start-state)",
+                        description="Queue a manual collection request: the next free worker that can collect "
+                                    "--shape records it. The service checks it as it checks any request (exit 1 "
+                                    "with its refusal).")
     _operator_args(p)
     p.add_argument("--shape", required=True, choices=protocol.SHAPES, help="the object to push (required)")
     p.add_argument("--task", default="push", choices=protocol.TASKS, help="the task (default push)")
@@ -107,9 +117,15 @@ def _register_queue(sub: argparse._SubParsersAction) -> None:
                                             _print_request))
 
 
+#: Every operator command's --help ends with this.
+OPERATOR_EPILOG = ("Asks a running `activecollect serve` over Zenoh; exit 1 in one line when none answers within "
+                   "--timeout, or when it refuses.")
+
+
 def _operator_args(p: argparse.ArgumentParser) -> None:
     endpoints.add_connection_args(p)
     common.add_json_arg(p)
+    p.epilog = OPERATOR_EPILOG
 
 
 def _priority(text: str) -> float:
@@ -137,9 +153,17 @@ def _no_constant(name: str) -> None:
     raise ValueError(f"{name} is not a JSON number")
 
 
+def _finite(literal: str) -> float:
+    """A JSON number literal as a float; one past float's range (``1e999``: inf) is refused, as the wire is."""
+    value = float(literal)
+    if not math.isfinite(value):
+        raise ValueError(f"{literal} is out of range for a number")
+    return value
+
+
 def _json_object(text: str) -> dict:
     try:
-        value = json.loads(text, parse_constant=_no_constant)
+        value = json.loads(text, parse_constant=_no_constant, parse_float=_finite)
     except ValueError as exc:
         raise argparse.ArgumentTypeError(f"expected a JSON object, found {text!r:.60} ({exc})") from None
     except RecursionError:

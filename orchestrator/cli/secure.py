@@ -6,7 +6,8 @@ import argparse
 import sys
 from pathlib import Path
 
-from orchestrator.cli.common import Parser, UsageError, add_json_arg, config_error, print_json, positive_int
+from orchestrator.cli.common import (Parser, UsageError, add_json_arg, config_error, directory_path, print_json,
+                                     positive_int)
 from orchestrator.router import RouterConfig, RouterError, run_router
 from orchestrator.secure import (DEFAULT_NAMESPACE, DEFAULT_ROUTER_ENDPOINT, MAX_VALID_DAYS, SecureInitConfig,
                                  host_problem, init_secure, router_endpoint_host, tls_endpoint)
@@ -16,7 +17,13 @@ from orchestrator.transport import SecureConfigError, validate_secure_config
 
 def register(sub) -> None:
     """Adds ``router`` and ``secure``."""
-    p = sub.add_parser("router", help="run a Zenoh router that orchestrator, workers and operators connect to")
+    p = sub.add_parser("router", help="run a Zenoh router that orchestrator, workers and operators connect to",
+                       description="Run a Zenoh router (eclipse-zenoh in router mode) that the orchestrator, workers "
+                                   "and operators of a site connect to as clients; --connect links it to another "
+                                   "site's router. It prints 'activecollect router <zid> listening on <endpoints>' "
+                                   "once it listens and runs until SIGTERM or SIGINT (exit 0). Exit 2 when it cannot "
+                                   "start: a bad endpoint or config, a file the config names that cannot be read, "
+                                   "an endpoint it cannot listen on.")
     p.add_argument("--listen", action="append", default=[], metavar="EP", type=endpoint,
                    help="endpoint to listen on, e.g. tls/0.0.0.0:7447 (repeatable; replaces the config "
                         "file's; default tcp/127.0.0.1:7447 without --zenoh-config)")
@@ -30,8 +37,14 @@ def register(sub) -> None:
     ssub = s.add_subparsers(dest="secure_command", metavar="ACTION", parser_class=Parser)
     ssub.required = True
     init = ssub.add_parser("init", help="write a CA, per-role certificates and passwords, and "
-                                        "router/orchestrator/worker/operator Zenoh configs")
-    init.add_argument("directory", type=Path, metavar="DIR",
+                                        "router/orchestrator/worker/operator Zenoh configs",
+                           description="Write a secure profile into DIR: a private CA, a certificate and key per "
+                                       "role, a password per role and a Zenoh config per role (router, orchestrator, "
+                                       "worker, operator) with mutual TLS and a default-deny ACL. The CA's key is "
+                                       "not kept: to add or rotate a credential run it again with --force, which "
+                                       "replaces the whole profile (or, on any failure, leaves the old one), and copy "
+                                       "the new files to every host. Exit 2 when DIR holds other files.")
+    init.add_argument("directory", type=_profile_dir, metavar="DIR",
                       help="where to write the profile: a new or empty directory (made private, mode 0700: it "
                            "holds the keys), or one holding a profile to replace with --force")
     init.add_argument("--namespace", default=DEFAULT_NAMESPACE, help=f"key namespace the ACL protects (default {DEFAULT_NAMESPACE})")
@@ -48,11 +61,19 @@ def register(sub) -> None:
                       help="replace an existing profile in DIR whole (also where DIR is a mount point)")
     add_json_arg(init)
     init.set_defaults(func=_init)
-    check = ssub.add_parser("check", help="check that every file a Zenoh config names exists and is readable")
+    check = ssub.add_parser("check", help="check that every file a Zenoh config names exists and is readable",
+                            description="Check that every file a Zenoh config names (CA, certificate, key, password "
+                                        "dictionary) exists and is readable, as every process given --zenoh-config "
+                                        "does before it starts. Exit 2 in one line naming the first one that is not.")
     check.add_argument("config", type=Path, metavar="FILE",
                        help="a Zenoh JSON5 config, e.g. DIR/worker.json5 from `secure init`")
     add_json_arg(check)
     check.set_defaults(func=_check)
+
+
+def _profile_dir(text: str) -> Path:
+    """``secure init``'s DIR: a directory, or a path where one can be made (a file there is a usage error)."""
+    return directory_path(text, "a directory for the profile")
 
 
 def _host(text: str) -> str:

@@ -41,7 +41,13 @@ QUEUE_DEPTH_CAP = min(UniformPlannerConfig.max_queue_depth, ActivePlannerConfig.
 
 def register(sub: argparse._SubParsersAction) -> None:
     """Adds serve and worker."""
-    p = sub.add_parser("serve", help="run the orchestrator: queue, leases, uploads, admin over Zenoh")
+    p = sub.add_parser("serve", help="run the orchestrator: queue, leases, uploads, admin over Zenoh",
+                       description="Run the orchestrator service over the data directory at --data: the request "
+                                   "queue, leases, uploads and admin over Zenoh, the planner, the dashboard and "
+                                   "scheduled retrains (each a `retrain` child process), until SIGTERM or Ctrl-C "
+                                   "(exit 0). Exit 1 when it cannot start (an endpoint taken, an unusable data "
+                                   "directory); exit 2 for bad flags, or a --data that does not exist without "
+                                   "--init.")
     common.add_data_arg(p)
     p.add_argument("--init", action="store_true",
                    help="start a new data directory at --data when there is none (without it, a --data that "
@@ -87,13 +93,17 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="least severe log messages written to stderr (default INFO)")
     p.set_defaults(func=cmd_serve)
 
-    p = sub.add_parser("worker", help="run a collector worker: lease, simulate, record MCAP, upload")
+    p = sub.add_parser("worker", help="run a collector worker: lease, simulate, record MCAP, upload",
+                       description=worker_cli.DESCRIPTION)
     worker_cli.add_arguments(p)
     p.set_defaults(func=worker_cli.run_from_args)
 
 
 def register_bench(bench_sub: argparse._SubParsersAction) -> None:
-    p = bench_sub.add_parser("dispatch", help="lease->complete round trips/s and latency vs raw Zenoh queries")
+    p = bench_sub.add_parser("dispatch", help="lease->complete round trips/s and latency vs raw Zenoh queries",
+                             description="Lease round trips/s and latency of a service in a child process over "
+                                         "loopback, with --workers concurrent clients, against raw Zenoh queries "
+                                         "measured in the same run; then the queue alone and the upload path.")
     p.add_argument("--workers", type=common.positive_int, default=8, metavar="N",
                    help="concurrent dispatch clients (default 8)")
     p.add_argument("--seconds", type=common.positive_float, default=5.0, metavar="S",
