@@ -238,5 +238,6 @@ def load_eval(catalog: CatalogLike) -> tuple[list[Episode], str]:
     """The pinned eval split's episodes and hash; raises ``DataError`` when none is pinned."""
     split = catalog.eval_split()
     if split is None or not split.ids:
-        raise DataError("no eval split is pinned in the catalog; create one (workers.collect.create_eval_split)")
+        raise DataError("no eval split is pinned in the catalog; create one: `activecollect eval-split create`, "
+                        "or `ingest --split eval` then `eval-split pin`")
     return [catalog.load(i) for i in split.ids], split.hash
