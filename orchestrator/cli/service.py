@@ -20,7 +20,7 @@ from orchestrator.cli import common
 from orchestrator.cli.loop import add_retrain_args_arg
 from orchestrator.cli.operator import namespace_keys
 from orchestrator.companions import CompanionConfig, Companions, fitted_retrain_threads
-from orchestrator.planner import ActivePlanner, ActivePlannerConfig
+from orchestrator.planner import ActivePlanner, ActivePlannerConfig, in_eval_split
 from orchestrator.protocol import one_line
 from orchestrator.uniform import UniformPlanner, UniformPlannerConfig
 from orchestrator.service import Service
@@ -128,7 +128,8 @@ def planner_factory(name: str, steps: int, seed: int, threads: int = 0) -> Plann
         if name == "uniform":
             return UniformPlanner(uniform, rng, depth)
         scorer = ChampionScorer(ctx.data_dir, observe=ctx.metrics.observe_scoring, threads=threads)
-        return ActivePlanner(ActivePlannerConfig(steps=steps, seed_uniform=uniform), scorer, rng, depth)
+        return ActivePlanner(ActivePlannerConfig(steps=steps, seed_uniform=uniform), scorer, rng, depth,
+                             is_eval=in_eval_split(ctx.catalog))
 
     return build
 

@@ -49,3 +49,17 @@ def test_no_request_is_built_from_an_eval_episode(catalog_with_both, replay_pref
         assert all(r.start_state == train.meta.start_state for r in reqs)
     # before any champion, an eval episode is not replaced by a uniform request either (it was not collected)
     assert ActivePlanner(cfg, lambda ep: None, np.random.default_rng(0), is_eval=is_eval).plan([held_out]) == []
+
+
+def test_serves_active_planner_knows_the_catalogs_eval_episodes(catalog_with_both, tmp_path):
+    from orchestrator.cli.service import planner_factory
+    from orchestrator.metrics import ServiceMetrics
+    from orchestrator.protocol import Keys
+    from orchestrator.serviceconfig import ServiceContext
+    from storage.models import ModelRegistry
+    from storage.queue import RequestQueue
+    catalog, train, held_out = catalog_with_both
+    ctx = ServiceContext(catalog.data_dir, Keys("t"), RequestQueue(catalog.db_path), catalog,
+                         ModelRegistry(catalog.data_dir), ServiceMetrics(), lambda kind, body: None)
+    planner = planner_factory("active", 20, 0)(ctx)
+    assert planner.is_eval(held_out.meta.episode_id) and not planner.is_eval(train.meta.episode_id)
