@@ -42,7 +42,7 @@ from matplotlib.figure import Figure
 
 from orchestrator.champion import ChampionScorer
 from orchestrator.loopconfig import HEAD_SIGNALS, LoopBenchConfig
-from orchestrator.planner import ActivePlanner, Planner, Scores
+from orchestrator.planner import ActivePlanner, Planner, Scores, in_eval_split
 from orchestrator.uniform import UniformPlanner
 from orchestrator.retrain import run_retrain
 from storage.catalog import Catalog
@@ -114,11 +114,12 @@ class SignalScorer:
 
 
 def make_planner(arm: str, cfg: LoopBenchConfig, scorer: ChampionScorer, rng: np.random.Generator,
-                 queue: RequestQueue) -> Planner:
+                 catalog: Catalog, queue: RequestQueue) -> Planner:
     depth = lambda: queue.counts().get("queued", 0)  # noqa: E731
     if arm == "active":
         colours = object_colours(palette_of(cfg))
-        return ActivePlanner(cfg.active, SignalScorer(scorer, cfg.signal, cfg.signal_horizon, colours), rng, depth)
+        return ActivePlanner(cfg.active, SignalScorer(scorer, cfg.signal, cfg.signal_horizon, colours), rng, depth,
+                             is_eval=in_eval_split(catalog))
     if arm == "uniform":
         return UniformPlanner(cfg.uniform_config(), rng, depth)
     raise ValueError(f"arm must be one of {ARMS}, found {arm!r}")
@@ -134,7 +135,7 @@ def run_arm(arm: str, seed: int, cfg: LoopBenchConfig, data_dir: Path, collect: 
                     palette)
     scorer = ChampionScorer(data_dir, with_error=cfg.active.shapes_by_progress,
                             error_horizon=cfg.active.progress_horizon)
-    planner = make_planner(arm, cfg, scorer, np.random.default_rng(seed), queue)
+    planner = make_planner(arm, cfg, scorer, np.random.default_rng(seed), catalog, queue)
     train = TrainConfig(**{**cfg.train.to_dict(), "seed": seed, "widths": tuple(cfg.train.widths)})
     points: list[dict] = []
     round_eps: list[Episode] = []
