@@ -6,8 +6,9 @@ the sha256, verifies the MCAP once, then writes the file atomically, indexes it 
 the request in one catalog transaction. A repeat of an upload that already completed its
 request is acknowledged as a duplicate once the catalog holds an intact copy of those bytes: a file lost or
 damaged on disk since is put back from the repeat's, or, for an episode quarantined meanwhile, the repeat's
-bytes are kept in quarantine (``Catalog.repair_file``: a worker's retry never ends a quarantine); anything else that
-does not fit is refused with the reason, and nothing of it is indexed. A write the storage refuses
+bytes are kept in quarantine (``Catalog.repair_file``: a worker's retry never ends a quarantine, nor does a copy
+sent before the first reply came back that finds its episode indexed: ``ingest_bytes(readmit=False)``); anything
+else that does not fit is refused with the reason, and nothing of it is indexed. A write the storage refuses
 for a reason that passes (a full disk, a lock held past the busy timeout, a read-only file system) is
 the service's ``StorageHealth``'s to know (no lease expires meanwhile) and the worker's to send again
 (``unavailable``); one that does not pass is ``internal``, never ``bad_field``, which is for the
@@ -122,7 +123,8 @@ class UploadHandler:
                     in_transaction=lambda conn: self.queue.complete(
                         header.request_id, header.token, episode.meta.episode_id, conn,
                         worker_id=header.worker_id),
-                    verified=EpisodeInfo(meta=episode.meta, frames=len(episode)), write_lock=self.write_lock)
+                    verified=EpisodeInfo(meta=episode.meta, frames=len(episode)), write_lock=self.write_lock,
+                    readmit=False)  # a racing copy of the first upload keeps a quarantine committed since
         except (StaleLeaseError, IllegalTransitionError) as exc:
             request = self.queue.get(header.request_id)  # a racing identical upload may have won
             if self._duplicate_of(request, header) is not None:

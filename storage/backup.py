@@ -10,7 +10,8 @@ the snapshot and its copy is marked pruned in the copy too, unless the copy need
 an earlier champion its rollback returns to): then a retrain promoted and pruned meanwhile, and the
 snapshot is taken again (``SNAPSHOT_TRIES`` in all, then the backup names it in ``problems``), so a
 backup that reports none serves its champion.
-A quarantined episode's file is copied from ``quarantine/`` as it is (it may be what was damaged), and
+A quarantined episode's file is copied from ``quarantine/`` as it is, unchecked (it may be what was damaged,
+unless a worker's upload of the same bytes has put an intact copy there since: ``Catalog.repair_file``), and
 one quarantined between the snapshot and its copy is quarantined in the copy too.
 
 The copy is built under a hidden name next to ``dest`` and renamed into place last, so ``dest``

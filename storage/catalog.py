@@ -16,7 +16,8 @@ the COMMIT returns keeps both), so an ingest never leaves a row without its file
 other ingest can have claimed the name in between. (A quarantined episode keeps its row
 while its file is away, or gone: ``quarantine`` records where it went, see ``storage.quarantine``.)
 The bytes of an episode already indexed put back its file when it is lost or damaged: an ingest of them
-also ends its quarantine (``ingest_bytes``); a worker's repeated upload does not (``repair_file``).
+also ends its quarantine (``ingest_bytes``); a worker's upload of them, repeated or racing its first copy, does
+not (``repair_file``, ``ingest_bytes(readmit=False)``).
 
 A catalog holds one frame size, its eval split's, else its first episode's; that first
 episode must be of a size a model trains on (``storage.records.trainable_size``).
@@ -137,7 +138,7 @@ class Catalog(CatalogQuarantine, CatalogEvalSplit, CatalogStrays):
     def ingest_bytes(self, data: bytes, expected_sha256: str | None = None, split: str = "train",
                      in_transaction: Callable[[sqlite3.Connection], None] | None = None,
                      verified: EpisodeInfo | None = None,
-                     write_lock: AbstractContextManager[Any] | None = None) -> IngestResult:
+                     write_lock: AbstractContextManager[Any] | None = None, readmit: bool = True) -> IngestResult:
         """Verifies ``data`` (sha256 when given, MCAP structure, CRCs, schemas) and indexes it.
 
         ``in_transaction(conn)`` runs inside the ``BEGIN IMMEDIATE`` transaction that inserts
@@ -154,16 +155,21 @@ class Catalog(CatalogQuarantine, CatalogEvalSplit, CatalogStrays):
         passes the lock they take, so they wait for this ingest on it, woken when it commits,
         rather than in SQLite's busy handler, which sleeps in steps of up to 100 ms.
 
+        ``readmit``: what the bytes of an episode already indexed do when no intact copy of them is in place (its
+        file lost or damaged, or the episode quarantined). True (an operator's ``ingest``): they put its file back
+        and end its quarantine (``restored``). False (a worker's upload, ``orchestrator.uploads``): they are kept as
+        ``repair_file`` keeps them, which never ends a quarantine (``restored`` when they were written).
+
         Raises ``CorruptEpisodeError`` on a sha256 mismatch, the ``EpisodeError`` subclasses of ``verify_episode``,
         ``CatalogError`` for an unknown split, an unsafe episode id, an id already indexed with different bytes or
         in another split, or a replay of an episode of the other split (``storage.eval_split.refuse_replay``).
         """
-        return self._ingest(data, expected_sha256, split, in_transaction, None, verified, write_lock)
+        return self._ingest(data, expected_sha256, split, in_transaction, None, verified, write_lock, readmit)
 
     def _ingest(self, data: bytes, expected_sha256: str | None, split: str,
                 in_transaction: Callable[[sqlite3.Connection], None] | None, name: str | None,
                 verified: EpisodeInfo | None = None,
-                write_lock: AbstractContextManager[Any] | None = None) -> IngestResult:
+                write_lock: AbstractContextManager[Any] | None = None, readmit: bool = True) -> IngestResult:
         check_split(split)
         data = bytes(data)
         sha = sha256_hex(data)
@@ -171,31 +177,31 @@ class Catalog(CatalogQuarantine, CatalogEvalSplit, CatalogStrays):
             raise CorruptEpisodeError(f"{name or 'upload'}: sha256 mismatch: expected {expected_sha256}, "
                                       f"found {sha} ({len(data)} bytes)")
         info = verified if verified is not None else inspect_episode(data, name=name)
-        return self._store(data, sha, info.meta, info.frames, split, in_transaction, write_lock)
+        return self._store(data, sha, info.meta, info.frames, split, in_transaction, write_lock, readmit)
 
     def _store(self, data: bytes, sha: str, meta: EpisodeMeta, frames: int, split: str,
                in_transaction: Callable[[sqlite3.Connection], None] | None,
-               write_lock: AbstractContextManager[Any] | None = None) -> IngestResult:
+               write_lock: AbstractContextManager[Any] | None = None, readmit: bool = True) -> IngestResult:
         check_split(split)
         rel = episode_table.file_path(meta)
         final = self.data_dir / rel
         known = self.find(meta.episode_id)
         if known is not None:  # fast path; re-checked under the lock below
-            return self._duplicate(known, sha, split, data)
+            return self._duplicate(known, sha, split, data, readmit, write_lock)
         insert = partial(self._insert, final=final, rel=rel, data=data, sha=sha, meta=meta, frames=frames,
-                         split=split, in_transaction=in_transaction)
+                         split=split, in_transaction=in_transaction, readmit=readmit)
         return self._staged(final, data, write_lock, insert, f"cannot store episode {meta.episode_id} at {final}")
 
     def _insert(self, conn: sqlite3.Connection, staged: Path, final: Path, rel: str, data: bytes,
                 sha: str, meta: EpisodeMeta, frames: int, split: str,
-                in_transaction: Callable[[sqlite3.Connection], None] | None) -> IngestResult:
+                in_transaction: Callable[[sqlite3.Connection], None] | None, readmit: bool) -> IngestResult:
         conn.execute("BEGIN IMMEDIATE")
         published = False
         try:
             known = episode_table.find(conn, self.data_dir, meta.episode_id)
             if known is not None:
                 conn.execute("ROLLBACK")
-                return self._duplicate(known, sha, split, data)
+                return self._duplicate(known, sha, split, data, readmit, None)  # (the write lock is held here)
             _check_frame_size(conn, meta)
             eval_splits.refuse_replay(conn, meta, split)  # no split may hold a recording of the other's
             publish(staged, final)
@@ -213,7 +219,8 @@ class Catalog(CatalogQuarantine, CatalogEvalSplit, CatalogStrays):
             raise
         return IngestResult(meta.episode_id, final, sha, duplicate=False)
 
-    def _duplicate(self, known: EpisodeRow, sha: str, split: str, data: bytes) -> IngestResult:
+    def _duplicate(self, known: EpisodeRow, sha: str, split: str, data: bytes, readmit: bool,
+                   write_lock: AbstractContextManager[Any] | None) -> IngestResult:
         if known.sha256 != sha:
             raise CatalogError(f"episode {known.episode_id} is already indexed with sha256 {known.sha256}; "
                                f"refusing different bytes (sha256 {sha})")
@@ -222,6 +229,9 @@ class Catalog(CatalogQuarantine, CatalogEvalSplit, CatalogStrays):
                                f"not {split!r}")
         if not known.quarantined and holds(known.path, sha):
             return IngestResult(known.episode_id, known.path, sha, duplicate=True)
+        if not readmit:  # a worker's upload: kept where they are missing, a quarantine stands
+            written = self._keep_intact(known, data, write_lock)
+            return IngestResult(known.episode_id, known.path, sha, duplicate=True, restored=written is not None)
         # the same bytes restore a file lost from disk, damaged, or quarantined (which ends the quarantine)
         self._staged(known.path, data, None, partial(self._readmit, known),
                      f"cannot restore episode {known.episode_id} at {known.path}")
@@ -232,20 +242,21 @@ class Catalog(CatalogQuarantine, CatalogEvalSplit, CatalogStrays):
             publish(staged, known.path)
             quarantines.readmit(conn, known.episode_id, self._kept(known), known.sha256)
 
-    # --- a repeated upload ----------------------------------------------------------------------
+    # --- a worker's upload of bytes indexed -----------------------------------------------------
 
     def repair_file(self, episode_id: str, data: bytes,
                     write_lock: AbstractContextManager[Any] | None = None) -> Path | None:
         """Keeps ``data``, the bytes ``episode_id`` indexes, where the catalog looks for them when no intact copy
         is left there; returns the file it wrote, None when it wrote none.
 
-        For a worker's repeated upload (``orchestrator.uploads``), whose bytes may be the last intact copy: they
-        put back the file of an episode in training, and are kept in ``DATA/quarantine/`` for a quarantined one
-        (recorded in its quarantine row, so ``restore`` brings it back). Unlike an ingest of the same bytes
-        (``ingest_bytes``) it never ends a quarantine: an operator's or a training job's decision is not undone
-        by a worker's retry, not even a quarantine that commits while this call runs, which is why it is checked
-        again under the write lock (``write_lock``: as for ``ingest_bytes``). A copy kept in quarantine is
-        removed again, under the write lock, unless the row that names it commits.
+        For a worker's upload (``orchestrator.uploads``: a repeat, or through ``ingest_bytes(readmit=False)`` a
+        copy racing the first), whose bytes may be the last intact copy: they put back the file of an episode in
+        training, and are kept in ``DATA/quarantine/`` for a quarantined one (recorded in its quarantine row, so
+        ``restore`` brings it back). Unlike an operator's ingest of the same bytes (``ingest_bytes``) it never ends
+        a quarantine: an operator's or a training job's decision is not undone by a worker's retry, not even a
+        quarantine that commits while this call runs, which is why it is checked again under the write lock
+        (``write_lock``: as for ``ingest_bytes``). A copy kept in quarantine is removed again, under the write
+        lock, unless the row that names it commits.
 
         Raises ``UnknownEpisodeError`` for an episode not indexed, ``CatalogError`` for other bytes than those
         indexed or a write that fails (``CatalogUnavailableError`` for a full disk).
@@ -256,6 +267,11 @@ class Catalog(CatalogQuarantine, CatalogEvalSplit, CatalogStrays):
         if sha != row.sha256:
             raise CatalogError(f"episode {row.episode_id} is indexed with sha256 {row.sha256}; refusing to "
                                f"repair it with other bytes (sha256 {sha})")
+        return self._keep_intact(row, data, write_lock)
+
+    def _keep_intact(self, row: EpisodeRow, data: bytes,
+                     write_lock: AbstractContextManager[Any] | None) -> Path | None:
+        """``repair_file`` once ``data`` is known to be the bytes ``row`` indexes."""
         target = quarantines.copy_wanted(row, self._kept(row), bool(row.quarantined))
         if target is None:  # (checked again under the write lock)
             return None

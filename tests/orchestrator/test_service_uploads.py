@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import hashlib
 import json
+import subprocess
+import sys
 import threading
 
 import pytest
@@ -12,6 +14,7 @@ import pytest
 from orchestrator import messages, protocol, uploads
 from orchestrator.messages import LeaseGrant
 from orchestrator.protocol import ErrorCode
+from orchestrator.transport import Incoming
 from storage.catalog import Catalog
 from storage.quarantine import quarantine_path
 from storage.requests import RequestStatus
@@ -331,4 +334,47 @@ def test_an_operators_quarantine_that_commits_while_a_repeat_is_checked_stands(s
     assert catalog.count() == 1 and catalog.snapshot().ids == []
     done = service.queue.get(request.id)
     assert (done.status, done.episode_id, done.attempts) == (RequestStatus.DONE, body["episode_id"], 0)
+    assert not catalog.restore(row.episode_id).quarantined and row.path.read_bytes() == data  # nothing lost
+
+
+@pytest.mark.parametrize("file", ["moved", "lost"])
+def test_an_operators_quarantine_that_commits_while_a_racing_copy_is_stored_stands(service, client, keys, data_dir,
+                                                                                   monkeypatch, file) -> None:
+    """The worker sent its first upload twice before the first reply came back. The second copy has checked its
+    lease (still leased) when the first commits, then `activecollect episodes quarantine` (another process)
+    commits, then the second copy's ingest finds the episode indexed. It is acknowledged, and the quarantine
+    stands: the file stays in quarantine/ (``moved``), or, when the stored file was lost before the quarantine
+    (``lost``: nothing to move), the copy's bytes are kept there; nothing is put back into episodes/."""
+    request, _ = service.queue.enqueue(new_request())
+    grant = lease(client, keys)
+    data = episode_bytes(grant)
+    header = messages.UploadHeader.for_payload(data, request_id=grant.request_id, token=grant.token, worker_id="w1")
+    first_copy = Incoming(keys.upload, data, protocol.encode({"v": 1, **header.to_dict()}))
+    handler, first = service._uploads, {}
+    real_decode = handler._decode
+
+    def first_copy_then_the_operator(raw, hdr, req):  # the second copy, between its lease check and its ingest
+        if not first:
+            first["reply"] = {}  # (the first copy's own decode goes straight on)
+            first["reply"] = protocol.parse_reply(handler.handle(first_copy))  # the first copy, all the way
+            row = Catalog(data_dir).get(first["reply"]["episode_id"])
+            if file == "lost":
+                row.path.unlink()
+            subprocess.run([sys.executable, "-m", "orchestrator", "episodes", "quarantine", row.episode_id,
+                            "--reason", "operator: wrong object", "--data", str(data_dir)], check=True)
+        return real_decode(raw, hdr, req)
+
+    monkeypatch.setattr(handler, "_decode", first_copy_then_the_operator)
+
+    body = upload(client, keys, grant, data)
+
+    assert body == {**first["reply"], "duplicate": True} and "duplicate" not in first["reply"]
+    catalog = Catalog(data_dir)
+    row = catalog.get(body["episode_id"])
+    kept = data_dir / quarantine_path(row.path.relative_to(data_dir).as_posix())
+    assert row.quarantined == "operator: wrong object", "the worker's racing copy ended the operator's quarantine"
+    assert kept.read_bytes() == data and not row.path.exists() and catalog.snapshot().ids == []
+    assert [p for p in catalog.episodes_dir.rglob("*") if p.is_file()] == []  # no staging file left either
+    done = service.queue.get(request.id)
+    assert (done.status, done.episode_id, catalog.count()) == (RequestStatus.DONE, row.episode_id, 1)
     assert not catalog.restore(row.episode_id).quarantined and row.path.read_bytes() == data  # nothing lost
