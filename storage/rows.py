@@ -59,7 +59,8 @@ class IngestResult:
     duplicate: bool
     """True when this exact file was already indexed."""
     restored: bool = False
-    """True for a duplicate whose bytes put back a file that was missing, damaged or quarantined."""
+    """True for a duplicate whose bytes were written: they put back a file that was missing, damaged or
+    quarantined, or (``ingest_bytes(readmit=False)``) were kept in ``quarantine/`` for a quarantined episode."""
 
 
 @dataclass
