@@ -38,7 +38,8 @@ uniform start does; with that the arms are level on h1 and h5 (within the seed n
 A redrawn agent is no part of what a request keeps, so it counts neither in the diversity distance
 nor in the task-space check: the steps before the pusher reaches the object all hold the object's
 start pose, and while the distance counted the source's agent, one pose passed as several states (in
-a 48-episode ``bench loop`` arm, 6 to 17 pairs of a round's 16 requests had the very same object).
+a 48-episode ``bench loop`` arm, 6 to 17 pairs of a round's 16 requests had the very same object). The
+distance and the greedy pick are ``orchestrator.diversity``'s.
 """
 
 from __future__ import annotations
@@ -51,6 +52,7 @@ from typing import Callable, Protocol, Sequence
 import numpy as np
 
 from orchestrator import protocol
+from orchestrator.diversity import Candidate, episode_features, select_diverse
 from orchestrator.shapeprogress import ShapeProgress
 from orchestrator.uniform import MIX_POLICIES, UniformPlanner, UniformPlannerConfig, agent_away_from
 from storage.catalog import Catalog
@@ -195,59 +197,6 @@ class ActivePlannerConfig:
                              f"{self.policy_window} and {self.policy_floor}")
 
 
-def state_features(shape: str, agent: Sequence[float] | None, obj: Sequence[float],
-                   physics: dict[str, float]) -> np.ndarray:
-    """The normalised state a diversity distance is measured in.
-
-    Object x, y and agent x, y over WORLD_SIZE; cos and sin of the object's angle; the
-    shape one-hot; each physics parameter scaled to [0, 1] over its range. Two shapes
-    are always at least sqrt(2) apart, more than any sensible ``min_distance``.
-    ``agent`` None: the request redraws the agent, so it does not count (its entries are 0).
-    """
-    w = protocol.WORLD_SIZE
-    ax, ay = (0.0, 0.0) if agent is None else (agent[0] / w, agent[1] / w)
-    onehot = [1.0 if shape == s else 0.0 for s in protocol.SHAPES]
-    phys = [(float(physics.get(k, d)) - lo) / (hi - lo) for k, (lo, hi, d) in protocol.PHYSICS_RANGES.items()]
-    return np.array([obj[0] / w, obj[1] / w, math.cos(obj[2]), math.sin(obj[2]),
-                     ax, ay, *onehot, *phys], dtype=np.float64)
-
-
-@dataclass(frozen=True)
-class Candidate:
-    """One uncertain state in a new episode."""
-
-    score: float
-    episode: Episode
-    step: int
-    features: np.ndarray
-
-
-def select_diverse(candidates: Sequence[Candidate], k: int, min_distance: float,
-                   taken: Sequence[np.ndarray] = (), max_per_shape: int | None = None,
-                   repeats: int = 1) -> list[Candidate]:
-    """Greedy by score: keep a candidate only if fewer than ``repeats`` kept ones lie within ``min_distance``
-    of it (``repeats`` 1: it is that far from every kept one).
-
-    ``taken`` holds features of states requested earlier, which also count as kept;
-    ``max_per_shape`` caps how many kept candidates share an object shape.
-    Returns at most ``k`` candidates, highest score first.
-    """
-    kept: list[Candidate] = []
-    per_shape: dict[str, int] = {}
-    others = [np.asarray(t) for t in taken]
-    for cand in sorted(candidates, key=lambda c: -c.score):
-        if len(kept) >= k:
-            break
-        shape = cand.episode.meta.shape
-        if max_per_shape is not None and per_shape.get(shape, 0) >= max_per_shape:
-            continue
-        if sum(np.linalg.norm(cand.features - o) < min_distance for o in others) < repeats:
-            kept.append(cand)
-            per_shape[shape] = per_shape.get(shape, 0) + 1
-            others.append(cand.features)
-    return kept
-
-
 class ActivePlanner:
     """Requests the states the champion ensemble disagrees on most, diverse and budgeted.
 
@@ -383,7 +332,7 @@ class ActivePlanner:
         for ep, s in scored:
             for step, value in enumerate(s.per_step):
                 if np.isfinite(value) and value > self.threshold and step < len(ep) and self._admissible(ep, step):
-                    out.append(Candidate(float(value), ep, step, _episode_features(ep, step, self._keeps_agent())))
+                    out.append(Candidate(float(value), ep, step, episode_features(ep, step, self._keeps_agent())))
         return out
 
     def _keeps_agent(self) -> bool:
@@ -491,9 +440,3 @@ def state_at(ep: Episode, step: int) -> dict:
 def in_eval_split(catalog: Catalog) -> Callable[[str], bool]:
     """``ActivePlanner``'s ``is_eval`` from ``catalog``: whether it indexes the episode in the eval split."""
     return lambda episode_id: (row := catalog.find(episode_id)) is not None and row.split == "eval"
-
-
-def _episode_features(ep: Episode, step: int, with_agent: bool = True) -> np.ndarray:
-    s = ep.states[step]
-    return state_features(ep.meta.shape, (s[_COL["agent_x"]], s[_COL["agent_y"]]) if with_agent else None,
-                          (s[_COL["obj_x"]], s[_COL["obj_y"]], s[_COL["obj_theta"]]), ep.meta.physics)

@@ -10,9 +10,8 @@ import pytest
 
 from orchestrator import protocol
 from orchestrator.loop import RoundPlanner
-from orchestrator.planner import (
-    ActivePlanner, ActivePlannerConfig, Candidate, Scores, relative_to_policy, select_diverse, state_at, state_features,
-)
+from orchestrator.diversity import Candidate, select_diverse, state_features
+from orchestrator.planner import ActivePlanner, ActivePlannerConfig, Scores, relative_to_policy, state_at
 from orchestrator.uniform import AGENT_CLEARANCE, MIX_POLICIES, PolicyMix, UniformPlanner, UniformPlannerConfig
 from storage.queue import RequestQueue
 from storage.requests import NewRequest

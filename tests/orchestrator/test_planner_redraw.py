@@ -10,7 +10,8 @@ from __future__ import annotations
 import numpy as np
 
 from orchestrator import protocol
-from orchestrator.planner import ActivePlanner, ActivePlannerConfig, Scores, state_at, state_features
+from orchestrator.diversity import state_features
+from orchestrator.planner import ActivePlanner, ActivePlannerConfig, Scores, state_at
 from storage.records import STATE_FIELDS, Episode
 from workers.collect import collect_episode
 
