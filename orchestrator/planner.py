@@ -145,6 +145,13 @@ class ActivePlannerConfig:
     a shape short of candidates (none in the new episodes, or none above the threshold) gets uniform starts
     of that shape. Needs a scorer that gives errors and what its champion trained on
     (``ChampionScorer(with_error=True)``); an experiment, off by default."""
+    min_per_shape: int = 0
+    """When the planner's own picks (its explore requests included) leave a scored round short, uniform
+    starts (reason planner "shape-floor") for the shape with the fewest requests in the round first, until every
+    shape of ``seed_uniform.shapes`` has this many or the round is full; its picks count, and the rest of the
+    round stays the caller's (its uniform top-up). For callers that plan a round at a time (``bench loop``,
+    ``run``'s RoundPlanner), not ``serve``, which plans per upload. 0: off. Not with ``shapes_by_progress``,
+    whose quotas take its place."""
     progress_floor: float = 0.25
     """With ``shapes_by_progress``: this share of each round is split equally over the shapes."""
     progress_horizon: int = 1
@@ -179,6 +186,11 @@ class ActivePlannerConfig:
                              f"{self.window}, {self.budget_per_round}, {self.max_queue_depth}")
         if not 0.0 < self.max_shape_share <= 1.0:
             raise ValueError(f"max_shape_share must be in (0, 1], found {self.max_shape_share}")
+        if isinstance(self.min_per_shape, bool) or not isinstance(self.min_per_shape, int) or self.min_per_shape < 0:
+            raise ValueError(f"min_per_shape must be a whole number of at least 0, found {self.min_per_shape!r}")
+        if self.min_per_shape and self.shapes_by_progress:
+            raise ValueError("min_per_shape and shapes_by_progress exclude each other: the progress quotas take "
+                             f"the floor's place, found min_per_shape={self.min_per_shape}")
         if not 0.0 <= self.progress_floor <= 1.0 or self.progress_memory < 1 or self.progress_horizon < 1:
             raise ValueError(f"progress_floor in [0, 1], progress_memory >= 1 and progress_horizon >= 1 expected, "
                              f"found {self.progress_floor}, {self.progress_memory} and {self.progress_horizon}")
@@ -278,7 +290,19 @@ class ActivePlanner:
             requests.append(self._request(cand, versions[id(cand.episode)]))
         requests += [self.uniform.draw_request("shape-fill", shape) for shape, n in short.items() for _ in range(n)]
         requests += [self.uniform.draw_request("explore") for _ in range(n_explore)]
-        return requests
+        return requests + self._shape_floor(requests, budget)
+
+    def _shape_floor(self, requests: list[NewRequest], budget: int) -> list[NewRequest]:
+        """Uniform starts that bring every shape up to ``min_per_shape`` in a round short of ``budget``,
+        the shape with the fewest requests first (ties in ``seed_uniform.shapes`` order)."""
+        shapes = self.cfg.seed_uniform.shapes
+        counts = {shape: sum(r.shape == shape for r in requests) for shape in shapes}
+        fill: list[str] = []
+        while len(requests) + len(fill) < budget and min(counts.values()) < self.cfg.min_per_shape:
+            shape = min(shapes, key=lambda s: counts[s])  # min keeps the first of a tie: the config's order
+            counts[shape] += 1
+            fill.append(shape)
+        return [self.uniform.draw_request("shape-floor", shape) for shape in fill]
 
     def _collected(self, episodes: Sequence[Episode]) -> list[Episode]:
         """``episodes`` less the eval split's."""

@@ -170,6 +170,12 @@ def register_bench(bench: argparse._SubParsersAction) -> None:
     p.add_argument("--repeats", type=common.positive_int, default=d.active.repeats, metavar="N",
                    help="the active planner may ask for one uncertain object pose up to N times (each with a new "
                         f"pusher; default {d.active.repeats}: each pose once)")
+    p.add_argument("--min-per-shape", type=common.non_negative_int, default=d.active.min_per_shape, metavar="N",
+                   help="when the active planner's picks leave a round short, first fill it with uniform starts "
+                        "until every shape has N requests in the round (its picks count; the shape with the "
+                        "fewest first), then the rest with the usual mix (default "
+                        f"{d.active.min_per_shape}: off; see BENCHMARKS, \"What made the accidental repeats "
+                        "pay\"; not with --shapes-by-progress)")
     p.add_argument("--shapes-by-progress", action="store_true", default=d.shapes_by_progress,
                    help="instead of that cap, the active planner splits each round over the shapes by how much "
                         "the champion's error on a shape's recent episodes fell once it trained on them, beyond "
@@ -242,12 +248,14 @@ def _bench_loop(args: argparse.Namespace) -> int:
                               within_policy=args.within_policy, shape_weights=args.shape_weights,
                               palette=args.palette, shapes_by_progress=args.shapes_by_progress,
                               active=dataclasses.replace(d.active, max_shape_share=args.max_shape_share,
-                                                         repeats=args.repeats,
+                                                         repeats=args.repeats, min_per_shape=args.min_per_shape,
                                                          progress_floor=args.progress_floor,
                                                          progress_horizon=args.progress_horizon))
     except (ValueError, ConfigError) as exc:
         raise common.config_error(exc, {"budget": "--budget", "seeds": "--seeds", "members": "--members",
-                                        "epochs": "--epochs", "signal": "--signal"}) from None
+                                        "epochs": "--epochs", "signal": "--signal",
+                                        "min_per_shape": "--min-per-shape",
+                                        "shapes_by_progress": "--shapes-by-progress"}) from None
     out = args.out or Path("activecollect-bench") / time.strftime("loop-%Y%m%dT%H%M%S")
     if (out / "summary.json").exists():
         raise common.UsageError(f"{out} already holds a bench loop result; give a fresh --out")

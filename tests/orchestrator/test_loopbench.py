@@ -164,6 +164,34 @@ def test_bench_loop_shapes_by_progress_asks_for_shapes_the_last_round_did_not_ha
     assert all(p["round_shapes"] == {"disk": 4} for p in summary["points"] if p["arm"] == "uniform")
 
 
+def test_bench_loop_min_per_shape_floors_the_active_arms_short_rounds(tmp_path, capsys):
+    """--min-per-shape reaches the active arm's planner and the JSON; a round its picks leave short (at most two
+    disks here, the only shape collected) gets every shape to the floor with uniform starts."""
+    rc, stdout, _ = run_cli(capsys, "bench", "loop", "--seeds", "1", "--budget", "16", "--round", "8",
+                            "--steps", "12", "--image-size", "16", "--epochs", "1", "--members", "2",
+                            "--shape-weights", "disk=1", "--max-shape-share", "0.25", "--min-per-shape", "2",
+                            "--json", "--out", str(tmp_path / "o"))
+    assert rc == 0
+    summary = json.loads(stdout)
+    assert summary["config"]["active"]["min_per_shape"] == 2
+    active = [p for p in summary["points"] if p["arm"] == "active"]
+    assert active[0]["round_shapes"] == {"disk": 8}  # the seed round
+    assert active[1]["round_shapes"] == {s: 2 for s in sorted(SHAPES)}
+    picks = active[1]["round_planners"].get("active", 0)
+    assert picks <= 2 and active[1]["round_planners"]["shape-floor"] == 8 - picks
+    assert all(p["round_shapes"] == {"disk": 8} for p in summary["points"] if p["arm"] == "uniform")
+    assert LoopBenchConfig().to_json()["active"]["min_per_shape"] == 0
+
+
+@pytest.mark.parametrize("args, message", [
+    (("--min-per-shape", "-1"), "argument --min-per-shape: expected an integer >= 0, found -1"),
+    (("--min-per-shape", "2", "--shapes-by-progress"), "--min-per-shape and --shapes-by-progress exclude each other"),
+])
+def test_bench_loop_refuses_a_bad_min_per_shape(tmp_path, capsys, args, message):
+    rc, _, err = run_cli(capsys, "bench", "loop", *args, "--out", str(tmp_path / "o"))
+    assert rc == 2 and message in err and not (tmp_path / "o").exists()
+
+
 def test_bench_loop_runs_both_arms_end_to_end_with_physics_in_the_task_space(tmp_path, capsys):
     out = tmp_path / "loop"
     rc, stdout, _ = run_cli(capsys, "bench", "loop", "--seeds", "1", "--budget", "4", "--round", "2",
