@@ -161,9 +161,6 @@ class LoopBenchConfig:
             raise ValueError(f"progress_horizon must be at most {self.steps - self.train.context} (the steps of an "
                              f"episode less the model's {self.train.context} context frames: no step has a longer "
                              f"error), found {self.active.progress_horizon}")
-        if self.shapes_by_progress and self.active.min_per_shape:
-            raise ValueError("min_per_shape and shapes_by_progress exclude each other: the progress quotas take "
-                             f"the floor's place, found min_per_shape={self.active.min_per_shape}")
         if self.palette not in PALETTES:
             raise ValueError(f"palette must be one of {PALETTES}, found {self.palette!r}")
         self.shape_weights = tuple(float(w) for w in self.shape_weights)
@@ -174,6 +171,7 @@ class LoopBenchConfig:
         self.active.within_policy = self.within_policy
         self.active.shapes_by_progress = self.shapes_by_progress
         self.active.seed_uniform = self.uniform_config()
+        self.active.__post_init__()  # checked again with what this config set (min_per_shape with shapes_by_progress)
 
     def uniform_config(self) -> UniformPlannerConfig:
         """The uniform arm's planner (and the seed rounds of both arms)."""
