@@ -183,3 +183,15 @@ def test_make_bench_keeps_each_benchmarks_whole_json_indented_or_compact():
     assert _last_json(json.dumps([{"seed": 0}, {"seed": 1}], indent=1)) == [{"seed": 0}, {"seed": 1}]
     assert _last_json(json.dumps({"a": 1}) + "\n" + json.dumps({"b": 2}, indent=2)) == {"b": 2}
     assert _last_json("no figures\n42\n")["error"] == "no JSON in output"
+
+
+def test_soak_judges_growth_after_the_first_champion_is_loaded(monkeypatch):
+    """A 10-minute soak's default warm-up (2 min) ended before the first champion was loaded (2.8 min), so the
+    ~300 MiB step of torch and the model counted as growth and the verdict was a leak."""
+    monkeypatch.syspath_prepend(str(ROOT / "bench"))  # (the script imports its neighbour chaos.py)
+    from soak import warm_samples
+    samples = [{"t_min": t / 4, "models": int(t >= 11)} for t in range(40)]  # a model from 2.75 min
+    assert [s["t_min"] for s in warm_samples(samples, 2.0)][0] == 3.0  # not 2.0: after the sample that saw it
+    assert warm_samples(samples, 5.0)[0]["t_min"] == 5.0  # a warm-up past the first model stands
+    assert warm_samples(samples[:14], 2.0)[0]["t_min"] == 2.0  # too few samples after it: the warm-up alone
+    assert warm_samples([{"t_min": t, "models": 0} for t in range(9)], 2)[0]["t_min"] == 2  # no model yet
