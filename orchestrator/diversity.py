@@ -15,9 +15,7 @@ from typing import Sequence
 import numpy as np
 
 from orchestrator import protocol
-from storage.records import STATE_FIELDS, Episode
-
-_COL = {name: i for i, name in enumerate(STATE_FIELDS)}
+from storage.records import STATE_COLUMN as _COL, Episode
 
 
 def state_features(shape: str, agent: Sequence[float] | None, obj: Sequence[float],

@@ -57,9 +57,7 @@ from orchestrator.shapeprogress import ShapeProgress
 from orchestrator.uniform import MIX_POLICIES, UniformPlanner, UniformPlannerConfig, agent_away_from
 from storage.catalog import Catalog
 from storage.requests import NewRequest
-from storage.records import STATE_FIELDS, Episode
-
-_COL = {name: i for i, name in enumerate(STATE_FIELDS)}
+from storage.records import STATE_COLUMN as _COL, Episode
 
 
 class Planner(Protocol):

@@ -23,12 +23,10 @@ import torch
 from matplotlib.colors import LogNorm
 from matplotlib.figure import Figure
 
-from storage.records import STATE_FIELDS, Episode
+from storage.records import STATE_COLUMN as _COL, Episode
 from uncertainty.ensemble import Ensemble, episode_windows, frames_to_tensor
 
 matplotlib.use("Agg")  # no display on servers; Figure() below never needs pyplot's global state
-
-_COL = {name: i for i, name in enumerate(STATE_FIELDS)}
 
 
 def _png(fig: Figure) -> bytes:

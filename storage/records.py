@@ -24,6 +24,8 @@ STATE_FIELDS: tuple[str, ...] = (
     "obj_x", "obj_y", "obj_theta", "obj_vx", "obj_vy", "obj_omega",
     "contact",
 )
+#: The column of each of STATE_FIELDS in an episode's ``states`` array.
+STATE_COLUMN: dict[str, int] = {name: i for i, name in enumerate(STATE_FIELDS)}
 STATE_DIM = len(STATE_FIELDS)
 ACTION_DIM = 2
 

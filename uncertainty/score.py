@@ -14,11 +14,9 @@ from typing import Any
 import numpy as np
 import torch
 
-from storage.records import STATE_FIELDS, Episode
+from storage.records import STATE_COLUMN, Episode
 from uncertainty.ensemble import Ensemble, member_variance
 from uncertainty.errors import ConfigError
-
-_COL = {name: i for i, name in enumerate(STATE_FIELDS)}
 
 
 @dataclass
@@ -74,7 +72,7 @@ class EpisodeScore:
 def state_dict(row: np.ndarray, shape: str, physics: dict[str, float]) -> dict[str, Any]:
     """A ``states`` row (STATE_FIELDS order) as ``SimState.to_dict``'s form."""
     r = [float(v) for v in row]
-    c = _COL
+    c = STATE_COLUMN
     return {"shape": shape, "agent": [r[c["agent_x"]], r[c["agent_y"]]],
             "agent_vel": [r[c["agent_vx"]], r[c["agent_vy"]]],
             "object": [r[c["obj_x"]], r[c["obj_y"]], r[c["obj_theta"]]],
@@ -184,7 +182,7 @@ def object_moving(states: np.ndarray, horizon: int = 1, min_motion: float = 0.5)
     out = np.zeros(len(states), dtype=bool)
     if len(states) <= horizon:
         return out
-    c = _COL
+    c = STATE_COLUMN
     d = states[horizon:] - states[:-horizon]                                  # (T-h, STATE_DIM)
     turn = np.abs((d[:, c["obj_theta"]] + np.pi) % (2 * np.pi) - np.pi)
     out[:-horizon] = np.hypot(d[:, c["obj_x"]], d[:, c["obj_y"]]) + 50.0 * turn > min_motion
