@@ -365,10 +365,12 @@ class LoopRun:
             self.registry = ModelRegistry(self.cfg.data_dir)
         champion = self.registry.champion()
         scorer: ChampionScorer | None = getattr(self, "scorer", None)
-        ensemble = None
+        ensemble, problem = None, None
         if champion is not None and scorer is not None:
             scorer.reload()
-            ensemble = scorer.ensemble
+            loaded, ensemble = scorer.loaded()
+            if loaded != champion:  # the champion cannot be loaded: no frames of another model under its name
+                ensemble, problem = None, scorer.problem or f"champion {champion} is not the model loaded"
         h1 = self.registry.get(champion).metrics.get("h1_mse") if champion else None
         retrains = [r.to_json() for r in self.scheduler.history] if hasattr(self, "scheduler") else []
         count = self._count()
@@ -377,6 +379,8 @@ class LoopRun:
                    "image_size": self.cfg.image_size, "steps": self.cfg.steps, "champion": champion,
                    "champion_h1_mse": h1, "retrains": len(retrains), "interrupted": interrupted,
                    "seconds": round(time.time() - start, 1), "queue": self.queue.counts()}
+        if problem is not None:
+            summary["champion_problem"] = problem
         train_rows = self.catalog.list(split="train", limit=40, newest_first=True, quarantined=False)
         split = self.catalog.eval_split()
         inputs = ReportInputs(curve=learning_curve(self.catalog, self.registry), summary=summary,

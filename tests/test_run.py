@@ -352,3 +352,37 @@ def test_a_catalog_with_episodes_of_another_size_still_gets_its_report(tmp_path,
                   lambda catalog, episodes, seed, steps, size: create_eval_split(catalog, episodes, seed, steps, size))
     result = run.run()
     assert not result.interrupted and result.episodes == 3 and result.report.is_file()
+
+
+def test_the_report_shows_no_other_models_frames_when_the_champion_cannot_be_loaded(tmp_path):
+    """The last promotion's weights are damaged: the scorer keeps the model before it, and the report must not
+    show that model's frames under the new champion's name; its summary says why there are none."""
+    import time
+
+    from orchestrator.champion import ChampionScorer
+    from tests.orchestrator.test_champion import _promoted
+    from workers.collect import create_eval_split
+
+    data = tmp_path / "data"
+    create_eval_split(Catalog(data), episodes=1, seed=RunConfig.eval_seed, steps=8, image_size=16)
+    registry = ModelRegistry(data)
+    first = _promoted(registry, 0, 0.02)
+    run = LoopRun(RunConfig(data_dir=data, budget=1, round_episodes=1, image_size=16, steps=8, eval_episodes=1,
+                            dashboard_port=-1, progress=False), create_eval_split)
+    run.scorer = ChampionScorer(data)
+    assert run.scorer.reload() == first
+    second = _promoted(registry, 1, 0.01)
+    weights = registry.get(second).weights_path
+    weights.write_bytes(weights.read_bytes()[:-7])
+
+    result = run._finish(time.time(), interrupted=False)
+    assert result.champion == second and run.scorer.version == first
+    summary = json.loads((result.report.parent / "summary.json").read_text())["summary"]
+    assert summary["champion_problem"].startswith(f"cannot load champion {second}: ")
+    assert not (result.report.parent / "frames.png").exists()
+    assert "frames.png" not in result.report.read_text() and "champion_problem" in result.report.read_text()
+
+    weights_ok = _promoted(registry, 2, 0.005)  # a loadable champion: its frames, and no problem
+    result = run._finish(time.time(), interrupted=False)
+    assert result.champion == weights_ok and (result.report.parent / "frames.png").is_file()
+    assert "champion_problem" not in json.loads((result.report.parent / "summary.json").read_text())["summary"]
