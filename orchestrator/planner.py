@@ -47,7 +47,7 @@ from __future__ import annotations
 import math
 from collections import deque
 from dataclasses import dataclass, field
-from typing import Callable, Protocol, Sequence
+from typing import TYPE_CHECKING, Callable, Protocol, Sequence
 
 import numpy as np
 
@@ -55,9 +55,11 @@ from orchestrator import protocol
 from orchestrator.diversity import Candidate, episode_features, select_diverse
 from orchestrator.shapeprogress import ShapeProgress
 from orchestrator.uniform import MIX_POLICIES, UniformPlanner, UniformPlannerConfig, agent_away_from
-from storage.catalog import Catalog
 from storage.requests import NewRequest
 from storage.records import STATE_COLUMN as _COL, Episode
+
+if TYPE_CHECKING:  # only for a type hint: the planner needs no catalog of its own
+    from storage.catalog import Catalog
 
 
 class Planner(Protocol):
@@ -194,6 +196,8 @@ class ActivePlannerConfig:
                              f"found {self.progress_floor}, {self.progress_memory} and {self.progress_horizon}")
         if isinstance(self.repeats, bool) or not isinstance(self.repeats, int) or self.repeats < 1:
             raise ValueError(f"repeats must be a whole number of at least 1, found {self.repeats!r}")
+        if isinstance(self.memory, bool) or not isinstance(self.memory, int) or self.memory < 0:
+            raise ValueError(f"memory must be a whole number of at least 0, found {self.memory!r}")
         if self.min_distance < 0 or not 0.0 <= self.explore_fraction <= 1.0:
             raise ValueError(f"min_distance >= 0 and explore_fraction in [0, 1] expected, found "
                              f"{self.min_distance} and {self.explore_fraction}")

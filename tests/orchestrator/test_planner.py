@@ -251,6 +251,9 @@ def test_both_arms_share_the_policy_mix():
 def test_bad_configs_say_what_was_expected():
     with pytest.raises(ValueError, match="percentile"):
         ActivePlannerConfig(percentile=100.0)
+    for memory in (-1, 2.5, True):
+        with pytest.raises(ValueError, match=f"memory must be a whole number of at least 0, found {memory!r}"):
+            ActivePlannerConfig(memory=memory)
     with pytest.raises(ValueError, match="shapes"):
         UniformPlannerConfig(shapes=("hexagon",))
     assert isinstance(UniformPlanner(UniformPlannerConfig(), np.random.default_rng(0)).seed(1)[0], NewRequest)
