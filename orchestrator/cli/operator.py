@@ -22,7 +22,7 @@ import zenoh
 
 from orchestrator import admin, endpoints, protocol, transport
 from orchestrator.cli import common
-from orchestrator.messages import AdminRequest, Event
+from orchestrator.messages import AdminRequest, Event, RequestSpec
 from orchestrator.protocol import Keys, ProtocolError
 from orchestrator.uniform import uniform_start_state
 from storage.requests import RequestStatus
@@ -70,8 +70,8 @@ def _register_queue(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=lambda a: _print_op(a, "queue.show", {"id": a.id}, _print_request))
     p = qsub.add_parser("add", help="queue a manual request (a uniform start state unless --start-state)",
                         description="Queue a manual collection request: the next free worker that can collect "
-                                    "--shape records it. The service checks it as it checks any request (exit 1 "
-                                    "with its refusal).")
+                                    "--shape records it. A bad --start-state exits 2 (checked as the service "
+                                    "checks any request); the service's refusal of it exits 1.")
     _operator_args(p)
     p.add_argument("--shape", required=True, choices=protocol.SHAPES, help="the object to push (required)")
     p.add_argument("--task", default="push", choices=protocol.TASKS, help="the task (default push)")
@@ -315,6 +315,11 @@ def cmd_queue_add(args: argparse.Namespace) -> int:
                "max_attempts": args.max_attempts}
     if args.idempotency_key is not None:
         op_args["idempotency_key"] = args.idempotency_key
+    try:  # the service's own check of the request, here: a bad --start-state is the caller's usage error
+        RequestSpec.from_dict(op_args)
+    except ProtocolError as exc:
+        raise common.UsageError(f"--start-state: {exc.message}" if args.start_state is not None
+                                else exc.message) from None
     return _print_op(args, "queue.add", op_args, _print_request)
 
 

@@ -84,8 +84,13 @@ def test_a_retried_add_without_a_seed_asks_for_the_same_start_state(service, cli
 def test_refusals_and_usage_errors(service, cli) -> None:
     rc, _, err = cli("queue", "show", "no-such-id")
     assert rc == 1 and err.count("\n") == 1 and "unknown_request" in err
-    rc, _, err = cli("queue", "add", "--shape", "T", "--start-state", '{"shape": "T", "agent": [1, 2]}')
-    assert rc == 1 and "bad_field" in err
+    queued = service.queue.counts()
+    for start, why in (('{"shape": "T", "agent": [1, 2]}', "missing ['object']"),
+                       ('{"shape": "L", "agent": [1, 2], "object": [256, 256, 0]}',
+                        "start_state.shape: expected 'T' (the request's shape), found 'L'")):
+        rc, out, err = cli("queue", "add", "--shape", "T", "--start-state", start)
+        assert rc == 2 and out == "" and err.count("\n") == 1 and "error: --start-state: " in err and why in err, err
+    assert service.queue.counts() == queued  # refused before anything was sent
     with pytest.raises(SystemExit) as info:
         cli("queue", "add", "--shape", "hexagon")
     assert info.value.code == 2
