@@ -33,6 +33,8 @@ of ``run`` is also sent SIGTERM when ``run`` dies (its parent-death signal),
 which the kernel may send more than once (once per thread of ``run`` that
 inherits the child as it exits): the worker then gives its request back at
 once, which is right there, since the service died with ``run``.
+A request granted after the drain began (its lease query was in flight) is not
+in hand: it is given back unstarted (``release``).
 
 Imports only ``storage``, ``workers``, ``orchestrator.protocol``, ``orchestrator.messages``,
 ``orchestrator.transport`` and ``orchestrator.endpoints`` -- the wire contract -- and
@@ -227,11 +229,17 @@ class Worker:
                 return
             grant = self._lease()
             if grant is None:
+                if self._stop.is_set():  # drained while waiting for an answer: not "no work"
+                    return
                 if cfg.once:
                     log.info("no work; exiting (--once)")
                     return
                 self._stop.wait(cfg.idle_poll_s)
                 continue
+            if self._stop.is_set():  # drained while the lease was asked for: this request is not in hand yet
+                log.info("draining: giving back %s, granted after the drain began", grant.request_id)
+                self._release(grant)
+                return
             self._handle(grant)
             if cfg.once:
                 return
@@ -286,10 +294,13 @@ class Worker:
             return None
         if body is None:
             return None
+        raw = body.get("grant")
+        if not isinstance(raw, dict):  # names no request: there is nothing to report failed
+            log.warning("lease reply is malformed: expected a grant object, found %.80r", raw)
+            return None
         try:
-            grant = LeaseGrant.from_dict(body["grant"])
+            grant = LeaseGrant.from_dict(raw)
         except ProtocolError as exc:  # a request no worker can do: say so, so it ends dead, not looping
-            raw = body["grant"]
             log.warning("lease of %s is malformed: %s", raw.get("request_id"), exc)
             self._fail_raw(str(raw.get("request_id")), raw.get("token"), f"malformed lease: {exc}")
             return None
@@ -339,13 +350,12 @@ class Worker:
         try:
             started = time.monotonic()
             try:
-                episode = self._collect(grant)
-                data = encode_episode(episode)
+                data, frames = self._record(grant)
             except Exception as exc:  # noqa: BLE001 -- any collection failure is reported, not hidden
                 log.warning("collection of %s failed: %s: %s", grant.request_id, type(exc).__name__, exc)
                 self._fail(grant, f"collection failed: {type(exc).__name__}: {exc}")
                 return
-            if not self._pace(started, len(episode)):
+            if not self._pace(started, frames):
                 self._release(grant)
                 return
             if renewer.lost is not None:
@@ -354,6 +364,16 @@ class Worker:
             self._upload(grant, data, renewer)
         finally:
             renewer.stop(wait=not self._abort.is_set())  # given back: not after a renewal in flight
+
+    def _record(self, grant: LeaseGrant) -> tuple[bytes, int]:
+        """The episode's MCAP bytes and its number of frames (the decoded episode is not kept while it uploads).
+        Raises what collecting raises, and ValueError for bytes no upload may carry."""
+        episode = self._collect(grant)
+        data = encode_episode(episode)
+        if len(data) > protocol.MAX_UPLOAD_BYTES:  # every worker would record the same: a failure, not a retry
+            raise ValueError(f"episode: expected at most {protocol.MAX_UPLOAD_BYTES} bytes of MCAP (the most an "
+                             f"upload carries), found {len(data)}")
+        return data, len(episode)
 
     def _collect(self, grant: LeaseGrant):
         prefix = np.asarray(grant.action_prefix, np.float32).reshape(-1, 2) if grant.action_prefix else None

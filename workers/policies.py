@@ -128,7 +128,7 @@ class Push:
 
     def __init__(self, params: Mapping[str, Any] | None, rng: np.random.Generator) -> None:
         p = _params("push", params, self.DEFAULTS)
-        if p["side"] is not None and p["side"] not in SIDES:
+        if p["side"] is not None and (not isinstance(p["side"], str) or p["side"] not in SIDES):  # [] is unhashable
             raise ValueError(f"policy 'push': side must be one of {list(SIDES)} or None, found {p['side']!r}")
         self.side = p["side"]
         self.noise = _number("push", "noise", p["noise"], 0.0, 200.0)

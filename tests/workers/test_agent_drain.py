@@ -4,6 +4,7 @@ signal still does, and a live service that will not store the upload does not ho
 from __future__ import annotations
 
 import signal
+import threading
 
 import pytest
 
@@ -94,3 +95,41 @@ def test_a_draining_worker_whose_uploads_a_live_service_refuses_gives_up_and_exi
     assert (back.status, back.attempts, back.last_error) == (RequestStatus.QUEUED, 0, None), log
     assert f"released {request.id}" in log
     assert Catalog(data_dir).count() == 0
+
+
+@pytest.mark.parametrize("sig", [signal.SIGUSR1, signal.SIGTERM], ids=["drain", "stop"])
+def test_a_lease_granted_after_the_drain_began_is_given_back_unstarted(make_service, spawn_worker, data_dir,
+                                                                       sig) -> None:
+    """The drain signal comes while the worker's lease query is in flight: the request it is then granted is not
+    the one in hand, so it is released (queued again, no attempt spent) instead of collected. (The old worker
+    collected and uploaded it: an episode long at a real robot's pace held up ``activecollect run``'s stop.)"""
+    service = make_service()
+    request, _ = service.queue.enqueue(new_request())
+    real, entered, go = service.queue.lease, threading.Event(), threading.Event()
+
+    def held_lease(*args, **kw):
+        entered.set()
+        go.wait(30)
+        return real(*args, **kw)
+
+    service.queue.lease = held_lease
+    w = spawn_worker("N")
+    try:
+        assert entered.wait(30), w.log()
+        send(w, sig, "draining:")
+    finally:
+        go.set()
+    assert w.wait(30) == 0, w.log()
+    back = service.queue.get(request.id)
+    assert (back.status, back.attempts, back.last_error) == (RequestStatus.QUEUED, 0, None), w.log()
+    assert f"released {request.id}" in w.log() and Catalog(data_dir).count() == 0
+
+
+def test_a_worker_drained_while_no_service_answers_says_so_not_no_work(spawn_worker) -> None:
+    """--once, and nobody answers its lease query yet: the drain ends the wait, and the log does not claim the
+    service had no work (it never answered)."""
+    w = spawn_worker("Q", "--once", "--timeout", "1")
+    wait_for(lambda: "lease: no reply" in w.log(), timeout=60, message="the worker to wait for a service")
+    send(w, signal.SIGTERM, "draining:")
+    assert w.wait(30) == 0, w.log()
+    assert "no work" not in w.log(), w.log()

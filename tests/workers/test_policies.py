@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from orchestrator.protocol import POLICIES, SHAPES, WORLD_SIZE
+from tests.conftest import free_port, run_cli
 from workers.env import PushEnv, PushSim, SimState, sample_state
 from workers.policies import SIDES, make_policy
 
@@ -85,6 +86,9 @@ def test_policies_work_with_the_gymnasium_env():
 @pytest.mark.parametrize("name, params, match", [
     ("wander", None, "policy must be one of"),
     ("push", {"side": "up"}, "side"),
+    ("push", {"side": ["left"]}, r"side must be one of .* found \['left'\]"),  # (a TypeError once: unhashable)
+    ("push", {"side": {}}, "side must be one of"),
+    ("push", {"side": 1}, "side must be one of"),
     ("push", {"noise": -1.0}, "noise"),
     ("push", {"speed": 3}, "unknown parameter"),
     ("random_waypoints", {"hold": 0}, "hold"),
@@ -102,3 +106,11 @@ def test_a_whole_number_parameter_refuses_a_fraction(policy, params):
         make_policy(policy, params, np.random.default_rng(0))
     whole = {k: float(int(v)) for k, v in params.items()}  # 2.0 (JSON may carry it so) is fine
     assert make_policy(policy, whole, np.random.default_rng(0)).params[next(iter(params))] == int(next(iter(whole.values())))
+
+
+def test_queue_add_with_a_side_that_is_not_a_string_is_a_usage_error(capsys):
+    """What the operator sees: one line and exit 2 before anything is sent (it was a TypeError traceback)."""
+    rc, out, err = run_cli(capsys, "queue", "add", "--shape", "box", "--policy", "push", "--policy-params",
+                           '{"side": []}', "--connect", f"tcp/127.0.0.1:{free_port()}", "--timeout", "1")
+    assert rc == 2 and out == "" and err.count("\n") == 1, err
+    assert "--policy-params: policy 'push': side must be one of" in err, err
