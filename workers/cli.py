@@ -28,20 +28,27 @@ DESCRIPTION = ("Run a collector worker: lease requests from the service over Zen
 
 
 def parse_capabilities(text: str) -> tuple[tuple[str, ...], tuple[str, ...]]:
-    """``"push:T,box"`` -> (("push",), ("T", "box")); ``"T,box"`` -> ((), ("T", "box")); ``""`` -> any.
+    """``"push:T,box"`` -> (("push",), ("T", "box")); ``"T,box"`` -> ((), ("T", "box")); ``"push:"`` -> push, any
+    shape; ``""`` -> any.
 
-    Raises WorkerError naming the unknown task or shape.
+    Raises WorkerError naming the unknown task or shape, or a non-empty text that names none (``":T"``, ``","``).
     """
-    text = text.strip()
-    if not text:
+    given = text.strip()
+    if not given:
         return (), ()
     tasks: tuple[str, ...] = ()
+    text = given
     if ":" in text:
         task_part, text = text.split(":", 1)
         tasks = tuple(t.strip() for t in task_part.split("+") if t.strip())
+        if not tasks:  # (":T" or ":" would otherwise quietly mean any task)
+            raise WorkerError(f"capabilities: expected a task before ':' (tasks in {protocol.TASKS}), found {given!r}")
     elif text in protocol.TASKS:
         return (text,), ()
     shapes = tuple(s.strip() for s in text.split(",") if s.strip())
+    if not tasks and not shapes:  # ("," would otherwise quietly mean anything)
+        raise WorkerError(f"capabilities: expected TASK:SHAPE,... with tasks in {protocol.TASKS} and shapes in "
+                          f"{protocol.SHAPES}, found no task or shape in {given!r}")
     bad = [t for t in tasks if t not in protocol.TASKS] + [s for s in shapes if s not in protocol.SHAPES]
     if bad:
         raise WorkerError(f"capabilities: expected TASK:SHAPE,... with tasks in {protocol.TASKS} and shapes in "

@@ -47,6 +47,10 @@ def _stops(capsys, prog: str, *argv: str) -> tuple[int, str]:
     (["--id", "a/b"], "--id: expected 1-128 characters of [A-Za-z0-9_.-], found 'a/b'"),
     (["--capabilities", "push:hexagon"], "--capabilities: expected TASK:SHAPE,... with tasks in ('push',) and "
                                          "shapes in ('T', 'box', 'L', 'disk'), found hexagon"),
+    (["--capabilities", ":"], "--capabilities: expected a task before ':' (tasks in ('push',)), found ':'"),
+    (["--capabilities", ":T,box"], "--capabilities: expected a task before ':' (tasks in ('push',)), found ':T,box'"),
+    (["--capabilities", " , "], "--capabilities: expected TASK:SHAPE,... with tasks in ('push',) and shapes in "
+                                "('T', 'box', 'L', 'disk'), found no task or shape in ','"),
     (["--capabilities", ",".join(["T"] * (MAX_CAPABILITIES + 1))],
      f"--capabilities: expected a list of at most {MAX_CAPABILITIES} strings"),
     (["--namespace", "a b"], "--namespace: expected chunks of [A-Za-z0-9_-] joined by '/', found 'a b'"),
