@@ -179,6 +179,15 @@ class UploadHandler:
                         row.episode_id, row.path, written, header.request_id)
 
     def _check_live(self, request: Request, header: messages.UploadHeader) -> None:
+        if (request.status == RequestStatus.DONE and request.token == header.token
+                and request.worker_id == header.worker_id):  # (the same bytes again were a duplicate, answered)
+            log.error("two workers use the id %s: both collected %s under its lease (token %d) and uploaded other "
+                      "bytes; every request is collected twice: give each worker its own --id",
+                      header.worker_id, request.id, header.token)
+            raise ProtocolError(
+                ErrorCode.STALE_TOKEN, f"upload {request.id}: another worker with the id {header.worker_id} "
+                f"has already uploaded other bytes for this lease (token {header.token}); two workers share the "
+                f"id {header.worker_id}: give each its own --id")
         if (request.status != RequestStatus.LEASED or request.token != header.token
                 or request.worker_id != header.worker_id):
             raise ProtocolError(

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import logging
 import subprocess
 import sys
 import threading
@@ -70,6 +71,25 @@ def test_stale_token_upload_is_refused_before_anything_is_written(service, clien
     upload(client, keys, new, episode_bytes(new, worker="fast"), worker="fast")
     assert service.queue.get(new.request_id).worker_id == "fast"
     assert Catalog(data_dir).count() == 1
+
+
+def test_a_second_upload_of_one_lease_under_the_same_id_names_two_workers_sharing_the_id(service, client, keys,
+                                                                                           data_dir, caplog) -> None:
+    """Two worker processes given one --id are handed the same lease (the service gives a worker the lease it
+    holds again) and both collect it: the second upload, other bytes under the same token and id, can only come
+    from another process with that id. It is refused as stale, saying so, and the service logs it as an error."""
+    service.queue.enqueue(new_request())
+    grant = lease(client, keys, worker="X")
+    first, second = episode_bytes(grant, worker="X"), episode_bytes(grant, worker="X")
+    assert first != second
+    assert not upload(client, keys, grant, first, worker="X").get("duplicate")
+    assert upload(client, keys, grant, first, worker="X")["duplicate"]  # its own retry: acknowledged
+    with caplog.at_level(logging.ERROR, logger="orchestrator.uploads"):
+        message = refused(ErrorCode.STALE_TOKEN, upload, client, keys, grant, second, worker="X")
+    assert "another worker with the id X has already uploaded other bytes for this lease (token 1)" in message
+    assert "two workers share the id X: give each its own --id" in message
+    assert [r.getMessage().split(":")[0] for r in caplog.records] == ["two workers use the id X"]
+    assert Catalog(data_dir).count() == 1 and service.queue.get(grant.request_id).status == RequestStatus.DONE
 
 
 @pytest.mark.parametrize("damage", ["truncated", "flipped", "not_mcap"])
