@@ -77,6 +77,8 @@ log = logging.getLogger("workers.agent")  # also when run as __main__
 RELEASE_TIMEOUT_S = 2.0
 #: Shortest wait for an upload's reply while draining (each is cut to what is left: ``Renewer.drain_left``).
 MIN_DRAIN_ATTEMPT_S = 0.5
+#: How often a paced episode (``--realtime``) looks whether its lease was lost meanwhile.
+PACE_CHECK_S = 0.5
 #: "Drain; if draining already, nothing": what ``activecollect run`` sends its workers to stop them.
 DRAIN_SIGNAL = signal.SIGUSR1
 
@@ -355,7 +357,7 @@ class Worker:
                 log.warning("collection of %s failed: %s: %s", grant.request_id, type(exc).__name__, exc)
                 self._fail(grant, f"collection failed: {type(exc).__name__}: {exc}")
                 return
-            if not self._pace(started, frames):
+            if not self._pace(started, frames, renewer):
                 self._release(grant)
                 return
             if renewer.lost is not None:
@@ -383,10 +385,14 @@ class Worker:
                                request_id=grant.request_id, worker_id=self.config.worker_id,
                                model_version=grant.model_version)
 
-    def _pace(self, started: float, frames: int) -> bool:
-        """Wait out the episode's real duration when pacing; False if told to give the request back."""
-        remaining = started + self.config.realtime * frames / CONTROL_HZ - time.monotonic()
-        return not (remaining > 0 and self._abort.wait(remaining)) and not self._abort.is_set()
+    def _pace(self, started: float, frames: int, renewer: Renewer | None = None) -> bool:
+        """Wait out the episode's real duration when pacing, or until ``renewer`` finds the lease lost (the episode
+        is dropped then: no use waiting); False if told to give the request back."""
+        end = started + self.config.realtime * frames / CONTROL_HZ
+        while (remaining := end - time.monotonic()) > 0 and (renewer is None or renewer.lost is None):
+            if self._abort.wait(min(remaining, PACE_CHECK_S)):
+                return False
+        return not self._abort.is_set()
 
     def _upload(self, grant: LeaseGrant, data: bytes, renewer: Renewer) -> None:
         """Upload until the service acknowledges it, refuses the data, or the lease is lost.

@@ -133,3 +133,20 @@ def test_a_worker_drained_while_no_service_answers_says_so_not_no_work(spawn_wor
     send(w, signal.SIGTERM, "draining:")
     assert w.wait(30) == 0, w.log()
     assert "no work" not in w.log(), w.log()
+
+
+def test_a_paced_episode_whose_lease_is_lost_is_dropped_without_waiting_out_its_pace(make_service, spawn_worker,
+                                                                                       data_dir) -> None:
+    """--realtime 1000 makes a 30-step episode last 50 minutes; the operator cancels the request meanwhile: the
+    next renewal finds the lease lost and the worker drops the episode then (the old worker waited the whole
+    pace out first)."""
+    service = make_service(lease_s=1.5)
+    request, _ = service.queue.enqueue(new_request(steps=30))
+    w = spawn_worker("P", "--realtime", "1000")
+    leased(service, request)
+    service.queue.cancel(request.id)
+    wait_for(lambda: "dropping the episode of" in w.log(), timeout=60, message="the episode dropped")
+    assert f"lease of {request.id} lost" in w.log()
+    assert service.queue.get(request.id).status == RequestStatus.CANCELLED and Catalog(data_dir).count() == 0
+    w.signal(signal.SIGTERM)
+    assert w.wait(30) == 0, w.log()
