@@ -158,7 +158,13 @@ def _connect() -> list[str]:
     (["run", "--retrain-args=--d cpu", "--data", "DATA"], "ambiguous option: --d"),
     (["serve", "--retrain-args=--w 8,16,32", "--data", "DATA"], "ambiguous option: --w"),
     (["run", "--retrain-args='unclosed", "--data", "DATA"], "No closing quotation"),
-    (["serve", "--retrain-args=--members 0", "--data", "DATA"], "argument --members: expected a positive integer"),
+    (["serve", "--retrain-args=--members 0", "--data", "DATA"],
+     "argument --members: expected an ensemble of at least 2 members (one cannot disagree), found 0"),
+    # an ensemble of one: no disagreement to score by, nan calibration (it was trained and promoted)
+    (["train", "--members", "1", "--data", "DATA"], "argument --members: expected an ensemble of at least 2 members"),
+    (["retrain", "--members", "1", "--data", "DATA"], "argument --members: expected an ensemble of at least 2"),
+    (["run", "--retrain-args=--members 1", "--data", "DATA"], "argument --members: expected an ensemble of at"),
+    (["bench", "loop", "--members", "1"], "argument --members: expected an ensemble of at least 2 members"),
     (["dashboard", "--port", "70000", "--data", "DATA"], "expected a TCP port in 0..65535, found 70000"),
 ])
 def test_bad_arguments_exit_2_in_one_line(capsys, tmp_path, argv, words) -> None:

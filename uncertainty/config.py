@@ -57,6 +57,8 @@ class TrainConfig:
         for name in ("members", "epochs", "batch_size", "context", "eval_rollout_stride"):
             if int(getattr(self, name)) < 1:
                 raise ConfigError(f"{name} must be >= 1, found {getattr(self, name)}")
+        if self.members < 2:  # its disagreement is 0 everywhere: nothing for the planner, nan for calibration
+            raise ConfigError(f"members must be >= 2 (one member cannot disagree), found {self.members}")
         if not self.lr > 0 or not math.isfinite(self.lr):
             raise ConfigError(f"lr must be a positive number, found {self.lr}")
         if self.grad_clip is not None and not self.grad_clip > 0:

@@ -117,6 +117,11 @@ def positive_int(text: str) -> int:
     return _int_at_least(text, 1, "a positive integer")
 
 
+def ensemble_size(text: str) -> int:
+    """``--members`` of the commands that train: one member cannot disagree (no score, no calibration)."""
+    return _int_at_least(text, 2, "an ensemble of at least 2 members (one cannot disagree)")
+
+
 def non_negative_int(text: str) -> int:
     return _int_at_least(text, 0, "an integer >= 0")
 

@@ -128,7 +128,7 @@ def register_bench(bench: argparse._SubParsersAction) -> None:
     _add_episode_args(p, d.steps, d.image_size)
     p.add_argument("--epochs", type=common.positive_int, default=d.train.epochs, metavar="N",
                    help=f"training epochs per retrain (default {d.train.epochs})")
-    p.add_argument("--members", type=common.positive_int, default=d.train.members, metavar="K",
+    p.add_argument("--members", type=common.ensemble_size, default=d.train.members, metavar="K",
                    help=f"ensemble size (default {d.train.members})")
     p.add_argument("--device", type=common.torch_device, default=d.train.device,
                    help=f"torch device: auto, cpu or cuda (default {d.train.device}; auto: cuda when there is "
@@ -281,7 +281,7 @@ def _eps(v: float | None) -> str:
 def add_train_args(p: argparse.ArgumentParser, defaults: TrainConfig | None = None) -> None:
     """Training settings shared by ``retrain`` and ``run`` (the rest keep TrainConfig's defaults)."""
     d = defaults or TrainConfig()
-    p.add_argument("--members", type=common.positive_int, default=d.members, metavar="K",
+    p.add_argument("--members", type=common.ensemble_size, default=d.members, metavar="K",
                    help=f"ensemble size (default {d.members})")
     p.add_argument("--epochs", type=common.positive_int, default=d.epochs, metavar="N",
                    help=f"passes over the training windows (default {d.epochs})")

@@ -41,7 +41,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                                    f"{TrainConfig.context} frames ('retrain' takes more settings). Exit "
                                    f"{EXIT_BUSY} while another job holds DATA/retrain.lock (see --wait), 1 when "
                                    "training fails (e.g. no eval split pinned).")
-    p.add_argument("--members", type=common.positive_int, default=TrainConfig.members, metavar="K",
+    p.add_argument("--members", type=common.ensemble_size, default=TrainConfig.members, metavar="K",
                    help=f"ensemble size (default {TrainConfig.members})")
     p.add_argument("--epochs", type=common.positive_int, default=TrainConfig.epochs, metavar="N",
                    help=f"passes over the training windows (default {TrainConfig.epochs})")

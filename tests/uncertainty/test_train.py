@@ -183,3 +183,8 @@ def test_a_warm_start_records_the_shape_it_trained_not_the_one_asked_for(tmp_pat
 def test_train_config_refuses_bad_values(kwargs):
     with pytest.raises(ConfigError):
         TrainConfig(**kwargs)
+
+
+def test_an_ensemble_of_one_is_refused_it_cannot_disagree():
+    with pytest.raises(ConfigError, match="members must be >= 2 \\(one member cannot disagree\\), found 1"):
+        TrainConfig(members=1)
