@@ -111,6 +111,9 @@ def test_an_ingest_that_refuses_every_file_makes_no_catalog(capsys, data, rng, t
     assert not data.exists()  # a misspelt --data with bad files leaves nothing behind
     rc, out, err = run_cli(capsys, "ingest", str(bad), str(good), "--data", str(data))
     assert rc == 1 and "1 of 2 files indexed" in out and Catalog(data).count() == 1
+    assert f"no catalog at {data}: started a new one (a misspelt --data?" in err  # said, where it was made
+    rc, out, err = run_cli(capsys, "ingest", str(good), "--data", str(data))
+    assert rc == 0 and "started a new one" not in err  # (an existing catalog: nothing to say)
 
 
 def test_ingest_refuses_physics_outside_the_task_space(capsys, data, rng, tmp_path):

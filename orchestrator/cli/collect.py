@@ -116,7 +116,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                        description="Verify MCAP episode files collected elsewhere and index them at --data (each is "
                                    "copied into DATA/episodes/). A bad file is refused with its reason and the rest "
                                    "go on: exit 1 when any was refused. The bytes of an episode already indexed "
-                                   "repair its missing, damaged or quarantined file.")
+                                   "repair its missing, damaged or quarantined file. Where --data holds no "
+                                   "catalog, the first good file starts one (said on stderr).")
     p.add_argument("paths", nargs="+", type=Path, metavar="PATH", help="MCAP files, or directories of them")
     p.add_argument("--split", choices=SPLITS, default="train",
                    help="split to index them in (default train); eval episodes are neither trained nor evaluated "
@@ -283,6 +284,8 @@ def _ingest(args: argparse.Namespace) -> int:
             if cat is None:
                 _would_start_a_catalog(path)
                 cat = Catalog(args.data)
+                print(f"activecollect: no catalog at {args.data}: started a new one (a misspelt --data? the "
+                      "files are indexed there)", file=sys.stderr)
             res = cat.ingest_file(path, split=args.split, admit=episode_problem)
         except StorageError as exc:
             report.append({"path": str(path), "ok": False, "error": f"{type(exc).__name__}: {exc}"})
