@@ -165,6 +165,11 @@ class LoopRun:
     # -- set-up ---------------------------------------------------------------------------------
     def _setup(self) -> None:
         cfg = self.cfg
+        endpoint = f"tcp/127.0.0.1:{cfg.zenoh_port or free_port()}"
+        self.service = Service(ServiceConfig(data_dir=cfg.data_dir, namespace=cfg.namespace, listen=(endpoint,),
+                                             lease_s=cfg.lease_s, planner=lambda ctx: self.planner,
+                                             metrics=self.metrics))
+        self.service.claim()  # before anything writes: a directory a `serve` serves is refused, left as it was
         self.catalog = Catalog(cfg.data_dir)
         self.queue = RequestQueue(self.catalog.db_path)
         self.registry = ModelRegistry(cfg.data_dir)
@@ -180,7 +185,6 @@ class LoopRun:
                                 max_queue_depth=cfg.round_episodes, seed_uniform=uniform), self.scorer, rng, depth,
             is_eval=in_eval_split(self.catalog)))
         self.planner = RoundPlanner(inner, cfg.round_episodes, cfg.budget, self._count, self._outstanding)
-        endpoint = f"tcp/127.0.0.1:{cfg.zenoh_port or free_port()}"
         # Workers first, while this process has no other threads yet but the stop-signals one, which
         # holds no lock (see die_with_parent); they retry until the service below answers.
         logs = cfg.data_dir / "logs"
@@ -191,9 +195,6 @@ class LoopRun:
                 self.procs.append(subprocess.Popen(self.worker_cmd(endpoint, cfg.namespace, wid, cfg.image_size),
                                                    stdout=out, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
                                                    preexec_fn=die_with_parent))
-        self.service = Service(ServiceConfig(data_dir=cfg.data_dir, namespace=cfg.namespace, listen=(endpoint,),
-                                             lease_s=cfg.lease_s, planner=lambda ctx: self.planner,
-                                             metrics=self.metrics))
         self.service.start()
         self.scheduler = RetrainScheduler(
             # the rounds decide when to retrain (see _wait_until_done), so no count trigger here

@@ -5,9 +5,10 @@
 - ``NS/orch/lease | renew | upload | fail | release`` for workers (see ``orchestrator.messages``);
 - ``NS/admin/**`` for operators and dashboards (``orchestrator.admin``);
 
-it watches the liveliness tokens ``NS/workers/*`` (a lost worker's leases go
-back to the queue at once), expires leases on a timer, and publishes what
-happens on ``NS/events/**``.
+it holds ``DATA/service.lock`` from before its first write until ``stop()`` (one service per data directory:
+a second is refused, naming the first; ``storage.servicelock``), watches the liveliness tokens ``NS/workers/*``
+(a lost worker's leases go back to the queue at once), expires leases on a timer, and publishes what happens
+on ``NS/events/**``.
 
 Threads: lease / renew / fail / release are answered on Zenoh's callback threads (one
 short SQLite transaction each); uploads (``orchestrator.uploads``) and admin queries are
@@ -41,7 +42,7 @@ from orchestrator.heap import HeapTrimmer
 from orchestrator.metrics import ServiceMetrics
 from orchestrator.planner import Planner
 from orchestrator.protocol import ErrorCode, EventKind, Keys, ProtocolError
-from orchestrator.serviceconfig import ServiceConfig, ServiceContext, ServiceError
+from orchestrator.serviceconfig import ServiceConfig, ServiceContext, ServiceError, where_served
 from orchestrator.storagehealth import StorageHealth
 from orchestrator.transport import Incoming, Response
 from orchestrator.uploads import StoredEpisode, UploadHandler
@@ -50,6 +51,7 @@ from storage.errors import QueueError, StorageError, StorageUnavailableError
 from storage.models import ModelRegistry
 from storage.queue import RequestQueue
 from storage.requests import NewRequest, Request, RequestStatus
+from storage.servicelock import DataDirectoryBusyError, ServiceLock
 
 log = logging.getLogger(__name__)
 
@@ -85,26 +87,39 @@ class Service:
         """Whether writes fail for now (no lease expires meanwhile) and which reads fail (warnings only)."""
         self.heap = HeapTrimmer()
         """Gives the heap's free memory back after the planner's batches (scoring's tensors), every few seconds."""
+        self._lock = ServiceLock(config.data_dir)
 
     # --- lifecycle -----------------------------------------------------------------------------
 
     def start(self) -> None:
-        """Open storage and Zenoh and start answering. Raises ServiceError (after stopping what it had started)."""
+        """Open storage and Zenoh and start answering. Raises ServiceError (after stopping what it had started),
+        also when another service holds the data directory (nothing there is changed then)."""
         try:
             self._start()
         except BaseException:
             self.stop()
             raise
 
+    def claim(self) -> None:
+        """Take the data directory (``DATA/service.lock``) now rather than in ``start``, for a caller that writes
+        there before it starts the service (``activecollect run``); ``stop()`` lets it go. Raises
+        DataDirectoryBusyError (a StorageError) naming the service that holds it; OSError when the directory or
+        the lock file cannot be made."""
+        cfg = self.config
+        cfg.data_dir.mkdir(parents=True, exist_ok=True)
+        self._lock.acquire(where_served(cfg.listen, cfg.connect, cfg.zenoh_config), cfg.namespace)
+
     def _start(self) -> None:
         cfg = self.config
         try:
-            cfg.data_dir.mkdir(parents=True, exist_ok=True)
+            self.claim()  # before anything writes: a directory another service serves is left as it was
             self.catalog = Catalog(cfg.data_dir)
             self._sweep()  # before any upload is answered
             self.queue = RequestQueue(self.catalog.db_path, background_checkpoint=True)
             self._carry_leases_over()  # before the first reap
             registry = ModelRegistry(cfg.data_dir)
+        except DataDirectoryBusyError as exc:
+            raise ServiceError(str(exc)) from exc
         except (StorageError, OSError) as exc:
             raise ServiceError(f"cannot open the data directory {cfg.data_dir}: {exc}") from exc
         self.context = ServiceContext(cfg.data_dir, self.keys, self.queue, self.catalog, registry,
@@ -156,7 +171,9 @@ class Service:
             self.session.close()
         if self.queue is not None:
             self.queue.close()
-        log.info("stopped")
+        self._lock.release()  # last: another service may start once nothing of ours writes
+        if self.catalog is not None:  # (a start refused before it opened anything says so in its error alone)
+            log.info("stopped")
 
     def __enter__(self) -> Service:
         self.start()

@@ -1,6 +1,6 @@
 """The orchestrator service's configuration: ``ServiceConfig`` (what ``activecollect serve``
-decides), ``ServiceContext`` (what a planner factory or an ``on_episode`` callback is handed)
-and ``ServiceError``.
+decides), ``ServiceContext`` (what a planner factory or an ``on_episode`` callback is handed),
+``ServiceError`` and ``where_served`` (how a service is reached, in words).
 
 ``orchestrator.service.Service`` runs them.
 """
@@ -105,3 +105,11 @@ class ServiceConfig:
                     raise ServiceError(f"{name}: expected {what} in [{lo}, {hi}], found {value!r}")
         if not all(callable(cb) for cb in self.on_episode):
             raise ServiceError("on_episode: expected callables")
+
+
+def where_served(listen: tuple[str, ...], connect: tuple[str, ...], zenoh_config: Path | None) -> str:
+    """``listening on EP``, ``connected to EP`` and/or ``with Zenoh config FILE``: how a service is reached."""
+    parts = ([f"listening on {', '.join(listen)}"] if listen else []) + \
+        ([f"connected to {', '.join(connect)}"] if connect else []) + \
+        ([f"with Zenoh config {zenoh_config}"] if zenoh_config is not None else [])
+    return ", ".join(parts)

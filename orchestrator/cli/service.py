@@ -10,7 +10,6 @@ import argparse
 import logging
 import sys
 import threading
-from pathlib import Path
 
 import numpy as np
 
@@ -24,7 +23,7 @@ from orchestrator.planner import ActivePlanner, ActivePlannerConfig, in_eval_spl
 from orchestrator.protocol import one_line
 from orchestrator.uniform import UniformPlanner, UniformPlannerConfig
 from orchestrator.service import Service
-from orchestrator.serviceconfig import PlannerFactory, ServiceConfig, ServiceContext, ServiceError
+from orchestrator.serviceconfig import PlannerFactory, ServiceConfig, ServiceContext, ServiceError, where_served
 from orchestrator.signals import on_stop_signals
 from storage.errors import StorageError
 from storage.requests import RequestStatus
@@ -46,8 +45,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                                    "queue, leases, uploads and admin over Zenoh, the planner, the dashboard and "
                                    "scheduled retrains (each a `retrain` child process), until SIGTERM or Ctrl-C "
                                    "(exit 0). Exit 1 when it cannot start (an endpoint taken, an unusable data "
-                                   "directory); exit 2 for bad flags, or a --data that does not exist without "
-                                   "--init.")
+                                   "directory, one another serve or run holds: DATA/service.lock); exit 2 for bad "
+                                   "flags, or a --data that does not exist without --init.")
     common.add_data_arg(p)
     p.add_argument("--init", action="store_true",
                    help="start a new data directory at --data when there is none (without it, a --data that "
@@ -200,14 +199,6 @@ def cmd_serve(args: argparse.Namespace) -> int:
         companions.stop()
         service.stop()
     return 0
-
-
-def where_served(listen: tuple[str, ...], connect: tuple[str, ...], zenoh_config: Path | None) -> str:
-    """``listening on EP``, ``connected to EP`` and/or ``with Zenoh config FILE``: how ``serve`` is reached."""
-    parts = ([f"listening on {', '.join(listen)}"] if listen else []) + \
-        ([f"connected to {', '.join(connect)}"] if connect else []) + \
-        ([f"with Zenoh config {zenoh_config}"] if zenoh_config is not None else [])
-    return ", ".join(parts)
 
 
 # --- bench -------------------------------------------------------------------------------------
