@@ -386,3 +386,31 @@ def test_the_report_shows_no_other_models_frames_when_the_champion_cannot_be_loa
     result = run._finish(time.time(), interrupted=False)
     assert result.champion == weights_ok and (result.report.parent / "frames.png").is_file()
     assert "champion_problem" not in json.loads((result.report.parent / "summary.json").read_text())["summary"]
+
+
+def test_a_run_whose_every_worker_died_exits_1_in_one_line(tmp_path, monkeypatch, capsys):
+    """Every worker process exits at once (here: a command that fails): the run stops what it started and says so
+    in one line, exit 1 (it was a LoopError traceback)."""
+    import orchestrator.loop
+    from tests.conftest import run_cli
+    monkeypatch.setattr(orchestrator.loop, "worker_command",
+                        lambda *args: [sys.executable, "-c", "raise SystemExit(3)"])
+    data = tmp_path / "data"
+    rc, out, err = run_cli(capsys, "run", "--data", str(data), "--budget", "4", "--round", "2", "--workers", "2",
+                           "--steps", "3", "--image-size", "16", "--eval-episodes", "1", "--dashboard-port", "-1",
+                           "--no-progress")
+    assert rc == 1 and out == "", out
+    last = err.strip().splitlines()[-1]
+    assert last == f"activecollect run: all 2 workers exited (codes [3, 3]); see {data / 'logs'}", err[-2000:]
+    assert "Traceback" not in err
+    assert not (data / "service.lock").exists() or _free(data / "service.lock")  # the service let the directory go
+
+
+def _free(lock: Path) -> bool:
+    import fcntl
+    with open(lock, "rb") as f:
+        try:
+            fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            return False
+        return True

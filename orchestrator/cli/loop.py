@@ -30,6 +30,7 @@ from orchestrator.dashboard import Dashboard, DashboardConfig, DataSources
 from orchestrator.loopconfig import PALETTES, SIGNALS, LoopBenchConfig, RunConfig
 from orchestrator.retrainlock import EXIT_BUSY, RetrainBusyError
 from orchestrator.scheduler import quarantined_note
+from orchestrator.serviceconfig import ServiceError
 from orchestrator.protocol import SHAPES, one_line
 from storage.catalog import Catalog
 from storage.errors import StorageError
@@ -410,12 +411,15 @@ def _run(args: argparse.Namespace) -> int:
     collect_cli.refuse_other_settings(cfg.data_dir, RUN_SPLIT_FLAGS, "run", "this run asks for", "--image-size",
                                       episodes=cfg.eval_episodes, seed=cfg.eval_seed, steps=cfg.steps,
                                       image_size=cfg.image_size)
-    from orchestrator.loop import LoopRun  # torch: imported once the arguments are known good (start-up cost)
+    from orchestrator.loop import LoopError, LoopRun  # torch: imported once the arguments are known good
     run = LoopRun(cfg, bench_eval_split, announce=lambda line: print(line, file=sys.stderr, flush=True))
     try:
         result = run.run()
     except EvalSplitConflict as exc:  # pinned by another process since the check
         raise collect_cli.eval_split_refusal(cfg.data_dir, exc, RUN_SPLIT_FLAGS, "run", "this run asks for") from None
+    except (LoopError, ServiceError) as exc:  # every worker died, the service would not start: stopped already
+        print(one_line(f"activecollect run: {exc}"), file=sys.stderr)
+        return 1
     if args.json:
         common.print_json(result.to_json())
     else:
