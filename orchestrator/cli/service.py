@@ -191,6 +191,10 @@ def cmd_serve(args: argparse.Namespace) -> int:
         return 1
     if companions.dashboard is not None:
         print(f"dashboard at {companions.dashboard.url}", flush=True)
+    if (args.retrain_every or args.retrain_cron) and service.catalog.eval_split() is None:  # (before "serving")
+        logging.getLogger("orchestrator.service").warning(
+            "no eval split is pinned in %s: every scheduled retrain fails until one is (activecollect eval-split "
+            "create --data %s, or ingest --split eval and eval-split pin)", args.data, args.data)
     print(f"serving {args.namespace} {where_served(listen, connect, args.zenoh_config)} "
           f"(data {args.data}, planner {args.planner}); Ctrl-C to stop", flush=True)
     try:

@@ -151,6 +151,21 @@ def test_serve_refuses_a_data_directory_that_does_not_exist_unless_told_init(cap
     assert json.loads(capsys.readouterr().out)["episodes"]["total"] == 0
 
 
+@pytest.mark.parametrize("schedule", [[], ["--retrain-every", "8"]], ids=["no-retrains", "retrains"])
+def test_serve_warns_at_start_when_its_retrains_have_no_eval_split(tmp_path, spawn, endpoint, namespace,
+                                                                   schedule) -> None:
+    """A new directory has no eval split, which `serve` does not make: scheduled retrains would each fail; said
+    once at start (only when it retrains), with the command that makes one."""
+    data = tmp_path / "data"
+    proc = spawn("service", "serve", "--data", str(data), "--init", "--listen", endpoint, "--namespace", namespace,
+                 "--planner", "none", "--dashboard-port", "-1", *schedule)
+    wait_for(lambda: "serving " in proc.log() or not proc.alive(), timeout=60, message="serve to start")
+    assert proc.alive(), proc.log()
+    warning = f"no eval split is pinned in {data}: every scheduled retrain fails until one is (activecollect " \
+              f"eval-split create --data {data}"
+    assert (warning in proc.log()) == bool(schedule), proc.log()  # (written before the "serving" line)
+
+
 def test_serve_says_how_it_is_reached() -> None:
     from orchestrator.cli.service import where_served
     assert where_served(("tcp/127.0.0.1:7447",), (), None) == "listening on tcp/127.0.0.1:7447"
