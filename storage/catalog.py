@@ -46,7 +46,7 @@ from storage.episode_reader import EpisodeInfo, inspect_episode, read_file
 from storage.episodes import encode_episode
 from storage.database import (DB_NAME, EPISODES_DIR, Migration, ensure_schema, refuse_lost_database, storage_error,
                               transaction, undo_unless_committed)
-from storage.errors import CatalogError, CorruptEpisodeError, EpisodeError
+from storage.errors import CatalogError, CorruptEpisodeError, EpisodeError, OtherSplitError
 from storage.files import holds, move, publish, sha256_hex, stage_bytes
 from storage import episode_table
 # (named apart from the methods Catalog.eval_split, Catalog.quarantine and Catalog.strays)
@@ -225,8 +225,8 @@ class Catalog(CatalogQuarantine, CatalogEvalSplit, CatalogStrays):
             raise CatalogError(f"episode {known.episode_id} is already indexed with sha256 {known.sha256}; "
                                f"refusing different bytes (sha256 {sha})")
         if known.split != split:
-            raise CatalogError(f"episode {known.episode_id} is already indexed in split {known.split!r}, "
-                               f"not {split!r}")
+            raise OtherSplitError(f"episode {known.episode_id} is already indexed in split {known.split!r}, "
+                                  f"not {split!r}", known.split)
         if not known.quarantined and holds(known.path, sha):
             return IngestResult(known.episode_id, known.path, sha, duplicate=True)
         if not readmit:  # a worker's upload: kept where they are missing, a quarantine stands

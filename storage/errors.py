@@ -40,6 +40,14 @@ class CatalogError(StorageError):
     """The catalog refused an operation (unknown id, conflicting row, bad split)."""
 
 
+class OtherSplitError(CatalogError):
+    """The bytes are an episode the catalog already indexes in another split (``split``: that one)."""
+
+    def __init__(self, message: str, split: str) -> None:
+        super().__init__(message)
+        self.split = split
+
+
 class NotFoundError(StorageError):
     """Nothing is stored under the id asked for (an unknown or ambiguous episode id, an unknown model
     version): the asker's mistake, which the CLI reports as a usage error (exit 2), unlike a damaged

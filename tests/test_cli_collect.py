@@ -150,6 +150,8 @@ def test_ingest_directory_and_split(capsys, data, rng, tmp_path):
     rc, out, err = run_cli(capsys, "ingest", str(src), "--split", "eval", "--data", str(data))
     assert rc == 0, err
     assert Catalog(data).count(split="eval") == 2
+    rc, out, err = run_cli(capsys, "ingest", str(src / "ep0.mcap"), "--data", str(data))  # (--split train)
+    assert rc == 1 and "is already indexed in split 'eval', not 'train' (give --split eval)" in err, err
 
 
 def test_episodes_ingested_as_eval_are_pinned_by_eval_split_pin(capsys, data, rng, tmp_path):

@@ -19,7 +19,8 @@ from storage.backup import backup, check_dest
 from storage.catalog import SPLITS, Catalog
 from storage.database import DB_NAME
 from storage.episode_reader import inspect_episode, read_file
-from storage.errors import BackupError, CatalogError, EpisodeError, StorageError, StorageUnavailableError
+from storage.errors import (BackupError, CatalogError, EpisodeError, OtherSplitError, StorageError,
+                            StorageUnavailableError)
 from storage.records import MAX_FRAME_SIZE, MIN_FRAME_SIZE, TRAINABLE_SIZES, trainable_size
 from workers import simbench
 from workers.collect import (EVAL_POLICY, EvalSplitConflict, check_eval_split, collect_episode, collect_plan,
@@ -293,7 +294,8 @@ def _ingest(args: argparse.Namespace) -> int:
                 print(one_line(f"activecollect: cannot store {path} now (nothing changed; run it again): {exc}"),
                       file=sys.stderr)
             else:
-                print(one_line(f"activecollect: refused {path}: {exc}"), file=sys.stderr)
+                hint = f" (give --split {exc.split})" if isinstance(exc, OtherSplitError) else ""
+                print(one_line(f"activecollect: refused {path}: {exc}{hint}"), file=sys.stderr)
             continue
         report.append({"path": str(path), "ok": True, "episode_id": res.episode_id,
                        "duplicate": res.duplicate, "restored": res.restored, "stored": str(res.path)})
