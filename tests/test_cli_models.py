@@ -330,7 +330,7 @@ def test_train_without_data_exit_1(capsys, tmp_path) -> None:
 
 
 @pytest.mark.parametrize("argv, words", [
-    (("train", "--members", "0"), "positive integer"),
+    (("train", "--members", "0"), "expected an ensemble of at least 2 members (one cannot disagree), found 0"),
     (("train", "--epochs", "x"), "positive integer"),
     (("train", "--min-improvement", "2"), "argument --min-improvement: expected a fraction in [0, 1)"),
     (("score",), "EPISODE"),
