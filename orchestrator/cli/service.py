@@ -191,7 +191,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
         return 1
     if companions.dashboard is not None:
         print(f"dashboard at {companions.dashboard.url}", flush=True)
-    if (args.retrain_every or args.retrain_cron) and service.catalog.eval_split() is None:  # (before "serving")
+    if (args.retrain_every or args.retrain_cron) and _no_eval_split(service):  # (before "serving")
         logging.getLogger("orchestrator.service").warning(
             "no eval split is pinned in %s: every scheduled retrain fails until one is (activecollect eval-split "
             "create --data %s, or ingest --split eval and eval-split pin)", args.data, args.data)
@@ -203,6 +203,15 @@ def cmd_serve(args: argparse.Namespace) -> int:
         companions.stop()
         service.stop()
     return 0
+
+
+def _no_eval_split(service: Service) -> bool:
+    """Whether the service's catalog has no eval split pinned (False when it cannot be read now: a retrain's own
+    error will say what it finds)."""
+    try:
+        return service.catalog.eval_split() is None
+    except StorageError:
+        return False
 
 
 # --- bench -------------------------------------------------------------------------------------
