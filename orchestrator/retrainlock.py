@@ -12,11 +12,12 @@ from __future__ import annotations
 
 import contextlib
 import fcntl
-import json
 import os
 import time
 from pathlib import Path
 from typing import Iterator
+
+from storage.servicelock import read_holder, write_holder
 
 LOCK_NAME = "retrain.lock"
 #: The environment variable that names a scheduled job to itself; ``note_phase`` writes it into the lock file, so
@@ -77,14 +78,13 @@ def note_phase(data_dir: Path, phase: str, fd: int | None = None, version: str |
         noted = read_lock_info(data_dir)
         version = noted.get("version", "") if noted.get("pid") == os.getpid() else ""
     job = os.environ.get(JOB_ENV, "")
-    info = json.dumps({"pid": os.getpid(), "phase": phase, "time": time.time()}
-                      | ({"job": job} if job else {}) | ({"version": version} if version else {})).encode()
+    info = ({"pid": os.getpid(), "phase": phase, "time": time.time()}
+            | ({"job": job} if job else {}) | ({"version": version} if version else {}))
     own = fd is None
     if own:
         fd = os.open(Path(data_dir) / LOCK_NAME, os.O_RDWR | os.O_CREAT, 0o644)
     try:
-        os.ftruncate(fd, 0)
-        os.pwrite(fd, info, 0)
+        write_holder(fd, info)
     finally:
         if own:
             os.close(fd)
@@ -92,11 +92,7 @@ def note_phase(data_dir: Path, phase: str, fd: int | None = None, version: str |
 
 def read_lock_info(data_dir: Path) -> dict:
     """What the lock file says about its holder ({} when empty or unreadable)."""
-    try:
-        info = json.loads((Path(data_dir) / LOCK_NAME).read_text() or "{}")
-    except (OSError, json.JSONDecodeError):
-        return {}
-    return info if isinstance(info, dict) else {}
+    return read_holder(Path(data_dir) / LOCK_NAME)
 
 
 def lock_held(data_dir: Path) -> bool:

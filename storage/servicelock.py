@@ -56,9 +56,7 @@ class ServiceLock:
                 fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
             except BlockingIOError:
                 raise DataDirectoryBusyError(busy_message(self.path, wait_for_holder(self.path))) from None
-            info = json.dumps({"pid": os.getpid(), "started": time.time(), "where": where, "namespace": namespace})
-            os.ftruncate(fd, 0)
-            os.pwrite(fd, info.encode(), 0)
+            write_holder(fd, {"pid": os.getpid(), "started": time.time(), "where": where, "namespace": namespace})
         except BaseException:
             os.close(fd)  # (closing releases the flock)
             raise
@@ -72,8 +70,15 @@ class ServiceLock:
             os.close(fd)
 
 
+def write_holder(fd: int, info: dict) -> None:
+    """Replace what the lock file open at ``fd`` says about its holder with ``info`` (JSON); also the retrain lock's."""
+    os.ftruncate(fd, 0)
+    os.pwrite(fd, json.dumps(info).encode(), 0)
+
+
 def read_holder(path: Path) -> dict:
-    """What the lock file at ``path`` says about its holder ({} when empty, unreadable or not ours)."""
+    """What the lock file at ``path`` says about its holder ({} when empty, unreadable or not ours); also the
+    retrain lock's."""
     try:
         info = json.loads(Path(path).read_text() or "{}")
     except (OSError, ValueError):  # (ValueError: a half-written file, or one that is not JSON or UTF-8)
