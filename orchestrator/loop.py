@@ -257,18 +257,22 @@ class LoopRun:
         start = time.time()
         ctrl_c = False
         try:
-            self._setup()
-            if not self._terminated.is_set():
-                self._wait_until_done()
-        except KeyboardInterrupt:
-            ctrl_c = True
+            try:
+                self._setup()
+                if not self._terminated.is_set():
+                    self._wait_until_done()
+            except KeyboardInterrupt:
+                ctrl_c = True
+            finally:
+                interrupted = ctrl_c or self._terminated.is_set()
+                if interrupted:
+                    log.warning("interrupted (%s): stopping workers; the next run resumes from the catalog",
+                                "Ctrl-C" if ctrl_c else "SIGTERM")
+                self._teardown(interrupted)
+            return self._finish(start, interrupted)
         finally:
-            interrupted = ctrl_c or self._terminated.is_set()
-            if interrupted:
-                log.warning("interrupted (%s): stopping workers; the next run resumes from the catalog",
-                            "Ctrl-C" if ctrl_c else "SIGTERM")
-            self._teardown(interrupted)
-        return self._finish(start, interrupted)
+            if self.service is not None:  # last: no `serve` starts on the directory while the report is written
+                self.service.release_claim()
 
     def _trained_on(self) -> int:
         """The most training episodes any finished retrain saw (this run's or an earlier one's)."""
@@ -355,7 +359,7 @@ class LoopRun:
         if hasattr(self, "scheduler"):
             self.scheduler.stop(kill_running=interrupted)
         if self.service is not None:
-            self.service.stop()
+            self.service.stop(keep_claim=True)  # (let go once the report is written: see _run)
 
     def _finish(self, start: float, interrupted: bool) -> RunResult:
         if not hasattr(self, "scheduler"):  # interrupted during set-up: open what it had not opened yet

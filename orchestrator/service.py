@@ -102,12 +102,17 @@ class Service:
 
     def claim(self) -> None:
         """Take the data directory (``DATA/service.lock``) now rather than in ``start``, for a caller that writes
-        there before it starts the service (``activecollect run``); ``stop()`` lets it go. Raises
+        there before it starts the service (``activecollect run``); ``stop()`` lets it go, or ``release_claim()`` after
+        ``stop(keep_claim=True)``. Raises
         DataDirectoryBusyError (a StorageError) naming the service that holds it; OSError when the directory or
         the lock file cannot be made."""
         cfg = self.config
         cfg.data_dir.mkdir(parents=True, exist_ok=True)
         self._lock.acquire(where_served(cfg.listen, cfg.connect, cfg.zenoh_config), cfg.namespace)
+
+    def release_claim(self) -> None:
+        """Let the data directory go (see ``claim``). Idempotent."""
+        self._lock.release()
 
     def _start(self) -> None:
         cfg = self.config
@@ -154,8 +159,10 @@ class Service:
         log.info("serving namespace %s (listen %s, connect %s, data %s)", cfg.namespace,
                  list(cfg.listen), list(cfg.connect), cfg.data_dir)
 
-    def stop(self) -> None:
-        """Stop answering, finish the work in hand, close Zenoh and storage. Idempotent."""
+    def stop(self, *, keep_claim: bool = False) -> None:
+        """Stop answering, finish the work in hand, close Zenoh and storage. Idempotent. ``keep_claim`` keeps
+        the data directory (``DATA/service.lock``) for a caller that still writes there (``activecollect run``'s
+        report); it lets it go with ``release_claim()``."""
         if self._stopping.is_set():
             return
         self._stopping.set()
@@ -171,7 +178,8 @@ class Service:
             self.session.close()
         if self.queue is not None:
             self.queue.close()
-        self._lock.release()  # last: another service may start once nothing of ours writes
+        if not keep_claim:
+            self.release_claim()  # last: another service may start once nothing of ours writes
         if self.catalog is not None:  # (a start refused before it opened anything says so in its error alone)
             log.info("stopped")
 

@@ -302,6 +302,28 @@ def test_ctrl_c_during_set_up_ends_the_run_with_a_report(tmp_path):
     assert "<th>queue</th><td>queued=0 leased=0 " in html and "{" not in html.split("<th>queue</th>")[1][:80]
 
 
+def test_the_run_holds_its_data_directory_until_its_report_is_written(tmp_path, monkeypatch):
+    """A `serve` started as a run ends must not run beside the report's writing: the run lets DATA/service.lock go
+    after the report, not when its service stops."""
+    import orchestrator.loop
+    real, held = orchestrator.loop.write_report, []
+
+    def watched(data_dir, inputs):
+        held.append(not _free(data_dir / "service.lock"))
+        return real(data_dir, inputs)
+
+    monkeypatch.setattr(orchestrator.loop, "write_report", watched)
+
+    def interrupted_eval_split(catalog, episodes, seed, steps, size):
+        raise KeyboardInterrupt
+
+    data = tmp_path / "data"
+    result = LoopRun(RunConfig(data_dir=data, budget=4, round_episodes=2, image_size=16, steps=8, eval_episodes=2,
+                               dashboard_port=-1, progress=False), interrupted_eval_split).run()
+    assert result.report.is_file() and held == [True]
+    assert _free(data / "service.lock")
+
+
 def test_sigterm_during_set_up_ends_the_run_with_a_report(tmp_path):
     """SIGTERM while the eval split is collected: the run goes no further (no worker started), reports, and
     gives SIGTERM back to whoever had it."""
