@@ -8,8 +8,9 @@ its one-line JSON result when it exits. When a job promotes a new champion,
 ``on_promoted(version)`` lets the service hot-swap its scorer and announce it.
 A job that fails, times out or is killed before its gate changes nothing; one that
 ends without reporting *after* it (a prune stalled past the timeout, a crash) has:
-the model it registered, noted in the lock file, is looked up in the registry, so a
-promotion is still recorded and announced (``RetrainScheduler._read_what_it_left``).
+the model it registered, noted in its own notes file (and the lock file), is looked up in
+the registry, so a promotion is still recorded and announced
+(``RetrainScheduler._read_what_it_left``).
 
 The lock that keeps two retrains from training at once is taken by the job
 itself (``orchestrator.retrainlock``, held by ``orchestrator.retrain.run_retrain``), so it also
@@ -38,9 +39,9 @@ from enum import Enum
 from pathlib import Path
 from typing import Callable
 
-from croniter import croniter
+from croniter import CroniterBadDateError, croniter
 
-from orchestrator.retrainlock import EXIT_BUSY, JOB_ENV, read_lock_info
+from orchestrator.retrainlock import EXIT_BUSY, JOB_ENV, NOTES_ENV, read_job_notes, read_lock_info
 from storage.errors import StorageError
 from storage.models import ModelRegistry, ModelStatus
 
@@ -63,7 +64,7 @@ class ScheduleConfig:
     every_episodes: int = 0
     """Retrain each time the training episode count crosses a multiple of this (0 = never on count)."""
     cron: str = ""
-    """Also retrain on this cron expression, e.g. ``*/10 * * * *`` ('' = never on time)."""
+    """Also retrain on this cron expression of 5 fields, e.g. ``*/10 * * * *``, read in UTC ('' = never on time)."""
     timeout_s: float = 1800.0
     """A job running longer than this is killed (changing nothing, unless its gate had already decided)."""
     poll_s: float = 0.5
@@ -79,10 +80,25 @@ class ScheduleConfig:
             raise ValueError(f"threads must be >= 0, found {self.threads}")
         if self.every_episodes < 0:
             raise ValueError(f"every_episodes must be >= 0, found {self.every_episodes}")
-        if self.cron and not croniter.is_valid(self.cron):
-            raise ValueError(f"cron must be a cron expression like '*/10 * * * *', found {self.cron!r}")
+        problem = cron_problem(self.cron) if self.cron else None
+        if problem:
+            raise ValueError(problem)
         if self.timeout_s <= 0 or self.poll_s <= 0:
             raise ValueError(f"timeout_s and poll_s must be > 0, found {self.timeout_s} and {self.poll_s}")
+
+
+def cron_problem(expr: str) -> str | None:
+    """Why ``expr`` cannot be a retrain schedule, or None when it can: a cron expression of 5 fields (minute hour
+    day month weekday) or an @-name such as ``@hourly``, that fires. (croniter also reads a sixth field, seconds,
+    and a seventh, the year: a schedule that retrains all through a minute, or once and never again.)"""
+    if len(expr.split()) != (1 if expr.startswith("@") else 5) or not croniter.is_valid(expr):
+        return (f"cron must be a cron expression of 5 fields (minute hour day month weekday) like '*/10 * * * *', "
+                f"found {expr!r}")
+    try:
+        croniter(expr, time.time()).get_next(float)
+    except CroniterBadDateError:
+        return f"cron {expr!r} never fires: no date matches it"
+    return None
 
 
 @dataclass
@@ -189,6 +205,9 @@ class RetrainScheduler:
 
     def start(self) -> None:
         """Run ``tick`` every ``poll_s`` in a daemon thread until ``stop``."""
+        if self._next_cron is not None:  # (croniter reads Unix times in UTC, not in the machine's time zone)
+            log.info("retrain on cron %r, in UTC: next at %s", self.cfg.cron,
+                     time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime(self._next_cron)))
         self._thread = threading.Thread(target=self._run, name="retrain-scheduler", daemon=True)
         self._thread.start()
 
@@ -223,11 +242,20 @@ class RetrainScheduler:
 
     # -- internals --------------------------------------------------------------
     def _run(self) -> None:
+        failing, failed = "", 0  # the error the ticks fail with (logged once, not every poll_s), and how many did
         while not self._stop.wait(self.cfg.poll_s):
             try:
                 self.tick()
-            except Exception:  # noqa: BLE001 -- one failure must not end scheduled retraining
-                log.exception("retrain scheduler: tick failed; will try again")
+            except Exception as exc:  # noqa: BLE001 -- one failure must not end scheduled retraining
+                said, failed = f"{type(exc).__name__}: {exc}", failed + 1
+                if said != failing:
+                    log.exception("retrain scheduler: tick failed; will try again (said once until a tick passes): "
+                                  "%s", said)
+                failing = said
+            else:
+                if failing:
+                    log.info("retrain scheduler: ticks pass again, after %d that failed", failed)
+                failing, failed = "", 0
         if self._outlive_job:  # the job's parent-death signal comes when this thread ends (die_with_parent)
             self.wait_idle()
 
@@ -261,8 +289,8 @@ class RetrainScheduler:
             logs.mkdir(parents=True, exist_ok=True)
             with open(rec.log_path + ".out", "wb") as out, open(rec.log_path, "wb") as err:
                 proc = subprocess.Popen(self.command(self.data_dir, self.job_args()),  # (gone with us: see _run)
-                                        stdout=out, stderr=err, stdin=subprocess.DEVNULL,
-                                        env={**os.environ, JOB_ENV: rec.job}, preexec_fn=die_with_parent)
+                                        stdout=out, stderr=err, stdin=subprocess.DEVNULL, preexec_fn=die_with_parent,
+                                        env={**os.environ, JOB_ENV: rec.job, NOTES_ENV: str(_notes(rec))})
         except OSError as exc:  # no log folder, no such program, no processes left: a failed job, recorded
             rec.finished, rec.status = time.time(), RetrainStatus.failed
             rec.reason = f"could not start the retrain job: {exc}"
@@ -332,6 +360,9 @@ class RetrainScheduler:
             rec.reason = f"exit status {rc}: {_tail(Path(rec.log_path))}"
         if not reported:
             self._read_what_it_left(proc.pid, rec)
+        for path in (_notes(rec), Path(f"{_notes(rec)}.tmp")):  # read once; (.tmp: a job killed while noting)
+            with contextlib.suppress(OSError):
+                path.unlink(missing_ok=True)
         level = logging.INFO if reported else logging.WARNING
         pruned = (result.get("pruned") or []) if reported else []
         log.log(level, "retrain %s%s: %s%s", rec.status.value, f" {rec.version}" if rec.version else "",
@@ -348,11 +379,12 @@ class RetrainScheduler:
         self.on_finished(rec)
 
     def _read_what_it_left(self, pid: int, rec: RetrainRecord) -> None:
-        """Complete the record of a job that ended without reporting: the lock file names the model it registered
-        (when it got that far and no job has taken the lock since), the registry what its gate made of it. A
-        promotion is recorded as one, with how the job ended, so that the history and ``on_promoted`` follow the
-        champion; a rejection, which changed nothing, keeps the job's own ending."""
-        info = read_lock_info(self.data_dir)
+        """Complete the record of a job that ended without reporting: its notes file names the model it registered
+        (when it got that far; failing that, the lock file, when no job has taken the lock since), the registry
+        what its gate made of it. A promotion is recorded as one, with how the job ended, so that the history and
+        ``on_promoted`` follow the champion; a rejection, which changed nothing, keeps the job's own ending."""
+        own = read_job_notes(_notes(rec))
+        info = own if own.get("version") else read_lock_info(self.data_dir)
         version = info.get("version")
         if info.get("job") != rec.job or info.get("pid") != pid or not isinstance(version, str) or not version:
             return  # (the job id, not the pid alone: an earlier holder's notes may carry a pid used again)
@@ -372,6 +404,11 @@ class RetrainScheduler:
             rec.reason = f"{ended}, after its gate had rejected {version}: {model.reason}"
         else:
             rec.reason = f"{ended} before its gate judged {version} (the next retrain rejects it as abandoned)"
+
+
+def _notes(rec: RetrainRecord) -> Path:
+    """The file where the job of ``rec`` keeps its notes (``orchestrator.retrainlock.NOTES_ENV``)."""
+    return Path(rec.log_path + ".notes")
 
 
 def _last_json(path: Path) -> dict:

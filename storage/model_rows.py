@@ -122,9 +122,12 @@ class StrayFolders:
     """Versions moved aside to ``DATA/models/.orphans/`` (with ``dry_run``: found, left in place), files kept."""
     not_moved: dict[str, str] = field(default_factory=dict)
     """Those that could not be moved (version: why), left where they are for the next sweep to try again."""
+    stale: list[str] = field(default_factory=list)
+    """Dot folders a register (``.tmp-*``, its staged files) or a prune (``.prune-*``) killed midway left, older
+    than any live call's (``storage.pruning.STALE_AGE_S``): deleted (with ``dry_run``: found, left in place)."""
 
     def __bool__(self) -> bool:
-        return bool(self.moved or self.not_moved)
+        return bool(self.moved or self.not_moved or self.stale)
 
 
 def _finite(obj: Any) -> Any:

@@ -14,7 +14,8 @@ The tables are created through ``storage.database.ensure_schema`` (component ``m
 Retention: nothing is deleted unless asked. ``prune(keep=N)`` deletes the files of retired and
 rejected models outside the champion's rollback chain of N; their rows stay (``pruned_at`` set), so
 ``models ls`` and the dashboard still show every model's metrics and history. Folders no row names (a
-register killed before its commit) go aside to ``DATA/models/.orphans/`` (``sweep_strays``, ``prune``).
+register killed before its commit) go aside to ``DATA/models/.orphans/`` (``sweep_strays``, ``prune``); the
+dot folders of registers and prunes killed midway are deleted once stale (both too).
 
 The rows the registry answers with are ``storage.model_rows``'s dataclasses (re-exported here), the steps
 of a prune ``storage.pruning``'s functions, the champion alias, its history and every status change
@@ -24,11 +25,13 @@ back and checked by ``storage.checkpoint_files`` (with the verdicts ``weights_pr
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import json
 import os
 import shutil
 import sqlite3
+import time
 from collections.abc import Iterator
 from contextlib import AbstractContextManager, contextmanager
 from pathlib import Path
@@ -443,10 +446,12 @@ class ModelRegistry:
     def sweep_strays(self, dry_run: bool = False) -> StrayFolders:
         """Move the checkpoint folders no row names (a register killed before its commit: nothing acknowledged)
         to ``DATA/models/.orphans/``; say which moved and which could not (``dry_run``: only find them). Checked
-        under the write lock, so never a live register's, in any process (``storage.strays.unregistered``)."""
+        under the write lock, so never a live register's, in any process (``storage.strays.unregistered``).
+        Also deletes the dot folders killed registers and prunes left, as ``prune`` does (``StrayFolders.stale``)."""
         folders = strays.model_folders(self.models_dir)  # listed before the write lock, checked under it
         with self._transaction() as conn:
-            return strays.unregistered(conn, folders, self._orphans(dry_run))
+            found = strays.unregistered(conn, folders, self._orphans(dry_run))
+        return dataclasses.replace(found, stale=pruning.sweep_stale(self.models_dir, time.time(), dry_run))
 
     def _orphans(self, dry_run: bool) -> Path | None:
         return None if dry_run else self.data_dir / strays.MODEL_ORPHANS_DIR

@@ -127,13 +127,16 @@ def finish(models_dir: Path, chosen: list[str], every_marked: list[str], kept: l
                        orphaned=aside.moved, not_moved=aside.not_moved)
 
 
-def sweep_stale(models_dir: Path, now: float) -> None:
+def sweep_stale(models_dir: Path, now: float, dry_run: bool = False) -> list[str]:
     """Delete the dot folders a crashed ``register`` (``.tmp-*``) or ``prune`` (``.prune-*``) left, once
-    older than ``STALE_AGE_S`` at ``now`` (unix seconds; a younger one may be a live call's). Never
-    ``.orphans/`` (``storage.strays.MODEL_ORPHANS_DIR``): the folders there are kept for the operator."""
-    for stale in (*models_dir.glob(".tmp-*"), *models_dir.glob(".prune-*")):
-        if age_s(stale, now) > STALE_AGE_S:
-            shutil.rmtree(stale, ignore_errors=True)
+    older than ``STALE_AGE_S`` at ``now`` (unix seconds; a younger one may be a live call's); return their names
+    (with ``dry_run``, only find them). Never ``.orphans/`` (``storage.strays.MODEL_ORPHANS_DIR``): the folders
+    there are kept for the operator."""
+    found = sorted(p for p in (*models_dir.glob(".tmp-*"), *models_dir.glob(".prune-*"))
+                   if age_s(p, now) > STALE_AGE_S)
+    for stale in [] if dry_run else found:
+        shutil.rmtree(stale, ignore_errors=True)
+    return [p.name for p in found]
 
 
 def tree_size(path: Path) -> int:
