@@ -43,6 +43,9 @@ def sweep_leftovers(catalog: Catalog, data_dir: Path, health: StorageHealth, log
         log.warning("moved %d checkpoint folder(s) no model row names to %s/ (a register killed before its "
                     "commit; none was acknowledged): %s", len(models.moved), MODEL_ORPHANS_DIR,
                     ", ".join(models.moved))
+    if models.stale:
+        log.warning("deleted %d staging folder(s) a retrain or prune killed midway left in models/ (none was "
+                    "acknowledged): %s", len(models.stale), ", ".join(models.stale))
     if models.not_moved:
         log.warning("cannot move %d checkpoint folder(s) no model row names to %s/ (a register killed before its "
                     "commit; none was acknowledged); they stay where they are, unused, until a later sweep: %s",

@@ -110,6 +110,9 @@ def _connect() -> list[str]:
     (["serve", "--dashboard-port", "-5", "--data", "DATA"], "argument --dashboard-port: expected -1 (none)"),
     (["run", "--dashboard-port", "70000", "--data", "DATA"], "argument --dashboard-port: expected -1 (none)"),
     (["serve", "--retrain-cron", "nope", "--data", "DATA"], "argument --retrain-cron: expected a cron expression"),
+    (["serve", "--retrain-cron", "* * * * * *", "--data", "DATA"],  # (croniter's 6th field: seconds)
+     "argument --retrain-cron: expected a cron expression of 5 fields"),
+    (["serve", "--retrain-cron", "0 0 31 2 *", "--data", "DATA"], "argument --retrain-cron: cron '0 0 31 2 *' never fires"),
     (["serve", "--lease-s", "1e6", "--data", "DATA"], "--lease-s: expected a number in [0.05, 86400.0]"),
     (["serve", "--namespace", "a*b", "--data", "DATA"], "error: --namespace: expected chunks of"),
     (["stats", "--namespace", "a*b"], "error: --namespace: expected chunks of"),

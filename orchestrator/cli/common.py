@@ -11,11 +11,11 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any, NoReturn
 
-from croniter import croniter
 
 from orchestrator import protocol
 from orchestrator.dashboard import MAX_REQUEST_TIMEOUT_S, DashboardConfig
 from orchestrator.protocol import MAX_EPISODE_STEPS, one_line
+from orchestrator.scheduler import cron_problem
 from storage.catalog import Catalog
 from storage.database import DB_NAME
 from storage.records import TRAINABLE_SIZES, trainable_size
@@ -194,10 +194,12 @@ def share(text: str) -> float:
 
 
 def cron_expression(text: str) -> str:
-    """A cron expression such as ``0 * * * *`` ('' = none)."""
-    if text and not croniter.is_valid(text):
-        raise argparse.ArgumentTypeError(f"expected a cron expression like '*/10 * * * *' "
-                                         f"(minute hour day month weekday), found {text!r}")
+    """A retrain schedule: a cron expression of 5 fields such as ``0 * * * *``, or an @-name, that fires
+    ('' = none; see ``orchestrator.scheduler.cron_problem``)."""
+    problem = cron_problem(text) if text else None
+    if problem:
+        raise argparse.ArgumentTypeError(f"expected {problem.removeprefix('cron must be ')}"
+                                         if problem.startswith("cron must be ") else problem)
     return text
 
 

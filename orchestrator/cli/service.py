@@ -86,7 +86,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="retrain (in a child process) each time N more training episodes are stored "
                         "(default 0 = not on count)")
     p.add_argument("--retrain-cron", type=common.cron_expression, default=d.retrain_cron, metavar="EXPR",
-                   help="also retrain on this cron expression, e.g. '0 * * * *' (default: not on time)")
+                   help="also retrain on this cron expression of 5 fields (minute hour day month weekday), read in "
+                        "UTC, e.g. '0 * * * *' or @hourly (default: not on time)")
     add_retrain_args_arg(p, d.retrain_args)
     p.add_argument("--log-level", default="INFO", choices=("DEBUG", "INFO", "WARNING", "ERROR"),
                    help="least severe log messages written to stderr (default INFO)")

@@ -33,3 +33,27 @@ def test_a_folder_that_cannot_be_moved_aside_is_said_and_the_others_are_moved(tm
         "cannot move 1 checkpoint folder(s) no model row names to models/.orphans/ (a register killed before its "
         "commit; none was acknowledged); they stay where they are, unused, until a later sweep: m000007-0badf00d "
         "(Invalid cross-device link)"]
+
+
+def test_the_staging_folders_a_killed_register_left_are_deleted_once_stale_and_said(tmp_path, caplog) -> None:
+    import os
+    import time
+
+    from storage.pruning import STALE_AGE_S
+    data = tmp_path / "data"
+    catalog, reg = Catalog(data), ModelRegistry(data)
+    old, young = reg.models_dir / ".tmp-m000003-killed", reg.models_dir / ".tmp-m000004-live"
+    for folder in (old, young):
+        folder.mkdir()
+        (folder / "weights.pt").write_bytes(b"staged")
+    then = time.time() - STALE_AGE_S - 60
+    os.utime(old, (then, then))
+    os.utime(old / "weights.pt", (then, then))
+    log = logging.getLogger("test.sweeps")
+    with caplog.at_level(logging.WARNING, logger="test.sweeps"):
+        sweeps.sweep_leftovers(catalog, data, StorageHealth(log), log)
+
+    assert not old.exists() and (young / "weights.pt").is_file()  # a younger one may be a live register's
+    assert [r.getMessage() for r in caplog.records] == [
+        "deleted 1 staging folder(s) a retrain or prune killed midway left in models/ (none was acknowledged): "
+        ".tmp-m000003-killed"]
