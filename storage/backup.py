@@ -14,20 +14,23 @@ A quarantined episode's file is copied from ``quarantine/`` as it is, unchecked 
 unless a worker's upload of the same bytes has put an intact copy there since: ``Catalog.repair_file``), and
 one quarantined between the snapshot and its copy is quarantined in the copy too.
 
-The copy is built under a hidden name next to ``dest`` and renamed into place last, so ``dest``
-exists only when complete. Not copied: ``reports/`` (made again by ``run``), lock files, and what
-crashed calls left (staging files, ``orphans/``, ``models/.orphans/``). To restore, stop the service and serve from the
-backup (``--data DEST``) or move it into place.
+The copy is built under a hidden name next to ``dest`` (``.<dest>.backup-<8 hex>``, locked while its backup
+lives) and renamed into place last, so ``dest`` exists only when complete; a backup killed midway leaves its
+hidden folder, which the next backup to ``dest`` deletes (``swept``). Not copied: ``reports/`` (made again by
+``run``), lock files, and what crashed calls left (staging files, ``orphans/``, ``models/.orphans/``). To restore,
+stop the service and serve from the backup (``--data DEST``) or move it into place.
 """
 
 from __future__ import annotations
 
+import fcntl
 import os
 import shutil
 import sqlite3
 import time
 import uuid
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
 from pathlib import Path
@@ -63,6 +66,8 @@ class BackupResult:
     """Files the snapshot names that could not be copied intact (missing, unreadable, failing their
     sha256; or the copy's champion or rollback chain, pruned while the backup ran and every retake),
     one line each; the backup holds everything else. ``episodes verify`` on the source shows the same."""
+    swept: list[Path] = field(default_factory=list)
+    """The hidden folders of earlier backups to ``dest`` that were killed midway, deleted by this one."""
 
 
 def check_dest(data_dir: str | os.PathLike[str], dest: str | os.PathLike[str]) -> None:
@@ -191,14 +196,16 @@ def backup(data_dir: str | os.PathLike[str], dest: str | os.PathLike[str],
         raise BackupError(f"no catalog at {source_db}: nothing to back up")
     check_dest(data_dir, dest)
     ensure_dir(dest.parent)
-    work = dest.parent / f".{dest.name}.backup-{uuid.uuid4().hex[:8]}"
+    swept = _sweep_unfinished(dest)
+    work = dest.parent / f"{_work_prefix(dest)}{uuid.uuid4().hex[:8]}"
     try:
         work.mkdir()
-        result = _fill(data_dir, work, progress)
-        if dest.is_dir():
-            dest.rmdir()  # empty (checked): the rename below takes its place
-        os.rename(work, dest)
-        fsync_dir(dest.parent)
+        with _locked(work):  # until it is renamed into place: no other backup's sweep takes it
+            result = _fill(data_dir, work, progress)
+            if dest.is_dir():
+                dest.rmdir()  # empty (checked): the rename below takes its place
+            os.rename(work, dest)
+            fsync_dir(dest.parent)
     except BaseException as exc:
         shutil.rmtree(work, ignore_errors=True)
         if isinstance(exc, OSError):  # a full disk
@@ -208,7 +215,47 @@ def backup(data_dir: str | os.PathLike[str], dest: str | os.PathLike[str],
         raise
     episodes, models, size, problems = result
     return BackupResult(dest=dest, episodes=episodes, models=models, bytes=size, problems=problems,
-                        seconds=round(time.perf_counter() - t0, 3))
+                        seconds=round(time.perf_counter() - t0, 3), swept=swept)
+
+
+def _work_prefix(dest: Path) -> str:
+    """The start of the name of the hidden folder a backup to ``dest`` is built in, beside it."""
+    return f".{dest.name}.backup-"
+
+
+@contextmanager
+def _locked(folder: Path) -> Iterator[None]:
+    """An exclusive lock on ``folder`` (the folder itself, so nothing is added to it), held in the block; the kernel
+    releases it when the process dies, even by SIGKILL."""
+    fd = os.open(folder, os.O_RDONLY | os.O_DIRECTORY)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX)
+        yield
+    finally:
+        os.close(fd)
+
+
+def _sweep_unfinished(dest: Path) -> list[Path]:
+    """Deletes the hidden folders beside ``dest`` that earlier backups to it were building when they were killed
+    (unlocked: no live backup's); returns those deleted. Best effort: one that cannot be deleted stays, for the
+    next backup to try again."""
+    swept = []
+    for path in sorted(dest.parent.iterdir()):
+        if not path.name.startswith(_work_prefix(dest)) or path.is_symlink() or not path.is_dir():
+            continue
+        try:
+            fd = os.open(path, os.O_RDONLY | os.O_DIRECTORY)
+        except OSError:
+            continue
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)  # (BlockingIOError: a live backup's)
+            shutil.rmtree(path)
+            swept.append(path)
+        except OSError:
+            continue
+        finally:
+            os.close(fd)
+    return swept
 
 
 class _Tally:
@@ -247,9 +294,12 @@ def _fill(data_dir: Path, work: Path, progress: Callable[[int, int], None] | Non
     source_db = data_dir / DB_NAME
     tally = _Tally(progress)
     for attempt in range(1, SNAPSHOT_TRIES + 1):
-        if attempt > 1:  # a retake: start again from an empty folder (the progress count goes on)
-            shutil.rmtree(work)
-            work.mkdir()
+        if attempt > 1:  # a retake: start again from an empty folder, the same one (locked; the count goes on)
+            for path in list(work.iterdir()):
+                if path.is_dir() and not path.is_symlink():
+                    shutil.rmtree(path)
+                else:
+                    path.unlink()
             tally.restart()
         db = work / DB_NAME
         _snapshot_db(source_db, db)

@@ -240,7 +240,7 @@ class Catalog(CatalogQuarantine, CatalogEvalSplit, CatalogStrays):
     def _readmit(self, known: EpisodeRow, conn: sqlite3.Connection, staged: Path) -> None:
         with transaction(conn):
             publish(staged, known.path)
-            quarantines.readmit(conn, known.episode_id, self._kept(known), known.sha256)
+            quarantines.readmit(conn, known.episode_id, self._kept(known))
 
     # --- a worker's upload of bytes indexed -----------------------------------------------------
 

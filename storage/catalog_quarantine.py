@@ -64,6 +64,13 @@ class CatalogQuarantine(CatalogReads):
                                 kept) from exc
         return self.get(row.episode_id)
 
+    def kept_file(self, row: EpisodeRow) -> Path | None:
+        """Where the file of the quarantined episode ``row`` is kept (``DATA/quarantine/...``, for ``restore``);
+        None when no file is kept there (it was gone when quarantined, or deleted since: then only an ingest of its
+        original bytes brings it back)."""
+        kept = self._kept(row)
+        return kept if row.quarantined and kept.is_file() else None
+
     @staticmethod
     def _move_back(kept: Path, row: EpisodeRow, error: BaseException) -> None:
         """After a quarantine that did not commit (``error``), under the write lock: its file back from ``kept``.

@@ -30,6 +30,7 @@ import numpy as np
 import zstandard
 from foxglove_schemas_protobuf.RawImage_pb2 import RawImage
 from google.protobuf.message import DecodeError
+from google.protobuf.unknown_fields import UnknownFieldSet
 from mcap.exceptions import McapError
 from mcap.opcode import Opcode
 from mcap.reader import FOOTER_SIZE, SeekingReader
@@ -42,7 +43,7 @@ from storage.episodes import (ACTION_KEYS, ACTION_SCALAR, ACTION_SCHEMA, FORMAT,
                               StateMessage, check_meta, image_prefix, row_dtype, tag, timestamp_field)
 from storage.errors import (CorruptEpisodeError, EpisodeError, ForeignFileError, OversizedEpisodeError, StorageError,
                             TruncatedEpisodeError)
-from storage.records import STATE_FIELDS, Episode, EpisodeMeta
+from storage.records import MAX_FRAME_SIZE, STATE_FIELDS, Episode, EpisodeMeta
 
 Source = Union[str, os.PathLike, bytes, bytearray, memoryview]
 
@@ -147,6 +148,12 @@ def decoded_limit(frames: int, image_size: int) -> int:
     return frames * (3 * image_size * image_size + STEP_OVERHEAD) + CHUNK_OVERHEAD
 
 
+#: The most any file's chunks may inflate to, whatever its metadata claims: the largest episode anything records
+#: (1,000 steps, the wire's most, of ``MAX_FRAME_SIZE`` frames). A small file whose metadata claims a vast episode
+#: costs no more memory than the largest real one.
+MAX_DECODED_BYTES = decoded_limit(1000, MAX_FRAME_SIZE)
+
+
 def _scan(data: bytes, name: str,
           max_decoded: int | None = None) -> tuple[_Scan, EpisodeMeta, int, dict[str, int]]:
     """Summary, metadata, our three channels' ids, and every message, with chunk CRCs checked.
@@ -165,10 +172,13 @@ def _scan(data: bytes, name: str,
         for record in reader.iter_metadata():
             scan.metadata[record.name] = record.metadata
         meta, frames = _meta(scan, name)
+        if meta.image_size > MAX_FRAME_SIZE:  # no catalog takes it: refused before its chunks are inflated
+            raise OversizedEpisodeError(f"{name}: episode metadata says {meta.image_size}px frames; no episode has "
+                                        f"frames larger than {MAX_FRAME_SIZE}px")
         ids = {TOPIC_CAMERA: _channel(scan, TOPIC_CAMERA, IMAGE_SCHEMA, "protobuf", name),
                TOPIC_ACTION: _channel(scan, TOPIC_ACTION, ACTION_SCHEMA, "protobuf", name),
                TOPIC_STATE: _channel(scan, TOPIC_STATE, STATE_SCHEMA, "protobuf", name)}
-        budget = decoded_limit(frames, meta.image_size)
+        budget = min(decoded_limit(frames, meta.image_size), MAX_DECODED_BYTES)
         if max_decoded is not None:
             budget = min(budget, max_decoded)
         _read_chunks(data, summary.chunk_indexes, budget, scan, name)
@@ -350,6 +360,12 @@ def _decode_numeric(msgs: list[Message], cls, keys: tuple[str, ...], scalar: str
         except DecodeError as exc:
             raise CorruptEpisodeError(f"{name}: {topic} step {t}: undecodable "
                                       f"{cls.DESCRIPTOR.full_name}: {exc}") from exc
+        unknown = [(f.field_number, f.wire_type) for f in UnknownFieldSet(msg_obj)]
+        if unknown:  # protobuf would drop them and read zeros: another length, or doubles where floats belong
+            raise CorruptEpisodeError(
+                f"{name}: {topic} step {t}: field {unknown[0][0]} (wire type {unknown[0][1]}) is not one of "
+                f"{cls.DESCRIPTOR.full_name}'s {k} fields ({', '.join(keys[:3])}{', ...' if k > 3 else ''}: "
+                f"{'float' if scalar == ACTION_SCALAR else 'double'} each)")
         out[t] = [getattr(msg_obj, key) for key in keys]
     return out
 
@@ -363,7 +379,9 @@ def read_episode(source: Source, *, name: str | None = None, max_decoded: int | 
 
     Raises ``TruncatedEpisodeError`` (the file ends early), ``CorruptEpisodeError``
     (CRC mismatch, undecodable record, counts that disagree, non-finite actions or
-    states, images too small for the metadata's size), ``ForeignFileError``
+    states, actions or states with fields their schema lacks, images too small for the
+    metadata's size), ``OversizedEpisodeError`` (frames larger than ``MAX_FRAME_SIZE``, chunks
+    inflating past what the frames need), ``ForeignFileError``
     (not MCAP, or MCAP without our channels/metadata) or ``EpisodeError`` (unreadable path).
     """
     scan, meta, ids, name = _examine(source, name, max_decoded)

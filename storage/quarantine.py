@@ -122,17 +122,17 @@ def put_back(conn: sqlite3.Connection, row: EpisodeRow, kept: Path) -> None:
             raise CatalogError(f"cannot restore episode {row.episode_id}: {state}; ingest its original "
                                "bytes again (activecollect ingest FILE), which restores it")
         move(kept, row.path)
-    elif holds(kept, row.sha256):
-        kept.unlink()  # the same bytes are in place
+    else:
+        kept.unlink(missing_ok=True)  # the bytes indexed are in place: a copy, or a damaged file, is worth nothing
     remove(conn, row.episode_id)
 
 
-def readmit(conn: sqlite3.Connection, episode_id: str, kept: Path, sha256: str) -> None:
+def readmit(conn: sqlite3.Connection, episode_id: str, kept: Path) -> None:
     """In a write transaction, once an ingest has put the bytes indexed back in place: the episode is in
-    training again (if it was quarantined)."""
+    training again (if it was quarantined), and nothing is left at ``kept`` (a copy of the same bytes, or the
+    damaged file a quarantine took aside, which no row would name any more)."""
     remove(conn, episode_id)
-    if holds(kept, sha256):
-        kept.unlink()  # the same bytes are in place: no copy left behind to take up space
+    kept.unlink(missing_ok=True)
 
 
 def heal(conn: sqlite3.Connection, row: EpisodeRow, kept: Path) -> bool:

@@ -168,7 +168,8 @@ def register(sub: argparse._SubParsersAction) -> None:
         "backup", help="copy the data directory to a new directory, consistently, while the service runs",
         description="Copy the catalog, queue and model registry (one SQLite snapshot, taken while "
                     "writers go on), every indexed episode and every kept checkpoint to DEST, checking "
-                    "each file's sha256 as it is read. DEST appears only once complete. Restore: stop "
+                    "each file's sha256 as it is read. DEST appears only once complete (a backup killed midway leaves "
+                    "a hidden folder beside it, which the next backup to DEST deletes). Restore: stop "
                     "the service and serve from DEST (--data DEST), or move it into place. Exit 1 when "
                     "a file could not be copied intact (the rest is backed up and the files are named).")
     p.add_argument("dest", type=Path, metavar="DEST",
@@ -405,9 +406,13 @@ def _backup(args: argparse.Namespace) -> int:
             bar.close()
             print(f"activecollect: backup failed, nothing written at {args.dest}: {exc}", file=sys.stderr)
             return 1
+    for path in result.swept:
+        print(one_line(f"activecollect: deleted {path}, left by a backup to {result.dest} that was killed midway"),
+              file=sys.stderr)
     if args.json:
         common.print_json({"dest": str(result.dest), "episodes": result.episodes, "models": result.models,
-                           "bytes": result.bytes, "seconds": result.seconds, "problems": result.problems})
+                           "bytes": result.bytes, "seconds": result.seconds, "problems": result.problems,
+                           "swept": [str(p) for p in result.swept]})
     else:
         print(f"backed up {result.episodes} episodes and {result.models} checkpoints "
               f"({_megabytes(result.bytes)}) to {result.dest} in {result.seconds:.1f} s")

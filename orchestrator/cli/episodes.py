@@ -7,6 +7,7 @@ import argparse
 import json
 import sys
 from datetime import datetime, timezone
+from pathlib import Path
 from typing import Any, Callable
 
 from tqdm import tqdm
@@ -14,6 +15,7 @@ from tqdm import tqdm
 from orchestrator.cli import common
 from orchestrator.protocol import SHAPES, one_line
 from storage.catalog import ORPHANS_DIR, SPLITS, Catalog, EpisodeRow
+from storage.database import QUARANTINE_DIR
 from storage.errors import DAMAGED_EPISODE_ERRORS, CatalogError, NotFoundError, StorageError
 
 
@@ -26,7 +28,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--split", choices=SPLITS, help="only episodes of this split (default: all)")
     p.add_argument("--shape", choices=SHAPES, help="only episodes of this object shape (default: all)")
     p.add_argument("--limit", type=common.positive_int, metavar="N", help="only the N newest")
-    p.add_argument("--quarantined", action="store_true", help="only the episodes taken out of training")
+    p.add_argument("--quarantined", action="store_true",
+                   help="only the episodes taken out of training, with where their files are kept and the space "
+                        "they take")
     p.set_defaults(func=_episodes_ls)
     p = esub.add_parser("show", help="one episode: catalog row and provenance")
     p.add_argument("episode_id", metavar="ID", help="episode id or a unique prefix of it")
@@ -77,8 +81,14 @@ def _episodes_ls(args: argparse.Namespace) -> int:
                     quarantined=quarantined)
     if args.limit is not None:
         rows.reverse()
+    kept = {r.episode_id: _kept(cat, r) for r in rows if r.quarantined}
     if args.json:
-        common.print_json([r.to_json() for r in rows])
+        out = [r.to_json() for r in rows]
+        for entry in out:
+            if entry["episode_id"] in kept:
+                path, size = kept[entry["episode_id"]]
+                entry.update(kept=str(path) if path else None, kept_bytes=size)
+        common.print_json(out)
         return 0
     if not rows:
         print(f"no {'quarantined ' if args.quarantined else ''}episodes in {cat.data_dir}")
@@ -88,10 +98,24 @@ def _episodes_ls(args: argparse.Namespace) -> int:
         print(f"{r.episode_id:<32}  {r.shape:<5} {r.frames:>6}  {r.split:<5}  {r.created[:19]:<19}  "
               f"{r.size_bytes / 1e3:>6.0f}KB  {r.request_id or '-'}")
         if r.quarantined:
+            path, size = kept[r.episode_id]
             print(f"  quarantined: {r.quarantined}")
+            print(f"  kept: {path} ({size / 1e3:.0f}KB)" if path else
+                  "  kept: no file (only an ingest of its original bytes brings it back)")
     held = cat.count(quarantined=True)
-    print(f"{len(rows)} of {cat.count()} episodes" + (f" ({held} quarantined)" if held else ""))
+    shown = sum(size for _, size in kept.values())
+    space = f"; the files of those shown take {shown / 1e6:.1f} MB in {cat.data_dir / QUARANTINE_DIR}" if kept else ""
+    print(f"{len(rows)} of {cat.count()} episodes" + (f" ({held} quarantined)" if held else "") + space)
     return 0
+
+
+def _kept(cat: Catalog, row: EpisodeRow) -> tuple[Path | None, int]:
+    """Where a quarantined episode's file is kept, and its size (None, 0 when none is)."""
+    path = cat.kept_file(row)
+    try:
+        return path, path.stat().st_size if path is not None else 0
+    except FileNotFoundError:  # restored or deleted since
+        return None, 0
 
 
 def _episodes_show(args: argparse.Namespace) -> int:

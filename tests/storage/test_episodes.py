@@ -391,11 +391,16 @@ def _encode_unchecked(ep: Episode, monkeypatch) -> bytes:
         return episodes.encode_episode(ep)
 
 
-@pytest.mark.parametrize("size", [10**6, 2**40])
-def test_a_metadata_image_size_the_images_cannot_hold_is_refused_before_allocating(rng, monkeypatch, size):
+@pytest.mark.parametrize("size, error, words", [
+    (1024, CorruptEpisodeError, "cannot hold"),
+    (10**6, OversizedEpisodeError, "no episode has frames larger than 1024px"),  # (refused before inflating)
+    (2**40, OversizedEpisodeError, "no episode has frames larger than 1024px"),
+])
+def test_a_metadata_image_size_the_images_cannot_hold_is_refused_before_allocating(rng, monkeypatch, size, error,
+                                                                                   words):
     ep = make_episode(rng)
     ep.meta.image_size = size
-    with pytest.raises(CorruptEpisodeError, match="cannot hold"):
+    with pytest.raises(error, match=words):
         episode_reader.read_episode(_encode_unchecked(ep, monkeypatch))
 
 
