@@ -23,10 +23,14 @@ episode never acknowledged (held in memory only) is dropped, and the service
 queues the request again -- when nobody answers, once the lease has run out by
 the worker's clock (the service is gone: exit 0); when a live service would not
 store it (``unavailable``: a full disk), after that term, giving the request
-back (exit 1: collected work was lost). A second signal gives the current
-request back at once (``release``: queued again, no attempt counted -- the
-request did nothing wrong; a query in flight is walked away from, the release
-waits at most ``RELEASE_TIMEOUT_S``) and exits. ``DRAIN_SIGNAL`` drains too and
+back (exit 1: collected work was lost). A failure reported once a stop was
+asked gets one try of at most ``STOPPING_TIMEOUT_S`` (unanswered: the lease
+runs out on its own). A second signal drops the current episode at once, in
+the middle of its collection too, and gives the request back (``release``:
+queued again, no attempt counted -- the request did nothing wrong; a query in
+flight is walked away from, the release waits at most ``STOPPING_TIMEOUT_S``,
+unanswered the lease runs out), and the worker exits 1 (``abandoned`` says what
+it dropped; nothing acknowledged is lost). ``DRAIN_SIGNAL`` drains too and
 never counts as a stop signal: ``activecollect run`` stops its workers with it,
 as systemd or ``kill -TERM -PGID`` may have sent them SIGTERM already. A worker
 of ``run`` is also sent SIGTERM when ``run`` dies (its parent-death signal),
@@ -34,7 +38,9 @@ which the kernel may send more than once (once per thread of ``run`` that
 inherits the child as it exits): the worker then gives its request back at
 once, which is right there, since the service died with ``run``.
 A request granted after the drain began (its lease query was in flight) is not
-in hand: it is given back unstarted (``release``).
+in hand: it is given back unstarted (``release``). Run as ``python -m
+workers.agent``, it takes these signals from before its imports on
+(``workers.startup``): one that comes while it starts ends it, exit 0.
 
 Imports only ``storage``, ``workers``, ``orchestrator.protocol``, ``orchestrator.messages``,
 ``orchestrator.transport`` and ``orchestrator.endpoints`` -- the wire contract -- and
@@ -43,11 +49,14 @@ Imports only ``storage``, ``workers``, ``orchestrator.protocol``, ``orchestrator
 
 from __future__ import annotations
 
+if __name__ == "__main__":  # ``python -m workers.agent``: before the imports below, which take a second or so
+    from workers import startup
+    startup.guard()
+
 import logging
 import os
 import random
 import re
-import signal
 import socket
 import sys
 import threading
@@ -66,21 +75,20 @@ from orchestrator.protocol import ErrorCode, Keys, ProtocolError
 from storage.episodes import encode_episode
 from storage.records import TRAINABLE_SIZES, trainable_size
 from workers.abandon import Abandoned, Abandoner
-from workers.collect import collect_episode
+from workers.collect import CollectionStopped, collect_episode
 from workers.env import CONTROL_HZ
 from workers.flags import MAX_REALTIME
 from workers.lease import Renewer
+from workers.startup import DRAIN_SIGNAL
 
 log = logging.getLogger("workers.agent")  # also when run as __main__
 
-#: Longest wait for the reply to a release (a second stop signal): a supervisor's grace is short.
-RELEASE_TIMEOUT_S = 2.0
+#: Longest wait for one reply once a stop was asked (a release, a failure report): a supervisor's grace is short.
+STOPPING_TIMEOUT_S = 2.0
 #: Shortest wait for an upload's reply while draining (each is cut to what is left: ``Renewer.drain_left``).
 MIN_DRAIN_ATTEMPT_S = 0.5
 #: How often a paced episode (``--realtime``) looks whether its lease was lost meanwhile.
 PACE_CHECK_S = 0.5
-#: "Drain; if draining already, nothing": what ``activecollect run`` sends its workers to stop them.
-DRAIN_SIGNAL = signal.SIGUSR1
 
 
 class WorkerError(Exception):
@@ -179,6 +187,8 @@ class Worker:
         self.released = 0
         self.dropped = 0
         """Episodes given up while draining because a live service would not store them (exit 1)."""
+        self.abandoned: list[str] = []
+        """``<request id> (<what it was doing>)`` of an episode a second stop signal dropped unacknowledged (exit 1)."""
 
     # --- lifecycle -----------------------------------------------------------------------------
 
@@ -262,7 +272,8 @@ class Worker:
         """``fn()`` retried with exponential backoff while nobody answers (or refuses with a ``transient`` code).
 
         None when out of ``attempts``, when ``give_up()`` says so, when told to give the request back,
-        or (``until_stopped``) when told to drain. Any other ProtocolError (a refusal) propagates.
+        or (``until_stopped``) when told to drain: no try after that, nor a wait for the next one.
+        Any other ProtocolError (a refusal) propagates.
         """
         delay, n = 0.1, 0
         while True:
@@ -274,12 +285,14 @@ class Worker:
                 if isinstance(exc, ProtocolError) and exc.code not in transient:
                     raise
                 n += 1
+                if until_stopped and self._stop.is_set():  # the caller says what it leaves undone
+                    return None
                 if give_up() or (attempts is not None and n >= attempts):
                     log.warning("%s: giving up after %d attempts: %s", what, n, exc)
                     return None
                 wait = min(delay * (0.5 + self._rng.random()), self.config.max_backoff_s)
                 log.warning("%s: %s; retrying in %.2f s", what, exc, wait)
-                if self._abort.wait(wait) or (until_stopped and self._stop.is_set()):
+                if (self._stop if until_stopped else self._abort).wait(wait):  # (a give-back sets both)
                     return None
                 delay *= 2
 
@@ -314,10 +327,15 @@ class Worker:
         self._fail_raw(grant.request_id, grant.token, error)
 
     def _fail_raw(self, request_id: str, token: Any, error: str) -> None:
+        """Report a failure: ``report_attempts`` tries; once a stop was asked, one short one (``STOPPING_TIMEOUT_S``)
+        and no more (a stop asked while it retries ends the retries): a service that is gone must not hold a
+        stopping worker for minutes."""
+        timeout = min(STOPPING_TIMEOUT_S, self.config.timeout_s) if self._stop.is_set() else self.config.timeout_s
         try:
             msg = messages.FailRequest(request_id=request_id, token=token, worker_id=self.config.worker_id,
                                        error=error[:protocol.MAX_ERROR_CHARS]).to_json()
-            body = self._retrying("fail", lambda: self._call(self.keys.fail, msg), self.config.report_attempts)
+            body = self._retrying("fail", lambda: self._call(self.keys.fail, msg, timeout=timeout),
+                                  self.config.report_attempts, until_stopped=True)
         except ProtocolError as exc:
             log.warning("fail %s refused: %s", request_id, exc)
             return
@@ -325,12 +343,15 @@ class Worker:
         if body is not None:
             log.info("reported failure of %s: now %s after %s attempt(s)", request_id,
                      body.get("status"), body.get("attempts"))
+        elif self._stop.is_set():
+            log.warning("stopping: could not report the failure of %s (%.200s): the service takes the request back "
+                        "when its lease or this worker's liveliness ends (counting the attempt)", request_id, error)
 
     def _release(self, grant: LeaseGrant) -> None:
         """Give a lease back unharmed (a second stop signal): one short try, the service may be going too."""
         msg = messages.ReleaseRequest(request_id=grant.request_id, token=grant.token,
                                       worker_id=self.config.worker_id).to_json()
-        timeout = min(RELEASE_TIMEOUT_S, self.config.timeout_s)
+        timeout = min(STOPPING_TIMEOUT_S, self.config.timeout_s)
         try:
             body = self._retrying("release", lambda: self._call(self.keys.release, msg, timeout=timeout,
                                                                 abandon=False), 1)
@@ -353,19 +374,27 @@ class Worker:
             started = time.monotonic()
             try:
                 data, frames = self._record(grant)
+            except CollectionStopped as exc:
+                self._abandon(grant, f"collecting: {exc}")
+                return
             except Exception as exc:  # noqa: BLE001 -- any collection failure is reported, not hidden
                 log.warning("collection of %s failed: %s: %s", grant.request_id, type(exc).__name__, exc)
                 self._fail(grant, f"collection failed: {type(exc).__name__}: {exc}")
                 return
             if not self._pace(started, frames, renewer):
-                self._release(grant)
+                self._abandon(grant, "collected, not uploaded")
                 return
             if renewer.lost is not None:
                 log.warning("dropping the episode of %s: the lease is no longer ours", grant.request_id)
                 return
             self._upload(grant, data, renewer)
-        finally:
-            renewer.stop(wait=not self._abort.is_set())  # given back: not after a renewal in flight
+        finally:  # given back: not after a renewal in flight; stopping: not long after one to a service gone
+            renewer.stop(wait=not self._abort.is_set(), timeout=STOPPING_TIMEOUT_S if self._stop.is_set() else None)
+
+    def _abandon(self, grant: LeaseGrant, doing: str) -> None:
+        """A second stop signal: the episode of ``grant`` (never acknowledged) is dropped, the request given back."""
+        self.abandoned.append(f"{grant.request_id} ({doing})")
+        self._release(grant)
 
     def _record(self, grant: LeaseGrant) -> tuple[bytes, int]:
         """The episode's MCAP bytes and its number of frames (the decoded episode is not kept while it uploads).
@@ -383,7 +412,7 @@ class Worker:
                                policy_params=grant.policy_params, seed=grant.seed, steps=grant.steps,
                                image_size=grant.image_size or self.config.image_size, action_prefix=prefix,
                                request_id=grant.request_id, worker_id=self.config.worker_id,
-                               model_version=grant.model_version)
+                               model_version=grant.model_version, stop=self._abort.is_set)
 
     def _pace(self, started: float, frames: int, renewer: Renewer | None = None) -> bool:
         """Wait out the episode's real duration when pacing, or until ``renewer`` finds the lease lost (the episode
@@ -434,7 +463,7 @@ class Worker:
             log.info("uploaded %s: episode %s%s", grant.request_id, body.get("episode_id"),
                      " (duplicate)" if body.get("duplicate") else "")
         elif self._abort.is_set():
-            self._release(grant)
+            self._abandon(grant, "uploading, not acknowledged")
         elif renewer.lost is not None:
             log.warning("dropping the episode of %s: the lease is no longer ours (%s)", grant.request_id, renewer.lost)
         else:

@@ -12,18 +12,20 @@ import sys
 
 from orchestrator import endpoints, protocol, transport
 from storage.records import TRAINABLE_SIZES
-from workers import flags
+from workers import flags, startup
 from workers.agent import Worker, WorkerConfig, WorkerError
 from workers.env import CONTROL_HZ
 from workers.flags import MAX_REALTIME
 
+log = logging.getLogger("workers.agent")
 
 #: ``--help``'s description of ``activecollect worker`` and ``python -m workers.agent``.
 DESCRIPTION = ("Run a collector worker: lease requests from the service over Zenoh, simulate and record each "
                "episode as MCAP at the frame size the lease names, upload it; until stopped (or --once, "
                "--max-episodes). SIGTERM / SIGINT drain it: it finishes and uploads the episode in hand, then "
-               "exits (a second one gives the request back at once); SIGUSR1 drains and never escalates. Exit 0 "
-               "when done or stopped; 1 when it cannot start, or when a service that was there would not store "
+               "exits (a second one drops that episode at once and gives the request back); SIGUSR1 drains and "
+               "never escalates. Exit 0 when done or stopped (also when stopped while starting); 1 when it cannot "
+               "start, when a second signal dropped an episode, or when a service that was there would not store "
                "an episode it collected while draining (the request goes back to the queue); 2 for bad flags.")
 
 
@@ -103,16 +105,22 @@ def run_from_args(args: argparse.Namespace) -> int:
         print(f"{prog}: error: {protocol.one_line(str(exc))}", file=sys.stderr)  # a path may hold a newline
         return 2
     worker.install_signal_handlers()
+    if early := startup.taken():  # (python -m workers.agent: came during its imports, before these handlers)
+        log.info("worker %s: %s while starting, before it held any request: exiting", worker.config.worker_id,
+                 early[0].name)
+        return 0
     try:
         worker.run()
     except WorkerError as exc:
         print(f"{prog}: {protocol.one_line(str(exc))}", file=sys.stderr)
         return 1
+    if worker.abandoned:
+        print(f"{prog}: stopped at once: dropped the episode of {', '.join(worker.abandoned)}, never acknowledged "
+              "(the log says whether its request was given back)", file=sys.stderr)
     if worker.dropped:
         print(f"{prog}: gave up {worker.dropped} collected episode(s) the service would not store while draining "
               "(see the log)", file=sys.stderr)
-        return 1
-    return 0
+    return 1 if worker.abandoned or worker.dropped else 0
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -12,7 +12,7 @@ from __future__ import annotations
 import importlib.metadata
 import uuid
 from datetime import datetime, timezone
-from typing import Any, Mapping
+from typing import Any, Callable, Mapping
 
 import numpy as np
 
@@ -26,6 +26,10 @@ from workers.policies import make_policy
 TASK = "push"
 #: Policy and parameters of the evaluation split.
 EVAL_POLICY = "push"
+
+
+class CollectionStopped(Exception):
+    """``collect_episode``'s ``stop`` said so before the episode was complete: nothing is returned."""
 
 
 class EvalSplitConflict(ValueError):
@@ -73,7 +77,8 @@ def collect_episode(*, start_state: SimState | Mapping[str, Any], policy: str,
                     policy_params: Mapping[str, Any] | None = None, seed: int, steps: int = 50,
                     image_size: int = 64, action_prefix: np.ndarray | None = None,
                     request_id: str = "", worker_id: str = "", model_version: str = "",
-                    palette: Mapping[str, tuple[int, int, int]] | None = None) -> Episode:
+                    palette: Mapping[str, tuple[int, int, int]] | None = None,
+                    stop: Callable[[], bool] | None = None) -> Episode:
     """Records one episode: reset to ``start_state``, replay ``action_prefix``, then run ``policy``.
 
     The episode has ``len(action_prefix) + steps`` steps; its leading actions are the prefix
@@ -82,9 +87,11 @@ def collect_episode(*, start_state: SimState | Mapping[str, Any], policy: str,
     state the prefix leaves. Actions are stored as float32 and the simulator is stepped with
     exactly the stored values, so replaying an episode's actions reproduces it bit for bit.
     ``palette`` recolours the objects (``PushSim``; experiments only: the episode's metadata
-    does not record it).
+    does not record it). ``stop``, asked before each step, abandons the episode when it says True (a worker
+    told to stop now: an episode at 1024 px takes tens of seconds).
 
-    Raises ValueError for a bad state, policy, parameters, step count, image size or prefix.
+    Raises ValueError for a bad state, policy, parameters, step count, image size or prefix;
+    CollectionStopped when ``stop`` said so.
     """
     state = start_state if isinstance(start_state, SimState) else SimState.from_dict(start_state)
     if isinstance(steps, bool) or not isinstance(steps, (int, np.integer)) or not 1 <= steps <= MAX_EPISODE_STEPS:
@@ -103,6 +110,8 @@ def collect_episode(*, start_state: SimState | Mapping[str, Any], policy: str,
     states = np.empty((total, STATE_DIM), np.float64)
     actions[:n_prefix] = prefix
     for t in range(total):
+        if stop is not None and stop():
+            raise CollectionStopped(f"stopped after {t} of {total} steps")
         sim.render_into(frames[t])
         sim.state_vector(states[t])
         if t == n_prefix:

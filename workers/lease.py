@@ -82,9 +82,9 @@ class Renewer:
                 continue
             self._until = sent + self._grant.lease_s  # (the service extended it after we sent)
 
-    def stop(self, wait: bool = True) -> None:
-        """No more renewals; ``wait``: also for one in flight (a worker giving its request back at once does
-        not: the thread is a daemon)."""
+    def stop(self, wait: bool = True, timeout: float | None = None) -> None:
+        """No more renewals; ``wait``: also for one in flight, ``timeout`` seconds at most (a worker giving its
+        request back at once does not wait, a stopping one not long: the thread is a daemon)."""
         self._stop.set()
         if wait:
-            self._thread.join()
+            self._thread.join(timeout)

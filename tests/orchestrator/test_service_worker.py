@@ -102,7 +102,7 @@ def test_second_sigterm_gives_the_request_back(make_service, spawn_worker) -> No
     w.signal(signal.SIGTERM)
     wait_for(lambda: "draining" in w.log(), message="the first signal is taken")  # two at once may count as one
     w.signal(signal.SIGTERM)
-    assert w.wait(30) == 0, w.log()
+    assert w.wait(30) == 1, w.log()  # (exit 1: the second signal dropped an episode, never acknowledged)
     back = service.queue.get(request.id)
     # Released, not failed: no attempt counted and no error (a lost worker would have cost an attempt too).
     assert (back.status, back.attempts, back.token, back.last_error) == (RequestStatus.QUEUED, 0, 1, None)
@@ -152,7 +152,7 @@ def test_a_second_sigterm_walks_away_from_an_upload_in_flight(make_service, spaw
         wait_for(lambda: "draining" in w.log(), message="the first signal is taken")
         w.signal(signal.SIGTERM)
         started = time.monotonic()
-        assert w.wait(6) == 0, w.log()  # (the old worker waited out the upload's 10 s, then the release's)
+        assert w.wait(6) == 1, w.log()  # (exit 1: an episode dropped; the old worker waited out the upload's 10 s, then the release's)
         assert time.monotonic() - started < 6
     finally:
         hang.set()

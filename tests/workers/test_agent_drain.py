@@ -48,7 +48,7 @@ def test_the_drain_signal_twice_is_still_a_drain(make_service, spawn_worker, dat
 def test_after_the_drain_signal_an_operators_second_stop_signal_still_gives_the_request_back(make_service,
                                                                                               spawn_worker) -> None:
     """The drain request does not count as a stop signal: the operator's first SIGTERM drains (as it would have
-    anyway), the second gives the request back."""
+    anyway), the second drops the episode and gives the request back; the worker exits 1 saying so."""
     service = make_service()
     request, _ = service.queue.enqueue(new_request(steps=100))  # 10 s of paced collection
     w = spawn_worker("O", "--realtime", "1")
@@ -56,10 +56,10 @@ def test_after_the_drain_signal_an_operators_second_stop_signal_still_gives_the_
     send(w, signal.SIGUSR1, "draining:")
     send(w, signal.SIGTERM, "draining already")
     send(w, signal.SIGTERM, "stopping now")
-    assert w.wait(30) == 0, w.log()
+    assert w.wait(30) == 1, w.log()
     back = service.queue.get(request.id)
     assert (back.status, back.attempts, back.last_error) == (RequestStatus.QUEUED, 0, None), w.log()
-    assert f"released {request.id}" in w.log()
+    assert f"released {request.id}" in w.log() and f"dropped the episode of {request.id}" in w.log()
 
 
 @pytest.mark.parametrize("renewals", ["acknowledged", "refused"])
