@@ -297,6 +297,26 @@ def test_train_waits_its_turn_and_rejects_what_a_dead_job_left(trained, capsys, 
     assert reg.list(status=ModelStatus.CANDIDATE) == []  # its own candidate went through the gate
 
 
+def test_train_on_an_old_catalog_of_two_frame_sizes_leaves_the_other_size_out_and_says_so(capsys, monkeypatch,
+                                                                                          tmp_path) -> None:
+    import storage.catalog
+    monkeypatch.setattr(storage.catalog, "_check_frame_size", lambda conn, meta: None)  # a catalog from before it
+    data, rng = tmp_path / "data", np.random.default_rng(3)
+    catalog = Catalog(data)
+    odd = catalog.add_episode(_episode(rng, size=24)).episode_id
+    for _ in range(2):
+        catalog.add_episode(_episode(rng), split="train")
+    catalog.pin_eval_split([catalog.add_episode(_episode(rng), split="eval").episode_id])
+    rc, out, _ = run_cli(capsys, "train", "--data", str(data), "--members", "2", "--epochs", "1", "--device", "cpu",
+                         "--json")
+    result = json.loads(out)
+    note = f"left out 1 train episode(s) whose frames are not the eval split's 16px: {odd} (24px)"
+    assert rc == 0 and result["metrics"]["train_episodes"] == 2
+    assert result["metrics"]["train_other_size_left_out"] == 1
+    assert [line for line in result["warnings"] if note in line]  # (and logged: on stderr outside pytest)
+    assert odd not in ModelRegistry(data).snapshot(result["version"]).ids
+
+
 def test_eval_and_score(trained, capsys) -> None:
     data, _ = trained
     rc, out, _ = run_cli(capsys, "eval", "--data", str(data), "--device", "cpu", "--json")
@@ -311,6 +331,23 @@ def test_eval_and_score(trained, capsys) -> None:
     assert len(scored["per_step"]) == row.frames
     rc, out, _ = run_cli(capsys, "score", str(data / row.path), "--data", str(data), "--device", "cpu")
     assert rc == 0 and "mean disagreement" in out and "step" in out
+
+
+@pytest.mark.parametrize("frames", [1, 2])
+def test_score_of_an_episode_too_short_for_the_model_says_there_is_no_step_to_score(trained, capsys, tmp_path,
+                                                                                     frames) -> None:
+    from storage.episodes import write_episode
+    data, _ = trained
+    path = tmp_path / "short.mcap"
+    write_episode(path, _episode(np.random.default_rng(frames), steps=frames))
+    rc, out, err = run_cli(capsys, "score", str(path), "--data", str(data), "--device", "cpu")
+    assert rc == 0 and err == "" and "nan" not in out and out.count("\n") == 1, out
+    assert (f"no step to score: each needs the model's 2 context frames and 1 more to predict (3 in all), the "
+            f"episode has {frames}") in out
+    rc, out, _ = run_cli(capsys, "score", str(path), "--data", str(data), "--device", "cpu", "--json")
+    scored = json.loads(out)
+    assert "NaN" not in out  # strict JSON
+    assert rc == 0 and scored["mean"] is None and scored["per_step"] == [None] * frames and scored["top"] == []
 
 
 def test_eval_score_without_champion_exit_1(capsys, tmp_path) -> None:

@@ -158,6 +158,10 @@ class TrainData:
     """Episodes of the snapshot whose files were found missing or damaged, and quarantined."""
     replays: dict[str, str] = field(default_factory=dict)
     """Episodes of the snapshot left out because they replay an eval episode: {id: the eval episode's id}."""
+    other_size: dict[str, int] = field(default_factory=dict)
+    """Episodes of the snapshot left out because their frames have another size than asked: {id: their size}."""
+    image_size: int | None = None
+    """The frame size asked for (None: any)."""
 
     @property
     def snapshot_id(self) -> str:
@@ -166,7 +170,8 @@ class TrainData:
     @property
     def warnings(self) -> list[str]:
         """One line each for what the snapshot held that was not trained on, other than ``quarantined``."""
-        return [replays_note(self.replays)] if self.replays else []
+        return ([replays_note(self.replays)] if self.replays else []) + \
+            ([other_size_note(self.other_size, self.image_size)] if self.other_size else [])
 
 
 def replays_note(replays: dict[str, str]) -> str:
@@ -177,7 +182,15 @@ def replays_note(replays: dict[str, str]) -> str:
             "such copies; training on them would leak the eval split: `activecollect episodes quarantine` them)")
 
 
-def load_train(catalog: CatalogLike, max_episodes: int | None = None) -> TrainData:
+def other_size_note(other_size: dict[str, int], image_size: int | None) -> str:
+    """One line for the operator on the train episodes left out for their frame size ({id: size})."""
+    shown = ", ".join(f"{i} ({px}px)" for i, px in sorted(other_size.items())[:3])
+    return (f"left out {len(other_size)} train episode(s) whose frames are not the eval split's {image_size}px: "
+            f"{shown}{f' and {len(other_size) - 3} more' if len(other_size) > 3 else ''} (indexed before the "
+            "catalog held one frame size; a model predicts one size: `activecollect episodes quarantine` them)")
+
+
+def load_train(catalog: CatalogLike, max_episodes: int | None = None, image_size: int | None = None) -> TrainData:
     """Loads the ``train`` snapshot; raises ``DataError`` if it is empty or overlaps the eval split.
 
     An episode that replays an eval episode under another id (``Catalog.replays``: indexed before the catalog
@@ -187,7 +200,8 @@ def load_train(catalog: CatalogLike, max_episodes: int | None = None) -> TrainDa
     lost file does not stop every retrain: the snapshot is then that of the episodes kept (as with
     ``max_episodes``: of those loaded). When most
     of them are (more than one and more than half: a disk not mounted, not a lost file), nothing is
-    quarantined and ``DataError`` says so.
+    quarantined and ``DataError`` says so. With ``image_size`` (the eval split's) an episode whose frames have
+    another size (indexed before the catalog held one size) is left out like a replay (``TrainData.other_size``).
     """
     snap = catalog.snapshot(split="train")
     ids = list(snap.ids)
@@ -207,15 +221,25 @@ def load_train(catalog: CatalogLike, max_episodes: int | None = None) -> TrainDa
                             "leak the eval split; collect others (another --seed)")
     if not ids:
         raise DataError("the catalog has no train episodes; collect some first")
-    episodes, kept, damaged = [], [], []
+    episodes, kept, damaged, other_size = [], [], [], {}
+
+    def keep(episode_id: str, episode: Episode) -> None:
+        size = int(episode.frames.shape[1])
+        if image_size is not None and size != image_size:
+            other_size[episode_id] = size
+        else:
+            episodes.append(episode)
+            kept.append(episode_id)
+
     for episode_id in ids:
         if max_episodes is not None and len(kept) == max_episodes:
             break
         try:
-            episodes.append(catalog.load(episode_id))
-            kept.append(episode_id)
+            episode = catalog.load(episode_id)
         except DAMAGED_EPISODE_ERRORS as exc:
             damaged.append((episode_id, exc))
+        else:
+            keep(episode_id, episode)
     if len(damaged) > 1 and 2 * len(damaged) > len(damaged) + len(kept):
         raise DataError(f"the files of {len(damaged)} of {len(damaged) + len(kept)} train episodes are missing "
                         f"or damaged (first: {damaged[0][1]}); nothing was quarantined: check that the data "
@@ -225,13 +249,20 @@ def load_train(catalog: CatalogLike, max_episodes: int | None = None) -> TrainDa
         if catalog.quarantine(episode_id, f"found by a training job: {exc}", only_if_damaged=True).quarantined:
             lost.append(episode_id)
         else:  # repaired (its bytes ingested again) since it was read
-            episodes.append(catalog.load(episode_id))
-            kept.append(episode_id)
+            keep(episode_id, catalog.load(episode_id))
+    if not kept and other_size:
+        first, px = min(other_size.items())
+        raise DataError(f"no train episode has the eval split's {image_size}px frames: {len(other_size)} of another "
+                        f"size (first {first} at {px}px, indexed before the catalog held one frame size)"
+                        f"{f' and {len(lost)} missing or damaged' if lost else ''}; collect {image_size}px ones")
     if not kept:
         raise DataError(f"the files of all {len(lost)} train episodes are missing or damaged (quarantined "
                         "now); restore them from a backup (activecollect ingest), or collect new ones")
+    if other_size:
+        log.warning("%s", other_size_note(other_size, image_size))
     sha256 = dict(zip(snap.ids, snap.sha256s))
-    return TrainData(episodes, Snapshot.of(sorted((i, sha256[i]) for i in kept)), kept, lost, replays)
+    return TrainData(episodes, Snapshot.of(sorted((i, sha256[i]) for i in kept)), kept, lost, replays,
+                     other_size, image_size)
 
 
 def load_eval(catalog: CatalogLike) -> tuple[list[Episode], str]:

@@ -15,6 +15,10 @@ class DataError(UncertaintyError):
     """Episodes cannot be turned into training or evaluation windows (too short, wrong size, empty split)."""
 
 
+class DivergedError(UncertaintyError):
+    """Training produced a non-finite loss: the weights are no model, so nothing is evaluated or registered."""
+
+
 class CheckpointError(UncertaintyError, CorruptCheckpointError):
     """A checkpoint's bytes (sha256 intact) do not describe an ensemble this code can load.
 

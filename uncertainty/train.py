@@ -31,7 +31,7 @@ from uncertainty.config import TrainConfig  # defined torch-free for the CLI; im
 from uncertainty.data import (CatalogLike, Windows, action_stats, build_windows, load_eval, load_train,
                               member_indices)
 from uncertainty.ensemble import Ensemble, default_device
-from uncertainty.errors import CheckpointError, ConfigError, DataError
+from uncertainty.errors import CheckpointError, ConfigError, DataError, DivergedError
 from uncertainty.model import PredictorConfig
 
 log = logging.getLogger(__name__)
@@ -91,6 +91,12 @@ def variance_loss(mean: torch.Tensor, logvar: torch.Tensor, target: torch.Tensor
     return (torch.exp(logvar).detach() * nll).mean(dim=(1, 2, 3, 4))      # (K,)
 
 
+def _check_finite(loss: float, epoch: int, epochs: int, step: int, steps: int, lr: float) -> None:
+    if not math.isfinite(loss):
+        raise DivergedError(f"training diverged: the loss is {loss} at epoch {epoch + 1} of {epochs}, step "
+                            f"{step + 1} of {steps} (learning rate {lr:g}); train again with a lower learning rate")
+
+
 def fit(ensemble: Ensemble, windows: Windows, cfg: TrainConfig,
         on_epoch: Callable[[int, float], None] | None = None) -> list[float]:
     """Train all members in place on ``windows`` (horizon 1); returns the mean loss of each epoch.
@@ -98,7 +104,8 @@ def fit(ensemble: Ensemble, windows: Windows, cfg: TrainConfig,
     Every step draws, for each member, its own batch from its own seeded order
     (the same seed gives the same weights), and runs one fused forward/backward.
     The returned losses are the squared error alone, also with a variance head
-    (whose ``variance_loss`` is added to what is minimised).
+    (whose ``variance_loss`` is added to what is minimised). Raises ``DivergedError`` at the first
+    step whose loss is not finite, before it updates the weights (a NaN model is no candidate).
     """
     if windows.horizon != 1:
         raise DataError(f"training needs horizon-1 windows, found horizon {windows.horizon}")
@@ -128,6 +135,7 @@ def fit(ensemble: Ensemble, windows: Windows, cfg: TrainConfig,
                 # Sum over members of each member's mean loss: every member learns as if alone.
                 mse = (pred - tgt[:, :, 0]).pow(2).mean(dim=(1, 2, 3, 4)).sum()
                 loss = mse + variance_loss(pred, logvar, tgt[:, :, 0]).sum() if variance else mse
+                _check_finite(loss.item(), epoch, cfg.epochs, s, steps, cfg.lr)  # before NaN reaches the weights
                 opt.zero_grad(set_to_none=True)
                 loss.backward()
                 if cfg.grad_clip is not None:
@@ -194,37 +202,48 @@ def _horizon_metrics(stats: dict[str, np.ndarray], col: int, h: int) -> dict[str
             f"h{h}_psnr_gain_db": M.psnr_from_mse(m) - M.psnr_from_mse(base)}
 
 
+def _longer_horizons(ensemble: Ensemble, episodes: Sequence[Episode], horizons: Sequence[int], rollout_stride: int,
+                     batch_size: int) -> dict[str, Any]:
+    """The metrics of the horizons past 1, from one rollout as long as the longest that the episodes allow;
+    NaN mse, psnr and ssim for those they are too short for."""
+    out: dict[str, Any] = {}
+    longer = sorted(h for h in horizons if h > 1)
+    while longer:
+        try:
+            wl = build_windows(episodes, ensemble.config, horizon=longer[-1], stride=rollout_stride)
+        except DataError:  # no episode long enough: this horizon is NaN, a shorter one may still be measured
+            h = longer.pop()
+            out.update({f"h{h}_{k}": float("nan") for k in ("mse", "psnr", "ssim")})
+            continue
+        sl = _rollout_stats(ensemble, wl, batch_size)
+        for h in longer:
+            out.update(_horizon_metrics(sl, h - 1, h))
+        out[f"h{longer[-1]}_windows"] = len(wl)
+        break
+    return out
+
+
 def evaluate_episodes(ensemble: Ensemble, episodes: Sequence[Episode], eval_hash: str,
                       horizons: Sequence[int] = (1, 5, 10), rollout_stride: int = 5,
                       batch_size: int = 64) -> dict[str, Any]:
     """Accuracy and calibration of the ensemble mean on ``episodes``.
 
     Horizon 1 uses every window; longer horizons roll each member out on its own
-    predictions from every ``rollout_stride``-th step (NaN when episodes are too
-    short). PSNR is computed from the mean MSE (a copy-last baseline can have zero
+    predictions from every ``rollout_stride``-th step (NaN for a horizon every episode is
+    too short for). PSNR is computed from the mean MSE (a copy-last baseline can have zero
     error on a static frame, which would make per-frame PSNR infinite).
     Calibration: Spearman between per-window disagreement and the mean's error at
     horizon 1, and the sparsification curve with its oracle. With a variance head
     also the same for the total predictive variance (disagreement plus the members'
     mean predicted variance: the variance of the mixture), and the ratio of its
-    mean to the mean error (1 when its scale is right).
+    mean to the mean error (1 when its scale is right; None when the error is 0).
     """
     cfg = ensemble.config
     w1 = build_windows(episodes, cfg, horizon=1)
     s1 = _rollout_stats(ensemble, w1, batch_size, predicted=cfg.predict_variance)
     out: dict[str, Any] = {"eval_split_hash": eval_hash, "eval_episodes": len(episodes), "eval_windows": len(w1)}
     out.update(_horizon_metrics(s1, 0, 1))
-    longer = sorted(h for h in horizons if h > 1)
-    if longer:
-        try:
-            wl = build_windows(episodes, cfg, horizon=longer[-1], stride=rollout_stride)
-            sl = _rollout_stats(ensemble, wl, batch_size)
-            for h in longer:
-                out.update(_horizon_metrics(sl, h - 1, h))
-            out[f"h{longer[-1]}_windows"] = len(wl)
-        except DataError:
-            for h in longer:
-                out.update({f"h{h}_{k}": float("nan") for k in ("mse", "psnr", "ssim")})
+    out.update(_longer_horizons(ensemble, episodes, horizons, rollout_stride, batch_size))
     var, err = s1["var"][:, 0], s1["mse"][:, 0]
     out["spearman"] = M.spearman(var, err)
     curve = M.sparsification(var, err)
@@ -237,16 +256,19 @@ def evaluate_episodes(ensemble: Ensemble, episodes: Sequence[Episode], eval_hash
         out["spearman_total"] = M.spearman(total, err)
         out["sparsification_total"] = M.sparsification(total, err)
         out["sparsification_error_total"] = M.sparsification_error(out["sparsification_total"])
-        out["h1_total_variance_ratio"] = float(total.mean() / err.mean()) if err.mean() > 0 else float("nan")
+        # No error to compare with: None, not NaN, which the gate (it checks every h1_ number) would refuse.
+        out["h1_total_variance_ratio"] = float(total.mean() / err.mean()) if err.mean() > 0 else None
     return out
 
 
 def evaluate(ensemble: Ensemble, catalog: CatalogLike, **kwargs: Any) -> dict[str, Any]:
     """``evaluate_episodes`` on the catalog's pinned eval split (never the train split).
 
-    Raises ``DataError`` when no eval split is pinned.
+    Raises ``DataError`` when no eval split is pinned or the ensemble cannot be evaluated on it
+    (``check_evaluable``).
     """
     episodes, eval_hash = load_eval(catalog)
+    check_evaluable(ensemble.config, episodes)
     return evaluate_episodes(ensemble, episodes, eval_hash, **kwargs)
 
 
@@ -273,7 +295,8 @@ def train_windows(episodes: Sequence[Episode], ensemble: Ensemble, cfg: TrainCon
 def check_evaluable(config: PredictorConfig, eval_episodes: Sequence[Episode]) -> None:
     """Raises ``DataError`` unless a model of ``config`` can be evaluated on ``eval_episodes``.
 
-    Their frames must have the model's size, and that size must hold one SSIM window.
+    Their frames must have the model's size, that size must hold one SSIM window, and one of them at least
+    must be long enough for the model's context frames and a frame to predict.
     """
     sizes = sorted({int(ep.frames.shape[1]) for ep in eval_episodes})
     if sizes != [config.image_size]:
@@ -282,6 +305,11 @@ def check_evaluable(config: PredictorConfig, eval_episodes: Sequence[Episode]) -
     if config.image_size < M.SSIM_WINDOW:
         raise DataError(f"{config.image_size}px frames are too small to evaluate: SSIM needs at least "
                         f"{M.SSIM_WINDOW}x{M.SSIM_WINDOW}")
+    longest = max(len(ep) for ep in eval_episodes)
+    if longest <= config.context:
+        raise DataError(f"the eval split's episodes are too short to evaluate a model of context {config.context}: "
+                        f"the longest has {longest} frame(s), it needs {config.context + 1} (its context frames "
+                        "and the one it predicts)")
 
 
 @dataclass
@@ -398,14 +426,20 @@ def train_candidate(catalog: CatalogLike, registry: ModelRegistry, cfg: TrainCon
     """Train on the train snapshot, evaluate on the eval split, register, and run the gate.
 
     With ``cfg.from_champion`` training starts from the champion (or, when its checkpoint is damaged, where
-    ``starting_point`` says; ``TrainResult.warnings`` tells). Raises ``DataError`` (no train data, no eval
-    split, eval episodes in the snapshot, an eval split the model cannot be evaluated on), ``ConfigError``
-    (warm start without a champion, or from one shaped for other images or without the variance head asked
-    for), ``RegistryUnavailableError`` (a checkpoint to warm-start from cannot be read now) and the
+    ``starting_point`` says; ``TrainResult.warnings`` tells; as it does of train episodes left out, replays of
+    eval episodes and, in a catalog from before it held one frame size, episodes of another size than the eval
+    split's). Raises ``DataError`` (no train data, no eval split, eval episodes in the snapshot, an eval split
+    the model cannot be evaluated on), ``ConfigError`` (warm start without a champion, or from one shaped for
+    other images or without the variance head asked for), ``DivergedError`` (a non-finite loss: nothing is
+    registered), ``RegistryUnavailableError`` (a checkpoint to warm-start from cannot be read now) and the
     registry's errors.
     """
-    data = load_train(catalog, cfg.max_episodes)
-    eval_episodes, eval_hash = load_eval(catalog)
+    pinned = catalog.eval_split() is not None  # without one, load_train's errors (no train episodes) come first
+    eval_episodes, eval_hash = load_eval(catalog) if pinned else ([], "")
+    sizes = {int(ep.frames.shape[1]) for ep in eval_episodes}  # more than one: check_evaluable refuses the split
+    data = load_train(catalog, cfg.max_episodes, image_size=min(sizes) if len(sizes) == 1 else None)
+    if not pinned:
+        eval_episodes, eval_hash = load_eval(catalog)  # raises DataError: no eval split is pinned
     ensemble, record, warnings = starting_point(registry, cfg, data.episodes)
     check_evaluable(ensemble.config, eval_episodes)  # before training, not after it
     windows = train_windows(data.episodes, ensemble, cfg)
@@ -414,6 +448,7 @@ def train_candidate(catalog: CatalogLike, registry: ModelRegistry, cfg: TrainCon
     train_s = time.perf_counter() - start
     metrics = evaluate_episodes(ensemble, eval_episodes, eval_hash, rollout_stride=cfg.eval_rollout_stride)
     metrics.update({"train_episodes": len(data.episodes), "train_replays_left_out": len(data.replays),
+                    "train_other_size_left_out": len(data.other_size),
                     "train_windows": len(windows),
                     "train_seconds": round(train_s, 2), "train_threads": torch.get_num_threads(),
                     "train_loss": losses[-1], "epochs": cfg.epochs} | record)

@@ -138,7 +138,7 @@ def _train(args: argparse.Namespace) -> int:
         common.print_json(strict_json({"version": result.version, "metrics": result.metrics,
                                         "decision": result.decision.to_json(), "losses": result.losses,
                                         "champion": champion, "abandoned": abandoned,
-                                        "quarantined": result.quarantined}))
+                                        "quarantined": result.quarantined, "warnings": result.warnings}))
         return 0
     if abandoned:
         print(abandoned_note(abandoned))
@@ -233,8 +233,14 @@ def _score(args: argparse.Namespace) -> int:
     if args.json:
         common.print_json(strict_json(score.to_json()))
         return 0
-    print(f"episode {score.episode_id} ({len(score.per_step)} steps, {episode.meta.shape}) scored by "
-          f"{score.model_version}: mean disagreement {num(score.mean)} (horizon {score.horizon})")
+    about = (f"episode {score.episode_id} ({len(score.per_step)} steps, {episode.meta.shape}) scored by "
+             f"{score.model_version}")
+    c = ensemble.config.context
+    if len(score.per_step) < c + score.horizon:  # (--json says the same with a null per step)
+        print(f"{about}: no step to score: each needs the model's {c} context frames and {score.horizon} more to "
+              f"predict ({c + score.horizon} in all), the episode has {len(score.per_step)}")
+        return 0
+    print(f"{about}: mean disagreement {num(score.mean)} (horizon {score.horizon})")
     for s in score.top:
         agent, obj = s.state.get("agent", ()), s.state.get("object", ())
         print(f"  step {s.step:4d}  score {num(s.score):>10}  agent {_fmt_xy(agent)}  object {_fmt_xy(obj)}")

@@ -163,7 +163,7 @@ def test_a_model_the_eval_split_cannot_evaluate_is_refused_before_training(tmp_p
     cat.pin_eval_split([cat.add_episode(make_episode(50, "T", steps=8, size=32), split="eval").episode_id])
     registry = ModelRegistry(tmp_path)
     cfg = TrainConfig(epochs=1, **TINY)
-    with pytest.raises(DataError, match="32px frames, the model 16px"):
+    with pytest.raises(DataError, match="no train episode has the eval split's 32px frames: 1 of another size"):
         train_candidate(cat, registry, cfg)
     assert registry.list() == []  # refused before any training or registration
 
