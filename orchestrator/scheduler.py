@@ -43,6 +43,7 @@ from croniter import CroniterBadDateError, croniter
 
 from orchestrator.retrainlock import EXIT_BUSY, JOB_ENV, NOTES_ENV, read_job_notes, read_lock_info
 from storage.errors import StorageError
+from storage.files import age_s
 from storage.models import ModelRegistry, ModelStatus
 
 log = logging.getLogger(__name__)
@@ -99,6 +100,13 @@ def cron_problem(expr: str) -> str | None:
     except CroniterBadDateError:
         return f"cron {expr!r} never fires: no date matches it"
     return None
+
+
+#: Retrain records kept in ``RetrainScheduler.history`` (the dashboard's table, ``run``'s report): a service that
+#: runs for months keeps the newest; every model stays in the registry (``models ls``).
+HISTORY_KEPT = 500
+#: Jobs whose logs (``logs/retrain-*.log`` and ``.log.out``) are kept: older ones are deleted as jobs finish.
+LOGS_KEPT = 200
 
 
 @dataclass
@@ -176,6 +184,8 @@ class RetrainScheduler:
         self.on_finished = on_finished
         self.command = command
         self.history: list[RetrainRecord] = []
+        """The newest ``HISTORY_KEPT`` jobs, oldest first."""
+        self._jobs = 0  # started by this scheduler (its log names' suffix)
         self._lock = threading.Lock()
         self._proc: subprocess.Popen | None = None
         self._current: RetrainRecord | None = None
@@ -284,7 +294,8 @@ class RetrainScheduler:
         self._last_count = episodes
         logs = self.data_dir / "logs"
         rec = RetrainRecord(trigger=trigger, started=time.time(), episodes=episodes, job=secrets.token_hex(8))
-        rec.log_path = str(logs / f"retrain-{time.strftime('%Y%m%dT%H%M%S')}-{len(self.history)}.log")
+        self._jobs += 1
+        rec.log_path = str(logs / f"retrain-{time.strftime('%Y%m%dT%H%M%S')}-{self._jobs}.log")
         try:
             logs.mkdir(parents=True, exist_ok=True)
             with open(rec.log_path + ".out", "wb") as out, open(rec.log_path, "wb") as err:
@@ -295,16 +306,32 @@ class RetrainScheduler:
             rec.finished, rec.status = time.time(), RetrainStatus.failed
             rec.reason = f"could not start the retrain job: {exc}"
             with self._lock:
-                self.history.append(rec)
+                self._remember(rec)
             log.error("retrain failed: %s", rec.reason)
             self.on_finished(rec)
             return rec
         with self._lock:
             self._proc, self._current = proc, rec
             self._deadline = time.monotonic() + self.cfg.timeout_s
-            self.history.append(rec)
+            self._remember(rec)
         log.info("retrain started (%s, %d episodes, pid %d)", trigger, episodes, proc.pid)
         return rec
+
+    def _remember(self, rec: RetrainRecord) -> None:
+        """Under ``_lock``: ``rec`` at the end of ``history``, which keeps the newest ``HISTORY_KEPT``."""
+        self.history.append(rec)
+        del self.history[:-HISTORY_KEPT]
+
+    def _prune_logs(self, current: RetrainRecord) -> None:
+        """Delete the logs of all but the newest ``LOGS_KEPT`` jobs (by modification time; never ``current``'s)."""
+        now = time.time()
+        logs = sorted(self.data_dir.glob("logs/retrain-*.log"), key=lambda p: (-age_s(p, now), p.name))
+        for old in logs[:-LOGS_KEPT]:
+            if str(old) == current.log_path:
+                continue
+            for path in (old, Path(f"{old}.out")):
+                with contextlib.suppress(OSError):
+                    path.unlink(missing_ok=True)
 
     def _reap(self, block_s: float = 0.0) -> None:
         with self._lock:
@@ -374,6 +401,7 @@ class RetrainScheduler:
             log.warning("retrain %s: %s", rec.version or "-", quarantined_note([str(i) for i in result["quarantined"]]))
         for line in (result.get("warnings") or []) if reported else []:  # e.g. a warm start past a damaged champion
             log.warning("retrain %s: %s", rec.version or "-", line)
+        self._prune_logs(rec)
         if rec.status is RetrainStatus.promoted:
             self.on_promoted(rec.version)
         self.on_finished(rec)

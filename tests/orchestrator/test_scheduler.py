@@ -404,3 +404,22 @@ def test_jobs_train_with_the_threads_the_schedule_gives_unless_their_own_args_sa
         assert sched.wait_idle(timeout=240)
         assert rec.status in (RetrainStatus.promoted, RetrainStatus.rejected), rec.reason
         assert rec.metrics["train_threads"] == threads
+
+
+def test_a_long_lived_scheduler_keeps_the_newest_records_and_job_logs(tmp_path, monkeypatch):
+    """A service retraining for months: its history (the dashboard's table) and logs/ keep the newest jobs only."""
+    import orchestrator.scheduler as scheduler
+    monkeypatch.setattr(scheduler, "HISTORY_KEPT", 3)
+    monkeypatch.setattr(scheduler, "LOGS_KEPT", 2)
+    sched = RetrainScheduler(ScheduleConfig(), tmp_path, Counter(), command=script_command(REJECTS))
+    (tmp_path / "logs").mkdir()
+    (tmp_path / "logs" / "run-w0.log").write_text("a worker's log is not a retrain's")
+    started = []
+    for _ in range(5):
+        sched.request()
+        started.append(sched.tick())
+        assert started[-1] is not None and sched.wait_idle(timeout=60)
+    assert sched.history == started[-3:] and all(r.status is RetrainStatus.rejected for r in started)
+    kept = sorted(p.name for p in (tmp_path / "logs").iterdir())
+    assert kept == sorted([Path(r.log_path).name for r in started[-2:]] + [Path(r.log_path).name + ".out"
+                                                                            for r in started[-2:]] + ["run-w0.log"])
