@@ -31,17 +31,23 @@ from urllib.parse import urlsplit
 
 from orchestrator.dashboard_page import render_page
 from orchestrator.metrics import ServiceMetrics
-from storage.database import disk_json
+from orchestrator.storagehealth import StorageHealth
+from storage.database import DB_NAME, disk_json
 from storage.catalog import Catalog
+from storage.errors import CatalogError, StorageError, StorageUnavailableError
 from storage.models import ModelRegistry
 from storage.queue import RequestQueue
 
 log = logging.getLogger(__name__)
 
 PROMETHEUS_CONTENT_TYPE = "text/plain; version=0.0.4; charset=utf-8"
+_TEXT = "text/plain; charset=utf-8"
 SERVER_NAME = "activecollect-dashboard"
 """The ``Server`` header: no version of this package or of Python for a scanner to match."""
 
+
+#: What a 503 for a data directory that cannot be read now (busy, locked, a full disk) asks a client to wait.
+RETRY_AFTER_S = 5
 
 #: The longest request timeout (a day): sockets refuse timeouts past ~9e9 s, and every connection's
 #: handler would die on one.
@@ -159,6 +165,8 @@ class Dashboard:
         self.sources = sources
         self._server: ThreadingHTTPServer | None = None
         self._thread: threading.Thread | None = None
+        # a page refreshing every few seconds meets a broken data directory on every read: said once a minute
+        self._health = StorageHealth(log)
 
     @property
     def url(self) -> str:
@@ -182,6 +190,25 @@ class Dashboard:
             self._thread.join()
         self._server = self._thread = None
 
+    def answer(self, path: str) -> tuple[int, str, bytes, dict[str, str]]:
+        """(status, content type, body, extra headers) for a GET of ``path``: ``route``'s, or its failure in one
+        line. A data directory that cannot be read is a 503 (``Retry-After``) when that passes (busy, locked,
+        full), else a 500, warned of at most once a minute per path; anything else is a bug of ours, logged
+        with its traceback."""
+        try:
+            status, ctype, body = self.route(path)
+        except StorageError as exc:
+            self._health.read_failed(f"{path} for the dashboard", exc)
+            if isinstance(exc, StorageUnavailableError):
+                return 503, _TEXT, f"{exc}\n".encode(), {"Retry-After": str(RETRY_AFTER_S)}
+            return 500, _TEXT, f"{exc}\n".encode(), {}
+        except Exception as exc:  # one broken source must not take the page down; it is logged
+            log.exception("dashboard %s failed", path)
+            return 500, _TEXT, f"{type(exc).__name__}: {exc}\n".encode(), {}
+        if status == 200:  # only the known paths: a scan of made-up ones must not grow what is remembered
+            self._health.read_worked(f"{path} for the dashboard")
+        return status, ctype, body, {}
+
     def route(self, path: str) -> tuple[int, str, bytes]:
         """(status, content type, body) for a GET of ``path``."""
         src = self.sources
@@ -200,7 +227,7 @@ class Dashboard:
         }
         if path in api:
             return 200, "application/json", json.dumps(_finite(api[path]()), default=str).encode()
-        return 404, "text/plain; charset=utf-8", f"no such page: {path}\n".encode()
+        return 404, _TEXT, f"no such page: {path}\n".encode()
 
 
 class _DeadlineReader(io.RawIOBase):
@@ -264,12 +291,7 @@ class _Handler(BaseHTTPRequestHandler):
         except ValueError as exc:  # e.g. "GET http://[x/": not a URL
             self._send(400, "text/plain; charset=utf-8", f"bad request path: {exc}\n".encode())
             return
-        try:
-            status, ctype, body = self.dashboard.route(path)
-        except Exception as exc:  # one broken source must not take the page down; it is logged
-            log.exception("dashboard %s failed", path)
-            status, ctype, body = 500, "text/plain; charset=utf-8", f"{type(exc).__name__}: {exc}\n".encode()
-        self._send(status, ctype, body)
+        self._send(*self.dashboard.answer(path))
 
     do_HEAD = do_GET  # noqa: N815 (the same headers; _send leaves the body out)
 
@@ -324,7 +346,8 @@ class DataSources:
     """
 
     data_dir: Path
-    workers: Callable[[], list[dict]] = lambda: []
+    workers: Callable[[], list[dict]] | None = None
+    """The live workers; None (no service here) leaves ``workers_alive`` unknown (null), not 0."""
     metrics_text: Callable[[], str] | None = None
     retrains: Callable[[], list[dict]] = lambda: []
     frames_png: Callable[[], bytes] = lambda: b""
@@ -333,13 +356,18 @@ class DataSources:
     @contextmanager
     def _stores(self) -> Iterator[tuple[Catalog, RequestQueue, ModelRegistry]]:
         """The data directory's stores for one read, the queue's connections closed after it: http.server runs
-        each connection on a new thread, so stores kept per thread held their files open until the GC ran."""
+        each connection on a new thread, so stores kept per thread held their files open until the GC ran.
+        CatalogError when the catalog is not there (the directory moved, removed, its disk unmounted): opening
+        the stores would make a new empty one, and the page would show an empty fleet."""
+        if not (Path(self.data_dir) / DB_NAME).is_file():
+            raise CatalogError(f"no catalog at {self.data_dir}: was the data directory moved or removed, or its "
+                               f"disk unmounted? (the dashboard only reads; it creates none)")
         catalog = Catalog(self.data_dir)
         with RequestQueue(catalog.db_path) as queue:
             yield catalog, queue, ModelRegistry(self.data_dir)
 
     def sources(self) -> DashboardSources:
-        return DashboardSources(stats=self.stats, queue=self.queue, workers=self.workers, models=self.models,
+        return DashboardSources(stats=self.stats, queue=self.queue, workers=self.workers or list, models=self.models,
                                 curve=self.curve, metrics_text=self.metrics_text or self.data_metrics,
                                 frames_png=self.frames_png)
 
@@ -360,7 +388,8 @@ class DataSources:
             counts = queue.counts()
         retrains = self.retrains()
         return {"episodes": episodes,
-                "budget": self.budget, "queue": counts, "workers_alive": len(self.workers()),
+                "budget": self.budget, "queue": counts,
+                "workers_alive": None if self.workers is None else len(self.workers()),
                 "champion": champion, "champion_h1_mse": h1, "champion_problem": problem,
                 "disk": disk_json(self.data_dir),
                 "retrains": len(retrains), "last_retrain": retrains[-1] if retrains else None}

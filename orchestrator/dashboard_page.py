@@ -32,7 +32,7 @@ PAGE = """<!doctype html>
  <div class="card">done<b id="q-done">-</b></div>
  <div class="card">dead<b id="q-dead">-</b></div>
  <div class="card">cancelled<b id="q-cancelled">-</b></div>
- <div class="card">workers alive<b id="workers-alive">-</b></div>
+ <div class="card">workers alive<b id="workers-alive">-</b><span id="workers-note" class="muted"></span></div>
  <div class="card">champion<b id="champion">-</b><span id="champion-error" class="muted"></span></div>
  <div class="card">last retrain<b id="last-retrain">-</b><span id="last-retrain-reason" class="muted"></span></div>
  <div class="card">disk free<b id="disk-free">-</b><span id="disk-size" class="muted"></span></div>
@@ -63,7 +63,9 @@ function fill(tableId, rows, build) { const body = document.querySelector("#" + 
     try { build(tr, r); } catch (err) { tr.replaceChildren(); cell(tr, "unreadable row: " + err.message); }
     body.appendChild(tr); } }
 async function getJSON(path) { const r = await fetch(path, {cache: "no-store"});
-  if (!r.ok) throw new Error(path + " answered " + r.status); return r.json(); }
+  // the server's one line says why (no catalog, a locked or damaged database), not only the status
+  if (!r.ok) throw new Error(path + " answered " + r.status + ": " + (await r.text()).trim().slice(0, 300));
+  return r.json(); }
 let lastChampion = null;
 function drawCurve(points) {
   const svg = document.getElementById("curve"); svg.replaceChildren();
@@ -95,7 +97,9 @@ async function refresh() {
     const held = stats.episodes.quarantined ? stats.episodes.quarantined + " quarantined" : "";
     text("budget", [stats.budget ? "of " + stats.budget : "", held].filter(Boolean).join(" \u00b7 "));
     for (const s of ["queued", "leased", "done", "dead", "cancelled"]) text("q-" + s, queue.counts[s] || 0);
-    text("workers-alive", workers.workers.length);
+    // null: a dashboard over a data directory, without the service, knows no workers (not "0 alive")
+    text("workers-alive", stats.workers_alive ?? "-");
+    text("workers-note", stats.workers_alive === null ? "unknown here: see `activecollect workers ls`" : "");
     text("champion", models.champion || "none");
     text("champion-error", stats.champion_problem ? "weights damaged: cannot be served"
       : stats.champion_h1_mse === null ? "" : "h1 MSE " + fmt(stats.champion_h1_mse));

@@ -359,16 +359,38 @@ def cmd_watch(args: argparse.Namespace) -> int:
         with _session(args) as session:
             admin_call(session, keys, "stats", {}, args.timeout, secure=_secure_profile(args))
             sub = session.declare_subscriber(keys.events_all, lambda s: _print_event(s, args.json, seen))
+            querier, listener = _follow_service(session, keys)
             if not args.json:
                 print(f"watching {keys.events_all} (Ctrl-C to stop)", flush=True)
             try:
                 for _ in range(args.count or sys.maxsize):
                     seen.acquire()
             finally:
+                listener.undeclare()
+                querier.undeclare()
                 sub.undeclare()
     except (_NoService, ProtocolError) as exc:
         return _failed(exc, "stats")
     return 0
+
+
+def _follow_service(session: zenoh.Session, keys: Keys) -> tuple[zenoh.Querier, Any]:
+    """A querier on the service's admin key and its matching listener, which says on stderr when no service
+    serves it any more (stopped, restarting, cut off) and when one does again: from its events alone, a service
+    that went away looks like a quiet one. Returns both, to undeclare."""
+    key = keys.admin("stats")
+    there = [True]  # watch follows once a service has answered
+
+    def changed(status: Any) -> None:
+        if status.matching == there[0]:  # the listener's first call says what is already known
+            return
+        there[0] = status.matching
+        print(f"# a service answers on {key} again; its events follow" if status.matching else
+              f"# no service answers on {key} any more (stopped, restarting or cut off); still watching",
+              file=sys.stderr, flush=True)
+
+    querier = session.declare_querier(key)
+    return querier, querier.declare_matching_listener(changed)
 
 
 def _print_event(sample: zenoh.Sample, as_json: bool, seen: threading.Semaphore) -> None:

@@ -478,3 +478,16 @@ def test_whole_loop_through_the_secure_router(secure_router, tmp_path, capsys):
         if worker is not None:
             worker.stop()
         service.stop()
+
+
+def test_the_operator_sees_whether_the_orchestrator_serves_admin(secure_router, sessions):
+    """`watch` says when no service answers any more by a querier's matching status: the secure profile's rules
+    must let the operator see the orchestrator's admin queryable come and go."""
+    orch, operator = (open_role(secure_router, r) for r in ("orchestrator", "operator"))
+    sessions += [orch, operator]
+    querier = operator.declare_querier(KEYS.admin("stats"))
+    sessions.append(querier)
+    queryable = _serve(orch, KEYS.admin_all, b"admin", [])
+    wait_for(lambda: querier.matching_status.matching, 10, "the operator to see the admin queryable")
+    queryable.undeclare()
+    wait_for(lambda: not querier.matching_status.matching, 10, "the operator to see it go")
