@@ -105,7 +105,7 @@ def run_from_args(args: argparse.Namespace) -> int:
         print(f"{prog}: error: {protocol.one_line(str(exc))}", file=sys.stderr)  # a path may hold a newline
         return 2
     worker.install_signal_handlers()
-    if early := startup.taken():  # (python -m workers.agent: came during its imports, before these handlers)
+    if early := startup.taken():  # (came during the imports of python -m workers.agent or activecollect worker)
         log.info("worker %s: %s while starting, before it held any request: exiting", worker.config.worker_id,
                  early[0].name)
         return 0

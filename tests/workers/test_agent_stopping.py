@@ -49,6 +49,19 @@ def test_a_signal_while_the_worker_starts_ends_it_cleanly_in_one_line(spawn_work
     assert len(lines) == 1 and f"worker S: {sig.name} while starting" in lines[0], lines
 
 
+@pytest.mark.parametrize("sig", [signal.SIGUSR1, signal.SIGTERM], ids=lambda s: s.name)
+def test_a_signal_while_activecollect_worker_starts_ends_it_cleanly_in_one_line(spawn, endpoint, namespace,
+                                                                                 sig) -> None:
+    """The same through the `activecollect` command (`python -m orchestrator`, whose console script is the same
+    entry point), whose imports (torch among them) take longer: the old one died of the signal (exit -10, -15)."""
+    w = spawn("worker-A", "worker", "--connect", endpoint, "--namespace", namespace, "--id", "A", "--size", "16")
+    wait_for(lambda: importing_numpy(w.pid), timeout=30, message="the worker to import numpy", interval=0.002)
+    w.signal(sig)
+    assert w.wait(60) == 0, w.log()
+    lines = w.log().strip().splitlines()
+    assert len(lines) == 1 and f"worker A: {sig.name} while starting" in lines[0], lines
+
+
 @pytest.mark.parametrize("service_answers", [True, False], ids=["release answered", "release unanswered"])
 def test_a_second_stop_signal_drops_the_episode_in_collection_at_once(make_service, spawn_worker, data_dir,
                                                                       service_answers) -> None:
@@ -67,9 +80,7 @@ def test_a_second_stop_signal_drops_the_episode_in_collection_at_once(make_servi
         wait_for(lambda: f"leased {request.id}" in w.log(), timeout=30, message="the worker to start collecting")
         send(w, signal.SIGTERM, "draining:")
         send(w, signal.SIGTERM, "stopping now")
-        started = time.monotonic()
-        assert w.wait(10) == 1, w.log()
-        assert time.monotonic() - started < 5, w.log()  # the release waits 2 s at most
+        assert w.wait(10) == 1, w.log()  # (the release waits 2 s at most; the old worker collected on, exit 0)
     finally:
         go.set()
     log = w.log()
@@ -95,9 +106,7 @@ def test_a_stopping_worker_does_not_retry_a_failure_report_nobody_answers(make_s
     try:
         wait_for(lambda: "fail: no reply" in w.log(), timeout=30, message="the worker to retry its report")
         send(w, signal.SIGUSR1, "draining:")
-        started = time.monotonic()
-        assert w.wait(10) == 0, w.log()  # the report in flight waits out its --timeout at most
-        assert time.monotonic() - started < 5, w.log()
+        assert w.wait(10) == 0, w.log()  # the report in flight waits out its --timeout at most (old: ~100 s)
     finally:
         go.set()
     log = w.log()
@@ -119,5 +128,6 @@ def test_a_drained_worker_does_not_wait_long_for_a_renewal_nobody_answers(make_s
     wait_for(lambda: f"uploaded {request.id}" in w.log(), timeout=40, message="the upload")
     started = time.monotonic()
     assert w.wait(10) == 0, w.log()
-    assert time.monotonic() - started < 5, w.log()  # (the renewal in flight waits until 20 s)
+    # (the old worker waited for the renewal in flight, ~9 s more; the new one 2 s at most: a wide margin)
+    assert time.monotonic() - started < 7, w.log()
     assert service.queue.get(request.id).status == RequestStatus.DONE
