@@ -64,10 +64,12 @@ def on_stop_signals(handler: Callable[[], None], sigint: bool = True,
 
     threading.Thread(target=watch, name="stop-signals", daemon=True).start()
     previous = {sig: signal.getsignal(sig) for sig in sigs}
+    # The wake-up fd before the handlers: a signal between the two then reaches the watcher (and a handler there
+    # was, e.g. workers.startup's); the other way round it would reach only _noted, and be lost.
+    previous_fd = signal.set_wakeup_fd(write_fd, warn_on_full_buffer=False)
     # The Python-level handler does nothing: the C-level one has written the wake-up byte already.
     for sig in sigs:
         signal.signal(sig, _noted)
-    previous_fd = signal.set_wakeup_fd(write_fd, warn_on_full_buffer=False)
     restored = False
 
     def restore() -> None:
