@@ -44,6 +44,8 @@ distance and the greedy pick are ``orchestrator.diversity``'s.
 
 from __future__ import annotations
 
+import dataclasses
+import logging
 import math
 from collections import deque
 from dataclasses import dataclass, field
@@ -53,6 +55,7 @@ import numpy as np
 
 from orchestrator import protocol
 from orchestrator.diversity import Candidate, episode_features, select_diverse
+from orchestrator.messages import RequestSpec
 from orchestrator.shapeprogress import ShapeProgress
 from orchestrator.uniform import MIX_POLICIES, UniformPlanner, UniformPlannerConfig, agent_away_from
 from storage.requests import NewRequest
@@ -60,6 +63,8 @@ from storage.records import STATE_COLUMN as _COL, Episode
 
 if TYPE_CHECKING:  # only for a type hint: the planner needs no catalog of its own
     from storage.catalog import Catalog
+
+log = logging.getLogger(__name__)
 
 
 class Planner(Protocol):
@@ -240,6 +245,7 @@ class ActivePlanner:
         self.progress = ShapeProgress(cfg.progress_memory)
         self.shape_quotas: dict[str, int] = {}
         """With ``shapes_by_progress``: the last round's requests per shape."""
+        self._refused: set[str] = set()  # the RequestSpec fields dropped requests failed (each warned of once)
 
     def seed(self, n: int, why: str = "seed") -> list[NewRequest]:
         """Uniform requests: before any model exists there is nothing to be uncertain about (and when
@@ -287,9 +293,11 @@ class ActivePlanner:
                                            repeats=self.cfg.repeats), {}
         requests = []
         for cand in chosen:
-            self._requested.append(cand.features)
-            self._requested_steps.append((cand.episode.meta.episode_id, cand.step))
-            requests.append(self._request(cand, versions[id(cand.episode)]))
+            request = self._request(cand, versions[id(cand.episode)])
+            if self._valid(request, cand):  # (one dropped was not requested: it keeps no other state away)
+                self._requested.append(cand.features)
+                self._requested_steps.append((cand.episode.meta.episode_id, cand.step))
+                requests.append(request)
         requests += [self.uniform.draw_request("shape-fill", shape) for shape, n in short.items() for _ in range(n)]
         requests += [self.uniform.draw_request("explore") for _ in range(n_explore)]
         return requests + self._shape_floor(requests, budget)
@@ -309,6 +317,20 @@ class ActivePlanner:
     def _collected(self, episodes: Sequence[Episode]) -> list[Episode]:
         """``episodes`` less the eval split's."""
         return [ep for ep in episodes if not self.is_eval(ep.meta.episode_id)]
+
+    def _valid(self, request: NewRequest, cand: Candidate) -> bool:
+        """Whether ``request`` passes ``RequestSpec`` (as a worker's grant must): an ingested or older episode's
+        state may not (an angle or physics out of bounds); it is dropped then, not left to die. Warned once a field."""
+        try:
+            RequestSpec(**dataclasses.asdict(request))
+            return True
+        except protocol.ProtocolError as exc:
+            where = exc.message.split(":", 1)[0]  # the field (RequestSpec's: a bounded set)
+            said = logging.DEBUG if where in self._refused else logging.WARNING
+            log.log(said, "no request for step %d of episode %s: %s (said once per field)", cand.step,
+                    protocol.one_line(cand.episode.meta.episode_id), exc.message)
+            self._refused.add(where)
+            return False
 
     def _by_progress(self, scored: list[tuple[Episode, Scores]], candidates: list[Candidate],
                 k: int) -> tuple[list[Candidate], dict[str, int]]:
@@ -432,12 +454,12 @@ class ActivePlanner:
             reason["shape_quotas"] = dict(self.shape_quotas)
         if self.cfg.choose_policy:
             reason["policy_weights"] = {n: round(w, 4) for n, w in self.policy_weights().items()}
+        # relative to the threshold, so requests from different champions compare; bounded (a threshold near 0)
+        priority = max(-protocol.MAX_PRIORITY, min(round(cand.score / scale, 6), protocol.MAX_PRIORITY))
         return NewRequest(
             task=ep.meta.task, shape=ep.meta.shape, start_state=start,
             policy=policy, policy_params=params, action_prefix=prefix, steps=self.cfg.steps,
-            # relative to the threshold, so requests from different champions compare
-            priority=round(cand.score / scale, 6),
-            reason=reason, idempotency_key=f"active:{ep.meta.episode_id}:{step}",
+            priority=priority, reason=reason, idempotency_key=f"active:{ep.meta.episode_id}:{step}",
         )
 
 

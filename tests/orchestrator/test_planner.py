@@ -24,16 +24,20 @@ COL = {n: i for i, n in enumerate(STATE_FIELDS)}
 
 def make_episode(rng: np.random.Generator, steps: int = 20, shape: str = "T", size: int = 16,
                  jitter: float = 60.0) -> Episode:
-    """A synthetic episode whose object wanders from a random start (so steps differ in state)."""
+    """A synthetic episode whose object wanders from a random start (so steps differ in state), within the world
+    (as the walls keep a real one), with its first state as its start state."""
     states = np.zeros((steps, len(STATE_FIELDS)))
     start = rng.uniform(150, 350, size=4)
     walk = np.cumsum(rng.normal(0, jitter / math.sqrt(steps), size=(steps, 4)), axis=0)
-    states[:, COL["obj_x"]], states[:, COL["obj_y"]] = start[0] + walk[:, 0], start[1] + walk[:, 1]
-    states[:, COL["agent_x"]], states[:, COL["agent_y"]] = start[2] + walk[:, 2], start[3] + walk[:, 3]
+    pos = np.clip(start + walk, 0.0, protocol.WORLD_SIZE)
+    states[:, COL["obj_x"]], states[:, COL["obj_y"]] = pos[:, 0], pos[:, 1]
+    states[:, COL["agent_x"]], states[:, COL["agent_y"]] = pos[:, 2], pos[:, 3]
     states[:, COL["obj_theta"]] = np.linspace(0, 1.5 * jitter / 60.0, steps)
-    meta = EpisodeMeta(episode_id=f"ep{rng.integers(1 << 40):x}", task="push", shape=shape,
-                       physics={"mass": 1.0, "friction": 0.6, "ground_friction": 1.0}, seed=0,
-                       policy="push", start_state={"shape": shape}, image_size=size)
+    physics = {"mass": 1.0, "friction": 0.6, "ground_friction": 1.0}
+    start_state = {"shape": shape, "agent": pos[0, 2:].tolist(), "object": [*pos[0, :2].tolist(), 0.0],
+                   "physics": physics}
+    meta = EpisodeMeta(episode_id=f"ep{rng.integers(1 << 40):x}", task="push", shape=shape, physics=physics,
+                       seed=0, policy="push", start_state=start_state, image_size=size)
     frames = rng.integers(0, 255, size=(steps, size, size, 3), dtype=np.uint8)
     actions = rng.uniform(0, 512, size=(steps, 2)).astype(np.float32)
     return Episode(meta=meta, frames=frames, actions=actions, states=states)
