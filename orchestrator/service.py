@@ -253,8 +253,10 @@ class Service:
             return protocol.error_reply(ErrorCode.NO_WORK, "no queued request matches "
                                         f"tasks={req.tasks or 'any'} shapes={req.shapes or 'any'}")
         r = lease.request
-        # Built as a dict, not a LeaseGrant: the request was validated when it was queued, the
-        # worker validates the grant it receives, and dataclass round trips cost ~100 us per lease.
+        # Built as a dict, not a LeaseGrant: the request was checked before it was queued (an operator's by
+        # RequestSpec; the active planner's too, as it may start from an ingested episode's state; uniform draws
+        # are in bounds by construction), the worker validates the grant it receives, and dataclass round
+        # trips cost ~100 us per lease.
         grant = {"request_id": r.id, "task": r.task, "shape": r.shape, "start_state": r.start_state,
                  "policy": r.policy, "policy_params": r.policy_params, "action_prefix": r.action_prefix,
                  "steps": r.steps, "model_version": str(r.reason.get("model_version") or ""),

@@ -92,13 +92,26 @@ class StorageHealth:
         except StorageError as exc:
             self.read_failed(what, exc)
             return None
-        except Exception:  # noqa: BLE001 -- see the docstring; it is logged
-            self._log.exception("reading %s failed", what)
+        except Exception as exc:  # noqa: BLE001 -- see the docstring; it is logged
+            self._raised(what, exc)
             return None
         self.read_worked(what)
         return value
 
-    def read_failed(self, what: str, exc: StorageError) -> None:
+    def _raised(self, what: str, exc: Exception) -> None:
+        """Reading ``what`` raised something other than a StorageError (a bug in a planner or a gauge): its traceback
+        the first time, then ``read_failed``'s warning at most every ``warn_every_s`` while it goes on failing."""
+        with self._lock:
+            first = what not in self._reads
+            if first:
+                self._reads[what] = (self._clock(), 0)
+        if first:
+            self._log.error("reading %s failed (its traceback once; while it goes on failing, a line at most every "
+                            "%g s)", what, self._warn_every_s, exc_info=exc)
+        else:
+            self.read_failed(what, f"{type(exc).__name__}: {exc}")
+
+    def read_failed(self, what: str, exc: StorageError | str) -> None:
         """Reading ``what`` failed: a warning, unless one for ``what`` was given less than ``warn_every_s`` ago."""
         now = self._clock()
         with self._lock:

@@ -54,6 +54,29 @@ def test_a_read_returns_its_value_or_none(caplog) -> None:
     assert "reading x failed" in caplog.text and "ValueError: a bug" in caplog.text
 
 
+def test_a_read_that_keeps_raising_shows_its_traceback_once_then_a_line_a_period(caplog) -> None:
+    """A planner with a bug raises on every batch, for weeks: one traceback, not one per batch."""
+    clock, log = Clock(), logging.getLogger("test.storagehealth")
+    health = StorageHealth(log, warn_every_s=60.0, clock=clock)
+
+    def broken() -> int:
+        raise ValueError("a bug")
+
+    with caplog.at_level(logging.INFO, logger="test.storagehealth"):
+        for _ in range(5):
+            assert health.read("what the planner plans with", broken) is None
+            clock.now += 20
+        assert health.read("what the planner plans with", lambda: 3) == 3
+    lines = [(r.levelname, r.getMessage(), r.exc_info is not None) for r in caplog.records]
+    assert lines == [
+        ("ERROR", "reading what the planner plans with failed (its traceback once; while it goes on failing, a line "
+                  "at most every 60 s)", True),
+        ("WARNING", "cannot read what the planner plans with: ValueError: a bug (2 more failure(s) since the last "
+                    "warning); nothing was changed and leases run as usual (said at most every 60 s while it fails)",
+         False),
+        ("INFO", "reading what the planner plans with works again", False)], lines
+
+
 def test_a_write_outage_is_said_once_and_timed(caplog) -> None:
     clock = Clock()
     health = StorageHealth(logging.getLogger("test.storagehealth"), clock=clock)
