@@ -19,7 +19,7 @@ from orchestrator import protocol
 from orchestrator.metrics import SPLITS  # the splits ``stats`` counts episodes of
 from orchestrator.messages import AdminRequest, Event, RequestSpec
 from orchestrator.protocol import ErrorCode, EventKind, ProtocolError
-from storage.database import disk_json
+from storage.database import disk_json, quarantine_bytes
 from storage.errors import QueueError, StaleLeaseError, StorageError, StorageUnavailableError
 from storage.models import ModelStatus
 from storage.queue import RequestQueue
@@ -32,7 +32,7 @@ MAX_LIST = 200
 #: same, or it is refused (a retry is answered with the first request; a reused key is a mistake). Priority
 #: and reason are left out: ``queue.prioritize`` may have changed the one, and the other only explains.
 _SAME_ASK = ("task", "shape", "start_state", "policy", "policy_params", "action_prefix", "steps", "max_attempts")
-#: Encoded bytes the rows of one ``queue.ls`` / ``models.ls`` reply may take: a request summary may
+#: Encoded bytes the rows of one ``queue.ls`` / ``models.ls`` / ``workers.ls`` reply may take: a request summary may
 #: carry 16 KB each of reason, policy_params and start_state, so MAX_LIST of them would not fit in
 #: MAX_MESSAGE_BYTES. What is left is for the counts and the envelope; rows past it are left out
 #: and the reply says ``"truncated": true``.
@@ -206,25 +206,29 @@ def _refuse_other_ask(spec: RequestSpec, request: Request) -> None:
 
 
 def _workers_ls(queue: RequestQueue, workers: Callable[[], Iterable[str]] | None) -> dict[str, Any]:
-    alive = _worker_ids(workers)
+    alive = set(_worker_ids(workers))
     leases: dict[str, list[str]] = {w: [] for w in alive}
     for request in queue.list(status=RequestStatus.LEASED):
         leases.setdefault(request.worker_id or "", []).append(request.id)
-    return {"workers": [{"id": w, "alive": w in alive, "leases": sorted(ids)} for w, ids in sorted(leases.items())]}
+    rows = [{"id": w, "alive": w in alive, "leases": sorted(ids)} for w, ids in sorted(leases.items())]
+    # when they do not all fit, those holding leases do first (a dead one's is a lease nobody renews)
+    kept, truncated = _fit(sorted(rows, key=lambda row: not row["leases"]))
+    return {"workers": sorted(kept, key=lambda row: row["id"]), "truncated": truncated, "total": len(rows)}
 
 
 def _stats(queue: RequestQueue, catalog: Any, registry: Any,
            workers: Callable[[], Iterable[str]] | None) -> dict[str, Any]:
-    episodes = disk = None
+    episodes = disk = held = None
     if catalog is not None:
         episodes = {split: catalog.count(split=split) for split in SPLITS}
         episodes["total"] = catalog.count()
         episodes["quarantined"] = catalog.count(quarantined=True)
         disk = disk_json(catalog.data_dir)
+        held = quarantine_bytes(catalog.data_dir)  # a walk, asked for by an operator (not on every scrape)
     champion = registry.champion() if registry is not None else None
     return {"requests": queue.counts(), "episodes": episodes, "champion": champion,
             "champion_problem": registry.weights_problem(champion) if champion is not None else None,
-            "workers": len(_worker_ids(workers)), "disk": disk}
+            "workers": len(_worker_ids(workers)), "disk": disk, "quarantine_bytes": held}
 
 
 def _models_ls(args: Mapping[str, Any], registry: Any) -> dict[str, Any]:

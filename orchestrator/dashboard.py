@@ -22,7 +22,7 @@ import sys
 import threading
 import time
 from contextlib import contextmanager
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from http import HTTPStatus
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
@@ -137,6 +137,7 @@ class _Server(ThreadingHTTPServer):
 _BUSY_BODY = b"the dashboard is serving too many connections; retry in a second\n"
 _BUSY = (b"HTTP/1.0 503 Service Unavailable\r\n"
          b"Server: " + SERVER_NAME.encode() + b"\r\n"
+         b"X-Content-Type-Options: nosniff\r\n"
          b"Retry-After: 1\r\n"
          b"Content-Type: text/plain; charset=utf-8\r\n"
          b"Content-Length: " + str(len(_BUSY_BODY)).encode() + b"\r\n"
@@ -285,6 +286,12 @@ class _Handler(BaseHTTPRequestHandler):
     def version_string(self) -> str:
         return self.server_version  # the base class appends Python's version
 
+    def end_headers(self) -> None:
+        # every answer, the base class's own errors too: a browser must not read a body that echoes the path
+        # (a 404's) as HTML or script
+        self.send_header("X-Content-Type-Options", "nosniff")
+        super().end_headers()
+
     def do_GET(self) -> None:  # noqa: N802 (http.server's naming)
         try:
             path = urlsplit(self.path).path
@@ -352,6 +359,9 @@ class DataSources:
     retrains: Callable[[], list[dict]] = lambda: []
     frames_png: Callable[[], bytes] = lambda: b""
     budget: int = 0
+    gauges: ServiceMetrics = field(default_factory=ServiceMetrics)
+    """The store gauges ``/metrics`` shows without a service, kept between requests: the space of
+    ``DATA/quarantine/`` is walked again only every ``metrics.QUARANTINE_WALK_S``, not per request."""
 
     @contextmanager
     def _stores(self) -> Iterator[tuple[Catalog, RequestQueue, ModelRegistry]]:
@@ -373,10 +383,9 @@ class DataSources:
 
     def data_metrics(self) -> str:
         """Prometheus text of the gauges read from the data directory (a dashboard without a service)."""
-        metrics = ServiceMetrics()
         with self._stores() as (catalog, queue, registry):
-            metrics.read_stores(queue, catalog, registry)
-        return metrics.render_stores()
+            self.gauges.read_stores(queue, catalog, registry)
+        return self.gauges.render_stores()
 
     def stats(self) -> dict:
         with self._stores() as (catalog, queue, registry):
@@ -387,7 +396,7 @@ class DataSources:
                         "quarantined": catalog.count(quarantined=True)}
             counts = queue.counts()
         retrains = self.retrains()
-        return {"episodes": episodes,
+        return {"episodes": episodes, "quarantine_bytes": self.gauges.quarantine_space.read(self.data_dir),
                 "budget": self.budget, "queue": counts,
                 "workers_alive": None if self.workers is None else len(self.workers()),
                 "champion": champion, "champion_h1_mse": h1, "champion_problem": problem,

@@ -94,7 +94,9 @@ async function refresh() {
     const [stats, queue, models, workers, curve] = await Promise.all(
       ["/api/stats", "/api/queue", "/api/models", "/api/workers", "/api/curve"].map(getJSON));
     text("episodes", stats.episodes.train);
-    const held = stats.episodes.quarantined ? stats.episodes.quarantined + " quarantined" : "";
+    const space = typeof stats.quarantine_bytes === "number" && stats.quarantine_bytes > 0
+      ? " (" + (stats.quarantine_bytes / 1e6).toFixed(1) + " MB)" : "";
+    const held = stats.episodes.quarantined ? stats.episodes.quarantined + " quarantined" + space : "";
     text("budget", [stats.budget ? "of " + stats.budget : "", held].filter(Boolean).join(" \u00b7 "));
     for (const s of ["queued", "leased", "done", "dead", "cancelled"]) text("q-" + s, queue.counts[s] || 0);
     // null: a dashboard over a data directory, without the service, knows no workers (not "0 alive")

@@ -13,12 +13,13 @@ import threading
 import time
 from collections.abc import Iterable, Iterator, Mapping
 from contextlib import contextmanager
+from pathlib import Path
 from typing import Any
 
 from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram
 from prometheus_client.exposition import CONTENT_TYPE_PLAIN_0_0_4, generate_latest
 
-from storage.database import disk_json
+from storage.database import disk_json, quarantine_bytes
 
 #: The Content-Type header to send with ``render()``'s text (names are legacy-valid, so the 0.0.4
 #: text format is exact; prometheus_client's "latest" would announce 1.0.0).
@@ -31,6 +32,9 @@ QUEUE_STATUSES: tuple[str, ...] = ("queued", "leased", "done", "dead", "cancelle
 SPLITS: tuple[str, ...] = ("train", "eval")
 UPLOAD_RESULTS: tuple[str, ...] = ("stored", "duplicate", "refused")
 RETRAIN_OUTCOMES: tuple[str, ...] = ("promoted", "rejected", "busy", "failed")
+#: Who sent a refused message: a worker (lease, renew, fail, release, upload) or an operator (an admin query,
+#: whose typo, an unknown request id say, an alert on the workers' refusals must not count).
+REFUSAL_SOURCES: tuple[str, ...] = ("worker", "operator")
 
 
 def retrain_outcome(status: str) -> str:
@@ -41,9 +45,12 @@ def retrain_outcome(status: str) -> str:
 #: Scoring one episode takes milliseconds (tiny CPU model) to seconds (big model, slow host).
 SCORING_BUCKETS: tuple[float, ...] = (0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0, 30.0)
 #: The gauges ``read_stores`` sets: all that a process without the service knows (see ``render_stores``).
-STORE_GAUGES: tuple[str, ...] = ("queue_depth", "episodes", "episodes_quarantined", "champion_h1_mse",
-                                 "champion_weights_damaged", "champion_info", "data_disk_free_bytes",
-                                 "data_disk_size_bytes")
+STORE_GAUGES: tuple[str, ...] = ("queue_depth", "episodes", "episodes_quarantined", "quarantine_bytes",
+                                 "champion_h1_mse", "champion_weights_damaged", "champion_info",
+                                 "data_disk_free_bytes", "data_disk_size_bytes")
+#: How long the space of ``DATA/quarantine/`` is taken as read: the service reads the stores every
+#: ``reap_interval_s`` (a second) and a dashboard on every request, and each walk stats every file kept there.
+QUARANTINE_WALK_S = 60.0
 
 
 def _check(value: str, allowed: Iterable[str], what: str) -> str:
@@ -53,13 +60,33 @@ def _check(value: str, allowed: Iterable[str], what: str) -> str:
     return value
 
 
+class QuarantineSpace:
+    """``storage.database.quarantine_bytes`` of a data directory, walked again only once ``every_s`` have passed
+    since the last walk (thread-safe: callers at once wait for one walk)."""
+
+    def __init__(self, every_s: float = QUARANTINE_WALK_S) -> None:
+        self.every_s = every_s
+        self._lock = threading.Lock()
+        self._walked: tuple[float, Path, int | None] | None = None  # (when, of which directory, bytes)
+
+    def read(self, data_dir: str | Path) -> int | None:
+        """The bytes the files in ``data_dir``'s quarantine take (None: it cannot be read)."""
+        with self._lock:
+            now, data_dir = time.monotonic(), Path(data_dir)
+            if self._walked is None or self._walked[1] != data_dir or now - self._walked[0] >= self.every_s:
+                self._walked = (now, data_dir, quarantine_bytes(data_dir))
+            return self._walked[2]
+
+
 class ServiceMetrics:
     """The counters, gauges and histograms the service and dashboard report.
 
-    Parameters: ``registry`` to register into (a fresh ``CollectorRegistry`` when None).
+    Parameters: ``registry`` to register into (a fresh ``CollectorRegistry`` when None); ``quarantine_walk_s``,
+    how long ``read_stores`` keeps the space of ``DATA/quarantine/`` before walking it again.
     """
 
-    def __init__(self, registry: CollectorRegistry | None = None) -> None:
+    def __init__(self, registry: CollectorRegistry | None = None,
+                 quarantine_walk_s: float = QUARANTINE_WALK_S) -> None:
         self.registry = registry if registry is not None else CollectorRegistry(auto_describe=True)
         r, ns = self.registry, NAMESPACE
         self.queue_depth = Gauge("queue_depth", "Collection requests in the queue, by status.",
@@ -67,8 +94,9 @@ class ServiceMetrics:
         self.leases = Counter("leases", "Leases handed to workers.", namespace=ns, registry=r)
         self.uploads = Counter("uploads", "Episode uploads, by result (stored, duplicate, refused).",
                                ["result"], namespace=ns, registry=r)
-        self.refusals = Counter("refusals", "Inbound messages refused, by reason (protocol error code).",
-                                ["reason"], namespace=ns, registry=r)
+        self.refusals = Counter("refusals", "Inbound messages refused, by reason (protocol error code) and source "
+                                "(worker: the collection protocol; operator: an admin query).",
+                                ["reason", "source"], namespace=ns, registry=r)
         self.retrains = Counter("retrains", "Retrain jobs finished, by outcome (promoted, rejected, failed).",
                                 ["outcome"], namespace=ns, registry=r)
         self.scoring_seconds = Histogram("scoring_seconds", "Time to score one episode with the champion.",
@@ -80,6 +108,11 @@ class ServiceMetrics:
         self.episodes_quarantined = Gauge("episodes_quarantined", "Episodes taken out of training because their "
                                           "files were found missing or damaged, or an operator rejected them.",
                                           namespace=ns, registry=r)
+        self.quarantine_bytes = Gauge("quarantine_bytes", "Bytes the files of quarantined episodes take in DATA/"
+                                      f"quarantine/ (walked again at most every {quarantine_walk_s:g} s).",
+                                      namespace=ns, registry=r)
+        self.quarantine_bytes.set(float("nan"))  # unknown until read
+        self.quarantine_space = QuarantineSpace(quarantine_walk_s)
         self.champion_h1_mse = Gauge("champion_h1_mse", "The champion's horizon-1 MSE on the eval split.",
                                      namespace=ns, registry=r)
         self.champion_weights_damaged = Gauge("champion_weights_damaged", "1 when the champion's weights are "
@@ -115,11 +148,12 @@ class ServiceMetrics:
         """Count one upload; ``result`` is one of ``UPLOAD_RESULTS`` (ValueError otherwise)."""
         self.uploads.labels(result=_check(result, UPLOAD_RESULTS, "upload result")).inc()
 
-    def refusal(self, reason: str) -> None:
-        """Count one refused message; ``reason`` should be a short code (``bad_sha256``), not a message."""
+    def refusal(self, reason: str, source: str = "worker") -> None:
+        """Count one refused message; ``reason`` should be a short code (``bad_sha256``), not a message; ``source``
+        is one of ``REFUSAL_SOURCES`` (ValueError otherwise)."""
         if not reason:
             raise ValueError("refusal reason must be a non-empty code, found ''")
-        self.refusals.labels(reason=reason).inc()
+        self.refusals.labels(reason=reason, source=_check(source, REFUSAL_SOURCES, "refusal source")).inc()
 
     def retrain(self, outcome: str) -> None:
         """Count one finished retrain; ``outcome`` is one of ``RETRAIN_OUTCOMES`` (ValueError otherwise)."""
@@ -167,8 +201,8 @@ class ServiceMetrics:
         self.disk_size_bytes.set(float("nan") if disk is None else disk["size_bytes"])
 
     def read_stores(self, queue: Any, catalog: Any, registry: Any) -> None:
-        """Set the gauges the data directory holds: queue depth, episodes per split, the champion, and the
-        free space of its disk.
+        """Set the gauges the data directory holds: queue depth, episodes per split, how many are quarantined
+        and the space their files take, the champion, and the free space of its disk.
 
         ``queue``, ``catalog`` and ``registry`` are a RequestQueue, Catalog and ModelRegistry (any
         process may have changed them: a retrain job, ``train``, ``models promote``).
@@ -176,6 +210,8 @@ class ServiceMetrics:
         self.set_queue_depth(queue.counts())
         self.set_episodes({split: catalog.count(split=split) for split in SPLITS})
         self.episodes_quarantined.set(catalog.count(quarantined=True))
+        space = self.quarantine_space.read(catalog.data_dir)
+        self.quarantine_bytes.set(float("nan") if space is None else space)
         self.set_disk(disk_json(catalog.data_dir))
         champion = registry.champion()
         h1 = registry.get(champion).metrics.get("h1_mse") if champion is not None else None

@@ -153,7 +153,7 @@ class Service:
         self._servers = [self._serve(k.lease, self._lease, fast), self._serve(k.renew, self._renew, fast),
                          self._serve(k.fail, self._fail, fast), self._serve(k.release, self._release, fast),
                          self._serve(k.upload, self._uploads.handle, cfg.handler_threads),
-                         self._serve(k.admin_all, self._admin, 2)]
+                         self._serve(k.admin_all, self._admin, 2, source="operator")]
         self._liveliness_sub = self.session.liveliness().declare_subscriber(
             k.workers_all, self._on_liveliness, history=True)
         log.info("serving namespace %s (listen %s, connect %s, data %s)", cfg.namespace,
@@ -221,19 +221,21 @@ class Service:
 
     # --- query handlers ------------------------------------------------------------------------
 
-    def _serve(self, key: str, handler: Callable[[Incoming], bytes], threads: int) -> transport.Server:
-        """A Server for ``handler``: a ProtocolError becomes its error reply (and counts as a refusal)."""
+    def _serve(self, key: str, handler: Callable[[Incoming], bytes], threads: int,
+               source: str = "worker") -> transport.Server:
+        """A Server for ``handler``: a ProtocolError becomes its error reply (and counts as a refusal from
+        ``source``, one of ``metrics.REFUSAL_SOURCES``)."""
 
         def answer(msg: Incoming) -> Response:
             try:
                 return Response(handler(msg))
             except ProtocolError as exc:
-                self.metrics.refusal(exc.code.value)
+                self.metrics.refusal(exc.code.value, source)
                 log.info("refused %s: %s", msg.key, protocol.one_line(str(exc)))  # peer text: no forged lines
                 return Response(exc.reply())
 
         def crashed(code: str, message: str) -> bytes:  # a bug in a handler: logged by the Server
-            self.metrics.refusal(code)
+            self.metrics.refusal(code, source)
             return protocol.error_reply(code, message)
 
         return transport.Server(self.session, key, answer, threads, error_body=crashed)

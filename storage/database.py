@@ -14,6 +14,7 @@ that level is at most N (a file without one counts as its own version's), and re
 from __future__ import annotations
 
 import errno
+import os
 import shutil
 import sqlite3
 from collections.abc import Callable, Iterator, Sequence
@@ -121,6 +122,30 @@ def disk_json(path: str | Path) -> dict[str, int] | None:
     return None if space is None else {"free_bytes": space[1], "size_bytes": space[2]}
 
 
+def quarantine_bytes(data_dir: str | Path) -> int | None:
+    """Bytes the files in ``DATA/quarantine/`` take (0 when it holds none): what ``stats``, the dashboard and
+    ``/metrics`` report beside how many episodes are quarantined. None when it cannot be read. A walk, one stat
+    per file kept there: callers that ask often keep the answer a while (``orchestrator.metrics``)."""
+    total, folders = 0, [Path(data_dir) / QUARANTINE_DIR]
+    try:
+        while folders:
+            try:
+                entries = list(os.scandir(folders.pop()))
+            except FileNotFoundError:  # none yet, or emptied and removed meanwhile
+                continue
+            for entry in entries:
+                try:
+                    if entry.is_dir(follow_symlinks=False):
+                        folders.append(entry.path)
+                    elif entry.is_file(follow_symlinks=False):
+                        total += entry.stat(follow_symlinks=False).st_size
+                except FileNotFoundError:  # restored or re-ingested meanwhile: no longer there
+                    continue
+    except OSError:
+        return None
+    return total
+
+
 def storage_error(exc: sqlite3.Error | OSError, error: type[StorageError], message: str,
                   path: str | Path) -> StorageError:
     """``error(message)``, or its ``...UnavailableError`` subclass when ``exc`` is a condition that passes
@@ -170,9 +195,30 @@ def configure(conn: sqlite3.Connection, busy_timeout_ms: int, synchronous: str) 
     """The settings every connection that may write the file needs: busy timeout, WAL, ``synchronous``,
     and ``JOURNAL_SIZE_LIMIT`` (the writer that starts the WAL over is the one that cuts it back)."""
     conn.execute(f"PRAGMA busy_timeout = {busy_timeout_ms}")
-    conn.execute("PRAGMA journal_mode = WAL")  # the first statement to read the file: not a database?
+    _use_wal(conn, busy_timeout_ms)
     conn.execute(f"PRAGMA synchronous = {synchronous}")
     conn.execute(f"PRAGMA journal_size_limit = {JOURNAL_SIZE_LIMIT}")
+
+
+def _use_wal(conn: sqlite3.Connection, busy_timeout_ms: int) -> None:
+    """The file in WAL mode, as every catalog is from its creation. One in another journal mode (written by
+    another tool: sqlite3's ``.dump`` into a new file, say) is converted when that can be done at once; one that
+    cannot be written (read-only storage) or that another connection is reading is used in its own mode, so a
+    reader (``stats``, the dashboard) is not refused, nor kept waiting the busy timeout for a lock only the
+    conversion needs (a write then meets the same condition, and says so)."""
+    if conn.execute("PRAGMA journal_mode").fetchone()[0] == "wal":  # the first read of the file: not a database?
+        return
+    if not conn.execute("PRAGMA page_count").fetchone()[0]:  # a new file: made WAL, as any write would wait
+        conn.execute("PRAGMA journal_mode = WAL")
+        return
+    conn.execute("PRAGMA busy_timeout = 0")
+    try:
+        conn.execute("PRAGMA journal_mode = WAL")
+    except sqlite3.Error as exc:
+        if not is_transient(exc):
+            raise
+    finally:
+        conn.execute(f"PRAGMA busy_timeout = {busy_timeout_ms}")
 
 
 @contextmanager

@@ -16,7 +16,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from orchestrator.cli import common
-from orchestrator.cli.registry import fail, model_data_dir, num, resolve_model, strict_json
+from orchestrator.cli.registry import SPEARMAN_UNDEFINED, fail, model_data_dir, num, resolve_model, strict_json
 from orchestrator.retrainlock import EXIT_BUSY, RetrainBusyError
 from orchestrator.scheduler import quarantined_note
 from storage.catalog import Catalog
@@ -159,10 +159,11 @@ def _print_eval(m: dict[str, Any]) -> None:
             print(f"eval h{h:<2}  mse {num(m.get(f'h{h}_mse')):>10}  psnr {num(m.get(f'h{h}_psnr'), '.2f'):>6} dB  "
                   f"ssim {num(m.get(f'h{h}_ssim'), '.3f'):>6}  | copy-last mse "
                   f"{num(m.get(f'baseline_h{h}_mse')):>10}  psnr {num(m.get(f'baseline_h{h}_psnr'), '.2f'):>6} dB")
-    print(f"calibration: spearman(disagreement, error) {num(m.get('spearman'), '.3f')}, "
+    print(f"calibration: spearman(disagreement, error) {num(m.get('spearman'), '.3f', SPEARMAN_UNDEFINED)}, "
           f"on {m.get('eval_episodes')} eval episodes ({m.get('eval_windows')} windows)")
     if "spearman_total" in m:
-        print(f"calibration: spearman(total predictive variance, error) {num(m.get('spearman_total'), '.3f')}, "
+        total = num(m.get("spearman_total"), ".3f", SPEARMAN_UNDEFINED)
+        print(f"calibration: spearman(total predictive variance, error) {total}, "
               f"its mean / mean error {num(m.get('h1_total_variance_ratio'), '.2f')}")
 
 

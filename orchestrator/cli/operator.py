@@ -328,14 +328,18 @@ def cmd_workers_ls(args: argparse.Namespace) -> int:
         print(f"{'WORKER':32} {'ALIVE':5} LEASES")
         for w in body["workers"]:
             print(f"{w['id']:32} {'yes' if w['alive'] else 'no':5} {' '.join(w['leases']) or '-'}")
+        if body.get("truncated"):  # (absent from older services)
+            print(f"list cut at {len(body['workers'])} of {body['total']} workers to fit in one reply: those "
+                  "holding leases first, then the others by id; `queue ls --status leased` lists the leases")
     return _print_op(args, "workers.ls", {}, show)
 
 
 def cmd_stats(args: argparse.Namespace) -> int:
     def show(body: dict[str, Any]) -> None:
         print("requests: " + " ".join(f"{k}={v}" for k, v in body["requests"].items()))
-        episodes = body.get("episodes") or {}
-        print("episodes: " + (" ".join(f"{k}={v}" for k, v in episodes.items()) or "-"))
+        episodes, held = body.get("episodes") or {}, body.get("quarantine_bytes")  # (absent from older services)
+        print("episodes: " + (" ".join(f"{k}={v}" for k, v in episodes.items()) or "-")
+              + (f" (their files take {held / 1e6:.1f} MB in DATA/quarantine/)" if held else ""))
         problem = body.get("champion_problem")
         print(f"champion: {body.get('champion') or '-'}" + (f" (CANNOT BE SERVED: {problem})" if problem else ""))
         print(f"workers:  {body.get('workers', 0)} alive")

@@ -108,9 +108,17 @@ def resolve_model(registry: ModelRegistry, version: str) -> ModelRecord:
         raise common.UsageError(str(exc)) from None
 
 
-def num(value: Any, fmt: str = ".5g") -> str:
-    """A number as text, '-' for anything else."""
-    return format(value, fmt) if isinstance(value, (int, float)) and not isinstance(value, bool) else "-"
+#: What a Spearman metric (``spearman``, ``spearman_total``, ...) that has no value shows: the rank correlation
+#: is undefined over fewer than 3 eval windows, or when either side is the same on all of them (``M.spearman``).
+SPEARMAN_UNDEFINED = "undefined (fewer than 3 eval windows, or the score or the error the same on all of them)"
+
+
+def num(value: Any, fmt: str = ".5g", undefined: str = "undefined") -> str:
+    """A number as text; ``undefined`` for NaN (a metric with no value: a Spearman over disagreements that are
+    all equal, say; callers that know why say so here); '-' for anything else (not recorded)."""
+    if not isinstance(value, (int, float)) or isinstance(value, bool):
+        return "-"
+    return undefined if math.isnan(value) else format(value, fmt)
 
 
 # -- models ------------------------------------------------------------------------------------
@@ -185,7 +193,8 @@ def _models_show(args: argparse.Namespace) -> int:
     print("metrics")
     for key in sorted(rec.metrics):
         value = rec.metrics[key]
-        shown = (num(value) if isinstance(value, (int, float)) else
+        why = SPEARMAN_UNDEFINED if key.startswith("spearman") else "undefined"
+        shown = (num(value, undefined=why) if isinstance(value, (int, float)) else
                  f"[{len(value)} values]" if isinstance(value, (list, dict)) else value)
         print(f"  {key:22} {shown}")
     return 0

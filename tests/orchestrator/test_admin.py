@@ -168,7 +168,8 @@ def test_workers_and_stats(queue: RequestQueue, tmp_path: Path) -> None:
     registry = ModelRegistry(tmp_path)
     stats = call("stats", queue=queue, registry=registry, workers=lambda: ["w1"])
     assert stats == {"requests": {"queued": 1, "leased": 2, "done": 0, "dead": 0, "cancelled": 0},
-                     "episodes": None, "champion": None, "champion_problem": None, "workers": 1, "disk": None}
+                     "episodes": None, "champion": None, "champion_problem": None, "workers": 1, "disk": None,
+                     "quarantine_bytes": None}
 
 
 def test_stats_with_a_catalog(queue: RequestQueue, tmp_path: Path) -> None:

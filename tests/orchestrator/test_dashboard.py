@@ -34,6 +34,7 @@ from orchestrator.dashboard import Dashboard, DashboardConfig, DataSources
 from orchestrator.metrics import ServiceMetrics
 from orchestrator.uniform import UniformPlanner, UniformPlannerConfig
 from storage.catalog import Catalog
+from storage.database import quarantine_bytes
 from storage.models import ModelRegistry
 from storage.queue import RequestQueue
 from tests.conftest import run_cli, wait_for
@@ -67,7 +68,7 @@ def dashboard(stores):
         metrics.set_queue_depth(queue.counts())
         return metrics.render()
     src = DataSources(data_dir, workers=lambda: [{"id": "w1", "info": {"shapes": ["T"]}}],
-                      metrics_text=render, budget=40)
+                      metrics_text=render, budget=40, gauges=ServiceMetrics(quarantine_walk_s=0))
     dash = Dashboard(DashboardConfig(port=0, refresh_s=0.2), src.sources())
     dash.start()
     yield dash, queue, registry
@@ -448,7 +449,8 @@ def test_page_shows_live_queue_numbers_without_console_errors(dashboard, stores,
     catalog = stores[1]
     catalog.add_episode(make_episode(np.random.default_rng(3)))
     catalog.quarantine(catalog.list()[0].episode_id, "operator: wrong object")
-    wait_for(lambda: browser.evaluate("document.getElementById('budget').textContent") == "of 40 \u00b7 1 quarantined",
+    held = f"of 40 \u00b7 1 quarantined ({quarantine_bytes(catalog.data_dir) / 1e6:.1f} MB)"  # and their files' space
+    wait_for(lambda: browser.evaluate("document.getElementById('budget').textContent") == held,
              message="the quarantined count")
     assert browser.errors() == []
 

@@ -43,8 +43,9 @@ def test_a_dashboard_without_a_service_exports_no_counts_it_cannot_know(tmp_path
     with RequestQueue(catalog.db_path) as queue:
         enqueue_uniform(queue, 2)
     families = {f.name: f for f in text_string_to_metric_families(_served(tmp_path, "metrics").decode())}
-    gauges = {"queue_depth", "episodes", "episodes_quarantined", "champion_h1_mse", "champion_weights_damaged",
-              "champion_info", "data_disk_free_bytes", "data_disk_size_bytes"}  # champion_info: none, no series
+    gauges = {"queue_depth", "episodes", "episodes_quarantined", "quarantine_bytes", "champion_h1_mse",
+              "champion_weights_damaged", "champion_info", "data_disk_free_bytes",
+              "data_disk_size_bytes"}  # champion_info: none, no series
     assert set(families) <= {f"{NAMESPACE}_{name}" for name in gauges}, sorted(families)
     assert families[f"{NAMESPACE}_data_disk_free_bytes"].samples[0].value > 0
     depth = {s.labels["status"]: s.value for s in families[f"{NAMESPACE}_queue_depth"].samples}

@@ -43,8 +43,8 @@ def test_render_parses_and_holds_what_was_recorded() -> None:
     assert s[("activecollect_leases_total", ())] == 3
     assert s[("activecollect_uploads_total", (("result", "stored"),))] == 2
     assert s[("activecollect_uploads_total", (("result", "refused"),))] == 0
-    assert s[("activecollect_refusals_total", (("reason", "bad_sha256"),))] == 1
-    assert s[("activecollect_refusals_total", (("reason", 'we"ird\\label\nvalue'),))] == 1  # escaped
+    assert s[("activecollect_refusals_total", (("reason", "bad_sha256"), ("source", "worker")))] == 1
+    assert s[("activecollect_refusals_total", (("reason", 'we"ird\\label\nvalue'), ("source", "worker")))] == 1
     assert s[("activecollect_retrains_total", (("outcome", "promoted"),))] == 1
     assert s[("activecollect_scoring_seconds_count", ())] == 3
     assert s[("activecollect_scoring_seconds_bucket", (("le", "0.025"),))] >= 1

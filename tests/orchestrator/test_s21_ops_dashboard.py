@@ -102,7 +102,8 @@ def test_the_page_says_workers_are_unknown_and_why_a_refresh_failed(tmp_path: Pa
     with serving(data_dir, refresh_s=0.2) as dash:
         browser.call("Runtime.enable")
         browser.call("Page.navigate", url=dash.url)
-        updated = lambda: browser.evaluate("document.getElementById('updated').textContent")  # noqa: E731
+        # '' until the page is there: an evaluate just after navigate may still meet the blank one before it
+        updated = lambda: browser.evaluate("document.getElementById('updated')?.textContent ?? ''")  # noqa: E731
         wait_for(lambda: updated().startswith("updated"), message="the page's first refresh")
         assert browser.evaluate("document.getElementById('workers-alive').textContent") == "-"
         assert "unknown" in browser.evaluate("document.getElementById('workers-note').textContent")

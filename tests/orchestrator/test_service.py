@@ -266,8 +266,12 @@ def test_admin_ops_and_events(service, client, keys, namespace) -> None:
     assert op("queue.retry", id=rid)["request"]["status"] == "queued"
     assert op("queue.show", id=rid)["request"]["start_state"]["shape"] == "T"
     refused(ErrorCode.UNKNOWN_REQUEST, op, "queue.show", id="nope")
+    # an operator's typo, not a worker's refusal: an alert on source="worker" does not fire on it
+    counted = lambda source: service.metrics.registry.get_sample_value(  # noqa: E731
+        "activecollect_refusals_total", {"reason": "unknown_request", "source": source})
+    assert (counted("operator"), counted("worker")) == (1, None)
     assert op("stats")["requests"]["queued"] == 1
-    assert op("workers.ls") == {"workers": []}
+    assert op("workers.ls") == {"workers": [], "truncated": False, "total": 0}
     wait_for(lambda: {e["kind"] for e in events} >= {"request.queued", "request.prioritized",
                                                       "request.cancelled", "request.retried"},
              message="admin events")

@@ -101,7 +101,7 @@ def test_stats_workers_and_watch(service, cli, endpoint, namespace, capsys) -> N
     assert rc == 0 and "requests: queued=0" in out and "episodes: " in out
     assert re.search(r"^disk: +[\d.]+ GiB free of [\d.]+ GiB \(\d+ %\)$", out, re.M), out
     rc, out, _ = cli("workers", "ls", "--json")
-    assert rc == 0 and json.loads(out) == {"workers": []}
+    assert rc == 0 and json.loads(out) == {"workers": [], "truncated": False, "total": 0}
 
     result: dict = {}
 

@@ -232,7 +232,7 @@ def test_every_refused_upload_is_counted_and_published_once(make_service, client
         return service.metrics.registry.get_sample_value(f"activecollect_{name}", labels) or 0.0
 
     assert sample("uploads_total", result="refused") == len(refusals)
-    assert all(sample("refusals_total", reason=code.value) == 1 for code in refusals)
+    assert all(sample("refusals_total", reason=code.value, source="worker") == 1 for code in refusals)
     assert sample("uploads_total", result="stored") == 1
     wait_for(lambda: len(events) >= len(refusals), message="an episode.rejected event for each refusal")
     sub.undeclare()
