@@ -43,7 +43,7 @@ from orchestrator.service import Service
 from orchestrator.serviceconfig import ServiceConfig
 from orchestrator.signals import on_stop_signals
 from storage.catalog import Catalog
-from storage.models import ModelRegistry
+from storage.models import ModelRegistry, ModelStatus
 from storage.queue import RequestQueue
 from storage.requests import NewRequest
 from storage.records import Episode
@@ -131,6 +131,9 @@ class RunResult:
 
     report: Path
     episodes: int
+    """Training episodes in the catalog (what ``--budget`` counts: earlier runs' too)."""
+    collected: int
+    """Of those, the ones this run added."""
     champion: str | None
     champion_h1_mse: float | None
     retrains: list[dict]
@@ -159,6 +162,8 @@ class LoopRun:
         self.service: Service | None = None
         self.dashboard: Dashboard | None = None
         self._shown: tuple[str, int] = ("", -1)
+        self._at_start: int | None = None
+        """Training episodes in the catalog when this run began (a resumed run's report tells its own apart)."""
         self._terminated = threading.Event()
         """Set by SIGTERM: stop as Ctrl-C does."""
 
@@ -173,9 +178,11 @@ class LoopRun:
         self.catalog = Catalog(cfg.data_dir)
         self.queue = RequestQueue(self.catalog.db_path)
         self.registry = ModelRegistry(cfg.data_dir)
+        self._at_start = self._count()
         self.make_eval_split(self.catalog, cfg.eval_episodes, cfg.eval_seed, cfg.steps, cfg.image_size)
         if self._terminated.is_set():  # (during the eval split: set-up's slow part)
             return
+        self._cancel_leftovers()
         self.scorer = ChampionScorer(cfg.data_dir, observe=self.metrics.observe_scoring)
         rng = np.random.default_rng(cfg.seed + self.catalog.count(split="train"))  # a resumed run draws anew
         depth = lambda: self.queue.counts().get("queued", 0)  # noqa: E731
@@ -203,6 +210,21 @@ class LoopRun:
         self.scheduler.start()
         if cfg.dashboard_port >= 0:
             self._start_dashboard()
+
+    def _cancel_leftovers(self) -> None:
+        """Cancel the queued requests an earlier run (killed, or with a larger ``--round``) or a ``serve`` left beyond
+        the rest of this run's current round within its budget: the loop collects everything queued before it
+        retrains or stops, so they would overshoot both. Leased ones stay (this run's workers have the same ids
+        and take theirs back at once; another's lease runs out and goes back to the queue)."""
+        count, cfg = self._count(), self.cfg
+        round_left = cfg.round_episodes - count % cfg.round_episodes
+        keep = max(0, min(cfg.budget - count, round_left) - self.queue.counts().get("leased", 0))
+        extra = self.queue.list(status="queued")[keep:]  # (in the order they would be leased: the best kept)
+        for request in extra:
+            self.queue.cancel(request.id)
+        if extra:
+            log.warning("cancelled %d queued request(s) left by an earlier run: beyond this run's round or budget "
+                        "(%d training episodes of %d, round of %d)", len(extra), count, cfg.budget, cfg.round_episodes)
 
     def _start_dashboard(self) -> None:
         src = DataSources(self.cfg.data_dir, workers=lambda: [{"id": w} for w in self.service.workers()],
@@ -275,8 +297,10 @@ class LoopRun:
                 self.service.release_claim()
 
     def _trained_on(self) -> int:
-        """The most training episodes any finished retrain saw (this run's or an earlier one's)."""
-        seen = [int(m.metrics.get("train_episodes", 0)) for m in self.registry.list()]
+        """The most training episodes any finished retrain saw (this run's or an earlier one's). A candidate
+        is not finished: its job died before the gate (an earlier run SIGKILLed), and the round is retrained."""
+        seen = [int(m.metrics.get("train_episodes", 0)) for m in self.registry.list()
+                if m.status is not ModelStatus.CANDIDATE]
         seen += [r.episodes for r in self.scheduler.history if r.finished is not None]
         return max(seen, default=0)
 
@@ -379,8 +403,9 @@ class LoopRun:
         h1 = self.registry.get(champion).metrics.get("h1_mse") if champion else None
         retrains = [r.to_json() for r in self.scheduler.history] if hasattr(self, "scheduler") else []
         count = self._count()
-        summary = {"planner": self.cfg.planner, "episodes": count, "budget": self.cfg.budget,
-                   "round_episodes": self.cfg.round_episodes, "workers": self.cfg.workers,
+        collected = 0 if self._at_start is None else count - self._at_start  # (stopped before set-up counted)
+        summary = {"planner": self.cfg.planner, "episodes": count, "collected_this_run": collected,
+                   "budget": self.cfg.budget, "round_episodes": self.cfg.round_episodes, "workers": self.cfg.workers,
                    "image_size": self.cfg.image_size, "steps": self.cfg.steps, "champion": champion,
                    "champion_h1_mse": h1, "retrains": len(retrains), "interrupted": interrupted,
                    "seconds": round(time.time() - start, 1), "queue": self.queue.counts()}
@@ -396,7 +421,7 @@ class LoopRun:
                               eval_sample=[self.catalog.load(i) for i in (split.ids[:3] if split else [])])
         report = write_report(self.cfg.data_dir, inputs)
         self.queue.close()
-        return RunResult(report=report, episodes=count, champion=champion, champion_h1_mse=h1,
+        return RunResult(report=report, episodes=count, collected=collected, champion=champion, champion_h1_mse=h1,
                          retrains=retrains, seconds=summary["seconds"], interrupted=interrupted)
 
 

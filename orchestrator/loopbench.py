@@ -44,6 +44,7 @@ from orchestrator.champion import ChampionScorer
 from orchestrator.loopconfig import HEAD_SIGNALS, LoopBenchConfig
 from orchestrator.planner import ActivePlanner, Planner, Scores, in_eval_split
 from orchestrator.uniform import UniformPlanner
+from orchestrator.report import finite_json
 from orchestrator.retrain import run_retrain
 from storage.catalog import Catalog
 from storage.queue import RequestQueue
@@ -284,5 +285,6 @@ def run_bench(cfg: LoopBenchConfig, out_dir: Path, collect: Collect, make_eval_s
                "transport": "in-process collection (no Zenoh); real queue, catalog, trainer and gate"}
     plot(points, out_dir / "loop.png")
     summary["plot"] = str(out_dir / "loop.png")
-    (out_dir / "summary.json").write_text(json.dumps(summary, indent=2, default=str))
+    # (h5 of episodes too short for it is NaN: null, so that strict parsers read the file)
+    (out_dir / "summary.json").write_text(json.dumps(finite_json(summary), indent=2, default=str, allow_nan=False))
     return summary

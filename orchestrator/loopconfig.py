@@ -68,6 +68,11 @@ class RunConfig:
             raise ValueError(f"image_size must be {TRAINABLE_SIZES}, found {self.image_size}")
         if self.dashboard_port < -1 or self.dashboard_port > 65535:
             raise ValueError(f"dashboard_port must be -1 (off), 0 (any) or a port, found {self.dashboard_port}")
+        if not 0 <= self.zenoh_port <= 65535:
+            raise ValueError(f"zenoh_port must be 0 (any) or a port, found {self.zenoh_port}")
+        for name in ("lease_s", "retrain_timeout_s"):
+            if not getattr(self, name) > 0:  # (NaN too)
+                raise ValueError(f"{name} must be > 0, found {getattr(self, name)}")
 
 
 #: What the active arm ranks steps by: ``disagreement`` (variance over all pixels, as the service's

@@ -1,7 +1,7 @@
 """The run report: an HTML page with PNG plots, written to ``DATA/reports/<timestamp>/``.
 
-Plots: eval error per training episodes collected (every registered model, the
-champions joined by a line), disagreement over object position (the champion's
+Plots: eval error per training episodes the model was trained on (every registered
+model, the champions joined by a line), disagreement over object position (the champion's
 per-step scores on training episodes, at the object's position), and predicted
 versus real frames for a few eval samples. Each plot is a function returning PNG
 bytes, so the dashboard can serve the same pictures.
@@ -29,6 +29,16 @@ from uncertainty.ensemble import Ensemble, episode_windows, frames_to_tensor
 matplotlib.use("Agg")  # no display on servers; Figure() below never needs pyplot's global state
 
 
+#: The learning curve's x axis: what each model's ``train_episodes`` metric counts.
+CURVE_X_LABEL = "training episodes the model was trained on"
+#: The report's names of ``activecollect run``'s summary keys whose bare name says less than they mean (summary.json
+#: keeps the keys): a resumed run's ``episodes`` are the catalog's, its retrains and seconds its own.
+SUMMARY_LABELS = {"planner": "planner (this run)", "episodes": "training episodes (catalog)",
+                  "collected_this_run": "collected by this run", "budget": "budget (training episodes)",
+                  "round_episodes": "episodes per round", "retrains": "retrains (this run)",
+                  "champion_h1_mse": "champion eval h1 MSE", "seconds": "seconds (this run)"}
+
+
 def _png(fig: Figure) -> bytes:
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=100, bbox_inches="tight")
@@ -36,7 +46,13 @@ def _png(fig: Figure) -> bytes:
 
 
 def curve_png(points: Sequence[dict], title: str = "Eval error per training episodes") -> bytes:
-    """Eval MSE (h1, h5) of each model against the training episodes it saw.
+    """Eval MSE (h1, h5) of each model against the training episodes it saw, as PNG (see ``curve_figure``)."""
+    return _png(curve_figure(points, title))
+
+
+def curve_figure(points: Sequence[dict], title: str = "Eval error per training episodes") -> Figure:
+    """Eval MSE (h1, h5) of each model against the training episodes it was trained on (not the episodes
+    collected when it was made: a quarantined episode, or one of another frame size, is left out of training).
 
     ``points``: dicts with episodes, h1_mse, h5_mse, promoted (as ``dashboard.learning_curve``).
     """
@@ -52,7 +68,7 @@ def curve_png(points: Sequence[dict], title: str = "Eval error per training epis
         if champs:
             ax.plot([p["episodes"] for p in champs], [p[key] for p in champs], "o-", color=color,
                     label=f"{key} (promoted)")
-    ax.set_xlabel("training episodes collected")
+    ax.set_xlabel(CURVE_X_LABEL)
     ax.set_ylabel("eval MSE")
     ax.set_title(title)
     ax.grid(alpha=0.3)
@@ -60,7 +76,7 @@ def curve_png(points: Sequence[dict], title: str = "Eval error per training epis
         ax.legend(fontsize=8)
     else:
         ax.text(0.5, 0.5, "no model evaluated yet", ha="center", transform=ax.transAxes)
-    return _png(fig)
+    return fig
 
 
 def disagreement_png(ensemble: Ensemble, episodes: Sequence[Episode]) -> bytes:
@@ -161,20 +177,21 @@ def write_report(data_dir: Path, inputs: ReportInputs, when: float | None = None
     for name, data in images.items():
         (out / name).write_bytes(data)
     summary = {"summary": inputs.summary, "curve": inputs.curve, "retrains": inputs.retrains}
-    (out / "summary.json").write_text(json.dumps(_finite(summary), indent=2, default=str, allow_nan=False))
+    (out / "summary.json").write_text(json.dumps(finite_json(summary), indent=2, default=str, allow_nan=False))
     (out / "index.html").write_text(_html(inputs, images))
     return out / "index.html"
 
 
 def _html(inputs: ReportInputs, images: dict[str, bytes]) -> str:
     esc = html.escape
-    summary = "".join(f"<tr><th>{esc(str(k))}</th><td>{esc(_fmt(v))}</td></tr>" for k, v in inputs.summary.items())
+    summary = "".join(f"<tr><th>{esc(SUMMARY_LABELS.get(str(k), str(k)))}</th><td>{esc(_fmt(v))}</td></tr>"
+                      for k, v in inputs.summary.items())
     retrain_rows = "".join(
         f"<tr><td>{esc(r.get('trigger', ''))}</td><td>{r.get('episodes', '')}</td><td>{esc(str(r.get('status')))}"
         f"</td><td>{esc(r.get('version') or '')}</td><td>{esc(_fmt(r.get('metrics', {}).get('h1_mse')))}</td>"
         f"<td>{esc(_fmt((r.get('finished') or 0) - r.get('started', 0)))}</td><td>{esc(r.get('reason') or '')}</td></tr>"
         for r in inputs.retrains)
-    figs = {"curve.png": "Eval error per training episodes collected",
+    figs = {"curve.png": f"Eval error per {CURVE_X_LABEL}",
             "disagreement.png": "Champion disagreement over object position",
             "frames.png": "Predicted versus real frames (champion, eval episodes)"}
     body = "".join(f"<h2>{esc(title)}</h2><img src='{name}' alt='{esc(title)}'>"
@@ -185,6 +202,7 @@ def _html(inputs: ReportInputs, images: dict[str, bytes]) -> str:
 table{{border-collapse:collapse}}td,th{{border:1px solid #ccc;padding:3px 8px;text-align:left}}
 img{{max-width:100%;border:1px solid #ddd}}</style></head><body>
 <h1>activecollect run report</h1>
+{"".join(f"<p>{esc(line)}</p>" for line in _headline(inputs.summary, inputs.retrains))}
 <table>{summary}</table>
 {body}
 <h2>Retrains</h2>
@@ -194,15 +212,36 @@ img{{max-width:100%;border:1px solid #ddd}}</style></head><body>
 """
 
 
-def _finite(obj: Any) -> Any:
-    """A copy with NaN and infinities as None: a diverged candidate's NaN eval error would make summary.json
-    JSON that strict parsers (browsers, jq) refuse."""
+def _headline(summary: dict[str, Any], retrains: Sequence[dict]) -> list[str]:
+    """What a reader must know before the numbers: a run stopped early, one that resumed an earlier run's
+    catalog, one that has no champion to show or whose champion none of its retrains made."""
+    lines = []
+    if summary.get("interrupted"):
+        lines.append("Interrupted (Ctrl-C or SIGTERM) before the budget was spent: the next run on this data "
+                     "directory resumes from its catalog.")
+    collected, episodes = summary.get("collected_this_run"), summary.get("episodes")
+    if isinstance(collected, int) and isinstance(episodes, int) and collected != episodes:
+        lines.append(f"This run collected {collected} of the catalog's {episodes} training episodes; the rest "
+                     "came before it. Its retrains, time and planner are its own; the learning curve shows "
+                     "every model of the data directory.")
+    if "champion" in summary and not summary["champion"]:
+        lines.append("No champion: no candidate has passed the promotion gate yet (see the retrains below).")
+    elif retrains and not any(r.get("status") == "promoted" for r in retrains):
+        lines.append(f"None of this run's {len(retrains)} retrains was promoted (see below): the champion, "
+                     f"{summary.get('champion')}, is a model made before them.")
+    return lines
+
+
+def finite_json(obj: Any) -> Any:
+    """A copy with NaN and infinities as None: a diverged candidate's NaN eval error, or the h5/h10 error of
+    episodes too short to measure it, would make summary.json (or a command's --json) JSON that strict parsers
+    (browsers, jq) refuse."""
     if isinstance(obj, float):
         return obj if np.isfinite(obj) else None
     if isinstance(obj, dict):
-        return {k: _finite(v) for k, v in obj.items()}
+        return {k: finite_json(v) for k, v in obj.items()}
     if isinstance(obj, (list, tuple)):
-        return [_finite(v) for v in obj]
+        return [finite_json(v) for v in obj]
     return obj
 
 

@@ -282,7 +282,7 @@ def test_a_run_whose_every_retrain_failed_exits_1_saying_so(tmp_path):
                                "--members 2 --epochs 1 --widths 4,4,4 --device cpu"],
                               capture_output=True, text=True, timeout=360)
     assert proc.returncode == 1, proc.stderr[-3000:]
-    assert "done: 4 episodes, 2 retrains (2 busy)" in proc.stdout, proc.stdout
+    assert "done: 4 episodes (4 collected by this run), 2 retrains (2 busy)" in proc.stdout, proc.stdout
     last = proc.stderr.strip().splitlines()[-1]
     assert last.startswith("activecollect run: every retrain of this run failed (2 busy; the last: ") and \
         f"another retrain holds {data / 'retrain.lock'}" in last and last.endswith(f"their logs are in {data / 'logs'}")

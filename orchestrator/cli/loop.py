@@ -261,10 +261,11 @@ def _bench_loop(args: argparse.Namespace) -> int:
     if (out / "summary.json").exists():
         raise common.UsageError(f"{out} already holds a bench loop result; give a fresh --out")
     from orchestrator.loopbench import run_bench  # torch: imported once the arguments are known good (start-up cost)
+    from orchestrator.report import finite_json
     log = (lambda line: print(line, file=sys.stderr, flush=True))
     summary = run_bench(cfg, out, bench_collect, bench_eval_split, log=log)
     if args.json:
-        common.print_json(summary)
+        common.print_json(finite_json(summary))  # (h5 of episodes too short for it is NaN: not JSON)
         return 0
     for metric in ("h1", "h5"):
         h = summary[metric]["headline"]
@@ -412,6 +413,7 @@ def _run(args: argparse.Namespace) -> int:
                                       episodes=cfg.eval_episodes, seed=cfg.eval_seed, steps=cfg.steps,
                                       image_size=cfg.image_size)
     from orchestrator.loop import LoopError, LoopRun  # torch: imported once the arguments are known good
+    from orchestrator.report import finite_json
     run = LoopRun(cfg, bench_eval_split, announce=lambda line: print(line, file=sys.stderr, flush=True))
     try:
         result = run.run()
@@ -421,14 +423,14 @@ def _run(args: argparse.Namespace) -> int:
         print(one_line(f"activecollect run: {exc}"), file=sys.stderr)
         return 1
     if args.json:
-        common.print_json(result.to_json())
+        common.print_json(finite_json(result.to_json()))  # (a retrain's h5/h10 of episodes too short: NaN)
     else:
         h1 = "-" if result.champion_h1_mse is None else f"{result.champion_h1_mse:.4e}"
         outcomes = Counter(r["status"] for r in result.retrains)
         how = f" ({', '.join(f'{n} {status}' for status, n in outcomes.items())})" if outcomes else ""
-        print(f"{'interrupted' if result.interrupted else 'done'}: {result.episodes} episodes, "
-              f"{len(result.retrains)} retrains{how}, champion {result.champion or '-'} (eval h1 MSE {h1}), "
-              f"{result.seconds:.0f} s")
+        print(f"{'interrupted' if result.interrupted else 'done'}: {result.episodes} episodes ({result.collected} "
+              f"collected by this run), {len(result.retrains)} retrains{how}, champion {result.champion or '-'} "
+              f"(eval h1 MSE {h1}), {result.seconds:.0f} s")
         print(f"report: {result.report}")
     if result.interrupted:  # by Ctrl-C or SIGTERM alike, as serve makes no difference between them
         return 130
