@@ -151,8 +151,10 @@ class UploadHandler:
 
     def _duplicate_of(self, request: Request, header: messages.UploadHeader) -> EpisodeRow | None:
         """The row of the episode that completed ``request`` when this is a repeat of that upload (same token,
-        same bytes); None otherwise."""
-        if request.status != RequestStatus.DONE or request.token != header.token or not request.episode_id:
+        same worker, same bytes); None otherwise. Another worker's copy of those bytes is no repeat: it held no
+        such lease, and ``_check_live`` refuses it as stale rather than telling it they were stored for it."""
+        if (request.status != RequestStatus.DONE or request.token != header.token or not request.episode_id
+                or request.worker_id != header.worker_id):
             return None
         row = self.catalog.find(request.episode_id)
         return row if row is not None and row.sha256 == header.sha256 else None
