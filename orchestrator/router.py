@@ -31,6 +31,10 @@ class RouterError(Exception):
     """The router cannot start: bad endpoint, unusable config, port in use. One line."""
 
 
+class RouterStartError(RouterError):
+    """Zenoh cannot open the router's session from a sound config: a port in use, an address not on this host."""
+
+
 @dataclass
 class RouterConfig:
     """What ``activecollect router`` runs."""
@@ -101,7 +105,7 @@ def listen_endpoints(config: zenoh.Config) -> list[str]:
 
 
 class Router:
-    """One Zenoh router session. ``start()`` opens it (raises RouterError), ``stop()`` closes it."""
+    """One Zenoh router session. ``start()`` opens it (raises RouterStartError), ``stop()`` closes it."""
 
     def __init__(self, cfg: RouterConfig) -> None:
         self.cfg = cfg
@@ -113,7 +117,7 @@ class Router:
         try:
             self.session = zenoh.open(self.config)
         except zenoh.ZError as exc:
-            raise RouterError(f"cannot start the router on {', '.join(self.endpoints) or '(none)'}: "
+            raise RouterStartError(f"cannot start the router on {', '.join(self.endpoints) or '(none)'}: "
                               f"{zenoh_error(exc)}") from exc
 
     @property

@@ -1,27 +1,24 @@
 """Zenoh plumbing shared by the service, the workers and the operator CLI.
 
-A leaf module: it imports nothing else of ours, so workers on any host can use
-it. It knows bytes, keys and endpoints, not the JSON messages riding on them
-(those are the business of ``orchestrator.protocol`` and ``orchestrator.messages``).
-The command-line flags that name endpoints, a config file and a timeout live
-in ``orchestrator.endpoints``.
+A leaf module: it imports nothing else of ours, so workers on any host can use it. It knows bytes, keys and
+endpoints, not the JSON messages riding on them (those are the business of ``orchestrator.protocol`` and
+``orchestrator.messages``). The command-line flags that name endpoints, a config file and a timeout live in
+``orchestrator.endpoints``.
 
 Two things about zenoh-python 1.x shape this module:
 
-- A query's *final* reply (the "no more replies" marker) is sent when the
-  ``zenoh.Query`` object is dropped. A query left alive in Python keeps the
-  querier waiting until its timeout, so :class:`Server` replies and then
-  drops every query explicitly, whatever the handler did.
-- A ``get`` towards a key nobody serves (yet) ends at once with no reply, and
-  a ``get`` whose queryable never answers ends at its timeout with a
-  ``ReplyError`` whose payload is ``Timeout``. :func:`request` turns both
-  into :class:`NoReplyError`; the first is retried until the deadline,
-  because declarations propagate asynchronously right after a session opens
-  or a peer reconnects.
+- A query's *final* reply (the "no more replies" marker) is sent when the ``zenoh.Query`` object is dropped. A query
+  left alive in Python keeps the querier waiting until its timeout, so :class:`Server` replies and then drops every
+  query explicitly, whatever the handler did.
+- A ``get`` towards a key nobody serves (yet) ends at once with no reply, and a ``get`` whose queryable never
+  answers ends at its timeout with a ``ReplyError`` whose payload is ``Timeout``. :func:`request` turns both into
+  :class:`NoReplyError`; the first is retried until the deadline, because declarations propagate asynchronously
+  right after a session opens or a peer reconnects.
 """
 
 from __future__ import annotations
 
+import datetime
 import json
 import logging
 import os
@@ -36,6 +33,9 @@ from typing import Any
 
 import json5
 import zenoh
+from cryptography import x509
+from cryptography.exceptions import InvalidSignature
+from cryptography.hazmat.primitives import serialization
 
 log = logging.getLogger(__name__)
 
@@ -55,9 +55,9 @@ class NoReplyError(TransportError):
 class RemoteError(TransportError):
     """The remote side answered with an error reply.
 
-    ``payload`` is the raw error body; ``code`` and ``message`` are read from it
-    when it is a JSON object (``{"code": ..., "message": ...}``, possibly nested
-    under ``"error"``), else ``code`` is ``"remote"`` and ``message`` the text.
+    ``payload`` is the raw error body; ``code`` and ``message`` are read from it when it is a JSON object
+    (``{"code": ..., "message": ...}``, possibly nested under ``"error"``), else ``code`` is ``"remote"`` and
+    ``message`` the text.
     """
 
     def __init__(self, key: str, payload: bytes) -> None:
@@ -130,10 +130,10 @@ def _check_file(config_path: Path, key: str, value: Any) -> Path:
 def validate_secure_config(path: str | os.PathLike[str]) -> list[Path]:
     """Checks a Zenoh JSON5 config before a process starts with it; returns the files it references.
 
-    Every file the config names (TLS CA, certificates and keys, the usrpwd dictionary,
-    pubkey files) must exist and be readable; TLS files must be PEM. A config naming no
-    files passes (it is not a secure profile). Raises SecureConfigError with a one-line
-    message naming the config, the key and the file; CLIs turn it into exit status 2.
+    Every file the config names (TLS CA, certificates and keys, the usrpwd dictionary, pubkey files) must exist and
+    be readable; TLS files must be PEM, and hold certificates a TLS handshake would take (``_check_tls``). A config
+    naming no files passes (it is not a secure profile). Raises SecureConfigError with a one-line message naming
+    the config, the key and the file; CLIs turn it into exit status 2.
     """
     config_path = Path(path)
     return _check_files(config_path, read_config(config_path))
@@ -144,8 +144,7 @@ def read_config(config_path: Path) -> dict[str, Any]:
     try:
         text = config_path.read_text()
     except OSError as exc:
-        raise SecureConfigError(f"cannot read Zenoh config {config_path} "
-                                f"({exc.strerror or exc})") from exc
+        raise SecureConfigError(f"cannot read Zenoh config {config_path} ({exc.strerror or exc})") from exc
     try:
         config = json5.loads(text)
     except ValueError as exc:
@@ -159,8 +158,70 @@ def read_config(config_path: Path) -> dict[str, Any]:
 def _check_files(config_path: Path, config: dict[str, Any]) -> list[Path]:
     checked = [_check_file(config_path, key, value) for key in FILE_KEYS
                if (value := lookup_key(config, key)) is not None]
+    _check_tls(config_path, config)
     return list(dict.fromkeys(checked))  # a file named twice (listen and connect TLS) is one file
 
+
+_TLS = "transport/link/tls/"  # and next: (certificate, its private key) presented when listening, when connecting
+_TLS_PAIRS = tuple((f"{_TLS}{side}_certificate", f"{_TLS}{side}_private_key") for side in ("listen", "connect"))
+
+
+def _check_tls(config_path: Path, config: dict[str, Any]) -> None:
+    """What Zenoh says only as "Unable to connect" after the TLS handshake, said here in one line: certificates past
+    their dates (all in the CA file), a key that is not its certificate's, a certificate naming the CA as its issuer
+    but not signed by it (files of two ``secure init`` runs). One from a CA of another name is left alone."""
+    now = datetime.datetime.now(datetime.timezone.utc)
+    ca_path = lookup_key(config, _TLS + "root_ca_certificate")
+    cas = _read_pem(config_path, _TLS + "root_ca_certificate", ca_path) if ca_path else []
+    if cas and all(_dates_problem(ca, now) for ca in cas):
+        raise SecureConfigError(f"{config_path}: {_TLS}root_ca_certificate -> {ca_path} {_dates_problem(cas[0], now)}")
+    for cert_key, key_key in _TLS_PAIRS:
+        cert_path, key_path = lookup_key(config, cert_key), lookup_key(config, key_key)
+        if not cert_path:
+            continue
+        what = f"{config_path}: {cert_key} -> {cert_path}"
+        cert = _read_pem(config_path, cert_key, cert_path)[0]  # the leaf; its chain may follow it
+        if problem := _dates_problem(cert, now):
+            raise SecureConfigError(f"{what} {problem}")
+        named = [ca for ca in cas if ca.subject == cert.issuer]
+        if named and not any(_signed_by(cert, ca) for ca in named):
+            raise SecureConfigError(f"{what} is not signed by the CA in {ca_path}, which has its issuer's name (files "
+                                    f"of two `secure init` runs mixed? copy this role's files again)")
+        if key_path and _read_pem(config_path, key_key, key_path, _public_of_key) != _spki(cert.public_key()):
+            raise SecureConfigError(f"{config_path}: {key_key} -> {key_path} is not the key of {cert_path}")
+
+
+def _read_pem(config_path: Path, key: str, value: str,
+              load: Callable[[bytes], Any] = x509.load_pem_x509_certificates) -> Any:
+    try:
+        return load(Path(value).expanduser().read_bytes())
+    except (ValueError, TypeError):  # TypeError: an encrypted key, which Zenoh cannot read either
+        raise SecureConfigError(f"{config_path}: {key} -> {value} holds no readable (unencrypted) PEM "
+                                f"{'key' if key.endswith('_key') else 'certificate'}") from None
+
+
+def _dates_problem(cert: x509.Certificate, now: datetime.datetime) -> str:  # ('' when valid)
+    if now > cert.not_valid_after_utc:
+        return f"expired on {cert.not_valid_after_utc:%Y-%m-%d %H:%M} UTC (`secure init --force` renews a profile)"
+    if now < cert.not_valid_before_utc:
+        return f"is not valid before {cert.not_valid_before_utc:%Y-%m-%d %H:%M} UTC (is this host's clock right?)"
+    return ""
+
+
+def _signed_by(cert: x509.Certificate, ca: x509.Certificate) -> bool:
+    try:
+        cert.verify_directly_issued_by(ca)
+    except (ValueError, TypeError, InvalidSignature):
+        return False
+    return True
+
+
+def _public_of_key(pem: bytes) -> bytes:
+    return _spki(serialization.load_pem_private_key(pem, password=None).public_key())
+
+
+def _spki(public_key: Any) -> bytes:
+    return public_key.public_bytes(serialization.Encoding.DER, serialization.PublicFormat.SubjectPublicKeyInfo)
 
 
 @dataclass(frozen=True)
@@ -193,10 +254,8 @@ def _parse_error(payload: bytes) -> tuple[str, str]:
 
 
 def default_error_body(code: str, message: str) -> bytes:
-    """The body :class:`Server` answers with when a handler crashes or a key is a pattern.
-
-    The same shape as ``orchestrator.protocol.error_reply`` (this module may not import it).
-    """
+    """The body :class:`Server` answers with when a handler crashes or a key is a pattern: the same shape as
+    ``orchestrator.protocol.error_reply`` (this module may not import it)."""
     return json.dumps({"v": 1, "ok": False, "error": code, "message": message}).encode()
 
 
@@ -204,11 +263,11 @@ def default_error_body(code: str, message: str) -> bytes:
 
 #: Zenoh's cap on one reassembled message (bytes), checked by the receiver.
 RX_MAX_MESSAGE_SIZE_KEY = "transport/link/rx/max_message_size"
-#: Our value for it: the largest legitimate message is an episode upload, ``MAX_UPLOAD_BYTES``
-#: (64 MiB, ``orchestrator.protocol``, which this leaf may not import) of MCAP plus an attachment
-#: of at most ``MAX_MESSAGE_BYTES`` (256 KiB) and Zenoh's own framing; 1 MiB above the upload
-#: limit covers both. Zenoh's default is 1 GiB, so without it a peer could make the service
-#: buffer a gigabyte before our handler ever answers ``too_large``.
+#: Our value for it: the largest legitimate message is an episode upload, ``MAX_UPLOAD_BYTES`` (64 MiB,
+#: ``orchestrator.protocol``, which this leaf may not import) of MCAP plus an attachment of at most
+#: ``MAX_MESSAGE_BYTES`` (256 KiB) and Zenoh's own framing; 1 MiB above the upload limit covers both. Zenoh's
+#: default is 1 GiB, so without it a peer could make the service buffer a gigabyte before our handler ever
+#: answers ``too_large``.
 RX_MAX_MESSAGE_BYTES = 65 * 1024 * 1024
 
 
@@ -223,23 +282,20 @@ def make_config(mode: str = "peer", listen: Sequence[str] = (), connect: Sequenc
                 config_file: str | Path | None = None) -> zenoh.Config:
     """Build a Zenoh config.
 
-    With ``config_file`` the file (Zenoh's own JSON5 format: routers, TLS,
-    user/password, ACL) is used as written; ``listen``/``connect`` only add
-    endpoints to it and ``mode`` is ignored. Without it: ``mode`` (``peer`` or
-    ``client``), exactly the given endpoints, multicast scouting off (one
-    machine, explicit endpoints; nothing is discovered behind our back).
+    With ``config_file`` the file (Zenoh's own JSON5 format: routers, TLS, user/password, ACL) is used as written;
+    ``listen``/``connect`` only add endpoints to it and ``mode`` is ignored. Without it: ``mode`` (``peer`` or
+    ``client``), exactly the given endpoints, multicast scouting off (one machine, explicit endpoints; nothing is
+    discovered behind our back).
 
     Either way the largest message this process accepts is ``RX_MAX_MESSAGE_BYTES``
-    (``transport/link/rx/max_message_size``), unless the file sets that key itself.
-    Zenoh drops a bigger message while reassembling it, once it has buffered about the cap;
-    the link stays up and nothing tells the sender, whose ``get`` ends at its timeout
-    (:class:`NoReplyError` from :func:`request`). Same-host peers may hand a message
-    over in shared memory, which is not reassembled and so not capped (Zenoh's implicit
-    pool is 16 MiB).
+    (``transport/link/rx/max_message_size``), unless the file sets that key itself. Zenoh drops a bigger message
+    while reassembling it, once it has buffered about the cap; the link stays up and nothing tells the sender, whose
+    ``get`` ends at its timeout (:class:`NoReplyError` from :func:`request`). Same-host peers may hand a message
+    over in shared memory, which is not reassembled and so not capped (Zenoh's implicit pool is 16 MiB).
 
-    Raises ``SecureConfigError`` when a file the config names (CA, certificate, key,
-    password dictionary) is missing or unreadable, ``TransportError`` for an unknown
-    mode or a config file Zenoh refuses.
+    Raises ``SecureConfigError`` when a file the config names (CA, certificate, key, password dictionary) is missing
+    or unreadable or a certificate TLS would refuse, ``TransportError`` for an unknown mode or a config file Zenoh
+    refuses.
     """
     if config_file is not None:
         written = read_config(Path(config_file))
@@ -289,16 +345,36 @@ def _add_endpoints(config: zenoh.Config, section: str, endpoints: Sequence[str])
 
 def open_session(mode: str = "peer", listen: Sequence[str] = (), connect: Sequence[str] = (),
                  config_file: str | Path | None = None) -> zenoh.Session:
-    """Open a Zenoh session from :func:`make_config`'s arguments.
+    """Open a Zenoh session from :func:`make_config`'s arguments; it says when a router link goes and comes back.
 
     Raises ``TransportError`` when Zenoh cannot open it (port in use, bad endpoint).
     """
     config = make_config(mode, listen, connect, config_file)
     try:
-        return zenoh.open(config)
+        session = zenoh.open(config)
     except zenoh.ZError as exc:
         raise TransportError(f"cannot open Zenoh session (listen={list(listen)}, "
                              f"connect={list(connect)}, config={config_file}): {zenoh_error(exc)}") from exc
+    _say_router_links(session)
+    return session
+
+
+def _say_router_links(session: zenoh.Session) -> None:
+    """Warns when the session's link to a Zenoh router goes, and when one is back: Zenoh reconnects by itself and
+    says nothing, while every query meanwhile goes unanswered (and the service takes its workers for gone)."""
+    lost: list[float] = []
+
+    def on_event(event: zenoh.TransportEvent) -> None:
+        if event.transport.whatami != zenoh.WhatAmI.ROUTER:
+            return
+        if event.kind == zenoh.SampleKind.DELETE:
+            lost.append(time.monotonic())
+            log.warning("lost the link to Zenoh router %s; reconnecting", event.transport.zid)
+        elif lost:
+            log.warning("linked to Zenoh router %s again after %.1f s", event.transport.zid, time.monotonic() - lost[0])
+            lost.clear()
+
+    session.info.declare_transport_events_listener(on_event, history=False)  # (a callback's lives with the session)
 
 
 # --------------------------------------------------------------------------- querying
@@ -307,12 +383,10 @@ def request(session: zenoh.Session, key: str, payload: bytes = b"", attachment: 
             timeout: float = 5.0) -> Response:
     """Send one query and return the first reply.
 
-    Waits up to ``timeout`` seconds in all. A query that reaches nobody is
-    re-sent with a short backoff until the deadline (declarations propagate
-    asynchronously); one that reaches a queryable is never re-sent.
+    Waits up to ``timeout`` seconds in all. A query that reaches nobody is re-sent with a short backoff until the
+    deadline (declarations propagate asynchronously); one that reaches a queryable is never re-sent.
 
-    Raises ``NoReplyError`` when nobody answers in time, ``RemoteError`` when
-    the answer is an error reply.
+    Raises ``NoReplyError`` when nobody answers in time, ``RemoteError`` when the answer is an error reply.
     """
     deadline = time.monotonic() + timeout
     backoff = 0.02
@@ -354,16 +428,12 @@ Handler = Callable[[Incoming], Response]
 class Server:
     """A queryable whose queries are handled by a pool of Python threads.
 
-    The Zenoh callback only enqueues the query, so slow handlers (SQLite,
-    fsync) never block Zenoh's own threads. ``threads=0`` answers in the
-    callback itself instead: no hand-off, for handlers that take well under a
-    millisecond. Every query gets exactly one reply
-    and is dropped right after it: ``handler``'s ``Response``; if the handler
-    raised, an ordinary reply with body ``error_body("internal", why)`` (the
-    crash is logged with its traceback and the server stays up); if the key is
-    a pattern (``*``), which has no concrete key to reply on, an error reply
-    with body ``error_body("bad_field", why)`` (``RemoteError`` for
-    :func:`request`).
+    The Zenoh callback only enqueues the query, so slow handlers (SQLite, fsync) never block Zenoh's own threads.
+    ``threads=0`` answers in the callback itself instead: no hand-off, for handlers that take well under a
+    millisecond. Every query gets exactly one reply and is dropped right after it: ``handler``'s ``Response``; if
+    the handler raised, an ordinary reply with body ``error_body("internal", why)`` (the crash is logged with its
+    traceback and the server stays up); if the key is a pattern (``*``), which has no concrete key to reply on, an
+    error reply with body ``error_body("bad_field", why)`` (``RemoteError`` for :func:`request`).
     """
 
     def __init__(self, session: zenoh.Session, key_expr: str, handler: Handler, threads: int = 2,

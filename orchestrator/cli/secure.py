@@ -8,7 +8,8 @@ from pathlib import Path
 
 from orchestrator.cli.common import (Parser, UsageError, add_json_arg, config_error, directory_path, print_json,
                                      positive_int)
-from orchestrator.router import RouterConfig, RouterError, run_router
+from orchestrator.protocol import one_line
+from orchestrator.router import RouterConfig, RouterError, RouterStartError, run_router
 from orchestrator.secure import (DEFAULT_NAMESPACE, DEFAULT_ROUTER_ENDPOINT, MAX_VALID_DAYS, SecureInitConfig,
                                  host_problem, init_secure, router_endpoint_host, tls_endpoint)
 from orchestrator.endpoints import endpoint
@@ -21,9 +22,9 @@ def register(sub) -> None:
                        description="Run a Zenoh router (eclipse-zenoh in router mode) that the orchestrator, workers "
                                    "and operators of a site connect to as clients; --connect links it to another "
                                    "site's router. It prints 'activecollect router <zid> listening on <endpoints>' "
-                                   "once it listens and runs until SIGTERM or SIGINT (exit 0). Exit 2 when it cannot "
-                                   "start: a bad endpoint or config, a file the config names that cannot be read, "
-                                   "an endpoint it cannot listen on.")
+                                   "once it listens and runs until SIGTERM or SIGINT (exit 0). Exit 2 for a bad "
+                                   "endpoint or config or a file the config names that cannot be read; exit 1 for "
+                                   "an endpoint it cannot listen on (a port in use).")
     p.add_argument("--listen", action="append", default=[], metavar="EP", type=endpoint,
                    help="endpoint to listen on, e.g. tls/0.0.0.0:7447 (repeatable; replaces the config "
                         "file's; default tcp/127.0.0.1:7447 without --zenoh-config)")
@@ -63,8 +64,10 @@ def register(sub) -> None:
     init.set_defaults(func=_init)
     check = ssub.add_parser("check", help="check that every file a Zenoh config names exists and is readable",
                             description="Check that every file a Zenoh config names (CA, certificate, key, password "
-                                        "dictionary) exists and is readable, as every process given --zenoh-config "
-                                        "does before it starts. Exit 2 in one line naming the first one that is not.")
+                                        "dictionary) exists and is readable, and that its certificates are within "
+                                        "their dates, match their keys and are signed by the CA they name, as every "
+                                        "process given --zenoh-config does before it starts. Exit 2 in one line "
+                                        "naming the first one that is not.")
     check.add_argument("config", type=Path, metavar="FILE",
                        help="a Zenoh JSON5 config, e.g. DIR/worker.json5 from `secure init`")
     add_json_arg(check)
@@ -114,6 +117,9 @@ def _router(args: argparse.Namespace) -> int:
         cfg = RouterConfig(listen=tuple(args.listen), connect=tuple(args.connect),
                            zenoh_config=args.zenoh_config)
         return run_router(cfg, out=sys.stdout)
+    except RouterStartError as exc:  # not a usage error: as `serve`, a port in use exits 1
+        print(f"activecollect router: {one_line(str(exc))}", file=sys.stderr)
+        return 1
     except RouterError as exc:
         raise UsageError(str(exc)) from exc
 

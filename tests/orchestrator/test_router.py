@@ -100,12 +100,13 @@ def test_router_refuses_bad_endpoint_with_exit_2(capsys):
     assert code == 2 and len(err) == 1 and "expected PROTOCOL/ADDRESS" in err[0]
 
 
-def test_router_refuses_port_in_use_with_exit_2(capsys):
+def test_router_refuses_port_in_use_with_exit_1(capsys):
+    """Not a usage error: exit 1, as `serve` on a port in use (a router already there, say)."""
     with socket.socket() as taken:
         taken.bind(("127.0.0.1", 0))
         taken.listen()
         code, err = _run(capsys, "--listen", f"tcp/127.0.0.1:{taken.getsockname()[1]}")
-    assert code == 2 and len(err) == 1 and "cannot start the router" in err[0], err
+    assert code == 1 and len(err) == 1 and "cannot start the router" in err[0] and "in use" in err[0], err
 
 
 def test_secure_profile_refuses_an_added_plaintext_listener(tmp_path, capsys):
