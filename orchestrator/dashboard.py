@@ -34,6 +34,7 @@ from orchestrator.metrics import ServiceMetrics
 from orchestrator.storagehealth import StorageHealth
 from storage.database import DB_NAME, disk_json
 from storage.catalog import Catalog
+from storage.jsonsafe import finite_json
 from storage.errors import CatalogError, StorageError, StorageUnavailableError
 from storage.models import ModelRegistry
 from storage.queue import RequestQueue
@@ -227,7 +228,7 @@ class Dashboard:
             "/api/curve": lambda: {"points": src.curve()},
         }
         if path in api:
-            return 200, "application/json", json.dumps(_finite(api[path]()), default=str).encode()
+            return 200, "application/json", json.dumps(finite_json(api[path]()), default=str).encode()
         return 404, _TEXT, f"no such page: {path}\n".encode()
 
 
@@ -315,17 +316,6 @@ class _Handler(BaseHTTPRequestHandler):
 
     def log_message(self, format: str, *args: Any) -> None:  # noqa: A002 (signature of the base class)
         log.debug("dashboard: " + format, *args)
-
-
-def _finite(obj: Any) -> Any:
-    """JSON for browsers: NaN and infinities become null."""
-    if isinstance(obj, float) and not math.isfinite(obj):
-        return None
-    if isinstance(obj, dict):
-        return {k: _finite(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_finite(v) for v in obj]
-    return obj
 
 
 @functools.cache  # thread-safe: two first requests at once may both draw it, both get the same bytes

@@ -44,9 +44,9 @@ from orchestrator.champion import ChampionScorer
 from orchestrator.loopconfig import HEAD_SIGNALS, LoopBenchConfig
 from orchestrator.planner import ActivePlanner, Planner, Scores, in_eval_split
 from orchestrator.uniform import UniformPlanner
-from orchestrator.report import finite_json
 from orchestrator.retrain import run_retrain
 from storage.catalog import Catalog
+from storage.jsonsafe import finite_json
 from storage.queue import RequestQueue
 from storage.requests import Request
 from storage.records import Episode

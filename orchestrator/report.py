@@ -23,6 +23,7 @@ import torch
 from matplotlib.colors import LogNorm
 from matplotlib.figure import Figure
 
+from storage.jsonsafe import finite_json
 from storage.records import STATE_COLUMN as _COL, Episode
 from uncertainty.ensemble import Ensemble, episode_windows, frames_to_tensor
 
@@ -230,19 +231,6 @@ def _headline(summary: dict[str, Any], retrains: Sequence[dict]) -> list[str]:
         lines.append(f"None of this run's {len(retrains)} retrains was promoted (see below): the champion, "
                      f"{summary.get('champion')}, is a model made before them.")
     return lines
-
-
-def finite_json(obj: Any) -> Any:
-    """A copy with NaN and infinities as None: a diverged candidate's NaN eval error, or the h5/h10 error of
-    episodes too short to measure it, would make summary.json (or a command's --json) JSON that strict parsers
-    (browsers, jq) refuse."""
-    if isinstance(obj, float):
-        return obj if np.isfinite(obj) else None
-    if isinstance(obj, dict):
-        return {k: finite_json(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [finite_json(v) for v in obj]
-    return obj
 
 
 def _fmt(v: Any) -> str:

@@ -8,11 +8,12 @@ nothing of the registry; ``storage.models`` re-exports them.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 from enum import Enum
 from pathlib import Path
 from typing import Any
+
+from storage.jsonsafe import finite_json
 
 #: The files of a checkpoint directory ``DATA/models/<version>/``.
 WEIGHTS_FILE = "weights.pt"
@@ -78,7 +79,7 @@ class ModelRecord:
             "version": self.version, "status": self.status.value, "reason": self.reason,
             "parent": self.parent, "snapshot_id": self.snapshot_id,
             "eval_split_hash": self.eval_split_hash, "weights_sha256": self.weights_sha256,
-            "size_bytes": self.size_bytes, "created": self.created, "metrics": _finite(self.metrics),
+            "size_bytes": self.size_bytes, "created": self.created, "metrics": finite_json(self.metrics),
             "config": self.config, "path": str(self.path), "pruned_at": self.pruned_at,
         }
 
@@ -130,12 +131,3 @@ class StrayFolders:
         return bool(self.moved or self.not_moved or self.stale)
 
 
-def _finite(obj: Any) -> Any:
-    """``obj`` with every non-finite float replaced by None (JSON has no NaN)."""
-    if isinstance(obj, float) and not math.isfinite(obj):
-        return None
-    if isinstance(obj, dict):
-        return {k: _finite(v) for k, v in obj.items()}
-    if isinstance(obj, list):
-        return [_finite(v) for v in obj]
-    return obj

@@ -34,6 +34,7 @@ from orchestrator.serviceconfig import ServiceError
 from orchestrator.protocol import SHAPES, one_line
 from storage.catalog import Catalog
 from storage.errors import StorageError
+from storage.jsonsafe import finite_json
 from storage.requests import Request
 from storage.records import TRAINABLE_SIZES, Episode
 from uncertainty.config import TrainConfig
@@ -261,7 +262,6 @@ def _bench_loop(args: argparse.Namespace) -> int:
     if (out / "summary.json").exists():
         raise common.UsageError(f"{out} already holds a bench loop result; give a fresh --out")
     from orchestrator.loopbench import run_bench  # torch: imported once the arguments are known good (start-up cost)
-    from orchestrator.report import finite_json
     log = (lambda line: print(line, file=sys.stderr, flush=True))
     summary = run_bench(cfg, out, bench_collect, bench_eval_split, log=log)
     if args.json:
@@ -413,7 +413,6 @@ def _run(args: argparse.Namespace) -> int:
                                       episodes=cfg.eval_episodes, seed=cfg.eval_seed, steps=cfg.steps,
                                       image_size=cfg.image_size)
     from orchestrator.loop import LoopError, LoopRun  # torch: imported once the arguments are known good
-    from orchestrator.report import finite_json
     run = LoopRun(cfg, bench_eval_split, announce=lambda line: print(line, file=sys.stderr, flush=True))
     try:
         result = run.run()

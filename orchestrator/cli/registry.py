@@ -16,6 +16,7 @@ from typing import Any
 from orchestrator.cli import common
 from storage.catalog import Catalog
 from storage.errors import CorruptCheckpointError, NotFoundError, RegistryError
+from storage.jsonsafe import finite_json as strict_json  # (the name every --json of these commands uses)
 from storage.models import ModelRecord, ModelRegistry, PruneResult
 from storage.rows import Snapshot
 from storage.strays import MODEL_ORPHANS_DIR
@@ -67,17 +68,6 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 # -- helpers the model commands share ----------------------------------------------------------
-
-
-def strict_json(obj: Any) -> Any:
-    """Replace non-finite floats with None so that ``--json`` output is strict JSON."""
-    if isinstance(obj, float) and not math.isfinite(obj):
-        return None
-    if isinstance(obj, dict):
-        return {k: strict_json(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [strict_json(v) for v in obj]
-    return obj
 
 
 def fail(message: str) -> int:
