@@ -6,13 +6,9 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-import pytest
-
 from orchestrator import admin, protocol, transport
 from orchestrator.cli import main
 from orchestrator.protocol import Keys
-from orchestrator.service import Service
-from orchestrator.serviceconfig import ServiceConfig
 from storage.queue import RequestQueue
 from storage.requests import NewRequest
 
@@ -54,14 +50,6 @@ def test_a_short_workers_ls_says_it_is_whole(tmp_path: Path) -> None:
         body = admin.handle("workers.ls", queue=queue, workers=lambda: ["w2", "w1"])
     assert body == {"workers": [{"id": "w1", "alive": True, "leases": []}, {"id": "w2", "alive": True, "leases": []}],
                     "truncated": False, "total": 2}
-
-
-@pytest.fixture
-def service(data_dir: Path, endpoint: str, namespace: str):
-    svc = Service(ServiceConfig(data_dir=data_dir, namespace=namespace, listen=(endpoint,)))
-    svc.start()
-    yield svc
-    svc.stop()
 
 
 def test_workers_ls_over_zenoh_fits_and_the_cli_says_it_was_cut(service, client, endpoint, namespace,

@@ -9,7 +9,6 @@ import math
 from pathlib import Path
 
 import numpy as np
-import pytest
 from prometheus_client.parser import text_string_to_metric_families
 
 import orchestrator.metrics
@@ -17,8 +16,6 @@ from orchestrator import admin
 from orchestrator.cli import main
 from orchestrator.dashboard import Dashboard, DashboardConfig, DataSources
 from orchestrator.metrics import QuarantineSpace, ServiceMetrics
-from orchestrator.service import Service
-from orchestrator.serviceconfig import ServiceConfig
 from storage.catalog import Catalog
 from storage.database import QUARANTINE_DIR, quarantine_bytes
 from storage.models import ModelRegistry
@@ -100,14 +97,6 @@ def test_the_dashboard_shows_it_and_walks_once_for_many_requests(tmp_path: Path,
     finally:
         dash.stop()
     assert walks == [tmp_path]  # six requests, one walk
-
-
-@pytest.fixture
-def service(data_dir: Path, endpoint: str, namespace: str):
-    svc = Service(ServiceConfig(data_dir=data_dir, namespace=namespace, listen=(endpoint,)))
-    svc.start()
-    yield svc
-    svc.stop()
 
 
 def test_the_stats_command_says_the_space_of_the_quarantine(service, data_dir, endpoint, namespace, capsys) -> None:
