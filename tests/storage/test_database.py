@@ -5,6 +5,7 @@ from __future__ import annotations
 import os
 import sqlite3
 from contextlib import closing
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -18,17 +19,23 @@ from storage.requests import NewRequest
 from tests.storage.test_episodes import make_episode
 
 
+def _burst(conn: sqlite3.Connection, tmp_path) -> Path:
+    """4 MB written in one transaction to a new table ``t`` (40 rows): the WAL it leaves, past 3 journal limits."""
+    conn.execute("CREATE TABLE t (b BLOB)")
+    conn.execute("BEGIN")
+    for _ in range(40):
+        conn.execute("INSERT INTO t VALUES (?)", (os.urandom(100_000),))
+    conn.execute("COMMIT")
+    wal = tmp_path / "catalog.sqlite-wal"
+    assert wal.stat().st_size > 3 * JOURNAL_SIZE_LIMIT
+    return wal
+
+
 def test_the_wal_shrinks_back_after_a_burst(tmp_path) -> None:
     db = tmp_path / "catalog.sqlite"
     conn = connect(db)  # stays open, as the service's connections do
     try:
-        conn.execute("CREATE TABLE t (b BLOB)")
-        conn.execute("BEGIN")
-        for _ in range(40):
-            conn.execute("INSERT INTO t VALUES (?)", (os.urandom(100_000),))
-        conn.execute("COMMIT")
-        wal = tmp_path / "catalog.sqlite-wal"
-        assert wal.stat().st_size > 3 * JOURNAL_SIZE_LIMIT
+        wal = _burst(conn, tmp_path)
         other = sqlite3.connect(db)  # what storage.wal.Checkpointer runs
         try:
             busy, frames, done = other.execute("PRAGMA wal_checkpoint(PASSIVE)").fetchone()
@@ -53,13 +60,7 @@ def test_a_wal_past_its_bound_is_emptied_by_the_checkpointer_itself(tmp_path, mo
     db = tmp_path / "catalog.sqlite"
     conn = connect(db)
     try:
-        conn.execute("CREATE TABLE t (b BLOB)")
-        conn.execute("BEGIN")
-        for _ in range(40):
-            conn.execute("INSERT INTO t VALUES (?)", (os.urandom(100_000),))
-        conn.execute("COMMIT")
-        wal = tmp_path / "catalog.sqlite-wal"
-        assert wal.stat().st_size > 3 * JOURNAL_SIZE_LIMIT
+        wal = _burst(conn, tmp_path)
         checkpointer = Checkpointer(db, 30_000, every=1, period_s=0.05)
         try:
             wait_for(lambda: wal.stat().st_size == 0, timeout=30, message="the WAL emptied")
