@@ -4,7 +4,7 @@
 killed job never leaves a stale lock) for one job; ``note_phase`` writes the holder's pid, phase, the model it
 registered and (for a job the scheduler started) its job id into the file, which ``read_lock_info`` reads back:
 for operators, and for ``orchestrator.scheduler``, which tells by it what a job that died before reporting did.
-A job the scheduler started also keeps the same notes in a file of its own (``NOTES_ENV``, ``read_job_notes``):
+A job the scheduler started also keeps the same notes in a file of its own (``NOTES_ENV``; read as the lock file is):
 the lock file's are the next holder's as soon as that one takes the lock, which it may do before the scheduler
 has seen that the job ended.
 Taken by the job itself (``orchestrator.retrain``), so a retrain started by system cron and one started by the
@@ -114,11 +114,6 @@ def _keep_own_notes(info: dict) -> None:
         os.replace(tmp, path)
     except OSError as exc:  # the lock file has them (until the next holder): not worth failing the job over
         log.warning("cannot keep this job's notes in %s (the scheduler reads the lock file's instead): %s", path, exc)
-
-
-def read_job_notes(path: Path) -> dict:
-    """What a job noted in its own notes file (``NOTES_ENV``; {} when it wrote none)."""
-    return read_holder(path)
 
 
 def read_lock_info(data_dir: Path) -> dict:

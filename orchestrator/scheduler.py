@@ -41,10 +41,11 @@ from typing import Callable
 
 from croniter import CroniterBadDateError, croniter
 
-from orchestrator.retrainlock import EXIT_BUSY, JOB_ENV, NOTES_ENV, read_job_notes, read_lock_info
+from orchestrator.retrainlock import EXIT_BUSY, JOB_ENV, NOTES_ENV, read_lock_info
 from storage.errors import StorageError
 from storage.files import age_s
 from storage.models import ModelRegistry, ModelStatus
+from storage.servicelock import read_holder
 
 log = logging.getLogger(__name__)
 
@@ -411,7 +412,7 @@ class RetrainScheduler:
         (when it got that far; failing that, the lock file, when no job has taken the lock since), the registry
         what its gate made of it. A promotion is recorded as one, with how the job ended, so that the history and
         ``on_promoted`` follow the champion; a rejection, which changed nothing, keeps the job's own ending."""
-        own = read_job_notes(_notes(rec))
+        own = read_holder(_notes(rec))  # ({} when the job wrote none)
         info = own if own.get("version") else read_lock_info(self.data_dir)
         version = info.get("version")
         if info.get("job") != rec.job or info.get("pid") != pid or not isinstance(version, str) or not version:

@@ -5,24 +5,21 @@
 - ``NS/orch/lease | renew | upload | fail | release`` for workers (see ``orchestrator.messages``);
 - ``NS/admin/**`` for operators and dashboards (``orchestrator.admin``);
 
-it holds ``DATA/service.lock`` from before its first write until ``stop()`` (one service per data directory:
-a second is refused, naming the first; ``storage.servicelock``), watches the liveliness tokens ``NS/workers/*``
-(a lost worker's leases go back to the queue at once), expires leases on a timer, and publishes what happens
-on ``NS/events/**``.
+it holds ``DATA/service.lock`` from before its first write until ``stop()`` (one service per data directory: a
+second is refused, naming the first; ``storage.servicelock``), watches the liveliness tokens ``NS/workers/*`` (a
+lost worker's leases go back to the queue at once), expires leases on a timer, and publishes on ``NS/events/**``.
 
-Threads: lease / renew / fail / release are answered on Zenoh's callback threads (one
-short SQLite transaction each); uploads (``orchestrator.uploads``) and admin queries are
-handed to a small pool per key (verification, fsync). The queue checkpoints its WAL on a
-thread of its own, so no transition waits for those fsyncs. A maintenance thread reaps
-expired leases and handles liveliness changes. A background thread hands each
-stored episode to the planner and the ``on_episode`` callbacks, so scoring and
-planning never stall leasing.
+Threads: lease / renew / fail / release are answered on Zenoh's callback threads (one short SQLite transaction
+each); uploads (``orchestrator.uploads``) and admin queries are handed to a small pool per key (verification,
+fsync). The queue checkpoints its WAL on a thread of its own, so no transition waits for those fsyncs. A
+maintenance thread reaps expired leases and handles liveliness changes. A background thread hands each stored
+episode to the planner and the ``on_episode`` callbacks, so scoring and planning never stall leasing.
 
-Every reply is ``protocol.ok_reply`` / ``error_reply`` bytes; a message that
-fails validation gets an error reply and changes nothing.
+Every reply is ``protocol.ok_reply`` / ``error_reply`` bytes; a message that fails validation gets an error reply
+and changes nothing.
 
-The configuration (``ServiceConfig``), what a planner factory or callback is handed
-(``ServiceContext``) and ``ServiceError`` live in ``orchestrator.serviceconfig``.
+The configuration (``ServiceConfig``), what a planner factory or callback is handed (``ServiceContext``) and
+``ServiceError`` live in ``orchestrator.serviceconfig``.
 """
 
 from __future__ import annotations
@@ -79,9 +76,8 @@ class Service:
         self._stored: queue_mod.Queue[StoredEpisode | None] = queue_mod.Queue()
         self._threads: list[threading.Thread] = []
         self._stopping = threading.Event()
-        # Writes to catalog.sqlite from our own threads (queue transitions, an upload's ingest
-        # transaction) take turns here instead of inside SQLite, whose busy handler sleeps in
-        # steps of up to 100 ms: that was the p99 of a lease under load.
+        # Writes to catalog.sqlite from our own threads (queue transitions, an upload's ingest transaction) take
+        # turns here instead of inside SQLite, whose busy handler sleeps in steps of up to 100 ms (a lease's p99).
         self._writes = threading.Lock()
         self.storage = StorageHealth(log)
         """Whether writes fail for now (no lease expires meanwhile) and which reads fail (warnings only)."""
@@ -102,10 +98,9 @@ class Service:
 
     def claim(self) -> None:
         """Take the data directory (``DATA/service.lock``) now rather than in ``start``, for a caller that writes
-        there before it starts the service (``activecollect run``); ``stop()`` lets it go, or ``release_claim()`` after
-        ``stop(keep_claim=True)``. Raises
-        DataDirectoryBusyError (a StorageError) naming the service that holds it; OSError when the directory or
-        the lock file cannot be made."""
+        there before it starts the service (``activecollect run``); ``stop()`` lets it go (or, after
+        ``stop(keep_claim=True)``, ``release_claim()``). Raises DataDirectoryBusyError (a StorageError) naming the
+        service that holds it; OSError when the directory or the lock file cannot be made."""
         cfg = self.config
         cfg.data_dir.mkdir(parents=True, exist_ok=True)
         self._lock.acquire(where_served(cfg.listen, cfg.connect, cfg.zenoh_config), cfg.namespace)
@@ -133,8 +128,7 @@ class Service:
             self.session = transport.open_session(cfg.mode, cfg.listen, cfg.connect, cfg.zenoh_config)
         except transport.TransportError as exc:
             raise ServiceError(str(exc)) from exc
-        # One declared publisher per event kind: a put on it skips resolving the key each time (every lease
-        # and every fail publishes).
+        # One declared publisher per event kind: a put skips resolving the key (every lease and fail publishes).
         self._publishers = {kind: self.session.declare_publisher(self.keys.events(kind)) for kind in EventKind}
         if cfg.planner is not None:
             self.planner = cfg.planner(self.context)
@@ -160,9 +154,8 @@ class Service:
                  list(cfg.listen), list(cfg.connect), cfg.data_dir)
 
     def stop(self, *, keep_claim: bool = False) -> None:
-        """Stop answering, finish the work in hand, close Zenoh and storage. Idempotent. ``keep_claim`` keeps
-        the data directory (``DATA/service.lock``) for a caller that still writes there (``activecollect run``'s
-        report); it lets it go with ``release_claim()``."""
+        """Stop answering, finish the work in hand, close Zenoh and storage. Idempotent. ``keep_claim``: the data
+        directory stays claimed for a caller that still writes there (``run``'s report; see ``claim``)."""
         if self._stopping.is_set():
             return
         self._stopping.set()
@@ -198,9 +191,8 @@ class Service:
     def publish(self, kind: EventKind, data: dict[str, Any]) -> None:
         """Publish one event on ``NS/events/<kind>`` (best effort: an event is a notification, not state).
 
-        ``data`` must be JSON-able with finite numbers. Encoded directly (an ``Event`` in wire form)
-        rather than through the validating dataclass: this runs on every lease.
-        """
+        ``data`` must be JSON-able with finite numbers. Encoded directly (an ``Event`` in wire form) rather than
+        through the validating dataclass: this runs on every lease."""
         if self.session is None or self.session.is_closed():
             return
         kind = EventKind(kind)
@@ -223,8 +215,7 @@ class Service:
 
     def _serve(self, key: str, handler: Callable[[Incoming], bytes], threads: int,
                source: str = "worker") -> transport.Server:
-        """A Server for ``handler``: a ProtocolError becomes its error reply (and counts as a refusal from
-        ``source``, one of ``metrics.REFUSAL_SOURCES``)."""
+        """A Server for ``handler``: a ProtocolError becomes its error reply (a refusal from ``source``)."""
 
         def answer(msg: Incoming) -> Response:
             try:
@@ -255,10 +246,8 @@ class Service:
             return protocol.error_reply(ErrorCode.NO_WORK, "no queued request matches "
                                         f"tasks={req.tasks or 'any'} shapes={req.shapes or 'any'}")
         r = lease.request
-        # Built as a dict, not a LeaseGrant: the request was checked before it was queued (an operator's by
-        # RequestSpec; the active planner's too, as it may start from an ingested episode's state; uniform draws
-        # are in bounds by construction), the worker validates the grant it receives, and dataclass round
-        # trips cost ~100 us per lease.
+        # Built as a dict, not a LeaseGrant: the request was checked before it was queued (by RequestSpec, or in
+        # bounds by construction), the worker checks the grant, and dataclass round trips cost ~100 us per lease.
         grant = {"request_id": r.id, "task": r.task, "shape": r.shape, "start_state": r.start_state,
                  "policy": r.policy, "policy_params": r.policy_params, "action_prefix": r.action_prefix,
                  "steps": r.steps, "model_version": str(r.reason.get("model_version") or ""),
@@ -335,8 +324,7 @@ class Service:
                 raise ProtocolError(ErrorCode.BAD_FIELD, f"op: expected {op!r} (the key's op), found {request.op!r}")
         else:
             request = messages.AdminRequest(op=op)
-        # Reads (queue ls, stats, ...) run on their own connections beside the writer: an operator's
-        # listing must not hold up leases.
+        # Reads (queue ls, stats, ...) run on their own connections beside the writer: a listing holds up no lease.
         with self._writing() if request.op in admin.WRITE_OPS else contextlib.nullcontext():
             body = admin.handle(request.op, request.args, queue=self.queue, catalog=self.catalog,
                                 registry=self.context.registry, workers=self.workers)

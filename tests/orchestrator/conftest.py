@@ -44,6 +44,15 @@ def service(make_service) -> Service:
     return make_service()
 
 
+@pytest.fixture()
+def procs():
+    """Processes a test starts (anything with ``stop()``: test_secure's ``Proc``), stopped last first after it."""
+    started: list = []
+    yield started
+    for p in reversed(started):
+        p.stop()
+
+
 @pytest.fixture
 def client(endpoint: str):
     session = transport.open_session(connect=[endpoint])

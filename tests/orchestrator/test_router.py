@@ -44,14 +44,6 @@ sys.exit(run_router(RouterConfig(listen=json.loads(sys.argv[1])), out=sys.stdout
 """
 
 
-@pytest.fixture()
-def procs():
-    started: list[Proc] = []
-    yield started
-    for p in reversed(started):
-        p.stop()
-
-
 @pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT])
 def test_router_routes_between_clients_and_stops_on_signal(procs, sig):
     """Two client-mode sessions (they cannot reach each other directly) talk through the router."""

@@ -13,14 +13,6 @@ from tests.orchestrator.test_router import start_plain_router
 from tests.orchestrator.test_secure import Proc
 
 
-@pytest.fixture()
-def procs():
-    started: list[Proc] = []
-    yield started
-    for p in reversed(started):
-        p.stop()
-
-
 def client_process(name: str, endpoint: str, tmp_path) -> Proc:
     """``serve`` or a worker agent connected to ``endpoint`` as a Zenoh client, once it is up."""
     if name == "serve":
