@@ -23,7 +23,7 @@ import logging
 import os
 import signal
 import threading
-from collections.abc import Mapping
+from collections.abc import Iterable, Mapping
 from typing import Callable
 
 log = logging.getLogger(__name__)
@@ -86,3 +86,18 @@ def on_stop_signals(handler: Callable[[], None], sigint: bool = True,
 
 def _noted(signum: int, frame: object) -> None:
     """The Python-level handler of a signal taken here: nothing, and so no lock (see the module's docstring)."""
+
+
+def ignore_while_exiting(sigs: Iterable[signal.Signals]) -> None:
+    """Ignore ``sigs`` from now on, for a process whose work is done and that only exits (main thread only).
+
+    Python's shutdown puts the default disposition back for every signal that has a Python handler, so
+    a stop signal in a process's last milliseconds (systemd's SIGTERM to the group, just as the process
+    finished on its own) would kill it: exit -15, not the status it returned. An ignored signal stays
+    ignored through the shutdown. A process that then hangs in its shutdown needs SIGKILL, as any hung
+    process does.
+    """
+    if threading.current_thread() is not threading.main_thread():
+        return
+    for sig in sigs:
+        signal.signal(sig, signal.SIG_IGN)

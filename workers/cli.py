@@ -8,11 +8,13 @@ from __future__ import annotations
 
 import argparse
 import logging
+import signal
 import sys
 
-from orchestrator import endpoints, protocol, transport
+from orchestrator import endpoints, protocol, signals, transport
 from storage.records import TRAINABLE_SIZES
 from workers import flags, startup
+from workers.startup import DRAIN_SIGNAL
 from workers.agent import Worker, WorkerConfig, WorkerError
 from workers.env import CONTROL_HZ
 from workers.flags import MAX_REALTIME
@@ -105,6 +107,13 @@ def run_from_args(args: argparse.Namespace) -> int:
         print(f"{prog}: error: {protocol.one_line(str(exc))}", file=sys.stderr)  # a path may hold a newline
         return 2
     worker.install_signal_handlers()
+    try:
+        return _work(worker, prog)
+    finally:  # it holds nothing now: a stop signal while it exits must not kill it (exit -15 instead of its status)
+        signals.ignore_while_exiting([signal.SIGTERM, signal.SIGINT, DRAIN_SIGNAL])
+
+
+def _work(worker: Worker, prog: str) -> int:
     if early := startup.taken():  # (came during the imports of python -m workers.agent or activecollect worker)
         log.info("worker %s: %s while starting, before it held any request: exiting", worker.config.worker_id,
                  early[0].name)

@@ -131,3 +131,22 @@ def test_a_drained_worker_does_not_wait_long_for_a_renewal_nobody_answers(make_s
     # (the old worker waited for the renewal in flight, ~9 s more; the new one 2 s at most: a wide margin)
     assert time.monotonic() - started < 7, w.log()
     assert service.queue.get(request.id).status == RequestStatus.DONE
+
+
+def test_a_stop_signal_while_the_worker_exits_does_not_kill_it(make_service, spawn_worker) -> None:
+    """systemd's SIGTERM to the group can reach a worker that has just finished (``activecollect run`` drained it, or
+    --max-episodes was reached): it holds nothing any more, so it still exits 0. (The old worker's handlers were
+    put back to the default by Python's own shutdown: a SIGTERM in those last milliseconds killed it, exit -15,
+    once in a CI run of `tests/test_run.py`'s group-stop test.)"""
+    service = make_service()
+    service.queue.enqueue(new_request(steps=5))
+    w = spawn_worker("X", "--max-episodes", "1")
+    wait_for(lambda: "done: 1 uploaded" in w.log(), timeout=60, message="the worker to finish its one episode",
+             interval=0.002)
+    sent = 0
+    while w.alive():  # through the rest of its exit, finalisation included
+        w.signal(signal.SIGTERM)
+        sent += 1
+        time.sleep(0.001)
+    assert w.wait(30) == 0 and sent > 0, (sent, w.log())
+    assert service.catalog.count(split="train") == 1
