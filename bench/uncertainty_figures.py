@@ -14,7 +14,7 @@
    batch 48 and batch 1.
 
 Usage: .venv/bin/python bench/uncertainty_figures.py --data /tmp/figs [--train-episodes 80]
-       [--epochs 4] [--bootstrap] [--image-size 64] [--members 5] [--threads 2]
+       [--epochs 4] [--bootstrap] [--image-size 64] [--members 5] [--threads 2] [--device cpu]
        [--ood-train-episodes 80 --ood-epochs 40 --ood-image-size 32 --ood-cache oodL.pt]
        [--skip main,ood,bench] [--json out.json]
 """
@@ -29,7 +29,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from orchestrator.cli.common import Parser, trainable_image_size
+from orchestrator.cli.common import Parser, torch_device, trainable_image_size
 from storage.catalog import Catalog
 from storage.models import ModelRegistry
 from storage.records import TRAINABLE_SIZES
@@ -37,7 +37,7 @@ from uncertainty.benchmark import run_score_bench
 from uncertainty import metrics as M
 from uncertainty.checkpoint import load_ensemble
 from uncertainty.data import build_windows, load_eval
-from uncertainty.train import TrainConfig, fit, new_ensemble, train_candidate, train_windows
+from uncertainty.train import TrainConfig, fit, new_ensemble, resolve_device, train_candidate, train_windows
 from workers.collect import collect_episode, create_eval_split
 from workers.env import SHAPE_PALETTE, sample_state
 
@@ -71,7 +71,7 @@ def prepare(data: Path, n_train: int, steps: int, size: int, palette=None) -> Ca
 
 def main_figure(cat: Catalog, data: Path, args) -> dict:
     cfg = TrainConfig(members=args.members, epochs=args.epochs, batch_size=args.batch_size, lr=args.lr,
-                      seed=args.seed, device="cpu", max_episodes=args.train_episodes, progress=True,
+                      seed=args.seed, device=args.device, max_episodes=args.train_episodes, progress=True,
                       bootstrap=args.bootstrap, variance_head=args.variance_head, context=args.context)
     t0 = time.perf_counter()
     registry = ModelRegistry(data)
@@ -89,7 +89,7 @@ def main_figure(cat: Catalog, data: Path, args) -> dict:
                losses=result.losses, sparsification=m["sparsification"], bootstrap=args.bootstrap,
                image_size=args.image_size, variance_head=args.variance_head, palette=args.palette,
                context=args.context)
-    out["calibration_variants"] = calibration_variants(load_ensemble(registry, result.version, "cpu"), cat)
+    out["calibration_variants"] = calibration_variants(load_ensemble(registry, result.version, resolve_device(args.device)), cat)
     return out
 
 
@@ -111,7 +111,7 @@ def calibration_variants(ens, cat: Catalog, horizon: int = 5) -> dict:
         preds = ens.rollout(ctx, ens.normalize_actions(act))               # (K, B, H, 3, H, W)
         var.append(preds.var(dim=0, unbiased=False).mean(dim=(2, 3, 4)))  # (B, H)
         err.append((preds.mean(dim=0) - tgt).pow(2).mean(dim=(2, 3, 4)))  # (B, H)
-    v, e = torch.cat(var).double().numpy(), torch.cat(err).double().numpy()  # (N, H)
+    v, e = torch.cat(var).double().cpu().numpy(), torch.cat(err).double().cpu().numpy()  # (N, H)
     ep = w.episode
     out = {"windows": len(w), "per_window_h1": M.spearman(v[:, 0], e[:, 0]),
            f"per_window_h{horizon}": M.spearman(v[:, -1], e[:, -1]),
@@ -145,12 +145,12 @@ def ood_figure(args) -> dict:
                              random_physics=args.ood_random_physics, palette=palette)
               for i, shape in enumerate(SHAPES)}
     cfg = TrainConfig(members=args.members, epochs=args.ood_epochs, batch_size=args.ood_batch_size,
-                      lr=args.ood_lr, seed=args.seed, device="cpu", bootstrap=args.ood_bootstrap, progress=True)
+                      lr=args.ood_lr, seed=args.seed, device=args.device, bootstrap=args.ood_bootstrap, progress=True)
     ens = new_ensemble(cfg, train)
     losses: list[float] = []
     if args.ood_cache is not None and args.ood_cache.exists():
         state = torch.load(args.ood_cache, map_location="cpu", weights_only=True)
-        ens.load_state_dict(state["weights"])
+        ens.load_state_dict(state["weights"])  # (onto the ensemble's device)
         losses = state["losses"]
     else:
         losses = fit(ens, train_windows(train, ens, cfg), cfg)
@@ -223,7 +223,7 @@ def _moving_variance(ens, ep) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     mv = (var * moving).sum(dim=(1, 2)) / moving.sum(dim=(1, 2)).clamp(min=1)
     e = (mean - tgt[:, 0]).pow(2).mean(dim=(1, 2, 3))
     pc = (mean - ctx[:, -1]).pow(2).mean(dim=(1, 2, 3))
-    return mv.double().numpy(), e.double().numpy(), pc.double().numpy()
+    return mv.double().cpu().numpy(), e.double().cpu().numpy(), pc.double().cpu().numpy()
 
 
 def main(argv=None) -> int:
@@ -245,6 +245,9 @@ def main(argv=None) -> int:
                    help="object colours: all alike (the service's world) or one per shape (workers.env.SHAPE_PALETTE);"
                         " (a data directory collected with the other one is refused: its eval split is pinned)")
     p.add_argument("--threads", type=int, default=2)
+    p.add_argument("--device", type=torch_device, default="cpu",
+                   help="where the figures train and score: cpu (the default: the issue's figures are the CPU's), "
+                        "cuda or auto")
     p.add_argument("--ood-train-episodes", type=int, default=80)
     p.add_argument("--ood-epochs", type=int, default=40)
     p.add_argument("--ood-test-episodes", type=int, default=8)
@@ -263,7 +266,7 @@ def main(argv=None) -> int:
     args = p.parse_args(argv)
     torch.set_num_threads(args.threads)
     skip = set(filter(None, args.skip.split(",")))
-    figures: dict = {"threads": args.threads}
+    figures: dict = {"threads": args.threads, "device": args.device}
     if "main" not in skip:
         cat = prepare(args.data, args.train_episodes, args.steps, args.image_size, _palette(args))
         figures["main"] = main_figure(cat, args.data, args)
@@ -276,7 +279,8 @@ def main(argv=None) -> int:
         # for a descheduled thread, which hurts the loop (5x the regions) far more than the fused pass.
         threads = [int(t) for t in args.bench_threads.split(",")] if args.bench_threads else [args.threads]
         figures["bench"] = {f"threads{t}_batch{b}": run_score_bench(members=5, image_size=64, batch=b, threads=t,
-                                                                   seconds=args.bench_seconds / 2, rounds=5)
+                                                                   seconds=args.bench_seconds / 2, rounds=5,
+                                                                   device=args.device)
                             for t in threads for b in (48, 1)}
         torch.set_num_threads(args.threads)
     text = json.dumps(figures, indent=1, default=str)
