@@ -1,0 +1,59 @@
+#!/usr/bin/env bash
+# The checks that need a GPU, in one run (CI has none): the model's tests on CUDA (tests/uncertainty/test_cuda.py
+# and the CLI's --device cuda tests run only there), fused vs per-member scoring on the GPU, the accuracy and
+# calibration figure trained on the GPU, and the whole loop (`activecollect run`, its default settings) with CUDA
+# present, so training and scoring take it ("auto").
+#
+# Usage, from the repository root on a machine with CUDA and PyTorch:
+#   bash bench/device_checks.sh OUTDIR
+# Our other dependencies can come as wheels in .whl/ (for a machine with PyTorch but no package index): they are
+# installed into /tmp/site first (WHEELS=DIR for another folder). PYTHON=... picks the interpreter (default python3);
+# DEVICE=cpu rehearses the same steps on a machine without a GPU (the CUDA-only tests are then skipped; SLOW=N
+# multiplies every step's time limit, e.g. SLOW=3 on a 2-core CPU). Each step has a time limit and the script goes on after a failing step; the
+# summary at the end says which failed (exit 1 if any did). Results go to OUTDIR (*.log, *.json).
+set -u
+OUT=${1:?usage: bash bench/device_checks.sh OUTDIR}
+mkdir -p "$OUT"
+export PYTHONUNBUFFERED=1 PYTHONPATH=$PWD
+PY=${PYTHON:-python3}
+DEVICE=${DEVICE:-cuda}
+WHEELS=${WHEELS:-.whl}
+SLOW=${SLOW:-1}
+WORK=$(mktemp -d)  # the data directories of the figure and of the run
+if compgen -G "$WHEELS/*.whl" > /dev/null; then
+    $PY -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site "$WHEELS"/*.whl \
+        || { echo "wheels did not install"; exit 1; }
+    export PYTHONPATH=/tmp/site:$PWD
+fi
+failed=()
+step() {  # step NAME SECONDS COMMAND...: run it with a limit, its output in OUTDIR/NAME.log
+    local name=$1 limit=$2
+    shift 2
+    local t0=$SECONDS
+    timeout $((limit * SLOW)) "$@" > "$OUT/$name.log" 2>&1
+    local rc=$?
+    echo "== $name: exit $rc in $((SECONDS - t0)) s"
+    tail -n 4 "$OUT/$name.log" | cut -c 1-300
+    [ $rc -eq 0 ] || failed+=("$name")
+}
+
+if [ "$DEVICE" = cuda ]; then
+    nvidia-smi -L
+    $PY -c 'import torch; print("torch", torch.__version__, "cuda", torch.version.cuda, torch.cuda.get_device_name())'
+    $PY -c 'import torch, sys; sys.exit(0 if torch.cuda.is_available() else 1)' || { echo "no CUDA here"; exit 1; }
+fi
+
+step tests 150 $PY -m pytest -q -p no:cacheprovider tests/uncertainty tests/test_cli_device.py tests/test_cli_models.py
+for batch in 1 48 480; do
+    step "score_b$batch" 40 $PY -m orchestrator bench score --device "$DEVICE" --batch $batch --seconds 8 --json
+done
+step "figures_$DEVICE" 150 $PY bench/uncertainty_figures.py --data "$WORK/figures" --skip ood,bench \
+    --device "$DEVICE" --json "$OUT/figures_$DEVICE.json"
+step run 120 $PY -m orchestrator run --data "$WORK/run"
+cp "$WORK"/run/reports/*/summary.json "$OUT/run_summary.json" 2>/dev/null
+
+if [ ${#failed[@]} -gt 0 ]; then
+    echo "failed: ${failed[*]}"
+    exit 1
+fi
+echo "all passed"
