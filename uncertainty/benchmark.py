@@ -106,6 +106,9 @@ def run_score_bench(members: int = 5, image_size: int = 64, seconds: float = 10.
     sync = torch.cuda.synchronize if dev.type == "cuda" else (lambda: None)
     ens = Ensemble(PredictorConfig(image_size=image_size), members=members, seed=seed).to(dev).eval()
     gen = torch.Generator().manual_seed(seed)
+    with torch.no_grad():  # a fresh output layer is scaled down: make every layer matter to max_abs_diff
+        for p in ens.params:
+            p.add_(0.05 * torch.randn(p.shape, generator=gen).to(dev))
     ctx = torch.rand(batch, ens.config.context, 3, image_size, image_size, generator=gen).to(dev)  # (B,C,3,H,W)
     act = torch.randn(batch, ens.config.action_dim, generator=gen).to(dev)                         # (B, A)
     paths = {"fused": ens.forward, "loop": ens.forward_loop}

@@ -23,6 +23,12 @@ from torch.nn import functional as F
 from uncertainty.errors import ConfigError
 
 
+# Convolutions on CUDA in full float32. cuDNN's default, TF32 (inputs rounded to 10 mantissa bits), made the fused
+# pass differ from the members one by one by up to 7e-4 on an H100, where the fused pass must give their
+# predictions within 1e-5 (BENCHMARKS.md, "On a GPU"). Process-wide, and so for every model of ours; matrix
+# products are full float32 already (torch's default).
+torch.backends.cudnn.allow_tf32 = False
+
 #: Largest frame a predictor takes: the catalog's (``storage.records.MAX_FRAME_SIZE``; this module imports
 #: nothing of storage). Beyond it a config read from a file would allocate its coordinate grids unchecked.
 MAX_IMAGE_SIZE = 1024

@@ -1,6 +1,10 @@
+import subprocess
+import sys
+
 import pytest
 import torch
 
+from tests.conftest import REPO
 from uncertainty.errors import ConfigError
 from uncertainty.model import Predictor, PredictorConfig
 
@@ -58,3 +62,12 @@ def test_wrong_context_shape_is_refused():
     net = Predictor(PredictorConfig(image_size=16, widths=(4, 8, 8)))
     with pytest.raises(ConfigError, match="context must be"):
         net(torch.rand(1, 3, 3, 16, 16), torch.zeros(1, 2))
+
+
+def test_importing_the_model_turns_tf32_convolutions_off():
+    """On CUDA, cuDNN's default TF32 made the fused pass differ from the members one by one by up to 7e-4 (an
+    H100, tests/uncertainty/test_cuda.py); every process that loads a model of ours gets full float32."""
+    code = "import torch; assert torch.backends.cudnn.allow_tf32; import uncertainty.model; " \
+           "print(torch.backends.cudnn.allow_tf32)"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=REPO, timeout=120)
+    assert out.returncode == 0 and out.stdout.strip() == "False", out.stderr
