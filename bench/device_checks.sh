@@ -1,8 +1,8 @@
 #!/usr/bin/env bash
 # The checks that need a GPU, in one run (CI has none): the model's tests on CUDA (tests/uncertainty/test_cuda.py
 # and the CLI's --device cuda tests run only there), fused vs per-member scoring on the GPU, the accuracy and
-# calibration figure trained on the GPU, and the whole loop (`activecollect run`, its default settings) with CUDA
-# present, so training and scoring take it ("auto").
+# calibration figure trained on the GPU, and the whole loop (`activecollect run`, its default settings) on that
+# machine (its retrains and scoring stay on the CPU by design: it checks that nothing breaks where CUDA is there).
 #
 # Usage, from the repository root on a machine with CUDA and PyTorch:
 #   bash bench/device_checks.sh OUTDIR
