@@ -41,7 +41,7 @@ from typing import Callable
 
 from croniter import CroniterBadDateError, croniter
 
-from orchestrator.retrainlock import EXIT_BUSY, JOB_ENV, NOTES_ENV, read_lock_info
+from orchestrator.retrainlock import EXIT_BUSY, JOB_ENV, NOTES_ENV, lock_held, read_lock_info
 from storage.errors import StorageError
 from storage.files import age_s
 from storage.models import ModelRegistry, ModelStatus
@@ -196,6 +196,9 @@ class RetrainScheduler:
         self._last_count = count_episodes()
         self._next_cron = self._cron_after(time.time())
         self._pending_manual = ""
+        # The schedule's own trigger ("episodes", "cron") of a job that found another retrain holding the lock: run
+        # again once the lock is free, not at the next trigger (a day later on a daily cron).
+        self._after_busy = ""
         self._stop = threading.Event()
         self._outlive_job = False
         self._thread: threading.Thread | None = None
@@ -276,6 +279,10 @@ class RetrainScheduler:
     def _due(self, now: float) -> str:
         if self._pending_manual:
             trigger, self._pending_manual = self._pending_manual, ""
+            return trigger
+        if self._after_busy and not lock_held(self.data_dir):
+            trigger, self._after_busy = self._after_busy, ""
+            log.info("retrain lock free again: the %s retrain that found it busy runs now", trigger)
             return trigger
         n = self.cfg.every_episodes
         if n and self.count_episodes() // n > self._last_count // n:
@@ -403,6 +410,9 @@ class RetrainScheduler:
         for line in (result.get("warnings") or []) if reported else []:  # e.g. a warm start past a damaged champion
             log.warning("retrain %s: %s", rec.version or "-", line)
         self._prune_logs(rec)
+        if rec.status is RetrainStatus.busy and rec.trigger in ("episodes", "cron"):  # (a requester sees its record)
+            self._after_busy = rec.trigger
+            log.info("retrain (%s) runs again once the retrain lock is free", rec.trigger)
         if rec.status is RetrainStatus.promoted:
             self.on_promoted(rec.version)
         self.on_finished(rec)

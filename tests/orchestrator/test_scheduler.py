@@ -423,3 +423,44 @@ def test_a_long_lived_scheduler_keeps_the_newest_records_and_job_logs(tmp_path, 
     kept = sorted(p.name for p in (tmp_path / "logs").iterdir())
     assert kept == sorted([Path(r.log_path).name for r in started[-2:]] + [Path(r.log_path).name + ".out"
                                                                             for r in started[-2:]] + ["run-w0.log"])
+
+
+#: A job that takes the retrain lock as the real one does: exit 3 (busy) while another holds it, else promote.
+LOCKS_THEN_PROMOTES = (
+    "import json, pathlib, sys\n"
+    "from orchestrator.retrainlock import RetrainBusyError, retrain_lock\n"
+    "try:\n"
+    "    with retrain_lock(pathlib.Path(sys.argv[1])):\n"
+    f"        {PROMOTES}\n"
+    "except RetrainBusyError:\n"
+    "    sys.exit(3)\n")
+
+
+@pytest.mark.parametrize("trigger", ["episodes", "cron"])
+def test_a_scheduled_retrain_that_found_the_lock_busy_runs_once_it_is_free(tmp_path, trigger):
+    """An operator's `activecollect retrain` (or system cron's) holds the lock when the schedule fires: the job
+    exits busy, and the schedule's retrain runs as soon as the lock is free, not at the next trigger (N more
+    episodes, or the next day on a daily cron). The old scheduler spent the trigger on the busy job."""
+    episodes = Counter()
+    cfg = ScheduleConfig(every_episodes=5) if trigger == "episodes" else ScheduleConfig(cron="0 3 * * *")
+    sched = RetrainScheduler(cfg, tmp_path, episodes, command=script_command(LOCKS_THEN_PROMOTES))
+    with retrain_lock(tmp_path):
+        episodes.n = 5
+        busy = sched.tick(now=sched._next_cron + 1 if trigger == "cron" else None)
+        assert busy is not None and busy.trigger == trigger
+        assert sched.wait_idle(timeout=60) and busy.status is RetrainStatus.busy, busy.reason
+        assert sched.tick() is None  # the lock is still held: nothing is started
+    rec = sched.tick()
+    assert rec is not None and rec.trigger == trigger
+    assert sched.wait_idle(timeout=60) and rec.status is RetrainStatus.promoted, rec.reason
+    assert sched.tick() is None  # once, not again
+
+
+def test_a_requested_retrain_that_found_the_lock_busy_is_not_repeated(tmp_path):
+    """A retrain someone asked for (`run`'s rounds, the admin's `retrain`) sees its busy record and decides."""
+    sched = RetrainScheduler(ScheduleConfig(), tmp_path, Counter(), command=script_command(LOCKS_THEN_PROMOTES))
+    with retrain_lock(tmp_path):
+        sched.request("round")
+        busy = sched.tick()
+        assert sched.wait_idle(timeout=60) and busy.status is RetrainStatus.busy
+    assert sched.tick() is None
