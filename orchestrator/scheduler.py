@@ -196,9 +196,10 @@ class RetrainScheduler:
         self._last_count = count_episodes()
         self._next_cron = self._cron_after(time.time())
         self._pending_manual = ""
-        # The schedule's own trigger ("episodes", "cron") of a job that found another retrain holding the lock: run
-        # again once the lock is free, not at the next trigger (a day later on a daily cron).
-        self._after_busy = ""
+        # The schedule's own trigger ("episodes", "cron") of a job that found another retrain holding the lock, or
+        # that died midway last time: run again once the lock is free, not at the next trigger (a day later on a
+        # daily cron).
+        self._retry = self._died_last_time()
         self._stop = threading.Event()
         self._outlive_job = False
         self._thread: threading.Thread | None = None
@@ -280,9 +281,9 @@ class RetrainScheduler:
         if self._pending_manual:
             trigger, self._pending_manual = self._pending_manual, ""
             return trigger
-        if self._after_busy and not lock_held(self.data_dir):
-            trigger, self._after_busy = self._after_busy, ""
-            log.info("retrain lock free again: the %s retrain that found it busy runs now", trigger)
+        if self._retry and not lock_held(self.data_dir):
+            trigger, self._retry = self._retry, ""
+            log.info("retrain lock free: the %s retrain that found it busy or died midway runs now", trigger)
             return trigger
         n = self.cfg.every_episodes
         if n and self.count_episodes() // n > self._last_count // n:
@@ -291,6 +292,18 @@ class RetrainScheduler:
             self._next_cron = self._cron_after(now)
             return "cron"
         return ""
+
+    def _died_last_time(self) -> str:
+        """The schedule's trigger when the last job a scheduler started here died midway (killed with the service
+        it ran beside, or in a crash: its notes in the lock file stop at "locked" or "training"), so that its
+        retrain runs now rather than at the next trigger; "" otherwise."""
+        trigger = "episodes" if self.cfg.every_episodes else "cron" if self.cfg.cron else ""
+        info = read_lock_info(self.data_dir)
+        if not trigger or not info.get("job") or info.get("phase") not in ("locked", "training"):
+            return ""
+        log.info("the last scheduled retrain here (pid %s) died while %s: it runs again once the retrain lock is "
+                 "free", info.get("pid", "?"), info["phase"])
+        return trigger
 
     def job_args(self) -> tuple[str, ...]:
         """What each job is given after ``--data`` and ``--json``: ``--threads`` when set, then ``retrain_args``."""
@@ -411,7 +424,7 @@ class RetrainScheduler:
             log.warning("retrain %s: %s", rec.version or "-", line)
         self._prune_logs(rec)
         if rec.status is RetrainStatus.busy and rec.trigger in ("episodes", "cron"):  # (a requester sees its record)
-            self._after_busy = rec.trigger
+            self._retry = rec.trigger
             log.info("retrain (%s) runs again once the retrain lock is free", rec.trigger)
         if rec.status is RetrainStatus.promoted:
             self.on_promoted(rec.version)

@@ -464,3 +464,41 @@ def test_a_requested_retrain_that_found_the_lock_busy_is_not_repeated(tmp_path):
         busy = sched.tick()
         assert sched.wait_idle(timeout=60) and busy.status is RetrainStatus.busy
     assert sched.tick() is None
+
+
+def _job_dies_while(data_dir: Path, phase: str) -> None:
+    """A retrain the scheduler started (its job id in the environment) takes the lock, notes ``phase``, and is
+    SIGKILLed there: what a service's stop or a crash in the middle of a job leaves in the lock file."""
+    code = ("import pathlib, sys, time\n"
+            "from orchestrator.retrainlock import note_phase, retrain_lock\n"
+            "with retrain_lock(pathlib.Path(sys.argv[1])):\n"
+            f"    note_phase(pathlib.Path(sys.argv[1]), {phase!r})\n"
+            "    time.sleep(600)\n")
+    job = subprocess.Popen([sys.executable, "-c", code, str(data_dir)],
+                           env={**os.environ, "ACTIVECOLLECT_RETRAIN_JOB": "0123456789abcdef"})
+    try:
+        wait_for(lambda: read_lock_info(data_dir).get("phase") == phase, timeout=30, message="the job's phase")
+    finally:
+        job.kill()
+        job.wait()
+
+
+@pytest.mark.parametrize("phase, again", [("training", True), ("done", False)])
+def test_a_scheduled_retrain_that_died_midway_runs_again_when_the_service_starts_again(tmp_path, phase, again):
+    """`serve` was stopped (or crashed) while its retrain trained: the next `serve` runs that retrain at once, not
+    at the next trigger. A job that finished (phase done) is not repeated. The old scheduler never noticed."""
+    _job_dies_while(tmp_path, phase)
+    episodes = Counter()
+    episodes.n = 7
+    sched = RetrainScheduler(ScheduleConfig(every_episodes=5), tmp_path, episodes, command=script_command(PROMOTES))
+    rec = sched.tick()
+    assert (rec is not None) == again
+    if again:
+        assert rec.trigger == "episodes" and sched.wait_idle(timeout=60) and rec.status is RetrainStatus.promoted
+    assert sched.tick() is None
+
+
+def test_a_died_job_is_not_repeated_without_a_schedule(tmp_path):
+    """`run` asks for its rounds itself (no schedule of episodes or cron): nothing is started on its behalf."""
+    _job_dies_while(tmp_path, "training")
+    assert RetrainScheduler(ScheduleConfig(), tmp_path, Counter(), command=script_command(PROMOTES)).tick() is None
