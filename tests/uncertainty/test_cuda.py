@@ -1,9 +1,9 @@
 """The model on CUDA (skipped where there is none: CI has no GPU; ``bench/device_checks.sh`` runs these on a GPU).
 
 The fused pass must equal the members one by one there too (the issue's 1e-5, at the service's 64 px and at a
-batch the service scores), its gradients likewise; a model trained on the GPU must load and predict on a machine
-without one (checkpoints are read with ``map_location="cpu"``), and the two devices must agree on its predictions
-within what TF32 convolutions round away.
+batch the service scores; its gradients: ``test_ensemble.py``, on either device); a model trained on the GPU must
+load and predict on a machine without one (checkpoints are read with ``map_location="cpu"``), and the two devices
+must agree on its scores within float32 rounding (TF32 convolutions are off: ``uncertainty.model``).
 """
 
 import numpy as np
@@ -11,6 +11,7 @@ import pytest
 import torch
 
 from tests.uncertainty.synth import make_episode
+from tests.uncertainty.test_ensemble import _noisy
 from uncertainty.checkpoint import ensemble_from_bytes, ensemble_to_bytes
 from uncertainty.ensemble import Ensemble
 from uncertainty.model import PredictorConfig
@@ -21,14 +22,6 @@ pytestmark = pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA h
 
 SERVICE = PredictorConfig()  # 64 px, the service's default widths
 SMALL = PredictorConfig(image_size=16, widths=(4, 8, 8), action_hidden=8)
-
-
-def _noisy(ens: Ensemble) -> Ensemble:
-    """Every member's output matters for a comparison (a fresh output layer is scaled down)."""
-    with torch.no_grad():
-        for p in ens.params:
-            p.add_(0.05 * torch.randn(p.shape, generator=torch.Generator().manual_seed(p.numel())).to(p.device))
-    return ens
 
 
 @pytest.mark.parametrize("per_member", [False, True])
@@ -45,17 +38,6 @@ def test_fused_forward_equals_members_one_by_one_on_cuda(config, batch, per_memb
     assert fused.device.type == "cuda" and fused.shape == (5, batch, 3, size, size)
     torch.testing.assert_close(fused, loop, atol=1e-5, rtol=0)
     assert (fused[0] - fused[1]).abs().max() > 1e-3  # members differ
-
-
-def test_fused_gradients_equal_per_member_gradients_on_cuda():
-    ens = _noisy(Ensemble(SMALL, members=2, seed=2).to("cuda"))
-    ctx, act = torch.rand(2, 4, 2, 3, 16, 16, device="cuda"), torch.randn(2, 4, 2, device="cuda")
-    ens(ctx, act).pow(2).sum().backward()
-    fused = [p.grad.clone() for p in ens.params]
-    ens.zero_grad()
-    ens.forward_loop(ctx, act).pow(2).sum().backward()
-    for a, b in zip(fused, [p.grad for p in ens.params]):
-        torch.testing.assert_close(a, b, atol=1e-4, rtol=1e-4)
 
 
 def test_a_model_trained_on_cuda_loads_and_scores_on_the_cpu():
@@ -77,5 +59,5 @@ def test_a_model_trained_on_cuda_loads_and_scores_on_the_cpu():
     gpu, cpu = score_episode(ens, probe, top_k=3), score_episode(on_cpu, probe, top_k=3)
     scored = np.isfinite(cpu.per_step)
     assert scored.sum() > 0 and np.array_equal(np.isfinite(gpu.per_step), scored)
-    # TF32 convolutions on the GPU round inputs to 10 mantissa bits: close, not equal.
-    np.testing.assert_allclose(gpu.per_step[scored], cpu.per_step[scored], rtol=0.05, atol=1e-6)
+    # Other convolution algorithms, other rounding: close, not equal. (A variance of differences: relative errors grow.)
+    np.testing.assert_allclose(gpu.per_step[scored], cpu.per_step[scored], rtol=1e-2, atol=1e-7)

@@ -15,7 +15,7 @@ def _noisy(ens: Ensemble) -> Ensemble:
     # A fresh output layer is scaled down; make every member's output matter for the comparison.
     with torch.no_grad():
         for p in ens.params:
-            p.add_(0.05 * torch.randn(p.shape, generator=torch.Generator().manual_seed(p.numel())))
+            p.add_(0.05 * torch.randn(p.shape, generator=torch.Generator().manual_seed(p.numel())).to(p.device))
     return ens
 
 
@@ -94,9 +94,14 @@ def test_variance_is_refused_without_a_head():
         ens.member(0)(ctx, act, with_variance=True)
 
 
-def test_fused_gradients_equal_per_member_gradients():
-    ens = _noisy(Ensemble(CFG, members=2, seed=2))
-    ctx, act = torch.rand(2, 4, 2, 3, 16, 16), torch.randn(2, 4, 2)
+#: A device parameter for the tests that run on CUDA too (CI has no GPU: bench/device_checks.sh runs them there).
+DEVICES = ["cpu", pytest.param("cuda", marks=pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA here"))]
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_fused_gradients_equal_per_member_gradients(device):
+    ens = _noisy(Ensemble(CFG, members=2, seed=2).to(device))
+    ctx, act = torch.rand(2, 4, 2, 3, 16, 16, device=device), torch.randn(2, 4, 2, device=device)
     ens(ctx, act).pow(2).sum().backward()
     fused = [p.grad.clone() for p in ens.params]
     ens.zero_grad()
