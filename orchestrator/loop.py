@@ -18,6 +18,7 @@ configuration ``orchestrator.loopconfig.RunConfig``):
 from __future__ import annotations
 
 import logging
+import os
 import socket
 import subprocess
 import sys
@@ -125,6 +126,23 @@ def worker_command(endpoint: str, namespace: str, worker_id: str, image_size: in
             "--id", worker_id, "--size", str(image_size)]
 
 
+#: A worker's log (``DATA/logs/run-w<i>.log``, appended to by every run) found larger than this when a run starts
+#: is moved to ``run-w<i>.log.1``, replacing the one there: at most two files per worker index, however many runs.
+WORKER_LOG_BYTES = 10 * 2**20
+
+
+def worker_log(logs: Path, worker_id: str) -> Path:
+    """The log ``worker_id``'s output is appended to in ``logs``, first rotated to ``<name>.1`` when it holds more
+    than ``WORKER_LOG_BYTES``."""
+    path = logs / f"{worker_id}.log"
+    try:
+        if path.stat().st_size > WORKER_LOG_BYTES:
+            os.replace(path, path.with_name(f"{path.name}.1"))
+    except FileNotFoundError:  # the first run in this directory
+        pass
+    return path
+
+
 @dataclass
 class RunResult:
     """What ``activecollect run`` did."""
@@ -198,7 +216,7 @@ class LoopRun:
         logs.mkdir(parents=True, exist_ok=True)
         for i in range(cfg.workers):
             wid = f"run-w{i}"
-            with open(logs / f"{wid}.log", "ab") as out:
+            with open(worker_log(logs, wid), "ab") as out:
                 self.procs.append(subprocess.Popen(self.worker_cmd(endpoint, cfg.namespace, wid, cfg.image_size),
                                                    stdout=out, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
                                                    preexec_fn=die_with_parent))

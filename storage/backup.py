@@ -16,15 +16,21 @@ one quarantined between the snapshot and its copy is quarantined in the copy too
 
 The copy is built under a hidden name next to ``dest`` (``.<dest>.backup-<8 hex>``, locked while its backup
 lives) and renamed into place last, so ``dest`` exists only when complete; a backup killed midway leaves its
-hidden folder, which the next backup to ``dest`` deletes (``swept``). Not copied: ``reports/`` (made again by
-``run``), lock files, and what crashed calls left (staging files, ``orphans/``, ``models/.orphans/``). To restore,
-stop the service and serve from the backup (``--data DEST``) or move it into place.
+hidden folder, which the next backup to ``dest`` deletes (``swept``). One backup to ``dest`` at a time: each holds
+``.<dest>.backup.lock`` beside it (its pid inside) from its check of ``dest`` to its rename, so a second one fails
+at once naming the first rather than copying everything only to find ``dest`` taken; the holder deletes the file
+when done, and the kernel lets go of the lock of one killed midway (the next backup takes it and deletes it).
+Not copied: ``reports/`` (made again by ``run``), lock files, and what crashed calls left (staging files,
+``orphans/``, ``models/.orphans/``). To restore, stop the service and serve from the backup (``--data DEST``) or
+move it into place.
 """
 
 from __future__ import annotations
 
+import errno
 import fcntl
 import os
+import re
 import shutil
 import sqlite3
 import time
@@ -185,9 +191,10 @@ def backup(data_dir: str | os.PathLike[str], dest: str | os.PathLike[str],
     """Copy the data directory ``data_dir`` to ``dest`` (a new directory), consistently, while it is in use.
 
     ``progress(done, total)`` is called after each file. Raises ``BackupError`` when there is no
-    catalog in ``data_dir``, ``dest`` is in the way (see ``check_dest``), or the copy cannot be written
-    (a full disk): then nothing is left at ``dest``. Files the snapshot names that cannot be copied
-    intact do not stop the backup: they are listed in ``problems``.
+    catalog in ``data_dir``, ``dest`` is in the way (see ``check_dest``), another backup to ``dest`` is running
+    (at once, naming its pid), something else took ``dest`` meanwhile, or the copy cannot be written (a full
+    disk): then this backup leaves nothing, at ``dest`` or beside it. Files the snapshot names that cannot be
+    copied intact do not stop the backup: they are listed in ``problems``.
     """
     t0 = time.perf_counter()
     data_dir, dest = Path(data_dir), Path(dest)
@@ -195,17 +202,28 @@ def backup(data_dir: str | os.PathLike[str], dest: str | os.PathLike[str],
     if not source_db.is_file():
         raise BackupError(f"no catalog at {source_db}: nothing to back up")
     check_dest(data_dir, dest)
-    ensure_dir(dest.parent)
-    swept = _sweep_unfinished(dest)
+    try:
+        ensure_dir(dest.parent)
+    except OSError as exc:
+        raise BackupError(f"cannot write the backup at {dest}: {exc.strerror or exc}") from exc
+    with _dest_locked(dest):
+        check_dest(data_dir, dest)  # again, as the lock's holder: an earlier backup may have just finished it
+        swept = _sweep_unfinished(dest)
+        result = _build(data_dir, dest, progress)
+    episodes, models, size, problems = result
+    return BackupResult(dest=dest, episodes=episodes, models=models, bytes=size, problems=problems,
+                        seconds=round(time.perf_counter() - t0, 3), swept=swept)
+
+
+def _build(data_dir: Path, dest: Path, progress: Callable[[int, int], None] | None
+           ) -> tuple[int, int, int, list[str]]:
+    """``_fill`` a hidden folder beside ``dest`` and rename it into place; on any failure the folder is deleted."""
     work = dest.parent / f"{_work_prefix(dest)}{uuid.uuid4().hex[:8]}"
     try:
         work.mkdir()
         with _locked(work):  # until it is renamed into place: no other backup's sweep takes it
             result = _fill(data_dir, work, progress)
-            if dest.is_dir():
-                dest.rmdir()  # empty (checked): the rename below takes its place
-            os.rename(work, dest)
-            fsync_dir(dest.parent)
+            _move_into_place(work, dest)
     except BaseException as exc:
         shutil.rmtree(work, ignore_errors=True)
         if isinstance(exc, OSError):  # a full disk
@@ -213,14 +231,74 @@ def backup(data_dir: str | os.PathLike[str], dest: str | os.PathLike[str],
         if isinstance(exc, StorageError) and not isinstance(exc, BackupError):  # e.g. a catalog newer than this code
             raise BackupError(f"cannot back up {data_dir}: {exc}") from exc
         raise
-    episodes, models, size, problems = result
-    return BackupResult(dest=dest, episodes=episodes, models=models, bytes=size, problems=problems,
-                        seconds=round(time.perf_counter() - t0, 3), swept=swept)
+    return result
+
+
+def _move_into_place(work: Path, dest: Path) -> None:
+    """Rename the finished copy ``work`` to ``dest``, which is absent or an empty directory (checked). Raises
+    ``BackupError`` when something else has been put at ``dest`` meanwhile (a process that takes no lock: a backup
+    by older code, a copy by hand); it is left as it is."""
+    try:
+        if dest.is_dir():
+            dest.rmdir()  # (fails unless still empty) the rename below takes its place
+        os.rename(work, dest)  # (fails onto a directory that is not empty, or onto a file)
+    except OSError as exc:
+        if exc.errno in (errno.ENOTEMPTY, errno.EEXIST, errno.ENOTDIR):
+            raise BackupError(f"{dest} appeared while this backup ran: another backup or process wrote it; "
+                              "this backup is discarded") from exc
+        raise
+    fsync_dir(dest.parent)
 
 
 def _work_prefix(dest: Path) -> str:
     """The start of the name of the hidden folder a backup to ``dest`` is built in, beside it."""
     return f".{dest.name}.backup-"
+
+
+def _lock_path(dest: Path) -> Path:
+    """The file a backup to ``dest`` holds locked while it runs, beside it."""
+    return dest.parent / f".{dest.name}.backup.lock"
+
+
+@contextmanager
+def _dest_locked(dest: Path) -> Iterator[None]:
+    """Holds ``_lock_path(dest)`` locked, with this process's pid in it, and deletes it on the way out. Raises
+    ``BackupError`` naming the holder when another backup to ``dest`` holds it."""
+    path = _lock_path(dest)
+    while True:
+        try:
+            fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o644)
+        except OSError as exc:
+            raise BackupError(f"cannot create {path}: {exc.strerror or exc}") from exc
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            holder = os.pread(fd, 32, 0).decode(errors="replace").strip()
+            os.close(fd)
+            running = f"another backup to {dest} is running" + (f" (pid {holder})" if holder.isdigit() else "")
+            raise BackupError(f"{running}; wait for it to finish, or back up to another DEST") from None
+        if _is_still(path, fd):
+            break
+        os.close(fd)  # a backup that finished meanwhile deleted it: take the next one
+    try:
+        try:
+            os.ftruncate(fd, 0)  # (a killed backup's pid may be in it)
+            os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+        except OSError as exc:
+            raise BackupError(f"cannot write {path}: {exc.strerror or exc}") from exc
+        yield
+    finally:
+        path.unlink(missing_ok=True)  # while locked: a backup that opened it before finds it gone and opens anew
+        os.close(fd)
+
+
+def _is_still(path: Path, fd: int) -> bool:
+    """Whether ``path`` is still the file open at ``fd``."""
+    try:
+        st = path.stat()
+    except FileNotFoundError:
+        return False
+    return (st.st_dev, st.st_ino) == (os.fstat(fd).st_dev, os.fstat(fd).st_ino)
 
 
 @contextmanager
@@ -240,8 +318,9 @@ def _sweep_unfinished(dest: Path) -> list[Path]:
     (unlocked: no live backup's); returns those deleted. Best effort: one that cannot be deleted stays, for the
     next backup to try again."""
     swept = []
+    name = re.compile(re.escape(_work_prefix(dest)) + "[0-9a-f]{8}")  # (not a backup's to `<dest>.backup-x`)
     for path in sorted(dest.parent.iterdir()):
-        if not path.name.startswith(_work_prefix(dest)) or path.is_symlink() or not path.is_dir():
+        if not name.fullmatch(path.name) or path.is_symlink() or not path.is_dir():
             continue
         try:
             fd = os.open(path, os.O_RDONLY | os.O_DIRECTORY)

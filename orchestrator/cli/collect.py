@@ -169,7 +169,8 @@ def register(sub: argparse._SubParsersAction) -> None:
         description="Copy the catalog, queue and model registry (one SQLite snapshot, taken while "
                     "writers go on), every indexed episode and every kept checkpoint to DEST, checking "
                     "each file's sha256 as it is read. DEST appears only once complete (a backup killed midway leaves "
-                    "a hidden folder beside it, which the next backup to DEST deletes). Restore: stop "
+                    "a hidden folder and lock file beside it, which the next backup to DEST deletes). One backup "
+                    "to DEST at a time: a second one exits 1 at once naming the first's pid. Restore: stop "
                     "the service and serve from DEST (--data DEST), or move it into place. Exit 1 when "
                     "a file could not be copied intact (the rest is backed up and the files are named).")
     p.add_argument("dest", type=Path, metavar="DEST",
