@@ -81,7 +81,8 @@ class RoundPlanner:
     def observe(self, episodes: Sequence[Episode]) -> None:
         self.inner.observe(episodes)
 
-    def plan(self, new_episodes: Sequence[Episode]) -> list[NewRequest]:
+    def plan(self, new_episodes: Sequence[Episode], limit: int | None = None) -> list[NewRequest]:
+        """Buffers the episodes for ``release``; plans nothing now."""
         with self._lock:
             self._buffer.extend(new_episodes)
             del self._buffer[:-self.round_episodes]  # a round's worth is all a plan looks at
@@ -108,7 +109,8 @@ class RoundPlanner:
         room = self._room() if limit is None else min(self._room(), max(0, limit))
         if room == 0:
             return []
-        planned = self.inner.plan(episodes)[:room] if episodes else []
+        planned = self.inner.plan(episodes, limit=room) if episodes else []  # (not a cut: the planner
+        # remembers what it returns, and keeps its next candidates away from those states)
         return planned + self.inner.seed(room - len(planned))
 
 

@@ -73,7 +73,7 @@ class Planner(Protocol):
 
     name: str
 
-    def plan(self, new_episodes: Sequence[Episode]) -> list[NewRequest]: ...
+    def plan(self, new_episodes: Sequence[Episode], limit: int | None = None) -> list[NewRequest]: ...
 
     def seed(self, n: int, why: str = "seed") -> list[NewRequest]: ...
 
@@ -262,15 +262,18 @@ class ActivePlanner:
                 if scores is not None:
                     self.progress.record(ep, scores)
 
-    def plan(self, new_episodes: Sequence[Episode]) -> list[NewRequest]:
+    def plan(self, new_episodes: Sequence[Episode], limit: int | None = None) -> list[NewRequest]:
         """Score the new episodes and request their most uncertain, mutually distant states.
 
         With no model yet, each new episode is replaced by one uniform request so the
-        queue never runs dry. Returns at most ``budget_per_round`` requests and never
-        more than the room left under ``max_queue_depth``. Eval episodes (``is_eval``) are left out.
+        queue never runs dry. Returns at most ``budget_per_round`` requests (``limit``, when smaller: a caller
+        with less room, whose cut requests would otherwise be remembered as asked) and never more than the room
+        left under ``max_queue_depth``. Eval episodes (``is_eval``) are left out.
         """
         room = max(0, self.cfg.max_queue_depth - self.queue_depth())
         budget = min(self.cfg.budget_per_round, room)
+        if limit is not None:
+            budget = min(budget, max(0, limit))
         new_episodes = self._collected(new_episodes) if budget else []
         if not new_episodes:
             return []

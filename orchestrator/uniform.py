@@ -137,9 +137,10 @@ class UniformPlanner:
         room = max(0, self.cfg.max_queue_depth - self.queue_depth())
         return [self.draw_request(why) for _ in range(min(n, room))]
 
-    def plan(self, new_episodes: Sequence[Episode]) -> list[NewRequest]:
-        """``per_episode`` uniform requests per new episode, capped by the queue depth."""
+    def plan(self, new_episodes: Sequence[Episode], limit: int | None = None) -> list[NewRequest]:
+        """``per_episode`` uniform requests per new episode, capped by the queue depth (and by ``limit``)."""
         room = max(0, self.cfg.max_queue_depth - self.queue_depth())
+        room = room if limit is None else min(room, max(0, limit))
         return [self.draw_request("uniform") for _ in range(min(room, self.cfg.per_episode * len(new_episodes)))]
 
     def observe(self, episodes: Sequence[Episode]) -> None:

@@ -406,3 +406,18 @@ def test_a_promotion_while_a_batch_is_scored_leaves_scores_of_one_champion():
     assert len(calls) == 4  # the first episode was scored again by m2
     assert {r.reason["model_version"] for r in requests} == {"m2"} and planner.threshold < 1e-3
     assert len(planner.plan([make_episode(rng) for _ in range(2)])) == 4  # m2's uncertain states get requests
+
+
+def test_a_round_cut_short_by_the_budget_remembers_only_the_requests_it_queued():
+    """The last round has room for 2 of the active planner's 6: it plans 2, and only their states are kept away
+    from by the next plan. (The old round cut the plan after the planner had remembered all 6.)"""
+    rng = np.random.default_rng(0)
+    planner = ActivePlanner(acfg(budget_per_round=6, explore_fraction=0.0, min_distance=0.0), step_scorer(),
+                            np.random.default_rng(1))
+    rounds = RoundPlanner(planner, round_episodes=6, budget=8, collected=lambda: 6, outstanding=lambda: 0)
+    rounds.plan([make_episode(rng) for _ in range(4)])
+    released = rounds.release()
+    assert len(released) == 2 and all(r.reason.get("score") is not None for r in released)
+    assert len(planner._requested_steps) == 2
+    assert len(UniformPlanner(UniformPlannerConfig(max_queue_depth=1000), rng).plan([make_episode(rng)] * 5,
+                                                                                    limit=3)) == 3
