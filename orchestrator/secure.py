@@ -26,6 +26,7 @@ from pathlib import Path
 from typing import Any
 
 import json5
+import zenoh
 from cryptography import x509
 from cryptography.hazmat.primitives import hashes, serialization
 from cryptography.hazmat.primitives.asymmetric import ec
@@ -281,6 +282,25 @@ def build_acl(namespace: str = DEFAULT_NAMESPACE) -> dict[str, Any]:
                 for role, ids in by_role.items()]
     return {"enabled": True, "default_permission": "deny", "rules": rules,
             "subjects": subjects, "policies": policies}
+
+
+def roles_that_may_query(key_expr: str, namespace: str = DEFAULT_NAMESPACE) -> tuple[str, ...]:
+    """The client roles whose rules in ``build_acl(namespace)`` let them send queries on all of ``key_expr``: the
+    router drops another role's query there unanswered."""
+    wanted = zenoh.KeyExpr(key_expr)
+    roles = {rule["id"].split("-", 1)[0] for rule in build_acl(namespace)["rules"]
+             if "ingress" in rule["flows"] and "query" in rule["messages"]
+             and any(zenoh.KeyExpr(k).includes(wanted) for k in rule["key_exprs"])}
+    return tuple(role for role in CLIENT_ROLES if role in roles)
+
+
+def client_role(config: dict[str, Any]) -> str | None:
+    """The role a parsed client config of a secure profile logs in as: its usrpwd user, which ``client_config``
+    writes as the role's name (the ACL matches it with the certificate's CN). None for any other config."""
+    user = lookup_key(config, "transport/auth/usrpwd/user")
+    if lookup_key(config, "transport/link/protocols") != ["tls"] or not isinstance(user, str):
+        return None
+    return user if user in CLIENT_ROLES else None
 
 
 # ---------------------------------------------------------------- configs

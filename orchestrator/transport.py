@@ -1,9 +1,9 @@
 """Zenoh plumbing shared by the service, the workers and the operator CLI.
 
-A leaf module: it imports nothing else of ours, so workers on any host can use it. It knows bytes, keys and
-endpoints, not the JSON messages riding on them (those are the business of ``orchestrator.protocol`` and
-``orchestrator.messages``). The command-line flags that name endpoints, a config file and a timeout live in
-``orchestrator.endpoints``.
+A leaf module: it imports nothing else of ours but ``orchestrator.linkprobe`` (a leaf too), so workers on any host
+can use it. It knows bytes, keys and endpoints, not the JSON messages riding on them (those are the business of
+``orchestrator.protocol`` and ``orchestrator.messages``). The command-line flags that name endpoints, a config file
+and a timeout live in ``orchestrator.endpoints``.
 
 Two things about zenoh-python 1.x shape this module:
 
@@ -32,6 +32,8 @@ from typing import Any
 
 import json5
 import zenoh
+
+from orchestrator import linkprobe
 
 log = logging.getLogger(__name__)
 
@@ -283,16 +285,43 @@ def open_session(mode: str = "peer", listen: Sequence[str] = (), connect: Sequen
                  config_file: str | Path | None = None) -> zenoh.Session:
     """Open a Zenoh session from :func:`make_config`'s arguments; it says when a router link goes and comes back.
 
-    Raises ``TransportError`` when Zenoh cannot open it (port in use, bad endpoint).
+    Raises ``TransportError`` when Zenoh cannot open it (port in use, bad endpoint). When a client reaches none of
+    its routers, the message says why instead of Zenoh's "Unable to connect": nothing listens there, a certificate
+    is refused, or the router took the connection and refused the login (``orchestrator.linkprobe``).
     """
     config = make_config(mode, listen, connect, config_file)
     try:
         session = zenoh.open(config)
     except zenoh.ZError as exc:
+        said = zenoh_error(exc)
+        if said.startswith(_UNABLE_TO_CONNECT):
+            said = _why_unreachable(config, config_file) or said
         raise TransportError(f"cannot open Zenoh session (listen={list(listen)}, "
-                             f"connect={list(connect)}, config={config_file}): {zenoh_error(exc)}") from exc
+                             f"connect={list(connect)}, config={config_file}): {said}") from exc
     _say_router_links(session)
     return session
+
+
+#: How Zenoh says that a client reached none of its connect endpoints, whatever the reason.
+_UNABLE_TO_CONNECT = "Unable to connect to any of"
+
+
+def _why_unreachable(config: zenoh.Config, config_file: str | Path | None) -> str:
+    """``linkprobe.diagnose`` of ``config``'s connect endpoints, with its TLS files and usrpwd user."""
+    def value(key: str) -> Any:
+        return json.loads(config.get_json(key) or "null")
+
+    endpoints = value("connect/endpoints") or []
+    if isinstance(endpoints, dict):  # per-mode form
+        endpoints = endpoints.get(value("mode") or "client") or []
+    tls = value("transport/link/tls") or {}
+
+    def path(key: str) -> Path | None:
+        return Path(tls[key]).expanduser() if tls.get(key) else None
+    client_tls = linkprobe.ClientTls(path("root_ca_certificate"), path("connect_certificate"),
+                                     path("connect_private_key"), tls.get("verify_name_on_connect") is not False)
+    return linkprobe.diagnose(endpoints, client_tls, value("transport/auth/usrpwd/user"),
+                              None if config_file is None else str(config_file))
 
 
 def _say_router_links(session: zenoh.Session) -> None:

@@ -29,7 +29,9 @@ ALLOWED = {
 LEAVES = {
     "orchestrator.protocol": set(),
     "orchestrator.messages": {"orchestrator.protocol"},
-    "orchestrator.transport": {"orchestrator.tlscheck"},  # (only when a config names TLS files)
+    "orchestrator.transport": {"orchestrator.tlscheck", "orchestrator.linkprobe"},  # (tlscheck: when a config names
+    # TLS files; linkprobe: when a session cannot reach its router)
+    "orchestrator.linkprobe": set(),
     "orchestrator.tlscheck": {"orchestrator.transport"},
     "orchestrator.endpoints": {"orchestrator.transport"},
     "orchestrator.signals": set(),

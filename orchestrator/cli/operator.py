@@ -15,12 +15,13 @@ import threading
 import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 import zenoh
 
-from orchestrator import admin, endpoints, protocol, transport
+from orchestrator import admin, endpoints, protocol, secure, transport
 from orchestrator.cli import common
 from orchestrator.messages import AdminRequest, Event, RequestSpec
 from orchestrator.protocol import Keys, ProtocolError
@@ -195,22 +196,43 @@ def _session(args: argparse.Namespace) -> Iterator[zenoh.Session]:
 
 
 def admin_call(session: zenoh.Session, keys: Keys, op: str, args: dict[str, Any], timeout: float,
-               secure: bool = False) -> dict[str, Any]:
-    """One admin op over Zenoh; the reply body. Raises _NoService, ProtocolError (refused).
+               zenoh_config: str | Path | None = None) -> dict[str, Any]:
+    """One admin op over Zenoh; the reply body. Raises _NoService (``_no_answer`` says why), ProtocolError
+    (refused).
 
-    ``secure``: the session runs under a secure profile, whose router drops a query its ACL denies
-    without a word, so no answer may also mean that this role may not make it.
+    ``zenoh_config``: the session's config file, read again only when no answer comes: under a secure profile the
+    router drops a query its ACL denies without a word, so a config of a role that may not make it is named.
     """
     try:
         reply = transport.query(session, keys.admin(op), AdminRequest(op=op, args=args).to_json(), timeout=timeout)
     except transport.NoReplyError:
-        denied = (" or your role may not be allowed this operation: the router's ACL drops a denied request "
-                  "unanswered") if secure else ""
-        raise _NoService(f"no orchestrator answered on {keys.admin(op)} within {timeout:g} s "
-                         f"(is `activecollect serve` running and reachable?{denied})") from None
+        raise _NoService(_no_answer(keys, op, timeout, zenoh_config)) from None
     except transport.RemoteError as exc:
         raise ProtocolError(protocol.ErrorCode.INTERNAL, str(exc)) from None
     return protocol.parse_reply(reply)
+
+
+def _no_answer(keys: Keys, op: str, timeout: float, zenoh_config: str | Path | None) -> str:
+    """One line for an admin query nobody answered: no service, or (a secure profile's config) a role whose
+    queries there the router's ACL drops, said outright when the config is a role's that ``secure init`` wrote."""
+    said = f"no orchestrator answered on {keys.admin(op)} within {timeout:g} s"
+    running = "is `activecollect serve` running and reachable?"
+    if zenoh_config is None:
+        return f"{said} ({running})"
+    try:
+        config = transport.read_config(Path(zenoh_config))
+    except transport.SecureConfigError as exc:  # read at start a moment ago; gone since: no more to tell
+        return f"{said} ({running}; {exc})"
+    role, allowed = secure.client_role(config), secure.roles_that_may_query(keys.admin(op), keys.namespace)
+    if role is not None and allowed and role not in allowed:
+        other = Path(zenoh_config).with_name(f"{allowed[0]}.json5")
+        use = f"give --zenoh-config {other}" if other.is_file() else f"use the profile's {allowed[0]}.json5"
+        return (f"{said}, and none will: {zenoh_config} is the secure profile's {role} config, and the router's "
+                f"ACL drops admin queries from every role but {' and '.join(allowed)} unanswered ({use})")
+    if role is None and any(transport.lookup_key(config, key) for key in transport.FILE_KEYS):
+        return (f"{said} ({running[:-1]} or your role may not be allowed this operation: the router's ACL drops a "
+                f"denied request unanswered)")
+    return f"{said} ({running})"
 
 
 def namespace_keys(args: argparse.Namespace) -> Keys:
@@ -221,15 +243,10 @@ def namespace_keys(args: argparse.Namespace) -> Keys:
         raise common.UsageError(f"--{exc.message}" if exc.message.startswith("namespace:") else exc.message) from None
 
 
-def _secure_profile(args: argparse.Namespace) -> bool:
-    """Whether ``--zenoh-config`` is a secure profile (it names certificate, key or password files)."""
-    return args.zenoh_config is not None and bool(transport.validate_secure_config(args.zenoh_config))
-
-
 def _run_op(args: argparse.Namespace, op: str, op_args: dict[str, Any]) -> dict[str, Any]:
     keys = namespace_keys(args)
     with _session(args) as session:
-        return admin_call(session, keys, op, op_args, args.timeout, secure=_secure_profile(args))
+        return admin_call(session, keys, op, op_args, args.timeout, args.zenoh_config)
 
 
 def _failed(exc: Exception, op: str) -> int:
@@ -363,7 +380,7 @@ def cmd_watch(args: argparse.Namespace) -> int:
     seen = threading.Semaphore(0)
     try:
         with _session(args) as session:
-            admin_call(session, keys, "stats", {}, args.timeout, secure=_secure_profile(args))
+            admin_call(session, keys, "stats", {}, args.timeout, args.zenoh_config)
             sub = session.declare_subscriber(keys.events_all, lambda s: _print_event(s, args.json, seen))
             querier, listener = _follow_service(session, keys)
             if not args.json:
