@@ -21,7 +21,8 @@ from orchestrator.protocol import Keys
 from orchestrator.secure import (CLIENT_ROLES, SecureInitConfig, SecureSet, cert_pem, client_role, init_secure,
                                  issue_certificate, key_pem, make_ca, roles_that_may_query)
 from tests.conftest import free_port
-from tests.orchestrator.test_secure import REPO, start_router
+from tests.orchestrator import test_secure
+from tests.orchestrator.test_secure import REPO
 
 #: The commands that open a session with a role's config: argv after ``python -m orchestrator``, and the role.
 COMMANDS = {
@@ -31,15 +32,7 @@ COMMANDS = {
     "queue ls": (["queue", "ls", "--timeout", "2"], "operator"),
 }
 
-
-@pytest.fixture(scope="module")
-def profile(tmp_path_factory):
-    """A secure profile and its router, running."""
-    directory = tmp_path_factory.mktemp("s22") / "profile"
-    secure = init_secure(SecureInitConfig(directory, router_endpoint=f"tls/127.0.0.1:{free_port()}"))
-    router = start_router(secure.configs["router"])
-    yield secure
-    assert router.stop() == 0, router.output()
+secure_router = test_secure.secure_router  # one secure profile and its router, running, for this module too
 
 
 def variant(secure: SecureSet, role: str, where: Path, change: Callable[[dict], None]) -> Path:
@@ -68,13 +61,13 @@ def wrong_password(config: dict) -> None:
 
 
 @pytest.mark.parametrize("name", COMMANDS)
-def test_a_wrong_password_is_said_to_be_a_refused_login(profile, tmp_path, name):
+def test_a_wrong_password_is_said_to_be_a_refused_login(secure_router, tmp_path, name):
     role = COMMANDS[name][1]
-    config = variant(profile, role, tmp_path / "wrong.json5", wrong_password)
+    config = variant(secure_router, role, tmp_path / "wrong.json5", wrong_password)
     done = run_command(name, config, tmp_path)
     assert done.returncode == 1, done.stderr
     line = one_line(done.stderr)
-    endpoint = profile_endpoint(profile)
+    endpoint = profile_endpoint(secure_router)
     assert (f"the router at {endpoint} accepted the TLS connection and this side's certificate but refused the "
             f"login: check the user ('{role}') and password in {config}") in line, line
     assert "Unable to connect" not in line
@@ -84,10 +77,10 @@ def profile_endpoint(secure: SecureSet) -> str:
     return json5.loads(secure.configs["worker"].read_text())["connect"]["endpoints"][0]
 
 
-def test_an_unknown_user_is_said_to_be_a_refused_login(profile, tmp_path, capsys):
+def test_an_unknown_user_is_said_to_be_a_refused_login(secure_router, tmp_path, capsys):
     def unknown(config: dict) -> None:
         config["transport"]["auth"]["usrpwd"]["user"] = "nobody"
-    config = variant(profile, "operator", tmp_path / "unknown.json5", unknown)
+    config = variant(secure_router, "operator", tmp_path / "unknown.json5", unknown)
     assert main(["stats", "--zenoh-config", str(config), "--timeout", "2"]) == 1
     line = one_line(capsys.readouterr().err)
     assert "refused the login: check the user ('nobody') and password" in line, line
@@ -113,52 +106,52 @@ def _foreign_pair(tmp_path: Path) -> tuple[Path, Path, Path]:
     return paths
 
 
-def test_a_client_certificate_the_router_refuses_is_named(profile, tmp_path, capsys):
+def test_a_client_certificate_the_router_refuses_is_named(secure_router, tmp_path, capsys):
     _, cert, key = _foreign_pair(tmp_path)
 
     def foreign(config: dict) -> None:
         tls = config["transport"]["link"]["tls"]
         tls["connect_certificate"], tls["connect_private_key"] = str(cert), str(key)
-    config = variant(profile, "worker", tmp_path / "foreign.json5", foreign)
+    config = variant(secure_router, "worker", tmp_path / "foreign.json5", foreign)
     assert main(["stats", "--zenoh-config", str(config), "--timeout", "2"]) == 1
     line = one_line(capsys.readouterr().err)
-    assert f"the router at {profile_endpoint(profile)} refused this side's certificate (" in line, line
+    assert f"the router at {profile_endpoint(secure_router)} refused this side's certificate (" in line, line
     assert str(cert) in line and "login" not in line
 
 
-def test_a_router_certificate_this_side_refuses_is_named(profile, tmp_path, capsys):
+def test_a_router_certificate_this_side_refuses_is_named(secure_router, tmp_path, capsys):
     ca, _, _ = _foreign_pair(tmp_path)
 
     def other_root(config: dict) -> None:
         config["transport"]["link"]["tls"]["root_ca_certificate"] = str(ca)
-    config = variant(profile, "operator", tmp_path / "other-root.json5", other_root)
+    config = variant(secure_router, "operator", tmp_path / "other-root.json5", other_root)
     assert main(["stats", "--zenoh-config", str(config), "--timeout", "2"]) == 1
     line = one_line(capsys.readouterr().err)
-    assert f"the router at {profile_endpoint(profile)} presented a certificate this side does not accept" in line
+    assert f"the router at {profile_endpoint(secure_router)} presented a certificate this side does not accept" in line
     assert str(ca) in line, line
 
 
 # ---------------------------------------------------------------- a role the ACL denies admin queries
 
 @pytest.mark.parametrize("role", ["worker", "orchestrator"])
-def test_an_operator_command_with_another_roles_config_names_the_role(profile, role, capsys):
-    config = profile.configs[role]
+def test_an_operator_command_with_another_roles_config_names_the_role(secure_router, role, capsys):
+    config = secure_router.configs[role]
     assert main(["stats", "--zenoh-config", str(config), "--timeout", "0.5"]) == 1
     line = one_line(capsys.readouterr().err)
     assert line.startswith("activecollect: no orchestrator answered on activecollect/admin/stats within 0.5 s")
     assert (f"{config} is the secure profile's {role} config, and the router's ACL drops admin queries from "
-            f"every role but operator unanswered (give --zenoh-config {profile.configs['operator']})") in line, line
+            f"every role but operator unanswered (give --zenoh-config {secure_router.configs['operator']})") in line, line
 
 
-def test_the_operators_own_config_says_no_service_answered(profile, capsys):
-    assert main(["queue", "ls", "--zenoh-config", str(profile.configs["operator"]), "--timeout", "0.5"]) == 1
+def test_the_operators_own_config_says_no_service_answered(secure_router, capsys):
+    assert main(["queue", "ls", "--zenoh-config", str(secure_router.configs["operator"]), "--timeout", "0.5"]) == 1
     line = one_line(capsys.readouterr().err)
     assert line.endswith("within 0.5 s (is `activecollect serve` running and reachable?)"), line
 
 
-def test_roles_are_read_from_the_configs_secure_init_writes(profile):
-    assert [client_role(json5.loads(profile.configs[r].read_text())) for r in CLIENT_ROLES] == list(CLIENT_ROLES)
-    assert client_role(json5.loads(profile.configs["router"].read_text())) is None  # a router, not a client
+def test_roles_are_read_from_the_configs_secure_init_writes(secure_router):
+    assert [client_role(json5.loads(secure_router.configs[r].read_text())) for r in CLIENT_ROLES] == list(CLIENT_ROLES)
+    assert client_role(json5.loads(secure_router.configs["router"].read_text())) is None  # a router, not a client
     keys = Keys("lab")
     assert roles_that_may_query(keys.admin("stats"), "lab") == ("operator",)
     assert roles_that_may_query(keys.lease, "lab") == ("worker",)
