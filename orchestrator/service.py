@@ -7,13 +7,14 @@
 
 it holds ``DATA/service.lock`` from before its first write until ``stop()`` (one service per data directory: a
 second is refused, naming the first; ``storage.servicelock``), watches the liveliness tokens ``NS/workers/*`` (a
-lost worker's leases go back to the queue at once), expires leases on a timer, and publishes on ``NS/events/**``.
+lost worker's leases go back to the queue after a grace), expires leases on a timer, and publishes on ``NS/events/**``.
 
 Threads: lease / renew / fail / release are answered on Zenoh's callback threads (one short SQLite transaction
 each); uploads (``orchestrator.uploads``) and admin queries are handed to a small pool per key (verification,
 fsync). The queue checkpoints its WAL on a thread of its own, so no transition waits for those fsyncs. A
-maintenance thread reaps expired leases and handles liveliness changes. A background thread hands each stored
-episode to the planner and the ``on_episode`` callbacks, so scoring and planning never stall leasing.
+maintenance thread reaps expired leases and releases lost workers' leases (``orchestrator.liveliness``). A
+background thread hands each stored episode to the planner and the ``on_episode`` callbacks, so scoring and
+planning never stall leasing.
 
 Every reply is ``protocol.ok_reply`` / ``error_reply`` bytes; a message that fails validation gets an error reply
 and changes nothing.
@@ -36,6 +37,7 @@ import zenoh
 
 from orchestrator import admin, messages, protocol, sweeps, transport
 from orchestrator.heap import HeapTrimmer
+from orchestrator.liveliness import Presence
 from orchestrator.metrics import ServiceMetrics
 from orchestrator.planner import Planner
 from orchestrator.protocol import ErrorCode, EventKind, Keys, ProtocolError
@@ -70,8 +72,9 @@ class Service:
         self._servers: list[transport.Server] = []
         self._publishers: dict[EventKind, Any] = {}
         self._liveliness_sub: Any = None
-        self._alive: set[str] = set()
-        self._alive_lock = threading.Lock()
+        self.presence = Presence(config.lost_worker_grace_s, gauge=self.metrics.set_workers_alive,
+                                 release=self._worker_lost, leased=lambda: self.storage.read(
+                                     "the leased requests", lambda: self.queue.list(RequestStatus.LEASED)))
         self._tasks: queue_mod.Queue[Callable[[], None] | None] = queue_mod.Queue()
         self._stored: queue_mod.Queue[StoredEpisode | None] = queue_mod.Queue()
         self._threads: list[threading.Thread] = []
@@ -185,8 +188,7 @@ class Service:
 
     def workers(self) -> list[str]:
         """Ids of the workers whose liveliness token is alive now."""
-        with self._alive_lock:
-            return sorted(self._alive)
+        return self.presence.alive()
 
     def publish(self, kind: EventKind, data: dict[str, Any]) -> None:
         """Publish one event on ``NS/events/<kind>`` (best effort: an event is a notification, not state).
@@ -342,19 +344,17 @@ class Service:
         except ProtocolError as exc:
             log.warning("ignoring liveliness token %s: %s", sample.key_expr, exc)
             return
-        joined = sample.kind == zenoh.SampleKind.PUT
-        with self._alive_lock:
-            (self._alive.add if joined else self._alive.discard)(worker_id)
-            self.metrics.set_workers_alive(len(self._alive))
-        if joined:
+        if sample.kind == zenoh.SampleKind.PUT:
+            if self.presence.joined(worker_id):  # back within its grace
+                self._tasks.put(self.presence.say_back)
             self.publish(EventKind.WORKER_JOINED, {"worker_id": worker_id})
         else:
-            self._tasks.put(lambda: self._worker_lost(worker_id))
+            self.presence.left(worker_id)
+            self._tasks.put(self.presence.release_due)  # no grace: released now; else wakes the maintenance thread
 
     def _worker_lost(self, worker_id: str) -> None:
-        with self._alive_lock:
-            if worker_id in self._alive:  # it came back before we got here
-                return
+        if self.presence.is_alive(worker_id):  # it came back before we got here
+            return
         with self._writing():
             released = self.queue.release_worker_leases(worker_id)
         log.info("worker %s lost; %d lease(s) released", worker_id, len(released))
@@ -368,19 +368,21 @@ class Service:
                             "attempts": request.attempts, "why": why, "error": (request.last_error or "")[:500]})
 
     def _maintain(self) -> None:
-        """Reap expired leases every reap_interval_s, sweep crash leftovers every STAGING_MAX_AGE_S;
-        run liveliness tasks as they come."""
+        """Reap expired leases every reap_interval_s, sweep crash leftovers every STAGING_MAX_AGE_S, release a
+        lost worker's leases when its grace is over; run liveliness tasks as they come. ``stop`` waits for no grace."""
         interval = self.config.reap_interval_s
         next_reap = time.monotonic()
         next_sweep = next_reap + STAGING_MAX_AGE_S
         while True:
             try:
-                task = self._tasks.get(timeout=max(0.0, next_reap - time.monotonic()))
+                task = self._tasks.get(timeout=max(0.0, min(next_reap, self.presence.next_due()) - time.monotonic()))
             except queue_mod.Empty:
-                task = self._reap
-                next_reap = time.monotonic() + interval
-                if next_reap >= next_sweep:  # a crash's staging files live at most two of these periods
-                    task, next_sweep = self._sweep, next_reap + STAGING_MAX_AGE_S
+                if self.presence.next_due() <= time.monotonic():
+                    task = self.presence.release_due
+                else:
+                    task, next_reap = self._reap, time.monotonic() + interval
+                    if next_reap >= next_sweep:  # a crash's staging files live at most two of these periods
+                        task, next_sweep = self._sweep, next_reap + STAGING_MAX_AGE_S
             if task is None:
                 return
             try:

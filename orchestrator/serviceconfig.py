@@ -63,6 +63,11 @@ class ServiceConfig:
     """Lease length handed to workers; they renew well before it runs out."""
     reap_interval_s: float = 1.0
     """How often expired leases are looked for."""
+    lost_worker_grace_s: float = 10.0
+    """How long a worker whose liveliness token went keeps its leases: when a Zenoh router restarts or a link blips,
+    every token goes and comes back a few seconds later, each worker still collecting its episode. A token back
+    within the grace keeps them; after it they go back to the queue (``orchestrator.liveliness``). 0: at once. A
+    lease still expires on its own timer meanwhile."""
     max_upload_bytes: int = protocol.MAX_UPLOAD_BYTES
     """Largest episode upload accepted."""
     planner: PlannerFactory | None = None
@@ -95,7 +100,9 @@ class ServiceConfig:
             raise ServiceError(f"namespace: {exc.message}") from None
         if self.mode not in transport.MODES:
             raise ServiceError(f"mode: expected one of {transport.MODES}, found {self.mode!r}")
-        numbers = [("lease_s", self.lease_s, 0.05, 86400.0), ("reap_interval_s", self.reap_interval_s, 0.01, 3600.0)]
+        numbers = [("lease_s", self.lease_s, 0.05, 86400.0),
+                   ("reap_interval_s", self.reap_interval_s, 0.01, 3600.0),
+                   ("lost_worker_grace_s", self.lost_worker_grace_s, 0.0, 86400.0)]
         counts = [("max_upload_bytes", self.max_upload_bytes, 1, protocol.MAX_UPLOAD_BYTES),
                   ("seed_requests", self.seed_requests, 0, 10_000), ("min_queued", self.min_queued, 0, 10_000),
                   ("handler_threads", self.handler_threads, 1, 64)]

@@ -181,7 +181,7 @@ def spawn_service(spawn: Callable[..., Proc], data_dir: Path, endpoint: str,
     def _service(*extra: str, name: str = "service") -> Proc:
         return spawn(name, "serve", "--data", str(data_dir), "--namespace", namespace,
                      "--listen", endpoint, "--planner", "none", "--reap-interval-s", "0.2",
-                     "--dashboard-port", "-1", *extra)
+                     "--lost-worker-grace", "0", "--dashboard-port", "-1", *extra)
 
     return _service
 

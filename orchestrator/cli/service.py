@@ -57,6 +57,12 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "(default 30)")
     p.add_argument("--reap-interval-s", type=common.positive_float, default=1.0, metavar="S",
                    help="seconds between looks for expired leases, 0.01..3600 (default 1)")
+    p.add_argument("--lost-worker-grace", type=lost_worker_grace, default=ServiceConfig.lost_worker_grace_s,
+                   metavar="S", help="seconds a worker whose liveliness token went keeps its leases before they go "
+                   "back to the queue, 0..86400 (default %(default)g; 0 = at once). When a Zenoh router restarts or "
+                   "a link blips, every worker's token goes and comes back a few seconds later: within the grace "
+                   "each keeps its lease and its episode is stored (a worker that is gone has its request queued "
+                   "again that much later). A lease still expires after --lease-s without renewals")
     p.add_argument("--planner", choices=PLANNERS, default="active",
                    help="what turns stored episodes into requests (default active)")
     p.add_argument("--seed-requests", type=common.non_negative_int, default=0, metavar="N",
@@ -116,6 +122,14 @@ def register_bench(bench_sub: argparse._SubParsersAction) -> None:
 
 # --- serve ---------------------------------------------------------------------------------------
 
+def lost_worker_grace(text: str) -> float:
+    """``--lost-worker-grace``: a finite number of seconds in [0, 86400]."""
+    value = common.finite_float(text)
+    if not 0 <= value <= 86400:
+        raise argparse.ArgumentTypeError(f"expected seconds in 0..86400, found {text!r}")
+    return value
+
+
 def planner_factory(name: str, steps: int, seed: int, threads: int = 0) -> PlannerFactory | None:
     """The factory ``serve --planner`` names (None for ``none``); ``threads`` is the champion scorer's."""
     if name == "none":
@@ -167,7 +181,8 @@ def cmd_serve(args: argparse.Namespace) -> int:
     try:
         config = ServiceConfig(data_dir=args.data, namespace=args.namespace, mode=args.mode, listen=listen,
                                connect=connect, zenoh_config=args.zenoh_config, lease_s=args.lease_s,
-                               reap_interval_s=args.reap_interval_s, seed_requests=args.seed_requests,
+                               reap_interval_s=args.reap_interval_s, lost_worker_grace_s=args.lost_worker_grace,
+                               seed_requests=args.seed_requests,
                                min_queued=min_queued,
                                planner=planner_factory(args.planner, args.steps, args.seed, args.scoring_threads))
     except ServiceError as exc:

@@ -28,7 +28,8 @@ def make_service(data_dir: Path, endpoint: str, namespace: str):
 
     def make(**kw: Any) -> Service:
         cfg = ServiceConfig(data_dir=data_dir, namespace=namespace, listen=(endpoint,),
-                            lease_s=kw.pop("lease_s", 30.0), reap_interval_s=kw.pop("reap_interval_s", 0.05), **kw)
+                            lease_s=kw.pop("lease_s", 30.0), reap_interval_s=kw.pop("reap_interval_s", 0.05),
+                            lost_worker_grace_s=kw.pop("lost_worker_grace_s", 0.0), **kw)  # a lost worker: at once
         service = Service(cfg)
         service.start()
         services.append(service)
