@@ -111,5 +111,5 @@ class Presence:
         leased = self._leased() if back else None
         held = Counter(r.worker_id for r in leased or ())
         for worker_id, away_s in back:
-            log.info("worker %s back after %.1f s; its %s lease(s) kept", worker_id, away_s,
-                     "" if leased is None else held[worker_id])
+            log.info("worker %s back after %.1f s; its %s kept", worker_id, away_s,
+                     "leases" if leased is None else f"{held[worker_id]} lease(s)")
