@@ -89,7 +89,8 @@ def main_figure(cat: Catalog, data: Path, args) -> dict:
                losses=result.losses, sparsification=m["sparsification"], bootstrap=args.bootstrap,
                image_size=args.image_size, variance_head=args.variance_head, palette=args.palette,
                context=args.context)
-    out["calibration_variants"] = calibration_variants(load_ensemble(registry, result.version, resolve_device(args.device)), cat)
+    ens = load_ensemble(registry, result.version, resolve_device(args.device))
+    out["calibration_variants"] = calibration_variants(ens, cat)
     return out
 
 
