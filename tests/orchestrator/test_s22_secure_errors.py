@@ -140,7 +140,8 @@ def test_an_operator_command_with_another_roles_config_names_the_role(secure_rou
     line = one_line(capsys.readouterr().err)
     assert line.startswith("activecollect: no orchestrator answered on activecollect/admin/stats within 0.5 s")
     assert (f"{config} is the secure profile's {role} config, and the router's ACL drops admin queries from "
-            f"every role but operator unanswered (give --zenoh-config {secure_router.configs['operator']})") in line, line
+            f"every role but operator unanswered (give --zenoh-config {secure_router.configs['operator']})") in line, \
+        line
 
 
 def test_the_operators_own_config_says_no_service_answered(secure_router, capsys):
