@@ -96,6 +96,27 @@ def test_queue_add_refuses_a_number_past_floats_range_as_a_usage_error(capsys) -
     assert "argument --start-state: expected a JSON object" in err and "1e400 is out of range for a number" in err
 
 
+def test_bench_loop_refuses_an_out_that_is_a_file_as_a_usage_error(capsys, tmp_path) -> None:
+    afile = tmp_path / "afile"
+    afile.write_text("not a directory")
+    rc, out, err = run_cli(capsys, "bench", "loop", "--out", str(afile))
+    assert rc == 2 and out == "" and err.count("\n") == 1, err
+    assert f"argument --out: expected an output directory, found a file at {afile}" in err
+
+
+def test_bench_loop_refuses_the_out_of_a_run_stopped_midway_before_it_starts(capsys, tmp_path) -> None:
+    """A run stopped (Ctrl-C) after its first arm made a catalog, and no summary.json: the same --out again
+    is a usage error, said at once, not a traceback once torch has loaded."""
+    out_dir = tmp_path / "loop"
+    arm = out_dir / "seed0" / "active"
+    Catalog(arm)  # what the stopped run left
+    before = sorted(out_dir.rglob("*"))
+    rc, out, err = run_cli(capsys, "bench", "loop", "--seeds", "1", "--out", str(out_dir))
+    assert rc == 2 and out == "" and err.count("\n") == 1, err
+    assert f"{out_dir} already holds a bench loop result, or a stopped run's; give a fresh --out" in err
+    assert sorted(out_dir.rglob("*")) == before
+
+
 @pytest.fixture(scope="module")
 def champion(tmp_path_factory) -> tuple[Path, str]:
     """A data dir with 4 recorded train episodes of 5 frames, a pinned eval split and a trained champion;

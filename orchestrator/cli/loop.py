@@ -192,7 +192,7 @@ def register_bench(bench: argparse._SubParsersAction) -> None:
                    help="with --shapes-by-progress, the horizon of the error whose fall is measured (default "
                         f"{d.active.progress_horizon}, the gate's; a longer one weighs the dynamics more; at most "
                         "--steps minus the model's context frames)")
-    p.add_argument("--out", type=Path, default=None, metavar="DIR",
+    p.add_argument("--out", type=lambda t: common.directory_path(t, "an output directory"), metavar="DIR",
                    help="output directory (default ./activecollect-bench/loop-<timestamp>)")
     p.set_defaults(func=_bench_loop)
 
@@ -259,8 +259,8 @@ def _bench_loop(args: argparse.Namespace) -> int:
                                         "min_per_shape": "--min-per-shape",
                                         "shapes_by_progress": "--shapes-by-progress"}) from None
     out = args.out or Path("activecollect-bench") / time.strftime("loop-%Y%m%dT%H%M%S")
-    if (out / "summary.json").exists():
-        raise common.UsageError(f"{out} already holds a bench loop result; give a fresh --out")
+    if (out / "summary.json").exists() or any(out.glob("seed*/*/catalog.sqlite")):  # (or a stopped run's arms)
+        raise common.UsageError(f"{out} already holds a bench loop result, or a stopped run's; give a fresh --out")
     from orchestrator.loopbench import run_bench  # torch: imported once the arguments are known good (start-up cost)
     log = (lambda line: print(line, file=sys.stderr, flush=True))
     summary = run_bench(cfg, out, bench_collect, bench_eval_split, log=log)
