@@ -117,6 +117,16 @@ def test_bench_loop_refuses_the_out_of_a_run_stopped_midway_before_it_starts(cap
     assert sorted(out_dir.rglob("*")) == before
 
 
+def test_serve_in_client_mode_without_an_endpoint_to_connect_to_is_a_usage_error(capsys, tmp_path) -> None:
+    """Zenoh refuses a client without a connect endpoint when the session opens: said before anything starts."""
+    data = tmp_path / "data"
+    data.mkdir()
+    rc, out, err = run_cli(capsys, "serve", "--mode", "client", "--data", str(data), "--dashboard-port", "-1")
+    assert rc == 2 and out == "" and err.count("\n") == 1, err
+    assert "error: --mode client needs --connect EP" in err
+    assert list(data.iterdir()) == []
+
+
 @pytest.fixture(scope="module")
 def champion(tmp_path_factory) -> tuple[Path, str]:
     """A data dir with 4 recorded train episodes of 5 frames, a pinned eval split and a trained champion;

@@ -177,6 +177,9 @@ def cmd_serve(args: argparse.Namespace) -> int:
     namespace_keys(args)
     logging.basicConfig(level=args.log_level, format="%(asctime)s %(name)s %(levelname)s %(message)s")
     listen, connect = endpoints.endpoints_from_args(args)
+    if args.mode == "client" and not connect and args.zenoh_config is None:  # (Zenoh would refuse it at start)
+        raise common.UsageError("--mode client needs --connect EP: a client listens on nothing and reaches the "
+                                "others through a router (activecollect router)")
     extras = companion_config(args)
     try:
         config = ServiceConfig(data_dir=args.data, namespace=args.namespace, mode=args.mode, listen=listen,
