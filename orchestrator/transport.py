@@ -78,6 +78,9 @@ def zenoh_error(exc: BaseException) -> str:
 
 # ---------------------------------------------------------------- config files
 
+#: The largest Zenoh config file read (a secure profile's router.json5 is ~7 KB): a device such as
+#: /dev/zero given for one would otherwise be read for ever.
+MAX_CONFIG_BYTES = 1 << 20
 #: Config keys (slash paths) whose values are files Zenoh opens at start-up.
 FILE_KEYS: tuple[str, ...] = (
     "transport/link/tls/root_ca_certificate",
@@ -138,11 +141,20 @@ def validate_secure_config(path: str | os.PathLike[str]) -> list[Path]:
 
 
 def read_config(config_path: Path) -> dict[str, Any]:
-    """The JSON5 object in a Zenoh config file; SecureConfigError (one line) when there is none."""
+    """The JSON5 object in a Zenoh config file; SecureConfigError (one line) when there is none (also for a file
+    that is not UTF-8 text, or one past ``MAX_CONFIG_BYTES``, such as a device that never ends)."""
     try:
-        text = config_path.read_text()
+        with open(config_path, "rb") as f:
+            raw = f.read(MAX_CONFIG_BYTES + 1)
     except OSError as exc:
         raise SecureConfigError(f"cannot read Zenoh config {config_path} ({exc.strerror or exc})") from exc
+    if len(raw) > MAX_CONFIG_BYTES:
+        raise SecureConfigError(f"{config_path} is not a Zenoh config: more than {MAX_CONFIG_BYTES >> 20} MiB")
+    try:
+        text = raw.decode()
+    except UnicodeDecodeError as exc:
+        raise SecureConfigError(f"{config_path} is not a Zenoh config: not UTF-8 text ({exc.reason} at byte "
+                                f"{exc.start})") from None
     try:
         config = json5.loads(text)
     except ValueError as exc:

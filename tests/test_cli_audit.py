@@ -127,6 +127,20 @@ def test_serve_in_client_mode_without_an_endpoint_to_connect_to_is_a_usage_error
     assert list(data.iterdir()) == []
 
 
+@pytest.mark.parametrize("argv", [["secure", "check"], ["stats", "--timeout", "0.5", "--zenoh-config"],
+                                  ["router", "--zenoh-config"]], ids=" ".join)
+@pytest.mark.parametrize("content", ["binary", "endless"])
+def test_a_zenoh_config_that_is_not_text_exits_2_in_one_line(capsys, tmp_path, argv, content) -> None:
+    """A binary file (or a device that never ends, as /dev/zero) given for a Zenoh config: one line naming it,
+    not a UnicodeDecodeError's traceback (nor a read for ever)."""
+    config = tmp_path / "zenoh.json5"
+    if content == "binary":
+        config.write_bytes(bytes(range(128, 256)) * 4)
+    rc, out, err = run_cli(capsys, *argv, str(config if content == "binary" else Path("/dev/zero")))
+    assert rc == 2 and out == "" and err.count("\n") == 1, err
+    assert ("is not a Zenoh config: not UTF-8 text" if content == "binary" else "more than 1 MiB") in err
+
+
 @pytest.fixture(scope="module")
 def champion(tmp_path_factory) -> tuple[Path, str]:
     """A data dir with 4 recorded train episodes of 5 frames, a pinned eval split and a trained champion;
