@@ -78,6 +78,8 @@ def _connect() -> list[str]:
     (["serve", "--listen", "tcp/127.0.0.1:70000", "--data", "DATA"], "port must be 0-65535, found '70000'"),
     (["router", "--listen", "tls/0.0.0.0"], "expected HOST:PORT after tls/"),
     (["queue", "add", "--shape", "T", "--seed", "-1"], "expected an integer >= 0"),
+    (["queue", "add", "--shape", "T", "--idempotency-key", ""], "error: --idempotency-key: expected 1-256 characters"),
+    (["queue", "add", "--shape", "T", "--idempotency-key", "k" * 257], "error: --idempotency-key: expected 1-256"),
     (["queue", "add", "--shape", "T", "--priority", "nan"], "expected a finite number"),
     (["queue", "add", "--shape", "T", "--priority", "inf"], "expected a finite number"),
     (["queue", "add", "--shape", "T", "--policy-params", '{"a": NaN}'], "NaN is not a JSON number"),

@@ -337,8 +337,9 @@ def cmd_queue_add(args: argparse.Namespace) -> int:
     try:  # the service's own check of the request, here: a bad --start-state is the caller's usage error
         RequestSpec.from_dict(op_args)
     except ProtocolError as exc:
-        raise common.UsageError(f"--start-state: {exc.message}" if args.start_state is not None
-                                else exc.message) from None
+        if args.start_state is None:  # (then only the key can be wrong: the other fields are argparse's)
+            raise common.config_error(ValueError(exc.message), {"idempotency_key": "--idempotency-key"}) from None
+        raise common.UsageError(f"--start-state: {exc.message}") from None
     return _print_op(args, "queue.add", op_args, _print_request)
 
 
