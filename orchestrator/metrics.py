@@ -97,7 +97,7 @@ class ServiceMetrics:
         self.refusals = Counter("refusals", "Inbound messages refused, by reason (protocol error code) and source "
                                 "(worker: the collection protocol; operator: an admin query).",
                                 ["reason", "source"], namespace=ns, registry=r)
-        self.retrains = Counter("retrains", "Retrain jobs finished, by outcome (promoted, rejected, failed).",
+        self.retrains = Counter("retrains", f"Retrain jobs finished, by outcome ({', '.join(RETRAIN_OUTCOMES)}).",
                                 ["outcome"], namespace=ns, registry=r)
         self.scoring_seconds = Histogram("scoring_seconds", "Time to score one episode with the champion.",
                                          namespace=ns, registry=r, buckets=SCORING_BUCKETS)

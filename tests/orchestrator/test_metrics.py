@@ -154,3 +154,6 @@ def test_a_retrain_that_found_the_lock_taken_is_busy_not_failed() -> None:
     metrics.retrain(retrain_outcome("busy"))
     assert 'activecollect_retrains_total{outcome="busy"} 1.0' in metrics.render()
     assert 'activecollect_retrains_total{outcome="failed"} 0.0' in metrics.render()
+    # (its help names every outcome a series has: busy was missing)
+    assert "# HELP activecollect_retrains_total Retrain jobs finished, by outcome (promoted, rejected, busy, " \
+           "failed)." in metrics.render()
