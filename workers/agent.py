@@ -252,6 +252,9 @@ class Worker:
                 log.info("draining: giving back %s, granted after the drain began", grant.request_id)
                 self._release(grant)
                 return
+            # Logged once in hand (past the drain check): a drain signal from here on finishes this request.
+            log.info("leased %s token %d (%s, %s, %d steps)", grant.request_id, grant.token, grant.shape,
+                     grant.policy, grant.steps)
             self._handle(grant)
             if cfg.once:
                 return
@@ -319,8 +322,6 @@ class Worker:
             log.warning("lease of %s is malformed: %s", raw.get("request_id"), exc)
             self._fail_raw(str(raw.get("request_id")), raw.get("token"), f"malformed lease: {exc}")
             return None
-        log.info("leased %s token %d (%s, %s, %d steps)", grant.request_id, grant.token, grant.shape,
-                 grant.policy, grant.steps)
         return grant
 
     def _fail(self, grant: LeaseGrant, error: str) -> None:

@@ -11,7 +11,7 @@ import pytest
 from storage.catalog import Catalog
 from storage.errors import CatalogUnavailableError
 from storage.requests import RequestStatus
-from tests.conftest import disposition, ignoring_sigint, wait_for
+from tests.conftest import disposition, ignoring_sigint, in_hand, wait_for
 from tests.orchestrator.test_service import new_request
 from workers.agent import WorkerConfig, WorkerError
 
@@ -71,8 +71,7 @@ def test_sigterm_drains_the_current_request(make_service, spawn_worker, data_dir
     request, _ = service.queue.enqueue(new_request(steps=20))
     other, _ = service.queue.enqueue(new_request(steps=5))
     w = spawn_worker("D", "--realtime", "1")
-    wait_for(lambda: service.queue.get(request.id).status == RequestStatus.LEASED, timeout=30,
-             message="the worker leases the first request")
+    in_hand(w, request.id)
     w.signal(signal.SIGTERM)
     assert w.wait(30) == 0, w.log()
     assert service.queue.get(request.id).status == RequestStatus.DONE  # finished, not dropped
@@ -97,8 +96,7 @@ def test_second_sigterm_gives_the_request_back(make_service, spawn_worker) -> No
     service = make_service()
     request, _ = service.queue.enqueue(new_request(steps=100))  # 10 s of paced collection
     w = spawn_worker("G", "--realtime", "1")
-    wait_for(lambda: service.queue.get(request.id).status == RequestStatus.LEASED, timeout=30,
-             message="the worker leases the request")
+    in_hand(w, request.id)
     w.signal(signal.SIGTERM)
     wait_for(lambda: "draining" in w.log(), message="the first signal is taken")  # two at once may count as one
     w.signal(signal.SIGTERM)
@@ -169,8 +167,7 @@ def test_a_draining_worker_gives_up_an_upload_nobody_answers_when_its_lease_runs
     service = make_service(lease_s=lease_s)
     request, _ = service.queue.enqueue(new_request(steps=30))  # 3 s of paced collection
     w = spawn_worker("L", "--realtime", "1")
-    wait_for(lambda: service.queue.get(request.id).status == RequestStatus.LEASED, timeout=30,
-             message="the worker leases the request")
+    in_hand(w, request.id)
     w.signal(signal.SIGTERM)
     wait_for(lambda: "draining" in w.log(), message="the first signal is taken")
     service.stop()

@@ -11,16 +11,11 @@ import pytest
 from storage.catalog import Catalog
 from storage.errors import CatalogUnavailableError, QueueUnavailableError
 from storage.requests import RequestStatus
-from tests.conftest import wait_for
+from tests.conftest import in_hand, wait_for
 from tests.orchestrator import conftest as orchestrator_fixtures
 from tests.orchestrator.test_service import new_request
 
 make_service = orchestrator_fixtures.make_service  # its in-process service, for these tests too
-
-
-def leased(service, request) -> None:
-    wait_for(lambda: service.queue.get(request.id).status == RequestStatus.LEASED, timeout=30,
-             message="the worker leases the request")
 
 
 def send(w, sig: int, taken: str) -> None:
@@ -36,7 +31,7 @@ def test_the_drain_signal_twice_is_still_a_drain(make_service, spawn_worker, dat
     service = make_service()
     request, _ = service.queue.enqueue(new_request(steps=30))  # 3 s of paced collection
     w = spawn_worker("U", "--realtime", "1")
-    leased(service, request)
+    in_hand(w, request.id)
     send(w, signal.SIGUSR1, "draining:")
     send(w, signal.SIGUSR1, "draining already")
     assert w.wait(30) == 0, w.log()
@@ -52,7 +47,7 @@ def test_after_the_drain_signal_an_operators_second_stop_signal_still_gives_the_
     service = make_service()
     request, _ = service.queue.enqueue(new_request(steps=100))  # 10 s of paced collection
     w = spawn_worker("O", "--realtime", "1")
-    leased(service, request)
+    in_hand(w, request.id)
     send(w, signal.SIGUSR1, "draining:")
     send(w, signal.SIGTERM, "draining already")
     send(w, signal.SIGTERM, "stopping now")
@@ -84,7 +79,7 @@ def test_a_draining_worker_whose_uploads_a_live_service_refuses_gives_up_and_exi
             raise QueueUnavailableError("database catalog.sqlite: database or disk is full")
         service.queue.renew = renew_on_a_full_disk
     w = spawn_worker("V", "--realtime", "1")
-    leased(service, request)
+    in_hand(w, request.id)
     send(w, signal.SIGTERM, "draining:")
     wait_for(lambda: not w.alive(), timeout=3 * lease_s + 15, message="the draining worker to give up")
     assert w.wait() == 1, w.log()
@@ -123,6 +118,8 @@ def test_a_lease_granted_after_the_drain_began_is_given_back_unstarted(make_serv
     back = service.queue.get(request.id)
     assert (back.status, back.attempts, back.last_error) == (RequestStatus.QUEUED, 0, None), w.log()
     assert f"released {request.id}" in w.log() and Catalog(data_dir).count() == 0
+    # "leased" is logged once a request is in hand, which this one never was (`in_hand` waits on that line)
+    assert "granted after the drain began" in w.log() and f" leased {request.id} token " not in w.log(), w.log()
 
 
 def test_a_worker_drained_while_no_service_answers_says_so_not_no_work(spawn_worker) -> None:
@@ -143,7 +140,7 @@ def test_a_paced_episode_whose_lease_is_lost_is_dropped_without_waiting_out_its_
     service = make_service(lease_s=1.5)
     request, _ = service.queue.enqueue(new_request(steps=30))
     w = spawn_worker("P", "--realtime", "1000")
-    leased(service, request)
+    in_hand(w, request.id)
     service.queue.cancel(request.id)
     wait_for(lambda: "dropping the episode of" in w.log(), timeout=60, message="the episode dropped")
     assert f"lease of {request.id} lost" in w.log()

@@ -12,10 +12,10 @@ import pytest
 
 from storage.catalog import Catalog
 from storage.requests import RequestStatus
-from tests.conftest import wait_for
+from tests.conftest import in_hand, wait_for
 from tests.orchestrator import conftest as orchestrator_fixtures
 from tests.orchestrator.test_service import new_request
-from tests.workers.test_agent_drain import leased, send
+from tests.workers.test_agent_drain import send
 
 make_service = orchestrator_fixtures.make_service  # its in-process service, for these tests too
 
@@ -76,8 +76,7 @@ def test_a_second_stop_signal_drops_the_episode_in_collection_at_once(make_servi
         service.queue.release = hung(service.queue.release, entered, go)
     w = spawn_worker("C", "--size", "1024")
     try:
-        leased(service, request)
-        wait_for(lambda: f"leased {request.id}" in w.log(), timeout=30, message="the worker to start collecting")
+        in_hand(w, request.id)
         send(w, signal.SIGTERM, "draining:")
         send(w, signal.SIGTERM, "stopping now")
         assert w.wait(10) == 1, w.log()  # (the release waits 2 s at most; the old worker collected on, exit 0)
@@ -122,7 +121,7 @@ def test_a_drained_worker_does_not_wait_long_for_a_renewal_nobody_answers(make_s
     service = make_service(lease_s=30.0)
     request, _ = service.queue.enqueue(new_request(steps=110))  # 11 s of paced collection: one renewal, at 10 s
     w = spawn_worker("R", "--realtime", "1")
-    leased(service, request)
+    in_hand(w, request.id)
     next(s for s in service._servers if s.key_expr == service.keys.renew).close()
     send(w, signal.SIGUSR1, "draining:")
     wait_for(lambda: f"uploaded {request.id}" in w.log(), timeout=40, message="the upload")
