@@ -82,8 +82,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="torch threads of each retrain job (default: the cores the scoring leaves, here "
                         f"{fitted_retrain_threads(SCORING_THREADS)}; 0 = torch's default, one per core; a --threads "
                         "in --retrain-args wins). Two processes with more threads than cores between them slow "
-                        "each other several times over while both are busy; on 2 cores, 0 retrains about 1.2x "
-                        "faster while the scoring is mostly idle (a small fleet)")
+                        "each other several times over while both are busy; on 2 cores, 0 retrains 1.17x "
+                        "faster while the scoring is mostly idle (a small fleet; BENCHMARKS.md)")
     d = CompanionConfig()
     p.add_argument("--dashboard-port", type=common.dashboard_port, default=d.dashboard_port, metavar="PORT",
                    help=f"dashboard on 127.0.0.1:PORT (0 = any free port, -1 = none; default {d.dashboard_port})")
