@@ -142,6 +142,12 @@ def _connect() -> list[str]:
     (["bench", "loop", "--progress-floor", "1.5"], "expected a number in [0, 1]"),
     (["bench", "loop", "--shapes-by-progress", "--steps", "6", "--progress-horizon", "5"], "--progress-horizon"),
     (["bench", "loop", "--progress-horizon", "0"], "--progress-horizon"),
+    # a flag that would be silently ignored
+    (["bench", "loop", "--progress-floor", "0.5"], "--progress-floor only applies with --shapes-by-progress"),
+    (["bench", "loop", "--progress-horizon", "3"], "--progress-horizon only applies with --shapes-by-progress"),
+    (["queue", "add", "--shape", "T", "--seed", "0", "--start-state",
+      '{"shape": "T", "agent": [100, 100], "object": [256, 256, 0]}'],
+     "--seed draws the uniform start state: it does not apply with --start-state"),
     (["bench", "loop", "--palette", "pastel"], "argument --palette: invalid choice"),
     # frames a model cannot train on
     (["run", "--image-size", "12", "--data", "DATA"], "argument --image-size: expected a multiple of 8 from 16"),

@@ -184,11 +184,11 @@ def register_bench(bench: argparse._SubParsersAction) -> None:
                         "the shape whose error fell least (what data of that shape buys; a share "
                         "--progress-floor of each round split equally), then picks each shape's states by the "
                         "signal; a shape without candidates gets uniform starts of that shape (an experiment)")
-    p.add_argument("--progress-floor", type=common.unit, default=d.active.progress_floor, metavar="F",
+    p.add_argument("--progress-floor", type=common.unit, default=None, metavar="F",
                    help="with --shapes-by-progress, the share of each round split equally over the shapes "
                         f"(default {d.active.progress_floor}; 1 = every shape equally, whatever the data buys; "
                         "0 = by progress only)")
-    p.add_argument("--progress-horizon", type=common.positive_int, default=d.active.progress_horizon, metavar="H",
+    p.add_argument("--progress-horizon", type=common.positive_int, default=None, metavar="H",
                    help="with --shapes-by-progress, the horizon of the error whose fall is measured (default "
                         f"{d.active.progress_horizon}, the gate's; a longer one weighs the dynamics more; at most "
                         "--steps minus the model's context frames)")
@@ -239,6 +239,12 @@ def bench_eval_split(catalog: Catalog, episodes: int, seed: int, steps: int, ima
 
 def _bench_loop(args: argparse.Namespace) -> int:
     d = LoopBenchConfig()
+    given = [f for f, v in (("--progress-floor", args.progress_floor), ("--progress-horizon", args.progress_horizon))
+             if v is not None]
+    if given and not args.shapes_by_progress:
+        raise common.UsageError(f"{given[0]} only applies with --shapes-by-progress")
+    floor = d.active.progress_floor if args.progress_floor is None else args.progress_floor
+    horizon = d.active.progress_horizon if args.progress_horizon is None else args.progress_horizon
     try:
         train = TrainConfig(**{**d.train.to_dict(), "epochs": args.epochs, "members": args.members,
                                "device": args.device, "widths": d.train.widths,
@@ -251,8 +257,7 @@ def _bench_loop(args: argparse.Namespace) -> int:
                               palette=args.palette, shapes_by_progress=args.shapes_by_progress,
                               active=dataclasses.replace(d.active, max_shape_share=args.max_shape_share,
                                                          repeats=args.repeats, min_per_shape=args.min_per_shape,
-                                                         progress_floor=args.progress_floor,
-                                                         progress_horizon=args.progress_horizon))
+                                                         progress_floor=floor, progress_horizon=horizon))
     except (ValueError, ConfigError) as exc:
         raise common.config_error(exc, {"budget": "--budget", "seeds": "--seeds", "members": "--members",
                                         "epochs": "--epochs", "signal": "--signal",

@@ -91,8 +91,8 @@ def _register_queue(sub: argparse._SubParsersAction) -> None:
                         "ground_friction} (default the defaults). E.g. '{\"shape\": \"T\", \"agent\": [100, 100], "
                         "\"object\": [256, 256, 0]}' (default: drawn uniformly with --seed)")
     p.add_argument("--seed", type=common.non_negative_int, default=None, metavar="K",
-                   help="seed of the uniform start state (default: drawn from --idempotency-key when given, "
-                        "so a retried add asks for the same start state; else random)")
+                   help="seed of the uniform start state, so not with --start-state (default: drawn from "
+                        "--idempotency-key when given, so a retried add asks for the same start state; else random)")
     p.add_argument("--steps", type=common.episode_steps, default=50, metavar="T",
                    help=f"steps to record, at least {common.MIN_EPISODE_STEPS} (default 50)")
     p.add_argument("--priority", type=_priority, default=0.0, metavar="P",
@@ -326,6 +326,8 @@ def cmd_queue_add(args: argparse.Namespace) -> int:
         check_policy_params(args.policy, args.policy_params)
     except ValueError as exc:
         raise common.UsageError(f"--policy-params: {exc}") from None
+    if args.start_state is not None and args.seed is not None:
+        raise common.UsageError("--seed draws the uniform start state: it does not apply with --start-state")
     start = args.start_state
     if start is None:
         start = uniform_start_state(np.random.default_rng(_start_seed(args.seed, args.idempotency_key)), args.shape)
