@@ -63,8 +63,8 @@ def parse_capabilities(text: str) -> tuple[tuple[str, ...], tuple[str, ...]]:
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """The worker's flags; errors are labelled with ``parser.prog`` (the program the user ran)."""
     endpoints.add_connection_args(parser, timeout=10.0)
-    parser.add_argument("--id", default="", help="worker id (default <host>-<pid>)")
-    parser.add_argument("--capabilities", default="", metavar="C",
+    parser.add_argument("--id", default=None, help="worker id (default <host>-<pid>)")
+    parser.add_argument("--capabilities", default=None, metavar="C",
                         help='what it can collect: "push:T,box", "T,box" or "push" (default: anything)')
     parser.add_argument("--once", action="store_true",
                         help="handle at most one request, then exit; exit at once when the service has no work "
@@ -88,8 +88,12 @@ def config_from_args(args: argparse.Namespace) -> WorkerConfig:
     """Build the WorkerConfig; WorkerError naming the flag (``--id: expected ...``) for a bad value."""
     listen, connect = endpoints.endpoints_from_args(args)
     try:
-        tasks, shapes = parse_capabilities(args.capabilities)
-        return WorkerConfig(worker_id=args.id, namespace=args.namespace, mode=args.mode, listen=listen,
+        for field, value, left_out in (("worker_id", args.id, "<host>-<pid>"), ("capabilities", args.capabilities,
+                                                                               "anything")):
+            if value is not None and not value.strip():  # (an unset shell variable, say: not the default by stealth)
+                raise WorkerError(f"{field}: expected a value, found {value!r} (leave the flag out for {left_out})")
+        tasks, shapes = parse_capabilities(args.capabilities or "")
+        return WorkerConfig(worker_id=args.id or "", namespace=args.namespace, mode=args.mode, listen=listen,
                             connect=connect, zenoh_config=args.zenoh_config, tasks=tasks, shapes=shapes,
                             image_size=args.size, max_episodes=args.max_episodes, once=args.once,
                             realtime=args.realtime, timeout_s=args.timeout)

@@ -53,6 +53,9 @@ def _stops(capsys, prog: str, *argv: str) -> tuple[int, str]:
                                 "('T', 'box', 'L', 'disk'), found no task or shape in ','"),
     (["--capabilities", ",".join(["T"] * (MAX_CAPABILITIES + 1))],
      f"--capabilities: expected a list of at most {MAX_CAPABILITIES} strings"),
+    # empty (an unset shell variable): not the default by stealth
+    (["--id", ""], "--id: expected a value, found '' (leave the flag out for <host>-<pid>)"),
+    (["--capabilities", " "], "--capabilities: expected a value, found ' ' (leave the flag out for anything)"),
     (["--namespace", "a b"], "--namespace: expected chunks of [A-Za-z0-9_-] joined by '/', found 'a b'"),
 ])
 def test_a_bad_flag_exits_2_in_one_line_naming_the_program_and_the_flag(capsys, prog, argv, words) -> None:
