@@ -303,6 +303,18 @@ def client_role(config: dict[str, Any]) -> str | None:
     return user if user in CLIENT_ROLES else None
 
 
+def denied_queries(config: dict[str, Any], config_path: Path, key_expr: str, namespace: str, what: str) -> str | None:
+    """Why queries on ``key_expr`` with this parsed config will go unanswered, when it is the config of a secure
+    profile's role that the profile's ACL does not let query there (``what``: "admin queries", say); else None."""
+    role, allowed = client_role(config), roles_that_may_query(key_expr, namespace)
+    if role is None or not allowed or role in allowed:
+        return None
+    other = config_path.with_name(f"{allowed[0]}.json5")
+    use = f"give --zenoh-config {other}" if other.is_file() else f"use the profile's {allowed[0]}.json5"
+    return (f"{config_path} is the secure profile's {role} config, and the router's ACL drops {what} from every "
+            f"role but {' and '.join(allowed)} unanswered ({use})")
+
+
 # ---------------------------------------------------------------- configs
 
 def _tls(directory: Path, role: str, listen: bool) -> dict[str, Any]:

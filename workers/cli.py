@@ -10,6 +10,7 @@ import argparse
 import logging
 import signal
 import sys
+from pathlib import Path
 
 from orchestrator import endpoints, protocol, signals, transport
 from storage.records import TRAINABLE_SIZES
@@ -93,12 +94,19 @@ def config_from_args(args: argparse.Namespace) -> WorkerConfig:
             if value is not None and not value.strip():  # (an unset shell variable, say: not the default by stealth)
                 raise WorkerError(f"{field}: expected a value, found {value!r} (leave the flag out for {left_out})")
         tasks, shapes = parse_capabilities(args.capabilities or "")
-        return WorkerConfig(worker_id=args.id or "", namespace=args.namespace, mode=args.mode, listen=listen,
-                            connect=connect, zenoh_config=args.zenoh_config, tasks=tasks, shapes=shapes,
-                            image_size=args.size, max_episodes=args.max_episodes, once=args.once,
-                            realtime=args.realtime, timeout_s=args.timeout)
+        config = WorkerConfig(worker_id=args.id or "", namespace=args.namespace, mode=args.mode, listen=listen,
+                              connect=connect, zenoh_config=args.zenoh_config, tasks=tasks, shapes=shapes,
+                              image_size=args.size, max_episodes=args.max_episodes, once=args.once,
+                              realtime=args.realtime, timeout_s=args.timeout)
     except WorkerError as exc:
         raise WorkerError(flags.naming_flag(str(exc))) from None
+    if config.zenoh_config is not None:  # another role's profile config: its lease queries would never be answered
+        from orchestrator import secure  # (cryptography: imported only for a config)
+        path, keys = Path(config.zenoh_config), config.keys
+        if denied := secure.denied_queries(transport.read_config(path), path, keys.lease, keys.namespace,
+                                           "lease queries"):
+            raise WorkerError(f"--zenoh-config: {denied}")
+    return config
 
 
 def run_from_args(args: argparse.Namespace) -> int:

@@ -223,13 +223,9 @@ def _no_answer(keys: Keys, op: str, timeout: float, zenoh_config: str | Path | N
         config = transport.read_config(Path(zenoh_config))
     except transport.SecureConfigError as exc:  # read at start a moment ago; gone since: no more to tell
         return f"{said} ({running}; {exc})"
-    role, allowed = secure.client_role(config), secure.roles_that_may_query(keys.admin(op), keys.namespace)
-    if role is not None and allowed and role not in allowed:
-        other = Path(zenoh_config).with_name(f"{allowed[0]}.json5")
-        use = f"give --zenoh-config {other}" if other.is_file() else f"use the profile's {allowed[0]}.json5"
-        return (f"{said}, and none will: {zenoh_config} is the secure profile's {role} config, and the router's "
-                f"ACL drops admin queries from every role but {' and '.join(allowed)} unanswered ({use})")
-    if role is None and any(transport.lookup_key(config, key) for key in transport.FILE_KEYS):
+    if denied := secure.denied_queries(config, Path(zenoh_config), keys.admin(op), keys.namespace, "admin queries"):
+        return f"{said}, and none will: {denied}"
+    if secure.client_role(config) is None and any(transport.lookup_key(config, key) for key in transport.FILE_KEYS):
         return (f"{said} ({running[:-1]} or your role may not be allowed this operation: the router's ACL drops a "
                 f"denied request unanswered)")
     return f"{said} ({running})"

@@ -156,3 +156,16 @@ def test_roles_are_read_from_the_configs_secure_init_writes(secure_router):
     keys = Keys("lab")
     assert roles_that_may_query(keys.admin("stats"), "lab") == ("operator",)
     assert roles_that_may_query(keys.lease, "lab") == ("worker",)
+
+
+@pytest.mark.parametrize("role", ["operator", "orchestrator"])
+def test_a_worker_with_another_roles_config_exits_2_naming_the_role(secure_router, role, capsys):
+    """Its lease queries would go unanswered for ever (the router's ACL drops them): it says so before it starts.
+    (The old worker retried "lease: no reply" until stopped, never naming the config.)"""
+    config = secure_router.configs[role]
+    rc = main(["worker", "--once", "--zenoh-config", str(config)])
+    line = capsys.readouterr().err.strip()
+    assert rc == 2 and "\n" not in line, line
+    assert line == (f"activecollect worker: error: --zenoh-config: {config} is the secure profile's {role} config, "
+                    "and the router's ACL drops lease queries from every role but worker unanswered "
+                    f"(give --zenoh-config {secure_router.configs['worker']})"), line
