@@ -284,12 +284,12 @@ def build_acl(namespace: str = DEFAULT_NAMESPACE) -> dict[str, Any]:
             "subjects": subjects, "policies": policies}
 
 
-def roles_that_may_query(key_expr: str, namespace: str = DEFAULT_NAMESPACE) -> tuple[str, ...]:
-    """The client roles whose rules in ``build_acl(namespace)`` let them send queries on all of ``key_expr``: the
-    router drops another role's query there unanswered."""
+def roles_that_may_query(key_expr: str, namespace: str = DEFAULT_NAMESPACE, message: str = "query") -> tuple[str, ...]:
+    """The client roles whose rules in ``build_acl(namespace)`` let them send ``message`` (a query, or
+    "declare_queryable") on all of ``key_expr``: the router drops another role's there, unanswered."""
     wanted = zenoh.KeyExpr(key_expr)
     roles = {rule["id"].split("-", 1)[0] for rule in build_acl(namespace)["rules"]
-             if "ingress" in rule["flows"] and "query" in rule["messages"]
+             if "ingress" in rule["flows"] and message in rule["messages"]
              and any(zenoh.KeyExpr(k).includes(wanted) for k in rule["key_exprs"])}
     return tuple(role for role in CLIENT_ROLES if role in roles)
 
@@ -303,16 +303,19 @@ def client_role(config: dict[str, Any]) -> str | None:
     return user if user in CLIENT_ROLES else None
 
 
-def denied_queries(config: dict[str, Any], config_path: Path, key_expr: str, namespace: str, what: str) -> str | None:
-    """Why queries on ``key_expr`` with this parsed config will go unanswered, when it is the config of a secure
-    profile's role that the profile's ACL does not let query there (``what``: "admin queries", say); else None."""
-    role, allowed = client_role(config), roles_that_may_query(key_expr, namespace)
+def denied_queries(config: dict[str, Any], config_path: Path, key_expr: str, namespace: str, what: str,
+                   message: str = "query") -> str | None:
+    """Why ``message``s (queries, or "declare_queryable") on ``key_expr`` with this parsed config will go unanswered,
+    when it is the config of a secure profile's role that the profile's ACL does not let send them there (``what``:
+    "admin queries", say); else None."""
+    role, allowed = client_role(config), roles_that_may_query(key_expr, namespace, message)
     if role is None or not allowed or role in allowed:
         return None
     other = config_path.with_name(f"{allowed[0]}.json5")
     use = f"give --zenoh-config {other}" if other.is_file() else f"use the profile's {allowed[0]}.json5"
+    unanswered = " unanswered" if message == "query" else ""
     return (f"{config_path} is the secure profile's {role} config, and the router's ACL drops {what} from every "
-            f"role but {' and '.join(allowed)} unanswered ({use})")
+            f"role but {' and '.join(allowed)}{unanswered} ({use})")
 
 
 # ---------------------------------------------------------------- configs

@@ -10,10 +10,11 @@ import argparse
 import logging
 import sys
 import threading
+from pathlib import Path
 
 import numpy as np
 
-from orchestrator import dispatchbench, endpoints
+from orchestrator import dispatchbench, endpoints, secure, transport
 from orchestrator.champion import ChampionScorer
 from orchestrator.cli import common
 from orchestrator.cli.loop import add_retrain_args_arg
@@ -174,12 +175,17 @@ def _min_queued(args: argparse.Namespace) -> int:
 
 def cmd_serve(args: argparse.Namespace) -> int:
     min_queued = _min_queued(args)
-    namespace_keys(args)
+    keys = namespace_keys(args)
     logging.basicConfig(level=args.log_level, format="%(asctime)s %(name)s %(levelname)s %(message)s")
     listen, connect = endpoints.endpoints_from_args(args)
     if args.mode == "client" and not connect and args.zenoh_config is None:  # (Zenoh would refuse it at start)
         raise common.UsageError("--mode client needs --connect EP: a client listens on nothing and reaches the "
                                 "others through a router (activecollect router)")
+    if args.zenoh_config is not None:  # another role's profile config: no request would ever reach this service
+        if denied := secure.denied_queries(transport.read_config(args.zenoh_config), Path(args.zenoh_config),
+                                           keys.lease, keys.namespace, "the declarations of the service's queryables",
+                                           "declare_queryable"):
+            raise common.UsageError(f"--zenoh-config: {denied}")
     extras = companion_config(args)
     try:
         config = ServiceConfig(data_dir=args.data, namespace=args.namespace, mode=args.mode, listen=listen,

@@ -169,3 +169,17 @@ def test_a_worker_with_another_roles_config_exits_2_naming_the_role(secure_route
     assert line == (f"activecollect worker: error: --zenoh-config: {config} is the secure profile's {role} config, "
                     "and the router's ACL drops lease queries from every role but worker unanswered "
                     f"(give --zenoh-config {secure_router.configs['worker']})"), line
+
+
+@pytest.mark.parametrize("role", ["worker", "operator"])
+def test_serve_with_another_roles_config_exits_2_naming_the_role(secure_router, role, tmp_path, capsys):
+    """No request would ever reach its queryables (the router's ACL drops their declarations): it says so before
+    anything starts, the data directory untouched."""
+    config = secure_router.configs[role]
+    rc = main(["serve", "--init", "--data", str(tmp_path / "data"), "--zenoh-config", str(config)])
+    line = capsys.readouterr().err.strip()
+    assert rc == 2 and "\n" not in line, line
+    assert line == (f"activecollect: error: --zenoh-config: {config} is the secure profile's {role} config, "
+                    "and the router's ACL drops the declarations of the service's queryables from every role but "
+                    f"orchestrator (give --zenoh-config {secure_router.configs['orchestrator']})"), line
+    assert not (tmp_path / "data").exists()
