@@ -14,7 +14,8 @@ import argparse
 import math
 from pathlib import Path
 
-from orchestrator.transport import MODES, RX_MAX_MESSAGE_BYTES, RX_MAX_MESSAGE_SIZE_KEY, validate_secure_config
+from orchestrator.transport import (MODES, RX_MAX_MESSAGE_BYTES, RX_MAX_MESSAGE_SIZE_KEY, SecureConfigError,
+                                    validate_secure_config)
 
 
 #: Where ``serve`` listens and everyone else connects when no endpoint or config file is given.
@@ -62,6 +63,19 @@ def endpoint_problem(text: str) -> str:
     return ""
 
 
+def keyless_tls_listener(listen: tuple[str, ...], zenoh_config: object) -> str:
+    """What is wrong with listening on a ``tls/`` or ``quic/`` endpoint with no config ('' when nothing): the
+    listener has no certificate and key to present (Zenoh refuses it at start, "Missing TLS private key"). An
+    endpoint carrying its own settings after ``#`` is left to Zenoh."""
+    if zenoh_config is not None:
+        return ""
+    keyless = [ep for ep in listen if ep.startswith(("tls/", "quic/")) and "#" not in ep]
+    if not keyless:
+        return ""
+    return (f"--listen {keyless[0]}: a TLS listener needs a certificate and private key, from a --zenoh-config "
+            "(`activecollect secure init` writes a profile with them)")
+
+
 def endpoint(text: str) -> str:
     """A ``--listen`` / ``--connect`` value (argparse type): a bad shape exits 2 saying what is wrong."""
     problem = endpoint_problem(text)
@@ -106,6 +120,8 @@ def endpoints_from_args(args: argparse.Namespace) -> tuple[tuple[str, ...], tupl
         validate_secure_config(args.zenoh_config)
     listen = tuple(getattr(args, "listen", None) or ())
     connect = tuple(args.connect or ())
+    if problem := keyless_tls_listener(listen, args.zenoh_config):
+        raise SecureConfigError(problem)
     if args.zenoh_config is None and not listen and not connect:
         if hasattr(args, "listen"):
             listen = (DEFAULT_ENDPOINT,)

@@ -17,7 +17,7 @@ from typing import Callable, TextIO
 
 import zenoh
 
-from orchestrator.endpoints import endpoint_problem
+from orchestrator.endpoints import endpoint_problem, keyless_tls_listener
 from orchestrator.secure import is_secure_profile
 from orchestrator.signals import on_stop_signals
 from orchestrator.transport import SecureConfigError, cap_incoming, read_config, validate_secure_config, zenoh_error
@@ -53,6 +53,8 @@ class RouterConfig:
         for ep in (*self.listen, *self.connect):
             if problem := endpoint_problem(ep):
                 raise RouterError(problem)
+        if problem := keyless_tls_listener(self.listen, self.zenoh_config):
+            raise RouterError(problem)
         if self.zenoh_config is not None:
             self.zenoh_config = Path(self.zenoh_config)
 

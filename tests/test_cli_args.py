@@ -142,6 +142,9 @@ def _connect() -> list[str]:
     (["bench", "loop", "--progress-floor", "1.5"], "expected a number in [0, 1]"),
     (["bench", "loop", "--shapes-by-progress", "--steps", "6", "--progress-horizon", "5"], "--progress-horizon"),
     (["bench", "loop", "--progress-horizon", "0"], "--progress-horizon"),
+    # a TLS listener with no certificate and key to present (Zenoh's own "Missing TLS private key": exit 1)
+    (["router", "--listen", "tls/127.0.0.1:7999"], "--listen tls/127.0.0.1:7999: a TLS listener needs a certificate"),
+    (["serve", "--listen", "quic/127.0.0.1:7999", "--data", "DATA"], "--listen quic/127.0.0.1:7999: a TLS listener"),
     # a flag that would be silently ignored
     (["bench", "loop", "--progress-floor", "0.5"], "--progress-floor only applies with --shapes-by-progress"),
     (["bench", "loop", "--progress-horizon", "3"], "--progress-horizon only applies with --shapes-by-progress"),
