@@ -179,6 +179,7 @@ def _connect() -> list[str]:
     (["retrain", "--members", "1", "--data", "DATA"], "argument --members: expected an ensemble of at least 2"),
     (["run", "--retrain-args=--members 1", "--data", "DATA"], "argument --members: expected an ensemble of at"),
     (["bench", "loop", "--members", "1"], "argument --members: expected an ensemble of at least 2 members"),
+    (["bench", "score", "--members", "1"], "argument --members: expected an ensemble of at least 2 members"),
     (["dashboard", "--port", "70000", "--data", "DATA"], "expected a TCP port in 0..65535, found 70000"),
 ])
 def test_bad_arguments_exit_2_in_one_line(capsys, tmp_path, argv, words) -> None:

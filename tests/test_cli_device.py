@@ -25,7 +25,7 @@ COMMANDS = {
     "eval": ["eval", "--data", "{data}", "--device", "{device}"],
     "score": ["score", "e000001", "--data", "{data}", "--device", "{device}"],
     "retrain": ["retrain", "--data", "{data}", "--device", "{device}"],
-    "bench score": ["bench", "score", "--size", "16", "--members", "1", "--seconds", "0.1", "--device", "{device}"],
+    "bench score": ["bench", "score", "--size", "16", "--members", "2", "--seconds", "0.1", "--device", "{device}"],
     "bench loop": ["bench", "loop", "--out", "{data}", "--device", "{device}"],
     "run": ["run", "--data", "{data}", "--retrain-args", "--members 2 --device '{device}'"],
     "serve": ["serve", "--data", "{data}", "--retrain-args", "--device '{device}'"],

@@ -118,7 +118,7 @@ def positive_int(text: str) -> int:
 
 
 def ensemble_size(text: str) -> int:
-    """``--members`` of the commands that train: one member cannot disagree (no score, no calibration)."""
+    """``--members`` of the commands that train or score: one member cannot disagree (no score, no calibration)."""
     return _int_at_least(text, 2, "an ensemble of at least 2 members (one cannot disagree)")
 
 

@@ -94,7 +94,8 @@ def register(sub: argparse._SubParsersAction) -> None:
 def register_bench(bench_sub: argparse._SubParsersAction) -> None:
     """Adds ``bench score``."""
     p = bench_sub.add_parser("score", help="frames/s of the fused ensemble and of the per-member loop")
-    p.add_argument("--members", type=common.positive_int, default=5, metavar="K", help="ensemble size (default 5)")
+    p.add_argument("--members", type=common.ensemble_size, default=5, metavar="K",
+                   help="ensemble size, at least 2 (default 5)")
     p.add_argument("--size", type=common.positive_int, default=64, metavar="PX",
                    help="frame size in pixels, a multiple of 8 from 8 to 1024 (default 64)")
     p.add_argument("--batch", type=common.positive_int, default=48, metavar="B",
