@@ -1,8 +1,8 @@
 """Imports point one way (DESIGN.md): every import of ours, module level or inside a function, is checked.
 
 storage <- uncertainty <- orchestrator; workers import storage and only the wire contract of
-orchestrator (protocol, messages, transport, and endpoints: the flags that name them) and how a
-process is asked to stop (signals), which import nothing of ours outside that set.
+orchestrator (protocol, messages, transport, and endpoints: the flags that name them; acl: who may send what in a
+secure profile) and how a process is asked to stop (signals), which import nothing of ours outside that set.
 """
 
 from __future__ import annotations
@@ -16,7 +16,7 @@ ROOT = Path(__file__).resolve().parents[1]
 PACKAGES = ("storage", "uncertainty", "workers", "orchestrator")
 #: What workers may import of the orchestrator: the wire contract, and how a process is asked to stop.
 SHARED = {"orchestrator.protocol", "orchestrator.messages", "orchestrator.transport", "orchestrator.tlscheck",
-          "orchestrator.endpoints", "orchestrator.signals"}
+          "orchestrator.endpoints", "orchestrator.signals", "orchestrator.acl"}
 
 #: For each package (or module), which of our modules it may import, besides its own package.
 ALLOWED = {
@@ -35,6 +35,7 @@ LEAVES = {
     "orchestrator.tlscheck": {"orchestrator.transport"},
     "orchestrator.endpoints": {"orchestrator.transport"},
     "orchestrator.signals": set(),
+    "orchestrator.acl": {"orchestrator.protocol", "orchestrator.transport"},
     "uncertainty.model": {"uncertainty.errors"},
 }
 

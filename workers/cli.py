@@ -12,7 +12,7 @@ import signal
 import sys
 from pathlib import Path
 
-from orchestrator import endpoints, protocol, signals, transport
+from orchestrator import acl, endpoints, protocol, signals, transport
 from storage.records import TRAINABLE_SIZES
 from workers import flags, startup
 from workers.startup import DRAIN_SIGNAL
@@ -101,9 +101,8 @@ def config_from_args(args: argparse.Namespace) -> WorkerConfig:
     except WorkerError as exc:
         raise WorkerError(flags.naming_flag(str(exc))) from None
     if config.zenoh_config is not None:  # another role's profile config: its lease queries would never be answered
-        from orchestrator import secure  # (cryptography: imported only for a config)
         path, keys = Path(config.zenoh_config), config.keys
-        if denied := secure.denied_queries(transport.read_config(path), path, keys.lease, keys.namespace,
+        if denied := acl.denied_queries(transport.read_config(path), path, keys.lease, keys.namespace,
                                            "lease queries"):
             raise WorkerError(f"--zenoh-config: {denied}")
     return config

@@ -21,7 +21,7 @@ from typing import Any
 import numpy as np
 import zenoh
 
-from orchestrator import admin, endpoints, protocol, secure, transport
+from orchestrator import acl, admin, endpoints, protocol, transport
 from orchestrator.cli import common
 from orchestrator.messages import AdminRequest, Event, RequestSpec
 from orchestrator.protocol import Keys, ProtocolError
@@ -223,9 +223,9 @@ def _no_answer(keys: Keys, op: str, timeout: float, zenoh_config: str | Path | N
         config = transport.read_config(Path(zenoh_config))
     except transport.SecureConfigError as exc:  # read at start a moment ago; gone since: no more to tell
         return f"{said} ({running}; {exc})"
-    if denied := secure.denied_queries(config, Path(zenoh_config), keys.admin(op), keys.namespace, "admin queries"):
+    if denied := acl.denied_queries(config, Path(zenoh_config), keys.admin(op), keys.namespace, "admin queries"):
         return f"{said}, and none will: {denied}"
-    if secure.client_role(config) is None and any(transport.lookup_key(config, key) for key in transport.FILE_KEYS):
+    if acl.client_role(config) is None and any(transport.lookup_key(config, key) for key in transport.FILE_KEYS):
         return (f"{said} ({running[:-1]} or your role may not be allowed this operation: the router's ACL drops a "
                 f"denied request unanswered)")
     return f"{said} ({running})"

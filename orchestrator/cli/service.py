@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from orchestrator import dispatchbench, endpoints, secure, transport
+from orchestrator import acl, dispatchbench, endpoints, transport
 from orchestrator.champion import ChampionScorer
 from orchestrator.cli import common
 from orchestrator.cli.loop import add_retrain_args_arg
@@ -182,7 +182,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
         raise common.UsageError("--mode client needs --connect EP: a client listens on nothing and reaches the "
                                 "others through a router (activecollect router)")
     if args.zenoh_config is not None:  # another role's profile config: no request would ever reach this service
-        if denied := secure.denied_queries(transport.read_config(args.zenoh_config), Path(args.zenoh_config),
+        if denied := acl.denied_queries(transport.read_config(args.zenoh_config), Path(args.zenoh_config),
                                            keys.lease, keys.namespace, "the declarations of the service's queryables",
                                            "declare_queryable"):
             raise common.UsageError(f"--zenoh-config: {denied}")

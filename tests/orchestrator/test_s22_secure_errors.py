@@ -18,8 +18,8 @@ import pytest
 
 from orchestrator.cli import main
 from orchestrator.protocol import Keys
-from orchestrator.secure import (CLIENT_ROLES, SecureInitConfig, SecureSet, cert_pem, client_role, init_secure,
-                                 issue_certificate, key_pem, make_ca, roles_that_may_query)
+from orchestrator.acl import CLIENT_ROLES, client_role, roles_that_may_query
+from orchestrator.secure import SecureInitConfig, SecureSet, cert_pem, init_secure, issue_certificate, key_pem, make_ca
 from tests.conftest import free_port
 from tests.orchestrator import test_secure
 from tests.orchestrator.test_secure import REPO

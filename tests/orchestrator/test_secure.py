@@ -25,8 +25,8 @@ from cryptography.x509.oid import NameOID
 
 from orchestrator.cli import main
 from orchestrator.protocol import Keys
-from orchestrator.secure import (CLIENT_ROLES, ROLES, SecureConfigError, SecureInitConfig, SecureSet,
-                                 build_acl, init_secure, private_mode_ok)
+from orchestrator.acl import CLIENT_ROLES, ROLES, build_acl
+from orchestrator.secure import SecureConfigError, SecureInitConfig, SecureSet, init_secure, private_mode_ok
 from orchestrator.transport import validate_secure_config
 from orchestrator.service import Service
 from orchestrator.serviceconfig import ServiceConfig

@@ -24,7 +24,8 @@ from pathlib import Path
 import pytest
 from cryptography import x509
 
-from orchestrator.secure import ROLES, SecureInitConfig, init_secure, planned_files
+from orchestrator.acl import ROLES
+from orchestrator.secure import SecureInitConfig, init_secure, planned_files
 from orchestrator.transport import validate_secure_config
 from tests.conftest import REPO, run_cli
 
