@@ -205,8 +205,13 @@ def in_hand(worker: Proc, request_id: str, timeout: float = 30.0) -> None:
     """Wait until ``worker`` holds ``request_id`` (its log says ``leased ID token``): past its drain check, so a
     drain signal from now on finishes this request. (The queue shows the lease a moment earlier, while the grant is
     still on its way to the worker: a signal then gives the request back, "granted after the drain began".)"""
-    wait_for(lambda: f" leased {request_id} token " in worker.log(), timeout=timeout,
+    wait_for(lambda: holds(worker.log(), request_id), timeout=timeout,
              message=f"worker {worker.name} to hold {request_id}")
+
+
+def holds(worker_log: str, request_id: str) -> bool:
+    """Whether a worker's log says it holds ``request_id`` (see ``in_hand``)."""
+    return f" leased {request_id} token " in worker_log
 
 
 def run_cli(capsys, *argv: str) -> tuple[int, str, str]:

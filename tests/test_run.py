@@ -25,7 +25,7 @@ from storage.catalog import Catalog
 from storage.models import ModelRegistry
 from storage.queue import RequestQueue
 from storage.requests import RequestStatus
-from tests.conftest import REPO, wait_for
+from tests.conftest import REPO, holds, wait_for
 from tests.orchestrator import conftest as orchestrator_fixtures
 from tests.orchestrator.test_service import new_request
 
@@ -75,10 +75,14 @@ def children(pid: int) -> dict[int, str]:
     return found
 
 
-def leased_by_each(queue: RequestQueue, workers: int) -> list:
-    """The leased requests once each of ``workers`` holds one; [] before."""
+def leased_by_each(queue: RequestQueue, workers: int, logs: Path) -> list:
+    """The leased requests once each of ``workers`` holds one, in hand by its log (``logs``/ID.log: a worker signalled
+    while the grant is on its way gives the request back, rightly); [] before."""
     leased = queue.list(status="leased")
-    return leased if len({r.worker_id for r in leased}) == workers else []
+    if len({r.worker_id for r in leased}) != workers:
+        return []
+    in_hand = all(holds((logs / f"{r.worker_id}.log").read_text(errors="replace"), r.id) for r in leased)
+    return leased if in_hand else []
 
 
 def alive(pid: int) -> bool:
@@ -207,7 +211,7 @@ def test_sigterm_to_the_whole_process_group_lets_every_worker_upload_the_episode
     try:
         wait_for(lambda: (data / "logs" / "run-w1.log").exists(), 60, "the run's workers")  # (after its queue)
         queue = RequestQueue(data / "catalog.sqlite")
-        held = wait_for(lambda: leased_by_each(queue, 2), 60, "an episode in each worker's hands")
+        held = wait_for(lambda: leased_by_each(queue, 2, data / "logs"), 60, "an episode in each worker's hands")
         os.killpg(run.pid, signal.SIGTERM)
         out, err = run.communicate(timeout=60)
     finally:
@@ -244,7 +248,7 @@ def test_a_worker_stopped_both_by_its_run_and_by_a_signal_to_the_group_uploads_i
                                               cwd=REPO))
     teardown = threading.Thread(target=run._teardown, kwargs={"interrupted": True})
     try:
-        held = wait_for(lambda: leased_by_each(service.queue, 2), 30, "an episode in each worker's hands")
+        held = wait_for(lambda: leased_by_each(service.queue, 2, tmp_path), 30, "an episode in each worker's hands")
         if first == "run's stop":
             teardown.start()
             wait_for(lambda: all("draining" in log.read_text() for log in logs), message="the workers to drain")
