@@ -28,7 +28,7 @@ from storage.queue import RequestQueue
 from storage.requests import NewRequest, RequestStatus
 from workers.env import sample_state
 from tests.orchestrator.test_secure import Proc, start_router, stays_false
-from tests.conftest import wait_for
+from tests.conftest import holds, wait_for
 
 ADDR_A, ADDR_B = "10.231.0.1", "10.231.0.2"
 PORT = 7447  # free by construction: namespace A is new and empty
@@ -268,6 +268,7 @@ def test_cut_mid_episode_is_released_redone_and_the_late_upload_refused(deployme
     cut = start_worker(configs["worker"], "cut-w1", realtime=2.0, prefix=pair.exec_prefix(pair.b))
     started.append(cut)
     wait_for(lambda: queue.get(request_id).status == RequestStatus.LEASED, 90, "the first lease")
+    wait_for(lambda: holds("\n".join(cut.lines), request_id), 30, "the cut worker to hold it")  # (its grant too)
     first = queue.get(request_id)
     assert first.worker_id == "cut-w1"
     pair.link(up=False)
