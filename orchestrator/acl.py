@@ -24,8 +24,6 @@ ACL_MESSAGES: tuple[str, ...] = ("put", "delete", "declare_subscriber", "query",
 DEFAULT_NAMESPACE = "activecollect"
 
 
-# ---------------------------------------------------------------- access control
-
 def _rule(rule_id: str, flows: list[str], messages: list[str], key_exprs: list[str]) -> dict[str, Any]:
     """An allow rule; its id starts with the role whose policy it belongs to."""
     return {"id": rule_id, "permission": "allow", "flows": flows, "messages": messages,
@@ -79,7 +77,7 @@ def build_acl(namespace: str = DEFAULT_NAMESPACE) -> dict[str, Any]:
             "subjects": subjects, "policies": policies}
 
 
-def roles_that_may_query(key_expr: str, namespace: str = DEFAULT_NAMESPACE, message: str = "query") -> tuple[str, ...]:
+def roles_that_may_send(key_expr: str, namespace: str = DEFAULT_NAMESPACE, message: str = "query") -> tuple[str, ...]:
     """The client roles whose rules in ``build_acl(namespace)`` let them send ``message`` (a query, or
     "declare_queryable") on all of ``key_expr``: the router drops another role's there, unanswered."""
     wanted = zenoh.KeyExpr(key_expr)
@@ -98,12 +96,12 @@ def client_role(config: dict[str, Any]) -> str | None:
     return user if user in CLIENT_ROLES else None
 
 
-def denied_queries(config: dict[str, Any], config_path: Path, key_expr: str, namespace: str, what: str,
+def denied_by_acl(config: dict[str, Any], config_path: Path, key_expr: str, namespace: str, what: str,
                    message: str = "query") -> str | None:
     """Why ``message``s (queries, or "declare_queryable") on ``key_expr`` with this parsed config will go unanswered,
     when it is the config of a secure profile's role that the profile's ACL does not let send them there (``what``:
     "admin queries", say); else None."""
-    role, allowed = client_role(config), roles_that_may_query(key_expr, namespace, message)
+    role, allowed = client_role(config), roles_that_may_send(key_expr, namespace, message)
     if role is None or not allowed or role in allowed:
         return None
     other = config_path.with_name(f"{allowed[0]}.json5")

@@ -89,8 +89,8 @@ def config_from_args(args: argparse.Namespace) -> WorkerConfig:
     """Build the WorkerConfig; WorkerError naming the flag (``--id: expected ...``) for a bad value."""
     listen, connect = endpoints.endpoints_from_args(args)
     try:
-        for field, value, left_out in (("worker_id", args.id, "<host>-<pid>"), ("capabilities", args.capabilities,
-                                                                               "anything")):
+        given = (("worker_id", args.id, "<host>-<pid>"), ("capabilities", args.capabilities, "anything"))
+        for field, value, left_out in given:
             if value is not None and not value.strip():  # (an unset shell variable, say: not the default by stealth)
                 raise WorkerError(f"{field}: expected a value, found {value!r} (leave the flag out for {left_out})")
         tasks, shapes = parse_capabilities(args.capabilities or "")
@@ -102,8 +102,7 @@ def config_from_args(args: argparse.Namespace) -> WorkerConfig:
         raise WorkerError(flags.naming_flag(str(exc))) from None
     if config.zenoh_config is not None:  # another role's profile config: its lease queries would never be answered
         path, keys = Path(config.zenoh_config), config.keys
-        if denied := acl.denied_queries(transport.read_config(path), path, keys.lease, keys.namespace,
-                                           "lease queries"):
+        if denied := acl.denied_by_acl(transport.read_config(path), path, keys.lease, keys.namespace, "lease queries"):
             raise WorkerError(f"--zenoh-config: {denied}")
     return config
 

@@ -223,7 +223,7 @@ def _no_answer(keys: Keys, op: str, timeout: float, zenoh_config: str | Path | N
         config = transport.read_config(Path(zenoh_config))
     except transport.SecureConfigError as exc:  # read at start a moment ago; gone since: no more to tell
         return f"{said} ({running}; {exc})"
-    if denied := acl.denied_queries(config, Path(zenoh_config), keys.admin(op), keys.namespace, "admin queries"):
+    if denied := acl.denied_by_acl(config, Path(zenoh_config), keys.admin(op), keys.namespace, "admin queries"):
         return f"{said}, and none will: {denied}"
     if acl.client_role(config) is None and any(transport.lookup_key(config, key) for key in transport.FILE_KEYS):
         return (f"{said} ({running[:-1]} or your role may not be allowed this operation: the router's ACL drops a "

@@ -182,9 +182,9 @@ def cmd_serve(args: argparse.Namespace) -> int:
         raise common.UsageError("--mode client needs --connect EP: a client listens on nothing and reaches the "
                                 "others through a router (activecollect router)")
     if args.zenoh_config is not None:  # another role's profile config: no request would ever reach this service
-        if denied := acl.denied_queries(transport.read_config(args.zenoh_config), Path(args.zenoh_config),
-                                           keys.lease, keys.namespace, "the declarations of the service's queryables",
-                                           "declare_queryable"):
+        if denied := acl.denied_by_acl(transport.read_config(args.zenoh_config), Path(args.zenoh_config), keys.lease,
+                                       keys.namespace, "the declarations of the service's queryables",
+                                       "declare_queryable"):
             raise common.UsageError(f"--zenoh-config: {denied}")
     extras = companion_config(args)
     try:

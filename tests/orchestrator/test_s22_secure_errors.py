@@ -18,7 +18,7 @@ import pytest
 
 from orchestrator.cli import main
 from orchestrator.protocol import Keys
-from orchestrator.acl import CLIENT_ROLES, client_role, roles_that_may_query
+from orchestrator.acl import CLIENT_ROLES, client_role, roles_that_may_send
 from orchestrator.secure import SecureInitConfig, SecureSet, cert_pem, init_secure, issue_certificate, key_pem, make_ca
 from tests.conftest import free_port
 from tests.orchestrator import test_secure
@@ -154,8 +154,8 @@ def test_roles_are_read_from_the_configs_secure_init_writes(secure_router):
     assert [client_role(json5.loads(secure_router.configs[r].read_text())) for r in CLIENT_ROLES] == list(CLIENT_ROLES)
     assert client_role(json5.loads(secure_router.configs["router"].read_text())) is None  # a router, not a client
     keys = Keys("lab")
-    assert roles_that_may_query(keys.admin("stats"), "lab") == ("operator",)
-    assert roles_that_may_query(keys.lease, "lab") == ("worker",)
+    assert roles_that_may_send(keys.admin("stats"), "lab") == ("operator",)
+    assert roles_that_may_send(keys.lease, "lab") == ("worker",)
 
 
 @pytest.mark.parametrize("role", ["operator", "orchestrator"])
