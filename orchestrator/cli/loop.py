@@ -239,12 +239,9 @@ def bench_eval_split(catalog: Catalog, episodes: int, seed: int, steps: int, ima
 
 def _bench_loop(args: argparse.Namespace) -> int:
     d = LoopBenchConfig()
-    given = [f for f, v in (("--progress-floor", args.progress_floor), ("--progress-horizon", args.progress_horizon))
-             if v is not None]
-    if given and not args.shapes_by_progress:
-        raise common.UsageError(f"{given[0]} only applies with --shapes-by-progress")
-    floor = d.active.progress_floor if args.progress_floor is None else args.progress_floor
-    horizon = d.active.progress_horizon if args.progress_horizon is None else args.progress_horizon
+    progress = {k: getattr(args, k) for k in ("progress_floor", "progress_horizon") if getattr(args, k) is not None}
+    if progress and not args.shapes_by_progress:
+        raise common.UsageError(f"--{next(iter(progress)).replace('_', '-')} only applies with --shapes-by-progress")
     try:
         train = TrainConfig(**{**d.train.to_dict(), "epochs": args.epochs, "members": args.members,
                                "device": args.device, "widths": d.train.widths,
@@ -257,7 +254,7 @@ def _bench_loop(args: argparse.Namespace) -> int:
                               palette=args.palette, shapes_by_progress=args.shapes_by_progress,
                               active=dataclasses.replace(d.active, max_shape_share=args.max_shape_share,
                                                          repeats=args.repeats, min_per_shape=args.min_per_shape,
-                                                         progress_floor=floor, progress_horizon=horizon))
+                                                         **progress))
     except (ValueError, ConfigError) as exc:
         raise common.config_error(exc, {"budget": "--budget", "seeds": "--seeds", "members": "--members",
                                         "epochs": "--epochs", "signal": "--signal",
