@@ -77,9 +77,10 @@ def test_hostile_messages_at_leased_requests_get_errors_and_change_no_row(servic
         codes.append(_send(client, keys.upload, {**header, **change}, data))
     codes.append(_send(client, keys.upload, header, data[:-1]))  # the bytes cut short
     codes.append(_send(client, keys.upload, header, b""))
-    for ask in (  # (1e309 is a float infinity to Python's json){"worker_id": "w1", "tasks": ["fly"]}, {"worker_id": "w1", "shapes": "box"},
+    for ask in ({"worker_id": "w1", "tasks": ["fly"]}, {"worker_id": "w1", "shapes": "box"},
                 {"worker_id": "w1", "shapes": ["box"] * 1000}, {"worker_id": "w1", "image_size": 7},
-                b'{"v": 1, "worker_id": "w1", "image_size": 1e309}', {"worker_id": "w1", "image_size": -16},
+                b'{"v": 1, "worker_id": "w1", "image_size": 1e309}',  # (1e309 is a float infinity to Python's json)
+                {"worker_id": "w1", "image_size": -16},
                 {"worker_id": "w9", "capabilities": {}}, {"tasks": ["push"]}, {"worker_id": ["w1"]}):
         codes.append(_send(client, keys.lease, ask))
     assert set(codes) <= {ErrorCode.BAD_FIELD, ErrorCode.BAD_JSON, ErrorCode.STALE_TOKEN, ErrorCode.TOO_LARGE,
