@@ -140,7 +140,8 @@ class Cluster:
     def start_worker(self, wid: str) -> None:
         self.worker_starts[wid] += 1
         self.workers[wid] = self._spawn([sys.executable, "-m", "workers.agent", "--connect", self.endpoint,
-                                         "--size", str(self.worker_size), "--id", wid, "--realtime", str(self.realtime)],
+                                         "--size", str(self.worker_size), "--id", wid,
+                                         "--realtime", str(self.realtime)],
                                         f"worker.{wid}.{self.worker_starts[wid]}", REPO)
 
     def kill(self, proc: subprocess.Popen, what: str) -> None:

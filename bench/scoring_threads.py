@@ -5,9 +5,9 @@ as a child process (``activecollect retrain``), by default with a thread per cor
 run and in turn (the order rotated each repeat):
 
 - a retrain alone: wall seconds of ``activecollect retrain --data COPY ARGS`` on a fresh copy of a
-  snapshot of DATA (``activecollect backup``; every job trains the same thing, DATA is never changed), with torch's default threads and with
-  the cores the scorer leaves (``retrain --threads max(1, cores - --threads)``, "fitted": what
-  ``serve`` gives its jobs by default);
+  snapshot of DATA (``activecollect backup``; every job trains the same thing, DATA is never changed),
+  with torch's default threads and with the cores the scorer leaves
+  (``retrain --threads max(1, cores - --threads)``, "fitted": what ``serve`` gives its jobs by default);
 - the scorer alone for --score-seconds, with torch's default threads and with --threads: episodes
   scored per second;
 - the retrain with the scorer busy beside it: both default; the scorer at --threads and the retrain

@@ -259,7 +259,8 @@ def summarize(soak: Soak, elapsed: float) -> dict:
         "requests_by_planner": dict(Counter(json.loads(r["reason"]).get("planner") for r in reqs.values())),
         "models": dict(Counter(models)), "retrain_jobs": len(retrain_logs),
         "service_errors_logged": len(errors), "service": svc, "worker_rss_mib": workers,
-        "wal_mib_max": round(wal, 2), "disk_mib": disk_mib(data), "samples": len(soak.samples), "warm_samples": len(warm),
+        "wal_mib_max": round(wal, 2), "disk_mib": disk_mib(data), "samples": len(soak.samples),
+        "warm_samples": len(warm),
         "problems": problems + file_problems, "notes": notes, "series": soak.samples,
     }
 

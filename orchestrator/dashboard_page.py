@@ -84,8 +84,10 @@ function drawCurve(points) {
   svg.appendChild(line);
   for (const p of pts) { const c = document.createElementNS(ns, "circle"); c.setAttribute("cx", sx(p.episodes));
     c.setAttribute("cy", sy(p.h1_mse)); c.setAttribute("r", 4);
-    c.setAttribute("fill", p.status === "champion" ? "#2e7d32" : (p.promoted ? "#1565c0" : "#bbb")); svg.appendChild(c); }
-  const labels = [[L, H - 8, x0 + " ep"], [W - 60, H - 8, x1 + " ep"], [4, sy(y1 / 1.1) + 4, fmt(y1 / 1.1)], [4, H - B, "0"]];
+    c.setAttribute("fill", p.status === "champion" ? "#2e7d32" : (p.promoted ? "#1565c0" : "#bbb"));
+    svg.appendChild(c); }
+  const labels = [[L, H - 8, x0 + " ep"], [W - 60, H - 8, x1 + " ep"], [4, sy(y1 / 1.1) + 4, fmt(y1 / 1.1)],
+                  [4, H - B, "0"]];
   for (const [x, y, s] of labels) { const t = document.createElementNS(ns, "text"); t.setAttribute("x", x);
     t.setAttribute("y", y); t.setAttribute("font-size", 11); t.textContent = s; svg.appendChild(t); }
 }
@@ -116,7 +118,8 @@ async function refresh() {
         String(r.source_episode ?? "").slice(0, 8) + (r.step === null || r.step === undefined ? "" : " @" + r.step),
         r.model_version || "", q.attempts, q.last_error || ""]) cell(tr, v); });
     fill("models", models.models, (tr, m) => { const cls = m.version === models.champion ? "champion" : "";
-      for (const v of [m.version, m.status + (m.pruned_at ? " (pruned)" : ""), fmt(m.metrics.h1_mse), fmt(m.metrics.h5_mse), m.created, m.reason])
+      for (const v of [m.version, m.status + (m.pruned_at ? " (pruned)" : ""), fmt(m.metrics.h1_mse),
+                       fmt(m.metrics.h5_mse), m.created, m.reason])
         cell(tr, v, cls); });
     fill("workers", workers.workers, (tr, w) => { cell(tr, w.id); cell(tr, JSON.stringify(w.info || {})); });
     drawCurve(curve.points);

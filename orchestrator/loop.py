@@ -248,8 +248,8 @@ class LoopRun:
 
     def _start_dashboard(self) -> None:
         src = DataSources(self.cfg.data_dir, workers=lambda: [{"id": w} for w in self.service.workers()],
-                          metrics_text=self._metrics_text, frames_png=FramesSource(self.scorer, self.catalog), budget=self.cfg.budget,
-                          retrains=lambda: [r.to_json() for r in self.scheduler.history])
+                          metrics_text=self._metrics_text, frames_png=FramesSource(self.scorer, self.catalog),
+                          budget=self.cfg.budget, retrains=lambda: [r.to_json() for r in self.scheduler.history])
         dash = Dashboard(DashboardConfig(port=self.cfg.dashboard_port), src.sources())
         try:
             dash.start()

@@ -190,7 +190,8 @@ def _html(inputs: ReportInputs, images: dict[str, bytes]) -> str:
     retrain_rows = "".join(
         f"<tr><td>{esc(r.get('trigger', ''))}</td><td>{r.get('episodes', '')}</td><td>{esc(str(r.get('status')))}"
         f"</td><td>{esc(r.get('version') or '')}</td><td>{esc(_fmt(r.get('metrics', {}).get('h1_mse')))}</td>"
-        f"<td>{esc(_fmt((r.get('finished') or 0) - r.get('started', 0)))}</td><td>{esc(r.get('reason') or '')}</td></tr>"
+        f"<td>{esc(_fmt((r.get('finished') or 0) - r.get('started', 0)))}</td>"
+        f"<td>{esc(r.get('reason') or '')}</td></tr>"
         for r in inputs.retrains)
     figs = {"curve.png": f"Eval error per {CURVE_X_LABEL}",
             "disagreement.png": "Champion disagreement over object position",

@@ -332,7 +332,8 @@ def init_secure(cfg: SecureInitConfig) -> SecureSet:
     if swaps and not cfg.force:
         raise SecureConfigError(f"{cfg.directory} holds a secure profile whose replacement was cut short: the old "
                                 f"files set aside and the new ones not yet in place are in "
-                                f"{', '.join(p.name for p in swaps)}; pass --force to replace it whole (and delete those)")
+                                f"{', '.join(p.name for p in swaps)}; pass --force to replace it whole (and delete "
+                                "those)")
     if existing and not cfg.force:
         raise SecureConfigError(f"{cfg.directory} already holds a secure profile "
                                 f"({existing[0].name}, ...); pass --force to replace it")

@@ -76,9 +76,9 @@ class ServiceConfig:
     """Requests the planner seeds an empty queue with at start."""
     min_queued: int = 0
     """While a planner runs, keep at least this many requests queued: whenever fewer are, the planner's
-    ``seed`` (uniform draws, reason ``top-up``) tops the queue up. An active planner asks only for states above its threshold
-    and away from what it asked before, so its requests can run out; once the queue is empty no episode
-    comes in to plan from, and without this floor collection stops for good. 0: no floor."""
+    ``seed`` (uniform draws, reason ``top-up``) tops the queue up. An active planner asks only for states above
+    its threshold and away from what it asked before, so its requests can run out; once the queue is empty no
+    episode comes in to plan from, and without this floor collection stops for good. 0: no floor."""
     on_episode: tuple[EpisodeCallback, ...] = ()
     """Called in the background thread for every stored episode (after the planner)."""
     handler_threads: int = 4

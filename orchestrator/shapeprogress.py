@@ -7,8 +7,8 @@ starved got worse. What tells the two apart is whether training on a shape's epi
 error on them.
 
 For each episode the planner scores, ``ShapeProgress`` keeps two numbers: the mean error (ensemble mean,
-at the scorer's horizon, 1 by default) of the latest champion that had *not* trained on it ("fresh"), and that of the first
-champion after it that *had* ("seen"). A shape's drop is ``(fresh - seen) / fresh`` averaged over its
+at the scorer's horizon, 1 by default) of the latest champion that had *not* trained on it ("fresh"), and
+that of the first champion after it that *had* ("seen"). A shape's drop is ``(fresh - seen) / fresh`` averaged over its
 last ``memory`` episodes that have both. Every shape drops somewhat, because the later champion saw
 more data of every kind (in ``bench loop`` 7-20 % a round); what a shape's own data buys is its drop
 beyond the smallest one, which ``quotas`` splits a round by, with a floor for every shape. Little

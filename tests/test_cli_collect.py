@@ -297,7 +297,8 @@ def test_quarantine_restore_and_verify_quarantine(capsys, data, rng, tmp_path):
     cat.get(ids[1]).path.unlink()
     cat.get(ids[2]).path.write_bytes(b"\x89MCAP0\r\n")
     rc, out, _ = run_cli(capsys, "episodes", "verify", "--data", str(data))
-    assert rc == 1 and "verified 2 episodes: 0 ok, 2 bad; 1 quarantined in all" in out  # the quarantined one not checked
+    # (the quarantined one is not checked)
+    assert rc == 1 and "verified 2 episodes: 0 ok, 2 bad; 1 quarantined in all" in out
     rc, out, err = run_cli(capsys, "episodes", "verify", "--quarantine", "--data", str(data), "--json")
     report = json.loads(out)
     assert rc == 0, err

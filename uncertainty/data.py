@@ -74,7 +74,8 @@ class Windows:
                        self.episode[idx], self.step[idx], self.episode_ids)
 
     def batch(self, idx: torch.Tensor, device: torch.device | str) -> tuple[torch.Tensor, ...]:
-        """Float tensors for windows ``idx`` (any shape S): context (*S,C,3,H,W), actions (*S,H,A), targets (*S,H,3,H,W)."""
+        """Float tensors for windows ``idx`` (any shape S): context (*S,C,3,H,W), actions (*S,H,A),
+        targets (*S,H,3,H,W)."""
         ctx = self.frames[self.context[idx]].to(device).float().div_(255.0)   # (*S, C, 3, H, W)
         act = self.actions[self.action_idx[idx]].to(device)                   # (*S, H, A)
         tgt = self.frames[self.target[idx]].to(device).float().div_(255.0)    # (*S, H, 3, H, W)

@@ -29,8 +29,8 @@ def run_sim_bench(image_size: int = 96, seconds: float = 5.0, out_dir: str | Pat
     Keys: frames_per_s (the headline), frames, episodes, seconds (measured), image_size,
     steps_per_episode, policy, bytes_per_frame, the split of the time between
     simulate_render_s, encode_s and write_s, and cpu_s / frames_per_cpu_s (this process's
-    CPU time, which other users of a shared machine disturb less than wall time). ``out_dir`` keeps the files (a temporary
-    directory, removed afterwards, when None). Raises ValueError for a bad argument.
+    CPU time, which other users of a shared machine disturb less than wall time). ``out_dir`` keeps the files
+    (a temporary directory, removed afterwards, when None). Raises ValueError for a bad argument.
     """
     if not seconds > 0:
         raise ValueError(f"seconds: expected > 0, found {seconds}")

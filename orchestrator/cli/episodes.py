@@ -170,7 +170,8 @@ def _episodes_verify(args: argparse.Namespace) -> int:
 def _quarantine_bad(cat: Catalog, row: EpisodeRow, exc: StorageError) -> bool:
     """Quarantines a bad episode ``verify`` found; False (with a line on stderr) when it cannot be."""
     try:  # (a repair that came in since it was read wins: then it is not quarantined)
-        return bool(cat.quarantine(row.episode_id, f"found by episodes verify: {exc}", only_if_damaged=True).quarantined)
+        kept = cat.quarantine(row.episode_id, f"found by episodes verify: {exc}", only_if_damaged=True)
+        return bool(kept.quarantined)
     except CatalogError as why:
         print(one_line(f"activecollect: cannot quarantine {row.episode_id}: {why}"), file=sys.stderr)
         return False

@@ -264,7 +264,8 @@ def _fmt_xy(values: Any) -> str:
 
 
 def _bench_score(args: argparse.Namespace) -> int:
-    from uncertainty.benchmark import CEILING_CONV, run_score_bench  # torch: imported when the command runs (start-up cost)
+    # torch: imported when the command runs (start-up cost)
+    from uncertainty.benchmark import CEILING_CONV, run_score_bench
     try:
         out = run_score_bench(members=args.members, image_size=args.size, seconds=args.seconds,
                               batch=args.batch, threads=args.threads, device=args.device)

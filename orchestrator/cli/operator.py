@@ -96,9 +96,11 @@ def _register_queue(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--steps", type=common.episode_steps, default=50, metavar="T",
                    help=f"steps to record, at least {common.MIN_EPISODE_STEPS} (default 50)")
     p.add_argument("--priority", type=_priority, default=0.0, metavar="P",
-                   help=f"higher is leased first, within ±{protocol.MAX_PRIORITY:g} (default 0; planned requests carry their score)")
+                   help=f"higher is leased first, within ±{protocol.MAX_PRIORITY:g} (default 0; planned requests "
+                        "carry their score)")
     p.add_argument("--max-attempts", type=_max_attempts, default=3, metavar="N",
-                   help=f"leases that may fail or expire before the request is dead, at most {protocol.MAX_ATTEMPTS} (default 3)")
+                   help=f"leases that may fail or expire before the request is dead, at most "
+                        f"{protocol.MAX_ATTEMPTS} (default 3)")
     p.add_argument("--idempotency-key", default=None, metavar="KEY",
                    help="a repeated add with the same key returns the first request instead of a new one; "
                         "one that asks for something else (another shape, start state, policy, steps...) is "
@@ -114,8 +116,8 @@ def _register_queue(sub: argparse._SubParsersAction) -> None:
     _operator_args(p)
     p.add_argument("id", metavar="ID", help="a request id, or a unique prefix of one")
     p.add_argument("priority", type=_priority, metavar="PRIORITY",
-                   help=f"the new priority, a number within ±{protocol.MAX_PRIORITY:g}; higher is leased first (manual requests start at 0, "
-                        "planned ones at their score)")
+                   help=f"the new priority, a number within ±{protocol.MAX_PRIORITY:g}; higher is leased first "
+                        "(manual requests start at 0, planned ones at their score)")
     p.set_defaults(func=lambda a: _print_op(a, "queue.prioritize", {"id": a.id, "priority": a.priority},
                                             _print_request))
 

@@ -48,7 +48,8 @@ def register(sub) -> None:
     init.add_argument("directory", type=_profile_dir, metavar="DIR",
                       help="where to write the profile: a new or empty directory (made private, mode 0700: it "
                            "holds the keys), or one holding a profile to replace with --force")
-    init.add_argument("--namespace", default=DEFAULT_NAMESPACE, help=f"key namespace the ACL protects (default {DEFAULT_NAMESPACE})")
+    init.add_argument("--namespace", default=DEFAULT_NAMESPACE,
+                      help=f"key namespace the ACL protects (default {DEFAULT_NAMESPACE})")
     init.add_argument("--router-endpoint", type=_router_endpoint, default=DEFAULT_ROUTER_ENDPOINT,
                       metavar="tls/HOST:PORT",
                       help=f"where clients reach the router (default {DEFAULT_ROUTER_ENDPOINT})")

@@ -314,6 +314,7 @@ def test_a_queue_operation_the_storage_failed_is_never_bad_field() -> None:
     except sqlite3.Error as exc:
         damaged = exc
     assert admin.protocol_error(raised_from(damaged, QueueError)).code == ErrorCode.INTERNAL
-    assert admin.protocol_error(raised_from(OSError(errno.ENOTDIR, "Not a directory"), QueueError)).code == ErrorCode.INTERNAL
+    not_a_dir = OSError(errno.ENOTDIR, "Not a directory")
+    assert admin.protocol_error(raised_from(not_a_dir, QueueError)).code == ErrorCode.INTERNAL
     assert admin.protocol_error(raised_from(damaged, QueueUnavailableError)).code == ErrorCode.UNAVAILABLE
     assert admin.protocol_error(QueueError("priority: expected a number")).code == ErrorCode.BAD_FIELD

@@ -290,7 +290,8 @@ def test_a_dashboard_without_a_service_reads_its_metrics_from_the_data_directory
     assert families["activecollect_champion_h1_mse"].samples[0].value == 0.02
     assert families["activecollect_champion_info"].samples[0].labels["version"] == version
     size = families["activecollect_data_disk_size_bytes"].samples[0].value
-    assert size == shutil.disk_usage(data_dir).total and families["activecollect_data_disk_free_bytes"].samples[0].value > 0
+    assert size == shutil.disk_usage(data_dir).total
+    assert families["activecollect_data_disk_free_bytes"].samples[0].value > 0
     assert families["activecollect_episodes_quarantined"].samples[0].value == 1
     assert families["activecollect_champion_weights_damaged"].samples[0].value == 0
     registry.get(version).weights_path.write_bytes(b"damaged")

@@ -271,7 +271,8 @@ def test_requests_stay_in_the_task_space_start_at_rest_away_from_the_object_and_
         ep.states[:, COL["agent_vx"]] = 300.0  # moving fast everywhere
         eps.append(ep)
     cfg = ActivePlannerConfig(percentile=0.0, budget_per_round=8, min_distance=0.0, max_shape_share=0.5)
-    scorer = lambda ep: Scores("m1", np.arange(len(ep), dtype=float) * (10.0 if ep.meta.shape == "T" else 1.0))  # noqa: E731
+    def scorer(ep):
+        return Scores("m1", np.arange(len(ep), dtype=float) * (10.0 if ep.meta.shape == "T" else 1.0))
     reqs = ActivePlanner(cfg, scorer, rng).plan(eps)
     lo, hi = protocol.OBJECT_RANGE
     alo, ahi = protocol.AGENT_RANGE
@@ -283,7 +284,8 @@ def test_requests_stay_in_the_task_space_start_at_rest_away_from_the_object_and_
         assert s["agent_vel"] == [0.0, 0.0] and s["object_vel"] == [0.0, 0.0, 0.0]
         # the object is the scored state's, the agent is drawn as a uniform start draws it
         src = next(e for e in eps if e.meta.episode_id == r.reason["source_episode"])
-        assert s["object"][:2] == [src.states[r.reason["step"], COL["obj_x"]], src.states[r.reason["step"], COL["obj_y"]]]
+        step = r.reason["step"]
+        assert s["object"][:2] == [src.states[step, COL["obj_x"]], src.states[step, COL["obj_y"]]]
         assert math.dist(s["agent"], s["object"][:2]) >= AGENT_CLEARANCE
     # T scores ten times higher, yet at most half the round is T
     assert sum(r.shape == "T" for r in reqs) <= 4

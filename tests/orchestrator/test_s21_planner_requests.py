@@ -100,7 +100,8 @@ def test_requests_from_real_episodes_pass_the_services_checks(tmp_path, kw):
     """The usual case, in the settings that keep more of the episode's state: nothing is dropped."""
     catalog = Catalog(tmp_path / "data")
     eps = [stored(catalog, approach(agent, seed=s)) for s, agent in enumerate(([60.0, 60.0], [450.0, 80.0]))]
-    speed = lambda ep: Scores("m1", np.hypot(ep.states[:, COL["agent_vx"]], ep.states[:, COL["agent_vy"]]))  # noqa: E731
+    def speed(ep):
+        return Scores("m1", np.hypot(ep.states[:, COL["agent_vx"]], ep.states[:, COL["agent_vy"]]))
     reqs = ActivePlanner(cfg(percentile=0.0, budget_per_round=12, min_distance=0.0, **kw), speed,
                          np.random.default_rng(0)).plan(eps)
     assert len(reqs) == 12 and all(valid(r) for r in reqs)

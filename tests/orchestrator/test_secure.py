@@ -1,8 +1,8 @@
 """The secure profile: what `secure init` writes, the start-up check, and Zenoh enforcing it.
 
 A real router process (orchestrator.router with the profile's router.json5), the real service
-and worker agent, and real client sessions, all on loopback. Zenoh denials are silent, so every denial is asserted by absence within
-a window, right after a positive control in the same test proved the path works.
+and worker agent, and real client sessions, all on loopback. Zenoh denials are silent, so every denial is
+asserted by absence within a window, right after a positive control in the same test proved the path works.
 """
 
 from __future__ import annotations

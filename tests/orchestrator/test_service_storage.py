@@ -178,12 +178,12 @@ class CountedReaps(ServiceMetrics):
 @pytest.mark.parametrize("code", [errno.ENOSPC, errno.EROFS], ids=["full", "read-only"])
 def test_an_upload_the_disk_refuses_holds_every_lease_until_it_goes_in(make_service, client, keys, data_dir,
                                                                        monkeypatch, caplog, code) -> None:
-    """The episodes' disk is full (or read-only) while the catalog's rows stay writable: uploads are refused `unavailable` (the
-    worker keeps its episode and sends it again) and nothing else fails. That is an outage of the storage as
-    much as one a renew meets: the reaper extends the lease instead of expiring it (an attempt counted, and
-    the upload then refused as stale: the episode dropped). Not renewed here, so that only the reaper keeps
-    it: a worker's renewals can fail or wait as its uploads do. Once the disk has room, the same upload
-    completes the request; the outage, ended by each reap and begun again by the next upload, is said once."""
+    """The episodes' disk is full (or read-only) while the catalog's rows stay writable: uploads are refused
+    `unavailable` (the worker keeps its episode and sends it again) and nothing else fails. That is an outage of the
+    storage as much as one a renew meets: the reaper extends the lease instead of expiring it (an attempt counted,
+    and the upload then refused as stale: the episode dropped). Not renewed here, so that only the reaper keeps it:
+    a worker's renewals can fail or wait as its uploads do. Once the disk has room, the same upload completes the
+    request; the outage, ended by each reap and begun again by the next upload, is said once."""
     metrics = CountedReaps()
     with caplog.at_level(logging.INFO, logger="orchestrator"):
         service = make_service(lease_s=1.0, metrics=metrics)

@@ -150,7 +150,8 @@ def test_a_second_sigterm_walks_away_from_an_upload_in_flight(make_service, spaw
         wait_for(lambda: "draining" in w.log(), message="the first signal is taken")
         w.signal(signal.SIGTERM)
         started = time.monotonic()
-        assert w.wait(6) == 1, w.log()  # (exit 1: an episode dropped; the old worker waited out the upload's 10 s, then the release's)
+        # (exit 1: an episode dropped; the old worker waited out the upload's 10 s, then the release's)
+        assert w.wait(6) == 1, w.log()
         assert time.monotonic() - started < 6
     finally:
         hang.set()

@@ -25,7 +25,10 @@ def _stops(capsys, prog: str, *argv: str) -> tuple[int, str]:
     wait for a service for ever (nobody listens on its --connect)."""
     argv = (*argv, "--connect", f"tcp/127.0.0.1:{free_port()}")
     try:
-        args = build_parser().parse_args(["worker", *argv]) if prog == CLI else worker_cli.build_parser().parse_args(argv)
+        if prog == CLI:
+            args = build_parser().parse_args(["worker", *argv])
+        else:
+            args = worker_cli.build_parser().parse_args(argv)
     except SystemExit as exc:
         return exc.code, capsys.readouterr().err
     with pytest.raises(WorkerError):

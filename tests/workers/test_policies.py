@@ -105,7 +105,8 @@ def test_a_whole_number_parameter_refuses_a_fraction(policy, params):
     with pytest.raises(ValueError, match="whole number"):
         make_policy(policy, params, np.random.default_rng(0))
     whole = {k: float(int(v)) for k, v in params.items()}  # 2.0 (JSON may carry it so) is fine
-    assert make_policy(policy, whole, np.random.default_rng(0)).params[next(iter(params))] == int(next(iter(whole.values())))
+    name, value = next(iter(whole.items()))
+    assert make_policy(policy, whole, np.random.default_rng(0)).params[name] == int(value)
 
 
 def test_queue_add_with_a_side_that_is_not_a_string_is_a_usage_error(capsys):
