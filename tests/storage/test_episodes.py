@@ -329,17 +329,22 @@ def test_missing_messages_refused_not_read_partially(ep):
         episode_reader.read_episode(data)
 
 
-def test_errors_are_storage_errors_not_raw(data):
-    """Whatever is wrong, callers only ever see StorageError subclasses."""
+def test_errors_are_storage_errors_not_raw(ep, data):
+    """Whatever is wrong, callers only ever see StorageError subclasses, and never an episode other than the one
+    written (16 random bytes anywhere in the file)."""
     rng = np.random.default_rng(1)
+    refused = 0
     for _ in range(40):
         bad = bytearray(data)
         start = int(rng.integers(0, len(data)))
         bad[start:start + 16] = rng.integers(0, 256, len(bad[start:start + 16]), dtype=np.uint8).tobytes()
         try:
-            episode_reader.read_episode(bytes(bad))
+            got = episode_reader.read_episode(bytes(bad))
         except StorageError:
-            pass
+            refused += 1
+        else:
+            assert_same(got, ep)
+    assert refused > 0
 
 
 def test_missing_path_is_episode_error(tmp_path):

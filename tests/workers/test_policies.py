@@ -75,12 +75,19 @@ def test_policies_are_deterministic_for_a_seed(policy):
 
 
 def test_policies_work_with_the_gymnasium_env():
+    """A policy drives the gymnasium env: actions in its action space, observations in its observation space,
+    and the pusher goes where the actions send it."""
     env = PushEnv(image_size=16, shape="disk")
     env.reset(seed=0)
     pol = make_policy("push", {"noise": 2.0}, np.random.default_rng(0))
     pol.reset(env)
+    start = np.array(env.get_state().agent[:2])
     for _ in range(5):
-        env.step(pol.act(env))
+        action = pol.act(env)
+        assert env.action_space.contains(np.asarray(action, dtype=np.float32))
+        obs, _, terminated, _, info = env.step(action)
+        assert env.observation_space.contains(obs) and not terminated and isinstance(info["contact"], bool)
+    assert not np.allclose(np.array(env.get_state().agent[:2]), start)
 
 
 @pytest.mark.parametrize("name, params, match", [
