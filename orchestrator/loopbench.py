@@ -32,15 +32,19 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import multiprocessing
+import os
+import sys
 import time
 import zlib
+from multiprocessing import connection as mp_connection
 from pathlib import Path
 from typing import Callable, Mapping, Sequence
 
 import numpy as np
 from matplotlib.figure import Figure
 
-from orchestrator.champion import ChampionScorer
+from orchestrator.champion import ChampionScorer, limit_torch_threads
 from orchestrator.loopconfig import HEAD_SIGNALS, LoopBenchConfig
 from orchestrator.planner import ActivePlanner, Planner, Scores, in_eval_split
 from orchestrator.uniform import UniformPlanner
@@ -268,23 +272,89 @@ def plot(points: list[dict], path: Path) -> None:
 
 
 def run_bench(cfg: LoopBenchConfig, out_dir: Path, collect: Collect, make_eval_split: MakeEvalSplit,
-              log: Callable[[str], None] = print) -> dict:
-    """Every seed, both arms; writes ``summary.json`` and ``loop.png`` in ``out_dir``; returns the summary."""
+              log: Callable[[str], None] = print, jobs: int = 1, threads: int = 0) -> dict:
+    """Every seed, both arms; writes ``summary.json`` and ``loop.png`` in ``out_dir``; returns the summary.
+
+    ``jobs`` > 1 runs each (seed, arm) in a process of its own, that many at once (``_run_apart``);
+    ``threads``: torch threads per arm (0: torch's own with one job, the usable cores shared out
+    with more). The arms share nothing but the machine, so on the CPU the figures are the same
+    as one after the other at the same ``threads``. ArmFailed when an arm's process fails.
+    """
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
+    runs = [(seed, arm, out_dir / f"seed{seed}" / arm) for seed in cfg.seeds for arm in ARMS]
+    for _, _, data_dir in runs:
+        if (data_dir / "catalog.sqlite").exists():
+            raise ValueError(f"{data_dir} already holds a catalog; give bench loop a fresh --out")
+    if jobs > 1 and not threads:
+        threads = max(1, len(os.sched_getaffinity(0)) // min(jobs, len(runs)))
     start = time.perf_counter()
-    points: list[dict] = []
-    for seed in cfg.seeds:
-        for arm in ARMS:
-            data_dir = out_dir / f"seed{seed}" / arm
-            if (data_dir / "catalog.sqlite").exists():
-                raise ValueError(f"{data_dir} already holds a catalog; give bench loop a fresh --out")
-            points += run_arm(arm, seed, cfg, data_dir, collect, make_eval_split, log)
+    if jobs > 1:
+        points = _run_apart(runs, cfg, collect, make_eval_split, jobs, threads)
+    else:
+        limit_torch_threads(threads)
+        points = [p for seed, arm, data_dir in runs
+                  for p in run_arm(arm, seed, cfg, data_dir, collect, make_eval_split, log)]
     summary = {"config": cfg.to_json(), "points": points, "h1": summarize(points, cfg, "h1_mse"),
                "h5": summarize(points, cfg, "h5_mse"), "seconds": round(time.perf_counter() - start, 1),
+               "jobs": jobs, "threads": threads or None,
                "transport": "in-process collection (no Zenoh); real queue, catalog, trainer and gate"}
     plot(points, out_dir / "loop.png")
     summary["plot"] = str(out_dir / "loop.png")
     # (h5 of episodes too short for it is NaN: null, so that strict parsers read the file)
     (out_dir / "summary.json").write_text(json.dumps(finite_json(summary), indent=2, default=str, allow_nan=False))
     return summary
+
+
+class ArmFailed(RuntimeError):
+    """An arm's process of a ``run_bench`` with ``jobs`` > 1 ended without its figures (its error went to stderr)."""
+
+
+#: Where an arm run in its own process leaves its points for ``run_bench`` (in the arm's data directory).
+ARM_POINTS = "points.json"
+
+
+def _run_apart(runs: list[tuple[int, str, Path]], cfg: LoopBenchConfig, collect: Collect,
+               make_eval_split: MakeEvalSplit, jobs: int, threads: int) -> list[dict]:
+    """Each (seed, arm, data directory) in a process of its own, ``jobs`` at a time; the points in ``runs``' order.
+
+    The processes are spawned, not forked (torch's threads and CUDA do not survive a fork), so ``collect``
+    and ``make_eval_split`` must be module-level functions. The first arm that fails stops the others
+    (terminated, not waited for) and raises ArmFailed.
+    """
+    ctx = multiprocessing.get_context("spawn")
+    pending = list(runs)
+    running: dict[int, tuple[multiprocessing.process.BaseProcess, int, str]] = {}
+    try:
+        while pending or running:
+            while pending and len(running) < jobs:
+                seed, arm, data_dir = pending.pop(0)
+                proc = ctx.Process(target=_arm_process, name=f"bench-loop-seed{seed}-{arm}",
+                                   args=(arm, seed, cfg, data_dir, collect, make_eval_split, threads))
+                proc.start()
+                running[proc.sentinel] = (proc, seed, arm)
+            for sentinel in mp_connection.wait(list(running)):
+                proc, seed, arm = running.pop(sentinel)  # type: ignore[index]
+                proc.join()
+                if proc.exitcode != 0:
+                    raise ArmFailed(f"bench loop: the {arm} arm of seed {seed} failed (exit code {proc.exitcode}); "
+                                    "its error is above")
+    finally:
+        for proc, _, _ in running.values():
+            proc.terminate()
+            proc.join()
+    return [p for _, _, data_dir in runs for p in json.loads((data_dir / ARM_POINTS).read_text())]
+
+
+def _arm_process(arm: str, seed: int, cfg: LoopBenchConfig, data_dir: Path, collect: Collect,
+                 make_eval_split: MakeEvalSplit, threads: int) -> None:
+    """``run_arm`` in a spawned process: its points to ``data_dir/ARM_POINTS`` (written whole, then renamed)."""
+    limit_torch_threads(threads)
+    points = run_arm(arm, seed, cfg, data_dir, collect, make_eval_split, _log_stderr)
+    tmp = data_dir / (ARM_POINTS + ".tmp")
+    tmp.write_text(json.dumps(points))  # (NaN, an h5 of episodes too short for it, reads back as NaN)
+    tmp.replace(data_dir / ARM_POINTS)
+
+
+def _log_stderr(line: str) -> None:
+    print(line, file=sys.stderr, flush=True)

@@ -1,6 +1,6 @@
 """The ``activecollect`` command: argument parsing and printing only.
 
-Each command group lives in its own module with ``register(subparsers)`` and,
+Each command group lives in its own module with ``register(subparsers)`` and/or,
 for benchmarks, ``register_bench(bench_subparsers)``; every sub-parser sets
 ``func(args) -> int``.
 """
@@ -13,12 +13,12 @@ import sys
 
 from orchestrator import transport
 from orchestrator.protocol import one_line
-from orchestrator.cli import collect, common, loop, models, operator, registry, secure, service
+from orchestrator.cli import collect, common, loop, loopbench, models, operator, registry, secure, service
 from storage.database import space_note
 from storage.errors import StorageError
 
 # (collect adds cli/episodes.py's commands after its own)
-_MODULES = (collect, models, registry, service, operator, loop, secure)
+_MODULES = (collect, models, registry, service, operator, loop, loopbench, secure)
 
 
 def build_parser() -> common.Parser:
@@ -33,7 +33,8 @@ def build_parser() -> common.Parser:
     bench_sub = bench.add_subparsers(dest="bench", metavar="BENCH", parser_class=common.Parser)
     bench_sub.required = True
     for module in _MODULES:
-        module.register(sub)
+        if hasattr(module, "register"):
+            module.register(sub)
         if hasattr(module, "register_bench"):
             module.register_bench(bench_sub)
     return parser

@@ -9,7 +9,7 @@ import argparse
 import sys
 import time
 from pathlib import Path
-from typing import Any
+from typing import Any, Mapping
 
 from tqdm import tqdm
 
@@ -88,6 +88,13 @@ def _made_with(key: str, value: Any) -> str:
     if value is None:
         return f"another {key.replace('_', ' ')} (not recorded)"
     return f"{key.replace('_', ' ')} {value}"
+
+
+def make_eval_split(catalog: Catalog, episodes: int, seed: int, steps: int, image_size: int,
+                    random_physics: bool = False, palette: Mapping[str, tuple[int, int, int]] | None = None) -> str:
+    """The loops' ``create_eval_split`` (``run``'s and ``bench loop``'s), positional: the simulator's split."""
+    return create_eval_split(catalog, episodes=episodes, seed=seed, steps=steps, image_size=image_size,
+                             random_physics=random_physics, palette=palette)
 
 
 def register(sub: argparse._SubParsersAction) -> None:

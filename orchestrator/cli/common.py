@@ -333,3 +333,23 @@ def existing_catalog(args: argparse.Namespace) -> Catalog:
     data = Path(args.data)
     require_catalog(data)
     return Catalog(data)
+
+
+def add_episode_args(p: argparse.ArgumentParser, steps: int, image_size: int) -> None:
+    """``--steps`` and ``--image-size`` of the commands that collect and train (``run``, ``bench loop``)."""
+    p.add_argument("--steps", type=episode_steps, default=steps, metavar="T",
+                   help=f"steps per episode, of the training episodes and of the eval split's (at least "
+                        f"{MIN_EPISODE_STEPS}; default {steps})")
+    p.add_argument("--image-size", type=trainable_image_size, default=image_size, metavar="PX",
+                   help=f"frame size in pixels, {TRAINABLE_SIZES} (default {image_size})")
+
+
+def channel_widths(text: str) -> tuple[int, int, int]:
+    """``--widths``: a fresh model's three channel widths, ``A,B,C``."""
+    try:
+        widths = tuple(int(w) for w in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected three integers like 8,16,32, found {text!r}") from None
+    if len(widths) != 3 or min(widths) < 1:
+        raise argparse.ArgumentTypeError(f"expected three positive integers like 8,16,32, found {text!r}")
+    return widths  # type: ignore[return-value]

@@ -1,46 +1,38 @@
-"""The closed loop's commands: ``run``, ``retrain``, ``dashboard`` and ``bench loop``.
+"""The closed loop's commands: ``run``, ``retrain`` and ``dashboard`` (``bench loop`` is ``cli/loopbench.py``).
 
 Argument parsing and printing only; each command is one call into
-``orchestrator.loop``, ``orchestrator.retrain``, ``orchestrator.dashboard`` or
-``orchestrator.loopbench``.
+``orchestrator.loop``, ``orchestrator.retrain`` or ``orchestrator.dashboard``.
 
-``run``, ``retrain`` and ``bench loop`` import their modules (and with them torch,
-about 2 s) when they run, so the parsers built here, and every other command,
-start without it; their settings come from the torch-free ``orchestrator.loopconfig``
-and ``uncertainty.config``.
+``run`` and ``retrain`` import their modules (and with them torch, about 2 s) when
+they run, so the parsers built here, and every other command, start without it;
+their settings come from the torch-free ``orchestrator.loopconfig`` and
+``uncertainty.config``.
 """
 
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
-import math
 import shlex
 import sys
 import threading
-import time
 from collections import Counter
-from pathlib import Path
-from typing import Mapping
 
 from orchestrator.champion import ChampionScorer, FramesSource, limit_torch_threads
 from orchestrator.cli import collect as collect_cli, common
 from orchestrator.dashboard import Dashboard, DashboardConfig, DataSources
-from orchestrator.loopconfig import PALETTES, SIGNALS, LoopBenchConfig, RunConfig
+from orchestrator.loopconfig import RunConfig
 from orchestrator.retrainlock import EXIT_BUSY, RetrainBusyError
 from orchestrator.scheduler import quarantined_note
 from orchestrator.serviceconfig import ServiceError
-from orchestrator.protocol import SHAPES, one_line
+from orchestrator.protocol import one_line
 from storage.catalog import Catalog
 from storage.errors import StorageError
 from storage.jsonsafe import finite_json
-from storage.requests import Request
-from storage.records import TRAINABLE_SIZES, Episode
 from uncertainty.config import TrainConfig
 from uncertainty.errors import ConfigError, UncertaintyError
 # The CLI is the composition root: it alone hands the simulator to the orchestrator's loops.
-from workers.collect import EvalSplitConflict, collect_episode, create_eval_split
+from workers.collect import EvalSplitConflict
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -68,7 +60,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help=f"worker processes (default {d.workers})")
     p.add_argument("--planner", choices=("active", "uniform"), default=d.planner,
                    help=f"where episodes start (default {d.planner})")
-    _add_episode_args(p, d.steps, d.image_size)
+    common.add_episode_args(p, d.steps, d.image_size)
     p.add_argument("--eval-episodes", type=common.positive_int, default=d.eval_episodes, metavar="N",
                    help=f"episodes in the eval split, made when missing (default {d.eval_episodes})")
     p.add_argument("--eval-seed", type=common.non_negative_int, default=d.eval_seed, metavar="K",
@@ -104,184 +96,6 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=_dashboard)
 
 
-def _add_episode_args(p: argparse.ArgumentParser, steps: int, image_size: int) -> None:
-    """``--steps`` and ``--image-size`` of the commands that collect and train (``run``, ``bench loop``)."""
-    p.add_argument("--steps", type=common.episode_steps, default=steps, metavar="T",
-                   help=f"steps per episode, of the training episodes and of the eval split's (at least "
-                        f"{common.MIN_EPISODE_STEPS}; default {steps})")
-    p.add_argument("--image-size", type=common.trainable_image_size, default=image_size, metavar="PX",
-                   help=f"frame size in pixels, {TRAINABLE_SIZES} (default {image_size})")
-
-
-def register_bench(bench: argparse._SubParsersAction) -> None:
-    d = LoopBenchConfig()
-    p = bench.add_parser("loop", help="active vs uniform planner: eval error per episodes collected",
-                         description="Active vs uniform planner: for each seed, both arms collect --budget episodes "
-                                     "in rounds of --round with the simulator, retraining after each round, and "
-                                     "the eval error is recorded per episodes collected; summary.json and a plot "
-                                     "go to --out. Takes minutes.")
-    common.add_json_arg(p)
-    p.add_argument("--seeds", type=common.positive_int, default=len(d.seeds), metavar="N",
-                   help=f"seeds 0..N-1, one run of each arm per seed (default {len(d.seeds)})")
-    p.add_argument("--budget", type=common.positive_int, default=d.budget, metavar="N",
-                   help=f"training episodes per arm, at least 2 rounds (default {d.budget})")
-    p.add_argument("--round", type=common.positive_int, default=d.round_episodes, dest="round_episodes", metavar="N",
-                   help=f"retrain every N episodes (default {d.round_episodes})")
-    _add_episode_args(p, d.steps, d.image_size)
-    p.add_argument("--epochs", type=common.positive_int, default=d.train.epochs, metavar="N",
-                   help=f"training epochs per retrain (default {d.train.epochs})")
-    p.add_argument("--members", type=common.ensemble_size, default=d.train.members, metavar="K",
-                   help=f"ensemble size (default {d.train.members})")
-    p.add_argument("--device", type=common.torch_device, default=d.train.device,
-                   help=f"torch device: auto, cpu or cuda (default {d.train.device}; auto: cuda when there is "
-                        "one)")
-    p.add_argument("--signal", choices=SIGNALS, default=d.signal,
-                   help=f"what the active arm ranks steps by (default {d.signal}; error: the champion's actual "
-                        "error on the recorded frames; predicted, total: the variance head's, needs "
-                        "--variance-head)")
-    p.add_argument("--active-policy", action="store_true", default=d.active_policy,
-                   help="let the active arm also choose each episode's collection policy (push or random "
-                        "waypoints), favouring the one whose recent episodes the champion disagrees on most "
-                        f"(at least {d.active.policy_floor:.0%}% each); the uniform arm keeps the mix")
-    p.add_argument("--variance-head", action="store_true", default=d.train.variance_head,
-                   help="both arms train members that also predict their own error (the active arm "
-                        "ranks by it only with --signal predicted or total)")
-    p.add_argument("--within-policy", action="store_true", default=d.within_policy,
-                   help="the active arm ranks each step against its own policy's steps (its score over the "
-                        f"mean score of the last {d.active.policy_window} episodes of that policy the champion "
-                        "scored), so the policy that moves more does not take every request")
-    p.add_argument("--random-physics", action="store_true", default=d.random_physics,
-                   help="make physics (mass, friction, ground friction) part of the task space: uniform and "
-                        "seed episodes and the eval split draw them uniformly over their ranges, the active "
-                        "arm keeps an uncertain state's physics (default: every episode at the defaults)")
-    p.add_argument("--shape-weights", type=shape_weights, default=d.shape_weights, metavar="S=W,...",
-                   help="the uniform arm, the seed rounds and the uniform requests that fill an active round "
-                        "the planner left short (but with --shapes-by-progress, whose fill keeps each "
-                        "shape's quota) draw shapes with these relative weights, e.g. "
-                        f"T=7,box=1,L=1,disk=1 (shapes {', '.join(SHAPES)}; one left out weighs 0), while the "
-                        "eval split keeps every shape equally: a usual task mix that differs from what the "
-                        "model is judged on (default: every shape equally likely)")
-    p.add_argument("--palette", choices=PALETTES, default=d.palette,
-                   help="object colours in both arms and the eval split: all alike, as the service draws them, "
-                        "or one per shape, so that the shapes also look different (default "
-                        f"{d.palette})")
-    p.add_argument("--max-shape-share", type=common.share, default=d.active.max_shape_share, metavar="F",
-                   help="the active planner gives at most this share of the requests it picks in a round to one "
-                        f"shape, rounded up, at least 1 (default {d.active.max_shape_share}; 1 = no cap); a round it "
-                        "leaves short is filled with uniform requests")
-    p.add_argument("--repeats", type=common.positive_int, default=d.active.repeats, metavar="N",
-                   help="the active planner may ask for one uncertain object pose up to N times (each with a new "
-                        f"pusher; default {d.active.repeats}: each pose once)")
-    p.add_argument("--min-per-shape", type=common.non_negative_int, default=d.active.min_per_shape, metavar="N",
-                   help="when the active planner's picks leave a round short, first fill it with uniform starts "
-                        "until every shape has N requests in the round (its picks count; the shape with the "
-                        "fewest first), then the rest with the usual mix (default "
-                        f"{d.active.min_per_shape}: off; see BENCHMARKS, \"What made the accidental repeats "
-                        "pay\"; not with --shapes-by-progress)")
-    p.add_argument("--shapes-by-progress", action="store_true", default=d.shapes_by_progress,
-                   help="instead of that cap, the active planner splits each round over the shapes by how much "
-                        "the champion's error on a shape's recent episodes fell once it trained on them, beyond "
-                        "the shape whose error fell least (what data of that shape buys; a share "
-                        "--progress-floor of each round split equally), then picks each shape's states by the "
-                        "signal; a shape without candidates gets uniform starts of that shape (an experiment)")
-    p.add_argument("--progress-floor", type=common.unit, default=None, metavar="F",
-                   help="with --shapes-by-progress, the share of each round split equally over the shapes "
-                        f"(default {d.active.progress_floor}; 1 = every shape equally, whatever the data buys; "
-                        "0 = by progress only)")
-    p.add_argument("--progress-horizon", type=common.positive_int, default=None, metavar="H",
-                   help="with --shapes-by-progress, the horizon of the error whose fall is measured (default "
-                        f"{d.active.progress_horizon}, the gate's; a longer one weighs the dynamics more; at most "
-                        "--steps minus the model's context frames)")
-    p.add_argument("--out", type=lambda t: common.directory_path(t, "an output directory"), metavar="DIR",
-                   help="output directory (default ./activecollect-bench/loop-<timestamp>)")
-    p.set_defaults(func=_bench_loop)
-
-
-def shape_weights(text: str) -> tuple[float, ...]:
-    """``--shape-weights``: ``SHAPE=W,...`` to one weight per ``protocol.SHAPES`` (a shape left out weighs 0)."""
-    weights = dict.fromkeys(SHAPES, 0.0)
-    given: set[str] = set()
-    for item in text.split(","):
-        name, eq, value = item.partition("=")
-        name = name.strip()
-        if not eq or name not in weights:
-            raise argparse.ArgumentTypeError(f"expected SHAPE=WEIGHT,... with shapes from {', '.join(SHAPES)}, "
-                                             f"found {item.strip()!r}")
-        if name in given:
-            raise argparse.ArgumentTypeError(f"{name} is given twice in {text!r}")
-        given.add(name)
-        try:
-            weights[name] = common.finite_float(value)
-        except argparse.ArgumentTypeError as exc:
-            raise argparse.ArgumentTypeError(f"weight of {name}: {exc}") from None
-        if weights[name] < 0:
-            raise argparse.ArgumentTypeError(f"expected a weight >= 0 for {name}, found {value.strip()!r}")
-    if not 0 < sum(weights.values()) < math.inf:
-        raise argparse.ArgumentTypeError(f"expected at least one positive weight and a finite sum, found {text!r}")
-    return tuple(weights.values())
-
-
-def bench_collect(request: Request, seed: int, image_size: int,
-                  palette: Mapping[str, tuple[int, int, int]] | None = None) -> Episode:
-    """``loopbench.Collect`` over the simulator: the episode a request asks for, collected here."""
-    return collect_episode(start_state=request.start_state, policy=request.policy,
-                           policy_params=request.policy_params, seed=seed, steps=request.steps,
-                           image_size=image_size, action_prefix=request.action_prefix or None,
-                           request_id=request.id, worker_id="bench",
-                           model_version=str(request.reason.get("model_version") or ""), palette=palette)
-
-
-def bench_eval_split(catalog: Catalog, episodes: int, seed: int, steps: int, image_size: int,
-                     random_physics: bool = False, palette: Mapping[str, tuple[int, int, int]] | None = None) -> str:
-    return create_eval_split(catalog, episodes=episodes, seed=seed, steps=steps, image_size=image_size,
-                             random_physics=random_physics, palette=palette)
-
-
-def _bench_loop(args: argparse.Namespace) -> int:
-    d = LoopBenchConfig()
-    progress = {k: getattr(args, k) for k in ("progress_floor", "progress_horizon") if getattr(args, k) is not None}
-    if progress and not args.shapes_by_progress:
-        raise common.UsageError(f"--{next(iter(progress)).replace('_', '-')} only applies with --shapes-by-progress")
-    try:
-        train = TrainConfig(**{**d.train.to_dict(), "epochs": args.epochs, "members": args.members,
-                               "device": args.device, "widths": d.train.widths,
-                               "variance_head": args.variance_head})
-        cfg = LoopBenchConfig(seeds=tuple(range(args.seeds)), budget=args.budget,
-                              round_episodes=args.round_episodes, steps=args.steps,
-                              image_size=args.image_size, train=train, signal=args.signal,
-                              active_policy=args.active_policy, random_physics=args.random_physics,
-                              within_policy=args.within_policy, shape_weights=args.shape_weights,
-                              palette=args.palette, shapes_by_progress=args.shapes_by_progress,
-                              active=dataclasses.replace(d.active, max_shape_share=args.max_shape_share,
-                                                         repeats=args.repeats, min_per_shape=args.min_per_shape,
-                                                         **progress))
-    except (ValueError, ConfigError) as exc:
-        raise common.config_error(exc, {"budget": "--budget", "seeds": "--seeds", "members": "--members",
-                                        "epochs": "--epochs", "signal": "--signal",
-                                        "min_per_shape": "--min-per-shape",
-                                        "shapes_by_progress": "--shapes-by-progress"}) from None
-    out = args.out or Path("activecollect-bench") / time.strftime("loop-%Y%m%dT%H%M%S")
-    if (out / "summary.json").exists() or any(out.glob("seed*/*/catalog.sqlite")):  # (or a stopped run's arms)
-        raise common.UsageError(f"{out} already holds a bench loop result, or a stopped run's; give a fresh --out")
-    from orchestrator.loopbench import run_bench  # torch: imported once the arguments are known good (start-up cost)
-    log = (lambda line: print(line, file=sys.stderr, flush=True))
-    summary = run_bench(cfg, out, bench_collect, bench_eval_split, log=log)
-    if args.json:
-        common.print_json(finite_json(summary))  # (h5 of episodes too short for it is NaN: not JSON)
-        return 0
-    for metric in ("h1", "h5"):
-        h = summary[metric]["headline"]
-        print(f"{metric} MSE final: active {h['active_final']:.4e}  uniform {h['uniform_final']:.4e}")
-        print(f"  episodes to reach the other arm's final error (budget {h['budget']}): uniform "
-              f"{_eps(h['uniform_episodes_to_match_active'])}, active {_eps(h['active_episodes_to_match_uniform'])}")
-    print(f"plot: {summary['plot']}\nsummary: {out / 'summary.json'}  ({summary['seconds']:.0f} s)")
-    return 0
-
-
-def _eps(v: float | None) -> str:
-    return "not within the budget" if v is None else f"{v:.1f}"
-
-
 def add_train_args(p: argparse.ArgumentParser, defaults: TrainConfig | None = None) -> None:
     """Training settings shared by ``retrain`` and ``run`` (the rest keep TrainConfig's defaults)."""
     d = defaults or TrainConfig()
@@ -293,7 +107,7 @@ def add_train_args(p: argparse.ArgumentParser, defaults: TrainConfig | None = No
                    help=f"windows per member per step (default {d.batch_size})")
     p.add_argument("--lr", type=common.positive_float, default=d.lr, metavar="LR",
                    help=f"peak learning rate (default {d.lr})")
-    p.add_argument("--widths", type=_widths, default=d.widths, metavar="A,B,C",
+    p.add_argument("--widths", type=common.channel_widths, default=d.widths, metavar="A,B,C",
                    help=f"channel widths of a fresh model (default {','.join(map(str, d.widths))})")
     p.add_argument("--max-windows", type=common.positive_int, default=d.max_windows, metavar="N",
                    help="cap on training windows (a seeded subset; default all)")
@@ -386,16 +200,6 @@ def train_config(args: argparse.Namespace) -> TrainConfig:
                        variance_head=args.variance_head, progress=False)
 
 
-def _widths(text: str) -> tuple[int, int, int]:
-    try:
-        widths = tuple(int(w) for w in text.split(","))
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected three integers like 8,16,32, found {text!r}") from None
-    if len(widths) != 3 or min(widths) < 1:
-        raise argparse.ArgumentTypeError(f"expected three positive integers like 8,16,32, found {text!r}")
-    return widths  # type: ignore[return-value]
-
-
 #: ``run``'s flag for each parameter of a pinned eval split (``workers.collect.eval_split_params``).
 RUN_SPLIT_FLAGS = {"image_size": "--image-size", "steps": "--steps", "episodes": "--eval-episodes",
                    "seed": "--eval-seed"}
@@ -415,7 +219,7 @@ def _run(args: argparse.Namespace) -> int:
                                       episodes=cfg.eval_episodes, seed=cfg.eval_seed, steps=cfg.steps,
                                       image_size=cfg.image_size)
     from orchestrator.loop import LoopError, LoopRun  # torch: imported once the arguments are known good
-    run = LoopRun(cfg, bench_eval_split, announce=lambda line: print(line, file=sys.stderr, flush=True))
+    run = LoopRun(cfg, collect_cli.make_eval_split, announce=lambda line: print(line, file=sys.stderr, flush=True))
     try:
         result = run.run()
     except EvalSplitConflict as exc:  # pinned by another process since the check

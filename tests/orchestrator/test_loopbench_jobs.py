@@ -1,0 +1,79 @@
+"""``bench loop --jobs``: the arms in processes of their own give the figures of one process, and an arm whose
+process dies stops the run with its name; the model's size and schedule reach the config."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+
+import pytest
+import torch
+
+from orchestrator.cli.collect import make_eval_split
+from orchestrator.cli.loopbench import bench_collect
+from orchestrator.loopbench import ARM_POINTS, ArmFailed, LoopBenchConfig, run_bench
+from tests.conftest import run_cli
+from uncertainty.config import TrainConfig
+
+TINY = ("--seeds", "2", "--budget", "4", "--round", "2", "--steps", "12", "--image-size", "16", "--epochs", "1",
+        "--members", "2", "--json")
+
+
+@pytest.fixture
+def torch_threads():
+    """Leaves torch's thread count as it found it (``--threads`` sets it in this process with one job)."""
+    before = torch.get_num_threads()
+    yield
+    torch.set_num_threads(before)
+
+
+def _figures(summary: dict) -> list[dict]:
+    return [{k: v for k, v in p.items() if k != "train_s"} for p in summary["points"]]
+
+
+def test_arms_in_their_own_processes_give_the_figures_of_one_process(tmp_path, capsys, torch_threads):
+    rc, stdout, err = run_cli(capsys, "bench", "loop", *TINY, "--jobs", "3", "--threads", "1", "--widths", "4,8,8",
+                              "--batch-size", "8", "--lr", "0.002", "--out", str(tmp_path / "apart"))
+    assert rc == 0, err
+    apart = json.loads(stdout)
+    rc, stdout, err = run_cli(capsys, "bench", "loop", *TINY, "--threads", "1", "--widths", "4,8,8",
+                              "--batch-size", "8", "--lr", "0.002", "--out", str(tmp_path / "here"))
+    assert rc == 0, err
+    here = json.loads(stdout)
+    assert (apart["jobs"], apart["threads"], here["jobs"], here["threads"]) == (3, 1, 1, 1)
+    assert apart["config"]["train"]["widths"] == [4, 8, 8] and apart["config"]["train"]["batch_size"] == 8
+    assert apart["config"]["train"]["lr"] == 0.002
+    assert [(p["seed"], p["arm"], p["episodes"]) for p in apart["points"]] == [
+        (s, a, e) for s in (0, 1) for a in ("active", "uniform") for e in (2, 4)]
+    assert _figures(apart) == _figures(here)
+    assert apart["h1"] == here["h1"] and apart["h5"] == here["h5"]
+    assert (tmp_path / "apart" / "seed1" / "uniform" / ARM_POINTS).is_file()
+
+
+def _collect_dying_in_seed_1(request, seed, image_size, palette=None):
+    """``bench_collect``, but the process collecting for seed 1 is killed (SIGKILL) on its first episode."""
+    if seed >= 1_000_003:  # run_arm's policy seeds: seed * 1_000_003 + episodes collected
+        os.kill(os.getpid(), signal.SIGKILL)
+    return bench_collect(request, seed, image_size, palette)
+
+
+def test_an_arm_whose_process_is_killed_stops_the_run_with_its_name(tmp_path):
+    cfg = LoopBenchConfig(seeds=(0, 1), budget=4, round_episodes=2, steps=12, image_size=16,
+                          train=TrainConfig(members=2, epochs=1, batch_size=8, widths=(4, 8, 8), device="cpu",
+                                            progress=False, min_rel_improvement=0.0))
+    with pytest.raises(ArmFailed, match=r"the (active|uniform) arm of seed 1 failed \(exit code -9\)"):
+        run_bench(cfg, tmp_path / "o", _collect_dying_in_seed_1, make_eval_split, jobs=4, threads=1)
+    assert not (tmp_path / "o" / "summary.json").exists()
+    assert not list((tmp_path / "o").glob("seed1/*/" + ARM_POINTS))
+
+
+@pytest.mark.parametrize("args, message", [
+    (("--jobs", "0"), "argument --jobs: expected a positive integer, found 0"),
+    (("--threads", "-1"), "argument --threads: expected an integer >= 0, found -1"),
+    (("--widths", "8,16"), "argument --widths: expected three positive integers like 8,16,32, found '8,16'"),
+    (("--batch-size", "0"), "argument --batch-size: expected a positive integer, found 0"),
+])
+def test_bench_loop_refuses_bad_jobs_threads_and_model_sizes(tmp_path, capsys, args, message):
+    rc, _, err = run_cli(capsys, "bench", "loop", *args, "--out", str(tmp_path / "o"))
+    assert rc == 2 and message in err and not (tmp_path / "o").exists()
