@@ -163,8 +163,10 @@ def run_arm(arm: str, seed: int, cfg: LoopBenchConfig, data_dir: Path, collect: 
             start = time.perf_counter()
             result = run_retrain(data_dir, train)
             points.append(_point(arm, seed, collected, result, time.perf_counter() - start, round_requests))
+            rho = points[-1]["spearman"]
             log(f"  {arm:7s} seed {seed} {collected:4d} ep: h1 {points[-1]['h1_mse']:.3e} "
-                f"h5 {points[-1]['h5_mse']:.3e} ({points[-1]['train_s']:.0f} s)")
+                f"h5 {points[-1]['h5_mse']:.3e} spearman {float('nan') if rho is None else rho:.2f} "
+                f"({points[-1]['train_s']:.0f} s)")
             queue.enqueue_many(planner.plan(round_eps))
             round_eps, round_requests = [], []
     queue.close()
@@ -182,12 +184,14 @@ def _bench_id(ep: Episode, seed: int, index: int) -> Episode:
 
 
 def _point(arm: str, seed: int, episodes: int, result: dict, seconds: float, requests: list[Request]) -> dict:
-    """One retrain's figures, with how many of the round's requests came from each planner, policy and shape."""
+    """One retrain's figures (eval h1/h5 MSE, and how well its disagreement ranks the eval error: ``spearman``),
+    with how many of the round's requests came from each planner, policy and shape."""
     def counts(values: list[str]) -> dict[str, int]:
         return {k: values.count(k) for k in sorted(set(values))}
     m = result["metrics"]
     return {"arm": arm, "seed": seed, "episodes": episodes, "version": result["version"],
-            "h1_mse": m.get("h1_mse"), "h5_mse": m.get("h5_mse"), "promoted": result["promoted"],
+            "h1_mse": m.get("h1_mse"), "h5_mse": m.get("h5_mse"), "spearman": m.get("spearman"),
+            "promoted": result["promoted"],
             "champion": result["champion"], "train_s": round(seconds, 1),
             "round_planners": counts([str(r.reason.get("planner", "")) for r in requests]),
             "round_policies": counts([r.policy for r in requests]),

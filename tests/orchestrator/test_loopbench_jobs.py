@@ -47,6 +47,7 @@ def test_arms_in_their_own_processes_give_the_figures_of_one_process(tmp_path, c
     assert [(p["seed"], p["arm"], p["episodes"]) for p in apart["points"]] == [
         (s, a, e) for s in (0, 1) for a in ("active", "uniform") for e in (2, 4)]
     assert _figures(apart) == _figures(here)
+    assert all(-1 <= p["spearman"] <= 1 for p in apart["points"])  # each retrain's calibration on the eval split
     assert apart["h1"] == here["h1"] and apart["h5"] == here["h5"]
     assert (tmp_path / "apart" / "seed1" / "uniform" / ARM_POINTS).is_file()
 
