@@ -34,6 +34,7 @@ import json
 import math
 import multiprocessing
 import os
+import signal
 import sys
 import time
 import zlib
@@ -279,7 +280,8 @@ def run_bench(cfg: LoopBenchConfig, out_dir: Path, collect: Collect, make_eval_s
               log: Callable[[str], None] = print, jobs: int = 1, threads: int = 0) -> dict:
     """Every seed, both arms; writes ``summary.json`` and ``loop.png`` in ``out_dir``; returns the summary.
 
-    ``jobs`` > 1 runs each (seed, arm) in a process of its own, that many at once (``_run_apart``);
+    ``jobs`` > 1 runs each (seed, arm) in a process of its own, that many at once (``_run_apart``; their
+    progress lines go to stderr, not to ``log``);
     ``threads``: torch threads per arm (0: torch's own with one job, the usable cores shared out
     with more). The arms share nothing but the machine, so on the CPU the figures are the same
     as one after the other at the same ``threads``. ArmFailed when an arm's process fails.
@@ -352,7 +354,11 @@ def _run_apart(runs: list[tuple[int, str, Path]], cfg: LoopBenchConfig, collect:
 
 def _arm_process(arm: str, seed: int, cfg: LoopBenchConfig, data_dir: Path, collect: Collect,
                  make_eval_split: MakeEvalSplit, threads: int) -> None:
-    """``run_arm`` in a spawned process: its points to ``data_dir/ARM_POINTS`` (written whole, then renamed)."""
+    """``run_arm`` in a spawned process: its points to ``data_dir/ARM_POINTS`` (written whole, then renamed).
+
+    Ctrl-C reaches the whole process group; the arms leave it to ``_run_apart``, which terminates them.
+    """
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     limit_torch_threads(threads)
     points = run_arm(arm, seed, cfg, data_dir, collect, make_eval_split, _log_stderr)
     tmp = data_dir / (ARM_POINTS + ".tmp")

@@ -1,11 +1,15 @@
 """``bench loop --jobs``: the arms in processes of their own give the figures of one process, and an arm whose
-process dies stops the run with its name; the model's size and schedule reach the config."""
+process dies stops the run with its name, and Ctrl-C stops them all; the model's size and schedule reach the
+config."""
 
 from __future__ import annotations
 
 import json
 import os
 import signal
+import subprocess
+import sys
+from pathlib import Path
 
 import pytest
 import torch
@@ -13,7 +17,7 @@ import torch
 from orchestrator.cli.collect import make_eval_split
 from orchestrator.cli.loopbench import bench_collect
 from orchestrator.loopbench import ARM_POINTS, ArmFailed, LoopBenchConfig, run_bench
-from tests.conftest import run_cli
+from tests.conftest import run_cli, wait_for
 from uncertainty.config import TrainConfig
 
 TINY = ("--seeds", "2", "--budget", "4", "--round", "2", "--steps", "12", "--image-size", "16", "--epochs", "1",
@@ -67,6 +71,51 @@ def test_an_arm_whose_process_is_killed_stops_the_run_with_its_name(tmp_path):
         run_bench(cfg, tmp_path / "o", _collect_dying_in_seed_1, make_eval_split, jobs=4, threads=1)
     assert not (tmp_path / "o" / "summary.json").exists()
     assert not list((tmp_path / "o").glob("seed1/*/" + ARM_POINTS))
+
+
+def _children(pid: int) -> set[int]:
+    """The live child processes of ``pid`` (Linux: /proc/PID/task/TID/children)."""
+    found: set[int] = set()
+    for task in Path(f"/proc/{pid}/task").glob("*"):
+        try:
+            found |= {int(c) for c in (task / "children").read_text().split()}
+        except OSError:  # the thread ended meanwhile
+            pass
+    return found
+
+
+def _running(pid: int) -> bool:
+    """A process that exists and is not a zombie."""
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
+    except (OSError, IndexError):
+        return False
+
+
+def test_ctrl_c_stops_every_arm_and_exits_130(tmp_path):
+    """Ctrl-C (SIGINT to the process group, as a terminal sends it) while the arms run: the command exits 130 and
+    no arm's process is left running."""
+    # Rounds of 1,000 episodes: minutes of collecting before the first retrain, so that arms left running (or
+    # waited for) would keep the command from exiting within the test's time.
+    cmd = [sys.executable, "-m", "orchestrator", "bench", "loop", "--seeds", "1", "--budget", "2000", "--round", "1000",
+           "--steps", "40", "--image-size", "16", "--jobs", "2", "--threads", "1", "--out", str(tmp_path / "o")]
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+                            start_new_session=True)
+    try:
+        # both arms of seed 0 started: they made their catalogs (and the spawn's resource tracker is a child too)
+        wait_for(lambda: len(list((tmp_path / "o").glob("seed0/*/catalog.sqlite"))) == 2, timeout=120,
+                 message="both arms' catalogs")
+        arms = wait_for(lambda: _children(proc.pid), message="the arms' processes")
+        os.killpg(proc.pid, signal.SIGINT)
+        _, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
+    assert proc.returncode == 130, err
+    assert "activecollect: interrupted" in err and "KeyboardInterrupt" not in err
+    wait_for(lambda: not any(_running(pid) for pid in arms), timeout=30, message="every arm's process gone")
+    assert not (tmp_path / "o" / "summary.json").exists()
 
 
 @pytest.mark.parametrize("args, message", [
