@@ -231,7 +231,17 @@ def summarize(points: list[dict], cfg: LoopBenchConfig, metric: str = "h1_mse") 
         if all(c.values()):
             per_seed.append(_ratios(c["active"], c["uniform"]) | {"seed": seed})
     return {"metric": metric, "curves": curves, "headline": _ratios(mean["active"], mean["uniform"]),
-            "per_seed": per_seed}
+            "per_seed": per_seed, "paired": _paired(per_seed)}
+
+
+def _paired(per_seed: list[dict]) -> dict:
+    """Each seed's final error of the active arm over the uniform arm's, less 1 (negative: active ahead), with
+    their mean and spread and how many seeds have active behind: the comparison BENCHMARKS.md quotes."""
+    diffs = [r["active_final"] / r["uniform_final"] - 1 for r in per_seed]
+    finite = [d for d in diffs if math.isfinite(d)]
+    return {"per_seed": diffs, "mean": float(np.mean(finite)) if finite else None,
+            "std": float(np.std(finite)) if finite else None, "active_behind": sum(d > 0 for d in finite),
+            "seeds": len(finite)}
 
 
 def _ratios(active: list[tuple[int, float]], uniform: list[tuple[int, float]]) -> dict:

@@ -203,6 +203,10 @@ def _bench_loop(args: argparse.Namespace) -> int:
         print(f"{metric} MSE final: active {h['active_final']:.4e}  uniform {h['uniform_final']:.4e}")
         print(f"  episodes to reach the other arm's final error (budget {h['budget']}): uniform "
               f"{_eps(h['uniform_episodes_to_match_active'])}, active {_eps(h['active_episodes_to_match_uniform'])}")
+        paired = summary[metric]["paired"]
+        if paired["mean"] is not None:
+            print(f"  active's final over uniform's, per seed: {paired['mean']:+.2%} ± {paired['std']:.2%} "
+                  f"(active behind in {paired['active_behind']} of {paired['seeds']} seeds)")
     print(f"plot: {summary['plot']}\nsummary: {out / 'summary.json'}  ({summary['seconds']:.0f} s)")
     return 0
 

@@ -45,6 +45,12 @@ def test_summary_headline_and_spread():
     assert h["active_over_uniform_ratio"] == pytest.approx(32 / 48)
     assert h["uniform_episodes_to_match_active"] is None and h["uniform_over_active_ratio"] is None
     assert [p["seed"] for p in s["per_seed"]] == [0, 1]
+    # per seed, active's final over uniform's, less 1: 0.5 / 0.7 and 0.6 / 0.8
+    paired = s["paired"]
+    assert paired["per_seed"] == pytest.approx([0.5 / 0.7 - 1, 0.6 / 0.8 - 1])
+    assert paired["mean"] == pytest.approx((0.5 / 0.7 + 0.6 / 0.8) / 2 - 1)
+    assert paired["std"] == pytest.approx(abs(0.5 / 0.7 - 0.6 / 0.8) / 2)
+    assert (paired["active_behind"], paired["seeds"]) == (0, 2)
 
 
 def test_config_refuses_a_budget_of_less_than_two_rounds_and_unknown_signals():
@@ -285,3 +291,19 @@ def test_the_error_and_variance_head_signals_rank_by_what_they_name(tmp_path):
     np.testing.assert_array_equal(total, predicted_variance(champion.ensemble, ep.frames, ep.actions, total=True))
     valid = ~np.isnan(total)
     assert valid.any() and (total[valid] > predicted[valid]).all()
+
+
+def test_bench_loop_prints_the_paired_difference_that_summary_json_holds(tmp_path, capsys):
+    out = tmp_path / "loop"
+    rc, stdout, err = run_cli(capsys, "bench", "loop", "--seeds", "2", "--budget", "4", "--round", "2", "--steps", "12",
+                              "--image-size", "16", "--epochs", "1", "--members", "2", "--out", str(out))
+    assert rc == 0, err
+    summary = json.loads((out / "summary.json").read_text())
+    for metric in ("h1", "h5"):
+        paired = summary[metric]["paired"]
+        finals = [(p["active_final"], p["uniform_final"]) for p in summary[metric]["per_seed"]]
+        assert paired["per_seed"] == pytest.approx([a / u - 1 for a, u in finals]) and paired["seeds"] == 2
+        assert paired["active_behind"] == sum(a > u for a, u in finals)
+        line = (f"active's final over uniform's, per seed: {paired['mean']:+.2%} ± {paired['std']:.2%} "
+                f"(active behind in {paired['active_behind']} of 2 seeds)")
+        assert line in stdout
