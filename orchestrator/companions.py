@@ -18,7 +18,8 @@ from orchestrator.champion import ChampionScorer, FramesSource
 from orchestrator.dashboard import Dashboard, DashboardConfig, DataSources
 from orchestrator.metrics import retrain_outcome
 from orchestrator.protocol import EventKind
-from orchestrator.scheduler import RetrainRecord, RetrainScheduler, ScheduleConfig
+from orchestrator.retrainjob import RetrainRecord, ScheduleConfig
+from orchestrator.scheduler import RetrainScheduler
 from orchestrator.service import Service
 
 log = logging.getLogger(__name__)

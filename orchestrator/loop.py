@@ -39,7 +39,8 @@ from orchestrator.planner import ActivePlanner, ActivePlannerConfig, Planner, in
 from orchestrator.uniform import UniformPlanner, UniformPlannerConfig
 from orchestrator.protocol import EventKind
 from orchestrator.report import ReportInputs, write_report
-from orchestrator.scheduler import RetrainRecord, RetrainScheduler, ScheduleConfig, die_with_parent
+from orchestrator.retrainjob import RetrainRecord, ScheduleConfig, die_with_parent
+from orchestrator.scheduler import RetrainScheduler
 from orchestrator.service import Service
 from orchestrator.serviceconfig import ServiceConfig
 from orchestrator.signals import on_stop_signals

@@ -16,31 +16,28 @@ The lock that keeps two retrains from training at once is taken by the job
 itself (``orchestrator.retrainlock``, held by ``orchestrator.retrain.run_retrain``), so it also
 holds against ``activecollect retrain`` started by system cron or by hand.
 
-This module imports no torch (the job does, in its own process), so ``serve`` and the
-CLI's parsers load it at no cost.
+The job's schedule, record and status, its command line and the readers of what it left are
+``orchestrator.retrainjob``. This module imports no torch (the job does, in its own process), so
+``serve`` and the CLI's parsers load it at no cost.
 """
 
 from __future__ import annotations
 
 import contextlib
-import ctypes
-import ctypes.util
-import json
 import logging
 import os
 import signal
 import secrets
 import subprocess
-import sys
 import threading
 import time
-from dataclasses import asdict, dataclass, field
-from enum import Enum
 from pathlib import Path
 from typing import Callable
 
-from croniter import CroniterBadDateError, croniter
+from croniter import croniter
 
+from orchestrator.retrainjob import (RetrainRecord, RetrainStatus, ScheduleConfig, die_with_parent, last_json, log_tail,
+                                     notes_path, quarantined_note, retrain_command, signal_name)
 from orchestrator.retrainlock import EXIT_BUSY, JOB_ENV, NOTES_ENV, lock_held, read_lock_info
 from storage.errors import StorageError
 from storage.files import age_s
@@ -49,120 +46,11 @@ from storage.servicelock import read_holder
 
 log = logging.getLogger(__name__)
 
-class RetrainStatus(str, Enum):
-    running = "running"
-    promoted = "promoted"
-    rejected = "rejected"
-    failed = "failed"
-    killed = "killed"
-    timeout = "timeout"
-    busy = "busy"
-
-
-@dataclass
-class ScheduleConfig:
-    """When to retrain and how a job is run."""
-
-    every_episodes: int = 0
-    """Retrain each time the training episode count crosses a multiple of this (0 = never on count)."""
-    cron: str = ""
-    """Also retrain on this cron expression of 5 fields, e.g. ``*/10 * * * *``, read in UTC ('' = never on time)."""
-    timeout_s: float = 1800.0
-    """A job running longer than this is killed (changing nothing, unless its gate had already decided)."""
-    poll_s: float = 0.5
-    """How often the scheduler thread checks whether a job is due or done."""
-    retrain_args: tuple[str, ...] = ()
-    """Extra arguments given to ``activecollect retrain`` (training and gate settings)."""
-    threads: int = 0
-    """Torch threads of each job (``retrain --threads``, given before ``retrain_args``, so a ``--threads``
-    there wins; 0 = torch's default, one per core)."""
-
-    def __post_init__(self) -> None:
-        if self.threads < 0:
-            raise ValueError(f"threads must be >= 0, found {self.threads}")
-        if self.every_episodes < 0:
-            raise ValueError(f"every_episodes must be >= 0, found {self.every_episodes}")
-        problem = cron_problem(self.cron) if self.cron else None
-        if problem:
-            raise ValueError(problem)
-        if self.timeout_s <= 0 or self.poll_s <= 0:
-            raise ValueError(f"timeout_s and poll_s must be > 0, found {self.timeout_s} and {self.poll_s}")
-
-
-def cron_problem(expr: str) -> str | None:
-    """Why ``expr`` cannot be a retrain schedule, or None when it can: a cron expression of 5 fields (minute hour
-    day month weekday) or an @-name such as ``@hourly``, that fires. (croniter also reads a sixth field, seconds,
-    and a seventh, the year: a schedule that retrains all through a minute, or once and never again.)"""
-    if len(expr.split()) != (1 if expr.startswith("@") else 5) or not croniter.is_valid(expr):
-        return (f"cron must be a cron expression of 5 fields (minute hour day month weekday) like '*/10 * * * *', "
-                f"found {expr!r}")
-    try:
-        croniter(expr, time.time()).get_next(float)
-    except CroniterBadDateError:
-        return f"cron {expr!r} never fires: no date matches it"
-    return None
-
-
 #: Retrain records kept in ``RetrainScheduler.history`` (the dashboard's table, ``run``'s report): a service that
 #: runs for months keeps the newest; every model stays in the registry (``models ls``).
 HISTORY_KEPT = 500
 #: Jobs whose logs (``logs/retrain-*.log`` and ``.log.out``) are kept: older ones are deleted as jobs finish.
 LOGS_KEPT = 200
-
-
-@dataclass
-class RetrainRecord:
-    """One retrain job, as the dashboard and the report show it."""
-
-    trigger: str
-    """Why it ran: ``episodes``, ``cron``, ``manual`` or what ``request`` was given (``round``)."""
-    started: float
-    """Unix time the job started."""
-    episodes: int
-    """Training episodes in the catalog when it started."""
-    status: RetrainStatus = RetrainStatus.running
-    finished: float | None = None
-    version: str = ""
-    """The candidate's version ('' when it did not get that far)."""
-    reason: str = ""
-    """The gate's decision, or why the job failed."""
-    metrics: dict = field(default_factory=dict)
-    returncode: int | None = None
-    log_path: str = ""
-    job: str = ""
-    """The id the job was given (``JOB_ENV``), by which its notes in the lock file are known."""
-
-    def to_json(self) -> dict:
-        d = asdict(self)
-        d["status"] = self.status.value
-        return d
-
-
-def quarantined_note(episode_ids: list[str]) -> str:
-    """One line for the operator on the train episodes a job found missing or damaged."""
-    shown = ", ".join(episode_ids[:5]) + (f" and {len(episode_ids) - 5} more" if len(episode_ids) > 5 else "")
-    return (f"quarantined {len(episode_ids)} train episode(s) whose files are missing or damaged: {shown} "
-            "(trained without them; `activecollect episodes ls --quarantined` lists them, re-ingesting their "
-            "bytes restores them)")
-
-
-_PR_SET_PDEATHSIG = 1  # linux/prctl.h
-_prctl = ctypes.CDLL(ctypes.util.find_library("c"), use_errno=True).prctl  # resolved before any fork
-
-
-def die_with_parent() -> None:
-    """``preexec_fn`` of a child process: SIGTERM it when the thread that started it dies (Linux).
-
-    The *thread*, not the process: start the child from a thread that outlives it. ``preexec_fn``
-    runs between fork and exec, where a lock another thread held at the fork is never released;
-    this one only calls ``prctl`` (resolved before any fork) through ctypes, which takes none.
-    """
-    _prctl(_PR_SET_PDEATHSIG, signal.SIGTERM)
-
-
-def retrain_command(data_dir: Path, extra: tuple[str, ...] = ()) -> list[str]:
-    """The child process that runs one retrain job."""
-    return [sys.executable, "-m", "orchestrator", "retrain", "--data", str(data_dir), "--json", *extra]
 
 
 class RetrainScheduler:
@@ -322,7 +210,7 @@ class RetrainScheduler:
             with open(rec.log_path + ".out", "wb") as out, open(rec.log_path, "wb") as err:
                 proc = subprocess.Popen(self.command(self.data_dir, self.job_args()),  # (gone with us: see _run)
                                         stdout=out, stderr=err, stdin=subprocess.DEVNULL, preexec_fn=die_with_parent,
-                                        env={**os.environ, JOB_ENV: rec.job, NOTES_ENV: str(_notes(rec))})
+                                        env={**os.environ, JOB_ENV: rec.job, NOTES_ENV: str(notes_path(rec))})
         except OSError as exc:  # no log folder, no such program, no processes left: a failed job, recorded
             rec.finished, rec.status = time.time(), RetrainStatus.failed
             rec.reason = f"could not start the retrain job: {exc}"
@@ -389,7 +277,7 @@ class RetrainScheduler:
                 return  # another thread finished it first
             self._proc = None
         rec.finished, rec.returncode = time.time(), rc
-        result = _last_json(Path(rec.log_path + ".out"))
+        result = last_json(Path(rec.log_path + ".out"))
         reported = rc == 0 and bool(result)
         if reported:  # also when a stop or the timeout came after it had exited: it finished
             rec.version = str(result.get("version", ""))
@@ -399,16 +287,16 @@ class RetrainScheduler:
         elif status is not None:
             rec.status, rec.reason = status, reason
         elif rc == EXIT_BUSY:
-            rec.status, rec.reason = RetrainStatus.busy, _tail(Path(rec.log_path))
+            rec.status, rec.reason = RetrainStatus.busy, log_tail(Path(rec.log_path))
         elif rc < 0:
             rec.status = RetrainStatus.killed
-            rec.reason = f"killed by {_signal_name(-rc)}"
+            rec.reason = f"killed by {signal_name(-rc)}"
         else:
             rec.status = RetrainStatus.failed
-            rec.reason = f"exit status {rc}: {_tail(Path(rec.log_path))}"
+            rec.reason = f"exit status {rc}: {log_tail(Path(rec.log_path))}"
         if not reported:
             self._read_what_it_left(proc.pid, rec)
-        for path in (_notes(rec), Path(f"{_notes(rec)}.tmp")):  # read once; (.tmp: a job killed while noting)
+        for path in (notes_path(rec), Path(f"{notes_path(rec)}.tmp")):  # read once; (.tmp: a job killed while noting)
             with contextlib.suppress(OSError):
                 path.unlink(missing_ok=True)
         level = logging.INFO if reported else logging.WARNING
@@ -435,7 +323,7 @@ class RetrainScheduler:
         (when it got that far; failing that, the lock file, when no job has taken the lock since), the registry
         what its gate made of it. A promotion is recorded as one, with how the job ended, so that the history and
         ``on_promoted`` follow the champion; a rejection, which changed nothing, keeps the job's own ending."""
-        own = read_holder(_notes(rec))  # ({} when the job wrote none)
+        own = read_holder(notes_path(rec))  # ({} when the job wrote none)
         info = own if own.get("version") else read_lock_info(self.data_dir)
         version = info.get("version")
         if info.get("job") != rec.job or info.get("pid") != pid or not isinstance(version, str) or not version:
@@ -456,44 +344,3 @@ class RetrainScheduler:
             rec.reason = f"{ended}, after its gate had rejected {version}: {model.reason}"
         else:
             rec.reason = f"{ended} before its gate judged {version} (the next retrain rejects it as abandoned)"
-
-
-def _notes(rec: RetrainRecord) -> Path:
-    """The file where the job of ``rec`` keeps its notes (``orchestrator.retrainlock.NOTES_ENV``)."""
-    return Path(rec.log_path + ".notes")
-
-
-def _last_json(path: Path) -> dict:
-    """The last line of a job's stdout that parses as a JSON object ({} when none)."""
-    try:
-        text = path.read_text(errors="replace")
-    except OSError:
-        return {}
-    with contextlib.suppress(json.JSONDecodeError):
-        whole = json.loads(text)
-        if isinstance(whole, dict):
-            return whole
-    lines = text.splitlines()
-    for line in reversed(lines):
-        with contextlib.suppress(json.JSONDecodeError):
-            obj = json.loads(line)
-            if isinstance(obj, dict):
-                return obj
-    return {}
-
-
-def _tail(path: Path, n: int = 300) -> str:
-    try:
-        text = path.read_text(errors="replace").strip()
-    except OSError:
-        return "no log"
-    lines = text.splitlines()
-    return lines[-1][-n:] if lines else "no output"
-
-
-def _signal_name(number: int) -> str:
-    """SIGTERM for 15; "signal 35" for a number with no name (real-time signals)."""
-    try:
-        return signal.Signals(number).name
-    except ValueError:
-        return f"signal {number}"

@@ -15,7 +15,7 @@ from typing import Any, NoReturn
 from orchestrator import protocol
 from orchestrator.dashboard import MAX_REQUEST_TIMEOUT_S, DashboardConfig
 from orchestrator.protocol import MAX_EPISODE_STEPS, one_line
-from orchestrator.scheduler import cron_problem
+from orchestrator.retrainjob import cron_problem
 from storage.catalog import Catalog
 from storage.database import DB_NAME
 from storage.records import TRAINABLE_SIZES, trainable_size
@@ -195,7 +195,7 @@ def share(text: str) -> float:
 
 def cron_expression(text: str) -> str:
     """A retrain schedule: a cron expression of 5 fields such as ``0 * * * *``, or an @-name, that fires
-    ('' = none; see ``orchestrator.scheduler.cron_problem``)."""
+    ('' = none; see ``orchestrator.retrainjob.cron_problem``)."""
     problem = cron_problem(text) if text else None
     if problem:
         raise argparse.ArgumentTypeError(f"expected {problem.removeprefix('cron must be ')}"

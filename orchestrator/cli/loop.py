@@ -23,7 +23,7 @@ from orchestrator.cli import collect as collect_cli, common
 from orchestrator.dashboard import Dashboard, DashboardConfig, DataSources
 from orchestrator.loopconfig import RunConfig
 from orchestrator.retrainlock import EXIT_BUSY, RetrainBusyError
-from orchestrator.scheduler import quarantined_note
+from orchestrator.retrainjob import quarantined_note
 from orchestrator.serviceconfig import ServiceError
 from orchestrator.protocol import one_line
 from storage.catalog import Catalog
@@ -154,7 +154,7 @@ def retrain_options_parser() -> argparse.ArgumentParser:
     return parser
 
 
-#: Set by the scheduler itself (``scheduler.retrain_command``): in --retrain-args they would train elsewhere
+#: Set by the scheduler itself (``retrainjob.retrain_command``): in --retrain-args they would train elsewhere
 #: or change what the scheduler reads back.
 _SCHEDULER_OWNS = ("data", "json", "wait")
 

@@ -18,7 +18,7 @@ from typing import TYPE_CHECKING, Any
 from orchestrator.cli import common
 from orchestrator.cli.registry import SPEARMAN_UNDEFINED, fail, model_data_dir, num, resolve_model, strict_json
 from orchestrator.retrainlock import EXIT_BUSY, RetrainBusyError
-from orchestrator.scheduler import quarantined_note
+from orchestrator.retrainjob import quarantined_note
 from storage.catalog import Catalog
 from storage.episode_reader import read_episode
 from storage.errors import CorruptCheckpointError, EpisodeError, NotFoundError, StorageError

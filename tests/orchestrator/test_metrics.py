@@ -145,7 +145,7 @@ def test_a_retrain_that_found_the_lock_taken_is_busy_not_failed() -> None:
     """A cron retrain meeting a manual one did nothing wrong: an alert on failed retrains must not fire for it;
     a failure, a timeout and a kill do count as failed."""
     from orchestrator.metrics import retrain_outcome
-    from orchestrator.scheduler import RetrainStatus
+    from orchestrator.retrainjob import RetrainStatus
 
     outcomes = {status.value: retrain_outcome(status.value) for status in RetrainStatus if status.value != "running"}
     assert outcomes == {"promoted": "promoted", "rejected": "rejected", "busy": "busy", "failed": "failed",

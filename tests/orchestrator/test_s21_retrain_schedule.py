@@ -10,7 +10,8 @@ import sys
 
 import pytest
 
-from orchestrator.scheduler import RetrainScheduler, ScheduleConfig
+from orchestrator.retrainjob import ScheduleConfig
+from orchestrator.scheduler import RetrainScheduler
 
 
 @pytest.mark.parametrize("cron, words", [

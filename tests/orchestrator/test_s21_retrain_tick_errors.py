@@ -5,7 +5,8 @@ from __future__ import annotations
 
 import logging
 
-from orchestrator.scheduler import RetrainScheduler, ScheduleConfig
+from orchestrator.retrainjob import ScheduleConfig
+from orchestrator.scheduler import RetrainScheduler
 from storage.catalog import Catalog
 from storage.errors import CatalogUnavailableError
 from tests.conftest import wait_for

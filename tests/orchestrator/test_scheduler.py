@@ -15,7 +15,8 @@ from pathlib import Path
 import pytest
 
 from orchestrator.retrainlock import EXIT_BUSY, RetrainBusyError, lock_held, note_phase, read_lock_info, retrain_lock
-from orchestrator.scheduler import RetrainScheduler, RetrainStatus, ScheduleConfig
+from orchestrator.retrainjob import RetrainStatus, ScheduleConfig
+from orchestrator.scheduler import RetrainScheduler
 from storage.catalog import Catalog
 from storage.models import ModelRegistry
 from tests.conftest import wait_for
@@ -361,7 +362,7 @@ def test_a_failing_prune_does_not_fail_the_retrain(trained, tmp_path, monkeypatc
 
 
 def test_a_retrain_quarantines_a_lost_train_file_and_trains_on_the_rest(trained, tmp_path):
-    from orchestrator.scheduler import quarantined_note
+    from orchestrator.retrainjob import quarantined_note
     data = tmp_path / "copy"
     shutil.copytree(trained, data)
     catalog = Catalog(data)

@@ -12,7 +12,8 @@ from pathlib import Path
 import pytest
 
 from orchestrator.retrainlock import note_phase, read_lock_info, retrain_lock
-from orchestrator.scheduler import RetrainScheduler, RetrainStatus, ScheduleConfig
+from orchestrator.retrainjob import RetrainStatus, ScheduleConfig
+from orchestrator.scheduler import RetrainScheduler
 from storage.models import ModelRegistry
 from tests.conftest import wait_for
 

@@ -10,7 +10,8 @@ import subprocess
 import sys
 from pathlib import Path
 
-from orchestrator.scheduler import RetrainScheduler, RetrainStatus, ScheduleConfig
+from orchestrator.retrainjob import RetrainStatus, ScheduleConfig
+from orchestrator.scheduler import RetrainScheduler
 from tests.conftest import REPO, wait_for
 
 #: A job that writes its pid to DATA/started, then runs until killed.
@@ -21,7 +22,8 @@ HANGS = "import os, pathlib, sys, time; pathlib.Path(sys.argv[1], 'started').wri
 STARTS_A_JOB = f"""
 import sys, threading
 from pathlib import Path
-from orchestrator.scheduler import RetrainScheduler, ScheduleConfig
+from orchestrator.retrainjob import ScheduleConfig
+from orchestrator.scheduler import RetrainScheduler
 data = Path(sys.argv[1])
 sched = RetrainScheduler(ScheduleConfig(poll_s=0.05), data, lambda: 0,
                          command=lambda d, extra: [sys.executable, "-c", {HANGS!r}, str(d)])

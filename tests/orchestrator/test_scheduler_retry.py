@@ -10,7 +10,8 @@ from pathlib import Path
 import pytest
 
 from orchestrator.retrainlock import read_lock_info, retrain_lock
-from orchestrator.scheduler import RetrainScheduler, RetrainStatus, ScheduleConfig
+from orchestrator.retrainjob import RetrainStatus, ScheduleConfig
+from orchestrator.scheduler import RetrainScheduler
 from tests.conftest import wait_for
 from tests.orchestrator.test_scheduler import PROMOTES, Counter, script_command
 

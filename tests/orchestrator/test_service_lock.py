@@ -32,7 +32,8 @@ OUTLIVES = "import signal, time; signal.signal(signal.SIGTERM, signal.SIG_IGN); 
 HOLDER = f"""
 import subprocess, sys, threading
 from pathlib import Path
-from orchestrator.scheduler import RetrainScheduler, ScheduleConfig
+from orchestrator.retrainjob import ScheduleConfig
+from orchestrator.scheduler import RetrainScheduler
 from orchestrator.service import Service
 from orchestrator.serviceconfig import ServiceConfig
 data, endpoint, namespace = Path(sys.argv[1]), sys.argv[2], sys.argv[3]
