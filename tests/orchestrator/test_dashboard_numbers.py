@@ -16,7 +16,8 @@ from storage.catalog import Catalog
 from storage.models import ModelRegistry
 from storage.queue import RequestQueue
 from tests.conftest import wait_for
-from tests.orchestrator.test_dashboard import Browser, chromium_path, enqueue_uniform
+from tests.orchestrator.browser import Browser, chromium_path
+from tests.orchestrator.test_dashboard import enqueue_uniform
 from tests.storage.test_episodes import make_episode
 
 

@@ -15,7 +15,8 @@ from orchestrator.dashboard import RETRY_AFTER_S, Dashboard, DashboardConfig, Da
 from storage.catalog import Catalog
 from storage.errors import CatalogUnavailableError
 from tests.conftest import wait_for
-from tests.orchestrator.test_dashboard import Browser, chromium_path, serving
+from tests.orchestrator.browser import Browser, chromium_path
+from tests.orchestrator.test_dashboard import serving
 
 
 def fetch(url: str, path: str) -> tuple[int, http.client.HTTPMessage, bytes]:
