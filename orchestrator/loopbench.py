@@ -51,6 +51,7 @@ from orchestrator.planner import ActivePlanner, Planner, Scores, in_eval_split
 from orchestrator.uniform import UniformPlanner
 from orchestrator.retrain import run_retrain
 from storage.catalog import Catalog
+from storage.files import write_bytes_atomic
 from storage.jsonsafe import finite_json
 from storage.queue import RequestQueue
 from storage.requests import Request
@@ -364,17 +365,17 @@ def _run_apart(runs: list[tuple[int, str, Path]], cfg: LoopBenchConfig, collect:
 
 def _arm_process(arm: str, seed: int, cfg: LoopBenchConfig, data_dir: Path, collect: Collect,
                  make_eval_split: MakeEvalSplit, threads: int) -> None:
-    """``run_arm`` in a spawned process: its points to ``data_dir/ARM_POINTS`` (written whole, then renamed).
+    """``run_arm`` in a spawned process: its points to ``data_dir/ARM_POINTS`` (written atomically).
 
     Ctrl-C reaches the whole process group; the arms leave it to ``_run_apart``, which terminates them.
     """
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     limit_torch_threads(threads)
-    points = run_arm(arm, seed, cfg, data_dir, collect, make_eval_split, _log_stderr)
-    tmp = data_dir / (ARM_POINTS + ".tmp")
-    tmp.write_text(json.dumps(points))  # (NaN, an h5 of episodes too short for it, reads back as NaN)
-    tmp.replace(data_dir / ARM_POINTS)
+    points = run_arm(arm, seed, cfg, data_dir, collect, make_eval_split, log_stderr)
+    # (NaN, an h5 of episodes too short for it, reads back as NaN)
+    write_bytes_atomic(data_dir / ARM_POINTS, json.dumps(points).encode())
 
 
-def _log_stderr(line: str) -> None:
+def log_stderr(line: str) -> None:
+    """A progress line to stderr, at once (the CLI's ``log``, and each arm's in its own process)."""
     print(line, file=sys.stderr, flush=True)

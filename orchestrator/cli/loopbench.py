@@ -187,10 +187,9 @@ def _bench_loop(args: argparse.Namespace) -> int:
     if (out / "summary.json").exists() or any(out.glob("seed*/*/catalog.sqlite")):  # (or a stopped run's arms)
         raise common.UsageError(f"{out} already holds a bench loop result, or a stopped run's; give a fresh --out")
     # torch: imported once the arguments are known good (start-up cost)
-    from orchestrator.loopbench import ArmFailed, run_bench
-    log = (lambda line: print(line, file=sys.stderr, flush=True))
+    from orchestrator.loopbench import ArmFailed, log_stderr, run_bench
     try:
-        summary = run_bench(cfg, out, bench_collect, collect_cli.make_eval_split, log=log, jobs=args.jobs,
+        summary = run_bench(cfg, out, bench_collect, collect_cli.make_eval_split, log=log_stderr, jobs=args.jobs,
                             threads=args.threads)
     except ArmFailed as exc:
         print(f"activecollect: {exc}", file=sys.stderr)
