@@ -50,6 +50,7 @@ from orchestrator.loopconfig import HEAD_SIGNALS, LoopBenchConfig
 from orchestrator.planner import ActivePlanner, Planner, Scores, in_eval_split
 from orchestrator.uniform import UniformPlanner
 from orchestrator.retrain import run_retrain
+from orchestrator.retrainjob import die_with_parent
 from storage.catalog import Catalog
 from storage.files import write_bytes_atomic
 from storage.jsonsafe import finite_json
@@ -347,7 +348,7 @@ def _run_apart(runs: list[tuple[int, str, Path]], cfg: LoopBenchConfig, collect:
             while pending and len(running) < jobs:
                 seed, arm, data_dir = pending.pop(0)
                 proc = ctx.Process(target=_arm_process, name=f"bench-loop-seed{seed}-{arm}",
-                                   args=(arm, seed, cfg, data_dir, collect, make_eval_split, threads))
+                                   args=(arm, seed, cfg, data_dir, collect, make_eval_split, threads, os.getpid()))
                 proc.start()
                 running[proc.sentinel] = (proc, seed, arm)
             for sentinel in mp_connection.wait(list(running)):
@@ -364,12 +365,18 @@ def _run_apart(runs: list[tuple[int, str, Path]], cfg: LoopBenchConfig, collect:
 
 
 def _arm_process(arm: str, seed: int, cfg: LoopBenchConfig, data_dir: Path, collect: Collect,
-                 make_eval_split: MakeEvalSplit, threads: int) -> None:
+                 make_eval_split: MakeEvalSplit, threads: int, parent: int) -> None:
     """``run_arm`` in a spawned process: its points to ``data_dir/ARM_POINTS`` (written atomically).
 
     Ctrl-C reaches the whole process group; the arms leave it to ``_run_apart``, which terminates them.
+    An arm dies with ``parent`` (the ``run_bench`` that started it), however that ends: a SIGTERM or
+    SIGKILL to it alone gives ``_run_apart`` no chance to terminate them, and an orphaned arm would go
+    on training for minutes.
     """
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    die_with_parent()
+    if os.getppid() != parent:  # it died before the line above: no signal will come
+        sys.exit(1)
     limit_torch_threads(threads)
     points = run_arm(arm, seed, cfg, data_dir, collect, make_eval_split, log_stderr)
     # (NaN, an h5 of episodes too short for it, reads back as NaN)

@@ -115,11 +115,14 @@ _prctl = ctypes.CDLL(ctypes.util.find_library("c"), use_errno=True).prctl  # res
 
 
 def die_with_parent() -> None:
-    """``preexec_fn`` of a child process: SIGTERM it when the thread that started it dies (Linux).
+    """``preexec_fn`` of a child process, or the first call of a spawned one: SIGTERM it when the thread
+    that started it dies (Linux).
 
     The *thread*, not the process: start the child from a thread that outlives it. ``preexec_fn``
     runs between fork and exec, where a lock another thread held at the fork is never released;
-    this one only calls ``prctl`` (resolved before any fork) through ctypes, which takes none.
+    this one only calls ``prctl`` (resolved before any fork) through ctypes, which takes none. A
+    child that calls it itself must then check that its parent is still the one that started it
+    (it may have died before the call).
     """
     _prctl(_PR_SET_PDEATHSIG, signal.SIGTERM)
 

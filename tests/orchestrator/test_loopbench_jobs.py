@@ -1,6 +1,6 @@
-"""``bench loop --jobs``: the arms in processes of their own give the figures of one process, and an arm whose
-process dies stops the run with its name, and Ctrl-C stops them all; the model's size and schedule reach the
-config."""
+"""``bench loop --jobs``: the arms in processes of their own give the figures of one process, an arm whose process
+dies stops the run with its name, Ctrl-C stops them all, and they die with the command; the model's size and
+schedule reach the config."""
 
 from __future__ import annotations
 
@@ -92,9 +92,8 @@ def _running(pid: int) -> bool:
         return False
 
 
-def test_ctrl_c_stops_every_arm_and_exits_130(tmp_path):
-    """Ctrl-C (SIGINT to the process group, as a terminal sends it) while the arms run: the command exits 130 and
-    no arm's process is left running."""
+def _start_arms(tmp_path: Path) -> tuple[subprocess.Popen, set[int]]:
+    """``bench loop --jobs 2`` in a session of its own, once both arms of seed 0 run: (the command, its children)."""
     # Rounds of 1,000 episodes: minutes of collecting before the first retrain, so that arms left running (or
     # waited for) would keep the command from exiting within the test's time.
     cmd = [sys.executable, "-m", "orchestrator", "bench", "loop", "--seeds", "1", "--budget", "2000", "--round", "1000",
@@ -105,7 +104,18 @@ def test_ctrl_c_stops_every_arm_and_exits_130(tmp_path):
         # both arms of seed 0 started: they made their catalogs (and the spawn's resource tracker is a child too)
         wait_for(lambda: len(list((tmp_path / "o").glob("seed0/*/catalog.sqlite"))) == 2, timeout=120,
                  message="both arms' catalogs")
-        arms = wait_for(lambda: _children(proc.pid), message="the arms' processes")
+        return proc, wait_for(lambda: _children(proc.pid), message="the arms' processes")
+    except BaseException:
+        os.killpg(proc.pid, signal.SIGKILL)
+        proc.wait()
+        raise
+
+
+def test_ctrl_c_stops_every_arm_and_exits_130(tmp_path):
+    """Ctrl-C (SIGINT to the process group, as a terminal sends it) while the arms run: the command exits 130 and
+    no arm's process is left running."""
+    proc, arms = _start_arms(tmp_path)
+    try:
         os.killpg(proc.pid, signal.SIGINT)
         _, err = proc.communicate(timeout=60)
     finally:
@@ -116,6 +126,25 @@ def test_ctrl_c_stops_every_arm_and_exits_130(tmp_path):
     assert "activecollect: interrupted" in err and "KeyboardInterrupt" not in err
     wait_for(lambda: not any(_running(pid) for pid in arms), timeout=30, message="every arm's process gone")
     assert not (tmp_path / "o" / "summary.json").exists()
+
+
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGKILL])
+def test_the_arms_die_with_the_command_when_it_alone_is_killed(tmp_path, sig):
+    """A SIGTERM or SIGKILL to the command's process alone (a supervisor's stop, `kill PID`) leaves it no chance
+    to terminate its arms: they die with it instead of training on as orphans."""
+    proc, arms = _start_arms(tmp_path)
+    try:
+        os.kill(proc.pid, sig)
+        proc.communicate(timeout=60)
+        assert proc.returncode == -sig
+        wait_for(lambda: not any(_running(pid) for pid in arms), timeout=30, message="every arm's process gone")
+    finally:
+        for pid in arms:  # (a failing run's orphans, so that they do not outlive the test)
+            if _running(pid):
+                os.kill(pid, signal.SIGKILL)
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
 
 
 @pytest.mark.parametrize("args, message", [
