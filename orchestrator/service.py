@@ -12,9 +12,9 @@ lost worker's leases go back to the queue after a grace), expires leases on a ti
 Threads: lease / renew / fail / release are answered on Zenoh's callback threads (one short SQLite transaction
 each); uploads (``orchestrator.uploads``) and admin queries are handed to a small pool per key (verification,
 fsync). The queue checkpoints its WAL on a thread of its own, so no transition waits for those fsyncs. A
-maintenance thread reaps expired leases and releases lost workers' leases (``orchestrator.liveliness``). A
-background thread hands each stored episode to the planner and the ``on_episode`` callbacks, so scoring and
-planning never stall leasing.
+maintenance thread reaps expired leases and releases lost workers' leases (``orchestrator.liveliness``).
+``orchestrator.planfeed`` seeds the queue and, on a thread of its own, hands each stored episode to the planner and
+the ``on_episode`` callbacks and keeps the queue at its floor, so scoring and planning never stall leasing.
 
 Every reply is ``protocol.ok_reply`` / ``error_reply`` bytes; a message that fails validation gets an error reply
 and changes nothing.
@@ -30,7 +30,7 @@ import logging
 import queue as queue_mod
 import threading
 import time
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterator
 from typing import Any
 
 import zenoh
@@ -39,6 +39,7 @@ from orchestrator import admin, messages, protocol, sweeps, transport
 from orchestrator.heap import HeapTrimmer
 from orchestrator.liveliness import Presence
 from orchestrator.metrics import ServiceMetrics
+from orchestrator.planfeed import PlanFeed
 from orchestrator.planner import Planner
 from orchestrator.protocol import ErrorCode, EventKind, Keys, ProtocolError
 from orchestrator.serviceconfig import ServiceConfig, ServiceContext, ServiceError, where_served
@@ -49,7 +50,7 @@ from storage.catalog import STAGING_MAX_AGE_S, Catalog
 from storage.errors import QueueError, StorageError, StorageUnavailableError
 from storage.models import ModelRegistry
 from storage.queue import RequestQueue
-from storage.requests import NewRequest, Request, RequestStatus
+from storage.requests import Request, RequestStatus
 from storage.servicelock import DataDirectoryBusyError, ServiceLock
 
 log = logging.getLogger(__name__)
@@ -69,6 +70,7 @@ class Service:
         self._frame_size_next = 0.0
         self.context: ServiceContext | None = None
         self.planner: Planner | None = None
+        self.feed: PlanFeed | None = None
         self._servers: list[transport.Server] = []
         self._publishers: dict[EventKind, Any] = {}
         self._liveliness_sub: Any = None
@@ -76,7 +78,6 @@ class Service:
                                  release=self._worker_lost, leased=lambda: self.storage.read(
                                      "the leased requests", lambda: self.queue.list(RequestStatus.LEASED)))
         self._tasks: queue_mod.Queue[Callable[[], None] | None] = queue_mod.Queue()
-        self._stored: queue_mod.Queue[StoredEpisode | None] = queue_mod.Queue()
         self._threads: list[threading.Thread] = []
         self._stopping = threading.Event()
         # Writes to catalog.sqlite from our own threads (queue transitions, an upload's ingest transaction) take
@@ -135,17 +136,18 @@ class Service:
         self._publishers = {kind: self.session.declare_publisher(self.keys.events(kind)) for kind in EventKind}
         if cfg.planner is not None:
             self.planner = cfg.planner(self.context)
-            try:
-                self._seed_queue()
-            except StorageError as exc:  # e.g. a full disk: nothing was queued
-                raise ServiceError(f"cannot seed the queue with {cfg.seed_requests} request(s): {exc}") from exc
+        self.feed = PlanFeed(cfg, self.planner, self.queue, self.storage, self._writing, self.publish, self.heap)
+        try:
+            self.feed.seed()
+        except StorageError as exc:  # e.g. a full disk: nothing was queued
+            raise ServiceError(f"cannot seed the queue with {cfg.seed_requests} request(s): {exc}") from exc
         self._uploads = UploadHandler(self.queue, self.catalog, self.metrics, self.publish, self._writes,
                                       cfg.max_upload_bytes, self._episode_stored, self._frame_size,
                                       health=self.storage)
-        self._threads = [threading.Thread(target=self._maintain, name="maintenance", daemon=True),
-                         threading.Thread(target=self._after_episodes, name="episodes", daemon=True)]
+        self._threads = [threading.Thread(target=self._maintain, name="maintenance", daemon=True)]
         for t in self._threads:
             t.start()
+        self.feed.start()
         k, fast = self.keys, 0 if cfg.inline_dispatch else cfg.handler_threads
         self._servers = [self._serve(k.lease, self._lease, fast), self._serve(k.renew, self._renew, fast),
                          self._serve(k.fail, self._fail, fast), self._serve(k.release, self._release, fast),
@@ -167,7 +169,8 @@ class Service:
         for server in self._servers:
             server.close()
         self._tasks.put(None)
-        self._stored.put(None)
+        if self.feed is not None:
+            self.feed.stop(timeout=30)
         for t in self._threads:
             t.join(timeout=30)
         if self.session is not None:
@@ -270,7 +273,7 @@ class Service:
         """An upload was indexed: its frame size is the catalog's now (if it was not already)."""
         if not self._frame_size_known:
             self._frame_size_known = int(stored.episode.frames.shape[1])
-        self._stored.put(stored)
+        self.feed.put(stored)
 
     def _frame_size(self) -> int:
         """The catalog's frame size for grants (0 while it holds no episode). Fixed once known, so cached;
@@ -426,74 +429,3 @@ class Service:
         for request in expired:
             log.info("lease of %s expired (attempt %d)", request.id, request.attempts)
             self._publish_lease_end(request, "lease expired")
-
-    def _seed_queue(self) -> None:
-        counts = self.queue.counts()
-        if self.config.seed_requests and counts["queued"] + counts["leased"] == 0:
-            self._enqueue(self.planner.seed(self.config.seed_requests), "seed")
-
-    def _enqueue(self, news: Sequence[NewRequest], source: str) -> None:
-        if not news:
-            return
-        with self._writing():
-            stored = self.queue.enqueue_many(news)
-        for request, created in stored:
-            if created:
-                self.publish(EventKind.REQUEST_QUEUED, {"request_id": request.id, "status": request.status.value,
-                                                        "priority": request.priority, "shape": request.shape,
-                                                        "source": source})
-
-    def _after_episodes(self) -> None:
-        """Background thread: the planner and on_episode callbacks, one batch of stored episodes at a time;
-        with a queue floor, also the top-ups (after each batch and after ``reap_interval_s`` without one)."""
-        floor = self.planner is not None and self.config.min_queued > 0
-        wait = self.config.reap_interval_s if floor else None  # no floor: nothing to wake up for
-        while True:
-            try:
-                batch = [self._stored.get(timeout=wait)]
-            except queue_mod.Empty:
-                self._top_up()
-                continue
-            while not self._stored.empty():
-                batch.append(self._stored.get_nowait())
-            done = None in batch
-            batch = [b for b in batch if b is not None]
-            if batch:
-                self._handle_stored(batch)
-                self.heap()
-            if done:
-                return
-            self._top_up()
-
-    def _top_up(self) -> None:
-        """Tops the queue up to ``min_queued`` with the planner's seed draws (in the planner's own thread);
-        one that fails is tried again at the next interval."""
-        if self.planner is None or not self.config.min_queued:
-            return
-        missing = self.storage.read("the queue's depth",
-                                    lambda: self.config.min_queued - self.queue.counts()["queued"])
-        if missing is not None and missing > 0:
-            news = self.storage.read(f"what planner {self.planner.name} seeds with",
-                                     lambda: self.planner.seed(missing, "top-up"))
-            self._queue_up(news or [], "top-up")
-
-    def _queue_up(self, news: Sequence[NewRequest], source: str) -> None:
-        """``_enqueue`` from a background thread: a failed write is logged (and, passing, storage down)."""
-        try:
-            self._enqueue(news, source)
-        except StorageUnavailableError as exc:  # these requests are lost; the queue floor tops up later
-            log.warning("%d request(s) of %s could not be queued: %s", len(news), source, exc)
-        except Exception:  # noqa: BLE001 -- must not stop ingest or the top-ups; it is logged
-            log.exception("queueing %d request(s) of %s failed", len(news), source)
-
-    def _handle_stored(self, batch: list[StoredEpisode]) -> None:
-        if self.planner is not None:  # the planner only reads (its scorer: the catalog, the registry; the depth)
-            news = self.storage.read(f"what planner {self.planner.name} plans with",
-                                     lambda: self.planner.plan([b.episode for b in batch]))
-            self._queue_up(news or [], self.planner.name)
-        for stored in batch:
-            for callback in self.config.on_episode:
-                try:
-                    callback(stored)
-                except Exception:  # noqa: BLE001 -- one failing callback must not starve the others
-                    log.exception("on_episode callback %r failed for %s", callback, stored.episode_id)
