@@ -159,11 +159,15 @@ def test_serve_warns_at_start_when_its_retrains_have_no_eval_split(tmp_path, spa
     data = tmp_path / "data"
     proc = spawn("service", "serve", "--data", str(data), "--init", "--listen", endpoint, "--namespace", namespace,
                  "--planner", "none", "--dashboard-port", "-1", *schedule)
-    wait_for(lambda: "serving " in proc.log() or not proc.alive(), timeout=60, message="serve to start")
+    # the command's own "serving ..." line, not the service's log line "... INFO serving namespace ...", which
+    # comes before the warning
+    wait_for(lambda: any(ln.startswith("serving ") for ln in proc.log().splitlines()) or not proc.alive(),
+             timeout=60, message="serve to start")
     assert proc.alive(), proc.log()
     warning = f"no eval split is pinned in {data}: every scheduled retrain fails until one is (activecollect " \
               f"eval-split create --data {data}"
-    assert (warning in proc.log()) == bool(schedule), proc.log()  # (written before the "serving" line)
+    log = proc.log()
+    assert (warning in log) == bool(schedule), log  # (written before the "serving" line)
 
 
 def test_serve_says_how_it_is_reached() -> None:
