@@ -53,6 +53,28 @@ def disposition(pid: int, sig: int) -> str:
     return "ignored" if int(fields["SigIgn"], 16) & bit else "caught" if int(fields["SigCgt"], 16) & bit else "default"
 
 
+def alive(pid: int) -> bool:
+    """Whether process ``pid`` exists and is not a zombie (Linux)."""
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
+    except OSError:
+        return False
+
+
+def children(pid: int) -> dict[int, str]:
+    """The live child processes of ``pid``: {pid: command line}."""
+    found = {}
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()  # (after the command name, which may hold spaces)
+            cmdline = (stat.parent / "cmdline").read_bytes()
+        except OSError:  # gone meanwhile
+            continue
+        if int(fields[1]) == pid and fields[0] != "Z":
+            found[int(stat.parent.name)] = cmdline.replace(b"\0", b" ").decode(errors="replace")
+    return found
+
+
 @contextmanager
 def ignoring_sigint() -> Iterator[None]:
     """Children started in this block inherit SIGINT ignored across exec, as a script's background jobs do."""

@@ -25,7 +25,7 @@ from storage.catalog import Catalog
 from storage.models import ModelRegistry
 from storage.queue import RequestQueue
 from storage.requests import RequestStatus
-from tests.conftest import REPO, holds, wait_for
+from tests.conftest import REPO, alive, children, holds, wait_for
 from tests.orchestrator import conftest as orchestrator_fixtures
 from tests.orchestrator.test_service import new_request
 
@@ -61,20 +61,6 @@ def train_count(data: Path) -> int:
     return Catalog(data).count(split="train")
 
 
-def children(pid: int) -> dict[int, str]:
-    """The live child processes of ``pid``: {pid: command line}."""
-    found = {}
-    for stat in Path("/proc").glob("[0-9]*/stat"):
-        try:
-            fields = stat.read_text().rsplit(")", 1)[1].split()  # (after the command name, which may hold spaces)
-            cmdline = (stat.parent / "cmdline").read_bytes()
-        except OSError:  # gone meanwhile
-            continue
-        if int(fields[1]) == pid and fields[0] != "Z":
-            found[int(stat.parent.name)] = cmdline.replace(b"\0", b" ").decode(errors="replace")
-    return found
-
-
 def leased_by_each(queue: RequestQueue, workers: int, logs: Path) -> list:
     """The leased requests once each of ``workers`` holds one, in hand by its log (``logs``/ID.log: a worker signalled
     while the grant is on its way gives the request back, rightly); [] before."""
@@ -83,13 +69,6 @@ def leased_by_each(queue: RequestQueue, workers: int, logs: Path) -> list:
         return []
     in_hand = all(holds((logs / f"{r.worker_id}.log").read_text(errors="replace"), r.id) for r in leased)
     return leased if in_hand else []
-
-
-def alive(pid: int) -> bool:
-    try:
-        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
-    except OSError:
-        return False
 
 
 @pytest.mark.slow

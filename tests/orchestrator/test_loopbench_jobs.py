@@ -17,7 +17,7 @@ import torch
 from orchestrator.cli.collect import make_eval_split
 from orchestrator.cli.loopbench import bench_collect
 from orchestrator.loopbench import ARM_POINTS, ArmFailed, LoopBenchConfig, run_bench
-from tests.conftest import run_cli, wait_for
+from tests.conftest import alive, children, run_cli, wait_for
 from uncertainty.config import TrainConfig
 
 TINY = ("--seeds", "2", "--budget", "4", "--round", "2", "--steps", "12", "--image-size", "16", "--epochs", "1",
@@ -73,25 +73,6 @@ def test_an_arm_whose_process_is_killed_stops_the_run_with_its_name(tmp_path):
     assert not list((tmp_path / "o").glob("seed1/*/" + ARM_POINTS))
 
 
-def _children(pid: int) -> set[int]:
-    """The live child processes of ``pid`` (Linux: /proc/PID/task/TID/children)."""
-    found: set[int] = set()
-    for task in Path(f"/proc/{pid}/task").glob("*"):
-        try:
-            found |= {int(c) for c in (task / "children").read_text().split()}
-        except OSError:  # the thread ended meanwhile
-            pass
-    return found
-
-
-def _running(pid: int) -> bool:
-    """A process that exists and is not a zombie."""
-    try:
-        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
-    except (OSError, IndexError):
-        return False
-
-
 def _start_arms(tmp_path: Path) -> tuple[subprocess.Popen, set[int]]:
     """``bench loop --jobs 2`` in a session of its own, once both arms of seed 0 run: (the command, its children)."""
     # Rounds of 1,000 episodes: minutes of collecting before the first retrain, so that arms left running (or
@@ -104,7 +85,7 @@ def _start_arms(tmp_path: Path) -> tuple[subprocess.Popen, set[int]]:
         # both arms of seed 0 started: they made their catalogs (and the spawn's resource tracker is a child too)
         wait_for(lambda: len(list((tmp_path / "o").glob("seed0/*/catalog.sqlite"))) == 2, timeout=120,
                  message="both arms' catalogs")
-        return proc, wait_for(lambda: _children(proc.pid), message="the arms' processes")
+        return proc, set(wait_for(lambda: children(proc.pid), message="the arms' processes"))
     except BaseException:
         os.killpg(proc.pid, signal.SIGKILL)
         proc.wait()
@@ -124,7 +105,7 @@ def test_ctrl_c_stops_every_arm_and_exits_130(tmp_path):
             proc.wait()
     assert proc.returncode == 130, err
     assert "activecollect: interrupted" in err and "KeyboardInterrupt" not in err
-    wait_for(lambda: not any(_running(pid) for pid in arms), timeout=30, message="every arm's process gone")
+    wait_for(lambda: not any(alive(pid) for pid in arms), timeout=30, message="every arm's process gone")
     assert not (tmp_path / "o" / "summary.json").exists()
 
 
@@ -137,10 +118,10 @@ def test_the_arms_die_with_the_command_when_it_alone_is_killed(tmp_path, sig):
         os.kill(proc.pid, sig)
         proc.communicate(timeout=60)
         assert proc.returncode == -sig
-        wait_for(lambda: not any(_running(pid) for pid in arms), timeout=30, message="every arm's process gone")
+        wait_for(lambda: not any(alive(pid) for pid in arms), timeout=30, message="every arm's process gone")
     finally:
         for pid in arms:  # (a failing run's orphans, so that they do not outlive the test)
-            if _running(pid):
+            if alive(pid):
                 os.kill(pid, signal.SIGKILL)
         if proc.poll() is None:
             os.killpg(proc.pid, signal.SIGKILL)

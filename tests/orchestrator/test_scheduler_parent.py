@@ -8,11 +8,10 @@ import os
 import signal
 import subprocess
 import sys
-from pathlib import Path
 
 from orchestrator.retrainjob import RetrainStatus, ScheduleConfig
 from orchestrator.scheduler import RetrainScheduler
-from tests.conftest import REPO, wait_for
+from tests.conftest import REPO, alive, wait_for
 
 #: A job that writes its pid to DATA/started, then runs until killed.
 HANGS = "import os, pathlib, sys, time; pathlib.Path(sys.argv[1], 'started').write_text(str(os.getpid())); " \
@@ -31,13 +30,6 @@ sched.start()
 sched.request()
 threading.Event().wait()
 """
-
-
-def alive(pid: int) -> bool:
-    try:
-        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
-    except OSError:
-        return False
 
 
 def test_a_job_dies_with_the_process_that_started_it(tmp_path):

@@ -21,7 +21,7 @@ from orchestrator.serviceconfig import ServiceConfig, ServiceError
 from storage.catalog import Catalog
 from storage.queue import RequestQueue
 from storage.servicelock import LOCK_NAME, read_holder
-from tests.conftest import REPO, free_port, wait_for
+from tests.conftest import REPO, children as child_processes, free_port, wait_for
 from tests.orchestrator.test_service import new_request
 
 #: A child that outlives the service that started it: it ignores the SIGTERM ``die_with_parent`` sends.
@@ -163,15 +163,7 @@ def test_a_second_service_in_one_process_is_refused_and_one_after_stop_starts(da
 
 def _children(pid: int) -> list[int]:
     """The OUTLIVES processes whose parent is ``pid``."""
-    found = []
-    for entry in Path("/proc").iterdir():
-        try:
-            ppid = int((entry / "stat").read_text().rsplit(")", 1)[1].split()[1])
-            if ppid == pid and b"# outlives" in (entry / "cmdline").read_bytes():
-                found.append(int(entry.name))
-        except (OSError, ValueError, IndexError):  # (not a process, or one that just ended)
-            continue
-    return found
+    return [child for child, cmdline in child_processes(pid).items() if "# outlives" in cmdline]
 
 
 def test_a_service_sigkilled_with_children_alive_leaves_the_directory_free(data_dir, endpoint, namespace,
