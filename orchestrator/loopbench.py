@@ -51,6 +51,7 @@ from orchestrator.planner import ActivePlanner, Planner, Scores, in_eval_split
 from orchestrator.uniform import UniformPlanner
 from orchestrator.retrain import run_retrain
 from orchestrator.retrainjob import die_with_parent
+from orchestrator.signals import Terminated, sigterm_raises
 from storage.catalog import Catalog
 from storage.files import write_bytes_atomic
 from storage.jsonsafe import finite_json
@@ -70,6 +71,10 @@ Collect = Callable[[Request, int, int, Palette], Episode]
 #: random physics, palette) -> hash.
 MakeEvalSplit = Callable[[Catalog, int, int, int, int, bool, Palette], str]
 ARMS = ("active", "uniform")
+#: Seconds a stopped arm's process has to exit before it is killed.
+ARM_EXIT_S = 10.0
+#: Where an arm leaves its points for ``run_bench``, rewritten after each retrain (in the arm's data directory).
+ARM_POINTS = "points.json"
 #: The ``object_pixels`` signal's object (body and marker); the rest of a frame is ``workers.env.scene_colours``
 #: of its size (the walls' anti-aliased edges differ with it, and some are nearer the object's blue than grey).
 OBJECT_COLOURS = (OBJECT_RGB, MARKER_RGB)
@@ -135,7 +140,8 @@ def make_planner(arm: str, cfg: LoopBenchConfig, scorer: ChampionScorer, rng: np
 
 def run_arm(arm: str, seed: int, cfg: LoopBenchConfig, data_dir: Path, collect: Collect,
             make_eval_split: MakeEvalSplit, log: Callable[[str], None] = print) -> list[dict]:
-    """One arm for one seed; returns one point per retrain (episodes, h1/h5 of candidate and champion)."""
+    """One arm for one seed; returns one point per retrain (episodes, h1/h5 of candidate and champion). The points
+    so far are also in ``data_dir/ARM_POINTS`` after each retrain (written atomically): a stopped run keeps them."""
     catalog = Catalog(data_dir)
     queue = RequestQueue(catalog.db_path)
     palette = palette_of(cfg)
@@ -170,6 +176,8 @@ def run_arm(arm: str, seed: int, cfg: LoopBenchConfig, data_dir: Path, collect: 
             log(f"  {arm:7s} seed {seed} {collected:4d} ep: h1 {points[-1]['h1_mse']:.3e} "
                 f"h5 {points[-1]['h5_mse']:.3e} spearman {float('nan') if rho is None else rho:.2f} "
                 f"({points[-1]['train_s']:.0f} s)")
+            # (NaN, an h5 of episodes too short for it, reads back as NaN)
+            write_bytes_atomic(data_dir / ARM_POINTS, json.dumps(points).encode())
             queue.enqueue_many(planner.plan(round_eps))
             round_eps, round_requests = [], []
     queue.close()
@@ -215,8 +223,20 @@ def episodes_to_reach(curve: Sequence[tuple[int, float]], target: float) -> floa
     return math.inf
 
 
+def comparable(points: list[dict]) -> list[dict]:
+    """The points at the episode counts that both arms of their seed reached: all of a finished run's (the arms
+    retrain at the same counts), the rounds both arms finished of a stopped run's."""
+    arms: dict[tuple[int, int], set[str]] = {}
+    for p in points:
+        arms.setdefault((p["seed"], p["episodes"]), set()).add(p["arm"])
+    return [p for p in points if arms[(p["seed"], p["episodes"])] == set(ARMS)]
+
+
 def summarize(points: list[dict], cfg: LoopBenchConfig, metric: str = "h1_mse") -> dict:
-    """Mean and spread per arm and episode count, and the headline ratios (per seed and on the means)."""
+    """Mean and spread per arm and episode count, and the headline ratios (per seed and on the means), over the
+    ``comparable`` points; the headline is None when there are none (a run stopped before both arms of a seed
+    finished a round)."""
+    points = comparable(points)
     curves: dict[str, dict] = {}
     for arm in ARMS:
         by_ep: dict[int, list[float]] = {}
@@ -232,8 +252,8 @@ def summarize(points: list[dict], cfg: LoopBenchConfig, metric: str = "h1_mse") 
              for arm in ARMS}
         if all(c.values()):
             per_seed.append(_ratios(c["active"], c["uniform"]) | {"seed": seed})
-    return {"metric": metric, "curves": curves, "headline": _ratios(mean["active"], mean["uniform"]),
-            "per_seed": per_seed, "paired": _paired(per_seed)}
+    headline = _ratios(mean["active"], mean["uniform"]) if points else None
+    return {"metric": metric, "curves": curves, "headline": headline, "per_seed": per_seed, "paired": _paired(per_seed)}
 
 
 def _paired(per_seed: list[dict]) -> dict:
@@ -292,6 +312,10 @@ def run_bench(cfg: LoopBenchConfig, out_dir: Path, collect: Collect, make_eval_s
               log: Callable[[str], None] = print, jobs: int = 1, threads: int = 0) -> dict:
     """Every seed, both arms; writes ``summary.json`` and ``loop.png`` in ``out_dir``; returns the summary.
 
+    Stopped by Ctrl-C or SIGTERM (a timeout's, a supervisor's), it stops the arms and summarises the rounds they
+    had finished: ``interrupted`` true and ``stopped_by`` the signal's name in the summary, the comparison over
+    the rounds both arms of a seed finished (``comparable``); nothing is written when no round had finished.
+
     ``jobs`` > 1 runs each (seed, arm) in a process of its own, that many at once (``_run_apart``; their
     progress lines go to stderr, not to ``log``);
     ``threads``: torch threads per arm (0: torch's own with one job, the usable cores shared out
@@ -307,20 +331,31 @@ def run_bench(cfg: LoopBenchConfig, out_dir: Path, collect: Collect, make_eval_s
     if jobs > 1 and not threads:
         threads = max(1, len(os.sched_getaffinity(0)) // min(jobs, len(runs)))
     start = time.perf_counter()
-    if jobs > 1:
-        points = _run_apart(runs, cfg, collect, make_eval_split, jobs, threads)
-    else:
-        limit_torch_threads(threads)
-        points = [p for seed, arm, data_dir in runs
-                  for p in run_arm(arm, seed, cfg, data_dir, collect, make_eval_split, log)]
+    stopped_by = None
+    try:
+        with sigterm_raises():
+            if jobs > 1:
+                _run_apart(runs, cfg, collect, make_eval_split, jobs, threads)
+            else:
+                limit_torch_threads(threads)
+                for seed, arm, data_dir in runs:
+                    run_arm(arm, seed, cfg, data_dir, collect, make_eval_split, log)
+    except (KeyboardInterrupt, Terminated) as exc:
+        stopped_by = "SIGTERM" if isinstance(exc, Terminated) else "SIGINT"
+    points = [p for _, _, data_dir in runs if (data_dir / ARM_POINTS).exists()
+              for p in json.loads((data_dir / ARM_POINTS).read_text())]
     summary = {"config": cfg.to_json(), "points": points, "h1": summarize(points, cfg, "h1_mse"),
                "h5": summarize(points, cfg, "h5_mse"), "seconds": round(time.perf_counter() - start, 1),
-               "jobs": jobs, "threads": threads or None,
+               "jobs": jobs, "threads": threads or None, "interrupted": stopped_by is not None,
+               "stopped_by": stopped_by,
                "transport": "in-process collection (no Zenoh); real queue, catalog, trainer and gate"}
+    if not points:  # stopped before any round: nothing measured, nothing written
+        return summary
     plot(points, out_dir / "loop.png")
     summary["plot"] = str(out_dir / "loop.png")
     # (h5 of episodes too short for it is NaN: null, so that strict parsers read the file)
-    (out_dir / "summary.json").write_text(json.dumps(finite_json(summary), indent=2, default=str, allow_nan=False))
+    write_bytes_atomic(out_dir / "summary.json",
+                       json.dumps(finite_json(summary), indent=2, default=str, allow_nan=False).encode())
     return summary
 
 
@@ -328,13 +363,10 @@ class ArmFailed(RuntimeError):
     """An arm's process of a ``run_bench`` with ``jobs`` > 1 ended without its figures (its error went to stderr)."""
 
 
-#: Where an arm run in its own process leaves its points for ``run_bench`` (in the arm's data directory).
-ARM_POINTS = "points.json"
-
-
 def _run_apart(runs: list[tuple[int, str, Path]], cfg: LoopBenchConfig, collect: Collect,
-               make_eval_split: MakeEvalSplit, jobs: int, threads: int) -> list[dict]:
-    """Each (seed, arm, data directory) in a process of its own, ``jobs`` at a time; the points in ``runs``' order.
+               make_eval_split: MakeEvalSplit, jobs: int, threads: int) -> None:
+    """Each (seed, arm, data directory) in a process of its own, ``jobs`` at a time; each leaves its points in its
+    directory's ARM_POINTS.
 
     The processes are spawned, not forked (torch's threads and CUDA do not survive a fork), so ``collect``
     and ``make_eval_split`` must be module-level functions. The first arm that fails stops the others
@@ -360,13 +392,16 @@ def _run_apart(runs: list[tuple[int, str, Path]], cfg: LoopBenchConfig, collect:
     finally:
         for proc, _, _ in running.values():
             proc.terminate()
-            proc.join()
-    return [p for _, _, data_dir in runs for p in json.loads((data_dir / ARM_POINTS).read_text())]
+        for proc, _, _ in running.values():
+            proc.join(ARM_EXIT_S)
+            if proc.exitcode is None:  # (an arm that hangs in its exit)
+                proc.kill()
+                proc.join()
 
 
 def _arm_process(arm: str, seed: int, cfg: LoopBenchConfig, data_dir: Path, collect: Collect,
                  make_eval_split: MakeEvalSplit, threads: int, parent: int) -> None:
-    """``run_arm`` in a spawned process: its points to ``data_dir/ARM_POINTS`` (written atomically).
+    """``run_arm`` in a spawned process (which leaves its points in ``data_dir/ARM_POINTS``).
 
     Ctrl-C reaches the whole process group; the arms leave it to ``_run_apart``, which terminates them.
     An arm dies with ``parent`` (the ``run_bench`` that started it), however that ends: a SIGTERM or
@@ -374,13 +409,18 @@ def _arm_process(arm: str, seed: int, cfg: LoopBenchConfig, data_dir: Path, coll
     on training for minutes.
     """
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    # Stopped, an arm exits rather than dies: what it holds is released (tqdm's lock, a named semaphore the
+    # resource tracker would otherwise report as leaked when the command ends).
+    signal.signal(signal.SIGTERM, _exit_on_sigterm)
     die_with_parent()
     if os.getppid() != parent:  # it died before the line above: no signal will come
         sys.exit(1)
     limit_torch_threads(threads)
-    points = run_arm(arm, seed, cfg, data_dir, collect, make_eval_split, log_stderr)
-    # (NaN, an h5 of episodes too short for it, reads back as NaN)
-    write_bytes_atomic(data_dir / ARM_POINTS, json.dumps(points).encode())
+    run_arm(arm, seed, cfg, data_dir, collect, make_eval_split, log_stderr)
+
+
+def _exit_on_sigterm(signum: int, frame: object) -> None:
+    sys.exit(128 + signum)
 
 
 def log_stderr(line: str) -> None:

@@ -1,4 +1,5 @@
-"""How our long-running processes (``serve``, ``router``, ``worker``, ``run``) are asked to stop.
+"""How our long-running processes (``serve``, ``router``, ``worker``, ``run``) are asked to stop, and how a command
+that only computes (``bench loop``) takes a supervisor's SIGTERM as it takes Ctrl-C (``sigterm_raises``).
 
 SIGTERM, and SIGINT unless the process was started ignoring it. A shell starts a script's
 background jobs with SIGINT ignored (a terminal's Ctrl-C is not theirs), an ignored signal stays
@@ -19,11 +20,12 @@ Imports nothing of ours: workers use it too.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 import signal
 import threading
-from collections.abc import Iterable, Mapping
+from collections.abc import Iterable, Iterator, Mapping
 from typing import Callable
 
 log = logging.getLogger(__name__)
@@ -101,3 +103,32 @@ def ignore_while_exiting(sigs: Iterable[signal.Signals]) -> None:
         return
     for sig in sigs:
         signal.signal(sig, signal.SIG_IGN)
+
+
+class Terminated(BaseException):
+    """SIGTERM, raised in the main thread inside ``sigterm_raises``. A BaseException, as KeyboardInterrupt is, so
+    that no ``except Exception`` takes it for an error of the work it stopped."""
+
+
+@contextlib.contextmanager
+def sigterm_raises() -> Iterator[None]:
+    """Within the block SIGTERM raises Terminated in the main thread, as SIGINT raises KeyboardInterrupt, so that
+    a command's ``except`` and ``finally`` clauses run on a supervisor's stop (``kill PID``, a timeout's) as
+    they do on Ctrl-C. The previous handler is back after the block.
+
+    For a command whose main thread only computes and waits on its children (``bench loop``): the exception
+    comes wherever that thread is, as KeyboardInterrupt does. The services above use ``on_stop_signals``
+    instead, which never interrupts their main thread. Outside the main thread it does nothing.
+    """
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def raise_terminated(signum: int, frame: object) -> None:
+        raise Terminated()
+
+    previous = signal.signal(signal.SIGTERM, raise_terminated)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)

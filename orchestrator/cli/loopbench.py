@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import math
+import signal
 import sys
 import time
 from pathlib import Path
@@ -33,7 +34,8 @@ def register_bench(bench: argparse._SubParsersAction) -> None:
                          description="Active vs uniform planner: for each seed, both arms collect --budget episodes "
                                      "in rounds of --round with the simulator, retraining after each round, and "
                                      "the eval error is recorded per episodes collected; summary.json and a plot "
-                                     "go to --out. Takes minutes.")
+                                     "go to --out. Takes minutes. Ctrl-C or SIGTERM stops the arms and "
+                                     "summarises the rounds both arms of a seed had finished (exit 130 / 143).")
     common.add_json_arg(p)
     p.add_argument("--seeds", type=common.positive_int, default=len(d.seeds), metavar="N",
                    help=f"seeds 0..N-1, one run of each arm per seed (default {len(d.seeds)})")
@@ -196,18 +198,34 @@ def _bench_loop(args: argparse.Namespace) -> int:
         return 1
     if args.json:
         common.print_json(finite_json(summary))  # (h5 of episodes too short for it is NaN: not JSON)
-        return 0
+    else:
+        _print_summary(summary, out)
+    if summary["interrupted"]:  # (the arms are stopped; what they had finished is summarised)
+        kept = f"the finished rounds are in {out / 'summary.json'}" if summary["points"] else "no round had finished"
+        print(f"activecollect: interrupted ({summary['stopped_by']}): {kept}", file=sys.stderr)
+        return 128 + int(getattr(signal, summary["stopped_by"]))
+    return 0
+
+
+def _print_summary(summary: dict, out: Path) -> None:
+    if not summary["points"]:  # (stopped before any round: the message says so)
+        return
+    if summary["interrupted"]:
+        print(f"stopped by {summary['stopped_by']}: the comparison covers the rounds both arms of a seed finished")
+    upto = "both arms' last round at" if summary["interrupted"] else "budget"
     for metric in ("h1", "h5"):
         h = summary[metric]["headline"]
+        if h is None:
+            print(f"{metric}: no seed has a round that both arms finished")
+            continue
         print(f"{metric} MSE final: active {h['active_final']:.4e}  uniform {h['uniform_final']:.4e}")
-        print(f"  episodes to reach the other arm's final error (budget {h['budget']}): uniform "
+        print(f"  episodes to reach the other arm's final error ({upto} {h['budget']}): uniform "
               f"{_eps(h['uniform_episodes_to_match_active'])}, active {_eps(h['active_episodes_to_match_uniform'])}")
         paired = summary[metric]["paired"]
         if paired["mean"] is not None:
             print(f"  active's final over uniform's, per seed: {paired['mean']:+.2%} ± {paired['std']:.2%} "
                   f"(active behind in {paired['active_behind']} of {paired['seeds']} seeds)")
     print(f"plot: {summary['plot']}\nsummary: {out / 'summary.json'}  ({summary['seconds']:.0f} s)")
-    return 0
 
 
 def _eps(v: float | None) -> str:

@@ -53,6 +53,21 @@ def test_summary_headline_and_spread():
     assert (paired["active_behind"], paired["seeds"]) == (0, 2)
 
 
+def test_a_stopped_runs_summary_compares_only_the_rounds_both_arms_of_a_seed_finished():
+    cfg = LoopBenchConfig(seeds=(0, 1), budget=48, round_episodes=16)
+    reached = {(0, "active"): (16, 32, 48), (0, "uniform"): (16, 32), (1, "active"): (16,), (1, "uniform"): ()}
+    points = [{"arm": arm, "seed": seed, "episodes": ep, "h1_mse": 1.0 - ep / 100 + (arm == "active") * 0.01}
+              for (seed, arm), eps in reached.items() for ep in eps]
+    s = summarize(points, cfg, "h1_mse")
+    assert list(s["curves"]["active"]) == list(s["curves"]["uniform"]) == ["16", "32"]
+    assert s["curves"]["active"]["32"]["n"] == 1
+    assert s["headline"]["budget"] == 32 and s["headline"]["active_final"] == pytest.approx(0.69)
+    assert [p["seed"] for p in s["per_seed"]] == [0]
+    assert s["paired"]["per_seed"] == pytest.approx([0.69 / 0.68 - 1])
+    only_one_arm = summarize([p for p in points if p["arm"] == "active"], cfg, "h1_mse")
+    assert only_one_arm["headline"] is None and only_one_arm["per_seed"] == [] and only_one_arm["paired"]["seeds"] == 0
+
+
 def test_config_refuses_a_budget_of_less_than_two_rounds_and_unknown_signals():
     with pytest.raises(ValueError, match="budget"):
         LoopBenchConfig(budget=16, round_episodes=16)

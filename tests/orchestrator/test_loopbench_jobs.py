@@ -1,6 +1,6 @@
 """``bench loop --jobs``: the arms in processes of their own give the figures of one process, an arm whose process
-dies stops the run with its name, Ctrl-C stops them all, and they die with the command; the model's size and
-schedule reach the config."""
+dies stops the run with its name, Ctrl-C stops them all, and they die with the command; a stopped run summarises
+the rounds its arms had finished; the model's size and schedule reach the config."""
 
 from __future__ import annotations
 
@@ -109,15 +109,16 @@ def test_ctrl_c_stops_every_arm_and_exits_130(tmp_path):
     assert not (tmp_path / "o" / "summary.json").exists()
 
 
-@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGKILL])
-def test_the_arms_die_with_the_command_when_it_alone_is_killed(tmp_path, sig):
-    """A SIGTERM or SIGKILL to the command's process alone (a supervisor's stop, `kill PID`) leaves it no chance
-    to terminate its arms: they die with it instead of training on as orphans."""
+@pytest.mark.parametrize("sig, returncode", [(signal.SIGTERM, 128 + signal.SIGTERM), (signal.SIGKILL, -signal.SIGKILL)])
+def test_the_arms_die_with_the_command_when_it_alone_is_stopped_or_killed(tmp_path, sig, returncode):
+    """A SIGTERM to the command's process alone (a supervisor's stop, `kill PID`) stops its arms as Ctrl-C does; a
+    SIGKILL leaves it no chance to: they die with it instead of training on as orphans."""
     proc, arms = _start_arms(tmp_path)
     try:
         os.kill(proc.pid, sig)
-        proc.communicate(timeout=60)
-        assert proc.returncode == -sig
+        _, err = proc.communicate(timeout=60)
+        assert proc.returncode == returncode, err
+        assert sig == signal.SIGKILL or "activecollect: interrupted (SIGTERM): no round had finished" in err
         wait_for(lambda: not any(alive(pid) for pid in arms), timeout=30, message="every arm's process gone")
     finally:
         for pid in arms:  # (a failing run's orphans, so that they do not outlive the test)
@@ -137,3 +138,41 @@ def test_the_arms_die_with_the_command_when_it_alone_is_killed(tmp_path, sig):
 def test_bench_loop_refuses_bad_jobs_threads_and_model_sizes(tmp_path, capsys, args, message):
     rc, _, err = run_cli(capsys, "bench", "loop", *args, "--out", str(tmp_path / "o"))
     assert rc == 2 and message in err and not (tmp_path / "o").exists()
+
+
+@pytest.mark.parametrize("jobs", [1, 2])
+def test_a_stopped_run_summarises_the_rounds_its_arms_had_finished(tmp_path, jobs):
+    """SIGTERM (a timeout's, a supervisor's) to a run whose arms have finished rounds: exit 143, and summary.json
+    holds every point the arms had written, marked interrupted, the comparison over the rounds both arms of the
+    seed finished (with one job, the active arm's alone: the uniform arm had not started)."""
+    out = tmp_path / "o"
+    cmd = [sys.executable, "-m", "orchestrator", "bench", "loop", "--seeds", "1", "--budget", "2000", "--round", "2",
+           "--steps", "12", "--image-size", "16", "--epochs", "1", "--members", "2", "--jobs", str(jobs),
+           "--threads", "1", "--out", str(out)]
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
+    arms = ("active", "uniform")[:jobs]
+    try:
+        wait_for(lambda: all((out / "seed0" / arm / ARM_POINTS).exists() for arm in arms), timeout=120,
+                 message="a finished round in each running arm")
+        os.kill(proc.pid, signal.SIGTERM)
+        stdout, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
+    assert proc.returncode == 128 + signal.SIGTERM, err
+    assert f"activecollect: interrupted (SIGTERM): the finished rounds are in {out / 'summary.json'}" in err
+    assert "leaked" not in err and "Traceback" not in err
+    summary = json.loads((out / "summary.json").read_text())
+    assert (summary["interrupted"], summary["stopped_by"]) == (True, "SIGTERM")
+    written = [p for arm in ("active", "uniform") if (out / "seed0" / arm / ARM_POINTS).exists()
+               for p in json.loads((out / "seed0" / arm / ARM_POINTS).read_text())]
+    assert summary["points"] == written and {p["arm"] for p in written} == set(arms)
+    last = {arm: max(p["episodes"] for p in written if p["arm"] == arm) for arm in arms}
+    if jobs == 1:
+        assert summary["h1"]["headline"] is None and "h1: no seed has a round that both arms finished" in stdout
+    else:
+        assert summary["h1"]["headline"]["budget"] == min(last.values())
+        assert [r["seed"] for r in summary["h1"]["per_seed"]] == [0]
+        assert "stopped by SIGTERM: the comparison covers the rounds both arms of a seed finished" in stdout
+    assert (out / "loop.png").is_file()
