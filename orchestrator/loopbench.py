@@ -45,7 +45,7 @@ from typing import Callable, Mapping, Sequence
 import numpy as np
 from matplotlib.figure import Figure
 
-from orchestrator.champion import ChampionScorer, limit_torch_threads
+from orchestrator.champion import ChampionScorer, limit_torch_threads, make_torch_deterministic
 from orchestrator.loopconfig import HEAD_SIGNALS, LoopBenchConfig
 from orchestrator.planner import ActivePlanner, Planner, Scores, in_eval_split
 from orchestrator.uniform import UniformPlanner
@@ -338,6 +338,8 @@ def run_bench(cfg: LoopBenchConfig, out_dir: Path, collect: Collect, make_eval_s
                 _run_apart(runs, cfg, collect, make_eval_split, jobs, threads)
             else:
                 limit_torch_threads(threads)
+                if cfg.deterministic:
+                    make_torch_deterministic()
                 for seed, arm, data_dir in runs:
                     run_arm(arm, seed, cfg, data_dir, collect, make_eval_split, log)
     except (KeyboardInterrupt, Terminated) as exc:
@@ -416,6 +418,8 @@ def _arm_process(arm: str, seed: int, cfg: LoopBenchConfig, data_dir: Path, coll
     if os.getppid() != parent:  # it died before the line above: no signal will come
         sys.exit(1)
     limit_torch_threads(threads)
+    if cfg.deterministic:  # (before the arm's first CUDA call)
+        make_torch_deterministic()
     run_arm(arm, seed, cfg, data_dir, collect, make_eval_split, log_stderr)
 
 

@@ -145,6 +145,9 @@ class LoopBenchConfig:
     palette: str = "uniform"
     """The objects' colours (one of ``PALETTES``), in both arms and the eval split: ``per-shape`` makes the
     shapes look different (where a model trained on one shape does not yet know the others)."""
+    deterministic: bool = False
+    """Each arm's torch takes only deterministic algorithms (``champion.make_torch_deterministic``), so that two
+    runs of one configuration give the same figures on a GPU as they do on the CPU, at some speed."""
 
     def __post_init__(self) -> None:
         if not self.seeds:

@@ -115,6 +115,9 @@ def register_bench(bench: argparse._SubParsersAction) -> None:
                    help="with --shapes-by-progress, the horizon of the error whose fall is measured (default "
                         f"{d.active.progress_horizon}, the gate's; a longer one weighs the dynamics more; at most "
                         "--steps minus the model's context frames)")
+    p.add_argument("--deterministic", action="store_true",
+                   help="only deterministic torch algorithms in each arm, so that two runs of one configuration "
+                        "give the same figures on a GPU too (they do on the CPU without it); slower on a GPU")
     p.add_argument("--jobs", type=common.positive_int, default=1, metavar="N",
                    help="run the seeds' arms in N processes at once, each arm in its own (default 1: one after "
                         "the other in this process); on the CPU an arm's figures are the same either way at the "
@@ -177,6 +180,7 @@ def _bench_loop(args: argparse.Namespace) -> int:
                               active_policy=args.active_policy, random_physics=args.random_physics,
                               within_policy=args.within_policy, shape_weights=args.shape_weights,
                               palette=args.palette, shapes_by_progress=args.shapes_by_progress,
+                              deterministic=args.deterministic,
                               active=dataclasses.replace(d.active, max_shape_share=args.max_shape_share,
                                                          repeats=args.repeats, min_per_shape=args.min_per_shape,
                                                          **progress))

@@ -37,8 +37,10 @@ def _figures(summary: dict) -> list[dict]:
 
 
 def test_arms_in_their_own_processes_give_the_figures_of_one_process(tmp_path, capsys, torch_threads):
+    """... and so do arms that take only deterministic algorithms (``--deterministic``: on the CPU torch's kernels
+    are deterministic already)."""
     rc, stdout, err = run_cli(capsys, "bench", "loop", *TINY, "--jobs", "3", "--threads", "1", "--widths", "4,8,8",
-                              "--batch-size", "8", "--lr", "0.002", "--out", str(tmp_path / "apart"))
+                              "--batch-size", "8", "--lr", "0.002", "--deterministic", "--out", str(tmp_path / "apart"))
     assert rc == 0, err
     apart = json.loads(stdout)
     rc, stdout, err = run_cli(capsys, "bench", "loop", *TINY, "--threads", "1", "--widths", "4,8,8",
@@ -48,6 +50,7 @@ def test_arms_in_their_own_processes_give_the_figures_of_one_process(tmp_path, c
     assert (apart["jobs"], apart["threads"], here["jobs"], here["threads"]) == (3, 1, 1, 1)
     assert apart["config"]["train"]["widths"] == [4, 8, 8] and apart["config"]["train"]["batch_size"] == 8
     assert apart["config"]["train"]["lr"] == 0.002
+    assert (apart["config"]["deterministic"], here["config"]["deterministic"]) == (True, False)
     assert [(p["seed"], p["arm"], p["episodes"]) for p in apart["points"]] == [
         (s, a, e) for s in (0, 1) for a in ("active", "uniform") for e in (2, 4)]
     assert _figures(apart) == _figures(here)
@@ -71,6 +74,32 @@ def test_an_arm_whose_process_is_killed_stops_the_run_with_its_name(tmp_path):
         run_bench(cfg, tmp_path / "o", _collect_dying_in_seed_1, make_eval_split, jobs=4, threads=1)
     assert not (tmp_path / "o" / "summary.json").exists()
     assert not list((tmp_path / "o").glob("seed1/*/" + ARM_POINTS))
+
+
+def _collect_checking_determinism(request, seed, image_size, palette=None):
+    """``bench_collect``, in an arm that must take only deterministic algorithms (and a CUDA run's cuBLAS too)."""
+    assert torch.are_deterministic_algorithms_enabled() and os.environ.get("CUBLAS_WORKSPACE_CONFIG") == ":4096:8"
+    assert not torch.backends.cudnn.benchmark
+    return bench_collect(request, seed, image_size, palette)
+
+
+@pytest.fixture
+def determinism_restored(monkeypatch):
+    """Leaves torch's determinism and the cuBLAS setting as it found them (one job sets them in this process)."""
+    before = torch.are_deterministic_algorithms_enabled(), torch.is_deterministic_algorithms_warn_only_enabled()
+    monkeypatch.delenv("CUBLAS_WORKSPACE_CONFIG", raising=False)
+    yield
+    torch.use_deterministic_algorithms(before[0], warn_only=before[1])
+
+
+@pytest.mark.parametrize("jobs", [1, 2])
+def test_deterministic_arms_take_only_deterministic_algorithms(tmp_path, jobs, determinism_restored, torch_threads):
+    cfg = LoopBenchConfig(seeds=(0,), budget=4, round_episodes=2, steps=12, image_size=16, deterministic=True,
+                          train=TrainConfig(members=2, epochs=1, batch_size=8, widths=(4, 8, 8), device="cpu",
+                                            progress=False, min_rel_improvement=0.0))
+    summary = run_bench(cfg, tmp_path / "o", _collect_checking_determinism, make_eval_split, log=lambda line: None,
+                        jobs=jobs, threads=1)
+    assert len(summary["points"]) == 4 and summary["config"]["deterministic"] is True
 
 
 def _start_arms(tmp_path: Path) -> tuple[subprocess.Popen, set[int]]:
