@@ -1,8 +1,9 @@
 #!/usr/bin/env bash
 # The checks that need a GPU, in one run (CI has none): the model's tests on CUDA (tests/uncertainty/test_cuda.py
 # and the CLI's --device cuda tests run only there), fused vs per-member scoring on the GPU, the accuracy and
-# calibration figure trained on the GPU, and the whole loop (`activecollect run`, its default settings) on that
-# machine (its retrains and scoring stay on the CPU by design: it checks that nothing breaks where CUDA is there).
+# calibration figure trained on the GPU, the whole loop (`activecollect run`, its default settings) on that
+# machine (its retrains and scoring stay on the CPU by design: it checks that nothing breaks where CUDA is there),
+# and whether two `bench loop --deterministic` runs on the device repeat to the last digit.
 #
 # Usage, from the repository root on a machine with CUDA and PyTorch:
 #   bash bench/device_checks.sh OUTDIR
@@ -54,6 +55,17 @@ step "figures_$DEVICE" 150 $PY bench/uncertainty_figures.py --data "$WORK/figure
     --device "$DEVICE" --epochs "$EPOCHS" --json "$OUT/figures_$DEVICE.json"
 step run 120 $PY -m orchestrator run --data "$WORK/run"
 cp "$WORK"/run/reports/*/summary.json "$OUT/run_summary.json" 2>/dev/null
+# Two runs of one small `bench loop --deterministic` must give the same points to the last digit (without it the
+# GPU's fastest kernels made runs differ by up to 0.8 %); an operation torch has no deterministic kernel for warns.
+for r in 1 2; do
+    step "loop_deterministic_$r" 90 $PY -m orchestrator bench loop --seeds 1 --budget 32 --device "$DEVICE" \
+        --deterministic --json --out "$WORK/loop$r"
+done
+step loop_repeats 20 $PY -c 'import json, sys
+points = [[{k: v for k, v in p.items() if k != "train_s"} for p in json.load(open(f))["points"]] for f in sys.argv[1:]]
+print("the two runs gave the same points" if points[0] == points[1] else f"the two runs differ: {points}")
+sys.exit(points[0] != points[1])' "$WORK/loop1/summary.json" "$WORK/loop2/summary.json"
+grep -h "does not have a deterministic" "$OUT"/loop_deterministic_*.log | sort -u | head -5
 
 if [ ${#failed[@]} -gt 0 ]; then
     echo "failed: ${failed[*]}"
