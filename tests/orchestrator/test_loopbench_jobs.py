@@ -121,17 +121,23 @@ def _start_arms(tmp_path: Path) -> tuple[subprocess.Popen, set[int]]:
         raise
 
 
-def test_ctrl_c_stops_every_arm_and_exits_130(tmp_path):
-    """Ctrl-C (SIGINT to the process group, as a terminal sends it) while the arms run: the command exits 130 and
-    no arm's process is left running."""
-    proc, arms = _start_arms(tmp_path)
+def _stop(proc: subprocess.Popen, sig: int, group: bool) -> tuple[str, str]:
+    """``sig`` to the command (to its whole group, as a terminal's Ctrl-C, if ``group``): its output once it exits.
+    Killed with its group if it has not within 60 s."""
     try:
-        os.killpg(proc.pid, signal.SIGINT)
-        _, err = proc.communicate(timeout=60)
+        (os.killpg if group else os.kill)(proc.pid, sig)
+        return proc.communicate(timeout=60)
     finally:
         if proc.poll() is None:
             os.killpg(proc.pid, signal.SIGKILL)
             proc.wait()
+
+
+def test_ctrl_c_stops_every_arm_and_exits_130(tmp_path):
+    """Ctrl-C (SIGINT to the process group, as a terminal sends it) while the arms run: the command exits 130 and
+    no arm's process is left running."""
+    proc, arms = _start_arms(tmp_path)
+    _, err = _stop(proc, signal.SIGINT, group=True)
     assert proc.returncode == 130, err
     assert "activecollect: interrupted" in err and "KeyboardInterrupt" not in err
     wait_for(lambda: not any(alive(pid) for pid in arms), timeout=30, message="every arm's process gone")
@@ -144,8 +150,7 @@ def test_the_arms_die_with_the_command_when_it_alone_is_stopped_or_killed(tmp_pa
     SIGKILL leaves it no chance to: they die with it instead of training on as orphans."""
     proc, arms = _start_arms(tmp_path)
     try:
-        os.kill(proc.pid, sig)
-        _, err = proc.communicate(timeout=60)
+        _, err = _stop(proc, sig, group=False)
         assert proc.returncode == returncode, err
         assert sig == signal.SIGKILL or "activecollect: interrupted (SIGTERM): no round had finished" in err
         wait_for(lambda: not any(alive(pid) for pid in arms), timeout=30, message="every arm's process gone")
@@ -153,9 +158,6 @@ def test_the_arms_die_with_the_command_when_it_alone_is_stopped_or_killed(tmp_pa
         for pid in arms:  # (a failing run's orphans, so that they do not outlive the test)
             if alive(pid):
                 os.kill(pid, signal.SIGKILL)
-        if proc.poll() is None:
-            os.killpg(proc.pid, signal.SIGKILL)
-            proc.wait()
 
 
 @pytest.mark.parametrize("args, message", [
@@ -183,12 +185,8 @@ def test_a_stopped_run_summarises_the_rounds_its_arms_had_finished(tmp_path, job
     try:
         wait_for(lambda: all((out / "seed0" / arm / ARM_POINTS).exists() for arm in arms), timeout=120,
                  message="a finished round in each running arm")
-        os.kill(proc.pid, signal.SIGTERM)
-        stdout, err = proc.communicate(timeout=60)
     finally:
-        if proc.poll() is None:
-            os.killpg(proc.pid, signal.SIGKILL)
-            proc.wait()
+        stdout, err = _stop(proc, signal.SIGTERM, group=False)
     assert proc.returncode == 128 + signal.SIGTERM, err
     assert f"activecollect: interrupted (SIGTERM): the finished rounds are in {out / 'summary.json'}" in err
     assert "leaked" not in err and "Traceback" not in err
