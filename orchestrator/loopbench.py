@@ -320,7 +320,9 @@ def run_bench(cfg: LoopBenchConfig, out_dir: Path, collect: Collect, make_eval_s
     progress lines go to stderr, not to ``log``);
     ``threads``: torch threads per arm (0: torch's own with one job, the usable cores shared out
     with more). The arms share nothing but the machine, so on the CPU the figures are the same
-    as one after the other at the same ``threads``. ArmFailed when an arm's process fails.
+    as one after the other at the same ``threads``. ArmFailed when an arm's process fails, once the others are
+    stopped and the rounds they had finished summarised as a stopped run's (``stopped_by`` "failure"; the
+    exception's ``summary``).
     """
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -331,7 +333,7 @@ def run_bench(cfg: LoopBenchConfig, out_dir: Path, collect: Collect, make_eval_s
     if jobs > 1 and not threads:
         threads = max(1, len(os.sched_getaffinity(0)) // min(jobs, len(runs)))
     start = time.perf_counter()
-    stopped_by = None
+    stopped_by, failure = None, None
     try:
         with sigterm_raises():
             if jobs > 1:
@@ -344,25 +346,37 @@ def run_bench(cfg: LoopBenchConfig, out_dir: Path, collect: Collect, make_eval_s
                     run_arm(arm, seed, cfg, data_dir, collect, make_eval_split, log)
     except (KeyboardInterrupt, Terminated) as exc:
         stopped_by = "SIGTERM" if isinstance(exc, Terminated) else "SIGINT"
+    except ArmFailed as exc:
+        stopped_by, failure = "failure", exc
     points = [p for _, _, data_dir in runs if (data_dir / ARM_POINTS).exists()
               for p in json.loads((data_dir / ARM_POINTS).read_text())]
     summary = {"config": cfg.to_json(), "points": points, "h1": summarize(points, cfg, "h1_mse"),
                "h5": summarize(points, cfg, "h5_mse"), "seconds": round(time.perf_counter() - start, 1),
                "jobs": jobs, "threads": threads or None, "interrupted": stopped_by is not None,
-               "stopped_by": stopped_by,
+               "stopped_by": stopped_by, "failure": None if failure is None else str(failure),
                "transport": "in-process collection (no Zenoh); real queue, catalog, trainer and gate"}
-    if not points:  # stopped before any round: nothing measured, nothing written
-        return summary
-    plot(points, out_dir / "loop.png")
+    if points:  # (stopped before any round: nothing measured, nothing written)
+        _write_summary(summary, out_dir)
+    if failure is not None:
+        failure.summary = summary if points else None
+        raise failure
+    return summary
+
+
+def _write_summary(summary: dict, out_dir: Path) -> None:
+    """``loop.png`` (its path added to ``summary``), then ``summary.json``, in ``out_dir``."""
+    plot(summary["points"], out_dir / "loop.png")
     summary["plot"] = str(out_dir / "loop.png")
     # (h5 of episodes too short for it is NaN: null, so that strict parsers read the file)
     write_bytes_atomic(out_dir / "summary.json",
                        json.dumps(finite_json(summary), indent=2, default=str, allow_nan=False).encode())
-    return summary
 
 
 class ArmFailed(RuntimeError):
-    """An arm's process of a ``run_bench`` with ``jobs`` > 1 ended without its figures (its error went to stderr)."""
+    """An arm's process of a ``run_bench`` with ``jobs`` > 1 ended without its figures (its error went to stderr).
+    ``summary``: the run's, of the rounds finished before (written to summary.json), or None when there were none."""
+
+    summary: dict | None = None
 
 
 def _run_apart(runs: list[tuple[int, str, Path]], cfg: LoopBenchConfig, collect: Collect,

@@ -35,7 +35,8 @@ def register_bench(bench: argparse._SubParsersAction) -> None:
                                      "in rounds of --round with the simulator, retraining after each round, and "
                                      "the eval error is recorded per episodes collected; summary.json and a plot "
                                      "go to --out. Takes minutes. Ctrl-C or SIGTERM stops the arms and "
-                                     "summarises the rounds both arms of a seed had finished (exit 130 / 143).")
+                                     "summarises the rounds both arms of a seed had finished (exit 130 / 143); "
+                                     "so does an arm that fails (exit 1).")
     common.add_json_arg(p)
     p.add_argument("--seeds", type=common.positive_int, default=len(d.seeds), metavar="N",
                    help=f"seeds 0..N-1, one run of each arm per seed (default {len(d.seeds)})")
@@ -198,7 +199,8 @@ def _bench_loop(args: argparse.Namespace) -> int:
         summary = run_bench(cfg, out, bench_collect, collect_cli.make_eval_split, log=log_stderr, jobs=args.jobs,
                             threads=args.threads)
     except ArmFailed as exc:
-        print(f"activecollect: {exc}", file=sys.stderr)
+        kept = f"; the rounds finished before are in {out / 'summary.json'}" if exc.summary else ""
+        print(f"activecollect: {exc}{kept}", file=sys.stderr)
         return 1
     if args.json:
         common.print_json(finite_json(summary))  # (h5 of episodes too short for it is NaN: not JSON)

@@ -67,13 +67,20 @@ def _collect_dying_in_seed_1(request, seed, image_size, palette=None):
 
 
 def test_an_arm_whose_process_is_killed_stops_the_run_with_its_name(tmp_path):
+    """... and what the other arms had finished is summarised (two jobs: seed 0's arms finish before seed 1's
+    start)."""
     cfg = LoopBenchConfig(seeds=(0, 1), budget=4, round_episodes=2, steps=12, image_size=16,
                           train=TrainConfig(members=2, epochs=1, batch_size=8, widths=(4, 8, 8), device="cpu",
                                             progress=False, min_rel_improvement=0.0))
-    with pytest.raises(ArmFailed, match=r"the (active|uniform) arm of seed 1 failed \(exit code -9\)"):
-        run_bench(cfg, tmp_path / "o", _collect_dying_in_seed_1, make_eval_split, jobs=4, threads=1)
-    assert not (tmp_path / "o" / "summary.json").exists()
+    with pytest.raises(ArmFailed, match=r"the (active|uniform) arm of seed 1 failed \(exit code -9\)") as failed:
+        run_bench(cfg, tmp_path / "o", _collect_dying_in_seed_1, make_eval_split, jobs=2, threads=1)
     assert not list((tmp_path / "o").glob("seed1/*/" + ARM_POINTS))
+    summary = json.loads((tmp_path / "o" / "summary.json").read_text())
+    assert summary == json.loads(json.dumps(failed.value.summary))
+    assert (summary["interrupted"], summary["stopped_by"], summary["failure"]) == (True, "failure", str(failed.value))
+    assert [(p["seed"], p["arm"], p["episodes"]) for p in summary["points"]] == [
+        (0, a, e) for a in ("active", "uniform") for e in (2, 4)]
+    assert [r["seed"] for r in summary["h1"]["per_seed"]] == [0] and summary["h1"]["headline"]["budget"] == 4
 
 
 def _collect_checking_determinism(request, seed, image_size, palette=None):
