@@ -21,17 +21,13 @@ for the CLI's parser). The active arm ranks steps by its ``signal`` (see
 (``_bench_id``), so training reads them in the same order in every run and two runs
 of one configuration give the same numbers.
 
-Headline: the episodes the uniform arm needs to reach the active arm's final eval
-error, divided by the active arm's budget, interpolated on the mean curves, with the per-seed values
-(< 1: uniform reached active's final error with fewer episodes; None: not within the budget,
-i.e. active ended ahead), and the same the other way round.
+The summary, its headline and the plot are ``orchestrator.loopsummary``'s.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import json
-import math
 import multiprocessing
 import os
 import signal
@@ -43,10 +39,11 @@ from pathlib import Path
 from typing import Callable, Mapping, Sequence
 
 import numpy as np
-from matplotlib.figure import Figure
 
 from orchestrator.champion import ChampionScorer, limit_torch_threads, make_torch_deterministic
 from orchestrator.loopconfig import HEAD_SIGNALS, LoopBenchConfig
+from orchestrator.loopsummary import (ARM_POINTS, ARMS, arm_dir, read_points, summary as make_summary,
+                                      write_config, write_summary)
 from orchestrator.planner import ActivePlanner, Planner, Scores, in_eval_split
 from orchestrator.uniform import UniformPlanner
 from orchestrator.retrain import run_retrain
@@ -54,7 +51,6 @@ from orchestrator.retrainjob import die_with_parent
 from orchestrator.signals import Terminated, sigterm_raises
 from storage.catalog import Catalog
 from storage.files import write_bytes_atomic
-from storage.jsonsafe import finite_json
 from storage.queue import RequestQueue
 from storage.requests import Request
 from storage.records import Episode
@@ -70,11 +66,8 @@ Collect = Callable[[Request, int, int, Palette], Episode]
 #: Creates (or checks) the pinned eval split in a catalog: (catalog, episodes, seed, steps, image size,
 #: random physics, palette) -> hash.
 MakeEvalSplit = Callable[[Catalog, int, int, int, int, bool, Palette], str]
-ARMS = ("active", "uniform")
 #: Seconds a stopped arm's process has to exit before it is killed.
 ARM_EXIT_S = 10.0
-#: Where an arm leaves its points for ``run_bench``, rewritten after each retrain (in the arm's data directory).
-ARM_POINTS = "points.json"
 #: The ``object_pixels`` signal's object (body and marker); the rest of a frame is ``workers.env.scene_colours``
 #: of its size (the walls' anti-aliased edges differ with it, and some are nearer the object's blue than grey).
 OBJECT_COLOURS = (OBJECT_RGB, MARKER_RGB)
@@ -209,108 +202,11 @@ def _point(arm: str, seed: int, episodes: int, result: dict, seconds: float, req
             "round_shapes": counts([r.shape for r in requests])}
 
 
-def episodes_to_reach(curve: Sequence[tuple[int, float]], target: float) -> float:
-    """First episode count at which a (episodes, error) curve reaches ``target`` (linear
-    interpolation between points); ``inf`` when it never does."""
-    prev = None
-    for x, y in curve:
-        if y <= target:
-            if prev is None or prev[1] == y:
-                return float(x)
-            (x0, y0) = prev
-            return float(x0 + (x - x0) * (y0 - target) / (y0 - y))
-        prev = (x, y)
-    return math.inf
-
-
-def comparable(points: list[dict]) -> list[dict]:
-    """The points at the episode counts that both arms of their seed reached: all of a finished run's (the arms
-    retrain at the same counts), the rounds both arms finished of a stopped run's."""
-    arms: dict[tuple[int, int], set[str]] = {}
-    for p in points:
-        arms.setdefault((p["seed"], p["episodes"]), set()).add(p["arm"])
-    return [p for p in points if arms[(p["seed"], p["episodes"])] == set(ARMS)]
-
-
-def summarize(points: list[dict], cfg: LoopBenchConfig, metric: str = "h1_mse") -> dict:
-    """Mean and spread per arm and episode count, and the headline ratios (per seed and on the means), over the
-    ``comparable`` points; the headline is None when there are none (a run stopped before both arms of a seed
-    finished a round)."""
-    points = comparable(points)
-    curves: dict[str, dict] = {}
-    for arm in ARMS:
-        by_ep: dict[int, list[float]] = {}
-        for p in points:
-            if p["arm"] == arm:
-                by_ep.setdefault(p["episodes"], []).append(float(p[metric]))
-        curves[arm] = {str(e): {"mean": float(np.mean(v)), "std": float(np.std(v)), "n": len(v)}
-                       for e, v in sorted(by_ep.items())}
-    mean = {arm: [(int(e), s["mean"]) for e, s in curves[arm].items()] for arm in ARMS}
-    per_seed = []
-    for seed in cfg.seeds:
-        c = {arm: [(p["episodes"], float(p[metric])) for p in points if p["arm"] == arm and p["seed"] == seed]
-             for arm in ARMS}
-        if all(c.values()):
-            per_seed.append(_ratios(c["active"], c["uniform"]) | {"seed": seed})
-    headline = _ratios(mean["active"], mean["uniform"]) if points else None
-    return {"metric": metric, "curves": curves, "headline": headline, "per_seed": per_seed, "paired": _paired(per_seed)}
-
-
-def _paired(per_seed: list[dict]) -> dict:
-    """Each seed's final error of the active arm over the uniform arm's, less 1 (negative: active ahead), with
-    their mean and spread and how many seeds have active behind: the comparison BENCHMARKS.md quotes."""
-    diffs = [r["active_final"] / r["uniform_final"] - 1 for r in per_seed]
-    finite = [d for d in diffs if math.isfinite(d)]
-    return {"per_seed": diffs, "mean": float(np.mean(finite)) if finite else None,
-            "std": float(np.std(finite)) if finite else None, "active_behind": sum(d > 0 for d in finite),
-            "seeds": len(finite)}
-
-
-def _ratios(active: list[tuple[int, float]], uniform: list[tuple[int, float]]) -> dict:
-    """uniform_needed / budget to match active's final error, and active_needed / budget for uniform's."""
-    a_final, u_final = active[-1][1], uniform[-1][1]
-    budget = active[-1][0]
-    u_need = episodes_to_reach(uniform, a_final)
-    a_need = episodes_to_reach(active, u_final)
-    finite = lambda v: v if math.isfinite(v) else None  # noqa: E731 (None: not reached within the budget)
-    return {"active_final": a_final, "uniform_final": u_final,
-            "uniform_episodes_to_match_active": finite(u_need), "active_episodes_to_match_uniform": finite(a_need),
-            "uniform_over_active_ratio": u_need / budget if math.isfinite(u_need) else None,
-            "active_over_uniform_ratio": a_need / budget if math.isfinite(a_need) else None,
-            "budget": budget}
-
-
-def plot(points: list[dict], path: Path) -> None:
-    """Mean +- std eval MSE (h1 and h5) per episodes collected, both arms."""
-    fig = Figure(figsize=(10, 3.8))
-    for i, metric in enumerate(("h1_mse", "h5_mse")):
-        ax = fig.add_subplot(1, 2, i + 1)
-        for arm, color in zip(ARMS, ("#c62828", "#1565c0")):
-            by_ep: dict[int, list[float]] = {}
-            for p in points:
-                if p["arm"] == arm and p[metric] is not None and math.isfinite(p[metric]):
-                    by_ep.setdefault(p["episodes"], []).append(p[metric])
-            if not by_ep:  # e.g. h5 of episodes shorter than the context plus the longest eval horizon
-                continue
-            xs = sorted(by_ep)
-            mu = np.array([np.mean(by_ep[x]) for x in xs])
-            sd = np.array([np.std(by_ep[x]) for x in xs])
-            ax.plot(xs, mu, "o-", color=color, label=f"{arm} (mean of {len(by_ep[xs[-1]])} seeds)")
-            ax.fill_between(xs, mu - sd, mu + sd, color=color, alpha=0.15)
-        ax.set_xlabel("training episodes collected")
-        ax.set_ylabel(f"eval {metric.replace('_', ' ')}")
-        ax.grid(alpha=0.3)
-        if ax.get_legend_handles_labels()[0]:
-            ax.legend(fontsize=8)
-        else:
-            ax.text(0.5, 0.5, "no finite values", ha="center", va="center", transform=ax.transAxes)
-    fig.suptitle("activecollect bench loop: active vs uniform planner")
-    fig.savefig(path, dpi=100, bbox_inches="tight")
-
-
 def run_bench(cfg: LoopBenchConfig, out_dir: Path, collect: Collect, make_eval_split: MakeEvalSplit,
               log: Callable[[str], None] = print, jobs: int = 1, threads: int = 0) -> dict:
-    """Every seed, both arms; writes ``summary.json`` and ``loop.png`` in ``out_dir``; returns the summary.
+    """Every seed, both arms; writes ``summary.json`` and ``loop.png`` in ``out_dir``; returns the summary. The
+    configuration goes to ``out_dir/config.json`` first, so that a run killed outright (no chance to summarise)
+    can be summarised from its arms' points afterwards (``loopsummary.rebuild``, ``bench loop-summary``).
 
     Stopped by Ctrl-C or SIGTERM (a timeout's, a supervisor's), it stops the arms and summarises the rounds they
     had finished: ``interrupted`` true and ``stopped_by`` the signal's name in the summary, the comparison over
@@ -326,12 +222,13 @@ def run_bench(cfg: LoopBenchConfig, out_dir: Path, collect: Collect, make_eval_s
     """
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    runs = [(seed, arm, out_dir / f"seed{seed}" / arm) for seed in cfg.seeds for arm in ARMS]
+    runs = [(seed, arm, arm_dir(out_dir, seed, arm)) for seed in cfg.seeds for arm in ARMS]
     for _, _, data_dir in runs:
         if (data_dir / "catalog.sqlite").exists():
             raise ValueError(f"{data_dir} already holds a catalog; give bench loop a fresh --out")
     if jobs > 1 and not threads:
         threads = max(1, len(os.sched_getaffinity(0)) // min(jobs, len(runs)))
+    write_config(out_dir, cfg.to_json(), jobs, threads or None)  # (what `bench loop-summary` needs if killed)
     start = time.perf_counter()
     stopped_by, failure = None, None
     try:
@@ -348,28 +245,16 @@ def run_bench(cfg: LoopBenchConfig, out_dir: Path, collect: Collect, make_eval_s
         stopped_by = "SIGTERM" if isinstance(exc, Terminated) else "SIGINT"
     except ArmFailed as exc:
         stopped_by, failure = "failure", exc
-    points = [p for _, _, data_dir in runs if (data_dir / ARM_POINTS).exists()
-              for p in json.loads((data_dir / ARM_POINTS).read_text())]
-    summary = {"config": cfg.to_json(), "points": points, "h1": summarize(points, cfg, "h1_mse"),
-               "h5": summarize(points, cfg, "h5_mse"), "seconds": round(time.perf_counter() - start, 1),
-               "jobs": jobs, "threads": threads or None, "interrupted": stopped_by is not None,
-               "stopped_by": stopped_by, "failure": None if failure is None else str(failure),
-               "transport": "in-process collection (no Zenoh); real queue, catalog, trainer and gate"}
+    points = read_points(out_dir, cfg.seeds)
+    summary = make_summary(cfg.to_json(), cfg.seeds, points, interrupted=stopped_by is not None,
+                           stopped_by=stopped_by, failure=None if failure is None else str(failure),
+                           seconds=round(time.perf_counter() - start, 1), jobs=jobs, threads=threads or None)
     if points:  # (stopped before any round: nothing measured, nothing written)
-        _write_summary(summary, out_dir)
+        write_summary(summary, out_dir)
     if failure is not None:
         failure.summary = summary if points else None
         raise failure
     return summary
-
-
-def _write_summary(summary: dict, out_dir: Path) -> None:
-    """``loop.png`` (its path added to ``summary``), then ``summary.json``, in ``out_dir``."""
-    plot(summary["points"], out_dir / "loop.png")
-    summary["plot"] = str(out_dir / "loop.png")
-    # (h5 of episodes too short for it is NaN: null, so that strict parsers read the file)
-    write_bytes_atomic(out_dir / "summary.json",
-                       json.dumps(finite_json(summary), indent=2, default=str, allow_nan=False).encode())
 
 
 class ArmFailed(RuntimeError):

@@ -29,7 +29,7 @@ def build_parser() -> common.Parser:
     )
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=common.Parser)
     sub.required = True
-    bench = sub.add_parser("bench", help="benchmarks (sim, score, dispatch, loop); --json for figures")
+    bench = sub.add_parser("bench", help="benchmarks (sim, score, dispatch, loop, loop-summary); --json for figures")
     bench_sub = bench.add_subparsers(dest="bench", metavar="BENCH", parser_class=common.Parser)
     bench_sub.required = True
     for module in _MODULES:

@@ -36,7 +36,8 @@ def register_bench(bench: argparse._SubParsersAction) -> None:
                                      "the eval error is recorded per episodes collected; summary.json and a plot "
                                      "go to --out. Takes minutes. Ctrl-C or SIGTERM stops the arms and "
                                      "summarises the rounds both arms of a seed had finished (exit 130 / 143); "
-                                     "so does an arm that fails (exit 1).")
+                                     "so does an arm that fails (exit 1). A run killed outright (SIGKILL, the "
+                                     "machine lost) is summarised afterwards by `bench loop-summary DIR`.")
     common.add_json_arg(p)
     p.add_argument("--seeds", type=common.positive_int, default=len(d.seeds), metavar="N",
                    help=f"seeds 0..N-1, one run of each arm per seed (default {len(d.seeds)})")
@@ -129,6 +130,19 @@ def register_bench(bench: argparse._SubParsersAction) -> None:
     p.add_argument("--out", type=lambda t: common.directory_path(t, "an output directory"), metavar="DIR",
                    help="output directory (default ./activecollect-bench/loop-<timestamp>)")
     p.set_defaults(func=_bench_loop)
+    p = bench.add_parser("loop-summary", help="summarise a bench loop run that was killed, or is still running",
+                         description="Writes summary.json and loop.png in DIR, the --out of a bench loop run that "
+                                     "could not write them (killed outright: SIGKILL, an out-of-memory kill, the "
+                                     "machine lost) or is still running, from the configuration it wrote when it "
+                                     "started and the points each arm wrote after each retrain: the comparison "
+                                     "over the rounds both arms of a seed finished, marked \"rebuilt\" (and "
+                                     "\"interrupted\" unless every arm reached the budget). A summary the run "
+                                     "wrote itself is kept (exit 1); a run still going replaces the rebuilt one "
+                                     "with its own when it ends. Needs no torch: seconds.")
+    common.add_json_arg(p)
+    p.add_argument("dir", type=lambda t: common.directory_path(t, "a bench loop output directory"), metavar="DIR",
+                   help="the bench loop run's --out")
+    p.set_defaults(func=_loop_summary)
 
 
 def shape_weights(text: str) -> tuple[float, ...]:
@@ -213,11 +227,33 @@ def _bench_loop(args: argparse.Namespace) -> int:
     return 0
 
 
+def _loop_summary(args: argparse.Namespace) -> int:
+    from orchestrator.loopsummary import CONFIG, SummaryError, rebuild  # (matplotlib: only for this command)
+    if not args.dir.is_dir():
+        raise common.UsageError(f"no such directory: {args.dir}")
+    if not (args.dir / CONFIG).is_file():
+        raise common.UsageError(f"{args.dir} holds no {CONFIG}: not the --out of a bench loop run (or of one from "
+                                "before 2026-11-27, which did not write it)")
+    try:
+        summary = rebuild(args.dir)
+    except SummaryError as exc:
+        print(f"activecollect: cannot summarise: {exc}", file=sys.stderr)
+        return 1
+    if args.json:
+        common.print_json(finite_json(summary))
+    else:
+        _print_summary(summary, args.dir)
+    return 0
+
+
 def _print_summary(summary: dict, out: Path) -> None:
     if not summary["points"]:  # (stopped before any round: the message says so)
         return
+    if summary.get("rebuilt"):
+        print("rebuilt from the points the arms wrote (the run did not summarise itself)")
     if summary["interrupted"]:
-        print(f"stopped by {summary['stopped_by']}: the comparison covers the rounds both arms of a seed finished")
+        by = f" by {summary['stopped_by']}" if summary["stopped_by"] else ""
+        print(f"stopped{by}: the comparison covers the rounds both arms of a seed finished")
     upto = "both arms' last round at" if summary["interrupted"] else "budget"
     for metric in ("h1", "h5"):
         h = summary[metric]["headline"]
@@ -231,7 +267,8 @@ def _print_summary(summary: dict, out: Path) -> None:
         if paired["mean"] is not None:
             print(f"  active's final over uniform's, per seed: {paired['mean']:+.2%} ± {paired['std']:.2%} "
                   f"(active behind in {paired['active_behind']} of {paired['seeds']} seeds)")
-    print(f"plot: {summary['plot']}\nsummary: {out / 'summary.json'}  ({summary['seconds']:.0f} s)")
+    took = "" if summary["seconds"] is None else f"  ({summary['seconds']:.0f} s)"
+    print(f"plot: {summary['plot']}\nsummary: {out / 'summary.json'}{took}")
 
 
 def _eps(v: float | None) -> str:

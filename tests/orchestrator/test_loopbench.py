@@ -11,9 +11,9 @@ import numpy as np
 import pytest
 import torch
 
-from orchestrator.loopbench import (ARMS, OBJECT_COLOURS, LoopBenchConfig, _bench_id, episodes_to_reach, object_colours,
-                                    palette_of, summarize)
+from orchestrator.loopbench import OBJECT_COLOURS, LoopBenchConfig, _bench_id, object_colours, palette_of
 from orchestrator.loopconfig import RunConfig
+from orchestrator.loopsummary import ARMS, episodes_to_reach, summarize
 from orchestrator.protocol import PHYSICS_RANGES, SHAPES
 from storage.catalog import Catalog
 from storage.records import Episode, EpisodeMeta
@@ -37,7 +37,7 @@ def test_summary_headline_and_spread():
         for ep, (a, u) in zip((16, 32, 48), ((1.0, 1.0), (0.7, 0.8), (0.5, 0.7))):
             points.append({"arm": "active", "seed": seed, "episodes": ep, "h1_mse": a + shift})
             points.append({"arm": "uniform", "seed": seed, "episodes": ep, "h1_mse": u + shift})
-    s = summarize(points, cfg, "h1_mse")
+    s = summarize(points, cfg.seeds, "h1_mse")
     assert s["curves"]["active"]["48"] == {"mean": pytest.approx(0.55), "std": pytest.approx(0.05), "n": 2}
     h = s["headline"]
     # active reaches uniform's final 0.75 at 16 + 16 * (1.05 - 0.75) / (1.05 - 0.75) = 32 episodes
@@ -58,13 +58,13 @@ def test_a_stopped_runs_summary_compares_only_the_rounds_both_arms_of_a_seed_fin
     reached = {(0, "active"): (16, 32, 48), (0, "uniform"): (16, 32), (1, "active"): (16,), (1, "uniform"): ()}
     points = [{"arm": arm, "seed": seed, "episodes": ep, "h1_mse": 1.0 - ep / 100 + (arm == "active") * 0.01}
               for (seed, arm), eps in reached.items() for ep in eps]
-    s = summarize(points, cfg, "h1_mse")
+    s = summarize(points, cfg.seeds, "h1_mse")
     assert list(s["curves"]["active"]) == list(s["curves"]["uniform"]) == ["16", "32"]
     assert s["curves"]["active"]["32"]["n"] == 1
     assert s["headline"]["budget"] == 32 and s["headline"]["active_final"] == pytest.approx(0.69)
     assert [p["seed"] for p in s["per_seed"]] == [0]
     assert s["paired"]["per_seed"] == pytest.approx([0.69 / 0.68 - 1])
-    only_one_arm = summarize([p for p in points if p["arm"] == "active"], cfg, "h1_mse")
+    only_one_arm = summarize([p for p in points if p["arm"] == "active"], cfg.seeds, "h1_mse")
     assert only_one_arm["headline"] is None and only_one_arm["per_seed"] == [] and only_one_arm["paired"]["seeds"] == 0
 
 

@@ -210,3 +210,32 @@ def test_a_stopped_run_summarises_the_rounds_its_arms_had_finished(tmp_path, job
         assert [r["seed"] for r in summary["h1"]["per_seed"]] == [0]
         assert "stopped by SIGTERM: the comparison covers the rounds both arms of a seed finished" in stdout
     assert (out / "loop.png").is_file()
+
+
+def test_a_killed_run_is_summarised_afterwards_from_its_arms_points(tmp_path, capsys):
+    """SIGKILL to the whole run (an out-of-memory kill, the machine lost) once its arms have finished rounds: no
+    summary, but `bench loop-summary DIR` writes the one a stopped run writes, from the configuration and points it
+    left, marked rebuilt."""
+    out = tmp_path / "o"
+    cmd = [sys.executable, "-m", "orchestrator", "bench", "loop", "--seeds", "1", "--budget", "2000", "--round", "2",
+           "--steps", "12", "--image-size", "16", "--epochs", "1", "--members", "2", "--jobs", "2",
+           "--threads", "1", "--out", str(out)]
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
+    try:
+        wait_for(lambda: all((out / "seed0" / arm / ARM_POINTS).exists() for arm in ("active", "uniform")),
+                 timeout=120, message="a finished round in each arm")
+    finally:
+        _stop(proc, signal.SIGKILL, group=True)
+    assert not (out / "summary.json").exists()
+    assert json.loads((out / "config.json").read_text())["config"]["budget"] == 2000
+    rc, stdout, err = run_cli(capsys, "bench", "loop-summary", str(out))
+    assert rc == 0, err
+    summary = json.loads((out / "summary.json").read_text())
+    written = [p for arm in ("active", "uniform") for p in json.loads((out / "seed0" / arm / ARM_POINTS).read_text())]
+    assert summary["points"] == written and (summary["rebuilt"], summary["interrupted"]) == (True, True)
+    assert (summary["stopped_by"], summary["seconds"], summary["jobs"], summary["threads"]) == (None, None, 2, 1)
+    last = {arm: max(p["episodes"] for p in written if p["arm"] == arm) for arm in ("active", "uniform")}
+    assert summary["h1"]["headline"]["budget"] == min(last.values()) and (out / "loop.png").is_file()
+    assert "rebuilt from the points the arms wrote" in stdout and "stopped: the comparison covers" in stdout
+    rc, stdout, _ = run_cli(capsys, "bench", "loop-summary", "--json", str(out))  # (a rebuilt summary: rebuilt again)
+    assert rc == 0 and json.loads(stdout)["points"] == written
