@@ -188,10 +188,15 @@ def _arm_points(path: Path, seed: int, arm: str) -> list[dict]:
     fields = {"arm": arm, "seed": seed}
     if not isinstance(got, list) or not all(
             isinstance(p, dict) and all(p.get(k) == v for k, v in fields.items())
-            and isinstance(p.get("episodes"), int) and all(k in p for k in ("h1_mse", "h5_mse")) for p in got):
+            and isinstance(p.get("episodes"), int) and all(_number(p.get(k)) for k in ("h1_mse", "h5_mse"))
+            for p in got):
         raise SummaryError(f"{path}: not the points of the {arm} arm of seed {seed} (a list of retrains with their "
-                           "arm, seed, episodes, h1_mse and h5_mse)")
+                           "arm, seed, episodes, and h1_mse and h5_mse as numbers)")
     return got
+
+
+def _number(value: object) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool)  # (NaN too: h5 of short episodes)
 
 
 def _read_json(path: Path) -> object:

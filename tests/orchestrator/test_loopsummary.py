@@ -59,6 +59,9 @@ def test_the_rounds_both_arms_of_a_seed_finished_are_compared(tmp_path, capsys):
     (lambda d: (arm_dir(d, 0, "uniform") / ARM_POINTS).write_text("[{"), 1, "uniform/points.json: not JSON"),
     (lambda d: (arm_dir(d, 0, "uniform") / ARM_POINTS).write_text('[{"arm": "active", "seed": 0, "episodes": 2}]'),
      1, "uniform/points.json: not the points of the uniform arm of seed 0"),
+    (lambda d: (arm_dir(d, 0, "active") / ARM_POINTS).write_text(
+        '[{"arm": "active", "seed": 0, "episodes": 2, "h1_mse": null, "h5_mse": 1.0}]'),
+     1, "active/points.json: not the points of the active arm of seed 0"),
     (lambda d: [(arm_dir(d, 0, arm) / ARM_POINTS).unlink() for arm in ("active", "uniform")], 1,
      "no round had finished in"),
 ])
