@@ -378,17 +378,16 @@ def disk_line(disk: dict[str, int] | None) -> str:
 def cmd_watch(args: argparse.Namespace) -> int:
     """Print events as they come; first checks that a service answers."""
     keys = namespace_keys(args)
-    seen = threading.Semaphore(0)
+    left = _Countdown(args.count)
     try:
         with _session(args) as session:
             admin_call(session, keys, "stats", {}, args.timeout, args.zenoh_config)
-            sub = session.declare_subscriber(keys.events_all, lambda s: _print_event(s, args.json, seen))
+            sub = session.declare_subscriber(keys.events_all, lambda s: _print_event(s, args.json, left))
             querier, listener = _follow_service(session, keys)
             if not args.json:
                 print(f"watching {keys.events_all} (Ctrl-C to stop)", flush=True)
             try:
-                for _ in range(args.count or sys.maxsize):
-                    seen.acquire()
+                left.done.wait()
             finally:
                 listener.undeclare()
                 querier.undeclare()
@@ -417,15 +416,30 @@ def _follow_service(session: zenoh.Session, keys: Keys) -> tuple[zenoh.Querier, 
     return querier, querier.declare_matching_listener(changed)
 
 
-def _print_event(sample: zenoh.Sample, as_json: bool, seen: threading.Semaphore) -> None:
+class _Countdown:
+    """The events ``watch`` has yet to print (``--count``; None: no end); ``done`` is set once it has printed them.
+    Zenoh hands the subscriber events while the command ends too: those are not printed."""
+
+    def __init__(self, count: int | None) -> None:
+        self.left, self.lock, self.done = count, threading.Lock(), threading.Event()
+
+
+def _print_event(sample: zenoh.Sample, as_json: bool, left: _Countdown) -> None:
     try:
         event = Event.from_json(sample.payload.to_bytes())
     except ProtocolError as exc:
         print(f"# unreadable event on {sample.key_expr}: {exc}", file=sys.stderr, flush=True)
         return
     if as_json:
-        print(json.dumps(event.to_dict(), sort_keys=True), flush=True)
+        line = json.dumps(event.to_dict(), sort_keys=True)
     else:
         data = " ".join(f"{k}={v}" for k, v in sorted(event.data.items()))
-        print(f"{_fmt_time(event.at)} {event.kind:20} {data}", flush=True)
-    seen.release()
+        line = f"{_fmt_time(event.at)} {event.kind:20} {data}"
+    with left.lock:  # (one event at a time: the N-th is printed before the command may end)
+        if left.done.is_set():
+            return
+        print(line, flush=True)
+        if left.left is not None:
+            left.left -= 1
+            if left.left == 0:
+                left.done.set()

@@ -255,3 +255,25 @@ def test_serve_reports_a_storage_error_at_start_in_one_line_and_stops_what_it_st
     wait_for(lambda: port_free(port), message="the service's Zenoh listener to close")
     assert rc == 1 and err.count("\n") == 1 and err.startswith("activecollect serve: "), err
     assert ("no new requests here" if failing == "seed" else "disk I/O error") in err
+
+
+def test_watch_count_prints_exactly_that_many_events_of_a_burst(service, endpoint, namespace, capsys) -> None:
+    """Events that arrive together (a worker's lease, done and stored in one millisecond): ``--count N`` prints
+    N of them, not the ones its subscriber was handed while the command was ending."""
+    result: dict = {}
+
+    def watch() -> None:
+        result["rc"] = main(["watch", "--count", "3", "--json", "--connect", endpoint, "--namespace", namespace])
+
+    t = threading.Thread(target=watch)
+    t.start()
+    n = 0
+    while t.is_alive() and n < 20 * 400:  # bursts until the watcher (subscribed after its first query) has its 3
+        for _ in range(20):
+            service.publish("request.queued", {"request_id": f"r{n}", "source": "test"})
+            n += 1
+        t.join(0.05)
+    t.join(10)
+    assert result.get("rc") == 0
+    lines = capsys.readouterr().out.strip().splitlines()
+    assert len(lines) == 3 and all(json.loads(line)["kind"] == "request.queued" for line in lines), lines
