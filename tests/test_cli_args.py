@@ -355,3 +355,10 @@ def test_config_errors_name_flags_but_leave_paths_and_quoted_values_alone():
         "need --round >= 1, found --round=16"
     message = "expected an empty directory at /data/image_size, found 'mode' in notes_mode.txt"
     assert str(config_error(ValueError(message), {"image_size": "--size", "mode": "--mode"})) == message
+
+
+def test_version_prints_the_installed_distributions_version(capsys) -> None:
+    import importlib.metadata
+
+    rc, out, err = run_cli(capsys, "--version")
+    assert (rc, out, err) == (0, f"activecollect {importlib.metadata.version('activecollect')}\n", "")

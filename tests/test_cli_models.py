@@ -429,3 +429,16 @@ def test_reading_commands_make_no_catalog_where_there_is_none(capsys, tmp_path, 
     plain.mkdir()
     rc, out, err = run_cli(capsys, *argv, "--data", str(plain))
     assert rc == 2 and "no catalog at" in err and err.count("\n") == 1 and list(plain.iterdir()) == []
+
+
+def test_eval_text_says_which_horizons_the_eval_episodes_are_too_short_for(capsys) -> None:
+    from orchestrator.cli.models import _print_eval
+
+    nan = math.nan
+    _print_eval({"h1_mse": 1e-3, "h1_psnr": 30.0, "h1_ssim": 0.9, "baseline_h1_mse": 2e-3, "baseline_h1_psnr": 27.0,
+                 "h5_mse": 4e-3, "h5_psnr": 24.0, "h5_ssim": 0.8, "baseline_h5_mse": 5e-3, "baseline_h5_psnr": 23.0,
+                 "h10_mse": nan, "h10_psnr": nan, "h10_ssim": nan, "spearman": 0.4, "eval_episodes": 2,
+                 "eval_windows": 16})
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[0].startswith("eval h1   mse      0.001  psnr  30.00 dB") and "copy-last mse      0.002" in lines[0]
+    assert lines[2] == "eval h10  undefined: no eval episode is long enough for horizon 10"

@@ -7,6 +7,7 @@ for benchmarks, ``register_bench(bench_subparsers)``; every sub-parser sets
 
 from __future__ import annotations
 
+import importlib.metadata
 import os
 import signal
 import sys
@@ -27,6 +28,7 @@ def build_parser() -> common.Parser:
         description="Active data collection for robot world models: an ensemble's disagreement "
                     "decides where simulated pushing collectors gather the next episodes.",
     )
+    parser.add_argument("--version", action="version", version=f"activecollect {_version()}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=common.Parser)
     sub.required = True
     bench = sub.add_parser("bench", help="benchmarks (sim, score, dispatch, loop, loop-summary); --json for figures")
@@ -38,6 +40,15 @@ def build_parser() -> common.Parser:
         if hasattr(module, "register_bench"):
             module.register_bench(bench_sub)
     return parser
+
+
+def _version() -> str:
+    """The installed distribution's version (pyproject.toml's); "unknown" when the package runs uninstalled (from
+    a source tree on ``PYTHONPATH``)."""
+    try:
+        return importlib.metadata.version("activecollect")
+    except importlib.metadata.PackageNotFoundError:
+        return "unknown (not installed: run from a source tree)"
 
 
 def main(argv: list[str] | None = None) -> int:

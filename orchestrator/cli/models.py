@@ -75,7 +75,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                        description="The champion members' per-step disagreement on one episode (from the catalog, "
                                    "or an .mcap file) and its K most uncertain, well-separated states: what the "
                                    "active planner would ask to collect from. Changes nothing; exit 1 when there is "
-                                   "no champion or the episode cannot be read.")
+                                   "no champion or the episode cannot be read (a damaged file), 2 when there is no "
+                                   "such episode.")
     p.add_argument("episode", metavar="EPISODE", help="an episode id (or unique prefix) in the catalog, "
                                                       "or a path to an .mcap file")
     p.add_argument("--top", type=common.positive_int, default=5, metavar="K",
@@ -156,7 +157,9 @@ def _train(args: argparse.Namespace) -> int:
 
 def _print_eval(m: dict[str, Any]) -> None:
     for h in (1, 5, 10):
-        if f"h{h}_mse" in m:
+        if num(m.get(f"h{h}_mse")) == "undefined" and f"baseline_h{h}_mse" not in m:  # (train's NaN: no window)
+            print(f"eval h{h:<2}  undefined: no eval episode is long enough for horizon {h}")
+        elif f"h{h}_mse" in m:
             print(f"eval h{h:<2}  mse {num(m.get(f'h{h}_mse')):>10}  psnr {num(m.get(f'h{h}_psnr'), '.2f'):>6} dB  "
                   f"ssim {num(m.get(f'h{h}_ssim'), '.3f'):>6}  | copy-last mse "
                   f"{num(m.get(f'baseline_h{h}_mse')):>10}  psnr {num(m.get(f'baseline_h{h}_psnr'), '.2f'):>6} dB")
