@@ -249,7 +249,9 @@ class LoopRun:
 
     def _start_dashboard(self) -> None:
         src = DataSources(self.cfg.data_dir, workers=lambda: [{"id": w} for w in self.service.workers()],
-                          metrics_text=self._metrics_text, frames_png=FramesSource(self.scorer, self.catalog),
+                          # (the service's: its reaper keeps the gauges of the stores fresh, as `serve`'s; read
+                          # here, the run's queue kept a connection per request's thread: 2 descriptors leaked each)
+                          metrics_text=self.metrics.render, frames_png=FramesSource(self.scorer, self.catalog),
                           budget=self.cfg.budget, retrains=lambda: [r.to_json() for r in self.scheduler.history])
         dash = Dashboard(DashboardConfig(port=self.cfg.dashboard_port), src.sources())
         try:
@@ -275,12 +277,6 @@ class LoopRun:
 
     def _retrained(self, rec: RetrainRecord) -> None:
         self.metrics.retrain(retrain_outcome(rec.status.value))
-
-    def _metrics_text(self) -> str:
-        self.metrics.set_queue_depth(self.queue.counts())
-        self.metrics.set_workers_alive(len(self.service.workers()))
-        self.metrics.set_episodes({"train": self._count(), "eval": self.catalog.count(split="eval")})
-        return self.metrics.render()
 
     # -- the loop -------------------------------------------------------------------------------
     def run(self) -> RunResult:

@@ -419,3 +419,41 @@ def _free(lock: Path) -> bool:
         except BlockingIOError:
             return False
         return True
+
+
+def _descriptors_on(path: Path) -> int:
+    """How many of this process's file descriptors are open on ``path``."""
+    fds = Path("/proc/self/fd")
+    return sum(1 for fd in fds.iterdir() if _link(fd) == str(path))
+
+
+def _link(fd: Path) -> str:
+    try:
+        return os.readlink(fd)
+    except OSError:  # (closed meanwhile, the listing's own)
+        return ""
+
+
+def test_the_runs_dashboard_metrics_leave_no_connection_open_per_request(tmp_path):
+    """The dashboard answers each request on a thread of its own: /metrics read the run's queue there, which kept
+    each thread's SQLite connection (its descriptors) open until the run ended: hours of scraping used them up."""
+    import urllib.request
+
+    from storage.database import DB_NAME
+
+    db, seen = tmp_path / "data" / DB_NAME, {}
+
+    def announce(line: str) -> None:
+        url, before = line.removeprefix("dashboard at "), _descriptors_on(db)
+        for _ in range(20):
+            with urllib.request.urlopen(url + "metrics", timeout=30) as reply:
+                seen["body"] = reply.read().decode()
+        seen["open"] = (before, _descriptors_on(db))
+        raise KeyboardInterrupt  # (done: the run stops as on Ctrl-C)
+
+    result = LoopRun(RunConfig(data_dir=tmp_path / "data", budget=4, round_episodes=2, image_size=16, steps=8,
+                               eval_episodes=2, dashboard_port=0, progress=False), lambda *args: "",
+                     announce=announce).run()
+    assert result.interrupted and "activecollect_queue_depth" in seen["body"]
+    before, after = seen["open"]
+    assert before > 0 and after == before, seen["open"]
