@@ -388,6 +388,8 @@ def cmd_watch(args: argparse.Namespace) -> int:
                 print(f"watching {keys.events_all} (Ctrl-C to stop)", flush=True)
             try:
                 left.done.wait()
+                if left.error is not None:  # (stdout closed: `watch | head`; main says so, as for any command)
+                    raise left.error
             finally:
                 listener.undeclare()
                 querier.undeclare()
@@ -422,6 +424,9 @@ class _Countdown:
 
     def __init__(self, count: int | None) -> None:
         self.left, self.lock, self.done = count, threading.Lock(), threading.Event()
+        self.error: OSError | None = None
+        """Why printing failed (a closed pipe): raised by the main thread, which ends the command; an error
+        raised in Zenoh's callback thread would only be logged there, and watch would wait on for ever."""
 
 
 def _print_event(sample: zenoh.Sample, as_json: bool, left: _Countdown) -> None:
@@ -438,7 +443,12 @@ def _print_event(sample: zenoh.Sample, as_json: bool, left: _Countdown) -> None:
     with left.lock:  # (one event at a time: the N-th is printed before the command may end)
         if left.done.is_set():
             return
-        print(line, flush=True)
+        try:
+            print(line, flush=True)
+        except OSError as exc:
+            left.error = exc
+            left.done.set()
+            return
         if left.left is not None:
             left.left -= 1
             if left.left == 0:

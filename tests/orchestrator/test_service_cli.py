@@ -4,6 +4,9 @@ from __future__ import annotations
 
 import json
 import re
+import signal
+import subprocess
+import sys
 import threading
 from pathlib import Path
 
@@ -16,7 +19,7 @@ from orchestrator.serviceconfig import ServiceConfig
 from storage.catalog import Catalog
 from storage.errors import CatalogUnavailableError
 from storage.requests import RequestStatus
-from tests.conftest import free_port, wait_for
+from tests.conftest import REPO, free_port, wait_for
 from tests.orchestrator.test_service import new_request
 from workers.agent import WorkerError
 from workers.cli import parse_capabilities
@@ -277,3 +280,39 @@ def test_watch_count_prints_exactly_that_many_events_of_a_burst(service, endpoin
     assert result.get("rc") == 0
     lines = capsys.readouterr().out.strip().splitlines()
     assert len(lines) == 3 and all(json.loads(line)["kind"] == "request.queued" for line in lines), lines
+
+
+def test_watch_into_a_closed_pipe_ends_quietly(service, endpoint, namespace) -> None:
+    """`watch | head -1`: once the reader is gone, watch ends as any command does on a closed pipe (128 + SIGPIPE,
+    no traceback), instead of waiting on for ever while Zenoh's thread logs each failed print."""
+    proc = subprocess.Popen([sys.executable, "-m", "orchestrator", "watch", "--connect", endpoint, "--namespace",
+                             namespace], stdout=subprocess.PIPE, stderr=subprocess.PIPE, cwd=REPO)
+    try:
+        assert proc.stdout.readline().startswith(b"watching ")
+        proc.stdout.close()  # (head has its line)
+        n = 0
+        while proc.poll() is None and n < 400:  # events until the watcher, subscribed, fails to print one
+            service.publish("request.queued", {"request_id": f"r{n}", "source": "test"})
+            n += 1
+            try:
+                proc.wait(0.05)
+            except subprocess.TimeoutExpired:
+                pass
+        ended = proc.poll() is not None or _ended_within(proc, 10)
+        if not ended:
+            proc.kill()
+        err = proc.communicate()[1].decode()
+        assert ended, f"watch still running after {n} events into a closed pipe: {err[-2000:]}"
+        assert proc.returncode == 128 + signal.SIGPIPE and "Traceback" not in err and "callback" not in err, err
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+
+
+def _ended_within(proc: subprocess.Popen, seconds: float) -> bool:
+    try:
+        proc.wait(seconds)
+        return True
+    except subprocess.TimeoutExpired:
+        return False
