@@ -35,7 +35,7 @@ from typing import Any
 
 import zenoh
 
-from orchestrator import admin, messages, protocol, sweeps, transport
+from orchestrator import admin, messages, protocol, serving, sweeps, transport
 from orchestrator.heap import HeapTrimmer
 from orchestrator.liveliness import Presence
 from orchestrator.metrics import ServiceMetrics
@@ -71,7 +71,7 @@ class Service:
         self.context: ServiceContext | None = None
         self.planner: Planner | None = None
         self.feed: PlanFeed | None = None
-        self._servers: list[transport.Server] = []
+        self._servers: list[serving.Server] = []
         self._publishers: dict[EventKind, Any] = {}
         self._liveliness_sub: Any = None
         self.presence = Presence(config.lost_worker_grace_s, gauge=self.metrics.set_workers_alive,
@@ -219,7 +219,7 @@ class Service:
     # --- query handlers ------------------------------------------------------------------------
 
     def _serve(self, key: str, handler: Callable[[Incoming], bytes], threads: int,
-               source: str = "worker") -> transport.Server:
+               source: str = "worker") -> serving.Server:
         """A Server for ``handler``: a ProtocolError becomes its error reply (a refusal from ``source``)."""
 
         def answer(msg: Incoming) -> Response:
@@ -234,7 +234,7 @@ class Service:
             self.metrics.refusal(code, source)
             return protocol.error_reply(code, message)
 
-        return transport.Server(self.session, key, answer, threads, error_body=crashed)
+        return serving.Server(self.session, key, answer, threads, error_body=crashed)
 
     def _lease(self, msg: Incoming) -> bytes:
         req = messages.LeaseRequest.from_json(msg.payload)

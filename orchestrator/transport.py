@@ -8,7 +8,7 @@ and a timeout live in ``orchestrator.endpoints``.
 Two things about zenoh-python 1.x shape this module:
 
 - A query's *final* reply (the "no more replies" marker) is sent when the ``zenoh.Query`` object is dropped. A query
-  left alive in Python keeps the querier waiting until its timeout, so :class:`Server` replies and then drops every
+  left alive in Python keeps the querier waiting until its timeout, so ``serving.Server`` replies and then drops every
   query explicitly, whatever the handler did.
 - A ``get`` towards a key nobody serves (yet) ends at once with no reply, and a ``get`` whose queryable never
   answers ends at its timeout with a ``ReplyError`` whose payload is ``Timeout``. :func:`request` turns both into
@@ -21,11 +21,9 @@ from __future__ import annotations
 import json
 import logging
 import os
-import queue as queue_mod
 import re
-import threading
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -395,83 +393,3 @@ def query(session: zenoh.Session, key: str, payload: bytes = b"", attachment: by
           timeout: float = 5.0) -> bytes:
     """:func:`request` returning only the reply payload."""
     return request(session, key, payload, attachment, timeout).payload
-
-
-# --------------------------------------------------------------------------- serving
-
-Handler = Callable[[Incoming], Response]
-
-
-class Server:
-    """A queryable whose queries are handled by a pool of Python threads.
-
-    The Zenoh callback only enqueues the query, so slow handlers (SQLite, fsync) never block Zenoh's own threads.
-    ``threads=0`` answers in the callback itself instead: no hand-off, for handlers that take well under a
-    millisecond. Every query gets exactly one reply and is dropped right after it: ``handler``'s ``Response``; if
-    the handler raised, an ordinary reply with body ``error_body("internal", why)`` (the crash is logged with its
-    traceback and the server stays up); if the key is a pattern (``*``), which has no concrete key to reply on, an
-    error reply with body ``error_body("bad_field", why)`` (``RemoteError`` for :func:`request`).
-    """
-
-    def __init__(self, session: zenoh.Session, key_expr: str, handler: Handler, threads: int = 2,
-                 error_body: Callable[[str, str], bytes] = default_error_body) -> None:
-        if threads < 0:
-            raise TransportError(f"threads must be >= 0, found {threads}")
-        self.key_expr = key_expr
-        self._handler = handler
-        self._error_body = error_body
-        self._queue: queue_mod.SimpleQueue[zenoh.Query | None] = queue_mod.SimpleQueue()
-        self._threads = [threading.Thread(target=self._run, name=f"serve:{key_expr}:{i}", daemon=True)
-                         for i in range(threads)]
-        for t in self._threads:
-            t.start()
-        # threads=0 answers on Zenoh's callback thread: no hand-off, for handlers of a few hundred us.
-        self._queryable = session.declare_queryable(key_expr, self._queue.put if threads else self._serve_one)
-
-    def close(self, timeout: float = 5.0) -> None:
-        """Undeclare the queryable and let the handler threads finish what they hold."""
-        try:
-            self._queryable.undeclare()
-        except zenoh.ZError as exc:  # the session may already be closed
-            log.debug("undeclare %s: %s", self.key_expr, exc)
-        for _ in self._threads:
-            self._queue.put(None)
-        for t in self._threads:
-            t.join(timeout)
-
-    def _run(self) -> None:
-        while True:
-            q = self._queue.get()
-            if q is None:
-                return
-            self._serve_one(q)
-
-    def _serve_one(self, q: zenoh.Query) -> None:
-        try:
-            key = str(q.key_expr)
-            if "*" in key or "$" in key:  # no concrete key to reply on: an error reply instead
-                q.reply_err(self._error_body("bad_field", f"expected a concrete key, found the pattern "
-                                             f"{key!r}"), encoding=ERROR_ENCODING)
-                return
-            response = self._answer(q)
-            q.reply(key, response.payload, attachment=response.attachment)
-        except zenoh.ZError as exc:  # the querier left or the session is closing
-            log.debug("cannot reply on %s: %s", q.key_expr, exc)
-        except Exception as exc:  # noqa: BLE001 -- a query that reached us is answered, and the thread lives
-            log.exception("cannot answer %s", q.key_expr)
-            try:  # an error reply: request() must not take silence for "nobody serving" and send it again
-                q.reply_err(self._error_body("internal", f"{type(exc).__name__}: {exc}"), encoding=ERROR_ENCODING)
-            except zenoh.ZError:
-                pass
-        finally:
-            q.drop()  # sends the final reply now, not whenever Python collects it
-
-    def _answer(self, q: zenoh.Query) -> Response:
-        key = str(q.key_expr)
-        payload = q.payload.to_bytes() if q.payload is not None else b""
-        att = q.attachment.to_bytes() if q.attachment is not None else None
-        try:
-            return self._handler(Incoming(key, payload, att))
-        except Exception as exc:  # noqa: BLE001 -- boundary: one bad query must not take the service down
-            log.exception("handler for %s failed", key)
-            return Response(self._error_body("internal", f"{type(exc).__name__}: {exc}"))

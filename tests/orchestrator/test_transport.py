@@ -10,7 +10,8 @@ import pytest
 import zenoh
 
 from orchestrator import transport
-from orchestrator.transport import Incoming, NoReplyError, RemoteError, Response, Server
+from orchestrator.serving import Server
+from orchestrator.transport import Incoming, NoReplyError, RemoteError, Response
 from tests.conftest import free_port, wait_for
 
 
@@ -238,3 +239,33 @@ def test_zenoh_error_keeps_the_first_line_less_the_rust_locations() -> None:
     assert transport.zenoh_error(Exception(raw)) == ("Can not create a new TCP listener bound to tcp/8.8.8.8:7447: "
                                                      "[8.8.8.8:7447: Cannot assign requested address (os error 99)]")
     assert transport.zenoh_error(ValueError("")) == "ValueError"
+
+
+@pytest.mark.parametrize("threads", [0, 2])  # 0: the query is answered on Zenoh's callback thread
+def test_close_returns_only_once_the_query_in_hand_is_answered(pair, threads: int) -> None:
+    """Zenoh's undeclare() does not wait for a callback in progress; close() does, so that no handler of ours runs
+    on what the service closes next (a lease committed on a closed queue, its reply dropped with the session)."""
+    server_session, client = pair
+    started, release, closed, seen = threading.Event(), threading.Event(), threading.Event(), {}
+
+    def slow(msg: Incoming) -> Response:
+        started.set()
+        release.wait(60)
+        seen["closed before it answered"] = closed.is_set()
+        return Response(b"answered")
+
+    server = Server(server_session, "t/slow", slow, threads=threads)
+    replies: list[bytes] = []
+    asker = threading.Thread(target=lambda: replies.append(transport.query(client, "t/slow", b"", timeout=60)))
+    asker.start()
+    closer = threading.Thread(target=lambda: (server.close(timeout=60), closed.set()))
+    try:
+        assert started.wait(30), "the query reached the handler"
+        closer.start()
+        closed.wait(1.0)  # (a close that does not wait returns at once: it gets this long to)
+    finally:
+        release.set()
+        asker.join(60)
+        if closer.is_alive() or not closed.is_set():
+            closer.join(60)
+    assert seen == {"closed before it answered": False} and replies == [b"answered"]

@@ -10,7 +10,8 @@ import zenoh
 
 from orchestrator import transport
 from orchestrator.protocol import MAX_MESSAGE_BYTES, MAX_UPLOAD_BYTES, Keys
-from orchestrator.transport import RX_MAX_MESSAGE_BYTES, RX_MAX_MESSAGE_SIZE_KEY, Incoming, Response, Server
+from orchestrator.serving import Server
+from orchestrator.transport import RX_MAX_MESSAGE_BYTES, RX_MAX_MESSAGE_SIZE_KEY, Incoming, Response
 
 
 def remote_peer(endpoint: str) -> zenoh.Session:

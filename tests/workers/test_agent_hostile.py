@@ -10,7 +10,7 @@ from typing import Any
 
 import pytest
 
-from orchestrator import protocol, transport
+from orchestrator import protocol, serving, transport
 from orchestrator.messages import FailRequest
 from orchestrator.protocol import ErrorCode, Keys
 from storage.requests import RequestStatus
@@ -36,8 +36,8 @@ class FakeService:
         self.leases, self.fails = 0, []
         self._lock = threading.Lock()
         keys, self._first = Keys(namespace), first
-        self._servers = [transport.Server(self.session, keys.lease, self._lease),
-                         transport.Server(self.session, keys.fail, self._fail)]
+        self._servers = [serving.Server(self.session, keys.lease, self._lease),
+                         serving.Server(self.session, keys.fail, self._fail)]
 
     def _lease(self, msg: transport.Incoming) -> transport.Response:
         with self._lock:
