@@ -176,6 +176,9 @@ def test_gate_uses_the_given_current_split_over_the_champions(reg: ModelRegistry
 
 def test_gate_threshold_is_configurable(reg: ModelRegistry) -> None:
     reg.gate(_register(reg, 0.010))
+    tie = _register(reg, 0.010)
+    decision = reg.gate(tie, min_rel_improvement=0.0)  # (no better is not better, even with no bar)
+    assert not decision.promoted and decision.reason.startswith("not better enough"), decision
     barely = _register(reg, 0.0099)
     assert reg.gate(barely, min_rel_improvement=0.0).promoted
     with pytest.raises(RegistryError, match="min_rel_improvement"):

@@ -131,6 +131,20 @@ def test_reap_only_expired_and_renew_keeps_alive(queue: RequestQueue) -> None:
     assert queue.get(b.id).status == RequestStatus.QUEUED and queue.get(b.id).attempts == 1
 
 
+def test_extend_leases_gives_every_live_lease_at_least_that_long_and_shortens_none(queue: RequestQueue) -> None:
+    """After a storage outage (no worker could renew): a lease with less left gets ``lease_s`` from now, a longer
+    one keeps its own, and only those extended are counted."""
+    long_, _ = queue.enqueue(new(priority=2))
+    short, _ = queue.enqueue(new(priority=1))
+    queued, _ = queue.enqueue(new(priority=0))
+    queue.lease("w1", lease_s=100, now=0.0)
+    queue.lease("w2", lease_s=5, now=0.0)
+    assert queue.extend_leases(10, now=1.0) == 1
+    assert queue.get(long_.id).lease_expires == 100.0 and queue.get(short.id).lease_expires == 11.0
+    assert queue.get(queued.id).status == RequestStatus.QUEUED and queue.get(queued.id).lease_expires is None
+    assert queue.extend_leases(10, now=1.0) == 0  # (both have at least 10 s left now)
+
+
 def test_release_worker_only_touches_that_worker(queue: RequestQueue) -> None:
     ids = [queue.enqueue(new())[0].id for _ in range(3)]
     queue.lease("w1")
