@@ -4,36 +4,65 @@ from __future__ import annotations
 
 import threading
 import time
+import types
 
 from orchestrator import transport
 from orchestrator.messages import LeaseGrant
 from tests.conftest import wait_for
+import workers.lease
 from workers.lease import Renewer
 
 START = {"shape": "box", "agent": [100.0, 100.0], "object": [256.0, 256.0, 0.3]}
 
 
-def test_a_lost_renewal_waits_one_interval_and_the_next_comes_on_schedule():
+class _Clock:
+    """A monotonic clock that moves only when the renewer waits (on its stop event) or a call takes time."""
+
+    def __init__(self) -> None:
+        self.now = 0.0
+
+    def monotonic(self) -> float:
+        return self.now
+
+
+def test_a_lost_renewal_waits_one_interval_and_the_next_comes_on_schedule(monkeypatch):
+    """On a clock of the test's (no wall-clock figure): the renewal whose reply is lost waits its whole timeout, one
+    interval, and the next goes out when it was due, not an interval after the loss."""
+    clock = _Clock()
+
+    stops: list[threading.Event] = []
+
+    class Stop(threading.Event):  # the renewer's stop event: waiting on it moves the clock on
+        def __init__(self) -> None:
+            super().__init__()
+            stops.append(self)
+
+        def wait(self, timeout: float | None = None) -> bool:
+            if not self.is_set() and timeout is not None:
+                clock.now += timeout
+            return self.is_set()
+
+    monkeypatch.setattr(workers.lease, "time", types.SimpleNamespace(monotonic=clock.monotonic))
+    monkeypatch.setattr(workers.lease, "threading", types.SimpleNamespace(Event=Stop, Thread=threading.Thread))
     grant = LeaseGrant(request_id="r1", task="push", shape="box", start_state=START, policy="push",
                        policy_params={}, action_prefix=[], steps=5, model_version="", token=1,
                        expires_at=time.time() + 0.6, lease_s=0.6)
-    calls: list[tuple[float, float]] = []  # (when, the timeout it was given)
-    lost = threading.Event()
+    calls: list[tuple[float, float]] = []  # (when, the timeout it was given), on the test's clock
 
     def call(key: str, msg: bytes, timeout: float) -> dict:
-        calls.append((time.monotonic(), timeout))
+        calls.append((clock.now, timeout))
+        if len(calls) == 4:
+            stops[0].set()  # (the renewer's thread may get here before its constructor has returned)
         if len(calls) == 1:  # the first renewal's reply is lost: the query waits its whole timeout
-            lost.wait(timeout)
+            clock.now += timeout
             raise transport.TransportError("no reply")
         return {}
 
     renewer = Renewer(call, "ns/orch/renew", grant, "w1")
-    try:
-        wait_for(lambda: len(calls) >= 3, timeout=10, message="renewals after the lost one")
-    finally:
-        renewer.stop()
+    wait_for(lambda: len(calls) >= 4, timeout=10, message="renewals after the lost one")
     interval = grant.lease_s / 3
-    assert all(t <= interval for _, t in calls)  # one try never waits longer than the interval
+    assert [round(when / interval, 6) for when, _ in calls] == [1, 2, 3, 4], calls
+    assert all(t == interval for _, t in calls)  # one try never waits longer than the interval
     assert renewer.lost is None
 
 
