@@ -8,7 +8,6 @@ import json
 import logging
 import signal
 import sys
-import time
 
 import pytest
 
@@ -99,13 +98,13 @@ def test_a_token_away_past_the_grace_releases_the_lease_as_before(make_service, 
     worker, _tokens = present(service, endpoint, keys, "w9")
     lease(worker, keys, worker="w9")
     with caplog.at_level(logging.INFO, logger="orchestrator.service"):
-        gone = time.monotonic()  # (before: the grace starts once the service sees the token go)
         worker.close()
+        if grace_s:  # the token gone, its grace running: the lease is still held
+            wait_for(lambda: service.presence.pending() == 1 or lost, message="the grace to start")
+            assert service.queue.get(request.id).status == RequestStatus.LEASED and not lost
         wait_for(lambda: service.queue.get(request.id).status == RequestStatus.QUEUED, timeout=10,
                  message="the lost worker's lease to be released (lease_s is 30 s)")
-        released = time.monotonic()
         wait_for(lambda: lost, message="the WORKER_LOST event")
-    assert released - gone >= grace_s
     assert lost == [{"worker_id": "w9", "released": [request.id]}]
     assert messages_of(caplog, "worker w9 lost") == ["worker w9 lost; 1 lease(s) released"]
     assert "worker w9 lost" in service.queue.get(request.id).last_error and service.queue.get(request.id).attempts == 1
@@ -147,9 +146,9 @@ def test_stop_does_not_wait_for_a_pending_grace(make_service, endpoint, keys, da
     lease(worker, keys, worker="w9")
     worker.close()
     wait_for(lambda: service.presence.pending() == 1, message="the grace to start")
-    started = time.monotonic()
     service.stop()
-    assert time.monotonic() - started < 10  # (the maintenance thread is joined for up to 30 s)
+    # (joined for up to 30 s: a thread still waiting on the grace would be alive after that)
+    assert not [t.name for t in service._threads if t.is_alive()]
     with RequestQueue(Catalog(data_dir).db_path) as queue:  # left as it was: the next service carries it over
         assert queue.get(request.id).status == RequestStatus.LEASED
 

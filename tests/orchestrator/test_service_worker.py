@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import signal
 import threading
-import time
 
 import pytest
 
@@ -149,10 +148,9 @@ def test_a_second_sigterm_walks_away_from_an_upload_in_flight(make_service, spaw
         w.signal(signal.SIGTERM)
         wait_for(lambda: "draining" in w.log(), message="the first signal is taken")
         w.signal(signal.SIGTERM)
-        started = time.monotonic()
-        # (exit 1: an episode dropped; the old worker waited out the upload's 10 s, then the release's)
-        assert w.wait(6) == 1, w.log()
-        assert time.monotonic() - started < 6
+        # (exit 1: an episode dropped; the old worker waited out the upload's 10 s, said so, then the release's)
+        assert w.wait(60) == 1, w.log()
+        assert "upload: " not in w.log(), w.log()
     finally:
         hang.set()
     back = service.queue.get(request.id)
@@ -172,8 +170,6 @@ def test_a_draining_worker_gives_up_an_upload_nobody_answers_when_its_lease_runs
     w.signal(signal.SIGTERM)
     wait_for(lambda: "draining" in w.log(), message="the first signal is taken")
     service.stop()
-    stopped = time.monotonic()
     assert w.wait(30) == 0, w.log()  # (the old worker retried until killed)
-    assert time.monotonic() - stopped < 3 * lease_s + 5, w.log()
     assert f"dropping the episode of {request.id}: draining" in w.log()
     assert Catalog(data_dir).count() == 0

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import json
 import threading
-import time
 
 import pytest
 import zenoh
@@ -97,10 +96,8 @@ def test_request_round_trip_with_attachment_and_large_payload(pair) -> None:
 
 def test_no_reply_when_nobody_serves_the_key(pair) -> None:
     _, client = pair
-    start = time.monotonic()
     with pytest.raises(NoReplyError, match="no reply on t/nobody"):
         transport.query(client, "t/nobody", b"x", timeout=0.3)
-    assert time.monotonic() - start < 5
 
 
 def test_no_reply_when_the_queryable_never_answers(pair) -> None:

@@ -6,12 +6,14 @@ from __future__ import annotations
 import math
 import subprocess
 import sys
-import time
+import threading
+import types
 
 import pytest
 
 from orchestrator.cli import build_parser
 from orchestrator.protocol import MAX_CAPABILITIES
+import workers.agent
 from tests.conftest import REPO, free_port
 from workers import cli as worker_cli
 from workers.agent import Worker, WorkerConfig, WorkerError
@@ -116,11 +118,21 @@ def test_the_help_says_what_the_flags_do() -> None:
     assert "run until stopped" in _help("--max-episodes")
 
 
-def test_realtime_x_makes_an_episode_last_x_times_its_steps_at_the_control_rate() -> None:
-    """What ``--realtime``'s help promises: 2 is half a real robot's speed (0.2 s a step at 10 Hz)."""
+def test_realtime_x_makes_an_episode_last_x_times_its_steps_at_the_control_rate(monkeypatch) -> None:
+    """What ``--realtime``'s help promises: 2 is half a real robot's speed (0.2 s a step at 10 Hz). On a clock of
+    the test's, which moves only while the worker waits (no wall-clock figure)."""
+    now = [0.0]
+
+    class Abort(threading.Event):  # the worker's give-back event: waiting on it moves the clock on
+        def wait(self, timeout: float | None = None) -> bool:
+            if not self.is_set() and timeout is not None:
+                now[0] += timeout
+            return self.is_set()
+
+    monkeypatch.setattr(workers.agent, "time", types.SimpleNamespace(monotonic=lambda: now[0]))
     worker = Worker(WorkerConfig(realtime=2.0))
-    started = time.monotonic()
-    assert worker._pace(started, frames=2)
-    assert time.monotonic() - started >= 2.0 * 2 / CONTROL_HZ
+    worker._abort = Abort()
+    assert worker._pace(0.0, frames=2)
+    assert now[0] == pytest.approx(2.0 * 2 / CONTROL_HZ)  # waited exactly that long, no less
     worker._abort.set()  # given back: no wait
-    assert not worker._pace(time.monotonic(), frames=1000)
+    assert not worker._pace(now[0], frames=1000) and now[0] == pytest.approx(2.0 * 2 / CONTROL_HZ)

@@ -125,10 +125,10 @@ def test_a_drained_worker_does_not_wait_long_for_a_renewal_nobody_answers(make_s
     next(s for s in service._servers if s.key_expr == service.keys.renew).close()
     send(w, signal.SIGUSR1, "draining:")
     wait_for(lambda: f"uploaded {request.id}" in w.log(), timeout=40, message="the upload")
-    started = time.monotonic()
-    assert w.wait(10) == 0, w.log()
-    # (the old worker waited for the renewal in flight, ~9 s more; the new one 2 s at most: a wide margin)
-    assert time.monotonic() - started < 7, w.log()
+    assert w.wait(60) == 0, w.log()
+    # (the old worker waited for the renewal in flight to time out, ~9 s more, and logged it; the new one exits
+    # without waiting it out)
+    assert f"renew {request.id}: " not in w.log(), w.log()
     assert service.queue.get(request.id).status == RequestStatus.DONE
 
 
