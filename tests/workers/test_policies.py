@@ -54,14 +54,45 @@ def test_push_from_a_chosen_side_first_touches_from_that_side(side):
     assert (s.agent[0] - s.obj[0]) * dx + (s.agent[1] - s.obj[1]) * dy < -20.0
 
 
-def test_random_waypoints_moves_around_and_dwells():
+def test_random_waypoints_moves_around_the_table():
     state = sample_state(np.random.default_rng(1), shape="T")
     actions, contacts = rollout("random_waypoints", {"hold": 3, "dwell": 0.3}, state, 4, steps=80)
     assert actions.dtype == np.float32 and actions.shape == (80, 2)
     assert ((actions >= 0) & (actions <= WORLD_SIZE)).all()
     distinct = {tuple(a) for a in actions}
     assert len(distinct) > 10
-    assert 0.0 <= contacts.mean() < 1.0
+    assert contacts.mean() < 1.0  # (it roams: not every step touches the object)
+
+
+def _runs(actions: np.ndarray) -> list[int]:
+    """The lengths of the runs of equal consecutive actions."""
+    runs = [1]
+    for prev, cur in zip(actions[:-1], actions[1:]):
+        if (prev == cur).all():
+            runs[-1] += 1
+        else:
+            runs.append(1)
+    return runs
+
+
+def test_random_waypoints_holds_each_waypoint_at_most_hold_steps():
+    state = sample_state(np.random.default_rng(2), shape="box")
+    actions, _ = rollout("random_waypoints", {"hold": 3, "dwell": 0.0, "object_bias": 0.0}, state, 5, steps=200)
+    runs = _runs(actions)
+    assert max(runs) <= 3 and {2, 3} <= set(runs), runs  # (a waypoint is held 1 to 3 steps, drawn)
+
+
+def test_random_waypoints_dwell_makes_the_next_waypoint_where_the_pusher_is():
+    sim = PushSim(16)
+    sim.reset(sample_state(np.random.default_rng(3), shape="T"))
+    nudge = make_policy("random_waypoints", {"hold": 1, "dwell": 0.0}, np.random.default_rng(4))
+    dwell = make_policy("random_waypoints", {"hold": 1, "dwell": 1.0}, np.random.default_rng(4))
+    for step in range(30):
+        if step % 3 == 0:  # (moved on now and then, so that where it is changes)
+            sim.step(*(float(v) for v in nudge.act(sim)))
+        at = sim.get_state().agent
+        assert dwell.act(sim) == pytest.approx(np.array(at, np.float32)), step
+        sim.step(*(float(v) for v in at))
 
 
 @pytest.mark.parametrize("policy", POLICIES)
