@@ -62,12 +62,16 @@ def test_prune_keep_one_keeps_only_the_champion_and_is_idempotent(reg: ModelRegi
 
 def test_prune_dry_run_changes_nothing(reg: ModelRegistry) -> None:
     a, b, c, d, e, rejected, candidate = _history_of_five(reg)
-    listing = sorted(p.name for p in reg.models_dir.iterdir())
+    before, records = _files(reg.models_dir), [r.to_json() for r in reg.list()]
     result = reg.prune(keep=2, dry_run=True)
     assert sorted(result.pruned) == sorted([a, b, c, rejected]) and result.kept == [e, d]
     assert result.freed_bytes > 0
-    assert sorted(p.name for p in reg.models_dir.iterdir()) == listing
-    assert all(r.pruned_at is None for r in reg.list())
+    assert _files(reg.models_dir) == before and [r.to_json() for r in reg.list()] == records
+
+
+def _files(root) -> dict[str, bytes]:
+    """Every file under ``root``, by path, with its bytes."""
+    return {str(p.relative_to(root)): p.read_bytes() for p in sorted(root.rglob("*")) if p.is_file()}
 
 
 def test_prune_refuses_a_bad_keep(reg: ModelRegistry) -> None:

@@ -113,11 +113,11 @@ def test_a_version_1_catalog_is_migrated_with_its_episodes(tmp_path, rng):
 
 
 KILLED_IN_QUARANTINE = """
-import os, sys
+import os, signal, sys
 import storage.catalog as catalog, storage.catalog_quarantine as quarantining, storage.files as files
-def move_then_die(src, dst):  # the process dies after the rename, before the row commits
+def move_then_die(src, dst):  # the process is killed after the rename, before the row commits
     files.move(src, dst)
-    os._exit(9)
+    os.kill(os.getpid(), signal.SIGKILL)
 quarantining.move = move_then_die
 catalog.Catalog(sys.argv[1]).quarantine(sys.argv[2], "operator: blurred")
 """
@@ -129,7 +129,7 @@ def _killed_in_quarantine(cat: Catalog, episode_id: str) -> None:
     from tests.conftest import REPO
     done = subprocess.run([sys.executable, "-c", KILLED_IN_QUARANTINE, str(cat.data_dir), episode_id], cwd=REPO,
                           capture_output=True, text=True, timeout=60)
-    assert done.returncode == 9, done.stderr
+    assert done.returncode == -9, done.stderr  # (SIGKILL)
 
 
 def test_a_quarantine_killed_before_its_commit_is_healed_by_the_next_read(cat, rng):
