@@ -32,7 +32,7 @@ import subprocess
 import threading
 import time
 from pathlib import Path
-from typing import Callable
+from typing import Any, Callable
 
 from croniter import croniter
 
@@ -217,7 +217,7 @@ class RetrainScheduler:
             with self._lock:
                 self._remember(rec)
             log.error("retrain failed: %s", rec.reason)
-            self.on_finished(rec)
+            self._notify(self.on_finished, rec)
             return rec
         with self._lock:
             self._proc, self._current = proc, rec
@@ -315,8 +315,18 @@ class RetrainScheduler:
             self._retry = rec.trigger
             log.info("retrain (%s) runs again once the retrain lock is free", rec.trigger)
         if rec.status is RetrainStatus.promoted:
-            self.on_promoted(rec.version)
-        self.on_finished(rec)
+            self._notify(self.on_promoted, rec.version)
+        self._notify(self.on_finished, rec)
+
+    @staticmethod
+    def _notify(callback: Callable[[Any], None], arg: Any) -> None:
+        """``on_promoted`` / ``on_finished``: what they do (publish an event, reload the scorer, count) is news,
+        not the retrain's record; one that raises (a registry read that failed) is logged, and neither the
+        scheduler's thread nor a stop that finishes a job (``stop`` after a service's Ctrl-C) ends with it."""
+        try:
+            callback(arg)
+        except Exception:  # noqa: BLE001 -- boundary: a listener's failure is its own
+            log.exception("retrain: %s failed", getattr(callback, "__name__", "a callback"))
 
     def _read_what_it_left(self, pid: int, rec: RetrainRecord) -> None:
         """Complete the record of a job that ended without reporting: its notes file names the model it registered

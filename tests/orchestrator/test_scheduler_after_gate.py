@@ -159,3 +159,22 @@ def test_an_earlier_holders_notes_under_a_pid_used_again_are_not_the_dead_jobs(d
     rec = sched.history[0]
     assert read_lock_info(data)["version"] == earlier  # the stale notes, under this job's pid
     assert rec.status is RetrainStatus.failed and rec.version == "" and promoted == [], rec
+
+
+def test_a_listener_that_raises_neither_ends_the_stop_nor_keeps_on_finished_from_its_news(data, caplog):
+    """``stop`` finishing a job whose gate promoted calls ``on_promoted``; one that raises (a registry read that
+    failed) is logged, ``on_finished`` still hears of the job, and the stop ends as stops do (a service's
+    Ctrl-C then goes on to stop the service)."""
+    finished = []
+
+    def promoted(version: str) -> None:
+        raise OSError(5, "Input/output error")
+
+    sched = RetrainScheduler(ScheduleConfig(), data, lambda: 0, promoted, command=job(0.01),
+                             on_finished=finished.append)
+    sched.request()
+    assert sched.tick() is not None
+    version = gated(data)
+    sched.stop()
+    assert [(r.status, r.version) for r in finished] == [(RetrainStatus.promoted, version)]
+    assert "retrain: promoted failed" in caplog.text and "Input/output error" in caplog.text
