@@ -99,6 +99,27 @@ def test_refusals_and_usage_errors(service, cli) -> None:
     assert info.value.code == 2
 
 
+def _watch_while_publishing(service, endpoint: str, namespace: str, count: int, burst: int) -> int | None:
+    """``watch --count COUNT --json`` in a thread while the service publishes events ``burst`` at a time, until
+    the watcher (which subscribes after its first query) has its events; its exit status (None: still running)."""
+    result: dict = {}
+
+    def watch() -> None:
+        result["rc"] = main(["watch", "--count", str(count), "--json", "--connect", endpoint, "--namespace",
+                             namespace])
+
+    t = threading.Thread(target=watch)
+    t.start()
+    n = 0
+    while t.is_alive() and n < 200 * burst:
+        for _ in range(burst):
+            service.publish("request.queued", {"request_id": f"r{n}", "source": "test"})
+            n += 1
+        t.join(0.05)
+    t.join(10)
+    return result.get("rc")
+
+
 def test_stats_workers_and_watch(service, cli, endpoint, namespace, capsys) -> None:
     rc, out, _ = cli("stats")
     assert rc == 0 and "requests: queued=0" in out and "episodes: " in out
@@ -106,21 +127,7 @@ def test_stats_workers_and_watch(service, cli, endpoint, namespace, capsys) -> N
     rc, out, _ = cli("workers", "ls", "--json")
     assert rc == 0 and json.loads(out) == {"workers": [], "truncated": False, "total": 0}
 
-    result: dict = {}
-
-    def watch() -> None:
-        result["rc"] = main(["watch", "--count", "1", "--json", "--connect", endpoint, "--namespace", namespace])
-
-    t = threading.Thread(target=watch)
-    t.start()
-    # keep adding until the watcher (which subscribes after its first query) has seen one
-    n = 0
-    while t.is_alive() and n < 200:
-        service.publish("request.queued", {"request_id": f"r{n}", "source": "test"})
-        t.join(0.05)
-        n += 1
-    t.join(10)
-    assert result.get("rc") == 0
+    assert _watch_while_publishing(service, endpoint, namespace, count=1, burst=1) == 0
     event = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert event["kind"] == "request.queued" and event["data"]["source"] == "test"
 
@@ -263,21 +270,7 @@ def test_serve_reports_a_storage_error_at_start_in_one_line_and_stops_what_it_st
 def test_watch_count_prints_exactly_that_many_events_of_a_burst(service, endpoint, namespace, capsys) -> None:
     """Events that arrive together (a worker's lease, done and stored in one millisecond): ``--count N`` prints
     N of them, not the ones its subscriber was handed while the command was ending."""
-    result: dict = {}
-
-    def watch() -> None:
-        result["rc"] = main(["watch", "--count", "3", "--json", "--connect", endpoint, "--namespace", namespace])
-
-    t = threading.Thread(target=watch)
-    t.start()
-    n = 0
-    while t.is_alive() and n < 20 * 400:  # bursts until the watcher (subscribed after its first query) has its 3
-        for _ in range(20):
-            service.publish("request.queued", {"request_id": f"r{n}", "source": "test"})
-            n += 1
-        t.join(0.05)
-    t.join(10)
-    assert result.get("rc") == 0
+    assert _watch_while_publishing(service, endpoint, namespace, count=3, burst=20) == 0
     lines = capsys.readouterr().out.strip().splitlines()
     assert len(lines) == 3 and all(json.loads(line)["kind"] == "request.queued" for line in lines), lines
 
