@@ -143,8 +143,10 @@ def test_run_collects_retrains_promotes_reports_and_resumes_after_ctrl_c(tmp_pat
     ("retraining", ["--retrain-args", "--members 2 --epochs 100000 --widths 4,4,4 --device cpu"]),  # till stopped
 ])
 def test_sigterm_stops_a_run_as_ctrl_c_does(tmp_path, when, extra):
-    """SIGTERM to `run` alone (kill, timeout, systemd, a CI runner): the workers finish and upload what they
-    hold, a running retrain job is stopped, the report is written, and nothing it started outlives it."""
+    """SIGTERM to `run` alone (kill, timeout, systemd, a CI runner): no lease is left held, a running retrain job is
+    stopped, the report is written, and nothing it started outlives it. (That the workers upload the episodes in
+    hand rather than give them back is shown with paced workers by
+    test_a_worker_stopped_both_by_its_run_and_by_a_signal_to_the_group_uploads_its_episode.)"""
     data = tmp_path / "data"
     run = subprocess.Popen(run_cmd(data, 400) + extra, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                            start_new_session=True)
