@@ -11,6 +11,7 @@ from __future__ import annotations
 import logging
 import queue as queue_mod
 import threading
+import time
 from collections.abc import Callable
 
 import zenoh
@@ -50,10 +51,12 @@ class Server:
         # threads=0 answers on Zenoh's callback thread: no hand-off, for handlers of a few hundred us.
         self._queryable = session.declare_queryable(key_expr, self._accept)
 
-    def close(self, timeout: float = 5.0) -> None:
+    def close(self, timeout: float = 30.0) -> None:
         """Undeclare the queryable, answer a query that still comes ``unavailable``, and let the queries in hand
         finish: the handler threads', and those being answered on Zenoh's threads (``threads=0``), which
-        ``undeclare`` does not wait for; each wait at most ``timeout`` s. After it, no handler of ours runs."""
+        ``undeclare`` does not wait for; ``timeout`` s at most in all (an upload's ingest on a slow disk may take
+        seconds). After it no handler of ours runs, or a warning says which are still running."""
+        deadline = time.monotonic() + timeout
         with self._idle:
             self._closing = True
         try:
@@ -63,11 +66,13 @@ class Server:
         for _ in self._threads:
             self._queue.put(None)
         for t in self._threads:
-            t.join(timeout)
+            t.join(max(0.0, deadline - time.monotonic()))
         with self._idle:
-            if not self._idle.wait_for(lambda: self._in_callback == 0, timeout):
-                log.warning("closing %s: %d query(ies) still being answered after %.0f s", self.key_expr,
-                            self._in_callback, timeout)
+            self._idle.wait_for(lambda: self._in_callback == 0, max(0.0, deadline - time.monotonic()))
+            running = self._in_callback + sum(t.is_alive() for t in self._threads)
+        if running:
+            log.warning("closing %s: %d query(ies) still being answered after %g s", self.key_expr, running,
+                        timeout)
 
     def _accept(self, q: zenoh.Query) -> None:
         """Zenoh's callback: the query to a handler thread, or answered here (``threads=0``); once closing,

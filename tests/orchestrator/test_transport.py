@@ -266,3 +266,26 @@ def test_close_returns_only_once_the_query_in_hand_is_answered(pair, threads: in
         if closer.is_alive() or not closed.is_set():
             closer.join(60)
     assert seen == {"closed before it answered": False} and replies == [b"answered"]
+
+
+@pytest.mark.parametrize("threads", [0, 2])
+def test_close_says_which_queries_are_still_being_answered_when_its_time_is_up(pair, threads: int, caplog) -> None:
+    server_session, client = pair
+    started, release = threading.Event(), threading.Event()
+
+    def stuck(msg: Incoming) -> Response:
+        started.set()
+        release.wait(60)
+        return Response(b"late")
+
+    server = Server(server_session, "t/stuck", stuck, threads=threads)
+    asker = threading.Thread(target=lambda: transport.query(client, "t/stuck", b"", timeout=60))
+    asker.start()
+    try:
+        assert started.wait(30), "the query reached the handler"
+        with caplog.at_level("WARNING", logger="orchestrator.serving"):
+            server.close(timeout=0.2)
+    finally:
+        release.set()
+        asker.join(60)
+    assert "closing t/stuck: 1 query(ies) still being answered after 0.2 s" in caplog.text
