@@ -20,7 +20,7 @@ from orchestrator.metrics import SPLITS  # the splits ``stats`` counts episodes 
 from orchestrator.messages import AdminRequest, Event, RequestSpec
 from orchestrator.protocol import ErrorCode, EventKind, ProtocolError
 from storage.database import disk_json, quarantine_bytes
-from storage.errors import QueueError, StaleLeaseError, StorageError, StorageUnavailableError
+from storage.errors import QueueClosedError, QueueError, StaleLeaseError, StorageError, StorageUnavailableError
 from storage.models import ModelStatus
 from storage.queue import RequestQueue
 from storage.requests import IllegalTransitionError, NewRequest, Request, RequestStatus, UnknownRequestError
@@ -82,6 +82,8 @@ def protocol_error(exc: StorageError) -> ProtocolError:
     """The wire error for a refused queue operation (also used by the service's lease / renew / fail)."""
     if (failed := storage_failure(exc)) is not None:  # not the request's fault: never bad_field
         code = failed
+    elif isinstance(exc, QueueClosedError):  # (the service is stopping: ask again)
+        code = ErrorCode.UNAVAILABLE
     elif isinstance(exc, StaleLeaseError):
         code = ErrorCode.STALE_TOKEN
     elif isinstance(exc, UnknownRequestError):

@@ -77,6 +77,11 @@ class QueueUnavailableError(QueueError, StorageUnavailableError):
     """The queue's database is unavailable for now (see ``StorageUnavailableError``)."""
 
 
+class QueueClosedError(QueueError):
+    """The queue was closed (its service is stopping): not the request's fault; asked again, the next service
+    answers."""
+
+
 class StaleLeaseError(QueueError):
     """A renew / upload / fail carried a fencing token that is no longer the live one."""
 

@@ -53,7 +53,7 @@ from pathlib import Path
 from typing import Any
 
 from storage.database import configure, storage_error
-from storage.errors import QueueError, StaleLeaseError
+from storage.errors import QueueClosedError, QueueError, StaleLeaseError
 from storage.requests import (Lease, NewRequest, Request, RequestStatus, UnknownRequestError, check_transition,
                               finite_number)
 from storage.request_table import (COLS, COMPLETE_SQL, COUNTS_SQL, DROPPED_INDEXES, END_ONE_SQL, FAIL_SQL, HELD_SQL,
@@ -128,7 +128,7 @@ class RequestQueue:
 
     def _open(self) -> sqlite3.Connection:
         if self._closed:
-            raise QueueError(f"the queue on {self.db_path} is closed")
+            raise QueueClosedError(f"the queue on {self.db_path} is closed")
         try:
             conn = sqlite3.connect(self.db_path, isolation_level=None, check_same_thread=False)
             configure(conn, self._busy_timeout_ms, self._synchronous)

@@ -15,7 +15,7 @@ import pytest
 from orchestrator import admin, messages, protocol
 from orchestrator.protocol import ErrorCode, ProtocolError
 from storage.catalog import Catalog
-from storage.errors import QueueError, QueueUnavailableError, StaleLeaseError, StorageError
+from storage.errors import QueueClosedError, QueueError, QueueUnavailableError, StaleLeaseError, StorageError
 from storage.models import ModelRegistry
 from storage.queue import RequestQueue
 from storage.requests import IllegalTransitionError, NewRequest, UnknownRequestError
@@ -273,10 +273,20 @@ def test_serve_bytes(queue: RequestQueue) -> None:
     (UnknownRequestError("x"), ErrorCode.UNKNOWN_REQUEST),
     (IllegalTransitionError("x"), ErrorCode.ILLEGAL_TRANSITION),
     (QueueError("x"), ErrorCode.BAD_FIELD),
+    (QueueClosedError("x"), ErrorCode.UNAVAILABLE),  # the service is stopping: not the request's fault
     (StorageError("x"), ErrorCode.INTERNAL),
 ])
 def test_protocol_error_mapping(exc: StorageError, code: ErrorCode) -> None:
     assert admin.protocol_error(exc).code == code
+
+
+def test_a_closed_queue_refuses_as_closed(tmp_path) -> None:
+    """What a handler still running as its service stops is told: ``unavailable`` on the wire (above), not
+    ``bad_field``, which a worker would take for its own fault and fail the request."""
+    queue = RequestQueue(tmp_path / "q.sqlite")
+    queue.close()
+    with pytest.raises(QueueClosedError, match="is closed"):
+        queue.lease("w1")
 
 
 def test_only_write_ops_change_the_database(queue: RequestQueue, tmp_path: Path) -> None:
