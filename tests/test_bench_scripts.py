@@ -195,3 +195,16 @@ def test_soak_judges_growth_after_the_first_champion_is_loaded(monkeypatch):
     assert warm_samples(samples, 5.0)[0]["t_min"] == 5.0  # a warm-up past the first model stands
     assert warm_samples(samples[:14], 2.0)[0]["t_min"] == 2.0  # too few samples after it: the warm-up alone
     assert warm_samples([{"t_min": t, "models": 0} for t in range(9)], 2)[0]["t_min"] == 2  # no model yet
+
+
+def test_store_counts_times_the_counts_of_a_long_history_and_refuses_bad_sizes(tmp_path):
+    script, out = str(ROOT / "bench" / "store_counts.py"), tmp_path / "counts.json"
+    bad = subprocess.run([sys.executable, script, "--repeats", "0"], cwd=ROOT, capture_output=True, text=True,
+                         timeout=60)
+    assert bad.returncode == 2 and "--repeats at least 1" in bad.stderr.splitlines()[-1]
+    proc = subprocess.run([sys.executable, script, "--rows", "50", "--repeats", "2", "--json", str(out)], cwd=ROOT,
+                          capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    figures = json.loads(out.read_text())
+    assert (figures["rows"], figures["repeats"]) == (50, 2)
+    assert all(figures[k] > 0 for k in ("count_split_ms", "count_split_joined_ms", "read_stores_ms", "queue_counts_ms"))
