@@ -323,6 +323,12 @@ def _arm_process(arm: str, seed: int, cfg: LoopBenchConfig, data_dir: Path, coll
 
 
 def _exit_on_sigterm(signum: int, frame: object) -> None:
+    """An arm's SIGTERM: exit (see ``_arm_process``). ``sys.exit`` raises wherever the main thread is, and inside a
+    callback whose exceptions are only printed (pymunk's cffi gc callback: "Exception ignored from callback") it is
+    lost, and the arm went on collecting with nobody left to stop it (its command SIGKILLed); so an alarm ends the
+    arm ``ARM_EXIT_S`` later if it has not exited by then."""
+    signal.signal(signal.SIGALRM, signal.SIG_DFL)
+    signal.alarm(max(1, int(ARM_EXIT_S)))
     sys.exit(128 + signum)
 
 
