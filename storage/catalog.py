@@ -72,6 +72,10 @@ _CATALOG_MIGRATIONS: tuple[Migration, ...] = (
     # The quarantine table (storage.quarantine). Not for version-1 code, which would ignore the table:
     # snapshot quarantined episodes for training (their files are gone) and let them be pinned in the eval split.
     Migration((quarantines.TABLE,), compatible_with=2),
+    # The number of episodes in each split, kept by triggers (``storage.database.kept_counts``) for the
+    # service's once-a-second gauges and the retrain trigger's count. Fine for version-2 code: it never reads
+    # the table, and its own writes keep the counts through the triggers.
+    Migration(episode_table.COUNTS, compatible_with=2),
 )
 
 _T = TypeVar("_T")

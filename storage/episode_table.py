@@ -22,7 +22,7 @@ from pathlib import Path
 from typing import Any
 
 from storage import quarantine as quarantines
-from storage.database import EPISODES_DIR
+from storage.database import EPISODES_DIR, kept_counts
 from storage.errors import CatalogError
 from storage.records import EpisodeMeta
 from storage.rows import EpisodeRow
@@ -47,6 +47,8 @@ SCHEMA = (
     "CREATE INDEX IF NOT EXISTS episodes_request ON episodes(request_id)",
     "CREATE INDEX IF NOT EXISTS episodes_ingested ON episodes(ingested)",
 )
+#: The catalog's schema version 3: ``episode_counts``, the number of episodes in each split (``count_sql``).
+COUNTS = kept_counts("episodes", "split", "episode_counts")
 #: Every catalog query of episode rows: the row and, when it is quarantined, why.
 FROM_ROWS = "episodes e LEFT JOIN quarantine q USING (episode_id)"
 SELECT_ROWS = f"SELECT e.*, q.reason AS quarantined FROM {FROM_ROWS}"
@@ -139,6 +141,18 @@ def where(split: str | None, shape: str | None, since: float | str | datetime | 
         clauses.append("ingested >= ?")
         args.append(_since_seconds(since))
     return (" WHERE " + " AND ".join(clauses) if clauses else ""), args
+
+
+def count_sql(split: str | None, shape: str | None, since: float | str | datetime | None,
+              quarantined: bool | None) -> tuple[str, list[Any]]:
+    """The query, and its arguments, that counts the rows ``where`` selects: from ``episode_counts`` when only
+    the split is asked (a few rows, whatever the history); else from the rows, joined with the quarantine only
+    when asked about it (the join reads every row: see BENCHMARKS, "Counting a long history")."""
+    if shape is None and since is None and quarantined is None:
+        return ("SELECT COALESCE(SUM(n), 0) FROM episode_counts" + (" WHERE split = ?" if split is not None else ""),
+                [] if split is None else [split])
+    clauses, args = where(split, shape, since, quarantined)
+    return f"SELECT COUNT(*) FROM {FROM_ROWS if quarantined is not None else 'episodes e'}{clauses}", args
 
 
 def summary(conn: sqlite3.Connection) -> dict[str, Any]:

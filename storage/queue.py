@@ -103,9 +103,10 @@ class RequestQueue:
             self._checkpointer = Checkpointer(self.db_path, self._busy_timeout_ms, checkpoint_every)
 
     def _schema_current(self) -> bool:
-        """Whether the file already has exactly ``SCHEMA``'s table and indexes."""
+        """Whether the file already has exactly ``SCHEMA``'s tables, indexes and triggers."""
         with self._reading() as conn:
-            names = {r[0] for r in conn.execute("SELECT name FROM sqlite_master WHERE tbl_name = 'requests'")}
+            names = {r[0] for r in conn.execute("SELECT name FROM sqlite_master WHERE tbl_name IN "
+                                                "('requests', 'request_counts')")}
         return SCHEMA_OBJECTS <= names and not names & DROPPED_INDEXES
 
     # --- connections -----------------------------------------------------
@@ -276,7 +277,7 @@ class RequestQueue:
             return [row_to_request(r) for r in conn.execute(sql, args)]
 
     def counts(self) -> dict[str, int]:
-        """Number of requests in every status (zeros included)."""
+        """Number of requests in every status (zeros included), as the triggers keep them (a few rows read)."""
         out = {s.value: 0 for s in RequestStatus}
         with self._reading() as conn:
             for status, n in conn.execute(COUNTS_SQL):

@@ -1,12 +1,12 @@
 """The ``requests`` table: its schema, the statements of the queue's transitions, and its rows.
 
-``SCHEMA`` brings any file to the current table and indexes (it drops the full indexes of the first
-version and makes the partial ones); ``SCHEMA_OBJECTS`` and ``DROPPED_INDEXES``, read off it, tell a current
-file from one that needs it. Each lease-bound statement (``RENEW_SQL``, ``COMPLETE_SQL``, ``RELEASE_SQL``,
-``FAIL_SQL``) matches only the live lease -- the id, ``leased``, the fencing token and, when given, the
-worker -- and most return the row after the change (``COLS``), which ``row_to_request`` makes a
-``storage.requests.Request``; ``HELD_SQL`` answers a worker's live lease again. ``dumps`` writes a request's
-JSON fields.
+``SCHEMA`` brings any file to the current table, indexes and counts (it drops the full indexes of the first
+version and makes the partial ones, and counts a file from before ``request_counts``); ``SCHEMA_OBJECTS`` and
+``DROPPED_INDEXES``, read off it, tell a current file from one that needs it. Each lease-bound statement
+(``RENEW_SQL``, ``COMPLETE_SQL``, ``RELEASE_SQL``, ``FAIL_SQL``) matches only the live lease -- the id,
+``leased``, the fencing token and, when given, the worker -- and most return the row after the change
+(``COLS``), which ``row_to_request`` makes a ``storage.requests.Request``; ``HELD_SQL`` answers a worker's live
+lease again. ``dumps`` writes a request's JSON fields.
 
 This is SQL text and row conversion only: ``storage.queue.RequestQueue`` owns the connections, the
 transactions and the checks of ``storage.requests.TRANSITIONS``.
@@ -19,6 +19,7 @@ import re
 from collections.abc import Sequence
 from typing import Any
 
+from storage.database import kept_counts
 from storage.errors import QueueError
 from storage.requests import Request, RequestStatus
 
@@ -66,6 +67,11 @@ SCHEMA = (
     "CREATE INDEX IF NOT EXISTS requests_leased ON requests (lease_expires) WHERE status = 'leased'",
     "CREATE INDEX IF NOT EXISTS requests_finished ON requests (status, updated) WHERE status IN "
     + TERMINAL_SQL,
+    # The number of requests in each status, kept by triggers in every write's own transaction (any process's,
+    # any code version's), so ``counts`` -- the service's once-a-second gauge -- reads a handful of rows, not
+    # a history that never shrinks (see BENCHMARKS, "Counting a long history"). A file from before it is
+    # counted once, in the transaction that makes the triggers: no write can come between.
+    *kept_counts("requests", "status", "request_counts"),
 )
 # What a current file has and must not have, read off SCHEMA (so the two cannot drift apart).
 SCHEMA_OBJECTS = {m[1] for sql in SCHEMA if (m := re.match(r"CREATE \w+ IF NOT EXISTS (\w+)", sql))}
@@ -96,8 +102,10 @@ INSERT_SQL = ("INSERT INTO requests (id, created, updated, priority, task, shape
               " policy_params, action_prefix, steps, reason, attempts, max_attempts, status,"
               f" idempotency_key) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, 0, ?, 'queued', ?) RETURNING {COLS}")
 
-# One count per partial index (each a covering scan of its own index, never of the table).
-COUNTS_SQL = ("SELECT 'queued', COUNT(*) FROM requests WHERE status = 'queued' UNION ALL "
+# The counts the triggers keep (``SCHEMA``), and the same counted afresh from the rows: one count per partial
+# index (each a covering scan of its own index, never of the table), linear in the history.
+COUNTS_SQL = "SELECT status, n FROM request_counts"
+RECOUNT_SQL = ("SELECT 'queued', COUNT(*) FROM requests WHERE status = 'queued' UNION ALL "
               "SELECT 'leased', COUNT(*) FROM requests WHERE status = 'leased' UNION ALL "
               f"SELECT status, COUNT(*) FROM requests WHERE status IN {TERMINAL_SQL} GROUP BY status")
 

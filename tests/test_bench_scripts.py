@@ -201,10 +201,11 @@ def test_store_counts_times_the_counts_of_a_long_history_and_refuses_bad_sizes(t
     script, out = str(ROOT / "bench" / "store_counts.py"), tmp_path / "counts.json"
     bad = subprocess.run([sys.executable, script, "--repeats", "0"], cwd=ROOT, capture_output=True, text=True,
                          timeout=60)
-    assert bad.returncode == 2 and "--repeats at least 1" in bad.stderr.splitlines()[-1]
-    proc = subprocess.run([sys.executable, script, "--rows", "50", "--repeats", "2", "--json", str(out)], cwd=ROOT,
-                          capture_output=True, text=True, timeout=120)
+    assert bad.returncode == 2 and "--repeats and --cycles at least 1" in bad.stderr.splitlines()[-1]
+    proc = subprocess.run([sys.executable, script, "--rows", "50", "--repeats", "2", "--cycles", "20", "--json",
+                           str(out)], cwd=ROOT, capture_output=True, text=True, timeout=120)
     assert proc.returncode == 0, proc.stderr[-2000:]
     figures = json.loads(out.read_text())
-    assert (figures["rows"], figures["repeats"]) == (50, 2)
-    assert all(figures[k] > 0 for k in ("count_split_ms", "count_split_joined_ms", "read_stores_ms", "queue_counts_ms"))
+    assert (figures["rows"], figures["repeats"], figures["cycles"]) == (50, 2, 20)
+    assert all(figures[k] > 0 for k in ("count_split_ms", "count_split_rows_ms", "read_stores_ms", "queue_counts_ms",
+                                        "queue_counts_rows_ms", "cycles_per_s_kept", "cycles_per_s_bare"))

@@ -42,7 +42,7 @@ def test_layout_and_wal(cat):
     with connect(cat.db_path) as conn:
         assert conn.execute("PRAGMA journal_mode").fetchone()[0] == "wal"
         versions = dict(conn.execute("SELECT component, version FROM schema_versions").fetchall())
-    assert versions == {"catalog": 2}
+    assert versions == {"catalog": 3}
     Catalog(cat.data_dir)  # reopening is harmless
 
 

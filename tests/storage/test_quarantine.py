@@ -107,7 +107,7 @@ def test_a_version_1_catalog_is_migrated_with_its_episodes(tmp_path, rng):
         conn.execute("UPDATE schema_versions SET version = 1 WHERE component = 'catalog'")
     cat = Catalog(data)
     with connect(data / "catalog.sqlite") as conn:
-        assert dict(conn.execute("SELECT component, version FROM schema_versions").fetchall()) == {"catalog": 2}
+        assert dict(conn.execute("SELECT component, version FROM schema_versions").fetchall()) == {"catalog": 3}
     assert cat.list()[0].quarantined == "" and cat.snapshot().ids == [ep.meta.episode_id]
     assert cat.quarantine(ep.meta.episode_id, "x").quarantined == "x"
 

@@ -469,6 +469,7 @@ def test_sqlite_errors_on_reads_are_queue_errors(queue: RequestQueue) -> None:
     req, _ = queue.enqueue(new())
     with sqlite3.connect(queue.db_path) as other:
         other.execute("ALTER TABLE requests RENAME TO requests_elsewhere")  # what a damaged file can look like
+        other.execute("ALTER TABLE request_counts RENAME TO counts_elsewhere")
     for read in (queue.counts, lambda: queue.get(req.id), queue.list):
         with pytest.raises(QueueError, match="cannot read the queue"):
             read()
