@@ -293,7 +293,7 @@ class LoopRun:
             restore()
 
     def _run(self) -> RunResult:
-        start = time.time()
+        start = time.monotonic()  # a duration: a step of the wall clock (NTP) must not make it wrong or negative
         ctrl_c = False
         try:
             try:
@@ -425,7 +425,7 @@ class LoopRun:
                    "budget": self.cfg.budget, "round_episodes": self.cfg.round_episodes, "workers": self.cfg.workers,
                    "image_size": self.cfg.image_size, "steps": self.cfg.steps, "champion": champion,
                    "champion_h1_mse": h1, "retrains": len(retrains), "interrupted": interrupted,
-                   "seconds": round(time.time() - start, 1), "queue": self.queue.counts()}
+                   "seconds": round(time.monotonic() - start, 1), "queue": self.queue.counts()}
         if problem is not None:
             summary["champion_problem"] = problem
         train_rows = self.catalog.list(split="train", limit=40, newest_first=True, quarantined=False)

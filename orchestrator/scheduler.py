@@ -51,6 +51,9 @@ log = logging.getLogger(__name__)
 HISTORY_KEPT = 500
 #: Jobs whose logs (``logs/retrain-*.log`` and ``.log.out``) are kept: older ones are deleted as jobs finish.
 LOGS_KEPT = 200
+#: A step back of the wall clock (NTP, a host set right) larger than this reckons the next cron retrain from the
+#: new time; after a smaller one the schedule waits for the times it already ran, as cron does (3 h).
+CRON_STEP_BACK_S = 3 * 3600.0
 
 
 class RetrainScheduler:
@@ -83,6 +86,7 @@ class RetrainScheduler:
         self._deadline = 0.0
         self._last_count = count_episodes()
         self._next_cron = self._cron_after(time.time())
+        self._last_now = time.time()  # the wall clock at the last tick, to see it stepped back (``_due``)
         self._pending_manual = ""
         # The schedule's own trigger ("episodes", "cron") of a job that found another retrain holding the lock, or
         # that died midway last time: run again once the lock is free, not at the next trigger (a day later on a
@@ -176,6 +180,13 @@ class RetrainScheduler:
         n = self.cfg.every_episodes
         if n and self.count_episodes() // n > self._last_count // n:
             return "episodes"
+        stepped_back, self._last_now = self._last_now - now, now
+        if self._next_cron is not None and stepped_back > CRON_STEP_BACK_S:
+            # as cron does: a smaller step back waits for the times that already ran; after a larger one the
+            # next is reckoned from now (it was hours away: a daily cron set back a day skipped that day)
+            was, self._next_cron = self._next_cron, self._cron_after(now)
+            log.warning("the wall clock went back %.0f s: the next cron retrain is at %s (it was at %s)", stepped_back,
+                        *(time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime(t)) for t in (self._next_cron, was)))
         if self._next_cron is not None and now >= self._next_cron:
             self._next_cron = self._cron_after(now)
             return "cron"

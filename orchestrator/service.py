@@ -49,7 +49,7 @@ from orchestrator.uploads import StoredEpisode, UploadHandler
 from storage.catalog import STAGING_MAX_AGE_S, Catalog
 from storage.errors import QueueError, StorageError, StorageUnavailableError
 from storage.models import ModelRegistry
-from storage.queue import RequestQueue
+from storage.queue import RequestQueue, steady_clock
 from storage.requests import Request, RequestStatus
 from storage.servicelock import DataDirectoryBusyError, ServiceLock
 
@@ -59,8 +59,10 @@ log = logging.getLogger(__name__)
 class Service:
     """The orchestrator: ``start()`` serves until ``stop()``."""
 
-    def __init__(self, config: ServiceConfig) -> None:
+    def __init__(self, config: ServiceConfig, *, wall_clock: Callable[[], float] = time.time) -> None:
+        """``wall_clock``: read once at start, for the queue's ``steady_clock`` (a test's fake clock steps)."""
         self.config = config
+        self._wall_clock = wall_clock
         self.keys = Keys(config.namespace)
         self.metrics = config.metrics if config.metrics is not None else ServiceMetrics()
         self.session: zenoh.Session | None = None
@@ -119,7 +121,9 @@ class Service:
             self.claim()  # before anything writes: a directory another service serves is left as it was
             self.catalog = Catalog(cfg.data_dir)
             self._sweep()  # before any upload is answered
-            self.queue = RequestQueue(self.catalog.db_path, background_checkpoint=True)
+            # leases judged by a clock that NTP's steps cannot move (expired all at once on a step forward)
+            self.queue = RequestQueue(self.catalog.db_path, background_checkpoint=True,
+                                      clock=steady_clock(self._wall_clock))
             self._carry_leases_over()  # before the first reap
             registry = ModelRegistry(cfg.data_dir)
         except DataDirectoryBusyError as exc:

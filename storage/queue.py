@@ -65,6 +65,20 @@ _Q, _L, _D, _X, _C = (RequestStatus.QUEUED, RequestStatus.LEASED, RequestStatus.
                       RequestStatus.DEAD, RequestStatus.CANCELLED)
 
 
+def steady_clock(wall: Callable[[], float] = time.time,
+                 elapsed: Callable[[], float] = time.monotonic) -> Callable[[], float]:
+    """Unix seconds that a step of the wall clock cannot move: ``wall`` when made, plus the time ``elapsed``
+    since (``time.monotonic``, which NTP speeds or slows but never steps, and which stands still while the
+    machine sleeps). The clock of a long-lived process that judges leases by its own time -- the service: with
+    ``time.time``, an NTP step forward by more than a lease (or a VM or laptop resumed) expired every live
+    lease at once, and each worker dropped the episode it was collecting; a step back kept a vanished worker's
+    lease for the length of the step. Its timestamps (``created``, ``updated``) then differ from the wall
+    clock by the steps since the process started; a restart reads the wall clock again, and carries the live
+    leases over (``extend_leases``)."""
+    start_wall, start = wall(), elapsed()
+    return lambda: start_wall + (elapsed() - start)
+
+
 class RequestQueue:
     """Collection requests in a SQLite file (usually the catalog's ``catalog.sqlite``), safe across threads."""
 

@@ -216,6 +216,22 @@ def test_cron_schedule(tmp_path):
         ScheduleConfig(cron="every five minutes")
 
 
+def test_a_cron_schedule_set_back_by_hours_runs_at_its_next_time_not_hours_late(tmp_path, caplog):
+    hourly = RetrainScheduler(ScheduleConfig(cron="0 * * * *"), tmp_path, Counter(), command=script_command(PROMOTES))
+    nxt = hourly._next_cron
+    assert hourly.tick(now=nxt - 1800) is None  # half an hour before the next
+    assert hourly.tick(now=nxt - 1800 - 60) is None  # set back a minute: the same next, no retrain run twice
+    assert hourly._next_cron == nxt
+    with caplog.at_level(logging.WARNING, logger="orchestrator.scheduler"):
+        assert hourly.tick(now=nxt - 1800 - 6 * 3600) is None  # set back 6 h: the next is in half an hour again
+    assert hourly._next_cron == nxt - 6 * 3600 and "the wall clock went back 21540 s" in caplog.text
+    rec = hourly.tick(now=nxt - 6 * 3600 + 1)
+    assert rec is not None and rec.trigger == "cron"  # (it was 7 h away)
+    hourly.wait_idle(timeout=60)
+    assert hourly.tick(now=nxt - 6 * 3600 - 59) is None  # back a minute, before the time that ran: not again
+    assert hourly._next_cron == nxt - 5 * 3600
+
+
 def test_the_lock_admits_one_holder_across_processes(tmp_path):
     holder = subprocess.Popen([sys.executable, "-c", (
         "import sys, time, pathlib\n"

@@ -170,6 +170,36 @@ def test_expired_leases_are_reaped(make_service, client, keys) -> None:
     assert lease(client, keys, worker="w2").token == 2
 
 
+@pytest.mark.parametrize("step_s", [3600.0, -3600.0], ids=["forward", "back"])
+def test_a_step_of_the_wall_clock_moves_no_lease(make_service, client, keys, step_s) -> None:
+    # NTP steps the clock (or a VM or a laptop wakes up): forward, every live lease expired at once and its worker
+    # dropped the episode it was collecting; back, a vanished worker's lease stayed for the length of the step
+    wall = [time.time()]
+    service = make_service(lease_s=30.0 if step_s > 0 else 0.5, wall_clock=lambda: wall[0])
+    request, _ = service.queue.enqueue(new_request())
+    grant = lease(client, keys)
+    real, reaps = service.metrics.read_stores, []
+
+    def counted(*args, **kw):  # the reaper reads the gauges after each expiry pass
+        reaps.append(1)
+        return real(*args, **kw)
+
+    service.metrics.read_stores = counted
+    wall[0] += step_s
+    if step_s < 0:
+        wait_for(lambda: service.queue.get(request.id).status == RequestStatus.QUEUED, timeout=10,
+                 message="the lease to expire one term after it was granted, the step back notwithstanding")
+        return
+    seen = len(reaps)
+    wait_for(lambda: len(reaps) >= seen + 2, message="two reaper passes after the step")
+    assert service.queue.get(request.id).status == RequestStatus.LEASED
+    renew = messages.RenewRequest(request_id=grant.request_id, token=grant.token, worker_id="w1").to_json()
+    assert call(client, keys.renew, renew)["expires_at"] >= grant.expires_at  # (a refusal raises)
+    upload(client, keys, grant, episode_bytes(grant))
+    done = service.queue.get(request.id)
+    assert (done.status, done.attempts) == (RequestStatus.DONE, 0)
+
+
 def test_lease_expiry_outlives_an_unexpected_failure_in_maintenance(make_service, client, keys) -> None:
     service = make_service(lease_s=0.3)
     real, failed = service.catalog.count, []

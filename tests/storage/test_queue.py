@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 
 from storage.errors import QueueError, StaleLeaseError
-from storage.queue import RequestQueue
+from storage.queue import RequestQueue, steady_clock
 from storage.requests import (
     TRANSITIONS,
     IllegalTransitionError,
@@ -473,3 +473,13 @@ def test_sqlite_errors_on_reads_are_queue_errors(queue: RequestQueue) -> None:
     for read in (queue.counts, lambda: queue.get(req.id), queue.list):
         with pytest.raises(QueueError, match="cannot read the queue"):
             read()
+
+
+def test_a_steady_clock_moves_with_the_time_elapsed_not_with_steps_of_the_wall_clock() -> None:
+    wall, elapsed = [1_000.0], [5.0]
+    clock = steady_clock(lambda: wall[0], lambda: elapsed[0])
+    wall[0] += 3600.0  # NTP steps the wall clock an hour forward
+    elapsed[0] += 2.0
+    assert clock() == 1_002.0
+    wall[0] -= 7200.0
+    assert clock() == 1_002.0
