@@ -7,8 +7,9 @@ done request --rows times by SQL (the counts read rows, not files), and times, i
 alternating the two: the counts the triggers keep (``Catalog.count(split="train")``, ``RequestQueue.counts``:
 a few rows of ``episode_counts`` / ``request_counts``) against the same counted from the rows (what they did
 before the thirtieth session: a split's index, each status's partial index), and ``read_stores`` as it is.
-Then the cost to the writes: lease-and-complete cycles (what each episode does to the queue) on a queue with the
-triggers against one whose triggers were dropped, alternating in batches.
+Then the cost to the writes: lease-and-complete cycles (what each episode does to the queue: the complete fires a
+trigger) and lease-and-release cycles (no trigger fires: leases, renewals and fails move only live statuses,
+which are not kept) on a queue with the triggers against one whose triggers were dropped, alternating in batches.
 
 Usage: .venv/bin/python bench/store_counts.py [--rows 200000] [--repeats 20] [--cycles 2000] [--json OUT]
 """
@@ -68,33 +69,42 @@ def _copies(conn: sqlite3.Connection, rows: int) -> None:
     conn.execute("COMMIT")
 
 
-def _cycles(queue: RequestQueue, n: int) -> float:
-    """Seconds for ``n`` lease-and-complete cycles on requests enqueued beforehand (not timed)."""
+def _cycles(queue: RequestQueue, n: int, finish: bool) -> float:
+    """Seconds for ``n`` lease-and-complete cycles (``finish``: each request done, the counted transition) or
+    lease-and-release cycles (the request back in the queue: live statuses only) on requests enqueued before."""
     queue.enqueue_many([NewRequest(task="push", shape="T", start_state={}, steps=5) for _ in range(n)])
     start = time.perf_counter()
     for i in range(n):
         lease = queue.lease("bench")
-        queue.complete(lease.request.id, lease.token, f"cycle{i}")
+        if finish:
+            queue.complete(lease.request.id, lease.token, f"cycle{i}")
+        else:
+            queue.release(lease.request.id, lease.token)
     return time.perf_counter() - start
 
 
 def write_cost(cycles: int, tmp: Path) -> dict:
-    """Lease-and-complete cycles per second with the count triggers and without them, alternating batches."""
+    """Cycles per second with the count triggers and without them, alternating batches: lease-and-complete (each
+    fires one) and lease-and-release (none fires: the live statuses are not kept)."""
     kept, bare = RequestQueue(tmp / "kept.sqlite"), RequestQueue(tmp / "bare.sqlite")
     with sqlite3.connect(bare.db_path) as conn:  # the queue, already open, writes on without them
         for (name,) in conn.execute("SELECT name FROM sqlite_master WHERE type = 'trigger'").fetchall():
             conn.execute(f"DROP TRIGGER {name}")
-    seconds = {"kept": 0.0, "bare": 0.0}
     batch = max(1, cycles // 10)
-    for _ in range(max(1, cycles // batch)):
-        seconds["kept"] += _cycles(kept, batch)
-        seconds["bare"] += _cycles(bare, batch)
-    done = batch * max(1, cycles // batch)
-    assert kept.counts()["done"] == done  # the triggers counted every one of them
+    rounds = max(1, cycles // batch)
+    out: dict = {"cycles": batch * rounds}
+    for finish, name in ((True, "complete"), (False, "release")):
+        seconds = {"kept": 0.0, "bare": 0.0}
+        for i in range(rounds):  # each first in every other round
+            for which, queue in ((("kept", kept), ("bare", bare)) if i % 2 else (("bare", bare), ("kept", kept))):
+                seconds[which] += _cycles(queue, batch, finish)
+        out.update({f"{name}_per_s_kept": out["cycles"] / seconds["kept"],
+                    f"{name}_per_s_bare": out["cycles"] / seconds["bare"],
+                    f"{name}_cost_ratio": seconds["kept"] / seconds["bare"]})
+    assert kept.counts()["done"] == out["cycles"]  # the triggers counted every one of them
     kept.close()
     bare.close()
-    return {"cycles": done, "cycles_per_s_kept": done / seconds["kept"], "cycles_per_s_bare": done / seconds["bare"],
-            "write_cost_ratio": seconds["kept"] / seconds["bare"]}
+    return out
 
 
 def run(rows: int, repeats: int, cycles: int, tmp: Path) -> dict:

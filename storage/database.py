@@ -286,27 +286,35 @@ def undo_unless_committed(conn: sqlite3.Connection, committed: Callable[[sqlite3
             conn.execute("ROLLBACK")
 
 
-def kept_counts(table: str, column: str, counts: str) -> tuple[str, ...]:
+def kept_counts(table: str, column: str, counts: str, values: str | None = None) -> tuple[str, ...]:
     """The statements that make ``counts`` (``column`` value -> ``n``) hold the number of rows of ``table`` with
-    each value of ``column``, kept by triggers in every write's own transaction -- any process's, any code
-    version's -- so a count reads a handful of rows instead of an index that grows with the history.
+    each value of ``column`` -- only those in ``values`` (an SQL list, ``"('a', 'b')"``) when given -- kept by
+    triggers in every write's own transaction (any process's, any code version's), so a count reads a handful
+    of rows instead of an index that grows with the history. A write that moves no counted value fires none:
+    ``values`` spares a hot path (the queue's leases) the page the counts take in each of its commits.
 
     Idempotent, and safe in any transaction that holds the write lock (``BEGIN IMMEDIATE``, a migration's):
     the first run counts the rows already there (no write can come between that count and the triggers), a
     later one keeps the counts it finds. A value whose rows all left stays, at 0."""
-    def count_in(row: str) -> str:
-        return (f"INSERT OR IGNORE INTO {counts} ({column}, n) VALUES ({row}.{column}, 0); "
-                f"UPDATE {counts} SET n = n + 1 WHERE {column} = {row}.{column}; ")
+    counted = "" if values is None else f" AND {{row}}.{column} IN {values}"
 
-    count_out = f"UPDATE {counts} SET n = n - 1 WHERE {column} = OLD.{column}; "
-    triggers = (("insert", "INSERT", "", count_in("NEW")),
-                ("update", f"UPDATE OF {column}", f" WHEN OLD.{column} IS NOT NEW.{column}",
-                 count_out + count_in("NEW")),
-                ("delete", "DELETE", "", count_out))
+    def count_in(row: str) -> str:
+        return (f"INSERT OR IGNORE INTO {counts} ({column}, n) SELECT {row}.{column}, 0 WHERE 1"
+                f"{counted.format(row=row)}; UPDATE {counts} SET n = n + 1 WHERE {column} = {row}.{column}; ")
+
+    def when(*rows: str) -> str:
+        return "" if values is None else " WHEN " + " OR ".join(f"{r}.{column} IN {values}" for r in rows)
+
+    count_out = f"UPDATE {counts} SET n = n - 1 WHERE {column} = OLD.{column}; "  # (a row of counts: counted)
+    moved = f" WHEN OLD.{column} IS NOT NEW.{column}" + ("" if values is None else f" AND ({when('OLD', 'NEW')[6:]})")
+    triggers = (("insert", "INSERT", when("NEW"), count_in("NEW")),
+                ("update", f"UPDATE OF {column}", moved, count_out + count_in("NEW")),
+                ("delete", "DELETE", when("OLD"), count_out))
     return (f"CREATE TABLE IF NOT EXISTS {counts} ({column} TEXT PRIMARY KEY, n INTEGER NOT NULL)",
-            f"INSERT OR IGNORE INTO {counts} ({column}, n) SELECT {column}, COUNT(*) FROM {table} GROUP BY {column}",
-            *(f"CREATE TRIGGER IF NOT EXISTS {counts}_{name} AFTER {event} ON {table}{when} BEGIN {body}END"
-              for name, event, when, body in triggers))
+            f"INSERT OR IGNORE INTO {counts} ({column}, n) SELECT {column}, COUNT(*) FROM {table}"
+            + ("" if values is None else f" WHERE {column} IN {values}") + f" GROUP BY {column}",
+            *(f"CREATE TRIGGER IF NOT EXISTS {counts}_{name} AFTER {event} ON {table}{cond} BEGIN {body}END"
+              for name, event, cond, body in triggers))
 
 
 def ensure_schema(conn: sqlite3.Connection, component: str,

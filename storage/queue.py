@@ -291,7 +291,7 @@ class RequestQueue:
             return [row_to_request(r) for r in conn.execute(sql, args)]
 
     def counts(self) -> dict[str, int]:
-        """Number of requests in every status (zeros included), as the triggers keep them (a few rows read)."""
+        """Number of requests in every status (zeros included): the finished ones as the triggers keep them."""
         out = {s.value: 0 for s in RequestStatus}
         with self._reading() as conn:
             for status, n in conn.execute(COUNTS_SQL):

@@ -67,11 +67,12 @@ SCHEMA = (
     "CREATE INDEX IF NOT EXISTS requests_leased ON requests (lease_expires) WHERE status = 'leased'",
     "CREATE INDEX IF NOT EXISTS requests_finished ON requests (status, updated) WHERE status IN "
     + TERMINAL_SQL,
-    # The number of requests in each status, kept by triggers in every write's own transaction (any process's,
-    # any code version's), so ``counts`` -- the service's once-a-second gauge -- reads a handful of rows, not
-    # a history that never shrinks (see BENCHMARKS, "Counting a long history"). A file from before it is
-    # counted once, in the transaction that makes the triggers: no write can come between.
-    *kept_counts("requests", "status", "request_counts"),
+    # The number of finished requests in each status, kept by triggers in every write's own transaction (any
+    # process's, any code version's), so ``counts`` -- the service's once-a-second gauge -- reads a handful of
+    # rows, not a history that never shrinks (see BENCHMARKS, "Counting a long history"); queued and leased
+    # requests, the live ones, are counted from their partial indexes, so a lease, a renewal or a fail fires no
+    # trigger. A file from before it is counted once, in the transaction that makes the triggers.
+    *kept_counts("requests", "status", "request_counts", TERMINAL_SQL),
 )
 # What a current file has and must not have, read off SCHEMA (so the two cannot drift apart).
 SCHEMA_OBJECTS = {m[1] for sql in SCHEMA if (m := re.match(r"CREATE \w+ IF NOT EXISTS (\w+)", sql))}
@@ -102,9 +103,12 @@ INSERT_SQL = ("INSERT INTO requests (id, created, updated, priority, task, shape
               " policy_params, action_prefix, steps, reason, attempts, max_attempts, status,"
               f" idempotency_key) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, 0, ?, 'queued', ?) RETURNING {COLS}")
 
-# The counts the triggers keep (``SCHEMA``), and the same counted afresh from the rows: one count per partial
-# index (each a covering scan of its own index, never of the table), linear in the history.
-COUNTS_SQL = "SELECT status, n FROM request_counts"
+# The live statuses counted from their partial indexes, the finished ones as the triggers keep them (``SCHEMA``);
+# and all counted afresh from the rows: one count per partial index (each a covering scan of its own index, never
+# of the table), linear in the history.
+COUNTS_SQL = ("SELECT 'queued', COUNT(*) FROM requests WHERE status = 'queued' UNION ALL "
+              "SELECT 'leased', COUNT(*) FROM requests WHERE status = 'leased' UNION ALL "
+              "SELECT status, n FROM request_counts")
 RECOUNT_SQL = ("SELECT 'queued', COUNT(*) FROM requests WHERE status = 'queued' UNION ALL "
               "SELECT 'leased', COUNT(*) FROM requests WHERE status = 'leased' UNION ALL "
               f"SELECT status, COUNT(*) FROM requests WHERE status IN {TERMINAL_SQL} GROUP BY status")

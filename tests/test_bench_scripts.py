@@ -208,4 +208,4 @@ def test_store_counts_times_the_counts_of_a_long_history_and_refuses_bad_sizes(t
     figures = json.loads(out.read_text())
     assert (figures["rows"], figures["repeats"], figures["cycles"]) == (50, 2, 20)
     assert all(figures[k] > 0 for k in ("count_split_ms", "count_split_rows_ms", "read_stores_ms", "queue_counts_ms",
-                                        "queue_counts_rows_ms", "cycles_per_s_kept", "cycles_per_s_bare"))
+                                        "queue_counts_rows_ms", "complete_per_s_kept", "release_per_s_bare"))
