@@ -449,8 +449,19 @@ class Worker:
         def ran_out() -> bool:
             return self._stop.is_set() and renewer.drain_left() <= 0
 
+        asked_again: list[bool] = []
+
+        def give_up() -> bool:
+            # A renewal refused once the upload went out may have met the request this very upload completed (its
+            # reply lost or late): one more try is answered 'duplicate' then, 'stale_token' if the lease is gone.
+            if renewer.lost is not None and not asked_again:
+                asked_again.append(True)
+                return ran_out()
+            return renewer.lost is not None or ran_out()
+
+        renewer.uploading = True
         try:
-            body = self._retrying("upload", attempt, give_up=lambda: renewer.lost is not None or ran_out(),
+            body = self._retrying("upload", attempt, give_up=give_up,
                                   transient=(ErrorCode.INTERNAL, ErrorCode.UNAVAILABLE))
         except ProtocolError as exc:
             if exc.code in (ErrorCode.STALE_TOKEN, ErrorCode.UNKNOWN_REQUEST):

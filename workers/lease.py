@@ -36,6 +36,9 @@ class Renewer:
         self._stop = threading.Event()
         self.lost: str | None = None
         """Why the lease is not ours any more (the service said so), or None."""
+        self.uploading = False
+        """Set once the episode's upload went out: a renewal refused from then on may only have met the request
+        that upload completed (its reply still on the way), so it is said at INFO and the upload's reply decides."""
         self._until = time.monotonic() + grant.lease_s
         self._drain_until: float | None = None
         self._thread = threading.Thread(target=self._run, name=f"renew:{grant.request_id}", daemon=True)
@@ -76,7 +79,11 @@ class Renewer:
             except ProtocolError as exc:
                 if exc.code in (ErrorCode.STALE_TOKEN, ErrorCode.UNKNOWN_REQUEST):
                     self.lost = exc.message
-                    log.warning("lease of %s lost (%s): %s", self._grant.request_id, exc.code.value, exc.message)
+                    if self.uploading:
+                        log.info("renewal of %s refused (%s) while its upload is out (which may have completed it: "
+                                 "the upload's reply says): %s", self._grant.request_id, exc.code.value, exc.message)
+                    else:
+                        log.warning("lease of %s lost (%s): %s", self._grant.request_id, exc.code.value, exc.message)
                     return
                 log.warning("renew %s refused: %s", self._grant.request_id, exc)
                 continue
