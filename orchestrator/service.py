@@ -145,7 +145,7 @@ class Service:
             self.feed.seed()
         except StorageError as exc:  # e.g. a full disk: nothing was queued
             raise ServiceError(f"cannot seed the queue with {cfg.seed_requests} request(s): {exc}") from exc
-        self._uploads = UploadHandler(self.queue, self.catalog, self.metrics, self.publish, self._writes,
+        self._uploads = UploadHandler(self.queue, self.catalog, self.metrics, self.publish, self._writing,
                                       cfg.max_upload_bytes, self._episode_stored, self._frame_size,
                                       health=self.storage)
         self._threads = [threading.Thread(target=self._maintain, name="maintenance", daemon=True)]

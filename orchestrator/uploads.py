@@ -20,8 +20,8 @@ from __future__ import annotations
 
 import logging
 import math
-import threading
 from collections.abc import Callable
+from contextlib import AbstractContextManager
 from dataclasses import dataclass
 from typing import Any
 
@@ -64,15 +64,18 @@ class UploadHandler:
     """Stores uploaded episodes exactly once; see the module docstring."""
 
     def __init__(self, queue: RequestQueue, catalog: Catalog, metrics: ServiceMetrics,
-                 publish: Callable[[EventKind, dict[str, Any]], None], write_lock: threading.Lock,
+                 publish: Callable[[EventKind, dict[str, Any]], None],
+                 turn: Callable[[], AbstractContextManager[None]],
                  max_upload_bytes: int, on_stored: Callable[[StoredEpisode], None],
                  frame_size: Callable[[], int] = lambda: 0, *, health: StorageHealth) -> None:
         self.queue = queue
         self.catalog = catalog
         self.metrics = metrics
         self.publish = publish
-        self.write_lock = write_lock
-        """The service's writer turn: the ingest transaction takes it like every queue transition."""
+        self.turn = turn
+        """The service's writer turn (``Service._writing``), which the ingest transaction takes like every queue
+        transition: a write it refuses for a reason that passes is ``health``'s to know before the turn passes
+        on (else a reap that took it in between expired the leases nobody could renew)."""
         self.health = health
         """The service's: a write of an upload the storage refuses holds every lease, as a renew's does."""
         self.max_upload_bytes = max_upload_bytes
@@ -123,7 +126,7 @@ class UploadHandler:
                     in_transaction=lambda conn: self.queue.complete(
                         header.request_id, header.token, episode.meta.episode_id, conn,
                         worker_id=header.worker_id),
-                    verified=EpisodeInfo(meta=episode.meta, frames=len(episode)), write_lock=self.write_lock,
+                    verified=EpisodeInfo(meta=episode.meta, frames=len(episode)), write_lock=self.turn(),
                     readmit=False)  # a racing copy of the first upload keeps a quarantine committed since
         except (StaleLeaseError, IllegalTransitionError) as exc:
             request = self.queue.get(header.request_id)  # a racing identical upload may have won
@@ -171,7 +174,7 @@ class UploadHandler:
             return
         try:
             with self.health.writing():
-                written = self.catalog.repair_file(row.episode_id, data, write_lock=self.write_lock)
+                written = self.catalog.repair_file(row.episode_id, data, write_lock=self.turn())
         except StorageError as exc:  # the bytes hash to a verified episode's: the disk, not the upload
             code = ErrorCode.UNAVAILABLE if isinstance(exc, StorageUnavailableError) else ErrorCode.INTERNAL
             raise ProtocolError(code, f"episode {row.episode_id}: its file does not hold the bytes "

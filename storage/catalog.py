@@ -313,9 +313,16 @@ class Catalog(CatalogQuarantine, CatalogEvalSplit, CatalogStrays):
         staged = None
         try:
             staged = stage_bytes(target, data)
-            with self._connect() as conn, write_lock if write_lock is not None else nullcontext():
-                return under_lock(conn, staged)
-        except OSError as exc:
+            # The lock outermost: an error inside is made a CatalogError (``connection``; an OSError of the publish
+            # here) while it is held, so a ``write_lock`` that notes outages (the service's turn) notes it before
+            # another writer goes: its reaper would otherwise expire the leases nobody could renew meanwhile.
+            with write_lock if write_lock is not None else nullcontext():
+                try:
+                    with self._connect() as conn:
+                        return under_lock(conn, staged)
+                except OSError as exc:
+                    raise storage_error(exc, CatalogError, f"{failed}: {exc.strerror or exc}", target) from exc
+        except OSError as exc:  # staging
             raise storage_error(exc, CatalogError, f"{failed}: {exc.strerror or exc}", target) from exc
         finally:
             if staged is not None:
