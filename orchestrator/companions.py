@@ -115,8 +115,13 @@ class Companions:
                                   metrics_text=self.service.metrics.render,
                                   frames_png=FramesSource(self.scorer, ctx.catalog),
                                   retrains=self._retrains)
-            dashboard = Dashboard(cfg.dashboard_config(), sources.sources())
-            dashboard.start()
+            config = cfg.dashboard_config()
+            dashboard = Dashboard(config, sources.sources())
+            try:
+                dashboard.start()
+            except OSError as exc:  # (the bare "[Errno 98] Address already in use" named neither port nor flag)
+                raise OSError(exc.errno, f"cannot serve the dashboard on {config.host}:{config.port}: "
+                                         f"{exc.strerror} (--dashboard-port P for another port, -1 for none)") from exc
             self.dashboard = dashboard
 
     def stop(self) -> None:

@@ -178,7 +178,7 @@ class RetrainScheduler:
             log.info("retrain lock free: the %s retrain that found it busy or died midway runs now", trigger)
             return trigger
         n = self.cfg.every_episodes
-        if n and self.count_episodes() // n > self._last_count // n:
+        if n and self.count_episodes() - self._last_count >= n:  # n more since the last start (not a multiple of n)
             return "episodes"
         stepped_back, self._last_now = self._last_now - now, now
         if self._next_cron is not None and stepped_back > CRON_STEP_BACK_S:

@@ -201,7 +201,7 @@ def spawn_service(spawn: Callable[..., Proc], data_dir: Path, endpoint: str,
     """Factory ``spawn_service(*extra_args)``: ``activecollect serve`` on this test's endpoint and data dir."""
 
     def _service(*extra: str, name: str = "service") -> Proc:
-        return spawn(name, "serve", "--data", str(data_dir), "--namespace", namespace,
+        return spawn(name, "serve", "--data", str(data_dir), "--init", "--namespace", namespace,
                      "--listen", endpoint, "--planner", "none", "--reap-interval-s", "0.2",
                      "--lost-worker-grace", "0", "--dashboard-port", "-1", *extra)
 

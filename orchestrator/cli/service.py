@@ -8,8 +8,11 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
+import shutil
 import sys
 import threading
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -26,6 +29,7 @@ from orchestrator.uniform import UniformPlanner, UniformPlannerConfig
 from orchestrator.service import Service
 from orchestrator.serviceconfig import PlannerFactory, ServiceConfig, ServiceContext, ServiceError, where_served
 from orchestrator.signals import on_stop_signals
+from storage.database import DB_NAME
 from storage.errors import StorageError
 from storage.requests import RequestStatus
 from workers import cli as worker_cli
@@ -47,11 +51,12 @@ def register(sub: argparse._SubParsersAction) -> None:
                                    "scheduled retrains (each a `retrain` child process), until SIGTERM or Ctrl-C "
                                    "(exit 0). Exit 1 when it cannot start (an endpoint taken, an unusable data "
                                    "directory, one another serve or run holds: DATA/service.lock); exit 2 for bad "
-                                   "flags, or a --data that does not exist without --init.")
+                                   "flags, or a --data that holds no catalog without --init.")
     common.add_data_arg(p)
     p.add_argument("--init", action="store_true",
                    help="start a new data directory at --data when there is none (without it, a --data that "
-                        "does not exist is refused: a misspelt path must not start a new, empty catalog)")
+                        "holds no catalog is refused: a misspelt path, or the data directory's parent, must not "
+                        "start a new, empty catalog; one a start that then fails made is removed)")
     endpoints.add_connection_args(p, listen=True)
     p.add_argument("--lease-s", type=common.positive_float, default=30.0, metavar="S",
                    help="seconds a worker holds a request before it must renew the lease or lose it, 0.05..86400 "
@@ -90,8 +95,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help=f"dashboard on 127.0.0.1:PORT (0 = any free port, -1 = none; default {d.dashboard_port})")
     common.add_dashboard_limit_args(p, prefix="dashboard-")
     p.add_argument("--retrain-every", type=common.non_negative_int, default=d.retrain_every, metavar="N",
-                   help="retrain (in a child process) each time N more training episodes are stored "
-                        "(default 0 = not on count)")
+                   help="retrain (in a child process) each time N more training episodes are stored than when "
+                        "the last retrain (or the service) started (default 0 = not on count)")
     p.add_argument("--retrain-cron", type=common.cron_expression, default=d.retrain_cron, metavar="EXPR",
                    help="also retrain on this cron expression of 5 fields (minute hour day month weekday), read in "
                         "UTC, e.g. '0 * * * *' or @hourly (default: not on time)")
@@ -196,9 +201,11 @@ def cmd_serve(args: argparse.Namespace) -> int:
                                planner=planner_factory(args.planner, args.steps, args.seed, args.scoring_threads))
     except ServiceError as exc:
         raise common.config_error(exc, {"namespace": "--namespace", "mode": "--mode"}) from None
-    if not args.init and not args.data.is_dir():  # (data_dir has refused a file there)
-        raise common.UsageError(f"no data directory at {args.data}: create it, or give --init to start a new one "
-                                "there")
+    if not args.init and not (args.data / DB_NAME).is_file():  # (data_dir has refused a file there)
+        # (a directory without a catalog too: the likeliest slip is its parent, /srv/ac for /srv/ac/data)
+        raise common.UsageError(f"{'no catalog in' if args.data.is_dir() else 'no data directory at'} {args.data}: "
+                                "give the directory a serve, run or collect made, or --init to start a new one there")
+    made = _made_by_init(args.data) if args.init else None
     stop = threading.Event()
     on_stop_signals(stop.set)  # (SIGINT stays ignored when serve was started ignoring it)
     service = Service(config)
@@ -210,6 +217,8 @@ def cmd_serve(args: argparse.Namespace) -> int:
         except BaseException:  # whatever it is, nothing keeps running behind it
             companions.stop()
             service.stop()
+            if made is not None:  # nor a new catalog a later serve without --init would take for one it made
+                made()
             raise
     except (ServiceError, StorageError, ValueError, OSError) as exc:  # StorageError: the scheduler's count
         print(f"activecollect serve: {one_line(str(exc))}", file=sys.stderr)
@@ -228,6 +237,28 @@ def cmd_serve(args: argparse.Namespace) -> int:
         companions.stop()
         service.stop()
     return 0
+
+
+def _made_by_init(data: Path) -> Callable[[], None] | None:
+    """For ``serve --init`` on a directory that holds no catalog: what removes the files a start that then
+    failed made there (and the directory, if it made it), leaving what was there before; None when a catalog is
+    there already (nothing is made)."""
+    if (data / DB_NAME).is_file():
+        return None
+    before = set(os.listdir(data)) if data.is_dir() else None
+
+    def remove() -> None:
+        if before is None:
+            shutil.rmtree(data, ignore_errors=True)
+            return
+        for name in set(os.listdir(data)) - before:
+            path = data / name
+            if path.is_dir() and not path.is_symlink():
+                shutil.rmtree(path, ignore_errors=True)
+            else:
+                path.unlink(missing_ok=True)
+
+    return remove
 
 
 def _no_eval_split(service: Service) -> bool:

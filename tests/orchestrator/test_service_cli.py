@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import re
 import signal
+import socket
 import subprocess
 import sys
 import threading
@@ -148,9 +149,17 @@ def test_serve_refuses_a_data_directory_that_does_not_exist_unless_told_init(cap
             "--dashboard-port", "-1"]
     rc = main(argv)
     out, err = capsys.readouterr()
-    assert rc == 2 and out == "" and err == (f"activecollect: error: no data directory at {missing}: create it, or "
-                                             "give --init to start a new one there\n")
+    assert rc == 2 and out == "" and err == (f"activecollect: error: no data directory at {missing}: give the "
+                                             "directory a serve, run or collect made, or --init to start a new "
+                                             "one there\n")
     assert not (tmp_path / "misspelt").exists()
+    # the likeliest slip: the data directory's parent, which exists (it used to start a new, empty catalog there)
+    parent = tmp_path / "srv"
+    (parent / "data").mkdir(parents=True)
+    (parent / "notes.txt").write_text("x")
+    assert main([*argv[:2], str(parent), *argv[3:]]) == 2
+    assert capsys.readouterr().err.startswith(f"activecollect: error: no catalog in {parent}: give the directory")
+    assert sorted(p.name for p in parent.iterdir()) == ["data", "notes.txt"]
     proc = spawn("service", *argv, "--init")
     line = wait_for(lambda: next((ln for ln in proc.log().splitlines() if ln.startswith("serving ")), None)
                     or not proc.alive(), timeout=60, message="serve --init to start")
@@ -159,6 +168,33 @@ def test_serve_refuses_a_data_directory_that_does_not_exist_unless_told_init(cap
     assert (missing / "catalog.sqlite").is_file()
     assert main(["stats", "--connect", endpoint, "--namespace", namespace, "--timeout", "10", "--json"]) == 0
     assert json.loads(capsys.readouterr().out)["episodes"]["total"] == 0
+
+
+@pytest.mark.parametrize("where", ["new", "empty", "with-files"])
+def test_a_serve_init_that_cannot_start_leaves_no_catalog_behind(capsys, tmp_path, endpoint, namespace,
+                                                                  where) -> None:
+    """Its dashboard's port is taken (said with the port and the flag, not a bare "[Errno 98]"): the start fails,
+    exit 1, and what it made is removed -- a later serve without --init would have taken it for a data directory,
+    the very slip --init guards against -- while what was there before stays."""
+    data = tmp_path / "data"
+    if where != "new":
+        data.mkdir()
+    if where == "with-files":
+        (data / "notes.txt").write_text("x")
+        (data / "keep").mkdir()
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        rc = main(["serve", "--data", str(data), "--init", "--listen", endpoint, "--namespace", namespace,
+                   "--planner", "none", "--dashboard-port", str(port)])
+    err = capsys.readouterr().err
+    assert rc == 1 and err.count("\n") == 1, err
+    assert f"cannot serve the dashboard on 127.0.0.1:{port}: Address already in use (--dashboard-port P" in err, err
+    if where == "new":
+        assert not data.exists()
+    else:
+        assert sorted(p.name for p in data.iterdir()) == ([] if where == "empty" else ["keep", "notes.txt"])
 
 
 @pytest.mark.parametrize("schedule", [[], ["--retrain-every", "8"]], ids=["no-retrains", "retrains"])
