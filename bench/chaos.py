@@ -121,8 +121,8 @@ class Cluster:
     def start_service(self, timeout: float = 60.0) -> None:
         """Starts ``serve`` and returns once ``stats`` answers (after its start-up sweep)."""
         self.service_starts += 1
-        self.service = self._spawn([ACTIVECOLLECT, "serve", "--data", str(self.data), "--listen", self.endpoint,
-                                    *self.service_args, "--log-level", "INFO"],
+        self.service = self._spawn([ACTIVECOLLECT, "serve", "--data", str(self.data), "--init", "--listen",
+                                    self.endpoint, *self.service_args, "--log-level", "INFO"],
                                    f"service.{self.service_starts}", self.data)
         deadline = time.monotonic() + timeout
         while time.monotonic() < deadline:

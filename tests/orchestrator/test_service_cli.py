@@ -285,8 +285,8 @@ def test_serve_reports_a_storage_error_at_start_in_one_line_and_stops_what_it_st
     and nothing left serving (the Zenoh listener is closed)."""
     from tests.orchestrator.test_service_storage import port_free, refuse_inserts
     monkeypatch.setattr("orchestrator.cli.service.on_stop_signals", lambda stop: None)  # keep pytest's handlers
-    argv = ["serve", "--data", str(data_dir), "--listen", endpoint, "--namespace", namespace, "--dashboard-port",
-            "-1"]
+    argv = ["serve", "--data", str(data_dir), "--init", "--listen", endpoint, "--namespace", namespace,
+            "--dashboard-port", "-1"]
     if failing == "seed":  # a real refusal, by SQLite
         refuse_inserts(Catalog(data_dir).db_path)
         argv += ["--planner", "uniform", "--seed-requests", "2", "--min-queued", "0"]
