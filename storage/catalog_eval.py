@@ -52,8 +52,10 @@ class CatalogEvalSplit(CatalogReads):
         with self._connect() as conn:
             return eval_splits.snapshot(conn, split)
 
-    def replays(self, split: str = "train", metas: Sequence[EpisodeMeta] | None = None) -> dict[str, str]:
-        """Episodes of ``split`` (or ``metas``) replaying one of the other: {id: its id} (``eval_split.replays``)."""
+    def replays(self, split: str = "train", metas: Sequence[EpisodeMeta] | None = None, *,
+                within: bool = False) -> dict[str, str]:
+        """Episodes of ``split`` (or ``metas``) replaying one of the other (``within``: of ``split`` itself):
+        {id: its id} (``eval_split.replays``)."""
         check_split(split)
         with self._connect() as conn:
-            return eval_splits.replays(conn, split, metas)
+            return eval_splits.replays(conn, split, metas, within=within)

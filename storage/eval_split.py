@@ -164,16 +164,19 @@ def _by_value(value: Any) -> Any:
 
 
 def replays(conn: sqlite3.Connection, split: str,
-            metas: Sequence[EpisodeMeta] | None = None) -> dict[str, str]:
+            metas: Sequence[EpisodeMeta] | None = None, *, within: bool = False) -> dict[str, str]:
     """The episodes of ``split`` that replay an episode of the other split (same ``replay_key``): {their id:
     the other's id (the first by id)}. ``metas``: episodes about to be indexed in ``split``, instead of the
-    indexed ones.
+    indexed ones. ``within`` (with ``metas`` only): those that replay an episode of ``split`` itself (the same
+    episode collected twice).
 
     Every eval episode counts, pinned or not (an unpinned one waits to be pinned: ``eval-split pin`` takes
     them all), quarantined or not; quarantined train episodes do not (nothing trains on them: quarantining
     the copy is how an operator lets its eval episode be pinned).
     """
-    other = "eval" if split == "train" else "train"
+    if within and metas is None:
+        raise ValueError("replays(within=True) compares the episodes about to be indexed: give metas")
+    other = split if within else "eval" if split == "train" else "train"
     if metas is not None:
         mine = [(m.episode_id, json.loads(m.to_json())) for m in metas]
         theirs = _rows(conn, other, [raw.get("seed") for _, raw in mine])

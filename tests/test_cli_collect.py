@@ -434,6 +434,23 @@ def test_collect_with_the_eval_splits_seed_is_refused_in_one_line_and_changes_no
     assert Catalog(data).count(split="train") == 4
 
 
+def test_collect_again_with_the_same_seed_is_refused_in_one_line_and_changes_nothing(capsys, data):
+    """`collect` twice with the default --seed 0 recorded the same episodes twice, under new ids, without a word
+    (an operator's review: "collect 10 more" gave the same 10 again, counted twice in training)."""
+    tiny = ("--size", "16", "--steps", "3", "--data", str(data))
+    assert run_cli(capsys, "collect", "--episodes", "2", *tiny)[0] == 0
+    files, first = sorted(data.rglob("*.mcap")), {row.episode_id for row in Catalog(data).list()}
+    for extra in ((), ("--episodes", "3"), ("--steps", "5")):  # (more of them, or longer: they start the same)
+        rc, out, err = run_cli(capsys, "collect", "--episodes", "2", *tiny, *extra)
+        assert rc == 2 and out == "" and err.count("\n") == 1, err
+        assert err.startswith("activecollect: error: --seed 0 would record train episode ")
+        assert err.rstrip().endswith("give another --seed")
+        assert err.split("train episode ")[1].split()[0] in first
+        assert sorted(data.rglob("*.mcap")) == files
+    assert run_cli(capsys, "collect", "--episodes", "2", "--seed", "1", *tiny)[0] == 0
+    assert Catalog(data).count(split="train") == 4
+
+
 def test_eval_split_create_over_train_copies_of_its_episodes_is_refused_before_collecting(capsys, data):
     tiny = ("--size", "16", "--steps", "3", "--data", str(data))
     assert run_cli(capsys, "collect", "--episodes", "2", "--seed", "1234", *tiny)[0] == 0

@@ -164,13 +164,14 @@ def eval_split_plan(episodes: int = 24, seed: int = 1234, random_physics: bool =
 
 
 def plan_replays(catalog, planned: list[tuple[int, SimState]], policy: str, image_size: int,
-                 split: str = "train") -> dict[int, str]:
+                 split: str = "train", within: bool = False) -> dict[int, str]:
     """Which episodes of ``planned`` (``collect_plan``), collected with ``policy`` and indexed in ``split``, the
     catalog would refuse as replays of an episode of the other split: {their index: that episode's id}.
-    Collects nothing; the catalog's check when each is indexed stays the one that holds."""
+    Collects nothing; the catalog's check when each is indexed stays the one that holds. ``within``: those that
+    would record an episode of ``split`` again instead."""
     metas = [planned_meta(start_state=start, policy=policy, seed=seed, image_size=image_size)
              for seed, start in planned]
-    found = catalog.replays(split, metas)
+    found = catalog.replays(split, metas, within=within)
     return {i: found[m.episode_id] for i, m in enumerate(metas) if m.episode_id in found}
 
 

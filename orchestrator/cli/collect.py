@@ -243,6 +243,10 @@ def _refuse_replays(data: Path, plan: list, policy: str, size: int, split: str, 
     again, under new ids), which the catalog would refuse one by one (``plan_replays``)."""
     if not (Path(data) / DB_NAME).is_file():
         return
+    if split == "train" and (again := plan_replays(Catalog(data), plan, policy, size, split, within=True)):
+        raise common.UsageError(f"--seed {seed} would record train episode {again[min(again)]} again ({len(again)} "
+                                f"of the {len(plan)} episodes asked for are in {data} already: the same --seed, "
+                                "--shape and --policy record the same episodes); give another --seed")
     replayed = plan_replays(Catalog(data), plan, policy, size, split)
     if not replayed:
         return
