@@ -364,7 +364,10 @@ class Service:
             return
         with self._writing():
             released = self.queue.release_worker_leases(worker_id)
-        log.info("worker %s lost; %d lease(s) released", worker_id, len(released))
+        if released:
+            log.info("worker %s lost; %d lease(s) released", worker_id, len(released))
+        else:  # (one that finished its work and exited: not the line an operator alerts on)
+            log.info("worker %s gone; it held no lease", worker_id)
         self.publish(EventKind.WORKER_LOST, {"worker_id": worker_id, "released": [r.id for r in released]})
         for request in released:
             self._publish_lease_end(request, f"worker {worker_id} lost")

@@ -111,6 +111,20 @@ def test_a_token_away_past_the_grace_releases_the_lease_as_before(make_service, 
     assert lease(client, keys, worker="w2").token == 2  # the old lease is fenced off
 
 
+def test_a_worker_that_leaves_holding_no_lease_is_said_to_be_gone_not_lost(make_service, heard, endpoint, keys,
+                                                                          caplog) -> None:
+    # a worker that finished (--max-episodes) and exited was logged "lost; 0 lease(s) released", the line of a
+    # real loss: an alert on it fired for every clean exit (an operator's review)
+    service = make_service(lost_worker_grace_s=0.0)
+    client, lost = heard(EventKind.WORKER_LOST)
+    worker, _tokens = present(service, endpoint, keys, "w7")
+    with caplog.at_level(logging.INFO, logger="orchestrator.service"):
+        worker.close()
+        wait_for(lambda: lost, message="the WORKER_LOST event")
+    assert lost == [{"worker_id": "w7", "released": []}]
+    assert messages_of(caplog, "worker w7") == ["worker w7 gone; it held no lease"]
+
+
 def test_a_fleet_lost_at_once_releases_only_the_leases_of_those_still_away(make_service, endpoint, keys,
                                                                            caplog) -> None:
     """Twelve tokens go together (one session: a router's restart looks like this); six come back within the grace.
