@@ -288,6 +288,8 @@ def test_quarantine_restore_and_verify_quarantine(capsys, data, rng, tmp_path):
     rc, out, err = run_cli(capsys, "episodes", "quarantine", ids[0][:10], "--reason", "blurred frames",
                            "--data", str(data))
     assert rc == 0 and f"quarantined {ids[0]}: blurred frames" in out, err
+    rc, out, err = run_cli(capsys, "episodes", "quarantine", ids[0], "--reason", "again", "--data", str(data))
+    assert rc == 0 and out == f"already quarantined (the first reason stays) {ids[0]}: blurred frames\n", err
     rc, out, _ = run_cli(capsys, "episodes", "ls", "--quarantined", "--data", str(data))
     assert rc == 0 and ids[0] in out and ids[1] not in out and "quarantined: blurred frames" in out
     assert "1 of 3 episodes (1 quarantined)" in out

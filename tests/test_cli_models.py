@@ -58,7 +58,12 @@ def test_models_ls_json_and_text(capsys, data, reg) -> None:
     reg.get(a).weights_path.write_bytes(b"overwritten")  # the champion's weights damaged on disk
     rc, out, err = run_cli(capsys, "models", "ls", "--data", str(data), "--json")
     assert rc == 0 and json.loads(out)["champion_problem"].startswith(f"checkpoint {a}: weights sha256 mismatch")
-    assert "warning: the champion cannot be served: " in err and "models rollback" in err
+    assert "warning: the champion cannot be served: " in err and "models rollback" not in err
+    assert "`activecollect models promote VERSION` serves another model (there is no earlier champion" in err
+    reg.promote(b)  # an earlier champion now: a rollback is the way back when this one's weights go too
+    reg.get(b).weights_path.write_bytes(b"overwritten")
+    rc, out, err = run_cli(capsys, "models", "ls", "--data", str(data), "--json")
+    assert rc == 0 and "cannot be served" in err and "`activecollect models rollback` returns to the previous" in err
 
 
 def test_models_show(capsys, data, reg) -> None:

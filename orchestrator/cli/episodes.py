@@ -182,7 +182,8 @@ def _episodes_quarantine(args: argparse.Namespace) -> int:
     if not args.reason.strip():
         raise common.UsageError("--reason must say why")
     rows = [resolve(cat, i) for i in args.episode_ids]  # all known before any changes
-    return _each(args, rows, lambda row: cat.quarantine(row.episode_id, args.reason), "quarantined")
+    return _each(args, rows, lambda row: cat.quarantine(row.episode_id, args.reason),
+                 lambda row: "already quarantined (the first reason stays)" if row.quarantined else "quarantined")
 
 
 def _episodes_restore(args: argparse.Namespace) -> int:
@@ -196,15 +197,17 @@ def _episodes_restore(args: argparse.Namespace) -> int:
 
 
 def _each(args: argparse.Namespace, rows: list[EpisodeRow], change: Callable[[EpisodeRow], EpisodeRow],
-          done: str) -> int:
-    """Applies ``change`` to each row, reporting each; exit 1 when any was refused."""
+          done: str | Callable[[EpisodeRow], str]) -> int:
+    """Applies ``change`` to each row, reporting each (``done``: what was done, or what was done to that row as
+    it was before); exit 1 when any was refused."""
     report = []
     for row in rows:
         try:
             now = change(row)
             report.append({"episode_id": row.episode_id, "ok": True, "quarantined": now.quarantined})
             if not args.json:
-                print(f"{done} {row.episode_id}" + (f": {now.quarantined}" if now.quarantined else ""))
+                said = done(row) if callable(done) else done
+                print(f"{said} {row.episode_id}" + (f": {now.quarantined}" if now.quarantined else ""))
         except StorageError as exc:
             report.append({"episode_id": row.episode_id, "ok": False, "error": str(exc)})
             print(one_line(f"activecollect: {exc}"), file=sys.stderr)

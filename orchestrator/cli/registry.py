@@ -119,8 +119,12 @@ def _models_ls(args: argparse.Namespace) -> int:
     records, champion = registry.list(), registry.champion()
     problem = registry.weights_problem(champion) if champion is not None else None
     if problem:  # (stderr: --json output stays parseable)
-        print(f"activecollect: warning: the champion cannot be served: {problem}; `activecollect models rollback` "
-              "returns to the previous champion, and the next retrain replaces it", file=sys.stderr)
+        earlier = any(e.version != champion and e.rolled_back_at is None for e in registry.history())
+        fix = ("`activecollect models rollback` returns to the previous champion" if earlier else
+               "`activecollect models promote VERSION` serves another model (there is no earlier champion to roll "
+               "back to)")
+        print(f"activecollect: warning: the champion cannot be served: {problem}; {fix}, and the next retrain "
+              "replaces it", file=sys.stderr)
     if args.json:
         common.print_json(strict_json({"champion": champion, "champion_problem": problem,
                                         "models": [r.to_json() for r in records]}))
