@@ -216,7 +216,8 @@ def create_eval_split(catalog, episodes: int = 24, seed: int = 1234, steps: int 
     are pinned with the other parameters. Returns the split's hash. When a split
     is already pinned, returns its hash if it was made with the same parameters and raises
     ``EvalSplitConflict`` (a ValueError) otherwise (see ``check_eval_split``). Raises ``CatalogError``,
-    collecting nothing, when train episodes already record some of the split's (``plan_replays``).
+    collecting nothing, when train episodes already record some of the split's (``plan_replays``). Episodes an
+    interrupted call indexed (no split is pinned until every one is) are taken up again, not recorded twice.
     """
     plan = eval_split_plan(episodes, seed, random_physics)
     params = eval_split_params(episodes, seed, steps, image_size, palette, random_physics)
@@ -230,12 +231,28 @@ def create_eval_split(catalog, episodes: int = 24, seed: int = 1234, steps: int 
         raise CatalogError(f"train episode {train} already records evaluation episode {i + 1} of seed {seed} "
                            f"({len(replayed)} of the {episodes} are recorded as train episodes): models trained "
                            "on them would be measured on their own training data; give another seed")
-    ids = []
-    for policy_seed, start in plan:
+    ids, kept = [], _recorded_already(catalog, plan, steps, image_size) if palette is None else {}
+    for i, (policy_seed, start) in enumerate(plan):
+        if i in kept:  # an interrupted create recorded it: resumed, not recorded twice
+            ids.append(kept[i])
+            continue
         ep = collect_episode(start_state=start, policy=EVAL_POLICY, seed=policy_seed, steps=steps,
                              image_size=image_size, palette=palette)
         ids.append(catalog.add_episode(ep, split="eval").episode_id)
     return catalog.pin_eval_split(ids, params=params)
+
+
+def _recorded_already(catalog, plan: list[tuple[int, SimState]], steps: int, image_size: int) -> dict[int, str]:
+    """The episodes of ``plan`` an earlier, interrupted ``create_eval_split`` indexed (eval episodes not pinned
+    yet, of these steps and size, not quarantined): {their index in ``plan``: their id}. (Not with a palette,
+    which the metadata does not record: those are recorded again.)"""
+    found = plan_replays(catalog, plan, EVAL_POLICY, image_size, split="eval", within=True)
+    kept = {}
+    for i, episode_id in found.items():
+        row = catalog.get(episode_id)
+        if row.frames == steps and not row.quarantined and catalog.meta(episode_id).image_size == image_size:
+            kept[i] = episode_id
+    return kept
 
 
 def _check_same_split(catalog, existing, params: dict[str, Any], plan: list[tuple[int, SimState]]) -> None:

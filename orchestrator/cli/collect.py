@@ -346,10 +346,16 @@ def _eval_split_create(args: argparse.Namespace) -> int:
         print(f"activecollect: {exc}", file=sys.stderr)
         return 1
     split = cat.eval_split()
+    n = len(split.ids) if split else 0
     if args.json:
-        common.print_json({"hash": digest, "episodes": len(split.ids) if split else 0})
+        common.print_json({"hash": digest, "episodes": n, "made": pinned is None})
     else:
-        print(f"eval split pinned: {len(split.ids) if split else 0} episodes, hash {digest}")
+        print(f"eval split {'pinned' if pinned is None else 'already pinned, with these settings'}: {n} episodes, "
+              f"hash {digest}")
+    if (left := cat.count(split="eval") - n) > 0:
+        print(f"activecollect: warning: {left} eval episode(s) in {args.data} are not in the split (an interrupted "
+              "create with other flags, or ingested as eval since): nothing trains or evaluates on them",
+              file=sys.stderr)
     return 0
 
 

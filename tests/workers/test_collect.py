@@ -149,3 +149,41 @@ def test_eval_split_with_random_physics_draws_each_episodes_physics_and_is_anoth
     assert create_eval_split(catalog, episodes=4, seed=7, steps=6, image_size=16, random_physics=True) == digest
     with pytest.raises(EvalSplitConflict, match="random_physics"):
         create_eval_split(catalog, episodes=4, seed=7, steps=6, image_size=16)
+
+
+def test_an_interrupted_eval_split_is_taken_up_again_not_recorded_twice(tmp_path, monkeypatch, capsys):
+    """Its episodes are indexed one by one and pinned at the end: Ctrl-C midway left them unpinned, and a second
+    `eval-split create` recorded them all again (under new ids) and pinned the copies, the first ones left as eval
+    episodes nothing used (an operator's review)."""
+    import workers.collect
+    from tests.conftest import run_cli
+
+    data = tmp_path / "data"
+    real, calls = workers.collect.collect_episode, []
+
+    def interrupted(*args, **kw):
+        calls.append(1)
+        if len(calls) == 3:
+            raise KeyboardInterrupt
+        return real(*args, **kw)
+
+    monkeypatch.setattr(workers.collect, "collect_episode", interrupted)
+    tiny = ("--size", "16", "--steps", "3", "--data", str(data))
+    assert run_cli(capsys, "eval-split", "create", "--episodes", "4", *tiny)[0] == 130  # (Ctrl-C's exit)
+    first = {row.episode_id for row in Catalog(data).list(split="eval")}
+    assert len(first) == 2 and Catalog(data).eval_split() is None
+    monkeypatch.setattr(workers.collect, "collect_episode", real)
+    rc, out, err = run_cli(capsys, "eval-split", "create", "--episodes", "4", *tiny)
+    split = Catalog(data).eval_split()
+    assert rc == 0 and out.startswith("eval split pinned: 4 episodes") and "warning" not in err, err
+    assert first <= set(split.ids) and Catalog(data).count(split="eval") == 4
+    rc, out, err = run_cli(capsys, "eval-split", "create", "--episodes", "4", *tiny)
+    assert rc == 0 and out.startswith("eval split already pinned, with these settings: 4 episodes"), out
+    # taken up with fewer episodes: the one left over is said, once the split is pinned
+    data2, calls[:] = tmp_path / "data2", []
+    monkeypatch.setattr(workers.collect, "collect_episode", interrupted)
+    assert run_cli(capsys, "eval-split", "create", "--episodes", "4", *tiny[:4], "--data", str(data2))[0] == 130
+    monkeypatch.setattr(workers.collect, "collect_episode", real)
+    rc, out, err = run_cli(capsys, "eval-split", "create", "--episodes", "1", *tiny[:4], "--data", str(data2))
+    assert rc == 0 and Catalog(data2).count(split="eval") == 2, (out, err)
+    assert "warning: 1 eval episode(s) in " in err and "are not in the split" in err, err
