@@ -179,6 +179,9 @@ def test_episodes_ingested_as_eval_are_pinned_by_eval_split_pin(capsys, data, rn
     rc, _, err = run_cli(capsys, "eval-split", "pin", "--data", str(data))  # all three: another set
     assert rc == 1 and err.count("\n") == 1 and "already pinned" in err and cat.eval_split().ids == evals[:2]
     assert cat.snapshot("train").ids == train  # training never sees them
+    episodes.write_episode(tmp_path / "late" / "ep.mcap", make_episode(rng))
+    rc, _, err = run_cli(capsys, "ingest", str(tmp_path / "late"), "--split", "eval", "--data", str(data))
+    assert rc == 0 and "has its eval split pinned already (fixed for good)" in err and cat.count(split="eval") == 4
 
 
 def test_eval_split_create_and_show(capsys, data):

@@ -292,6 +292,9 @@ def _would_start_a_catalog(path: Path) -> None:
 def _ingest(args: argparse.Namespace) -> int:
     files = _expand(args.paths)
     cat = Catalog(args.data) if (Path(args.data) / DB_NAME).is_file() else None  # made with the first good file
+    if args.split == "eval" and cat is not None and cat.eval_split() is not None:
+        print(f"activecollect: warning: {args.data} has its eval split pinned already (fixed for good): episodes "
+              "ingested as eval now are kept, but nothing trains or evaluates on them", file=sys.stderr)
     report = []
     for path in files:
         try:
