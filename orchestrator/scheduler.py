@@ -178,7 +178,9 @@ class RetrainScheduler:
             log.info("retrain lock free: the %s retrain that found it busy or died midway runs now", trigger)
             return trigger
         n = self.cfg.every_episodes
-        if n and self.count_episodes() - self._last_count >= n:  # n more since the last start (not a multiple of n)
+        # at each multiple of n, the schedule's count kept by the catalog: it holds across restarts (n more than at
+        # the last start did not: a service restarted more often than it stores n episodes never retrained)
+        if n and self.count_episodes() // n > self._last_count // n:
             return "episodes"
         stepped_back, self._last_now = self._last_now - now, now
         if self._next_cron is not None and stepped_back > CRON_STEP_BACK_S:

@@ -8,11 +8,8 @@ from __future__ import annotations
 
 import argparse
 import logging
-import os
-import shutil
 import sys
 import threading
-from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -56,7 +53,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--init", action="store_true",
                    help="start a new data directory at --data when there is none (without it, a --data that "
                         "holds no catalog is refused: a misspelt path, or the data directory's parent, must not "
-                        "start a new, empty catalog; one a start that then fails made is removed)")
+                        "start a new, empty catalog)")
     endpoints.add_connection_args(p, listen=True)
     p.add_argument("--lease-s", type=common.positive_float, default=30.0, metavar="S",
                    help="seconds a worker holds a request before it must renew the lease or lose it, 0.05..86400 "
@@ -95,8 +92,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help=f"dashboard on 127.0.0.1:PORT (0 = any free port, -1 = none; default {d.dashboard_port})")
     common.add_dashboard_limit_args(p, prefix="dashboard-")
     p.add_argument("--retrain-every", type=common.non_negative_int, default=d.retrain_every, metavar="N",
-                   help="retrain (in a child process) each time N more training episodes are stored than when "
-                        "the last retrain (or the service) started (default 0 = not on count)")
+                   help="retrain (in a child process) each time the number of training episodes reaches a "
+                        "multiple of N (the 100th, 200th, ... for 100: the schedule holds across restarts; default 0 "
+                        "= not on count)")
     p.add_argument("--retrain-cron", type=common.cron_expression, default=d.retrain_cron, metavar="EXPR",
                    help="also retrain on this cron expression of 5 fields (minute hour day month weekday), read in "
                         "UTC, e.g. '0 * * * *' or @hourly (default: not on time)")
@@ -205,7 +203,6 @@ def cmd_serve(args: argparse.Namespace) -> int:
         # (a directory without a catalog too: the likeliest slip is its parent, /srv/ac for /srv/ac/data)
         raise common.UsageError(f"{'no catalog in' if args.data.is_dir() else 'no data directory at'} {args.data}: "
                                 "give the directory a serve, run or collect made, or --init to start a new one there")
-    made = _made_by_init(args.data) if args.init else None
     stop = threading.Event()
     on_stop_signals(stop.set)  # (SIGINT stays ignored when serve was started ignoring it)
     service = Service(config)
@@ -217,8 +214,6 @@ def cmd_serve(args: argparse.Namespace) -> int:
         except BaseException:  # whatever it is, nothing keeps running behind it
             companions.stop()
             service.stop()
-            if made is not None:  # nor a new catalog a later serve without --init would take for one it made
-                made()
             raise
     except (ServiceError, StorageError, ValueError, OSError) as exc:  # StorageError: the scheduler's count
         print(f"activecollect serve: {one_line(str(exc))}", file=sys.stderr)
@@ -237,28 +232,6 @@ def cmd_serve(args: argparse.Namespace) -> int:
         companions.stop()
         service.stop()
     return 0
-
-
-def _made_by_init(data: Path) -> Callable[[], None] | None:
-    """For ``serve --init`` on a directory that holds no catalog: what removes the files a start that then
-    failed made there (and the directory, if it made it), leaving what was there before; None when a catalog is
-    there already (nothing is made)."""
-    if (data / DB_NAME).is_file():
-        return None
-    before = set(os.listdir(data)) if data.is_dir() else None
-
-    def remove() -> None:
-        if before is None:
-            shutil.rmtree(data, ignore_errors=True)
-            return
-        for name in set(os.listdir(data)) - before:
-            path = data / name
-            if path.is_dir() and not path.is_symlink():
-                shutil.rmtree(path, ignore_errors=True)
-            else:
-                path.unlink(missing_ok=True)
-
-    return remove
 
 
 def _no_eval_split(service: Service) -> bool:
