@@ -410,10 +410,11 @@ class Service:
         """At start-up: every live lease gets a full term from now. No worker could renew while the service
         was down; reaped at once, each request would go back to the queue (an attempt counted, ``dead`` after
         a few restarts) and its worker would drop the episode it collected but has not yet uploaded. A worker
-        that is gone lets its lease run out one term later."""
+        that is gone lets its lease run out one term later -- exactly one: an expiry further out, reckoned by
+        the last service's steady clock after the wall clock stepped back, is brought back to it."""
         try:
             with self.storage.writing():
-                extended = self.queue.extend_leases(self.config.lease_s)
+                extended = self.queue.extend_leases(self.config.lease_s, exactly=True)
         except StorageUnavailableError:  # a full disk: the reaper extends them once writes work again
             return
         if extended:

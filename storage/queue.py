@@ -442,15 +442,18 @@ class RequestQueue:
             return self._end_leases(conn, [row_to_request(r) for r in rows], "expire",
                                     lambda r: f"lease expired (worker {r.worker_id}, token {r.token})", t)
 
-    def extend_leases(self, lease_s: float, now: float | None = None) -> int:
+    def extend_leases(self, lease_s: float, now: float | None = None, *, exactly: bool = False) -> int:
         """Give every live lease at least ``lease_s`` more from now (never less than it had); the number
-        extended. For after an outage of the storage, when no worker could renew."""
+        extended. For after an outage of the storage, when no worker could renew. ``exactly``: every live lease
+        ends ``lease_s`` from now, also one further out -- for a start-up, when the expiries were reckoned by the
+        last process's clock (one a step of the wall clock put further out would hold a vanished worker's request
+        for the length of the step)."""
         lease_s = finite_number("lease_s", lease_s, positive=True)
         t = self._now(now)
         with self._tx() as conn:
-            return len(conn.execute("UPDATE requests SET lease_expires = ?, updated = ? "
-                                    "WHERE status = 'leased' AND lease_expires < ? RETURNING id",
-                                    (t + lease_s, t, t + lease_s)).fetchall())
+            return len(conn.execute("UPDATE requests SET lease_expires = ?, updated = ? WHERE status = 'leased' "
+                                    f"{'' if exactly else 'AND lease_expires < ?'} RETURNING id",
+                                    (t + lease_s, t) if exactly else (t + lease_s, t, t + lease_s)).fetchall())
 
     def reap_expired(self, now: float | None = None) -> int:
         """End every lease past its expiry; the number ended."""

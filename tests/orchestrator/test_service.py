@@ -405,11 +405,26 @@ def test_leases_taken_before_a_restart_get_a_full_term_after_it(make_service, cl
 
     after = service.queue.get(request.id)
     assert (after.status, after.token, after.attempts) == (RequestStatus.LEASED, grant.token, 0)
-    assert after.lease_expires > time.time() + 20
+    assert time.time() + 20 < after.lease_expires <= time.time() + 30
     renew = messages.RenewRequest(request_id=grant.request_id, token=grant.token, worker_id="w1").to_json()
     assert call(client, keys.renew, renew)["expires_at"] > time.time() + 20  # (the query waits for the reconnect)
     assert upload(client, keys, grant, episode_bytes(grant))["request_id"] == request.id
     assert service.queue.get(request.id).status == RequestStatus.DONE
+
+
+def test_a_lease_reckoned_a_day_ahead_by_the_last_service_gets_one_term_at_a_restart(make_service, client,
+                                                                                      keys) -> None:
+    """The last service's steady clock ran a day ahead of the wall clock (which NTP then stepped back): its
+    leases' expiries are a day out. At a restart each gets one term from now, as any live lease does -- kept as
+    they were, a worker that died with that service held its request for a day (a reviewer's reproduction)."""
+    service = make_service(lease_s=30.0, wall_clock=lambda: time.time() + 86400)
+    request, _ = service.queue.enqueue(new_request())
+    lease(client, keys)
+    assert service.queue.get(request.id).lease_expires > time.time() + 86000
+    service.stop()
+    service = make_service(lease_s=0.5)  # the wall clock right again; the worker is gone for good
+    wait_for(lambda: service.queue.get(request.id).status == RequestStatus.QUEUED, timeout=10,
+             message="the vanished worker's lease to run out one term after the restart")
 
 
 def test_a_start_moves_aside_the_checkpoint_folders_no_model_row_names(make_service, data_dir, caplog) -> None:

@@ -483,3 +483,12 @@ def test_a_steady_clock_moves_with_the_time_elapsed_not_with_steps_of_the_wall_c
     assert clock() == 1_002.0
     wall[0] -= 7200.0
     assert clock() == 1_002.0
+
+
+def test_extend_leases_exactly_gives_every_live_lease_exactly_that_term(queue: RequestQueue) -> None:
+    for i in range(3):
+        queue.enqueue(new(), now=float(i))
+    near, far = queue.lease("w1", lease_s=1, now=0.0), queue.lease("w2", lease_s=86400, now=0.0)
+    assert queue.extend_leases(10, now=5.0, exactly=True) == 2
+    assert {queue.get(x.request.id).lease_expires for x in (near, far)} == {15.0}
+    assert queue.get(queue.list(RequestStatus.QUEUED)[0].id).lease_expires is None  # a queued one untouched
