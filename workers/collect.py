@@ -231,7 +231,7 @@ def create_eval_split(catalog, episodes: int = 24, seed: int = 1234, steps: int 
         raise CatalogError(f"train episode {train} already records evaluation episode {i + 1} of seed {seed} "
                            f"({len(replayed)} of the {episodes} are recorded as train episodes): models trained "
                            "on them would be measured on their own training data; give another seed")
-    ids, kept = [], _recorded_already(catalog, plan, steps, image_size) if palette is None else {}
+    ids, kept = [], _recorded_already(catalog, plan, steps, image_size, palette)
     for i, (policy_seed, start) in enumerate(plan):
         if i in kept:  # an interrupted create recorded it: resumed, not recorded twice
             ids.append(kept[i])
@@ -242,15 +242,21 @@ def create_eval_split(catalog, episodes: int = 24, seed: int = 1234, steps: int 
     return catalog.pin_eval_split(ids, params=params)
 
 
-def _recorded_already(catalog, plan: list[tuple[int, SimState]], steps: int, image_size: int) -> dict[int, str]:
+def _recorded_already(catalog, plan: list[tuple[int, SimState]], steps: int, image_size: int,
+                      palette: Mapping[str, tuple[int, int, int]] | None) -> dict[int, str]:
     """The episodes of ``plan`` an earlier, interrupted ``create_eval_split`` indexed (eval episodes not pinned
-    yet, of these steps and size, not quarantined): {their index in ``plan``: their id}. (Not with a palette,
-    which the metadata does not record: those are recorded again.)"""
+    yet, of these steps and size, not quarantined, their first frame the one this call renders -- the metadata
+    does not record a ``palette``): {their index in ``plan``: their id}."""
     found = plan_replays(catalog, plan, EVAL_POLICY, image_size, split="eval", within=True)
     kept = {}
     for i, episode_id in found.items():
         row = catalog.get(episode_id)
-        if row.frames == steps and not row.quarantined and catalog.meta(episode_id).image_size == image_size:
+        if row.frames != steps or row.quarantined or catalog.meta(episode_id).image_size != image_size:
+            continue
+        policy_seed, start = plan[i]
+        first = collect_episode(start_state=start, policy=EVAL_POLICY, seed=policy_seed, steps=1,
+                                image_size=image_size, palette=palette).frames[0]
+        if np.array_equal(catalog.load(episode_id).frames[0], first):
             kept[i] = episode_id
     return kept
 

@@ -187,3 +187,29 @@ def test_an_interrupted_eval_split_is_taken_up_again_not_recorded_twice(tmp_path
     rc, out, err = run_cli(capsys, "eval-split", "create", "--episodes", "1", *tiny[:4], "--data", str(data2))
     assert rc == 0 and Catalog(data2).count(split="eval") == 2, (out, err)
     assert "warning: 1 eval episode(s) in " in err and "are not in the split" in err, err
+
+
+def test_an_interrupted_eval_split_with_other_colours_is_not_taken_up(tmp_path, monkeypatch):
+    """The metadata does not record a palette: the first frame tells an interrupted per-shape-colour split's
+    episodes from the ones a default-colour create would record (a reviewer's reproduction pinned them)."""
+    import workers.collect
+
+    cat = Catalog(tmp_path / "data")
+    real, calls = workers.collect.collect_episode, []
+
+    def interrupted(*args, **kw):
+        if kw.get("steps", 0) > 1:  # (not the one-step renders that check what is taken up)
+            calls.append(1)
+            if len(calls) == 3:
+                raise KeyboardInterrupt
+        return real(*args, **kw)
+
+    monkeypatch.setattr(workers.collect, "collect_episode", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        create_eval_split(cat, episodes=4, seed=7, steps=3, image_size=16, palette=SHAPE_PALETTE)
+    coloured = {row.episode_id for row in cat.list(split="eval")}
+    monkeypatch.setattr(workers.collect, "collect_episode", real)
+    create_eval_split(cat, episodes=4, seed=7, steps=3, image_size=16)
+    pinned = set(cat.eval_split().ids)
+    # T keeps the default colour in the palette: only its episode looks the same, and is taken up
+    assert len(pinned & coloured) == sum(cat.meta(e).shape == "T" for e in coloured) < len(coloured)
