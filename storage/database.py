@@ -296,23 +296,23 @@ def kept_counts(table: str, column: str, counts: str, values: str | None = None)
     Idempotent, and safe in any transaction that holds the write lock (``BEGIN IMMEDIATE``, a migration's):
     the first run counts the rows already there (no write can come between that count and the triggers), a
     later one keeps the counts it finds. A value whose rows all left stays, at 0."""
-    counted = "" if values is None else f" AND {{row}}.{column} IN {values}"
+    def only(condition: str, keyword: str = " WHEN ") -> str:  # the condition, when only some values are counted
+        return "" if values is None else keyword + condition
 
     def count_in(row: str) -> str:
-        return (f"INSERT OR IGNORE INTO {counts} ({column}, n) SELECT {row}.{column}, 0 WHERE 1"
-                f"{counted.format(row=row)}; UPDATE {counts} SET n = n + 1 WHERE {column} = {row}.{column}; ")
-
-    def when(*rows: str) -> str:
-        return "" if values is None else " WHEN " + " OR ".join(f"{r}.{column} IN {values}" for r in rows)
+        return (f"INSERT OR IGNORE INTO {counts} ({column}, n) SELECT {row}.{column}, 0"
+                f"{only(f'{row}.{column} IN {values}', ' WHERE ')}; "
+                f"UPDATE {counts} SET n = n + 1 WHERE {column} = {row}.{column}; ")
 
     count_out = f"UPDATE {counts} SET n = n - 1 WHERE {column} = OLD.{column}; "  # (a row of counts: counted)
-    moved = f" WHEN OLD.{column} IS NOT NEW.{column}" + ("" if values is None else f" AND ({when('OLD', 'NEW')[6:]})")
-    triggers = (("insert", "INSERT", when("NEW"), count_in("NEW")),
+    moved = f" WHEN OLD.{column} IS NOT NEW.{column}" + only(
+        f"(OLD.{column} IN {values} OR NEW.{column} IN {values})", " AND ")
+    triggers = (("insert", "INSERT", only(f"NEW.{column} IN {values}"), count_in("NEW")),
                 ("update", f"UPDATE OF {column}", moved, count_out + count_in("NEW")),
-                ("delete", "DELETE", when("OLD"), count_out))
+                ("delete", "DELETE", only(f"OLD.{column} IN {values}"), count_out))
     return (f"CREATE TABLE IF NOT EXISTS {counts} ({column} TEXT PRIMARY KEY, n INTEGER NOT NULL)",
             f"INSERT OR IGNORE INTO {counts} ({column}, n) SELECT {column}, COUNT(*) FROM {table}"
-            + ("" if values is None else f" WHERE {column} IN {values}") + f" GROUP BY {column}",
+            f"{only(f'{column} IN {values}', ' WHERE ')} GROUP BY {column}",
             *(f"CREATE TRIGGER IF NOT EXISTS {counts}_{name} AFTER {event} ON {table}{cond} BEGIN {body}END"
               for name, event, cond, body in triggers))
 

@@ -106,12 +106,10 @@ INSERT_SQL = ("INSERT INTO requests (id, created, updated, priority, task, shape
 # The live statuses counted from their partial indexes, the finished ones as the triggers keep them (``SCHEMA``);
 # and all counted afresh from the rows: one count per partial index (each a covering scan of its own index, never
 # of the table), linear in the history.
-COUNTS_SQL = ("SELECT 'queued', COUNT(*) FROM requests WHERE status = 'queued' UNION ALL "
-              "SELECT 'leased', COUNT(*) FROM requests WHERE status = 'leased' UNION ALL "
-              "SELECT status, n FROM request_counts")
-RECOUNT_SQL = ("SELECT 'queued', COUNT(*) FROM requests WHERE status = 'queued' UNION ALL "
-              "SELECT 'leased', COUNT(*) FROM requests WHERE status = 'leased' UNION ALL "
-              f"SELECT status, COUNT(*) FROM requests WHERE status IN {TERMINAL_SQL} GROUP BY status")
+_LIVE_COUNTS = ("SELECT 'queued', COUNT(*) FROM requests WHERE status = 'queued' UNION ALL "
+                "SELECT 'leased', COUNT(*) FROM requests WHERE status = 'leased' UNION ALL ")
+COUNTS_SQL = _LIVE_COUNTS + "SELECT status, n FROM request_counts"
+RECOUNT_SQL = _LIVE_COUNTS + f"SELECT status, COUNT(*) FROM requests WHERE status IN {TERMINAL_SQL} GROUP BY status"
 
 _STATUS = {s.value: s for s in RequestStatus}
 _loads = json.loads

@@ -243,11 +243,12 @@ def _refuse_replays(data: Path, plan: list, policy: str, size: int, split: str, 
     again, under new ids), which the catalog would refuse one by one (``plan_replays``)."""
     if not (Path(data) / DB_NAME).is_file():
         return
-    if split == "train" and (again := plan_replays(Catalog(data), plan, policy, size, split, within=True)):
+    cat = Catalog(data)
+    if split == "train" and (again := plan_replays(cat, plan, policy, size, split, within=True)):
         raise common.UsageError(f"--seed {seed} would record train episode {again[min(again)]} again ({len(again)} "
                                 f"of the {len(plan)} episodes asked for are in {data} already: the same --seed, "
                                 "--shape and --policy record the same episodes); give another --seed")
-    replayed = plan_replays(Catalog(data), plan, policy, size, split)
+    replayed = plan_replays(cat, plan, policy, size, split)
     if not replayed:
         return
     other, many = replayed[min(replayed)], f"{len(replayed)} of the {len(plan)} episodes asked for"
