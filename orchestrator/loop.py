@@ -46,7 +46,7 @@ from orchestrator.serviceconfig import ServiceConfig
 from orchestrator.signals import on_stop_signals
 from storage.catalog import Catalog
 from storage.models import ModelRegistry, ModelStatus
-from storage.queue import RequestQueue
+from storage.queue import RequestQueue, steady_clock
 from storage.requests import NewRequest
 from storage.records import Episode
 from workers.agent import DRAIN_SIGNAL
@@ -187,6 +187,9 @@ class LoopRun:
         """Training episodes in the catalog when this run began (a resumed run's report tells its own apart)."""
         self._terminated = threading.Event()
         """Set by SIGTERM: stop as Ctrl-C does."""
+        self._clock = steady_clock()
+        """One clock for this run's queue writes, its own (top-ups, cancels) and its service's (``steady_clock``):
+        after a step of the wall clock, their ``created`` and ``updated`` stamps still agree."""
 
     # -- set-up ---------------------------------------------------------------------------------
     def _setup(self) -> None:
@@ -194,10 +197,10 @@ class LoopRun:
         endpoint = f"tcp/127.0.0.1:{cfg.zenoh_port or free_port()}"
         self.service = Service(ServiceConfig(data_dir=cfg.data_dir, namespace=cfg.namespace, listen=(endpoint,),
                                              lease_s=cfg.lease_s, planner=lambda ctx: self.planner,
-                                             metrics=self.metrics))
+                                             metrics=self.metrics), wall_clock=self._clock)
         self.service.claim()  # before anything writes: a directory a `serve` serves is refused, left as it was
         self.catalog = Catalog(cfg.data_dir)
-        self.queue = RequestQueue(self.catalog.db_path)
+        self.queue = RequestQueue(self.catalog.db_path, clock=self._clock)
         self.registry = ModelRegistry(cfg.data_dir)
         self._at_start = self._count()
         self.make_eval_split(self.catalog, cfg.eval_episodes, cfg.eval_seed, cfg.steps, cfg.image_size)
@@ -407,7 +410,7 @@ class LoopRun:
             if hasattr(self, "queue"):
                 self.queue.close()
             self.catalog = Catalog(self.cfg.data_dir)
-            self.queue = RequestQueue(self.catalog.db_path)
+            self.queue = RequestQueue(self.catalog.db_path, clock=self._clock)
             self.registry = ModelRegistry(self.cfg.data_dir)
         champion = self.registry.champion()
         scorer: ChampionScorer | None = getattr(self, "scorer", None)

@@ -282,7 +282,7 @@ class RequestQueue:
             sql += f" WHERE status = '{status.value}'"
             if status in (_D, _X, _C):
                 sql += f" AND status IN {TERMINAL_SQL}"
-        sql += (" ORDER BY priority DESC, created, rowid" if status == _Q
+        sql += (" ORDER BY priority DESC, rowid" if status == _Q
                 else " ORDER BY updated DESC, rowid DESC")
         if limit is not None:
             sql += " LIMIT ?"

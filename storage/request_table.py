@@ -59,10 +59,14 @@ SCHEMA = (
     "DROP INDEX IF EXISTS requests_expiry",
     "DROP INDEX IF EXISTS requests_worker",
     "DROP INDEX IF EXISTS requests_status",
+    # Ordered by (priority, created) before: ``created`` is the service's clock, so after a restart that found the
+    # wall clock stepped back, newer requests sorted ahead of older ones of the same priority.
+    "DROP INDEX IF EXISTS requests_queued",
     # Partial indexes: a row is in the one index of its status, so a transition rewrites the table
     # page and at most two index pages. Queries name the status as a literal so SQLite can use them.
-    # Leasing walks this one in (priority, age) order and stops at the first capable row.
-    "CREATE INDEX IF NOT EXISTS requests_queued ON requests (priority DESC, created) WHERE status = 'queued'",
+    # Leasing walks this one in (priority, arrival) order and stops at the first capable row: the rowid, which
+    # every index entry ends with, counts up with each insert, whatever any clock says (FIFO among equals).
+    "CREATE INDEX IF NOT EXISTS requests_fifo ON requests (priority DESC) WHERE status = 'queued'",
     # Expiry and a lost worker's leases (a handful of rows: one per busy worker).
     "CREATE INDEX IF NOT EXISTS requests_leased ON requests (lease_expires) WHERE status = 'leased'",
     "CREATE INDEX IF NOT EXISTS requests_finished ON requests (status, updated) WHERE status IN "
@@ -82,7 +86,7 @@ DROPPED_INDEXES = {m[1] for sql in SCHEMA if (m := re.match(r"DROP INDEX IF EXIS
 _LIVE = "id = ? AND status = 'leased' AND token = ? AND (? IS NULL OR worker_id = ?)"
 LEASE_SQL = ("UPDATE requests SET status = 'leased', worker_id = ?, token = token + 1, lease_expires = ?,"
              " updated = ? WHERE id = (SELECT id FROM requests WHERE status = 'queued'{filters}"
-             f" ORDER BY priority DESC, created, rowid LIMIT 1) RETURNING {COLS}")
+             f" ORDER BY priority DESC, rowid LIMIT 1) RETURNING {COLS}")
 # The live lease a worker already holds, answered again instead of a second one (``lease(one_per_worker=True)``):
 # its token unchanged, its expiry never shortened. The newest, should a worker hold several (leased before).
 HELD_SQL = ("UPDATE requests SET lease_expires = MAX(lease_expires, ?), updated = ? WHERE id = (SELECT id FROM"

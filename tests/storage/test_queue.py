@@ -241,6 +241,35 @@ def test_priority_then_age_ordering(queue: RequestQueue) -> None:
     assert order == [old_high.id, new_high.id, same_time.id, low.id]
 
 
+def test_equal_priorities_lease_in_arrival_order_whatever_the_clock_said(queue: RequestQueue) -> None:
+    """After a restart that found the wall clock stepped back, a new request is stamped earlier than the ones
+    already queued: it still waits its turn (by rowid), it does not jump the queue for the length of the step."""
+    first, _ = queue.enqueue(new(priority=5.0), now=1_000.0)
+    second, _ = queue.enqueue(new(priority=5.0), now=2_000.0)
+    after_step_back, _ = queue.enqueue(new(priority=5.0), now=500.0)
+    urgent, _ = queue.enqueue(new(priority=9.0), now=400.0)
+    expected = [urgent.id, first.id, second.id, after_step_back.id]
+    assert [r.id for r in queue.list(status="queued")] == expected
+    assert [queue.lease("w", now=3_000.0).request.id for _ in range(4)] == expected
+
+
+def test_a_file_with_the_age_ordered_index_is_brought_to_the_arrival_ordered_one(tmp_path: Path) -> None:
+    """A file of the last version (index on (priority, created)) is upgraded on open: that index goes, the
+    arrival-ordered one is made, and leasing uses it."""
+    path = tmp_path / "catalog.sqlite"
+    RequestQueue(path).close()
+    with sqlite3.connect(path) as conn:
+        conn.execute("DROP INDEX requests_fifo")
+        conn.execute("CREATE INDEX requests_queued ON requests (priority DESC, created) WHERE status = 'queued'")
+    with RequestQueue(path) as queue:
+        a, _ = queue.enqueue(new(priority=1.0), now=2.0)
+        b, _ = queue.enqueue(new(priority=1.0), now=1.0)
+        assert queue.lease("w").request.id == a.id
+    with sqlite3.connect(path) as conn:
+        names = {r[0] for r in conn.execute("SELECT name FROM sqlite_master WHERE type = 'index'")}
+    assert "requests_fifo" in names and "requests_queued" not in names
+
+
 def test_prioritize_changes_order(queue: RequestQueue) -> None:
     a, _ = queue.enqueue(new(priority=1.0), now=1.0)
     b, _ = queue.enqueue(new(priority=2.0), now=2.0)
