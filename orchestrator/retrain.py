@@ -48,12 +48,15 @@ def abandoned_note(versions: list[str]) -> str:
 
 
 def prune_warnings(result: PruneResult) -> list[str]:
-    """One line for the operator per checkpoint folder no row names that ``result``'s prune could not move aside
+    """One line for the operator per model whose files ``result``'s prune could not delete
+    (``PruneResult.not_deleted``), and per checkpoint folder no row names that it could not move aside
     (``PruneResult.not_moved``): it stays in ``models/``, taking its space, which a prune is there to free. Logged
     too, as ``uncertainty.train`` logs its own warnings (the scheduler logs a job's from its report)."""
     lines = [f"checkpoint folder {MODELS_DIR}/{version} (no model row names it: a register killed before its "
              f"commit) could not be moved aside to {MODEL_ORPHANS_DIR}/ ({why}); it stays where it is, unused, "
              "until a later prune or sweep" for version, why in result.not_moved.items()]
+    lines += [f"the prune could not delete the files of {version} ({why}); a model still whole stays unpruned and "
+              "usable" for version, why in result.not_deleted.items()]
     for line in lines:
         log.warning("%s", line)
     return lines

@@ -112,6 +112,9 @@ class PruneResult:
     not_moved: dict[str, str] = field(default_factory=dict)
     """Such folders that could not be moved (version: why), left where they are: no row names them, so nothing
     serves them, and the next prune or sweep tries again. They took nothing from what this prune freed."""
+    not_deleted: dict[str, str] = field(default_factory=dict)
+    """Models this prune chose but could not delete (version: why). One still whole (a read-only ``models/``,
+    say) is left as it was, unpruned, usable; one deleted in part stays pruned, its rest swept later."""
 
 
 @dataclass(frozen=True)

@@ -423,7 +423,8 @@ class ModelRegistry:
         promoted again). Pruned rows stay, with ``pruned_at`` set: their metrics and history remain, their
         weights are refused with ``PrunedCheckpointError`` and ``rollback`` skips them. The rows are marked in one
         transaction before any file is deleted, so a crash between leaves marked rows whose files
-        the next ``prune`` deletes; each directory is claimed by a rename before it is deleted, so
+        the next ``prune`` deletes; one whose directory cannot be deleted (``PruneResult.not_deleted``) and
+        is still whole gets its mark taken off again, usable as before; each directory is claimed by a rename before it is deleted, so
         two prunes at once delete (and count) it once. Also sweeps the dot folders crashed calls
         left, and moves the folders no row names aside (``sweep_strays``; ``orphaned``, and ``not_moved``
         those that could not be, which fail nothing). Raises ``RegistryError`` for a ``keep`` below 1.
@@ -441,7 +442,11 @@ class ModelRegistry:
             chosen = pruning.mark(conn, kept, None if dry_run else now())
             marked = pruning.marked(conn)
             aside = strays.unregistered(conn, folders, self._orphans(dry_run))  # a failed move fails nothing
-        return pruning.finish(self.models_dir, chosen, marked, kept, dry_run, aside)
+        result = pruning.finish(self.models_dir, chosen, marked, kept, dry_run, aside)
+        if result.not_deleted:  # marked first (a crash then leaves marks the next prune deletes): not these
+            with self._transaction() as conn:
+                pruning.unmark_whole(conn, self.models_dir, result.not_deleted, now())
+        return result
 
     def sweep_strays(self, dry_run: bool = False) -> StrayFolders:
         """Move the checkpoint folders no row names (a register killed before its commit: nothing acknowledged)

@@ -17,6 +17,7 @@ last two inside its ``BEGIN IMMEDIATE`` transaction), the sha256 checks and the 
 
 from __future__ import annotations
 
+import contextlib
 import os
 import shutil
 import sqlite3
@@ -93,10 +94,13 @@ def marked(conn: sqlite3.Connection) -> list[str]:
     return [r[0] for r in conn.execute("SELECT version FROM models WHERE pruned_at IS NOT NULL")]
 
 
-def delete(models_dir: Path, versions: Iterable[str]) -> tuple[list[str], int]:
-    """Delete the directories of ``versions`` under ``models_dir``; return those this call deleted and the
-    bytes they held (one already gone, or claimed by another prune, is neither)."""
-    deleted, freed = [], 0
+def delete(models_dir: Path, versions: Iterable[str]) -> tuple[list[str], int, dict[str, str]]:
+    """Delete the directories of ``versions`` under ``models_dir``; return those this call deleted, the bytes
+    they held (one already gone, or claimed by another prune, is neither) and those it could not (version:
+    why). One it could not claim (a read-only ``models/``, say) is left whole where it was; one claimed but not
+    deleted in full stays in its ``.prune-*`` folder, which ``sweep_stale`` tries again. A version folder that
+    is a symbolic link (to another disk, say) loses the link only: what it points to is not ours to delete."""
+    deleted, freed, failed = [], 0, {}
     for version in versions:
         # Claimed by an atomic rename: of two prunes at once, one deletes and counts each directory.
         claimed = models_dir / f".prune-{version}-{uuid.uuid4().hex[:8]}"
@@ -104,27 +108,53 @@ def delete(models_dir: Path, versions: Iterable[str]) -> tuple[list[str], int]:
             os.rename(models_dir / version, claimed)
         except FileNotFoundError:
             continue
-        freed += tree_size(claimed)
-        shutil.rmtree(claimed)
+        except OSError as exc:
+            failed[version] = f"cannot delete {version}/: {exc.strerror or exc}"
+            continue
+        try:
+            size = 0 if claimed.is_symlink() else tree_size(claimed)
+            _remove(claimed)
+        except OSError as exc:
+            failed[version] = f"deleted only in part, the rest left in {claimed.name}/: {exc.strerror or exc}"
+            continue
+        freed += size
         deleted.append(version)
-    return deleted, freed
+    return deleted, freed, failed
+
+
+def _remove(path: Path) -> None:
+    """Delete a claimed folder, or only the link when it is a symbolic link."""
+    if path.is_symlink():
+        path.unlink()
+    else:
+        shutil.rmtree(path)
 
 
 def finish(models_dir: Path, chosen: list[str], every_marked: list[str], kept: list[str],
            dry_run: bool, aside: StrayFolders) -> PruneResult:
     """Once the rows are marked (and the folders no row names moved aside as they could be, ``aside``): deletes
     the directories of ``chosen`` and of those of ``every_marked`` an earlier prune left (with ``dry_run``, only
-    sizes them) and sweeps the dot folders crashed calls left."""
+    sizes them) and sweeps the dot folders crashed calls left. Those it could not delete are in ``not_deleted``
+    (the registry takes the marks off those still whole: ``unmark_whole``)."""
     leftover = [v for v in every_marked if v not in chosen and (models_dir / v).exists()]
     if dry_run:
         return PruneResult(pruned=sorted(chosen + leftover), kept=kept, dry_run=True, orphaned=aside.moved,
                            freed_bytes=sum(tree_size(models_dir / v) for v in chosen + leftover))
-    deleted, freed = delete(models_dir, chosen + leftover)
+    deleted, freed, failed = delete(models_dir, chosen + leftover)
     sweep_stale(models_dir, time.time())
     if deleted:
         fsync_dir(models_dir)
-    return PruneResult(pruned=sorted(set(chosen) | set(deleted)), kept=kept, freed_bytes=freed,
-                       orphaned=aside.moved, not_moved=aside.not_moved)
+    return PruneResult(pruned=sorted(set(chosen) - set(failed) | set(deleted)), kept=kept, freed_bytes=freed,
+                       orphaned=aside.moved, not_moved=aside.not_moved, not_deleted=failed)
+
+
+def unmark_whole(conn: sqlite3.Connection, models_dir: Path, versions: Iterable[str], now: str) -> list[str]:
+    """In a write transaction: take the prune mark off those of ``versions`` whose folder is still in place
+    (a delete that could not claim it): their weights are whole, so rollback and promote may use them again."""
+    whole = [v for v in versions if (models_dir / v).is_dir()]
+    conn.executemany("UPDATE models SET pruned_at = NULL, updated = ? WHERE version = ? AND pruned_at IS NOT NULL",
+                     [(now, v) for v in whole])
+    return whole
 
 
 def sweep_stale(models_dir: Path, now: float, dry_run: bool = False) -> list[str]:
@@ -135,7 +165,8 @@ def sweep_stale(models_dir: Path, now: float, dry_run: bool = False) -> list[str
     found = sorted(p for p in (*models_dir.glob(".tmp-*"), *models_dir.glob(".prune-*"))
                    if age_s(p, now) > STALE_AGE_S)
     for stale in [] if dry_run else found:
-        shutil.rmtree(stale, ignore_errors=True)
+        with contextlib.suppress(OSError):
+            _remove(stale)
     return [p.name for p in found]
 
 

@@ -260,6 +260,19 @@ def failing_reads_of(path: Path, monkeypatch, times: int = 1, code: int = errno.
     return failed
 
 
+def failing_prune_claims_of(monkeypatch, fails: Callable[[Path], bool], code: int = errno.EACCES) -> None:
+    """A prune's claim of a folder for which ``fails(folder)`` holds (its ``os.rename`` to ``.prune-*``) fails with
+    ``OSError(code)``, as on a read-only ``models/``, which root, running the tests here, would not see; every
+    other rename is real."""
+    real = os.rename
+
+    def rename(src, dst, **kw) -> None:
+        if fails(Path(src)):
+            raise OSError(code, os.strerror(code), str(src), str(dst))
+        real(src, dst, **kw)
+    monkeypatch.setattr(os, "rename", rename)
+
+
 def failing_renames_of(monkeypatch, fails: Callable[[Path], bool], code: int) -> None:
     """``os.replace`` of a source for which ``fails(src)`` holds raises ``OSError(code)`` (EXDEV: to another file
     system; ENOSPC: no room for one more directory entry); every other rename is real."""

@@ -16,7 +16,7 @@ import pytest
 
 from orchestrator.cli import main
 from orchestrator.retrainlock import EXIT_BUSY, retrain_lock
-from tests.conftest import failing_renames_of, run_cli
+from tests.conftest import failing_prune_claims_of, failing_renames_of, run_cli
 from storage.catalog import Catalog
 from storage.models import ModelRegistry, ModelStatus
 from storage.records import Episode, EpisodeMeta
@@ -447,3 +447,19 @@ def test_eval_text_says_which_horizons_the_eval_episodes_are_too_short_for(capsy
     lines = capsys.readouterr().out.splitlines()
     assert lines[0].startswith("eval h1   mse      0.001  psnr  30.00 dB") and "copy-last mse      0.002" in lines[0]
     assert lines[2] == "eval h10  undefined: no eval episode is long enough for horizon 10"
+
+
+def test_models_prune_that_cannot_delete_a_model_says_so_and_exits_1(capsys, monkeypatch, data, reg) -> None:
+    """A read-only ``models/``: the model the prune could not delete is named, with why; it stays unpruned and can
+    still be promoted; exit 1 (also with --json, which has it under not_deleted)."""
+    a, b = _register(reg, 0.01), _register(reg, 0.008)
+    reg.gate(a)
+    reg.gate(b)
+    failing_prune_claims_of(monkeypatch, lambda src: src == reg.models_dir / a)
+    rc, out, _ = run_cli(capsys, "models", "prune", "--keep", "1", "--data", str(data))
+    assert rc == 1 and out.startswith(f"nothing deleted (kept {b}); could not delete 1 model(s)' files: {a} "
+                                      f"(cannot delete {a}/: Permission denied) -- those still whole stay unpruned")
+    rc, out, _ = run_cli(capsys, "models", "prune", "--keep", "1", "--data", str(data), "--json")
+    assert rc == 1 and json.loads(out)["not_deleted"] == {a: f"cannot delete {a}/: Permission denied"}
+    rc, out, _ = run_cli(capsys, "models", "promote", a, "--data", str(data))
+    assert rc == 0 and reg.champion() == a

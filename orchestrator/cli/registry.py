@@ -235,9 +235,9 @@ def _models_prune(args: argparse.Namespace) -> int:
         return fail(f"cannot prune: {exc}")
     if args.json:
         common.print_json(dataclasses.asdict(result))
-        return 0
-    print(prune_summary(result))
-    return 0
+    else:
+        print(prune_summary(result))
+    return 1 if result.not_deleted else 0
 
 
 def prune_summary(result: PruneResult) -> str:
@@ -253,8 +253,12 @@ def prune_summary(result: PruneResult) -> str:
         moved += (f"; could not move {len(result.not_moved)} checkpoint folder(s) no model row names to "
                   f"{MODEL_ORPHANS_DIR}/, left where they are (unused; the next prune tries again): "
                   + ", ".join(f"{v} ({why})" for v, why in result.not_moved.items()))
+    if result.not_deleted:
+        moved += (f"; could not delete {len(result.not_deleted)} model(s)' files: "
+                  + ", ".join(f"{v} ({why})" for v, why in result.not_deleted.items())
+                  + " -- those still whole stay unpruned and usable")
     if not result.pruned:
-        return f"nothing to delete ({kept}){moved}"
+        return f"nothing {'deleted' if result.not_deleted else 'to delete'} ({kept}){moved}"
     verb = "would delete" if result.dry_run else "deleted"
     what = "1 model's files" if len(result.pruned) == 1 else f"{len(result.pruned)} models' files"
     return (f"{verb} {what} ({result.freed_bytes / 2**20:.1f} MiB): "

@@ -11,7 +11,7 @@ import logging
 
 from orchestrator.retrain import run_retrain
 from storage.models import ModelRegistry
-from tests.conftest import failing_renames_of
+from tests.conftest import failing_prune_claims_of, failing_renames_of
 from tests.orchestrator.conftest import small_training_data
 from uncertainty.config import TrainConfig
 
@@ -37,3 +37,19 @@ def test_a_retrain_whose_prune_cannot_move_a_folder_aside_warns_of_it(tmp_path, 
     assert [r.getMessage() for r in caplog.records if r.name == "orchestrator.retrain"] == [line]
     assert (stuck / "weights.pt").read_bytes() == b"a killed register's"
     assert ModelRegistry(data).champion() == result["champion"] == result["version"]
+
+
+def test_a_retrain_whose_prune_cannot_delete_a_model_warns_of_it_and_keeps_it_usable(tmp_path, monkeypatch):
+    data = tmp_path / "data"
+    small_training_data(data)
+    first = run_retrain(data, TINY)["version"]
+    models = ModelRegistry(data).models_dir  # (the claim of a model's folder, not a register's .tmp-* rename)
+    failing_prune_claims_of(monkeypatch, lambda src: src.parent == models and not src.name.startswith("."))
+
+    result = run_retrain(data, TINY, keep_models=1)
+
+    out = result["version"] if result["champion"] == first else first  # whichever the gate left out of service
+    assert result["prune_error"] is None and result["pruned"] == []
+    assert result["warnings"][-1] == (f"the prune could not delete the files of {out} (cannot delete {out}/: "
+                                      "Permission denied); a model still whole stays unpruned and usable")
+    assert ModelRegistry(data).get(out).pruned_at is None and ModelRegistry(data).load_weights(out)

@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import errno
 import math
+import os
+import shutil
 import sqlite3
 import threading
 
@@ -12,7 +14,7 @@ import pytest
 
 from storage.errors import PrunedCheckpointError, RegistryError
 from storage.models import ModelRegistry, ModelStatus
-from tests.conftest import failing_reads_of
+from tests.conftest import failing_prune_claims_of, failing_reads_of
 from tests.storage.test_models import _flip_byte, _register
 
 
@@ -259,3 +261,40 @@ def test_a_corrupt_rolled_back_champion_does_not_take_a_slot_either(reg: ModelRe
     _flip_byte(reg, c)
     result = reg.prune(keep=3)
     assert result.kept == [b, a] and result.pruned == [c]
+
+
+def test_a_model_whose_files_cannot_be_deleted_stays_unpruned_and_usable(reg: ModelRegistry, monkeypatch) -> None:
+    """The marks are committed before the deletes: one the prune could not delete, still whole, gets its mark taken
+    off again (it was refused by rollback and promote for ever after, its files still there), and is named."""
+    a, b, c, d, e, rejected, candidate = _history_of_five(reg)
+    failing_prune_claims_of(monkeypatch, lambda src: src == reg.models_dir / d)
+    result = reg.prune(keep=1)
+    assert result.kept == [e] and result.pruned == [a, b, c, rejected]
+    assert result.not_deleted == {d: f"cannot delete {d}/: {os.strerror(errno.EACCES)}"}
+    assert reg.get(d).pruned_at is None and reg.get(d).weights_path.exists() and reg.load_weights(d)
+    assert reg.rollback() == d and reg.champion() == d
+    monkeypatch.undo()
+    assert reg.prune(keep=1).pruned == [e]  # (the folder can be deleted again: the next prune does)
+
+
+def test_a_mark_a_crashed_prune_left_on_a_folder_that_cannot_be_deleted_is_taken_off(reg, monkeypatch) -> None:
+    a, b, c, d, e, rejected, candidate = _history_of_five(reg)
+    with sqlite3.connect(reg.db_path) as conn:  # as if a prune committed and died before deleting
+        conn.execute("UPDATE models SET pruned_at = '2026-11-21T00:00:00+00:00' WHERE version = ?", (d,))
+    failing_prune_claims_of(monkeypatch, lambda src: src == reg.models_dir / d)
+    result = reg.prune(keep=5)
+    assert d in result.not_deleted and d not in result.pruned and reg.get(d).pruned_at is None
+    assert reg.load_weights(d)
+
+
+def test_a_version_folder_that_is_a_link_loses_the_link_not_what_it_points_to(reg: ModelRegistry, tmp_path) -> None:
+    """A model moved to another disk and linked back: the prune deletes the link (no ``.prune-*`` link left for
+    ever) and leaves the folder it pointed to, which is not the registry's to delete."""
+    a, b, c, d, e, rejected, candidate = _history_of_five(reg)
+    elsewhere = tmp_path / "other-disk" / a
+    shutil.move(reg.models_dir / a, elsewhere.parent.mkdir() or elsewhere)
+    (reg.models_dir / a).symlink_to(elsewhere, target_is_directory=True)
+    result = reg.prune(keep=4)
+    assert result.pruned == [a, rejected] and result.not_deleted == {}
+    assert not os.path.lexists(reg.models_dir / a) and not list(reg.models_dir.glob(".prune-*"))
+    assert (elsewhere / "weights.pt").is_file()
