@@ -6,7 +6,8 @@ child process (``python -m orchestrator retrain --data DIR --json ...``), so
 training never shares a GIL or a core budget with the request path, and reads
 its one-line JSON result when it exits. When a job promotes a new champion,
 ``on_promoted(version)`` lets the service hot-swap its scorer and announce it.
-A job that fails, times out or is killed before its gate changes nothing; one that
+A job that fails, times out or is killed before its gate leaves the champion as it was (a candidate it
+registered is rejected as abandoned by the next job); one that
 ends without reporting *after* it (a prune stalled past the timeout, a crash) has:
 the model it registered, noted in its own notes file (and the lock file), is looked up in
 the registry, so a promotion is still recorded and announced

@@ -40,7 +40,7 @@ from typing import Any
 from storage import checkpoint_files, promotions, pruning, strays
 from storage.database import (DB_NAME, MODELS_DIR, Migration, connection, ensure_schema, refuse_lost_database,
                               storage_error, transaction, undo_unless_committed)
-from storage.errors import CorruptCheckpointError, RegistryError, UnknownModelError
+from storage.errors import CorruptCheckpointError, RegistryError, RegistryUnavailableError, UnknownModelError
 from storage.files import write_synced
 from storage.gate import DEFAULT_METRIC, DEFAULT_MIN_REL_IMPROVEMENT, GateDecision, judge
 from storage.model_rows import (CONFIG_FILE, META_FILE, METRICS_FILE, SNAPSHOT_FILE, WEIGHTS_FILE, ChampionEntry,
@@ -199,6 +199,23 @@ class ModelRegistry:
     def verify(self, version: str) -> None:
         """Raise ``CorruptCheckpointError`` unless the weights of ``version`` match their sha256."""
         self.load_weights(version)
+
+    def check_ready(self) -> None:
+        """Raise ``RegistryUnavailableError`` when a job's register or gate would fail now for a reason that may
+        pass: ``models/`` cannot take a checkpoint (read-only, full), or the champion's weights, which the gate
+        compares against, cannot be read. For a training job to ask before it trains, not after."""
+        try:
+            shutil.rmtree(checkpoint_files.stage(self.models_dir, {"probe": b""}))
+        except OSError as exc:
+            raise RegistryUnavailableError(f"cannot store a checkpoint in {self.models_dir} now: "
+                                           f"{exc.strerror or exc} (nothing trained)") from exc
+        champion = self.champion()
+        if champion is not None:
+            try:
+                self.verify(champion)
+            except CorruptCheckpointError as exc:  # a damaged one (for good): the gate replaces it
+                checkpoint_files.raise_unless_lasting(exc, f"read champion {champion}, which the gate compares "
+                                                      "against")
 
     def snapshot(self, version: str) -> Snapshot | None:
         """The episodes ``version`` was trained on (ids and sha256s, sorted by id), or None when it was
@@ -424,8 +441,8 @@ class ModelRegistry:
         weights are refused with ``PrunedCheckpointError`` and ``rollback`` skips them. The rows are marked in one
         transaction before any file is deleted, so a crash between leaves marked rows whose files
         the next ``prune`` deletes; one whose directory cannot be deleted (``PruneResult.not_deleted``) and
-        is still whole gets its mark taken off again, usable as before; each directory is claimed by a rename before it is deleted, so
-        two prunes at once delete (and count) it once. Also sweeps the dot folders crashed calls
+        is still whole gets its mark taken off again, usable as before; each directory is claimed by a rename
+        before it is deleted, so two prunes at once delete (and count) it once. Also sweeps the dot folders crashed calls
         left, and moves the folders no row names aside (``sweep_strays``; ``orphaned``, and ``not_moved``
         those that could not be, which fail nothing). Raises ``RegistryError`` for a ``keep`` below 1.
         """

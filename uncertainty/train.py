@@ -21,7 +21,7 @@ import torch
 from tqdm import tqdm
 
 from storage.checkpoint_files import raise_unless_lasting
-from storage.errors import CorruptCheckpointError
+from storage.errors import CorruptCheckpointError, RegistryUnavailableError
 from storage.gate import GateDecision
 from storage.models import ModelRegistry
 from storage.records import Episode
@@ -378,29 +378,37 @@ def warm_start_overrides(cfg: TrainConfig, ensemble: Ensemble) -> list[str]:
     return [f"{name} {shown(asked)} (kept {shown(kept)})" for name, (asked, kept) in pairs.items() if asked != kept]
 
 
-def _check_warm_start(ensemble: Ensemble, label: str, cfg: TrainConfig, episodes: Sequence[Episode]) -> None:
-    size = int(episodes[0].frames.shape[1])
-    if ensemble.config.image_size != size:
-        raise ConfigError(f"{label} predicts {ensemble.config.image_size}px frames, the train snapshot has {size}px")
-    if cfg.variance_head and not ensemble.config.predict_variance:
-        raise ConfigError(f"{label} has no variance head to warm-start: "
+def _label(start: WarmStart) -> str:
+    return f"champion {start.version}" if start.note is None else f"{start.version} (for the damaged champion)"
+
+
+def check_warm_start(start: WarmStart, cfg: TrainConfig, image_size: int) -> None:
+    """Raises ``ConfigError`` when ``start``'s model cannot be trained as asked: shaped for other images than
+    ``image_size``, or without the variance head ``cfg`` asks for."""
+    if start.ensemble is None:
+        return
+    if start.ensemble.config.image_size != image_size:
+        raise ConfigError(f"{_label(start)} predicts {start.ensemble.config.image_size}px frames, the train snapshot "
+                          f"has {image_size}px")
+    if cfg.variance_head and not start.ensemble.config.predict_variance:
+        raise ConfigError(f"{_label(start)} has no variance head to warm-start: "
                           "train a fresh model for one (without --from-champion)")
 
 
-def starting_point(registry: ModelRegistry, cfg: TrainConfig,
-                   episodes: Sequence[Episode]) -> tuple[Ensemble, dict[str, Any], list[str]]:
+def starting_point(registry: ModelRegistry, cfg: TrainConfig, episodes: Sequence[Episode],
+                   start: WarmStart | None = None) -> tuple[Ensemble, dict[str, Any], list[str]]:
     """The ensemble to train, what to record of where it started, and the warnings to give.
 
-    A fresh model unless ``cfg.from_champion``; then ``warm_start``'s, checked against ``episodes``. The
-    record (for the metrics and the train config): ``warm_start_from`` (the version, None for a fresh
-    model), and when there is one to give ``warm_start_note`` (why not the champion) and
+    A fresh model unless ``cfg.from_champion``; then ``warm_start``'s (or ``start``, found already), checked
+    against ``episodes``. The record (for the metrics and the train config): ``warm_start_from`` (the version,
+    None for a fresh model), and when there is one to give ``warm_start_note`` (why not the champion) and
     ``warm_start_overrode`` (``warm_start_overrides``); each warning is logged. Raises ``ConfigError``
     (no champion, a model shaped for other images or without the variance head asked for) and
     ``warm_start``'s errors.
     """
     if not cfg.from_champion:
         return new_ensemble(cfg, episodes), {}, []
-    start = warm_start(registry, resolve_device(cfg.device))
+    start = start if start is not None else warm_start(registry, resolve_device(cfg.device))
     record: dict[str, Any] = {"warm_start_from": start.version}
     warnings = []
     if start.note is not None:
@@ -410,8 +418,7 @@ def starting_point(registry: ModelRegistry, cfg: TrainConfig,
         ensemble = new_ensemble(cfg, episodes)
     else:
         ensemble = start.ensemble
-        label = f"champion {start.version}" if start.note is None else f"{start.version} (for the damaged champion)"
-        _check_warm_start(ensemble, label, cfg, episodes)
+        check_warm_start(start, cfg, int(episodes[0].frames.shape[1]))
         overrode = warm_start_overrides(cfg, ensemble)
         if overrode:
             record["warm_start_overrode"] = "; ".join(overrode)
@@ -434,13 +441,19 @@ def train_candidate(catalog: CatalogLike, registry: ModelRegistry, cfg: TrainCon
     registered), ``RegistryUnavailableError`` (a checkpoint to warm-start from cannot be read now) and the
     registry's errors.
     """
+    registry.check_ready()  # a read-only models/ or an unreadable champion found now, not after the training
     pinned = catalog.eval_split() is not None  # without one, load_train's errors (no train episodes) come first
     eval_episodes, eval_hash = load_eval(catalog) if pinned else ([], "")
     sizes = {int(ep.frames.shape[1]) for ep in eval_episodes}  # more than one: check_evaluable refuses the split
+    # A warm start refused (no champion, no variance head, other images) before the train snapshot is read: that
+    # read quarantines damaged episodes, which a job that cannot start must leave where they are.
+    start = warm_start(registry, resolve_device(cfg.device)) if cfg.from_champion else None
+    if start is not None and len(sizes) == 1:
+        check_warm_start(start, cfg, min(sizes))
     data = load_train(catalog, cfg.max_episodes, image_size=min(sizes) if len(sizes) == 1 else None)
     if not pinned:
         eval_episodes, eval_hash = load_eval(catalog)  # raises DataError: no eval split is pinned
-    ensemble, record, warnings = starting_point(registry, cfg, data.episodes)
+    ensemble, record, warnings = starting_point(registry, cfg, data.episodes, start)
     check_evaluable(ensemble.config, eval_episodes)  # before training, not after it
     windows = train_windows(data.episodes, ensemble, cfg)
     start = time.perf_counter()
@@ -458,5 +471,10 @@ def train_candidate(catalog: CatalogLike, registry: ModelRegistry, cfg: TrainCon
                             "variance_head": ensemble.config.predict_variance} | record
     version = save_candidate(registry, ensemble, metrics, data.snapshot_id, eval_hash,
                              parent=record.get("warm_start_from"), train_config=used, snapshot=data.snapshot)
-    decision = registry.gate(version, cfg.min_rel_improvement, eval_split_hash=eval_hash)
+    try:
+        decision = registry.gate(version, cfg.min_rel_improvement, eval_split_hash=eval_hash)
+    except RegistryUnavailableError as exc:  # ("nothing changed" is the gate's: the job registered a candidate)
+        raise RegistryUnavailableError(f"registered {version} but cannot gate it now: {exc.__cause__ or exc}; the "
+                                       f"champion is as it was, and the next training job rejects {version} as "
+                                       "abandoned") from exc
     return TrainResult(version, metrics, decision, losses, data.quarantined, [*data.warnings, *warnings])

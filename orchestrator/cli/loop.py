@@ -79,7 +79,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                                    "episode, evaluate it on the pinned eval split, and promote it when the gate "
                                    f"allows; then exit. By default it trains {train_defaults(TrainConfig())}. "
                                    f"Exit {EXIT_BUSY} while another job holds the lock (see --wait), 1 when "
-                                   "training fails; a job killed before its gate changes nothing.")
+                                   "training fails; a job killed before its gate leaves the champion as it was "
+                                   "(a candidate it registered is rejected by the next job).")
     _retrain_options(p)
     p.set_defaults(func=_retrain)
 

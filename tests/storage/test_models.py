@@ -2,11 +2,14 @@
 
 from __future__ import annotations
 
+import errno
 import hashlib
 import json
 import math
+import os
 import sqlite3
 import threading
+from pathlib import Path
 
 import pytest
 
@@ -387,3 +390,26 @@ def test_every_read_of_the_weights_goes_through_one_reader(reg: ModelRegistry, m
     assert reg.weights_problem(version) is None and reg.load_weights(version)
     reg.verify(version)
     assert seen == [version] * 3
+
+
+def test_check_ready_says_before_a_job_trains_that_models_cannot_take_a_checkpoint(reg: ModelRegistry,
+                                                                                    monkeypatch) -> None:
+    champion = _register(reg, 0.01)
+    reg.gate(champion)
+    reg.check_ready()
+    assert not list(reg.models_dir.glob(".tmp-*"))  # (its probe gone)
+    real = Path.mkdir
+
+    def mkdir(self: Path, *args, **kw) -> None:
+        if self.parent == reg.models_dir:
+            raise OSError(errno.EROFS, os.strerror(errno.EROFS), str(self))
+        real(self, *args, **kw)
+    monkeypatch.setattr(Path, "mkdir", mkdir)
+    with pytest.raises(RegistryUnavailableError, match="cannot store a checkpoint in .* now: Read-only file system"):
+        reg.check_ready()
+    monkeypatch.undo()
+    failing_reads_of(reg.get(champion).weights_path, monkeypatch)
+    with pytest.raises(RegistryUnavailableError, match=f"cannot read champion {champion}, which the gate"):
+        reg.check_ready()
+    _flip_byte(reg, champion)
+    reg.check_ready()  # damaged for good: the gate replaces it, so a job may go on

@@ -2,8 +2,11 @@ import numpy as np
 import pytest
 import torch
 
+import uncertainty.train
 from storage.catalog import Catalog
+from storage.errors import RegistryUnavailableError
 from storage.models import ModelRegistry, ModelStatus
+from tests.conftest import failing_reads_of
 from tests.uncertainty.conftest import TINY, baseline_mse
 from tests.uncertainty.synth import make_episode
 from uncertainty.checkpoint import load_ensemble
@@ -153,6 +156,57 @@ def test_warm_start_without_champion_is_refused(tmp_path):
     train_candidate(cat, registry, TrainConfig(epochs=1, **TINY))
     with pytest.raises(ConfigError, match="no variance head"):
         train_candidate(cat, registry, TrainConfig(epochs=1, from_champion=True, variance_head=True, **TINY))
+
+
+def test_a_refused_warm_start_leaves_a_damaged_train_episode_where_it_is(tmp_path):
+    """Reading the train snapshot quarantines a damaged episode (moves its file): a job whose warm start is refused
+    (no champion, no variance head) must not get that far."""
+    cat, ids = _catalog(tmp_path, n_train=4, n_eval=1)
+    cat.pin_eval_split(ids)
+    registry = ModelRegistry(tmp_path)
+    damaged = cat.list(split="train")[0]
+    for cfg in (TrainConfig(epochs=1, from_champion=True, **TINY),
+                TrainConfig(epochs=1, from_champion=True, variance_head=True, **TINY)):
+        with pytest.raises(ConfigError, match="no champion|no variance head"):
+            train_candidate(cat, registry, cfg)
+        if registry.champion() is None:
+            train_candidate(cat, registry, TrainConfig(epochs=1, **TINY))  # (then damaged: this one reads it)
+            damaged.path.write_bytes(damaged.path.read_bytes()[:-3])
+        assert cat.count(quarantined=True) == 0 and damaged.path.exists()
+    assert train_candidate(cat, registry, TrainConfig(epochs=1, **TINY)).quarantined == [damaged.episode_id]
+
+
+def test_a_champion_the_gate_cannot_read_now_stops_the_job_before_it_trains(tmp_path, monkeypatch):
+    cat, ids = _catalog(tmp_path, n_train=4, n_eval=1)
+    cat.pin_eval_split(ids)
+    registry = ModelRegistry(tmp_path)
+    champion = train_candidate(cat, registry, TrainConfig(epochs=1, **TINY)).version
+    failed = failing_reads_of(registry.get(champion).weights_path, monkeypatch)
+    with pytest.raises(RegistryUnavailableError, match=f"cannot read champion {champion}, which the gate compares"):
+        train_candidate(cat, registry, TrainConfig(epochs=1, **TINY))
+    assert failed and [m.version for m in registry.list()] == [champion]  # nothing trained, nothing registered
+
+
+def test_a_gate_that_cannot_read_the_champion_now_names_the_candidate_it_leaves(tmp_path, monkeypatch):
+    """The read fails between the job's start and its gate: the candidate is registered, and the error says so
+    (the gate's own "nothing changed" is not the job's)."""
+    cat, ids = _catalog(tmp_path, n_train=4, n_eval=1)
+    cat.pin_eval_split(ids)
+    registry = ModelRegistry(tmp_path)
+    champion = train_candidate(cat, registry, TrainConfig(epochs=1, **TINY)).version
+    real_fit = uncertainty.train.fit
+
+    def fit_then_lose_the_disk(*args, **kw):
+        failing_reads_of(registry.get(champion).weights_path, monkeypatch, times=10)
+        return real_fit(*args, **kw)
+    monkeypatch.setattr(uncertainty.train, "fit", fit_then_lose_the_disk)
+    with pytest.raises(RegistryUnavailableError) as info:
+        train_candidate(cat, registry, TrainConfig(epochs=1, **TINY))
+    left = [m.version for m in registry.list() if m.version != champion]
+    assert len(left) == 1 and registry.get(left[0]).status is ModelStatus.CANDIDATE
+    assert str(info.value).startswith(f"registered {left[0]} but cannot gate it now: ")
+    assert str(info.value).endswith(f"the next training job rejects {left[0]} as abandoned")
+    assert registry.champion() == champion
 
 
 def test_a_model_the_eval_split_cannot_evaluate_is_refused_before_training(tmp_path, monkeypatch):
