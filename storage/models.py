@@ -439,10 +439,10 @@ class ModelRegistry:
         Slots the chain leaves go to the latest champions a rollback took out of service (so they can be
         promoted again). Pruned rows stay, with ``pruned_at`` set: their metrics and history remain, their
         weights are refused with ``PrunedCheckpointError`` and ``rollback`` skips them. The rows are marked in one
-        transaction before any file is deleted, so a crash between leaves marked rows whose files
-        the next ``prune`` deletes; one whose directory cannot be deleted (``PruneResult.not_deleted``) and
-        is still whole gets its mark taken off again, usable as before; each directory is claimed by a rename
-        before it is deleted, so two prunes at once delete (and count) it once. Also sweeps the dot folders crashed calls
+        transaction before any file is deleted, so a crash between leaves marked rows whose files the next
+        ``prune`` deletes; one whose directory cannot be deleted (``PruneResult.not_deleted``) and is still
+        whole gets its mark taken off again, usable as before; each directory is claimed by a rename before
+        it is deleted, so two prunes at once delete (and count) it once. Also sweeps the dot folders crashed calls
         left, and moves the folders no row names aside (``sweep_strays``; ``orphaned``, and ``not_moved``
         those that could not be, which fail nothing). Raises ``RegistryError`` for a ``keep`` below 1.
         """
