@@ -62,9 +62,11 @@ def test_corrupt_weights_on_disk_are_refused(tmp_path):
         load_ensemble(registry, version)
 
 
-def test_registered_bytes_that_are_not_an_ensemble_are_refused(tmp_path):
+@pytest.mark.parametrize("weights", [b"not a torch file", b"abcde", b"\x80\x02"], ids=["text", "IndexError", "proto"])
+def test_registered_bytes_that_are_not_an_ensemble_are_refused(tmp_path, weights):
+    """Whatever torch's unpickler raises on them (b"abcde": an IndexError from its stack) is a CheckpointError."""
     registry = ModelRegistry(tmp_path)
-    version = registry.register(b"not a torch file", {}, METRICS, "snap", "evalhash")
+    version = registry.register(weights, {}, METRICS, "snap", "evalhash")
     with pytest.raises(CheckpointError, match="not a readable torch file") as info:
         load_ensemble(registry, version)
     assert isinstance(info.value, CorruptCheckpointError)  # one except clause catches both kinds
