@@ -2,17 +2,20 @@
 
 ``ModelStatus`` (where a model stands), ``ModelRecord`` (one registered model), ``ChampionEntry`` (one
 promotion), ``StrayFolders`` (what a sweep did with the checkpoint folders no row names) and ``PruneResult``
-(what a prune did, those folders included), with the names of a checkpoint directory's files. They import
+(what a prune did, those folders included), with the names of a checkpoint directory's files, and
+``record_of``, a row as a ``ModelRecord``. They import
 nothing of the registry; ``storage.models`` re-exports them.
 """
 
 from __future__ import annotations
 
+import json
 from dataclasses import dataclass, field
 from enum import Enum
 from pathlib import Path
 from typing import Any
 
+from storage.errors import RegistryError
 from storage.jsonsafe import finite_json
 
 #: The files of a checkpoint directory ``DATA/models/<version>/``.
@@ -134,3 +137,30 @@ class StrayFolders:
         return bool(self.moved or self.not_moved or self.stale)
 
 
+
+
+def record_of(row: Any, models_dir: Path) -> ModelRecord:
+    """The record of a ``models`` row (a ``sqlite3.Row``); ``RegistryError`` naming the version and the column when
+    the row is not one the registry writes (a hand edit, a damaged file): a one-line error, not a traceback."""
+    def loaded(column: str) -> dict[str, Any]:
+        try:
+            value = json.loads(row[column])
+        except (TypeError, ValueError):
+            value = None
+        if not isinstance(value, dict):
+            raise RegistryError(f"registry row {row['version']}: {column} is not a JSON object "
+                                f"({str(row[column])[:40]!r})")
+        return value
+    try:
+        status = ModelStatus(row["status"])
+    except ValueError:
+        raise RegistryError(f"registry row {row['version']}: status {row['status']!r} is none of "
+                            f"{', '.join(s.value for s in ModelStatus)}") from None
+    return ModelRecord(
+        version=row["version"], status=status, reason=row["reason"],
+        parent=row["parent"], snapshot_id=row["snapshot_id"],
+        eval_split_hash=row["eval_split_hash"], weights_sha256=row["weights_sha256"],
+        size_bytes=row["size_bytes"], created=row["created"],
+        metrics=loaded("metrics"), config=loaded("config"),
+        path=models_dir / row["version"], pruned_at=row["pruned_at"],
+    )

@@ -44,7 +44,7 @@ from storage.errors import CorruptCheckpointError, RegistryError, RegistryUnavai
 from storage.files import write_synced
 from storage.gate import DEFAULT_METRIC, DEFAULT_MIN_REL_IMPROVEMENT, GateDecision, judge
 from storage.model_rows import (CONFIG_FILE, META_FILE, METRICS_FILE, SNAPSHOT_FILE, WEIGHTS_FILE, ChampionEntry,
-                                ModelRecord, ModelStatus, PruneResult, StrayFolders)
+                                ModelRecord, ModelStatus, PruneResult, StrayFolders, record_of)
 from storage.promotions import CHAMPION, now
 from storage.rows import Snapshot
 
@@ -123,14 +123,7 @@ class ModelRegistry:
     # -- reading -------------------------------------------------------------------------------
 
     def _record(self, row: sqlite3.Row) -> ModelRecord:
-        return ModelRecord(
-            version=row["version"], status=ModelStatus(row["status"]), reason=row["reason"],
-            parent=row["parent"], snapshot_id=row["snapshot_id"],
-            eval_split_hash=row["eval_split_hash"], weights_sha256=row["weights_sha256"],
-            size_bytes=row["size_bytes"], created=row["created"],
-            metrics=json.loads(row["metrics"]), config=json.loads(row["config"]),
-            path=self.models_dir / row["version"], pruned_at=row["pruned_at"],
-        )
+        return record_of(row, self.models_dir)
 
     def _get(self, conn: sqlite3.Connection, version: str) -> ModelRecord:
         row = conn.execute("SELECT * FROM models WHERE version = ?", (version,)).fetchone()

@@ -413,3 +413,20 @@ def test_check_ready_says_before_a_job_trains_that_models_cannot_take_a_checkpoi
         reg.check_ready()
     _flip_byte(reg, champion)
     reg.check_ready()  # damaged for good: the gate replaces it, so a job may go on
+
+
+@pytest.mark.parametrize("column, value, message", [
+    ("metrics", "not json", "metrics is not a JSON object ('not json')"),
+    ("config", "[]", "config is not a JSON object ('[]')"),
+    ("status", "weird", "status 'weird' is none of candidate, champion, retired, rejected"),
+])
+def test_a_row_the_registry_did_not_write_is_refused_naming_it(reg: ModelRegistry, column, value, message) -> None:
+    """A hand edit or a damaged file: a RegistryError naming the version and the column (one line from the CLI),
+    not a JSONDecodeError or a ValueError from deep inside."""
+    version = _register(reg, 0.01)
+    with sqlite3.connect(reg.db_path) as conn:
+        conn.execute(f"UPDATE models SET {column} = ? WHERE version = ?", (value, version))
+    for call in (reg.list, lambda: reg.get(version)):
+        with pytest.raises(RegistryError) as info:
+            call()
+        assert str(info.value) == f"registry row {version}: {message}"
