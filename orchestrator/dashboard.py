@@ -263,6 +263,9 @@ class _Handler(BaseHTTPRequestHandler):
 
     dashboard: Dashboard
     server_version = SERVER_NAME
+    # what an error found before the request's version is read is answered as: the base class's HTTP/0.9 sent a
+    # bare body, without a status line or headers (a request line with a bad or unknown version)
+    default_request_version = "HTTP/1.0"
 
     def setup(self) -> None:
         super().setup()
@@ -320,16 +323,29 @@ class _Handler(BaseHTTPRequestHandler):
 
 @functools.cache  # thread-safe: two first requests at once may both draw it, both get the same bytes
 def _placeholder_png() -> bytes:
-    """A small 'no champion yet' image, so the page's <img> never 404s."""
+    """A small image for when there is nothing to draw (no champion, its weights cannot be loaded, no eval split
+    pinned), so the page's <img> never 404s; the cards above it say which."""
     from matplotlib.figure import Figure  # start-up cost (0.15-0.4 s for every command), not a cycle
-    fig = Figure(figsize=(3, 0.6), dpi=80)
-    fig.text(0.5, 0.5, "no champion yet", ha="center", va="center", color="#888")
+    fig = Figure(figsize=(4, 0.6), dpi=80)
+    fig.text(0.5, 0.5, "no champion loaded to draw", ha="center", va="center", color="#888")
     buf = io.BytesIO()
     fig.savefig(buf, format="png")
     return buf.getvalue()
 
 
 # -- sources over a data directory ------------------------------------------------------------
+
+def newest_model(registry: ModelRegistry) -> dict | None:
+    """The last retrain as the registry knows it, for a process that ran none itself (a standalone dashboard, a
+    service restarted since, retrains by system cron): its newest model, ``"from": "registry"``; None when
+    there is none."""
+    models = registry.list()
+    if not models:
+        return None
+    newest = models[-1]
+    return {"status": newest.status.value, "version": newest.version, "reason": newest.reason,
+            "finished": newest.created, "from": "registry"}
+
 
 @dataclass
 class DataSources:
@@ -359,17 +375,26 @@ class DataSources:
         each connection on a new thread, so stores kept per thread held their files open until the GC ran.
         CatalogError when the catalog is not there (the directory moved, removed, its disk unmounted): opening
         the stores would make a new empty one, and the page would show an empty fleet."""
-        if not (Path(self.data_dir) / DB_NAME).is_file():
-            raise CatalogError(f"no catalog at {self.data_dir}: was the data directory moved or removed, or its "
-                               f"disk unmounted? (the dashboard only reads; it creates none)")
+        self._refuse_lost()
         catalog = Catalog(self.data_dir)
         with RequestQueue(catalog.db_path) as queue:
             yield catalog, queue, ModelRegistry(self.data_dir)
 
+    def _refuse_lost(self) -> None:
+        if not (Path(self.data_dir) / DB_NAME).is_file():
+            raise CatalogError(f"no catalog at {self.data_dir}: was the data directory moved or removed, or its "
+                               f"disk unmounted? (the dashboard only reads; it creates none)")
+
+    def _frames(self) -> bytes:
+        """``frames_png``, checked as ``_stores`` is: the champion's loader opens the registry, which would make
+        the lost data directory anew (the page asks for this picture on its first refresh)."""
+        self._refuse_lost()
+        return self.frames_png()
+
     def sources(self) -> DashboardSources:
         return DashboardSources(stats=self.stats, queue=self.queue, workers=self.workers or list, models=self.models,
                                 curve=self.curve, metrics_text=self.metrics_text or self.data_metrics,
-                                frames_png=self.frames_png)
+                                frames_png=self._frames)
 
     def data_metrics(self) -> str:
         """Prometheus text of the gauges read from the data directory (a dashboard without a service)."""
@@ -385,13 +410,14 @@ class DataSources:
             episodes = {"train": catalog.count(split="train"), "eval": catalog.count(split="eval"),
                         "quarantined": catalog.count(quarantined=True)}
             counts = queue.counts()
-        retrains = self.retrains()
+            retrains = self.retrains()
+            last = retrains[-1] if retrains else newest_model(registry)
         return {"episodes": episodes, "quarantine_bytes": self.gauges.quarantine_space.read(self.data_dir),
                 "budget": self.budget, "queue": counts,
                 "workers_alive": None if self.workers is None else len(self.workers()),
                 "champion": champion, "champion_h1_mse": h1, "champion_problem": problem,
                 "disk": disk_json(self.data_dir),
-                "retrains": len(retrains), "last_retrain": retrains[-1] if retrains else None}
+                "retrains": len(retrains), "last_retrain": last}
 
     def queue(self, rows: int) -> dict:
         with self._stores() as (_, queue, _):

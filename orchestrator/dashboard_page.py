@@ -49,13 +49,15 @@ PAGE = """<!doctype html>
 <h2>Workers</h2>
 <table id="workers"><thead><tr><th>id</th><th>details</th></tr></thead><tbody></tbody></table>
 <h2>Predicted vs real (champion, eval episodes)</h2>
-<img id="frames" alt="no champion yet" src="/frames.png">
+<img id="frames" alt="predicted vs real frames of the champion" src="/frames.png">
 <script>
 "use strict";
 const REFRESH_MS = __REFRESH_MS__;
 function text(id, value) { const el = document.getElementById(id); if (el) el.textContent = value; }
 function fmt(x) { return (x === null || x === undefined || Number.isNaN(x)) ? "-" :
   (typeof x === "number" ? (Math.abs(x) < 0.01 && x !== 0 ? x.toExponential(2) : x.toFixed(4)) : String(x)); }
+function size(b) { const [n, u] = b >= 1e9 ? [b / 1e9, "GB"] : b >= 1e6 ? [b / 1e6, "MB"] : [b / 1e3, "kB"];
+  return n.toFixed(1) + " " + u; }
 function cell(tr, value, cls) { const td = document.createElement("td"); td.textContent = value;
   if (cls) td.className = cls; tr.appendChild(td); }
 function fill(tableId, rows, build) { const body = document.querySelector("#" + tableId + " tbody");
@@ -97,7 +99,7 @@ async function refresh() {
       ["/api/stats", "/api/queue", "/api/models", "/api/workers", "/api/curve"].map(getJSON));
     text("episodes", stats.episodes.train);
     const space = typeof stats.quarantine_bytes === "number" && stats.quarantine_bytes > 0
-      ? " (" + (stats.quarantine_bytes / 1e6).toFixed(1) + " MB)" : "";
+      ? " (" + size(stats.quarantine_bytes) + ")" : "";
     const held = stats.episodes.quarantined ? stats.episodes.quarantined + " quarantined" + space : "";
     text("budget", [stats.budget ? "of " + stats.budget : "", held].filter(Boolean).join(" \u00b7 "));
     for (const s of ["queued", "leased", "done", "dead", "cancelled"]) text("q-" + s, queue.counts[s] || 0);
@@ -111,7 +113,7 @@ async function refresh() {
     text("disk-free", disk ? gib(disk.free_bytes) : "-");
     text("disk-size", disk ? "of " + gib(disk.size_bytes) : "");
     const last = stats.last_retrain;
-    text("last-retrain", last ? last.status : "none");
+    text("last-retrain", last ? last.status + (last.from ? " (newest model)" : "") : "none");
     text("last-retrain-reason", last ? (last.version || "") + " " + (last.reason || "") : "");
     fill("queue", queue.requests, (tr, q) => { const r = q.reason || {};
       for (const v of [q.id, q.status, fmt(q.priority), q.shape, q.policy, r.planner || "", fmt(r.score),

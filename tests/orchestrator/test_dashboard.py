@@ -92,6 +92,15 @@ def test_a_request_line_that_is_not_a_url_gets_400(dashboard):
         assert conn.recv(4096).startswith(b"HTTP/1.0 400")
 
 
+@pytest.mark.parametrize("line, status", [(b"GET / HTTP/2.0", b"505"), (b"GET / HTTP/x", b"400")])
+def test_a_request_line_with_a_bad_version_gets_a_status_line_and_headers(dashboard, line, status):
+    """The base class answered these HTTP/0.9-style: a bare HTML body, no status line, no nosniff header."""
+    dash, _, _ = dashboard
+    with _raw_http(dash.url, line + b"\r\n\r\n") as conn:
+        reply = read_to_close(conn)
+    assert reply.startswith(b"HTTP/1.0 " + status) and b"X-Content-Type-Options: nosniff" in reply, reply[:200]
+
+
 def test_a_stalled_client_is_let_go(stores):
     data_dir = stores[0]
     dash = Dashboard(DashboardConfig(port=0, request_timeout_s=0.3), DataSources(data_dir).sources())
@@ -249,6 +258,10 @@ def test_api_endpoints_answer_json(dashboard, tmp_path):
     stats = json.loads(get(dash.url + "api/stats")[2])
     assert stats["champion"] == version and stats["champion_h1_mse"] == 0.02 and stats["budget"] == 40
     assert stats["workers_alive"] == 1 and stats["disk"]["size_bytes"] == shutil.disk_usage(tmp_path).total
+    # no retrain ran in this process (a restarted service, a dashboard of its own): the registry's newest model
+    assert stats["retrains"] == 0 and stats["last_retrain"] == {
+        "status": "champion", "version": version, "reason": registry.get(version).reason,
+        "finished": registry.get(version).created, "from": "registry"}
     assert json.loads(get(dash.url + "api/workers")[2])["workers"][0]["id"] == "w1"
     [point] = json.loads(get(dash.url + "api/curve")[2])["points"]
     assert point["version"] == version and point["episodes"] == 0 and point["status"] == "champion"
@@ -355,6 +368,7 @@ def test_page_shows_live_queue_numbers_without_console_errors(dashboard, stores,
     registry.promote(version)
     wait_for(lambda: browser.evaluate("document.getElementById('champion').textContent") == version,
              message="the champion card")
+    assert browser.evaluate("document.getElementById('last-retrain').textContent") == "champion (newest model)"
     wait_for(lambda: browser.evaluate("document.querySelectorAll('#curve circle').length") == 1,
              message="the learning curve point")
     assert browser.evaluate("document.getElementById('updated').textContent").startswith("updated")
@@ -370,7 +384,8 @@ def test_page_shows_live_queue_numbers_without_console_errors(dashboard, stores,
     catalog = stores[1]
     catalog.add_episode(make_episode(np.random.default_rng(3)))
     catalog.quarantine(catalog.list()[0].episode_id, "operator: wrong object")
-    held = f"of 40 \u00b7 1 quarantined ({quarantine_bytes(catalog.data_dir) / 1e6:.1f} MB)"  # and their files' space
+    held = f"of 40 \u00b7 1 quarantined ({quarantine_bytes(catalog.data_dir) / 1e3:.1f} kB)"  # and their files' space
+    assert quarantine_bytes(catalog.data_dir) < 1e6  # (it showed "0.0 MB")
     wait_for(lambda: browser.evaluate("document.getElementById('budget').textContent") == held,
              message="the quarantined count")
     assert browser.errors() == []

@@ -11,6 +11,7 @@ from urllib.parse import urlsplit
 
 import pytest
 
+from orchestrator.champion import ChampionScorer, FramesSource
 from orchestrator.dashboard import RETRY_AFTER_S, Dashboard, DashboardConfig, DashboardSources, DataSources
 from storage.catalog import Catalog
 from storage.errors import CatalogUnavailableError
@@ -41,14 +42,20 @@ def test_a_data_directory_moved_away_is_not_made_again(tmp_path: Path) -> None:
     """Opening the stores of a directory with no catalog made a new, empty one (and its folders): the page showed
     an empty fleet, and the directory was back where the operator had just moved it from."""
     data_dir = tmp_path / "data"
-    Catalog(data_dir)
-    with serving(data_dir) as dash:
+    catalog = Catalog(data_dir)
+    frames = FramesSource(ChampionScorer(data_dir), catalog)  # as `activecollect dashboard` has it
+    dash = Dashboard(DashboardConfig(port=0), DataSources(data_dir, frames_png=frames).sources())
+    dash.start()
+    try:
         assert fetch(dash.url, "/api/stats")[0] == 200
         data_dir.rename(tmp_path / "moved")
-        for path in ("/api/stats", "/api/queue", "/api/models", "/api/curve", "/metrics"):
+        # /frames.png: the champion's loader opened the registry, which made the directory again
+        for path in ("/api/stats", "/api/queue", "/api/models", "/api/curve", "/metrics", "/frames.png"):
             status, headers, body = fetch(dash.url, path)
             assert status == 500 and headers["Content-Type"].startswith("text/plain"), (path, status, body)
             assert body.decode().startswith(f"no catalog at {data_dir}:") and body.count(b"\n") == 1, body
+    finally:
+        dash.stop()
     assert not data_dir.exists()
 
 
