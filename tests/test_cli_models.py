@@ -265,6 +265,8 @@ def test_models_show_episodes_lists_what_the_model_was_trained_on(trained, capsy
     snapshot_file.unlink()
     rc, out, err = run_cli(capsys, "models", "show", version, "--data", str(copy), "--episodes")
     assert rc == 1 and out == "" and f"cannot list the episodes of {version}: episodes not recorded" in err
+    assert f"no snapshot.json in {snapshot_file.parent} (registered before models recorded them, or the file was " \
+           "removed)" in err
     rc, out, _ = run_cli(capsys, "models", "show", version, "--data", str(copy), "--json")
     assert rc == 0 and json.loads(out)["snapshot_episode_count"] is None
     snapshot_file.write_text('{"episodes": [["a", "b"]]}')

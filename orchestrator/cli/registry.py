@@ -17,7 +17,7 @@ from orchestrator.cli import common
 from storage.catalog import Catalog
 from storage.errors import CorruptCheckpointError, NotFoundError, RegistryError
 from storage.jsonsafe import finite_json as strict_json  # (the name every --json of these commands uses)
-from storage.models import ModelRecord, ModelRegistry, PruneResult
+from storage.models import SNAPSHOT_FILE, ModelRecord, ModelRegistry, PruneResult
 from storage.rows import Snapshot
 from storage.strays import MODEL_ORPHANS_DIR
 
@@ -148,7 +148,8 @@ def _train_episodes(registry: ModelRegistry, rec: ModelRecord) -> tuple[Snapshot
     except RegistryError as exc:  # pruned, or a damaged snapshot.json
         return None, f"episodes unavailable: {exc}"
     if snap is None:
-        return None, "episodes not recorded (registered before models recorded them)"
+        return None, (f"episodes not recorded: no {SNAPSHOT_FILE} in {rec.path} (registered before models recorded "
+                      "them, or the file was removed)")
     return snap, ""
 
 
