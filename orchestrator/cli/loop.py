@@ -270,7 +270,7 @@ def _retrain(args: argparse.Namespace) -> int:
         return 1
     if args.json:
         # one line, so a scheduler reading the job's stdout finds it whatever was printed before
-        print(json.dumps(result, default=str, allow_nan=True))
+        print(json.dumps(finite_json(result), default=str))  # strict JSON: NaN (h10 of short episodes) as null
     else:
         verdict = "promoted" if result["promoted"] else "not promoted"
         print(f"{result['version']}: {verdict}: {result['reason'].removeprefix('promoted: ')}")  # (the gate's words)

@@ -91,13 +91,13 @@ class FailingSyncs:
         self._healed.set()
 
 
-def small_training_data(data: Path) -> Path:
+def small_training_data(data: Path, steps: int = 12) -> Path:
     """A data directory with a 4-episode eval split and 6 training episodes (16 px, 12 steps): enough for a tiny
     retrain."""
     catalog = Catalog(data)
-    create_eval_split(catalog, episodes=4, seed=1, steps=12, image_size=16)
-    planner = UniformPlanner(UniformPlannerConfig(steps=12), np.random.default_rng(0))
+    create_eval_split(catalog, episodes=4, seed=1, steps=steps, image_size=16)
+    planner = UniformPlanner(UniformPlannerConfig(steps=steps), np.random.default_rng(0))
     for i, r in enumerate(planner.seed(6)):
         catalog.add_episode(collect_episode(start_state=r.start_state, policy=r.policy,
-                                            policy_params=r.policy_params, seed=i, steps=12, image_size=16))
+                                            policy_params=r.policy_params, seed=i, steps=steps, image_size=16))
     return data

@@ -286,8 +286,13 @@ def trained(tmp_path_factory):
     data = small_training_data(tmp_path_factory.mktemp("retrain"))
     first = retrain(data, "--epochs", "1")
     assert first.returncode == 0, first.stderr
-    assert json.loads(first.stdout)["promoted"] is True
+    result = json.loads(first.stdout, parse_constant=_not_json)  # strict: what a cluster scheduler parses
+    assert result["promoted"] is True
     return data
+
+
+def _not_json(constant: str) -> None:
+    raise ValueError(f"{constant} is not JSON")
 
 
 def retrain(data: Path, *extra: str) -> subprocess.CompletedProcess:
@@ -301,6 +306,16 @@ def models(data: Path) -> list[str]:
 
 def champion(data: Path) -> str | None:
     return ModelRegistry(data).champion()
+
+
+def test_retrain_json_is_strict_json_when_a_horizon_cannot_be_measured(tmp_path):
+    """Episodes of 5 steps: h5 and h10 cannot be measured (NaN), and --json printed NaN, which a strict parser (a
+    cluster scheduler's, jq) refuses; it is null, as every other --json writes it."""
+    data = small_training_data(tmp_path / "data", steps=5)
+    done = retrain(data, "--epochs", "1")
+    assert done.returncode == 0, done.stderr
+    result = json.loads(done.stdout, parse_constant=_not_json)
+    assert result["metrics"]["h10_mse"] is None and result["metrics"]["h1_mse"] > 0
 
 
 def test_a_retrain_killed_midway_leaves_the_champion(trained):
