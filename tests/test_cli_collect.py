@@ -465,6 +465,12 @@ def test_eval_split_create_over_train_copies_of_its_episodes_is_refused_before_c
     assert "--seed 1234 would record train episode " in err and "again as an eval episode (2 of the 4" in err
     assert err.split("train episode ")[1].split()[0] in train
     assert Catalog(data).count() == 2 and Catalog(data).eval_split() is None
+    # run, which makes the split itself, refuses the same (exit 2, naming its own flag) before it starts anything
+    rc, out, err = run_cli(capsys, "run", "--data", str(data), "--image-size", "16", "--steps", "3",
+                           "--eval-episodes", "4", "--budget", "4", "--no-progress")
+    assert rc == 2 and out == "" and err.count("\n") == 1, err
+    assert "--eval-seed 1234 would record train episode " in err and err.rstrip().endswith("give another --eval-seed")
+    assert Catalog(data).count() == 2 and Catalog(data).eval_split() is None
     rc, out, err = run_cli(capsys, "eval-split", "create", "--episodes", "4", "--seed", "99", *tiny)
     assert rc == 0, err
 

@@ -237,10 +237,17 @@ def _collect(args: argparse.Namespace) -> int:
     return 0
 
 
-def _refuse_replays(data: Path, plan: list, policy: str, size: int, split: str, seed: int) -> None:
-    """Before anything is collected: a usage error when episodes of ``plan`` (drawn from ``seed``), indexed in
-    ``split``, would replay episodes of the other split (the eval split's seed and policy make its episodes
-    again, under new ids), which the catalog would refuse one by one (``plan_replays``)."""
+def refuse_eval_replays(data: Path, episodes: int, seed: int, size: int, flag: str = "--seed") -> None:
+    """Before an eval split is made (``eval-split create``, ``run``): a usage error naming ``flag`` when train
+    episodes already record some of its episodes (``_refuse_replays``)."""
+    _refuse_replays(data, eval_split_plan(episodes, seed), EVAL_POLICY, size, "eval", seed, flag)
+
+
+def _refuse_replays(data: Path, plan: list, policy: str, size: int, split: str, seed: int,
+                    flag: str = "--seed") -> None:
+    """Before anything is collected: a usage error when episodes of ``plan`` (drawn from ``seed``, given as
+    ``flag``), indexed in ``split``, would replay episodes of the other split (the eval split's seed and policy
+    make its episodes again, under new ids), which the catalog would refuse one by one (``plan_replays``)."""
     if not (Path(data) / DB_NAME).is_file():
         return
     cat = Catalog(data)
@@ -256,9 +263,9 @@ def _refuse_replays(data: Path, plan: list, policy: str, size: int, split: str, 
         raise common.UsageError(f"--seed {seed} would record eval episode {other} again ({many} replay eval "
                                 f"episodes of {data}): training on them would leak the eval split; give another "
                                 "--seed")
-    raise common.UsageError(f"--seed {seed} would record train episode {other} again as an eval episode ({many} "
+    raise common.UsageError(f"{flag} {seed} would record train episode {other} again as an eval episode ({many} "
                             f"replay train episodes of {data}): models trained on those would be measured on their "
-                            "own training data; give another --seed")
+                            f"own training data; give another {flag}")
 
 
 # -- ingest ------------------------------------------------------------------------------------
@@ -336,8 +343,7 @@ def _eval_split_create(args: argparse.Namespace) -> int:
     # a pinned split is never replaced: checked before collecting
     pinned = refuse_other_settings(args.data, EVAL_SPLIT_FLAGS, "eval-split create", "asked for", "--size", **settings)
     if pinned is None:
-        plan = eval_split_plan(args.episodes, args.seed)
-        _refuse_replays(args.data, plan, EVAL_POLICY, args.size, "eval", args.seed)
+        refuse_eval_replays(args.data, args.episodes, args.seed, args.size)
     cat = Catalog(args.data)
     if pinned is None:
         print(f"collecting {args.episodes} evaluation episodes ({args.steps} steps, {args.size}px) ...",

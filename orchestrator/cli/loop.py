@@ -216,9 +216,12 @@ def _run(args: argparse.Namespace) -> int:
     except ValueError as exc:
         raise common.config_error(exc, {"budget": "--budget", "workers": "--workers", "steps": "--steps",
                                         "planner": "--planner"}) from None
-    collect_cli.refuse_other_settings(cfg.data_dir, RUN_SPLIT_FLAGS, "run", "this run asks for", "--image-size",
-                                      episodes=cfg.eval_episodes, seed=cfg.eval_seed, steps=cfg.steps,
-                                      image_size=cfg.image_size)
+    pinned = collect_cli.refuse_other_settings(cfg.data_dir, RUN_SPLIT_FLAGS, "run", "this run asks for",
+                                               "--image-size", episodes=cfg.eval_episodes, seed=cfg.eval_seed,
+                                               steps=cfg.steps, image_size=cfg.image_size)
+    if pinned is None:  # the split this run would make: train episodes already recording some refuse it (exit 2)
+        collect_cli.refuse_eval_replays(cfg.data_dir, cfg.eval_episodes, cfg.eval_seed, cfg.image_size,
+                                        "--eval-seed")
     from orchestrator.loop import LoopError, LoopRun  # torch: imported once the arguments are known good
     run = LoopRun(cfg, collect_cli.make_eval_split, announce=lambda line: print(line, file=sys.stderr, flush=True))
     try:
