@@ -111,7 +111,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--size", type=common.trainable_image_size, default=64, metavar="PX",
                    help=f"frame size in pixels, {TRAINABLE_SIZES} (default 64)")
     p.add_argument("--steps", type=common.episode_steps, default=50, metavar="T",
-                   help=f"steps per episode, at least {common.MIN_EPISODE_STEPS} (default 50)")
+                   help=f"steps per episode, {common.MIN_EPISODE_STEPS}..{common.MAX_EPISODE_STEPS} (default 50)")
     p.add_argument("--seed", type=common.non_negative_int, default=0, metavar="K",
                    help="seed of start states and policies (default 0)")
     common.add_data_arg(p)
@@ -151,7 +151,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help=f"frame size in pixels, {TRAINABLE_SIZES}; models of this directory predict frames of "
                         "this size (default 64)")
     p.add_argument("--steps", type=common.episode_steps, default=50, metavar="T",
-                   help=f"steps per episode, at least {common.MIN_EPISODE_STEPS} (default 50)")
+                   help=f"steps per episode, {common.MIN_EPISODE_STEPS}..{common.MAX_EPISODE_STEPS} (default 50)")
     p.set_defaults(func=_eval_split_create)
     p = ssub.add_parser("pin", help="pin the eval split to episodes ingested with --split eval",
                         description="Pin the evaluation split to episodes collected elsewhere and indexed with "

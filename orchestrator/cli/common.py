@@ -338,8 +338,8 @@ def existing_catalog(args: argparse.Namespace) -> Catalog:
 def add_episode_args(p: argparse.ArgumentParser, steps: int, image_size: int) -> None:
     """``--steps`` and ``--image-size`` of the commands that collect and train (``run``, ``bench loop``)."""
     p.add_argument("--steps", type=episode_steps, default=steps, metavar="T",
-                   help=f"steps per episode, of the training episodes and of the eval split's (at least "
-                        f"{MIN_EPISODE_STEPS}; default {steps})")
+                   help=f"steps per episode, of the training episodes and of the eval split's "
+                        f"({MIN_EPISODE_STEPS}..{MAX_EPISODE_STEPS}; default {steps})")
     p.add_argument("--image-size", type=trainable_image_size, default=image_size, metavar="PX",
                    help=f"frame size in pixels, {TRAINABLE_SIZES} (default {image_size})")
 

@@ -94,7 +94,7 @@ def _register_queue(sub: argparse._SubParsersAction) -> None:
                    help="seed of the uniform start state, so not with --start-state (default: drawn from "
                         "--idempotency-key when given, so a retried add asks for the same start state; else random)")
     p.add_argument("--steps", type=common.episode_steps, default=50, metavar="T",
-                   help=f"steps to record, at least {common.MIN_EPISODE_STEPS} (default 50)")
+                   help=f"steps to record, {common.MIN_EPISODE_STEPS}..{common.MAX_EPISODE_STEPS} (default 50)")
     p.add_argument("--priority", type=_priority, default=0.0, metavar="P",
                    help=f"higher is leased first, within ±{protocol.MAX_PRIORITY:g} (default 0; planned requests "
                         "carry their score)")

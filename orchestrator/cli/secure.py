@@ -63,7 +63,8 @@ def register(sub) -> None:
                       help="replace an existing profile in DIR whole (also where DIR is a mount point)")
     add_json_arg(init)
     init.set_defaults(func=_init)
-    check = ssub.add_parser("check", help="check that every file a Zenoh config names exists and is readable",
+    check = ssub.add_parser("check", help="check the files a Zenoh config names: readable, certificates in date, "
+                                          "matching their keys, signed by the CA",
                             description="Check that every file a Zenoh config names (CA, certificate, key, password "
                                         "dictionary) exists and is readable, and that its certificates are within "
                                         "their dates, match their keys and are signed by the CA they name, as every "
@@ -159,7 +160,8 @@ def _check(args: argparse.Namespace) -> int:
     if args.json:
         print_json({"config": str(args.config), "files": [str(path) for path in files]})
         return 0
-    print(f"{args.config}: {len(files)} referenced file(s) present and readable")
+    print(f"{args.config}: {len(files)} referenced file(s) present and readable; certificates within their dates, "
+          "matching their keys and signed by the CA named")
     for path in files:
         print(f"  {path}")
     return 0

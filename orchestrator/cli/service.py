@@ -75,7 +75,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                         f"draws top the queue up so collection never stops (at most the planner's queue depth "
                         f"cap, {QUEUE_DEPTH_CAP}; default {MIN_QUEUED}, 0 with --planner none; 0 = no floor)")
     p.add_argument("--steps", type=common.episode_steps, default=50, metavar="T",
-                   help=f"steps per planned episode, at least {common.MIN_EPISODE_STEPS} (default 50)")
+                   help=f"steps per planned episode, {common.MIN_EPISODE_STEPS}..{common.MAX_EPISODE_STEPS} "
+                        "(default 50)")
     p.add_argument("--seed", type=common.non_negative_int, default=0, metavar="K",
                    help="seed of the planner's generator (default 0)")
     p.add_argument("--scoring-threads", type=common.non_negative_int, default=SCORING_THREADS, metavar="N",
