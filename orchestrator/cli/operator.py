@@ -47,7 +47,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=cmd_stats)
     p = sub.add_parser("watch", help="follow the service's events (Ctrl-C to stop)",
                        description="Print the service's events as they happen (requests queued, leased, done or "
-                                   "failed, episodes stored, models trained and promoted, workers joining and lost), "
+                                   "failed, episodes stored or rejected, models promoted, workers joining and lost), "
                                    "until Ctrl-C or --count events. Checks first that a service answers; when it "
                                    "goes away (stopped, restarting, cut off) says so on stderr and goes on watching, "
                                    "and says so again when one answers.")
