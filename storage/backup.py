@@ -41,13 +41,13 @@ from dataclasses import dataclass, field
 from datetime import datetime, timezone
 from pathlib import Path
 
-from storage import quarantine as quarantines
+from storage import promotions, quarantine as quarantines
 from storage.database import DB_NAME, connection
 from storage.catalog import Catalog
 from storage.quarantine import quarantine_path
 from storage.errors import BackupError, StorageError
 from storage.files import ensure_dir, fsync_dir, holds, sha256_hex, write_synced
-from storage.models import CHAMPION, MODELS_DIR, WEIGHTS_FILE, ModelRegistry
+from storage.models import MODELS_DIR, WEIGHTS_FILE, ModelRegistry
 
 #: Snapshots a backup takes before it reports a champion (or an earlier champion its rollback needs)
 #: pruned between its snapshot and its copy; each retake copies only the checkpoints again (seconds).
@@ -414,12 +414,12 @@ _CHAMPION, _EARLIER = "its champion", "an earlier champion its rollback returns 
 def _needed(conn: sqlite3.Connection) -> dict[str, str]:
     """In the copy: the models its registry serves or rolls back to (the champion, then the earlier
     champions not rolled back), each with what it is to the copy."""
-    champion = conn.execute("SELECT version FROM model_aliases WHERE alias = ?", (CHAMPION,)).fetchone()
+    champion = promotions.champion(conn)  # (none when the alias names no model)
     chain = [r[0] for r in conn.execute(
         "SELECT version FROM champion_history WHERE rolled_back_at IS NULL ORDER BY id DESC")]
     needed = dict.fromkeys(chain, _EARLIER)
     if champion is not None:
-        needed[champion[0]] = _CHAMPION
+        needed[champion] = _CHAMPION
     return needed
 
 

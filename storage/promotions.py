@@ -31,8 +31,11 @@ def now() -> str:
 
 
 def champion(conn: sqlite3.Connection) -> str | None:
-    """The version in service, or None before the first promotion."""
-    row = conn.execute("SELECT version FROM model_aliases WHERE alias = ?", (CHAMPION,)).fetchone()
+    """The version in service, or None before the first promotion -- and when the alias names no registered model
+    (a row deleted by hand: the file does not enforce the reference), so that the next gate or ``promote`` crowns
+    one instead of every command failing on an unknown version (``switch`` retires any row left marked)."""
+    row = conn.execute("SELECT a.version FROM model_aliases a JOIN models m ON m.version = a.version "
+                       "WHERE a.alias = ?", (CHAMPION,)).fetchone()
     return None if row is None else row[0]
 
 
@@ -56,9 +59,11 @@ def set_status(conn: sqlite3.Connection, version: str, status: ModelStatus, reas
 
 
 def switch(conn: sqlite3.Connection, version: str, reason: str) -> None:
-    """Inside a transaction: retire the champion, crown ``version``, record the promotion."""
-    current = champion(conn)
-    if current is not None:
+    """Inside a transaction: retire the champion (every row marked so: one, unless the alias was broken by hand),
+    crown ``version``, record the promotion."""
+    marked = conn.execute("SELECT version FROM models WHERE status = ? AND version != ?",
+                          (ModelStatus.CHAMPION.value, version)).fetchall()
+    for (current,) in marked:
         set_status(conn, current, ModelStatus.RETIRED, f"replaced by {version}")
     set_status(conn, version, ModelStatus.CHAMPION, reason)
     conn.execute("INSERT OR REPLACE INTO model_aliases (alias, version) VALUES (?, ?)", (CHAMPION, version))

@@ -430,3 +430,17 @@ def test_a_row_the_registry_did_not_write_is_refused_naming_it(reg: ModelRegistr
         with pytest.raises(RegistryError) as info:
             call()
         assert str(info.value) == f"registry row {version}: {message}"
+
+
+def test_an_alias_that_names_no_model_is_no_champion_and_the_next_gate_repairs_it(reg: ModelRegistry) -> None:
+    """A row deleted by hand (the file does not enforce the alias's reference): every command failed on "unknown
+    model version", promote included, and only a rollback got out, leaving two rows marked champion."""
+    a = _register(reg, 0.01)
+    reg.gate(a)
+    with sqlite3.connect(reg.db_path) as conn:
+        conn.execute("UPDATE model_aliases SET version = 'm999999-deadbeef'")
+    assert reg.champion() is None and [m.version for m in reg.list()] == [a]
+    b = _register(reg, 0.02)  # worse than a: promoted all the same, as the first champion is
+    assert reg.gate(b).promoted and reg.champion() == b
+    assert [m.version for m in reg.list(status="champion")] == [b] and reg.get(a).status is ModelStatus.RETIRED
+    assert reg.promote(a) and reg.champion() == a and [m.version for m in reg.list(status="champion")] == [a]
