@@ -59,10 +59,14 @@ log = logging.getLogger(__name__)
 class Service:
     """The orchestrator: ``start()`` serves until ``stop()``."""
 
-    def __init__(self, config: ServiceConfig, *, wall_clock: Callable[[], float] = time.time) -> None:
-        """``wall_clock``: read once at start, for the queue's ``steady_clock`` (a test's fake clock steps)."""
+    def __init__(self, config: ServiceConfig, *, wall_clock: Callable[[], float] = time.time,
+                 elapsed: Callable[[], float] = time.monotonic) -> None:
+        """``wall_clock``: read once at start, and ``elapsed`` since, make the queue's ``steady_clock`` (a test's fake
+        clocks step or jump)."""
         self.config = config
-        self._wall_clock = wall_clock
+        self._wall_clock, self._elapsed = wall_clock, elapsed
+        self._last_reap: float | None = None
+        """``_elapsed`` at the last reap: a gap far past the interval is a service that did not run (``_reap``)."""
         self.keys = Keys(config.namespace)
         self.metrics = config.metrics if config.metrics is not None else ServiceMetrics()
         self.session: zenoh.Session | None = None
@@ -123,7 +127,7 @@ class Service:
             self._sweep()  # before any upload is answered
             # leases judged by a clock that NTP's steps cannot move (expired all at once on a step forward)
             self.queue = RequestQueue(self.catalog.db_path, background_checkpoint=True,
-                                      clock=steady_clock(self._wall_clock))
+                                      clock=steady_clock(self._wall_clock, self._elapsed))
             self._carry_leases_over()  # before the first reap
             registry = ModelRegistry(cfg.data_dir)
         except DataDirectoryBusyError as exc:
@@ -422,8 +426,17 @@ class Service:
                      extended, self.config.lease_s)
 
     def _reap(self) -> None:
+        now, last = self._elapsed(), self._last_reap
+        self._last_reap = now
+        # The service itself did not run (SIGSTOP, a paused container or VM, a starved host): its clock went on, so
+        # every live lease would expire at once though no worker could renew; each gets a term from now instead.
+        stalled = last is not None and now - last > self.config.reap_interval_s + max(2.0, self.config.lease_s / 3)
         try:
             with self._writing():
+                if stalled and (extended := self.queue.extend_leases(self.config.lease_s)):
+                    log.warning("the service did not run for %.0f s (stopped, paused or starved); %d live lease(s) "
+                                "extended by %.0f s so their workers can renew", now - last, extended,
+                                self.config.lease_s)
                 if self.storage.down_since is not None:
                     extended = self.queue.extend_leases(self.config.lease_s)
                     down_s = self.storage.writes_work()

@@ -28,11 +28,11 @@ def make_service(data_dir: Path, endpoint: str, namespace: str):
     services: list[Service] = []
 
     def make(**kw: Any) -> Service:
-        wall_clock = kw.pop("wall_clock", time.time)
+        wall_clock, elapsed = kw.pop("wall_clock", time.time), kw.pop("elapsed", time.monotonic)
         cfg = ServiceConfig(data_dir=data_dir, namespace=namespace, listen=(endpoint,),
                             lease_s=kw.pop("lease_s", 30.0), reap_interval_s=kw.pop("reap_interval_s", 0.05),
                             lost_worker_grace_s=kw.pop("lost_worker_grace_s", 0.0), **kw)  # a lost worker: at once
-        service = Service(cfg, wall_clock=wall_clock)
+        service = Service(cfg, wall_clock=wall_clock, elapsed=elapsed)
         service.start()
         services.append(service)
         return service

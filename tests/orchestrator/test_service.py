@@ -200,6 +200,25 @@ def test_a_step_of_the_wall_clock_moves_no_lease(make_service, client, keys, ste
     assert (done.status, done.attempts) == (RequestStatus.DONE, 0)
 
 
+def test_a_service_that_did_not_run_for_longer_than_a_lease_expires_none(make_service, client, keys,
+                                                                         caplog) -> None:
+    """SIGSTOP, a paused container or VM: the monotonic clock goes on while nothing of the service runs, so no
+    worker can renew; on waking, its reaper expired every live lease at once (each worker dropped its episode and
+    was charged an attempt). Here the service's elapsed clock jumps a minute between two reaper passes."""
+    jumped = [0.0]
+    service = make_service(lease_s=30.0, elapsed=lambda: time.monotonic() + jumped[0])
+    request, _ = service.queue.enqueue(new_request())
+    grant = lease(client, keys)
+    caplog.set_level(logging.WARNING, logger="orchestrator.service")
+    jumped[0] = 60.0
+    wait_for(lambda: any("the service did not run for 60 s" in r.getMessage() for r in caplog.records),
+             message="the reaper to see the service stood still")
+    assert service.queue.get(request.id).status == RequestStatus.LEASED
+    upload(client, keys, grant, episode_bytes(grant))
+    done = service.queue.get(request.id)
+    assert (done.status, done.attempts) == (RequestStatus.DONE, 0)
+
+
 def test_lease_expiry_outlives_an_unexpected_failure_in_maintenance(make_service, client, keys) -> None:
     service = make_service(lease_s=0.3)
     real, failed = service.catalog.count, []
