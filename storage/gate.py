@@ -88,7 +88,7 @@ def judge(rec: Evaluated, champ: Evaluated | None, metric: str, min_rel: float,
     if champ.eval_split_hash != rec.eval_split_hash:
         return False, (f"not comparable: champion {champ.version} was evaluated on "
                        f"{champ.eval_split_hash}, {rec.version} on {rec.eval_split_hash}; "
-                       f"re-evaluate the champion or promote by hand"), None
+                       f"promote {rec.version} by hand (models promote) if it should serve"), None
     champ_value = champ.metrics.get(metric)
     if not isinstance(champ_value, (int, float)) or not math.isfinite(champ_value):
         return True, (f"{metric} {value:.6g} replaces champion {champ.version}, whose {metric} "

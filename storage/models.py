@@ -388,19 +388,24 @@ class ModelRegistry:
             promotions.switch(conn, version, reason)
         return GateDecision(True, reason, version, current)
 
-    def rollback(self) -> str:
+    def rollback(self, eval_split_hash: str | None = None) -> str:
         """Return to the previous champion whose weights still match their sha256; return its version.
 
-        Previous champions with corrupt or missing weights are skipped. The rolled-back champion
-        becomes ``retired``. Raises ``RegistryError`` when there is no champion or no earlier one to
-        return to, ``RegistryUnavailableError`` when one's weights cannot be read now (nothing changes).
+        Previous champions with corrupt or missing weights are skipped, and so are those evaluated on another
+        eval split than ``eval_split_hash`` (or the champion's when not given), which ``promote`` refuses. The
+        rolled-back champion becomes ``retired``. Raises ``RegistryError`` when there is no champion or no
+        earlier one to return to, ``RegistryUnavailableError`` when one's weights cannot be read now (nothing
+        changes).
         """
         with self._connect() as conn:
             current, entries = promotions.champion(conn), promotions.live_history(conn)
-        if current is None:
-            raise RegistryError("no champion to roll back from: nothing has been promoted yet")
+            if current is None:
+                raise RegistryError("no champion to roll back from: nothing has been promoted yet")
+            split = eval_split_hash if eval_split_hash is not None else self._get(conn, current).eval_split_hash
+            other = dict(conn.execute("SELECT version, eval_split_hash FROM models WHERE eval_split_hash != ?",
+                                      (split,)).fetchall())
         # Checking sha256 reads files; do it before taking the write lock, then re-check the state.
-        target = promotions.rollback_target(entries, current, self.verify)
+        target = promotions.rollback_target(entries, current, self.verify, other)
         with self._transaction() as conn:
             promotions.roll_back(conn, current, target, entries)
         return target

@@ -71,22 +71,29 @@ def switch(conn: sqlite3.Connection, version: str, reason: str) -> None:
                  (version, now(), reason))
 
 
-def rollback_target(entries: list[tuple[int, str]], current: str, verify: Callable[[str], None]) -> str:
+def rollback_target(entries: list[tuple[int, str]], current: str, verify: Callable[[str], None],
+                    other_split: dict[str, str] | None = None) -> str:
     """The latest earlier champion of ``entries`` (``live_history``) other than ``current`` whose weights pass
-    ``verify`` (which raises ``CorruptCheckpointError``); those that fail are skipped. Raises ``RegistryError``
-    when none is left, ``RegistryUnavailableError`` when one's weights cannot be read now."""
+    ``verify`` (which raises ``CorruptCheckpointError``) and that is not in ``other_split`` (version: the eval
+    split it was measured on, when not the current one: ``promote`` refuses those too); the others are skipped.
+    Raises ``RegistryError`` when none is left, ``RegistryUnavailableError`` when one's weights cannot be read
+    now."""
     skipped: list[str] = []
+    other_split = other_split or {}
     for _, version in reversed(entries[:-1]):
         if version == current:
+            continue
+        if version in other_split:
+            skipped.append(f"{version} (evaluated on another eval split, {other_split[version]})")
             continue
         try:
             verify(version)
         except CorruptCheckpointError as exc:
             checkpoint_files.raise_unless_lasting(exc, f"roll back past {version}")
-            skipped.append(f"{version} ({exc})")
+            skipped.append(f"{version} (weights unusable: {exc})")
             continue
         return version
-    why = f"; skipped, weights unusable: {'; '.join(skipped)}" if skipped else ""
+    why = f"; skipped: {'; '.join(skipped)}" if skipped else ""
     raise RegistryError(f"no previous champion to roll back to from {current}{why}")
 
 

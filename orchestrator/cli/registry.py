@@ -47,8 +47,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=_models_promote)
     p = msub.add_parser("rollback", help="return to the previous champion whose weights are intact",
                         description="Make the previous champion whose weights still match their sha256 the "
-                                    "champion again (earlier ones with damaged weights are skipped); the current "
-                                    "one is retired. Exit 1 when there is none to return to.")
+                                    "champion again (earlier ones with damaged weights, or evaluated on another "
+                                    "eval split than the pinned one, are skipped); the current one is retired. "
+                                    "Exit 1 when there is none to return to.")
     p.set_defaults(func=_models_rollback)
     p = msub.add_parser("prune", help="delete the weights of old retired and rejected models (rows and metrics stay)",
                         description="Delete the files of retired and rejected models, except the champion and the "
@@ -218,7 +219,7 @@ def _models_rollback(args: argparse.Namespace) -> int:
     registry = _registry(args)
     before = registry.champion()
     try:
-        version = registry.rollback()
+        version = registry.rollback(eval_split_hash=_current_split(args.data))
     except RegistryError as exc:
         return fail(f"cannot roll back: {exc}")
     if args.json:

@@ -271,7 +271,7 @@ def test_rollback_skips_a_corrupt_previous_champion(reg: ModelRegistry) -> None:
         reg.gate(v)
     _flip_byte(reg, b)
     _flip_byte(reg, a)
-    with pytest.raises(RegistryError, match=r"no previous champion.*skipped, weights unusable.*sha256 mismatch"):
+    with pytest.raises(RegistryError, match=r"no previous champion.*skipped: .*weights unusable.*sha256 mismatch"):
         reg.rollback()
     assert reg.champion() == c  # nothing changed
     reg.get(a).weights_path.write_bytes(f"weights {0.010} {{}}".encode() * 10)  # repaired
@@ -444,3 +444,21 @@ def test_an_alias_that_names_no_model_is_no_champion_and_the_next_gate_repairs_i
     assert reg.gate(b).promoted and reg.champion() == b
     assert [m.version for m in reg.list(status="champion")] == [b] and reg.get(a).status is ModelStatus.RETIRED
     assert reg.promote(a) and reg.champion() == a and [m.version for m in reg.list(status="champion")] == [a]
+
+
+def test_rollback_skips_a_champion_evaluated_on_another_eval_split(reg: ModelRegistry) -> None:
+    """``promote`` refuses a model measured on another split than the pinned one; ``rollback`` returned to it."""
+    old = _register(reg, 0.01, split="split-old")
+    assert reg.promote(old, eval_split_hash="split-old").promoted
+    a = _register(reg, 0.02)
+    assert reg.promote(a, eval_split_hash=SPLIT).promoted  # the split was made again: promoted by hand
+    b = _register(reg, 0.01)
+    assert reg.gate(b).promoted
+    assert reg.rollback(eval_split_hash=SPLIT) == a
+    with pytest.raises(RegistryError, match=f"skipped: {old} \\(evaluated on another eval split, split-old\\)"):
+        reg.rollback(eval_split_hash=SPLIT)
+    assert reg.champion() == a
+    # the gate, asked without a split, compares with the champion's: a model of the old split is not comparable
+    again = _register(reg, 0.001, split="split-old")
+    d = reg.gate(again)
+    assert not d.promoted and d.reason.endswith(f"promote {again} by hand (models promote) if it should serve")
