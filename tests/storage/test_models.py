@@ -458,7 +458,7 @@ def test_rollback_skips_a_champion_evaluated_on_another_eval_split(reg: ModelReg
     with pytest.raises(RegistryError, match=f"skipped: {old} \\(evaluated on another eval split, split-old\\)"):
         reg.rollback(eval_split_hash=SPLIT)
     assert reg.champion() == a
-    # the gate, asked without a split, compares with the champion's: a model of the old split is not comparable
-    again = _register(reg, 0.001, split="split-old")
-    d = reg.gate(again)
+    # the split made again once more: a model of the new one is not comparable with the champion of the last
+    again = _register(reg, 0.001, split="split-new")
+    d = reg.gate(again, eval_split_hash="split-new")
     assert not d.promoted and d.reason.endswith(f"promote {again} by hand (models promote) if it should serve")
