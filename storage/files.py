@@ -24,11 +24,12 @@ from typing import BinaryIO
 _COPY_CHUNK = 1 << 20
 
 
-def age_s(path: Path, now: float) -> float:
+def age_s(path: Path, now: float, follow: bool = True) -> float:
     """Seconds since ``path`` was last modified; 0 when it is gone (a live call finished with it while we
-    looked). What the sweeps of files a crash left go by: a younger file may be a live call's."""
+    looked). What the sweeps of files a crash left go by: a younger file may be a live call's. ``follow=False``:
+    a symbolic link's own age, not its target's (which may be gone)."""
     try:
-        return now - path.stat().st_mtime
+        return now - (path.stat() if follow else path.lstat()).st_mtime
     except FileNotFoundError:
         return 0.0
 

@@ -457,11 +457,21 @@ class ModelRegistry:
             chosen = pruning.mark(conn, kept, None if dry_run else now())
             marked = pruning.marked(conn)
             aside = strays.unregistered(conn, folders, self._orphans(dry_run))  # a failed move fails nothing
-        result = pruning.finish(self.models_dir, chosen, marked, kept, dry_run, aside)
-        if result.not_deleted:  # marked first (a crash then leaves marks the next prune deletes): not these
-            with self._transaction() as conn:
-                pruning.unmark_whole(conn, self.models_dir, result.not_deleted, now())
-        return result
+        if dry_run:
+            return pruning.dry_run(self.models_dir, chosen, marked, kept, aside)
+        with self._transaction() as conn:  # the marks committed first: a crash then leaves marks the next deletes
+            claimed, failed = pruning.claim(conn, self.models_dir, chosen + [v for v in marked if v not in chosen],
+                                            now(), lambda version: self._whole(conn, version))
+        return pruning.finish(self.models_dir, chosen, claimed, failed, kept, aside)
+
+    def _whole(self, conn: sqlite3.Connection, version: str) -> bool:
+        """Whether the weights of ``version`` (marked pruned, its folder still there) are not found missing or
+        damaged for good: a read that failed and may pass gives them the benefit of the doubt."""
+        try:
+            checkpoint_files.read_weights(dataclasses.replace(self._get(conn, version), pruned_at=None))
+        except CorruptCheckpointError as exc:
+            return not checkpoint_files.lasting(exc)
+        return True
 
     def sweep_strays(self, dry_run: bool = False) -> StrayFolders:
         """Move the checkpoint folders no row names (a register killed before its commit: nothing acknowledged)

@@ -11,7 +11,8 @@ A model whose weights cannot be read right now (an I/O error) is kept, and does 
 chain's: only a lasting verdict (not their sha256, the file missing) lets a prune delete a rollback target.
 
 These are the registry's steps: ``keep_order``, ``mark`` and ``marked`` over a connection it opened (the
-last two inside its ``BEGIN IMMEDIATE`` transaction), the sha256 checks and the deletes outside any lock
+last two inside its ``BEGIN IMMEDIATE`` transaction), ``claim`` in a second one (the renames, and the marks taken
+off those that could not be claimed), the sha256 checks and the deletes (``finish``) outside any lock
 (``storage.models`` owns connections and transactions).
 """
 
@@ -94,53 +95,60 @@ def marked(conn: sqlite3.Connection) -> list[str]:
     return [r[0] for r in conn.execute("SELECT version FROM models WHERE pruned_at IS NOT NULL")]
 
 
-def delete(models_dir: Path, versions: Iterable[str]) -> tuple[list[str], int, dict[str, str]]:
-    """Delete the directories of ``versions`` under ``models_dir``; return those this call deleted, the bytes
-    they held (one already gone, or claimed by another prune, is neither) and those it could not (version:
-    why). One it could not claim (a read-only ``models/``, say) is left whole where it was; one claimed but not
-    deleted in full stays in its ``.prune-*`` folder, which ``sweep_stale`` tries again. A version folder that
-    is a symbolic link (to another disk, say) loses the link only: what it points to is not ours to delete."""
-    deleted, freed, failed = [], 0, {}
+def claim(conn: sqlite3.Connection, models_dir: Path, versions: Iterable[str], now: str,
+          whole: Callable[[str], bool]) -> tuple[dict[str, Path], dict[str, str]]:
+    """In a write transaction, after the marks were committed in one of their own: claim the directory of each of
+    ``versions`` still marked pruned by an atomic rename to ``.prune-*``, so that of two prunes at once one
+    deletes (and counts) it. Returns the claimed ``{version: path}`` (for ``finish`` to delete, outside the lock)
+    and those that could not be claimed (version: why; a read-only ``models/``, say): one of them still
+    ``whole`` (its weights not found missing or damaged for good) gets its mark taken off, here, so rollback
+    and promote may use it again -- under the same lock that re-read the mark, so no other prune can claim it
+    after a promote that the unmarking lets through. One already gone (claimed by another prune) is neither."""
+    claimed: dict[str, Path] = {}
+    failed: dict[str, str] = {}
     for version in versions:
-        # Claimed by an atomic rename: of two prunes at once, one deletes and counts each directory.
-        claimed = models_dir / f".prune-{version}-{uuid.uuid4().hex[:8]}"
+        row = conn.execute("SELECT pruned_at FROM models WHERE version = ?", (version,)).fetchone()
+        if row is None or row[0] is None:  # its mark taken off since (by a prune that could not claim it)
+            continue
+        path = models_dir / f".prune-{version}-{uuid.uuid4().hex[:8]}"
         try:
-            os.rename(models_dir / version, claimed)
+            os.rename(models_dir / version, path)
         except FileNotFoundError:
             continue
         except OSError as exc:
             failed[version] = f"cannot delete {version}/: {exc.strerror or exc}"
+            if whole(version):
+                conn.execute("UPDATE models SET pruned_at = NULL, updated = ? WHERE version = ?", (now, version))
             continue
-        try:
-            size = 0 if claimed.is_symlink() else tree_size(claimed)
-            _remove(claimed)
-        except OSError as exc:
-            failed[version] = f"deleted only in part, the rest left in {claimed.name}/: {exc.strerror or exc}"
-            continue
-        freed += size
-        deleted.append(version)
-    return deleted, freed, failed
+        claimed[version] = path
+    return claimed, failed
 
 
 def _remove(path: Path) -> None:
-    """Delete a claimed folder, or only the link when it is a symbolic link."""
+    """Delete a claimed folder, or only the link when it is a symbolic link: what it points to (another disk)
+    is not the registry's to delete."""
     if path.is_symlink():
         path.unlink()
     else:
         shutil.rmtree(path)
 
 
-def finish(models_dir: Path, chosen: list[str], every_marked: list[str], kept: list[str],
-           dry_run: bool, aside: StrayFolders) -> PruneResult:
-    """Once the rows are marked (and the folders no row names moved aside as they could be, ``aside``): deletes
-    the directories of ``chosen`` and of those of ``every_marked`` an earlier prune left (with ``dry_run``, only
-    sizes them) and sweeps the dot folders crashed calls left. Those it could not delete are in ``not_deleted``
-    (the registry takes the marks off those still whole: ``unmark_whole``)."""
-    leftover = [v for v in every_marked if v not in chosen and (models_dir / v).exists()]
-    if dry_run:
-        return PruneResult(pruned=sorted(chosen + leftover), kept=kept, dry_run=True, orphaned=aside.moved,
-                           freed_bytes=sum(tree_size(models_dir / v) for v in chosen + leftover))
-    deleted, freed, failed = delete(models_dir, chosen + leftover)
+def finish(models_dir: Path, chosen: list[str], claimed: dict[str, Path], failed: dict[str, str], kept: list[str],
+           aside: StrayFolders) -> PruneResult:
+    """Once the directories are claimed (``claim``; the folders no row names moved aside as they could be,
+    ``aside``): deletes the claimed ones and sweeps the dot folders crashed calls left. Those it could not
+    claim, or delete in full (left in their ``.prune-*`` folder for ``sweep_stale``), are ``not_deleted``."""
+    failed = dict(failed)
+    deleted, freed = [], 0
+    for version, path in claimed.items():
+        try:
+            size = 0 if path.is_symlink() else tree_size(path)
+            _remove(path)
+        except OSError as exc:
+            failed[version] = f"deleted only in part, the rest left in {path.name}/: {exc.strerror or exc}"
+            continue
+        freed += size
+        deleted.append(version)
     sweep_stale(models_dir, time.time())
     if deleted:
         fsync_dir(models_dir)
@@ -148,13 +156,13 @@ def finish(models_dir: Path, chosen: list[str], every_marked: list[str], kept: l
                        orphaned=aside.moved, not_moved=aside.not_moved, not_deleted=failed)
 
 
-def unmark_whole(conn: sqlite3.Connection, models_dir: Path, versions: Iterable[str], now: str) -> list[str]:
-    """In a write transaction: take the prune mark off those of ``versions`` whose folder is still in place
-    (a delete that could not claim it): their weights are whole, so rollback and promote may use them again."""
-    whole = [v for v in versions if (models_dir / v).is_dir()]
-    conn.executemany("UPDATE models SET pruned_at = NULL, updated = ? WHERE version = ? AND pruned_at IS NOT NULL",
-                     [(now, v) for v in whole])
-    return whole
+def dry_run(models_dir: Path, chosen: list[str], every_marked: list[str], kept: list[str],
+            aside: StrayFolders) -> PruneResult:
+    """What a prune would delete: ``chosen`` and what an earlier prune marked but left, sized (a link's target
+    is not counted: a prune deletes only the link)."""
+    would = chosen + [v for v in every_marked if v not in chosen and (models_dir / v).exists()]
+    sizes = sum(0 if (models_dir / v).is_symlink() else tree_size(models_dir / v) for v in would)
+    return PruneResult(pruned=sorted(would), kept=kept, dry_run=True, orphaned=aside.moved, freed_bytes=sizes)
 
 
 def sweep_stale(models_dir: Path, now: float, dry_run: bool = False) -> list[str]:
@@ -163,7 +171,7 @@ def sweep_stale(models_dir: Path, now: float, dry_run: bool = False) -> list[str
     (with ``dry_run``, only find them). Never ``.orphans/`` (``storage.strays.MODEL_ORPHANS_DIR``): the folders
     there are kept for the operator."""
     found = sorted(p for p in (*models_dir.glob(".tmp-*"), *models_dir.glob(".prune-*"))
-                   if age_s(p, now) > STALE_AGE_S)
+                   if age_s(p, now, follow=False) > STALE_AGE_S)  # (a link by its own age: its target may be gone)
     for stale in [] if dry_run else found:
         with contextlib.suppress(OSError):
             _remove(stale)

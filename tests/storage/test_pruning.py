@@ -9,9 +9,11 @@ import os
 import shutil
 import sqlite3
 import threading
+import time
 
 import pytest
 
+from storage import pruning
 from storage.errors import PrunedCheckpointError, RegistryError
 from storage.models import ModelRegistry, ModelStatus
 from tests.conftest import failing_prune_claims_of, failing_reads_of
@@ -298,3 +300,40 @@ def test_a_version_folder_that_is_a_link_loses_the_link_not_what_it_points_to(re
     assert result.pruned == [a, rejected] and result.not_deleted == {}
     assert not os.path.lexists(reg.models_dir / a) and not list(reg.models_dir.glob(".prune-*"))
     assert (elsewhere / "weights.pt").is_file()
+
+
+def test_a_claim_skips_a_version_whose_mark_another_prune_took_off(reg: ModelRegistry) -> None:
+    """Prune P2 read x marked; P1, unable to claim x (another user's read-only models/), took its mark off, and an
+    operator promoted x. P2's claim, under the write lock, reads the mark again: it must not delete the champion's
+    folder (it did, when the claims were made outside any lock)."""
+    a, b, c, d, e, rejected, candidate = _history_of_five(reg)
+    assert reg.promote(a) and reg.champion() == a and reg.get(a).pruned_at is None
+    with reg._transaction() as conn:
+        claimed, failed = pruning.claim(conn, reg.models_dir, [a], "now", lambda version: True)
+    assert claimed == {} and failed == {} and reg.load_weights(a)
+
+
+def test_a_folder_that_lost_its_weights_and_cannot_be_claimed_stays_pruned(reg: ModelRegistry, monkeypatch) -> None:
+    """Marked, its weights gone (a hand removal, an older prune that deleted in place and died): the failed claim
+    does not call it usable again."""
+    a, b, c, d, e, rejected, candidate = _history_of_five(reg)
+    with sqlite3.connect(reg.db_path) as conn:
+        conn.execute("UPDATE models SET pruned_at = '2026-11-21T00:00:00+00:00' WHERE version = ?", (a,))
+    reg.get(a).weights_path.unlink()
+    failing_prune_claims_of(monkeypatch, lambda src: src == reg.models_dir / a)
+    result = reg.prune(keep=5)
+    assert a in result.not_deleted and reg.get(a).pruned_at is not None
+
+
+def test_a_link_is_sized_as_what_a_prune_frees_and_swept_by_its_own_age(reg: ModelRegistry, tmp_path) -> None:
+    a, b, c, d, e, rejected, candidate = _history_of_five(reg)
+    elsewhere = tmp_path / "other-disk" / a
+    elsewhere.parent.mkdir()
+    shutil.move(reg.models_dir / a, elsewhere)
+    (reg.models_dir / a).symlink_to(elsewhere, target_is_directory=True)
+    dry = reg.prune(keep=4, dry_run=True)
+    assert dry.pruned == [a, rejected] and dry.freed_bytes == pruning.tree_size(reg.get(rejected).path)
+    left = reg.models_dir / ".prune-gone-0badf00d"  # a crashed prune's claimed link whose target went since
+    left.symlink_to(tmp_path / "gone", target_is_directory=True)
+    os.utime(left, (1.0, 1.0), follow_symlinks=False)
+    assert pruning.sweep_stale(reg.models_dir, time.time()) == [left.name] and not os.path.lexists(left)
