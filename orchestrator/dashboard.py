@@ -339,10 +339,9 @@ def newest_model(registry: ModelRegistry) -> dict | None:
     """The last retrain as the registry knows it, for a process that ran none itself (a standalone dashboard, a
     service restarted since, retrains by system cron): its newest model, ``"from": "registry"``; None when
     there is none."""
-    models = registry.list()
-    if not models:
+    newest = registry.newest()
+    if newest is None:
         return None
-    newest = models[-1]
     return {"status": newest.status.value, "version": newest.version, "reason": newest.reason,
             "finished": newest.created, "from": "registry"}
 

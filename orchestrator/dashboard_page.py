@@ -56,7 +56,7 @@ const REFRESH_MS = __REFRESH_MS__;
 function text(id, value) { const el = document.getElementById(id); if (el) el.textContent = value; }
 function fmt(x) { return (x === null || x === undefined || Number.isNaN(x)) ? "-" :
   (typeof x === "number" ? (Math.abs(x) < 0.01 && x !== 0 ? x.toExponential(2) : x.toFixed(4)) : String(x)); }
-function size(b) { const [n, u] = b >= 1e9 ? [b / 1e9, "GB"] : b >= 1e6 ? [b / 1e6, "MB"] : [b / 1e3, "kB"];
+function size(b) { const [n, u] = b >= 999.95e6 ? [b / 1e9, "GB"] : b >= 999.95e3 ? [b / 1e6, "MB"] : [b / 1e3, "kB"];
   return n.toFixed(1) + " " + u; }
 function cell(tr, value, cls) { const td = document.createElement("td"); td.textContent = value;
   if (cls) td.className = cls; tr.appendChild(td); }

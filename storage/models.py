@@ -171,6 +171,12 @@ class ModelRegistry:
                                     (ModelStatus(status).value,)).fetchall()
         return [self._record(r) for r in rows]
 
+    def newest(self) -> ModelRecord | None:
+        """The model registered last, or None when there is none (one row read, whatever the history)."""
+        with self._connect() as conn:
+            row = conn.execute("SELECT * FROM models ORDER BY seq DESC LIMIT 1").fetchone()
+        return None if row is None else self._record(row)
+
     def champion(self) -> str | None:
         """The version in service, or None before the first promotion."""
         with self._connect() as conn:

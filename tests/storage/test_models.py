@@ -462,3 +462,11 @@ def test_rollback_skips_a_champion_evaluated_on_another_eval_split(reg: ModelReg
     again = _register(reg, 0.001, split="split-new")
     d = reg.gate(again, eval_split_hash="split-new")
     assert not d.promoted and d.reason.endswith(f"promote {again} by hand (models promote) if it should serve")
+
+
+def test_newest_is_the_model_registered_last(reg: ModelRegistry) -> None:
+    """What the dashboard's "last retrain" shows when its process ran none: one row, not the whole registry."""
+    assert reg.newest() is None
+    a, b = _register(reg, 0.01), _register(reg, 0.02)
+    reg.gate(b)
+    assert reg.newest().version == b and reg.newest().status is ModelStatus.CHAMPION and a != b
