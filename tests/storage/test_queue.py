@@ -13,6 +13,7 @@ import pytest
 
 from storage.errors import QueueError, StaleLeaseError
 from storage.queue import RequestQueue, steady_clock
+from storage.request_table import LEASE_SQL
 from storage.requests import (
     TRANSITIONS,
     IllegalTransitionError,
@@ -254,8 +255,8 @@ def test_equal_priorities_lease_in_arrival_order_whatever_the_clock_said(queue: 
 
 
 def test_a_file_with_the_age_ordered_index_is_brought_to_the_arrival_ordered_one(tmp_path: Path) -> None:
-    """A file of the last version (index on (priority, created)) is upgraded on open: that index goes, the
-    arrival-ordered one is made, and leasing uses it."""
+    """A file of the last version (index on (priority, created)) is upgraded on open: the arrival-ordered index is
+    made, and leasing uses it; the old one stays, for an older service still leasing on the file."""
     path = tmp_path / "catalog.sqlite"
     RequestQueue(path).close()
     with sqlite3.connect(path) as conn:
@@ -267,7 +268,10 @@ def test_a_file_with_the_age_ordered_index_is_brought_to_the_arrival_ordered_one
         assert queue.lease("w").request.id == a.id
     with sqlite3.connect(path) as conn:
         names = {r[0] for r in conn.execute("SELECT name FROM sqlite_master WHERE type = 'index'")}
-    assert "requests_fifo" in names and "requests_queued" not in names
+        plan = " ".join(r[3] for r in conn.execute("EXPLAIN QUERY PLAN " + LEASE_SQL.format(filters=""),
+                                                    ("w", 1.0, 1.0)))
+    assert {"requests_fifo", "requests_queued"} <= names
+    assert "USING INDEX requests_fifo" in plan and "TEMP B-TREE" not in plan, plan
 
 
 def test_prioritize_changes_order(queue: RequestQueue) -> None:
