@@ -264,22 +264,16 @@ def failing_prune_claims_of(monkeypatch, fails: Callable[[Path], bool], code: in
     """A prune's claim of a folder for which ``fails(folder)`` holds (its ``os.rename`` to ``.prune-*``) fails with
     ``OSError(code)``, as on a read-only ``models/``, which root, running the tests here, would not see; every
     other rename is real."""
-    real = os.rename
+    failing_renames_of(monkeypatch, fails, code, call="rename")
 
-    def rename(src, dst, **kw) -> None:
+
+def failing_renames_of(monkeypatch, fails: Callable[[Path], bool], code: int, call: str = "replace") -> None:
+    """``os.replace`` (or ``os.<call>``) of a source for which ``fails(src)`` holds raises ``OSError(code)`` (EXDEV:
+    to another file system; ENOSPC: no room for one more directory entry); every other rename is real."""
+    real = getattr(os, call)
+
+    def renamed(src, dst, **kw) -> None:
         if fails(Path(src)):
             raise OSError(code, os.strerror(code), str(src), str(dst))
         real(src, dst, **kw)
-    monkeypatch.setattr(os, "rename", rename)
-
-
-def failing_renames_of(monkeypatch, fails: Callable[[Path], bool], code: int) -> None:
-    """``os.replace`` of a source for which ``fails(src)`` holds raises ``OSError(code)`` (EXDEV: to another file
-    system; ENOSPC: no room for one more directory entry); every other rename is real."""
-    real = os.replace
-
-    def replace(src, dst, **kw) -> None:
-        if fails(Path(src)):
-            raise OSError(code, os.strerror(code), str(src), str(dst))
-        real(src, dst, **kw)
-    monkeypatch.setattr(os, "replace", replace)
+    monkeypatch.setattr(os, call, renamed)
