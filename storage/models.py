@@ -199,21 +199,22 @@ class ModelRegistry:
         """Raise ``CorruptCheckpointError`` unless the weights of ``version`` match their sha256."""
         self.load_weights(version)
 
-    def check_ready(self) -> None:
+    def check_ready(self, champion: bool = True) -> None:
         """Raise ``RegistryUnavailableError`` when a job's register or gate would fail now for a reason that may
-        pass: ``models/`` cannot take a checkpoint (read-only, full), or the champion's weights, which the gate
-        compares against, cannot be read. For a training job to ask before it trains, not after."""
+        pass: ``models/`` cannot take a checkpoint (read-only, full), or (``champion``) the champion's weights,
+        which the gate compares against, cannot be read. For a training job to ask before it trains, not after
+        (one that warm-starts reads the champion's weights first anyway, and says so in its own words)."""
         try:
             shutil.rmtree(checkpoint_files.stage(self.models_dir, {"probe": b""}))
         except OSError as exc:
             raise RegistryUnavailableError(f"cannot store a checkpoint in {self.models_dir} now: "
                                            f"{exc.strerror or exc} (nothing trained)") from exc
-        champion = self.champion()
-        if champion is not None:
+        current = self.champion() if champion else None
+        if current is not None:
             try:
-                self.verify(champion)
+                self.verify(current)
             except CorruptCheckpointError as exc:  # a damaged one (for good): the gate replaces it
-                checkpoint_files.raise_unless_lasting(exc, f"read champion {champion}, which the gate compares "
+                checkpoint_files.raise_unless_lasting(exc, f"read champion {current}, which the gate compares "
                                                       "against")
 
     def snapshot(self, version: str) -> Snapshot | None:

@@ -441,7 +441,7 @@ def train_candidate(catalog: CatalogLike, registry: ModelRegistry, cfg: TrainCon
     registered), ``RegistryUnavailableError`` (a checkpoint to warm-start from cannot be read now) and the
     registry's errors.
     """
-    registry.check_ready()  # a read-only models/ or an unreadable champion found now, not after the training
+    registry.check_ready(champion=not cfg.from_champion)  # a read-only models/, an unreadable champion: now
     pinned = catalog.eval_split() is not None  # without one, load_train's errors (no train episodes) come first
     eval_episodes, eval_hash = load_eval(catalog) if pinned else ([], "")
     sizes = {int(ep.frames.shape[1]) for ep in eval_episodes}  # more than one: check_evaluable refuses the split
