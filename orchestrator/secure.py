@@ -322,9 +322,14 @@ def init_secure(cfg: SecureInitConfig) -> SecureSet:
     """
     planned = planned_files(cfg.directory)
     swaps: list[Path] = []
+    beside = secure_files.sibling_swaps(cfg.directory)
+    if beside and not cfg.force:
+        raise SecureConfigError(_cut_short(cfg.directory, beside))
     if cfg.directory.is_dir():  # it becomes 0700: never take over a directory holding other things
+        _refuse_foreign(cfg.directory)
         swaps = secure_files.interrupted_swaps(cfg.directory)
-        others = sorted(p.name for p in cfg.directory.iterdir() if p not in planned and p not in swaps)
+        ours = set(planned) | set(swaps) | secure_files.staged_names(planned)  # (a first init killed midway)
+        others = sorted(p.name for p in cfg.directory.iterdir() if p not in ours)
         if others:
             raise SecureConfigError(f"expected an empty directory or a secure profile at {cfg.directory}, "
                                     f"found other files ({', '.join(others[:3])})")
@@ -342,7 +347,30 @@ def init_secure(cfg: SecureInitConfig) -> SecureSet:
         out.left_over = secure_files.replace(cfg.directory, files)
     else:
         secure_files.write_new(cfg.directory, files)
+    secure_files.delete_swaps(beside)
     return out
+
+
+def _refuse_foreign(directory: Path) -> None:
+    """A directory another user owns is never made a profile's: its owner could swap the files in it (a CA, a
+    config without an ACL) after they were checked."""
+    owner = directory.stat().st_uid
+    if owner != os.geteuid():
+        raise SecureConfigError(f"{directory} is owned by uid {owner}, not by this user (uid {os.geteuid()}): a "
+                                "secure profile's directory must be its user's own, or its owner could swap the "
+                                "files in it")
+
+
+def _cut_short(directory: Path, beside: list[Path]) -> str:
+    """Why ``init_secure`` stops where an earlier forced init was killed between its folder renames."""
+    old = [p for p in beside if ".old-" in p.name]
+    if not directory.exists() and old:
+        return (f"the replacement of the secure profile in {directory} was cut short: the old profile is whole in "
+                f"{old[-1]} (rename it back to {directory.name} to keep it), the new one was not put in place; "
+                f"pass --force to write a new profile and delete {', '.join(p.name for p in beside)}")
+    return (f"a replacement of the secure profile in {directory} was cut short and left "
+            f"{', '.join(p.name for p in beside)} beside it (files with keys and passwords); pass --force to "
+            "replace the profile and delete them")
 
 
 # ---------------------------------------------------------------- start-up check

@@ -95,6 +95,28 @@ def interrupted_swaps(directory: Path) -> list[Path]:
     return sorted(p for p in directory.iterdir() if _SWAP_FOLDER.fullmatch(p.name) and p.is_dir())
 
 
+def sibling_swaps(directory: Path) -> list[Path]:
+    """The ``.NAME.new-*`` / ``.NAME.old-*`` folders beside ``directory`` that a crash in a folder swap
+    (``_replace_folder``) left: the new profile not yet in place, or the old one set aside (then ``directory``
+    may be missing). They hold keys and passwords."""
+    target = directory.resolve()
+    pattern = re.compile(rf"\.{re.escape(target.name)}\.(new|old)-[0-9a-f]{{8}}")
+    if not target.parent.is_dir():
+        return []
+    return sorted(p for p in target.parent.iterdir() if pattern.fullmatch(p.name) and p.is_dir())
+
+
+def delete_swaps(folders: list[Path]) -> None:
+    """Deletes what earlier, crashed swaps left (``sibling_swaps``), once a profile is whole in place."""
+    for folder in folders:
+        shutil.rmtree(folder, ignore_errors=True)
+
+
+def staged_names(planned: list[Path]) -> set[Path]:
+    """The temporary names ``write_new`` stages ``planned`` under, which a crash may leave: its own."""
+    return {_staged_name(p) for p in planned}
+
+
 def replace(directory: Path, files: Files) -> Path | None:
     """Replaces the profile in ``directory`` whole; returns where the old one is left when it cannot be deleted.
 

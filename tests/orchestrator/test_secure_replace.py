@@ -26,7 +26,7 @@ from cryptography import x509
 
 from orchestrator.acl import ROLES
 from orchestrator.secure import SecureInitConfig, init_secure, planned_files
-from orchestrator.transport import validate_secure_config
+from orchestrator.transport import SecureConfigError, validate_secure_config
 from tests.conftest import REPO, run_cli
 
 ENV = {**os.environ, "PYTHONPATH": str(REPO)}
@@ -169,6 +169,41 @@ def test_a_forced_init_killed_at_a_rename_leaves_one_whole_profile(tmp_path, kil
         assert _files(aside) == old
     elif _files(directory) != old:
         _assert_whole_new_profile(directory, old)
+    # the next init names what the crash left beside the directory (keys, passwords); --force deletes it
+    left = sorted(p.name for p in tmp_path.iterdir() if p.name.startswith(".profile."))
+    if left:
+        with pytest.raises(SecureConfigError, match="cut short") as info:
+            init_secure(SecureInitConfig(directory))
+        assert all(name in str(info.value) for name in left), info.value
+        if not directory.exists():
+            assert f"the old profile is whole in {aside}" in str(info.value)
+    init_secure(SecureInitConfig(directory, force=True))
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".profile.")]
+    _assert_whole_new_profile(directory, old)
+
+
+def test_a_first_init_killed_midway_is_finished_by_force(tmp_path):
+    """Killed while placing its files: some in place, the rest staged as ``.NAME.tmp``. Those are its own, not
+    "other files" that made every init, forced or not, refuse the directory for good."""
+    directory = tmp_path / "profile"
+    init_secure(SecureInitConfig(directory))
+    planned = planned_files(directory)
+    for path in planned[4:]:  # as if killed at the fifth rename: the rest still staged
+        path.rename(path.with_name(f".{path.name}.tmp"))
+    with pytest.raises(SecureConfigError, match="already holds a secure profile"):
+        init_secure(SecureInitConfig(directory))
+    init_secure(SecureInitConfig(directory, force=True))
+    assert sorted(p.name for p in directory.iterdir()) == sorted(p.name for p in planned)
+
+
+@pytest.mark.skipif(os.geteuid() != 0, reason="needs root to give the directory to another user")
+def test_a_directory_another_user_owns_is_refused(tmp_path, capsys):
+    """Its owner could swap the profile's files (a CA, a config without an ACL) after they were checked."""
+    directory = tmp_path / "profile"
+    directory.mkdir(mode=0o777)
+    os.chown(directory, 65534, 65534)
+    rc, _, err = run_cli(capsys, "secure", "init", str(directory))
+    assert rc == 2 and "is owned by uid 65534, not by this user" in err and list(directory.iterdir()) == []
 
 
 def test_a_failed_rename_into_an_existing_empty_directory_leaves_it_empty(monkeypatch, tmp_path):
