@@ -426,13 +426,16 @@ class Service:
                      extended, self.config.lease_s)
 
     def _reap(self) -> None:
-        now, last = self._elapsed(), self._last_reap
-        self._last_reap = now
-        # The service itself did not run (SIGSTOP, a paused container or VM, a starved host): its clock went on, so
-        # every live lease would expire at once though no worker could renew; each gets a term from now instead.
-        stalled = last is not None and now - last > self.config.reap_interval_s + max(2.0, self.config.lease_s / 3)
         try:
             with self._writing():
+                # The service did not run (SIGSTOP, a paused container or VM, a starved host), or this pass waited
+                # that long for the writer turn, behind which renewals wait too: its clock went on, so every live
+                # lease would expire at once though no worker could renew; each gets a term from now instead.
+                # (Read in the turn: a stall while this pass waited for it counts.)
+                now, last = self._elapsed(), self._last_reap
+                self._last_reap = now
+                stalled = last is not None and now - last > self.config.reap_interval_s + max(2.0,
+                                                                                             self.config.lease_s / 3)
                 if stalled and (extended := self.queue.extend_leases(self.config.lease_s)):
                     log.warning("the service did not run for %.0f s (stopped, paused or starved); %d live lease(s) "
                                 "extended by %.0f s so their workers can renew", now - last, extended,

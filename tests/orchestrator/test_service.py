@@ -219,6 +219,40 @@ def test_a_service_that_did_not_run_for_longer_than_a_lease_expires_none(make_se
     assert (done.status, done.attempts) == (RequestStatus.DONE, 0)
 
 
+class _WatchedTurn:
+    """The service's writer turn, counting who waits for it."""
+
+    def __init__(self) -> None:
+        self._lock, self.waiting = threading.Lock(), 0
+
+    def __enter__(self) -> None:
+        self.waiting += 1  # (a count to wait on, not exact under races: the test holds the turn meanwhile)
+        self._lock.acquire()
+        self.waiting -= 1
+
+    def __exit__(self, *exc: object) -> None:
+        self._lock.release()
+
+
+def test_a_stall_while_the_reaper_waits_for_the_writer_turn_expires_no_lease(make_service, client, keys,
+                                                                            caplog) -> None:
+    """The reaper read its clock before it waited for the turn (behind an ingest, say): frozen while it waited,
+    it woke with the old reading, judged itself on time and expired every lease."""
+    jumped = [0.0]
+    service = make_service(lease_s=30.0, elapsed=lambda: time.monotonic() + jumped[0])
+    request, _ = service.queue.enqueue(new_request())
+    grant = lease(client, keys)
+    caplog.set_level(logging.WARNING, logger="orchestrator.service")
+    turn = service._writes = _WatchedTurn()
+    with turn:
+        wait_for(lambda: turn.waiting > 0, message="the reaper to wait for the writer turn")
+        jumped[0] = 60.0  # frozen for a minute while it waited
+    wait_for(lambda: any("the service did not run for 60 s" in r.getMessage() for r in caplog.records),
+             message="the reaper to see the service stood still")
+    assert service.queue.get(request.id).status == RequestStatus.LEASED
+    upload(client, keys, grant, episode_bytes(grant))
+
+
 def test_lease_expiry_outlives_an_unexpected_failure_in_maintenance(make_service, client, keys) -> None:
     service = make_service(lease_s=0.3)
     real, failed = service.catalog.count, []
