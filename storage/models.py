@@ -472,13 +472,15 @@ class ModelRegistry:
         return pruning.finish(self.models_dir, chosen, claimed, failed, kept, aside)
 
     def _whole(self, conn: sqlite3.Connection, version: str) -> bool:
-        """Whether the weights of ``version`` (marked pruned, its folder still there) are not found missing or
-        damaged for good: a read that failed and may pass gives them the benefit of the doubt."""
+        """Whether the weights of ``version`` (marked pruned, its folder there) are at their registered size: by
+        ``stat``, under the write lock (rollback and promote check the sha256 before they use them)."""
+        rec = self._get(conn, version)
         try:
-            checkpoint_files.read_weights(dataclasses.replace(self._get(conn, version), pruned_at=None))
-        except CorruptCheckpointError as exc:
-            return not checkpoint_files.lasting(exc)
-        return True
+            return rec.weights_path.stat().st_size == rec.size_bytes
+        except FileNotFoundError:
+            return False
+        except OSError:
+            return True
 
     def sweep_strays(self, dry_run: bool = False) -> StrayFolders:
         """Move the checkpoint folders no row names (a register killed before its commit: nothing acknowledged)

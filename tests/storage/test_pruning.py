@@ -10,6 +10,7 @@ import shutil
 import sqlite3
 import threading
 import time
+from pathlib import Path
 
 import pytest
 
@@ -337,3 +338,30 @@ def test_a_link_is_sized_as_what_a_prune_frees_and_swept_by_its_own_age(reg: Mod
     left.symlink_to(tmp_path / "gone", target_is_directory=True)
     os.utime(left, (1.0, 1.0), follow_symlinks=False)
     assert pruning.sweep_stale(reg.models_dir, time.time()) == [left.name] and not os.path.lexists(left)
+
+
+def test_a_failed_claim_reads_no_weights_under_the_write_lock(reg: ModelRegistry, monkeypatch) -> None:
+    """Whether a model it could not claim is still whole is decided by its file's size, not a sha256 of gigabytes
+    read with every other writer (the service's leases and uploads) waiting for the lock."""
+    a, b, c, d, e, rejected, candidate = _history_of_five(reg)
+    failing_prune_claims_of(monkeypatch, lambda src: src.parent == reg.models_dir and not src.name.startswith("."))
+    real, locked = Path.read_bytes, []
+
+    def read_bytes(self: Path) -> bytes:  # (the chain's sha256 checks come before the lock, by design)
+        other = sqlite3.connect(reg.db_path, timeout=0)
+        try:
+            other.execute("BEGIN IMMEDIATE")
+            other.rollback()
+        except sqlite3.OperationalError:
+            locked.append(self)
+        finally:
+            other.close()
+        return real(self)
+    monkeypatch.setattr(Path, "read_bytes", read_bytes)
+    result = reg.prune(keep=1)
+    assert sorted(result.not_deleted) == [a, b, c, d, rejected] and locked == []
+    monkeypatch.undo()
+    assert all(reg.get(v).pruned_at is None for v in (a, b, c, d, rejected))
+    reg.get(a).weights_path.write_bytes(b"cut short")  # another size: not whole, stays marked
+    failing_prune_claims_of(monkeypatch, lambda src: src == reg.models_dir / a)
+    assert a in reg.prune(keep=1).not_deleted and reg.get(a).pruned_at is not None
