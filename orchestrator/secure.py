@@ -320,33 +320,34 @@ def init_secure(cfg: SecureInitConfig) -> SecureSet:
     ``.old-*`` folders deleted then). Raises SecureConfigError when the directory already holds a profile
     and ``force`` is off, or when it cannot be created; OSError when a file cannot be written (a full disk).
     """
-    planned = planned_files(cfg.directory)
+    directory = cfg.directory.resolve()  # where a link points (a dangling one too: made there, not at the link)
+    planned = planned_files(directory)
     swaps: list[Path] = []
-    beside = secure_files.sibling_swaps(cfg.directory)
+    beside = secure_files.sibling_swaps(directory)
     if beside and not cfg.force:
-        raise SecureConfigError(_cut_short(cfg.directory, beside))
-    if cfg.directory.is_dir():  # it becomes 0700: never take over a directory holding other things
-        _refuse_foreign(cfg.directory)
-        swaps = secure_files.interrupted_swaps(cfg.directory)
+        raise SecureConfigError(_cut_short(directory, beside))
+    if directory.is_dir():  # it becomes 0700: never take over a directory holding other things
+        _refuse_foreign(directory)
+        swaps = secure_files.interrupted_swaps(directory)
         ours = set(planned) | set(swaps) | secure_files.staged_names(planned)  # (a first init killed midway)
-        others = sorted(p.name for p in cfg.directory.iterdir() if p not in ours)
+        others = sorted(p.name for p in directory.iterdir() if p not in ours)
         if others:
-            raise SecureConfigError(f"expected an empty directory or a secure profile at {cfg.directory}, "
+            raise SecureConfigError(f"expected an empty directory or a secure profile at {directory}, "
                                     f"found other files ({', '.join(others[:3])})")
     existing = [p for p in planned if p.exists()]
     if swaps and not cfg.force:
-        raise SecureConfigError(f"{cfg.directory} holds a secure profile whose replacement was cut short: the old "
+        raise SecureConfigError(f"{directory} holds a secure profile whose replacement was cut short: the old "
                                 f"files set aside and the new ones not yet in place are in "
                                 f"{', '.join(p.name for p in swaps)}; pass --force to replace it whole (and delete "
                                 "those)")
     if existing and not cfg.force:
-        raise SecureConfigError(f"{cfg.directory} already holds a secure profile "
+        raise SecureConfigError(f"{directory} already holds a secure profile "
                                 f"({existing[0].name}, ...); pass --force to replace it")
     out, files = _render(cfg)  # before anything touches the disk
     if existing or swaps:
-        out.left_over = secure_files.replace(cfg.directory, files)
+        out.left_over = secure_files.replace(directory, files)
     else:
-        secure_files.write_new(cfg.directory, files)
+        secure_files.write_new(directory, files)
     secure_files.delete_swaps(beside)
     return out
 

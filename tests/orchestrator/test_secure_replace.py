@@ -206,6 +206,23 @@ def test_a_directory_another_user_owns_is_refused(tmp_path, capsys):
     assert rc == 2 and "is owned by uid 65534, not by this user" in err and list(directory.iterdir()) == []
 
 
+def test_a_cut_short_swap_through_a_link_is_finished_by_force(tmp_path):
+    """DIR a link to profiles/prod, whose forced init was killed between its folder renames (the old profile
+    aside, prod gone): --force made the directory at the dangling link ("File exists") and left the old one."""
+    real = tmp_path / "profiles" / "prod"
+    real.mkdir(parents=True)
+    link = tmp_path / "secure"
+    link.symlink_to(real, target_is_directory=True)
+    init_secure(SecureInitConfig(link))
+    old = _files(real)
+    os.rename(real, real.with_name(".prod.old-0badf00d"))  # as the crash between the renames leaves it
+    with pytest.raises(SecureConfigError, match="old profile is whole in .*prod.old-0badf00d"):
+        init_secure(SecureInitConfig(link))
+    init_secure(SecureInitConfig(link, force=True))
+    assert link.is_symlink() and sorted(p.name for p in real.parent.iterdir()) == ["prod"]
+    _assert_whole_new_profile(real, old)
+
+
 def test_a_failed_rename_into_an_existing_empty_directory_leaves_it_empty(monkeypatch, tmp_path):
     directory = tmp_path / "profile"
     directory.mkdir()
