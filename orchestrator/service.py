@@ -434,8 +434,8 @@ class Service:
                 # (Read in the turn: a stall while this pass waited for it counts.)
                 now, last = self._elapsed(), self._last_reap
                 self._last_reap = now
-                stalled = last is not None and now - last > self.config.reap_interval_s + max(2.0,
-                                                                                             self.config.lease_s / 3)
+                late_s = self.config.reap_interval_s + max(2.0, self.config.lease_s / 3)
+                stalled = last is not None and now - last > late_s
                 if stalled and (extended := self.queue.extend_leases(self.config.lease_s)):
                     log.warning("the service did not run for %.0f s (stopped, paused or starved); %d live lease(s) "
                                 "extended by %.0f s so their workers can renew", now - last, extended,

@@ -137,8 +137,6 @@ class StrayFolders:
         return bool(self.moved or self.not_moved or self.stale)
 
 
-
-
 def record_of(row: Any, models_dir: Path) -> ModelRecord:
     """The record of a ``models`` row (a ``sqlite3.Row``); ``RegistryError`` naming the version and the column when
     the row is not one the registry writes (a hand edit, a damaged file): a one-line error, not a traceback."""

@@ -101,7 +101,7 @@ def claim(conn: sqlite3.Connection, models_dir: Path, versions: Iterable[str], n
     ``versions`` still marked pruned by an atomic rename to ``.prune-*``, so that of two prunes at once one
     deletes (and counts) it. Returns the claimed ``{version: path}`` (for ``finish`` to delete, outside the lock)
     and those that could not be claimed (version: why; a read-only ``models/``, say): one of them still
-    ``whole`` (its weights not found missing or damaged for good) gets its mark taken off, here, so rollback
+    ``whole`` (its weights file there at its registered size) gets its mark taken off, here, so rollback
     and promote may use it again -- under the same lock that re-read the mark, so no other prune can claim it
     after a promote that the unmarking lets through. One already gone (claimed by another prune) is neither."""
     claimed: dict[str, Path] = {}

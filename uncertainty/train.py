@@ -395,20 +395,18 @@ def check_warm_start(start: WarmStart, cfg: TrainConfig, image_size: int) -> Non
                           "train a fresh model for one (without --from-champion)")
 
 
-def starting_point(registry: ModelRegistry, cfg: TrainConfig, episodes: Sequence[Episode],
-                   start: WarmStart | None = None) -> tuple[Ensemble, dict[str, Any], list[str]]:
+def starting_point(cfg: TrainConfig, episodes: Sequence[Episode],
+                   start: WarmStart | None) -> tuple[Ensemble, dict[str, Any], list[str]]:
     """The ensemble to train, what to record of where it started, and the warnings to give.
 
-    A fresh model unless ``cfg.from_champion``; then ``warm_start``'s (or ``start``, found already), checked
+    A fresh model without a ``start`` (``warm_start``'s, for ``cfg.from_champion``); else its model, checked
     against ``episodes``. The record (for the metrics and the train config): ``warm_start_from`` (the version,
     None for a fresh model), and when there is one to give ``warm_start_note`` (why not the champion) and
     ``warm_start_overrode`` (``warm_start_overrides``); each warning is logged. Raises ``ConfigError``
-    (no champion, a model shaped for other images or without the variance head asked for) and
-    ``warm_start``'s errors.
+    (a model shaped for other images or without the variance head asked for).
     """
-    if not cfg.from_champion:
+    if start is None:
         return new_ensemble(cfg, episodes), {}, []
-    start = start if start is not None else warm_start(registry, resolve_device(cfg.device))
     record: dict[str, Any] = {"warm_start_from": start.version}
     warnings = []
     if start.note is not None:
@@ -447,13 +445,13 @@ def train_candidate(catalog: CatalogLike, registry: ModelRegistry, cfg: TrainCon
     sizes = {int(ep.frames.shape[1]) for ep in eval_episodes}  # more than one: check_evaluable refuses the split
     # A warm start refused (no champion, no variance head, other images) before the train snapshot is read: that
     # read quarantines damaged episodes, which a job that cannot start must leave where they are.
-    start = warm_start(registry, resolve_device(cfg.device)) if cfg.from_champion else None
-    if start is not None and len(sizes) == 1:
-        check_warm_start(start, cfg, min(sizes))
+    warm = warm_start(registry, resolve_device(cfg.device)) if cfg.from_champion else None
+    if warm is not None and len(sizes) == 1:
+        check_warm_start(warm, cfg, min(sizes))
     data = load_train(catalog, cfg.max_episodes, image_size=min(sizes) if len(sizes) == 1 else None)
     if not pinned:
         eval_episodes, eval_hash = load_eval(catalog)  # raises DataError: no eval split is pinned
-    ensemble, record, warnings = starting_point(registry, cfg, data.episodes, start)
+    ensemble, record, warnings = starting_point(cfg, data.episodes, warm)
     check_evaluable(ensemble.config, eval_episodes)  # before training, not after it
     windows = train_windows(data.episodes, ensemble, cfg)
     start = time.perf_counter()
