@@ -9,6 +9,8 @@ Per key, the message it takes and the reply (ok_reply / error_reply / duplicate_
   orch/renew   RenewRequest            -> ok {"expires_at": t} | error stale_token, unknown_request
   orch/upload  UploadHeader attachment -> ok {"request_id", "episode_id"} | duplicate_reply(same)
                + raw MCAP payload         | error stale_token, hash_mismatch, corrupt_episode, too_large
+               UploadPart attachment   -> ok {"request_id", "received": n} until the last part, answered as above
+               + bytes [offset, ...)
   orch/fail    FailRequest             -> ok {"status": "queued" | "dead", "attempts": n} | error stale_token
   orch/release ReleaseRequest          -> ok {"status": "queued", "attempts": n} | error stale_token
   admin/<op>   AdminRequest (or empty) -> ok with the op's body (orchestrator.admin) | error
@@ -229,6 +231,36 @@ class UploadHeader(LeaseRef):
         if digest != self.sha256:
             raise ProtocolError(ErrorCode.HASH_MISMATCH, f"payload: expected sha256 {self.sha256}, found {digest}")
         return data
+
+
+@dataclass
+class UploadPart(UploadHeader):
+    """Worker -> ``NS/orch/upload``: one part of an upload sent in parts (``orchestrator.upload_parts``): the
+    whole upload's header (``sha256`` and ``size`` are the whole episode's) and where in it the payload goes.
+    Answered ok ``{"request_id", "received": n}`` (the bytes held from the start, from which to send on) until
+    the part that completes the bytes, which is answered as a whole upload is."""
+
+    offset: int
+
+    def validate(self) -> None:
+        super().validate()
+        self.offset = check_int("offset", self.offset, 0, self.size - 1)
+
+    def whole(self) -> UploadHeader:
+        """The header of the upload this part is of."""
+        return UploadHeader(request_id=self.request_id, token=self.token, worker_id=self.worker_id,
+                            sha256=self.sha256, size=self.size)
+
+    @classmethod
+    def of(cls, header: UploadHeader, offset: int) -> UploadPart:
+        return cls(request_id=header.request_id, token=header.token, worker_id=header.worker_id,
+                   sha256=header.sha256, size=header.size, offset=offset)
+
+
+def upload_header(attachment: bytes | bytearray | memoryview | None) -> UploadHeader:
+    """The header of an ``NS/orch/upload`` query: an ``UploadPart`` when it gives an offset."""
+    obj = decode(attachment)
+    return (UploadPart if isinstance(obj, dict) and "offset" in obj else UploadHeader).from_dict(obj)
 
 
 @dataclass

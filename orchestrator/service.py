@@ -151,7 +151,7 @@ class Service:
             raise ServiceError(f"cannot seed the queue with {cfg.seed_requests} request(s): {exc}") from exc
         self._uploads = UploadHandler(self.queue, self.catalog, self.metrics, self.publish, self._writing,
                                       cfg.max_upload_bytes, self._episode_stored, self._frame_size,
-                                      health=self.storage)
+                                      health=self.storage, parts_max_age_s=max(2 * cfg.lease_s, 10.0))
         self._threads = [threading.Thread(target=self._maintain, name="maintenance", daemon=True)]
         for t in self._threads:
             t.start()

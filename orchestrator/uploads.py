@@ -13,7 +13,8 @@ for a reason that passes (a full disk, a lock held past the busy timeout, a read
 the service's ``StorageHealth``'s to know (no lease expires meanwhile) and the worker's to send again
 (``unavailable``); one that does not pass is ``internal``, never ``bad_field``, which is for the
 upload's own content only. Stored episodes are handed to ``on_stored`` (the service's background
-thread: scoring and planning never run on this path).
+thread: scoring and planning never run on this path). An upload sent in parts (``orchestrator.upload_parts``)
+takes this path once its last part has come, with its bytes whole.
 """
 
 from __future__ import annotations
@@ -32,6 +33,7 @@ from orchestrator.metrics import ServiceMetrics
 from orchestrator.protocol import ErrorCode, EventKind, ProtocolError
 from orchestrator.storagehealth import StorageHealth
 from orchestrator.transport import Incoming
+from orchestrator.upload_parts import PartStaging
 from storage.catalog import Catalog
 from storage.episode_reader import EpisodeInfo, decoded_limit, read_episode
 from storage.errors import (EpisodeError, OversizedEpisodeError, QueueError, StaleLeaseError,
@@ -67,7 +69,8 @@ class UploadHandler:
                  publish: Callable[[EventKind, dict[str, Any]], None],
                  turn: Callable[[], AbstractContextManager[None]],
                  max_upload_bytes: int, on_stored: Callable[[StoredEpisode], None],
-                 frame_size: Callable[[], int] = lambda: 0, *, health: StorageHealth) -> None:
+                 frame_size: Callable[[], int] = lambda: 0, *, health: StorageHealth,
+                 parts_max_age_s: float = 60.0) -> None:
         self.queue = queue
         self.catalog = catalog
         self.metrics = metrics
@@ -82,6 +85,8 @@ class UploadHandler:
         self.on_stored = on_stored
         self.frame_size = frame_size
         """The catalog's frame size (0 while unknown): bounds what an upload may inflate to."""
+        self.parts = PartStaging(parts_max_age_s)
+        """Uploads sent in parts, held until their last part (``orchestrator.upload_parts``)."""
 
     def handle(self, msg: Incoming) -> bytes:
         """Answer one ``NS/orch/upload`` query: store the episode and complete its request, or refuse.
@@ -94,8 +99,10 @@ class UploadHandler:
         """
         header: messages.UploadHeader | None = None
         try:
-            header = messages.UploadHeader.from_json(msg.attachment)
-            return self._store(msg, header)
+            header = messages.upload_header(msg.attachment)
+            if isinstance(header, messages.UploadPart):
+                return self._part(msg.payload, header)
+            return self._store(msg.payload, header)
         except ProtocolError as exc:
             self._refused(header, exc.code.value, exc.message)
             raise
@@ -103,15 +110,40 @@ class UploadHandler:
             self._refused(header, ErrorCode.INTERNAL.value, f"{type(exc).__name__}: {exc}")
             raise
 
-    def _store(self, msg: Incoming, header: messages.UploadHeader) -> bytes:
+    def _request(self, header: messages.UploadHeader, payload: bytes) -> Request:
+        """The request ``header`` uploads for; refused when it or the upload is too big for this service."""
         try:
             request = self.queue.get(header.request_id)
         except QueueError as exc:
             raise admin.protocol_error(exc) from exc
-        if header.size > self.max_upload_bytes or len(msg.payload) > self.max_upload_bytes:
+        if header.size > self.max_upload_bytes or len(payload) > self.max_upload_bytes:
             raise ProtocolError(ErrorCode.TOO_LARGE, f"payload: expected at most {self.max_upload_bytes} "
-                                f"bytes, found {max(header.size, len(msg.payload))}")
-        data = header.check_payload(msg.payload)  # a repeat too: it is acknowledged for these bytes
+                                f"bytes, found {max(header.size, len(payload))}")
+        return request
+
+    def _part(self, payload: bytes, part: messages.UploadPart) -> bytes:
+        """One part of an upload in parts: kept for the lease's holder; the last one stores the whole."""
+        whole = part.whole()
+        request = self._request(whole, payload)
+        row = self._duplicate_of(request, whole)
+        if row is not None and not row.quarantined and holds(row.path, row.sha256):  # the stored copy is intact
+            self.parts.drop(whole)  # (else the whole bytes again restore it, as a whole upload's repeat does)
+            self.metrics.upload("duplicate")
+            return protocol.duplicate_reply(request_id=request.id, episode_id=request.episode_id)
+        if row is None:
+            try:
+                self._check_live(request, whole)  # before a byte is kept
+            except ProtocolError:
+                self.parts.drop(whole)
+                raise
+        got = self.parts.add(part, payload)
+        if isinstance(got, int):
+            return protocol.ok_reply(request_id=request.id, received=got)
+        return self._store(got, whole)
+
+    def _store(self, payload: bytes, header: messages.UploadHeader) -> bytes:
+        request = self._request(header, payload)
+        data = header.check_payload(payload)  # a repeat too: it is acknowledged for these bytes
         row = self._duplicate_of(request, header)
         if row is not None:  # e.g. the reply was lost and the worker sends it again
             self._restore_if_lost(row, data, header)  # before the worker lets go of its bytes

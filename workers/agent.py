@@ -16,6 +16,9 @@ instance the request names a policy parameter this worker does not know --
 make a *poison* request that fails on every worker), or the service refused
 the upload as corrupt. A lease that is no longer ours (the service says
 ``stale_token``) is dropped without a word: someone else owns the request now.
+An episode bigger than ``WorkerConfig.part_bytes`` is uploaded in parts, each
+answered before the next goes (``workers.upload``); a retry goes on from the
+last part the service holds.
 
 SIGTERM / SIGINT drain: the current request is finished and uploaded, then
 the worker exits. The upload is then tried for one more lease term at most: an
@@ -54,32 +57,27 @@ if __name__ == "__main__":  # ``python -m workers.agent``: before the imports be
     startup.guard()
 
 import logging
-import os
 import random
-import re
-import socket
 import sys
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 import zenoh
 
-from orchestrator import endpoints, messages, protocol, signals, transport
+from orchestrator import messages, protocol, signals, transport
 from orchestrator.messages import LeaseGrant
 from orchestrator.protocol import ErrorCode, Keys, ProtocolError
 from storage.episodes import encode_episode
-from storage.records import TRAINABLE_SIZES, trainable_size
 from workers.abandon import Abandoned, Abandoner
 from workers.collect import CollectionStopped, collect_episode
 from workers.env import CONTROL_HZ
-from workers.flags import MAX_REALTIME
 from workers.lease import Renewer
+from workers.config import WorkerConfig, WorkerError
 from workers.startup import DRAIN_SIGNAL
+from workers.upload import EpisodeUpload
 
 log = logging.getLogger("workers.agent")  # also when run as __main__
 
@@ -89,84 +87,6 @@ STOPPING_TIMEOUT_S = 2.0
 MIN_DRAIN_ATTEMPT_S = 0.5
 #: How often a paced episode (``--realtime``) looks whether its lease was lost meanwhile.
 PACE_CHECK_S = 0.5
-
-
-class WorkerError(Exception):
-    """The worker could not start (bad config, Zenoh refused the session)."""
-
-
-def default_worker_id() -> str:
-    """``<host>-<pid>``, cut to the characters a key chunk may hold."""
-    return re.sub(r"[^A-Za-z0-9_.\-]", "-", f"{socket.gethostname()}-{os.getpid()}")[:128]
-
-
-@dataclass
-class WorkerConfig:
-    """Everything ``activecollect worker`` decides."""
-
-    worker_id: str = ""
-    """Unique id (liveliness key NS/workers/<id>); '' picks <host>-<pid>."""
-    namespace: str = "activecollect"
-    """Prefix of every Zenoh key of the deployment."""
-    mode: str = "peer"
-    """Zenoh mode without a config file: peer or client."""
-    listen: tuple[str, ...] = ()
-    """Zenoh endpoints to listen on (usually none for a worker)."""
-    connect: tuple[str, ...] = ()
-    """Zenoh endpoints of the service or routers."""
-    zenoh_config: Path | None = None
-    """A Zenoh JSON5 config file, passed through unchanged."""
-    tasks: tuple[str, ...] = ()
-    """Tasks this worker can do; empty means any."""
-    shapes: tuple[str, ...] = ()
-    """Object shapes this worker can do; empty means any."""
-    image_size: int = 64
-    """Camera frame side in pixels when the grant names none (the service's catalog is still empty, and the
-    first upload fixes the size of every later one): a size a model trains on (``trainable_size``)."""
-    max_episodes: int | None = None
-    """Exit after uploading this many episodes (None: run until stopped)."""
-    once: bool = False
-    """Handle at most one request, then exit; also exit at once if the service has no work for it."""
-    realtime: float = 0.0
-    """A slow-down, 0 to MAX_REALTIME: an episode lasts at least realtime * steps / CONTROL_HZ seconds
-    (1 = a real robot's pace, 2 = half speed); 0 = flat out."""
-    timeout_s: float = 10.0
-    """How long one query waits for the service's reply."""
-    idle_poll_s: float = 0.5
-    """Wait between lease attempts while the queue has no work for this worker."""
-    max_backoff_s: float = 5.0
-    """Longest wait between retries of a query nobody answered."""
-    report_attempts: int = 8
-    """Tries of a failure report nobody answers before giving up (the lease then expires on its own).
-    An upload has no such limit: it is retried until the service answers, the lease is lost (or, while
-    draining, one more lease term is over), or a second stop signal gives the request back."""
-
-    def __post_init__(self) -> None:
-        self.worker_id = self.worker_id or default_worker_id()
-        self.listen, self.connect = tuple(self.listen), tuple(self.connect)
-        self.tasks, self.shapes = tuple(self.tasks), tuple(self.shapes)
-        try:
-            self.keys = Keys(self.namespace)
-            protocol.check_id("worker_id", self.worker_id)
-            messages.LeaseRequest(worker_id=self.worker_id, tasks=list(self.tasks), shapes=list(self.shapes))
-        except ProtocolError as exc:
-            raise WorkerError(exc.message) from None
-        if self.mode not in transport.MODES:
-            raise WorkerError(f"mode: expected one of {transport.MODES}, found {self.mode!r}")
-        if not trainable_size(self.image_size):
-            raise WorkerError(f"image_size: expected {TRAINABLE_SIZES} pixels (what a model trains on), "
-                              f"found {self.image_size}")
-        if self.max_episodes is not None and self.max_episodes < 1:
-            raise WorkerError(f"max_episodes: expected a positive integer (None: no limit), found {self.max_episodes}")
-        if not 0 <= self.realtime <= MAX_REALTIME:  # nan fails too; inf would overflow the wait in _pace
-            raise WorkerError(f"realtime: expected a number from 0 (flat out) to {MAX_REALTIME:g}, "
-                              f"found {self.realtime!r}")
-        for name in ("timeout_s", "idle_poll_s", "max_backoff_s"):
-            value = getattr(self, name)
-            if not 0 < value <= endpoints.MAX_TIMEOUT_S:  # a wait longer than a day is a mistake, inf an overflow
-                raise WorkerError(f"{name}: expected seconds in (0, {endpoints.MAX_TIMEOUT_S:g}], found {value!r}")
-        if self.report_attempts < 1:
-            raise WorkerError(f"report_attempts: expected >= 1, found {self.report_attempts}")
 
 
 class Worker:
@@ -432,16 +352,18 @@ class Worker:
         is ours. While draining, for one more lease term at most (``Renewer.drain_left``), then
         ``_give_up``. A second stop signal gives the request back instead.
         """
-        header = messages.UploadHeader.for_payload(data, request_id=grant.request_id, token=grant.token,
-                                                   worker_id=self.config.worker_id).to_json()
+        upload = EpisodeUpload(data, grant.request_id, grant.token, self.config.worker_id, self.config.part_bytes)
         last: list[Exception] = []  # the last try's failure
 
-        def attempt() -> dict[str, Any]:
+        def send(payload: bytes, attachment: bytes) -> dict[str, Any]:
             timeout = self.config.timeout_s
             if self._stop.is_set():  # draining: no wait past the end of the lease or of the drain's term
                 timeout = min(timeout, max(renewer.drain_left(), MIN_DRAIN_ATTEMPT_S))
+            return self._call(self.keys.upload, payload, attachment, timeout=timeout)
+
+        def attempt() -> dict[str, Any]:  # the whole, or the parts from the last the service holds
             try:
-                return self._call(self.keys.upload, data, header, timeout=timeout)
+                return upload.send_with(send)
             except (transport.TransportError, ProtocolError) as exc:
                 last[:] = [exc]
                 raise

@@ -19,6 +19,7 @@ from workers.startup import DRAIN_SIGNAL
 from workers.agent import Worker, WorkerConfig, WorkerError
 from workers.env import CONTROL_HZ
 from workers.flags import MAX_REALTIME
+from workers.upload import DEFAULT_PART_KB, MAX_PART_KB
 
 log = logging.getLogger("workers.agent")
 
@@ -80,9 +81,22 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help=f"slow each episode to last at least X * steps / {CONTROL_HZ} seconds ({CONTROL_HZ} Hz "
                              f"control): 1 = a real robot's pace, 2 = half speed, 0.5 = double speed; 0 to "
                              f"{MAX_REALTIME:g} (default 0 = flat out)")
+    parser.add_argument("--upload-part-kb", type=upload_part_kb, default=DEFAULT_PART_KB, metavar="KB",
+                        help=f"upload an episode bigger than KB kilobytes in parts of KB, each answered before the "
+                             f"next is sent: over a slow uplink one part at a time holds the link, not the whole "
+                             f"episode, so renewals get through and a lost reply costs one part (1 to {MAX_PART_KB}; "
+                             f"default {DEFAULT_PART_KB}); give --timeout more than one part's transfer time")
     parser.add_argument("--log-level", default="INFO", choices=("DEBUG", "INFO", "WARNING", "ERROR"),
                         help="least severe log messages written to stderr (default INFO)")
     parser.set_defaults(worker_prog=parser.prog)
+
+
+def upload_part_kb(text: str) -> int:
+    """``--upload-part-kb``: 1 to MAX_PART_KB."""
+    value = flags.positive_int(text)
+    if value > MAX_PART_KB:
+        raise argparse.ArgumentTypeError(f"expected at most {MAX_PART_KB} (the largest upload), found {value}")
+    return value
 
 
 def config_from_args(args: argparse.Namespace) -> WorkerConfig:
@@ -97,7 +111,7 @@ def config_from_args(args: argparse.Namespace) -> WorkerConfig:
         config = WorkerConfig(worker_id=args.id or "", namespace=args.namespace, mode=args.mode, listen=listen,
                               connect=connect, zenoh_config=args.zenoh_config, tasks=tasks, shapes=shapes,
                               image_size=args.size, max_episodes=args.max_episodes, once=args.once,
-                              realtime=args.realtime, timeout_s=args.timeout)
+                              realtime=args.realtime, timeout_s=args.timeout, part_bytes=args.upload_part_kb * 1024)
     except WorkerError as exc:
         raise WorkerError(flags.naming_flag(str(exc))) from None
     if config.zenoh_config is not None:  # another role's profile config: its lease queries would never be answered

@@ -18,7 +18,8 @@ from storage.records import TRAINABLE_SIZES, trainable_size
 #: WorkerConfig fields that flags set (``naming_flag``).
 FIELD_FLAGS = {"worker_id": "--id", "namespace": "--namespace", "mode": "--mode", "capabilities": "--capabilities",
                "tasks": "--capabilities", "shapes": "--capabilities", "image_size": "--size",
-               "max_episodes": "--max-episodes", "realtime": "--realtime", "timeout_s": "--timeout"}
+               "max_episodes": "--max-episodes", "realtime": "--realtime", "timeout_s": "--timeout",
+               "part_bytes": "--upload-part-kb"}
 #: Largest ``--realtime``: an episode of 1000 steps then lasts about 28 hours; more is a typo (and
 #: ``inf`` would overflow the worker's wait after its first episode).
 MAX_REALTIME = 1000.0

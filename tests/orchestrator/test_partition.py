@@ -27,6 +27,7 @@ from storage.catalog import Catalog
 from storage.queue import RequestQueue
 from storage.requests import NewRequest, RequestStatus
 from workers.env import sample_state
+from workers.upload import DEFAULT_PART_KB
 from tests.orchestrator.test_secure import Proc, start_router, stays_false
 from tests.conftest import holds, wait_for
 
@@ -67,6 +68,13 @@ class NetnsPair:
     def link(self, up: bool) -> None:
         """Cuts (or restores) the wire by taking B's end of the pair down (or up)."""
         _ip("-n", self.b, "link", "set", "ac-b", "up" if up else "down")
+
+    def throttle(self, rate: str) -> None:
+        """Slows B's uplink (what B sends) to ``rate`` (tc's words: ``400kbit``)."""
+        done = subprocess.run(["ip", "netns", "exec", self.b, "tc", "qdisc", "add", "dev", "ac-b", "root", "tbf",
+                               "rate", rate, "burst", "16kb", "latency", "500ms"], capture_output=True, text=True)
+        if done.returncode != 0:
+            pytest.skip(f"tc cannot shape the link here: {done.stderr.strip()}")
 
 
 def _ip(*args: str) -> None:
@@ -178,7 +186,7 @@ def test_zenoh_across_the_veth_pair_survives_a_cut(site):
 
 
 #: A worker process: the real agent, its config checked with validate_secure_config first,
-#: and patient: it retries an upload nobody answers until the lease is lost. argv: CONFIG WORKER_ID REALTIME
+#: and patient: it retries an upload nobody answers until the lease is lost. argv: CONFIG WORKER_ID REALTIME PART_KB
 WORKER = """
 import logging, sys
 from pathlib import Path
@@ -188,14 +196,15 @@ logging.basicConfig(level=logging.INFO, stream=sys.stdout, format="%(name)s %(le
 validate_secure_config(sys.argv[1])
 worker = Worker(WorkerConfig(worker_id=sys.argv[2], zenoh_config=Path(sys.argv[1]), realtime=float(sys.argv[3]),
                              max_episodes=1, timeout_s=2.0, idle_poll_s=0.2, max_backoff_s=0.5,
-                             ))
+                             part_bytes=int(sys.argv[4]) * 1024))
 worker.install_signal_handlers()
 print("worker done, uploaded", worker.run(), flush=True)
 """
 
 
-def start_worker(config: Path, worker_id: str, realtime: float = 0.0, prefix: tuple[str, ...] = ()) -> Proc:
-    return Proc([*prefix, sys.executable, "-c", WORKER, str(config), worker_id, str(realtime)])
+def start_worker(config: Path, worker_id: str, realtime: float = 0.0, prefix: tuple[str, ...] = (),
+                 part_kb: int = DEFAULT_PART_KB) -> Proc:
+    return Proc([*prefix, sys.executable, "-c", WORKER, str(config), worker_id, str(realtime), str(part_kb)])
 
 
 def enqueue(queue: RequestQueue, steps: int = 8, seed: int = 0) -> str:
@@ -287,3 +296,24 @@ def test_cut_mid_episode_is_released_redone_and_the_late_upload_refused(deployme
     assert _stored(data, request_id) == [done.episode_id]
     assert len(list((data / "episodes").rglob("*.mcap"))) == 1
     assert queue.get(request_id).episode_id == done.episode_id
+
+
+def test_an_episode_longer_to_send_than_a_lease_keeps_its_lease_over_a_slow_uplink(deployment):
+    """B's uplink at 50 kB/s: a 1000-step episode (~660 kB) takes 13 s to send, four of the service's 3 s leases.
+    Sent whole, as one message, it held the link: the renewals waited behind its bytes, the lease expired and the
+    episode was dropped (and its 2 s reply wait ran out on every try). Sent in parts of 32 kB, each answered
+    before the next goes, renewals get through between the parts: stored under the first lease. (The worker's
+    Zenoh shares no memory with the router's here, as on another host: on this one it would pass big payloads
+    through /dev/shm, around the veth pair.)"""
+    pair, configs, started, queue, data = deployment
+    pair.throttle("400kbit")
+    request_id = enqueue(queue, steps=1000)
+    remote = with_overrides(configs["worker"], {"transport/shared_memory/enabled": False}, "worker-remote.json5")
+    worker = start_worker(remote, "slow-w1", prefix=pair.exec_prefix(pair.b), part_kb=32)
+    started.append(worker)
+    assert worker.popen.wait(180) == 0, worker.output()
+    done = queue.get(request_id)
+    assert (done.status, done.worker_id, done.token, done.attempts) == (RequestStatus.DONE, "slow-w1", 1, 0), \
+        worker.output()
+    assert _stored(data, request_id) == [done.episode_id]
+    assert Catalog(data).get(done.episode_id).size_bytes > 10 * 32 * 1024  # (it did take many parts)

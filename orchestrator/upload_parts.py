@@ -1,0 +1,87 @@
+"""Uploads in parts: the bytes of one episode sent as several ``NS/orch/upload`` queries, each answered.
+
+Why: an episode sent as one Zenoh message holds the worker's link for its whole transfer. Over a slow uplink
+its reply wait (the worker's ``--timeout``) had to cover the transfer, and the lease's renewals queued behind its
+bytes, so the lease expired while it uploaded and the episode was dropped, or stored and never acknowledged.
+A worker sends an episode bigger than its ``--upload-part-kb`` as parts (``messages.UploadPart``: the whole
+upload's header plus the part's offset), one at a time: each waits for its answer, so a renewal waits behind one
+part at most, and a lost reply or a link that drops costs one part, not the episode.
+
+``PartStaging`` holds the parts received, in memory, per request: only for the lease's holder (the upload
+handler checks the lease before a part is kept), one upload per request (a part of another upload of it, a new
+lease's or other bytes, starts it again), and for ``max_age_s`` after its last part (a worker that died mid-upload
+leaves nothing for long). A part is answered with the bytes held from the start (``received``), from which the
+worker sends on: a part past them (the service restarted and lost what it held) is not kept. The part that
+completes the bytes hands them, whole, to the upload path every whole upload takes (sha256, verification, one
+ingest transaction): nothing of a partial upload is written to disk or indexed.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+
+from orchestrator.messages import UploadHeader, UploadPart
+from orchestrator.protocol import ErrorCode, ProtocolError
+
+
+@dataclass
+class _Partial:
+    header: UploadHeader
+    """The whole upload's header (request, token, worker, sha256, size)."""
+    data: bytearray
+    """Its bytes from the start, as far as received."""
+    touched: float
+    """When its last part came (``PartStaging``'s clock)."""
+
+
+class PartStaging:
+    """The parts of uploads in progress, by request; thread-safe (the upload handler's threads share it)."""
+
+    def __init__(self, max_age_s: float, clock: Callable[[], float] = time.monotonic) -> None:
+        self.max_age_s = max_age_s
+        self._clock = clock
+        self._lock = threading.Lock()
+        self._held: dict[str, _Partial] = {}
+
+    def add(self, part: UploadPart, payload: bytes) -> int | bytes:
+        """Keep ``payload`` at ``part.offset``. The number of bytes now held from the start (send on from there);
+        the whole upload's bytes once they are all here (and nothing is held for the request any more).
+        Raises ProtocolError ``bad_field`` for a part that ends past the upload's size (nothing kept)."""
+        end = part.offset + len(payload)
+        if not payload or end > part.size:
+            raise ProtocolError(ErrorCode.BAD_FIELD, f"payload: expected 1 to {part.size - part.offset} bytes "
+                                f"(offset {part.offset} of size {part.size}), found {len(payload)}")
+        whole = part.whole()
+        with self._lock:
+            now = self._clock()
+            self._drop_stale(now)
+            held = self._held.get(part.request_id)
+            if held is None or held.header != whole:  # a new upload of this request: a new lease's, other bytes
+                held = self._held[part.request_id] = _Partial(whole, bytearray(), now)
+            held.touched = now
+            if part.offset > len(held.data):  # a gap: what came before it is not here (lost by a restart)
+                return len(held.data)
+            held.data[part.offset:end] = payload  # a repeat of a part overwrites it with the same bytes
+            if len(held.data) < part.size:
+                return len(held.data)
+            del self._held[part.request_id]
+        return bytes(held.data)
+
+    def drop(self, header: UploadHeader) -> None:
+        """Forget the parts of ``header``'s upload (refused: its lease is not live any more, or it was stored)."""
+        with self._lock:
+            held = self._held.get(header.request_id)
+            if held is not None and held.header == header:
+                del self._held[header.request_id]
+
+    def held_bytes(self) -> int:
+        """Bytes held for uploads in progress."""
+        with self._lock:
+            return sum(len(p.data) for p in self._held.values())
+
+    def _drop_stale(self, now: float) -> None:
+        for request_id in [r for r, p in self._held.items() if now - p.touched > self.max_age_s]:
+            del self._held[request_id]

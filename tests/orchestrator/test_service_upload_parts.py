@@ -1,0 +1,163 @@
+"""Uploads in parts (``orchestrator.upload_parts``) to the service over a real Zenoh client session: each part
+answered with the bytes held, nothing written or indexed before the last, which is stored as a whole upload is;
+a part of a lease that is not live, or past the upload's end, refused and nothing kept."""
+
+from __future__ import annotations
+
+import hashlib
+
+import pytest
+
+from orchestrator import messages, protocol
+from orchestrator.messages import UploadHeader, UploadPart
+from orchestrator.protocol import ErrorCode, ProtocolError
+from orchestrator.upload_parts import PartStaging
+from storage.catalog import Catalog
+from storage.requests import RequestStatus
+from tests.orchestrator.test_service import call, episode_bytes, lease, new_request, refused
+
+PART = 1000
+
+
+def header_of(grant, data: bytes, worker: str = "w1") -> UploadHeader:
+    return UploadHeader.for_payload(data, request_id=grant.request_id, token=grant.token, worker_id=worker)
+
+
+def send_part(client, keys, header: UploadHeader, data: bytes, offset: int, size: int = PART) -> dict:
+    return call(client, keys.upload, data[offset:offset + size], UploadPart.of(header, offset).to_json())
+
+
+def stored_files(data_dir) -> list:
+    return list((data_dir / "episodes").rglob("*.mcap"))
+
+
+def test_an_upload_in_parts_is_stored_once_its_last_part_comes(service, client, keys, data_dir) -> None:
+    request, _ = service.queue.enqueue(new_request())
+    grant = lease(client, keys)
+    data = episode_bytes(grant)
+    header = header_of(grant, data)
+    offsets = list(range(0, len(data), PART))
+    assert len(offsets) >= 3
+    for offset in offsets[:-1]:
+        body = send_part(client, keys, header, data, offset)
+        assert body == {"request_id": request.id, "received": offset + PART}
+        assert Catalog(data_dir).count() == 0 and not stored_files(data_dir)  # nothing written before the last
+        assert service.queue.get(request.id).status == RequestStatus.LEASED
+    assert send_part(client, keys, header, data, offsets[1]) == {"request_id": request.id,  # a reply lost: again
+                                                                 "received": offsets[-1]}
+    body = send_part(client, keys, header, data, offsets[-1])
+    assert body["request_id"] == request.id and "received" not in body and "duplicate" not in body
+    done = service.queue.get(request.id)
+    assert (done.status, done.episode_id) == (RequestStatus.DONE, body["episode_id"])
+    assert Catalog(data_dir).get(body["episode_id"]).sha256 == hashlib.sha256(data).hexdigest()
+    assert service._uploads.parts.held_bytes() == 0
+    # The last part again (its reply lost): the episode is stored, intact: a duplicate, no bytes needed.
+    assert send_part(client, keys, header, data, offsets[-1]) == {**body, "duplicate": True}
+    assert send_part(client, keys, header, data, 0) == {**body, "duplicate": True}
+    assert service._uploads.parts.held_bytes() == 0
+
+
+def test_a_part_past_the_bytes_held_is_answered_with_them_and_not_kept(service, client, keys, data_dir) -> None:
+    """A service that restarted holds none of what it was sent: the worker is told to send from there."""
+    request, _ = service.queue.enqueue(new_request())
+    grant = lease(client, keys)
+    data = episode_bytes(grant)
+    header = header_of(grant, data)
+    assert send_part(client, keys, header, data, 2 * PART) == {"request_id": request.id, "received": 0}
+    assert service._uploads.parts.held_bytes() == 0
+    send_part(client, keys, header, data, 0)
+    assert send_part(client, keys, header, data, 2 * PART) == {"request_id": request.id, "received": PART}
+    assert send_part(client, keys, header, data, PART, len(data))["episode_id"]  # the rest in one part
+    assert service.queue.get(request.id).status == RequestStatus.DONE
+
+
+def test_parts_of_a_lease_that_is_not_live_are_refused_and_nothing_is_kept(service, client, keys, data_dir) -> None:
+    service.queue.enqueue(new_request())
+    old = lease(client, keys, worker="slow")
+    data = episode_bytes(old, worker="slow")
+    header = header_of(old, data, "slow")
+    send_part(client, keys, header, data, 0)
+    assert service._uploads.parts.held_bytes() == PART
+    call(client, keys.fail, messages.FailRequest(request_id=old.request_id, token=old.token, worker_id="slow",
+                                                 error="boom").to_json())
+    refused(ErrorCode.STALE_TOKEN, send_part, client, keys, header, data, PART)
+    assert service._uploads.parts.held_bytes() == 0  # what the lost lease had sent is dropped too
+    new = lease(client, keys, worker="fast")
+    refused(ErrorCode.STALE_TOKEN, send_part, client, keys, header, data, 0)  # not even a first part
+    fresh = episode_bytes(new, worker="fast")
+    body = send_part(client, keys, header_of(new, fresh, "fast"), fresh, 0, len(fresh))
+    assert body["episode_id"] and Catalog(data_dir).count() == 1
+
+
+def test_a_part_of_another_upload_of_the_request_starts_it_again(service, client, keys, data_dir) -> None:
+    service.queue.enqueue(new_request())
+    grant = lease(client, keys)
+    data = episode_bytes(grant)
+    other = header_of(grant, data[:-1] + bytes([data[-1] ^ 1]))  # other bytes: another sha256
+    send_part(client, keys, other, data, 0)
+    send_part(client, keys, other, data, PART)
+    assert send_part(client, keys, header_of(grant, data), data, PART)["received"] == 0  # not this upload's
+    assert send_part(client, keys, header_of(grant, data), data, 0)["received"] == PART
+    assert service._uploads.parts.held_bytes() == PART
+
+
+def test_parts_whose_bytes_do_not_match_their_header_are_refused_and_nothing_is_stored(service, client, keys,
+                                                                                        data_dir) -> None:
+    request, _ = service.queue.enqueue(new_request())
+    grant = lease(client, keys)
+    data = episode_bytes(grant)
+    header = header_of(grant, data)
+    damaged = data[:PART] + bytes(PART) + data[2 * PART:]
+    send_part(client, keys, header, damaged, 0)
+    send_part(client, keys, header, damaged, PART)
+    refused(ErrorCode.HASH_MISMATCH, send_part, client, keys, header, damaged, 2 * PART, len(data))
+    assert Catalog(data_dir).count() == 0 and not stored_files(data_dir)
+    assert service._uploads.parts.held_bytes() == 0
+    assert service.queue.get(request.id).status == RequestStatus.LEASED  # the worker may send it again
+    assert send_part(client, keys, header, data, 0, len(data))["episode_id"]
+
+
+def test_a_part_that_ends_past_the_upload_or_names_no_place_in_it_is_refused(service, client, keys) -> None:
+    service.queue.enqueue(new_request())
+    grant = lease(client, keys)
+    data = episode_bytes(grant)
+    header = header_of(grant, data)
+    message = refused(ErrorCode.BAD_FIELD, call, client, keys.upload, data[:PART] + b"x",
+                      UploadPart.of(header, len(data) - PART).to_json())
+    assert f"offset {len(data) - PART} of size {len(data)}" in message
+    for offset in (-1, len(data), True, 1.5):
+        raw = protocol.encode({"v": 1, **header.to_dict(), "offset": offset})
+        assert "offset" in refused(ErrorCode.BAD_FIELD, call, client, keys.upload, data[:PART], raw)
+    assert service._uploads.parts.held_bytes() == 0
+
+
+def test_a_stored_episode_whose_file_was_lost_is_put_back_from_its_parts_sent_again(service, client, keys,
+                                                                                     data_dir) -> None:
+    """A repeat in parts of an upload the service stored: with the stored file intact, any part is answered as a
+    duplicate; with it lost, the parts are taken again, and the last one puts the file back (as a repeat of a
+    whole upload does) before the worker is told it may let go of its bytes."""
+    service.queue.enqueue(new_request())
+    grant = lease(client, keys)
+    data = episode_bytes(grant)
+    header = header_of(grant, data)
+    body = send_part(client, keys, header, data, 0, len(data))
+    path = Catalog(data_dir).get(body["episode_id"]).path
+    path.unlink()
+    assert send_part(client, keys, header, data, 0)["received"] == PART
+    assert send_part(client, keys, header, data, PART, len(data)) == {**body, "duplicate": True}
+    assert path.read_bytes() == data
+
+
+def test_parts_no_part_has_come_for_are_dropped_after_their_age() -> None:
+    now = [0.0]
+    staging = PartStaging(max_age_s=10.0, clock=lambda: now[0])
+    header = UploadHeader(request_id="r1", token=1, worker_id="w", sha256="0" * 64, size=10)
+    assert staging.add(UploadPart.of(header, 0), b"abcd") == 4
+    now[0] = 10.0
+    assert staging.add(UploadPart.of(header, 4), b"ef") == 6  # touched: its age starts again
+    now[0] = 20.5
+    other = UploadHeader(request_id="r2", token=1, worker_id="w", sha256="0" * 64, size=3)
+    assert staging.add(UploadPart.of(other, 0), b"xyz") == b"xyz"  # complete: handed over, not held
+    assert staging.held_bytes() == 0  # r1 was older than 10 s when r2's part came
+    with pytest.raises(ProtocolError, match="expected 1 to 3 bytes"):
+        staging.add(UploadPart.of(other, 0), b"")
