@@ -396,7 +396,7 @@ class Service:
                 else:
                     task, next_reap = self._reap, time.monotonic() + interval
                     if next_reap >= next_sweep:  # a crash's staging files live at most two of these periods
-                        task, next_sweep = self._sweep, next_reap + STAGING_MAX_AGE_S
+                        task, next_sweep = self._sweep_all, next_reap + STAGING_MAX_AGE_S
             if task is None:
                 return
             try:
@@ -409,6 +409,11 @@ class Service:
     def _sweep(self) -> None:
         """What crashes left (``orchestrator.sweeps``): before any upload is answered, then every STAGING_MAX_AGE_S."""
         sweeps.sweep_leftovers(self.catalog, self.config.data_dir, self.storage, log)
+
+    def _sweep_all(self) -> None:
+        """The periodic sweep: crash leftovers, and the parts of uploads whose worker went away mid-way."""
+        self._sweep()
+        self._uploads.parts.sweep()
 
     def _carry_leases_over(self) -> None:
         """At start-up: every live lease gets a full term from now. No worker could renew while the service

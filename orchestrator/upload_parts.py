@@ -7,13 +7,14 @@ A worker sends an episode bigger than its ``--upload-part-kb`` as parts (``messa
 upload's header plus the part's offset), one at a time: each waits for its answer, so a renewal waits behind one
 part at most, and a lost reply or a link that drops costs one part, not the episode.
 
-``PartStaging`` holds the parts received, in memory, per request: only for the lease's holder (the upload
-handler checks the lease before a part is kept), one upload per request (a part of another upload of it, a new
-lease's or other bytes, starts it again), and for ``max_age_s`` after its last part (a worker that died mid-upload
-leaves nothing for long). A part is answered with the bytes held from the start (``received``), from which the
-worker sends on: a part past them (the service restarted and lost what it held) is not kept. The part that
-completes the bytes hands them, whole, to the upload path every whole upload takes (sha256, verification, one
-ingest transaction): nothing of a partial upload is written to disk or indexed.
+``PartStaging`` holds the parts received, in memory, per request: only for the lease's holder (the upload handler
+checks the lease before a part is kept), one upload per request (a part of another upload of it, a new lease's or
+other bytes, starts it again), and for ``max_age_s`` after its last part (a worker that died mid-upload leaves
+nothing for long: the next part of any upload, or the service's next sweep, forgets it). A part is answered with
+the bytes held from the start (``received``), from which the worker sends on: a part past them (the service
+restarted and lost what it held) is not kept. The part that completes the bytes hands them, whole, to the upload
+path every whole upload takes (sha256, verification, one ingest transaction): nothing of a partial upload is
+written to disk or indexed.
 """
 
 from __future__ import annotations
@@ -81,6 +82,11 @@ class PartStaging:
         """Bytes held for uploads in progress."""
         with self._lock:
             return sum(len(p.data) for p in self._held.values())
+
+    def sweep(self) -> None:
+        """Forget the uploads no part has come for in ``max_age_s`` (the service's sweeps call it)."""
+        with self._lock:
+            self._drop_stale(self._clock())
 
     def _drop_stale(self, now: float) -> None:
         for request_id in [r for r, p in self._held.items() if now - p.touched > self.max_age_s]:

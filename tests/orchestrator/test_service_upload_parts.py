@@ -161,3 +161,7 @@ def test_parts_no_part_has_come_for_are_dropped_after_their_age() -> None:
     assert staging.held_bytes() == 0  # r1 was older than 10 s when r2's part came
     with pytest.raises(ProtocolError, match="expected 1 to 3 bytes"):
         staging.add(UploadPart.of(other, 0), b"")
+    assert staging.add(UploadPart.of(header, 0), b"abcd") == 4
+    now[0] = 30.6
+    staging.sweep()  # what the service's periodic sweep does: no part has to come
+    assert staging.held_bytes() == 0
