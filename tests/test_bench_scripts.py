@@ -77,6 +77,18 @@ def test_zenoh_cap_bench_drops_over_the_cap_and_passes_under_zenohs_default(tmp_
     assert result["capped"]["receiver_peak_mib_after"] < result["zenoh_default"]["receiver_peak_mib_after"]
 
 
+@pytest.mark.skipif(__import__("os").geteuid() != 0, reason="needs root (network namespaces)")
+def test_upload_parts_bench_stores_both_ways_over_the_veth_pair(tmp_path):
+    out = tmp_path / "parts.json"
+    argv = [sys.executable, str(ROOT / "bench" / "upload_parts.py"), "--rounds", "1", "--steps", "200",
+            "--part-kb", "32", "--json", str(out)]
+    proc = subprocess.run(argv, cwd=ROOT, capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    result = json.loads(out.read_text())
+    assert [(r["mode"], r["result"]) for r in result["rounds"]] == [("whole", "stored"), ("parts", "stored")]
+    assert result["rounds"][1]["bytes"] > 3 * 32 * 1024 and result["parts_over_whole_upload_s"] > 0
+
+
 @pytest.mark.parametrize("script, flag", [("soak.py", "--size"), ("uncertainty_figures.py", "--image-size"),
                                           ("uncertainty_figures.py", "--ood-image-size")])
 def test_figure_scripts_refuse_a_frame_size_no_model_trains_on_in_one_line(tmp_path, script, flag):
