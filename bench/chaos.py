@@ -28,7 +28,7 @@ Exit status 0 when every invariant holds, 1 otherwise, 2 for a usage error. Proc
 DATA/chaos-logs/.
 
 Usage: .venv/bin/python bench/chaos.py --data /tmp/chaos1 [--requests 150] [--kills 9]
-       [--worker-kills 2] [--seed S] [--steps 20] [--realtime 0.5] [--triggers random,tmp,mcap]
+       [--worker-kills 2] [--seed S] [--steps 20] [--realtime 0.5] [--upload-part-kb KB] [--triggers random,tmp,mcap]
        [--json summary.json]
 """
 
@@ -102,8 +102,8 @@ class Cluster:
 
     def __init__(self, data: Path, realtime: float, n_workers: int = 3,
                  service_args: tuple[str, ...] = ("--planner", "none", "--dashboard-port", "-1"),
-                 worker_size: int = 16) -> None:
-        self.data, self.realtime = data, realtime
+                 worker_size: int = 16, worker_args: tuple[str, ...] = ()) -> None:
+        self.data, self.realtime, self.worker_args = data, realtime, worker_args
         self.service_args, self.worker_size = service_args, worker_size
         self.logs = data / LOGS
         self.logs.mkdir(parents=True)
@@ -141,7 +141,7 @@ class Cluster:
         self.worker_starts[wid] += 1
         self.workers[wid] = self._spawn([sys.executable, "-m", "workers.agent", "--connect", self.endpoint,
                                          "--size", str(self.worker_size), "--id", wid,
-                                         "--realtime", str(self.realtime)],
+                                         "--realtime", str(self.realtime), *self.worker_args],
                                         f"worker.{wid}.{self.worker_starts[wid]}", REPO)
 
     def kill(self, proc: subprocess.Popen, what: str) -> None:
@@ -174,7 +174,8 @@ class Chaos:
     def __init__(self, args: argparse.Namespace) -> None:
         self.args = args
         self.rng = np.random.default_rng(args.seed)
-        self.cluster = Cluster(args.data, args.realtime)
+        self.cluster = Cluster(args.data, args.realtime, worker_args=(
+            () if args.upload_part_kb is None else ("--upload-part-kb", str(args.upload_part_kb))))
         self.acked: dict[str, str] = {}
         self.lock = threading.Lock()
         self.enqueue_retries = 0
@@ -414,6 +415,9 @@ def main(argv=None) -> int:
     p.add_argument("--seed", type=int, default=None, metavar="S",
                    help="seeds kill timings and targets (default random)")
     p.add_argument("--steps", type=int, default=20, metavar="N", help="simulation steps per request (default 20)")
+    p.add_argument("--upload-part-kb", type=flags.positive_int, default=None, metavar="KB",
+                   help="workers' --upload-part-kb (default theirs): small parts put service kills mid-upload "
+                        "between the parts")
     p.add_argument("--realtime", type=flags.realtime, default=0.5, metavar="X",
                    help="workers' --realtime: an episode takes X * steps / 10 s (default 0.5; 0 = flat out)")
     p.add_argument("--triggers", default="random,tmp,mcap", metavar="LIST",
