@@ -186,6 +186,11 @@ def _connect() -> list[str]:
     (["bench", "loop", "--members", "1"], "argument --members: expected an ensemble of at least 2 members"),
     (["bench", "score", "--members", "1"], "argument --members: expected an ensemble of at least 2 members"),
     (["dashboard", "--port", "70000", "--data", "DATA"], "expected a TCP port in 0..65535, found 70000"),
+    # a typo that would allocate gigabytes or run for days before anything said so
+    (["train", "--members", "500", "--data", "DATA"], "argument --members: expected at most 64 members, found 500"),
+    (["run", "--retrain-args=--members 65", "--data", "DATA"], "argument --members: expected at most 64 members"),
+    (["bench", "loop", "--widths", "16,32,6400"], "argument --widths: expected channel widths of at most 1024"),
+    (["retrain", "--widths", "2000,1,1", "--data", "DATA"], "argument --widths: expected channel widths of at most"),
 ])
 def test_bad_arguments_exit_2_in_one_line(capsys, tmp_path, argv, words) -> None:
     data = tmp_path / "data"

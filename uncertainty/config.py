@@ -13,6 +13,12 @@ from typing import Any
 from uncertainty.errors import ConfigError
 
 
+#: Most members an ensemble may have, and the widest channel count of a fresh model: beyond them a typo (``--members
+#: 500``, ``--widths 16,32,6400``) would allocate gigabytes, or run for days, before anything says so.
+MAX_MEMBERS = 64
+MAX_WIDTH = 1024
+
+
 @dataclass
 class TrainConfig:
     """One training run (``activecollect train`` builds it)."""
@@ -59,6 +65,8 @@ class TrainConfig:
                 raise ConfigError(f"{name} must be >= 1, found {getattr(self, name)}")
         if self.members < 2:  # its disagreement is 0 everywhere: nothing for the planner, nan for calibration
             raise ConfigError(f"members must be >= 2 (one member cannot disagree), found {self.members}")
+        if self.members > MAX_MEMBERS:
+            raise ConfigError(f"members must be <= {MAX_MEMBERS}, found {self.members}")
         if not self.lr > 0 or not math.isfinite(self.lr):
             raise ConfigError(f"lr must be a positive number, found {self.lr}")
         if self.grad_clip is not None and not self.grad_clip > 0:
@@ -71,6 +79,8 @@ class TrainConfig:
         if not 0 <= self.min_rel_improvement < 1:
             raise ConfigError(f"min_rel_improvement must be in [0, 1), found {self.min_rel_improvement}")
         self.widths = tuple(int(w) for w in self.widths)
+        if len(self.widths) != 3 or not all(1 <= w <= MAX_WIDTH for w in self.widths):
+            raise ConfigError(f"widths must be three channel counts from 1 to {MAX_WIDTH}, found {self.widths}")
 
     def to_dict(self) -> dict[str, Any]:
         d = asdict(self)

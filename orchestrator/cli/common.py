@@ -19,7 +19,7 @@ from orchestrator.retrainjob import cron_problem
 from storage.catalog import Catalog
 from storage.database import DB_NAME
 from storage.records import TRAINABLE_SIZES, trainable_size
-from uncertainty.config import TrainConfig
+from uncertainty.config import MAX_MEMBERS, MAX_WIDTH, TrainConfig
 
 DEFAULT_DATA = Path("activecollect-data")
 
@@ -119,7 +119,10 @@ def positive_int(text: str) -> int:
 
 def ensemble_size(text: str) -> int:
     """``--members`` of the commands that train or score: one member cannot disagree (no score, no calibration)."""
-    return _int_at_least(text, 2, "an ensemble of at least 2 members (one cannot disagree)")
+    value = _int_at_least(text, 2, "an ensemble of at least 2 members (one cannot disagree)")
+    if value > MAX_MEMBERS:
+        raise argparse.ArgumentTypeError(f"expected at most {MAX_MEMBERS} members, found {value}")
+    return value
 
 
 def non_negative_int(text: str) -> int:
@@ -352,4 +355,6 @@ def channel_widths(text: str) -> tuple[int, int, int]:
         raise argparse.ArgumentTypeError(f"expected three integers like 8,16,32, found {text!r}") from None
     if len(widths) != 3 or min(widths) < 1:
         raise argparse.ArgumentTypeError(f"expected three positive integers like 8,16,32, found {text!r}")
+    if max(widths) > MAX_WIDTH:
+        raise argparse.ArgumentTypeError(f"expected channel widths of at most {MAX_WIDTH}, found {text!r}")
     return widths  # type: ignore[return-value]

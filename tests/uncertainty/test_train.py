@@ -233,7 +233,9 @@ def test_a_warm_start_records_the_shape_it_trained_not_the_one_asked_for(tmp_pat
     assert recorded["members"] == 2 and recorded["context"] == 2 and recorded["from_champion"]
 
 
-@pytest.mark.parametrize("kwargs", [{"epochs": 0}, {"lr": -1.0}, {"device": "tpu"}, {"max_windows": 0}])
+@pytest.mark.parametrize("kwargs", [{"epochs": 0}, {"lr": -1.0}, {"device": "tpu"}, {"max_windows": 0},
+                                    {"members": 65}, {"widths": (16, 32, 1025)}, {"widths": (0, 8, 8)},
+                                    {"widths": (8, 8)}])
 def test_train_config_refuses_bad_values(kwargs):
     with pytest.raises(ConfigError):
         TrainConfig(**kwargs)
