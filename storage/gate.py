@@ -59,6 +59,12 @@ def non_finite(metrics: dict[str, Any], metric: str) -> str | None:
     value = metrics.get(metric)
     if isinstance(value, bool) or not isinstance(value, (int, float)):
         return f"{metric} is missing or not a number (found {value!r})"
+    return diverged(metrics, metric)
+
+
+def diverged(metrics: dict[str, Any], metric: str = DEFAULT_METRIC) -> str | None:
+    """Name the first number that matters (``non_finite``'s) which is there and not finite, or None: what even
+    the operator's ``promote`` refuses (a diverged model predicts NaN, so its scores would rank nothing)."""
     for key in sorted(k for k in metrics if k == metric or k.startswith("h1_")):
         v = metrics[key]
         if isinstance(v, (int, float)) and not isinstance(v, bool) and not math.isfinite(v):

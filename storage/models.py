@@ -42,7 +42,7 @@ from storage.database import (DB_NAME, MODELS_DIR, Migration, connection, ensure
                               storage_error, transaction, undo_unless_committed)
 from storage.errors import CorruptCheckpointError, RegistryError, RegistryUnavailableError, UnknownModelError
 from storage.files import write_synced
-from storage.gate import DEFAULT_METRIC, DEFAULT_MIN_REL_IMPROVEMENT, GateDecision, judge
+from storage.gate import DEFAULT_METRIC, DEFAULT_MIN_REL_IMPROVEMENT, GateDecision, diverged, judge
 from storage.model_rows import (CONFIG_FILE, META_FILE, METRICS_FILE, SNAPSHOT_FILE, WEIGHTS_FILE, ChampionEntry,
                                 ModelRecord, ModelStatus, PruneResult, StrayFolders, record_of)
 from storage.promotions import CHAMPION, now
@@ -372,13 +372,13 @@ class ModelRegistry:
 
     def promote(self, version: str, eval_split_hash: str | None = None,
                 reason: str = "promoted by the operator") -> GateDecision:
-        """Make ``version`` the champion without comparing metrics (the operator's override).
-
-        Still refuses, by raising, a checkpoint whose weights do not match their sha256
-        (``CorruptCheckpointError``) and one evaluated on another eval split than
-        ``eval_split_hash`` (or the champion's when not given) (``RegistryError``).
-        """
+        """Make ``version`` the champion without comparing metrics (the operator's override). Still refuses, by
+        raising, a checkpoint whose weights do not match their sha256 (``CorruptCheckpointError``), one whose
+        training diverged (``gate.diverged``) and one evaluated on another eval split than ``eval_split_hash`` (or
+        the champion's when not given) (``RegistryError``)."""
         rec = self.get(version)
+        if (bad := diverged(rec.metrics)) is not None:
+            raise RegistryError(f"refusing to promote {version}: {bad}: its training diverged, it predicts no numbers")
         self._read_verified(rec)
         with self._transaction() as conn:
             current = promotions.champion(conn)

@@ -224,6 +224,20 @@ def test_promote_overrides_metrics_but_not_the_split(reg: ModelRegistry) -> None
     assert reg.champion() == worse
 
 
+@pytest.mark.parametrize("metrics", [{"h1_mse": math.nan}, {"h1_psnr": math.inf}])
+def test_promote_refuses_a_model_whose_training_diverged(reg: ModelRegistry, metrics) -> None:
+    """The operator's override of the metrics still wants numbers: a diverged model's scores rank nothing."""
+    champ = _register(reg, 0.010)
+    reg.gate(champ)
+    mse = metrics.pop("h1_mse", 0.001)
+    nan = _register(reg, mse, **metrics)
+    assert not reg.gate(nan).promoted
+    with pytest.raises(RegistryError, match=f"refusing to promote {nan}: h1_.* is not finite .*: its training "
+                                            "diverged"):
+        reg.promote(nan)
+    assert reg.champion() == champ and reg.get(nan).status is ModelStatus.REJECTED
+
+
 def test_rollback_restores_the_previous_champion(reg: ModelRegistry) -> None:
     a, b, c = (_register(reg, mse) for mse in (0.010, 0.008, 0.006))
     for v in (a, b, c):
