@@ -25,6 +25,7 @@ from orchestrator.loopconfig import RunConfig
 from orchestrator.retrainlock import EXIT_BUSY, RetrainBusyError
 from orchestrator.retrainjob import quarantined_note
 from orchestrator.serviceconfig import ServiceError
+from orchestrator.signals import on_stop_signals
 from orchestrator.protocol import one_line
 from storage.catalog import Catalog
 from storage.errors import StorageError
@@ -300,9 +301,12 @@ def _dashboard(args: argparse.Namespace) -> int:
         dash.start()
     except OSError as exc:
         raise common.UsageError(f"cannot serve on {args.host}:{args.port}: {exc.strerror}") from None
-    print(f"dashboard on {dash.url} (Ctrl-C to stop)", flush=True)
+    stop = threading.Event()
+    restore = on_stop_signals(stop.set)  # SIGTERM (a supervisor's) stops it as Ctrl-C does: exit 0, as serve
+    print(f"dashboard on {dash.url} (Ctrl-C or SIGTERM to stop)", flush=True)
     try:
-        threading.Event().wait()
+        stop.wait()
     finally:
         dash.stop()
+        restore()
     return 0

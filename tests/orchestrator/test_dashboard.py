@@ -13,6 +13,7 @@ import json
 import os
 import re
 import select
+import signal
 import shutil
 import socket
 import struct
@@ -422,6 +423,16 @@ def test_the_commands_pass_the_request_timeout_to_their_dashboard(command, spawn
     with socket.create_connection((url.hostname, url.port), timeout=10) as idle:  # sends nothing
         # let go after 0.5 s: well before the 5 s this waits, and the default of 10 s
         assert select.select([idle], [], [], 5.0)[0] and idle.recv(4096) == b""
+
+
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT])
+def test_the_dashboard_command_stops_cleanly_on_sigterm_as_on_ctrl_c(spawn, data_dir, sig):
+    """A supervisor's SIGTERM is a stop asked for, as for serve: exit 0, not 143."""
+    Catalog(data_dir)
+    proc = spawn("dashboard", "dashboard", "--data", str(data_dir), "--port", "0")
+    wait_for(lambda: "dashboard on http" in proc.log(), timeout=60, message="the dashboard to start")
+    proc.signal(sig)
+    assert proc.wait(30) == 0, proc.log()
 
 
 def test_dashboard_limits_must_be_positive(capsys):
