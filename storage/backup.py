@@ -11,8 +11,9 @@ an earlier champion its rollback returns to): then a retrain promoted and pruned
 snapshot is taken again (``SNAPSHOT_TRIES`` in all, then the backup names it in ``problems``), so a
 backup that reports none serves its champion.
 A quarantined episode's file is copied from ``quarantine/`` as it is, unchecked (it may be what was damaged,
-unless a worker's upload of the same bytes has put an intact copy there since: ``Catalog.repair_file``), and
-one quarantined between the snapshot and its copy is quarantined in the copy too.
+unless a worker's upload of the same bytes has put an intact copy there since: ``Catalog.repair_file``; one
+that is missing is named in ``problems``), and one quarantined or restored between the snapshot and its copy
+is so in the copy too, with its file (the source's state is read until it holds still across a look for it).
 
 The copy is built under a hidden name next to ``dest`` (``.<dest>.backup-<8 hex>``, locked while its backup
 lives) and renamed into place last, so ``dest`` exists only when complete; a backup killed midway leaves its
@@ -20,6 +21,7 @@ hidden folder, which the next backup to ``dest`` deletes (``swept``). One backup
 ``.<dest>.backup.lock`` beside it (its pid inside) from its check of ``dest`` to its rename, so a second one fails
 at once naming the first rather than copying everything only to find ``dest`` taken; the holder deletes the file
 when done, and the kernel lets go of the lock of one killed midway (the next backup takes it and deletes it).
+``storage.backup_dest`` checks ``dest`` (see ``check_dest``), holds its lock and moves the copy into place.
 Not copied: ``reports/`` (made again by ``run``), lock files, and what crashed calls left (staging files,
 ``orphans/``, ``models/.orphans/``). To restore, stop the service and serve from the backup (``--data DEST``) or
 move it into place.
@@ -27,31 +29,31 @@ move it into place.
 
 from __future__ import annotations
 
-import errno
-import fcntl
 import os
-import re
 import shutil
 import sqlite3
 import time
-import uuid
-from collections.abc import Callable, Iterator
-from contextlib import contextmanager
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
 from pathlib import Path
 
 from storage import promotions, quarantine as quarantines
+from storage.backup_dest import (absolute, check_dest, dest_locked, locked, move_into_place, sweep_unfinished,
+                                  work_folder)
 from storage.database import DB_NAME, connection
 from storage.catalog import Catalog
 from storage.quarantine import quarantine_path
 from storage.errors import BackupError, StorageError
-from storage.files import ensure_dir, fsync_dir, holds, sha256_hex, write_synced
+from storage.files import ensure_dir, fsync_dir, sha256_hex, write_synced
 from storage.models import MODELS_DIR, WEIGHTS_FILE, ModelRegistry
 
 #: Snapshots a backup takes before it reports a champion (or an earlier champion its rollback needs)
 #: pruned between its snapshot and its copy; each retake copies only the checkpoints again (seconds).
 SNAPSHOT_TRIES = 3
+#: Looks for the file of an episode whose quarantine state changed since the snapshot, each between two reads of
+#: that state, before the backup takes the last state read (a restore or quarantine moved it meanwhile).
+EPISODE_TRIES = 3
 
 
 @dataclass(frozen=True)
@@ -70,34 +72,11 @@ class BackupResult:
     """Wall time of the whole backup."""
     problems: list[str] = field(default_factory=list)
     """Files the snapshot names that could not be copied intact (missing, unreadable, failing their
-    sha256; or the copy's champion or rollback chain, pruned while the backup ran and every retake),
+    sha256; a quarantined episode's kept file missing; or the copy's champion or rollback chain, pruned while
+    the backup ran and every retake),
     one line each; the backup holds everything else. ``episodes verify`` on the source shows the same."""
     swept: list[Path] = field(default_factory=list)
     """The hidden folders of earlier backups to ``dest`` that were killed midway, deleted by this one."""
-
-
-def check_dest(data_dir: str | os.PathLike[str], dest: str | os.PathLike[str]) -> None:
-    """Raise ``BackupError`` unless ``dest`` can take a backup of ``data_dir``: outside it, and absent
-    or an empty directory. Changes nothing."""
-    data_dir, dest = Path(data_dir), Path(dest)
-    try:
-        inside = dest.resolve().is_relative_to(data_dir.resolve())
-    except OSError as exc:
-        raise BackupError(f"cannot look at {dest}: {exc.strerror or exc}") from exc
-    if inside:
-        raise BackupError(f"the backup {dest} would be inside the data directory {data_dir}; "
-                          "choose a place outside it (better: on another disk)")
-    if dest.is_dir() and any(dest.iterdir()):
-        raise BackupError(f"{dest} already exists and is not empty; choose a new directory")
-    if dest.exists() and not dest.is_dir():
-        raise BackupError(f"{dest} is a file; choose a new directory")
-    parent = dest.absolute().parent  # the nearest folder that exists is where the backup's folders are made
-    while not parent.exists() and parent != parent.parent:
-        parent = parent.parent
-    if not parent.is_dir():
-        raise BackupError(f"{parent} is a file, so {dest} cannot be made; choose a new directory")
-    if not os.access(parent, os.W_OK | os.X_OK):
-        raise BackupError(f"cannot write in {parent} (permission denied); choose a new directory")
 
 
 def _snapshot_db(source: Path, target: Path) -> None:
@@ -159,31 +138,76 @@ def _copy_episode(conn: sqlite3.Connection, source_db: Path, work: Path, row: sq
     As the snapshot knows it: its file checked against its sha256, or, when it is quarantined, the file
     kept in ``quarantine/`` as it is (when there is one). When that fails, the source changed since the
     snapshot (a quarantine or a restore went on, or one was cut short by a crash): the copy takes the
-    episode's quarantine state as the source has it now and its intact bytes wherever they are. Raises
-    ``_Unusable`` when an episode in training has no intact file."""
-    data_dir = source_db.parent
+    episode's quarantine state as the source has it now and its intact bytes wherever they are
+    (``_copy_as_now``). Raises ``_Unusable`` when an episode in training has no intact file, or a quarantined
+    one no file where its quarantine row says."""
     episode_id, rel, sha, moved_to = row
-    kept = quarantine_path(rel)
     try:
         if moved_to is None:
-            return _copy_checked(data_dir / rel, work / rel, sha, dirs), True
+            return _copy_checked(source_db.parent / rel, work / rel, sha, dirs), True
         if moved_to:
-            return _copy_checked(data_dir / moved_to, work / moved_to, None, dirs), False
+            return _copy_checked(source_db.parent / moved_to, work / moved_to, None, dirs), False
     except _Unusable:
         pass
-    now = _quarantine_in_source(source_db, episode_id)
-    intact = next((src for src in (data_dir / rel, data_dir / kept) if holds(src, sha)), None)
+    return _copy_as_now(conn, source_db, work, (episode_id, rel, sha), dirs)
+
+
+def _copy_as_now(conn: sqlite3.Connection, source_db: Path, work: Path, episode: tuple[str, str, str],
+                 dirs: set[Path]) -> tuple[int, bool]:
+    """``_copy_episode`` once the source has changed since the snapshot: its quarantine state is read before and
+    after each look for the file, until it is the same both times (``EPISODE_TRIES`` looks at most: a quarantine
+    or a restore moves the file between the two places looked in), and the copy takes the last one read, with
+    its file where that state puts it; its quarantine row is written once the file is copied."""
+    data_dir = source_db.parent
+    episode_id, rel, sha = episode
+    kept = quarantine_path(rel)
+    for attempt in range(EPISODE_TRIES):
+        if attempt:  # (what an earlier look copied, taken again)
+            for path in (work / rel, work / kept):
+                path.unlink(missing_ok=True)
+        before = _quarantine_in_source(source_db, episode_id)
+        size, at, intact = _copy_found(data_dir, work, (rel, kept, sha), before, dirs)
+        now = _quarantine_in_source(source_db, episode_id)
+        stable = (before and tuple(before)) == (now and tuple(now))
+        if stable and (at is not None or (now is not None and not now["moved_to"])):
+            break
+    if at is not None and now is None and not intact:  # (damaged bytes, taken as quarantined ones as they are)
+        (work / at).unlink()
+        size, at = 0, None
+    place = rel if now is None else kept
+    if at is not None and at != place:  # the state changed after the file was copied, on the last look
+        ensure_dir((work / place).parent)
+        os.rename(work / at, work / place)
+        dirs.add((work / place).parent)
     quarantines.remove(conn, episode_id)
-    if now is not None:
-        quarantines.insert(conn, episode_id, now["reason"], kept if intact is not None or now["moved_to"] else "",
-                           now["at"])
-    if intact is not None:
-        return _copy_checked(intact, work / (rel if now is None else kept), sha, dirs), now is None
     if now is None:
-        raise _Unusable(f"{data_dir / rel} is missing or does not hold the bytes indexed (sha256 {sha[:16]}...)")
-    if now["moved_to"] and (data_dir / kept).exists():  # what is left of a damaged file, as it is
-        return _copy_checked(data_dir / kept, work / kept, None, dirs), False
-    return 0, False
+        if at is None:
+            raise _Unusable(f"{data_dir / rel} is missing or does not hold the bytes indexed (sha256 {sha[:16]}...)")
+        return size, True
+    quarantines.insert(conn, episode_id, now["reason"], kept if at is not None else now["moved_to"], now["at"])
+    if at is None and now["moved_to"]:
+        raise _Unusable(f"{data_dir / now['moved_to']} is missing (the file of this quarantined episode)")
+    return size, False
+
+
+def _copy_found(data_dir: Path, work: Path, episode: tuple[str, str, str], state: sqlite3.Row | None,
+                dirs: set[Path]) -> tuple[int, str | None, bool]:
+    """One look for an episode's file, in the state ``state`` (its quarantine row, None in training): its intact
+    bytes from either place, copied to where ``state`` puts them, else (quarantined) the file kept as it is.
+    Returns (bytes copied, where in the copy, whether they are the bytes indexed); (0, None, False) for none."""
+    rel, kept, sha = episode
+    places = (rel, kept) if state is None else (kept, rel)
+    for src in places:  # each read once, checked as it is copied: no look that a move outdates before the read
+        try:
+            return _copy_checked(data_dir / src, work / places[0], sha, dirs), places[0], True
+        except _Unusable:
+            pass
+    if state is not None and state["moved_to"]:  # what is left of a damaged file, as it is
+        try:
+            return _copy_checked(data_dir / kept, work / kept, None, dirs), kept, False
+        except _Unusable:
+            pass
+    return 0, None, False
 
 
 def backup(data_dir: str | os.PathLike[str], dest: str | os.PathLike[str],
@@ -197,7 +221,7 @@ def backup(data_dir: str | os.PathLike[str], dest: str | os.PathLike[str],
     copied intact do not stop the backup: they are listed in ``problems``.
     """
     t0 = time.perf_counter()
-    data_dir, dest = Path(data_dir), Path(dest)
+    data_dir, dest = Path(data_dir), absolute(dest)
     source_db = data_dir / DB_NAME
     if not source_db.is_file():
         raise BackupError(f"no catalog at {source_db}: nothing to back up")
@@ -206,9 +230,9 @@ def backup(data_dir: str | os.PathLike[str], dest: str | os.PathLike[str],
         ensure_dir(dest.parent)
     except OSError as exc:
         raise BackupError(f"cannot write the backup at {dest}: {exc.strerror or exc}") from exc
-    with _dest_locked(dest):
+    with dest_locked(dest):
         check_dest(data_dir, dest)  # again, as the lock's holder: an earlier backup may have just finished it
-        swept = _sweep_unfinished(dest)
+        swept = sweep_unfinished(dest)
         result = _build(data_dir, dest, progress)
     episodes, models, size, problems = result
     return BackupResult(dest=dest, episodes=episodes, models=models, bytes=size, problems=problems,
@@ -218,12 +242,12 @@ def backup(data_dir: str | os.PathLike[str], dest: str | os.PathLike[str],
 def _build(data_dir: Path, dest: Path, progress: Callable[[int, int], None] | None
            ) -> tuple[int, int, int, list[str]]:
     """``_fill`` a hidden folder beside ``dest`` and rename it into place; on any failure the folder is deleted."""
-    work = dest.parent / f"{_work_prefix(dest)}{uuid.uuid4().hex[:8]}"
+    work = work_folder(dest)
     try:
         work.mkdir()
-        with _locked(work):  # until it is renamed into place: no other backup's sweep takes it
+        with locked(work):  # until it is renamed into place: no other backup's sweep takes it
             result = _fill(data_dir, work, progress)
-            _move_into_place(work, dest)
+            move_into_place(work, dest)
     except BaseException as exc:
         shutil.rmtree(work, ignore_errors=True)
         if isinstance(exc, OSError):  # a full disk
@@ -232,109 +256,6 @@ def _build(data_dir: Path, dest: Path, progress: Callable[[int, int], None] | No
             raise BackupError(f"cannot back up {data_dir}: {exc}") from exc
         raise
     return result
-
-
-def _move_into_place(work: Path, dest: Path) -> None:
-    """Rename the finished copy ``work`` to ``dest``, which is absent or an empty directory (checked). Raises
-    ``BackupError`` when something else has been put at ``dest`` meanwhile (a process that takes no lock: a backup
-    by older code, a copy by hand); it is left as it is."""
-    try:
-        if dest.is_dir():
-            dest.rmdir()  # (fails unless still empty) the rename below takes its place
-        os.rename(work, dest)  # (fails onto a directory that is not empty, or onto a file)
-    except OSError as exc:
-        if exc.errno in (errno.ENOTEMPTY, errno.EEXIST, errno.ENOTDIR):
-            raise BackupError(f"{dest} appeared while this backup ran: another backup or process wrote it; "
-                              "this backup is discarded") from exc
-        raise
-    fsync_dir(dest.parent)
-
-
-def _work_prefix(dest: Path) -> str:
-    """The start of the name of the hidden folder a backup to ``dest`` is built in, beside it."""
-    return f".{dest.name}.backup-"
-
-
-def _lock_path(dest: Path) -> Path:
-    """The file a backup to ``dest`` holds locked while it runs, beside it."""
-    return dest.parent / f".{dest.name}.backup.lock"
-
-
-@contextmanager
-def _dest_locked(dest: Path) -> Iterator[None]:
-    """Holds ``_lock_path(dest)`` locked, with this process's pid in it, and deletes it on the way out. Raises
-    ``BackupError`` naming the holder when another backup to ``dest`` holds it."""
-    path = _lock_path(dest)
-    while True:
-        try:
-            fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o644)
-        except OSError as exc:
-            raise BackupError(f"cannot create {path}: {exc.strerror or exc}") from exc
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            holder = os.pread(fd, 32, 0).decode(errors="replace").strip()
-            os.close(fd)
-            running = f"another backup to {dest} is running" + (f" (pid {holder})" if holder.isdigit() else "")
-            raise BackupError(f"{running}; wait for it to finish, or back up to another DEST") from None
-        if _is_still(path, fd):
-            break
-        os.close(fd)  # a backup that finished meanwhile deleted it: take the next one
-    try:
-        try:
-            os.ftruncate(fd, 0)  # (a killed backup's pid may be in it)
-            os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
-        except OSError as exc:
-            raise BackupError(f"cannot write {path}: {exc.strerror or exc}") from exc
-        yield
-    finally:
-        path.unlink(missing_ok=True)  # while locked: a backup that opened it before finds it gone and opens anew
-        os.close(fd)
-
-
-def _is_still(path: Path, fd: int) -> bool:
-    """Whether ``path`` is still the file open at ``fd``."""
-    try:
-        st = path.stat()
-    except FileNotFoundError:
-        return False
-    return (st.st_dev, st.st_ino) == (os.fstat(fd).st_dev, os.fstat(fd).st_ino)
-
-
-@contextmanager
-def _locked(folder: Path) -> Iterator[None]:
-    """An exclusive lock on ``folder`` (the folder itself, so nothing is added to it), held in the block; the kernel
-    releases it when the process dies, even by SIGKILL."""
-    fd = os.open(folder, os.O_RDONLY | os.O_DIRECTORY)
-    try:
-        fcntl.flock(fd, fcntl.LOCK_EX)
-        yield
-    finally:
-        os.close(fd)
-
-
-def _sweep_unfinished(dest: Path) -> list[Path]:
-    """Deletes the hidden folders beside ``dest`` that earlier backups to it were building when they were killed
-    (unlocked: no live backup's); returns those deleted. Best effort: one that cannot be deleted stays, for the
-    next backup to try again."""
-    swept = []
-    name = re.compile(re.escape(_work_prefix(dest)) + "[0-9a-f]{8}")  # (not a backup's to `<dest>.backup-x`)
-    for path in sorted(dest.parent.iterdir()):
-        if not name.fullmatch(path.name) or path.is_symlink() or not path.is_dir():
-            continue
-        try:
-            fd = os.open(path, os.O_RDONLY | os.O_DIRECTORY)
-        except OSError:
-            continue
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)  # (BlockingIOError: a live backup's)
-            shutil.rmtree(path)
-            swept.append(path)
-        except OSError:
-            continue
-        finally:
-            os.close(fd)
-    return swept
 
 
 class _Tally:

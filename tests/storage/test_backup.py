@@ -19,6 +19,7 @@ from storage.catalog import Catalog
 from storage.database import DB_NAME
 from storage.errors import BackupError, EpisodeError, PrunedCheckpointError
 from storage.models import ModelRegistry
+from storage.quarantine import quarantine_path
 from storage.queue import NewRequest, RequestQueue
 from tests.conftest import REPO, run_cli, wait_for
 from tests.storage.test_episodes import make_episode
@@ -371,3 +372,58 @@ def test_a_file_left_in_quarantine_by_a_crash_is_backed_up(tmp_path, rng) -> Non
 
     assert result.problems == [] and result.episodes == 5
     assert Catalog(dest).verify(want["train"][0])
+
+
+@pytest.mark.parametrize("when", ["before", "after"])
+def test_an_episode_restored_while_the_backup_looks_for_its_file_is_in_training_in_it(tmp_path, rng, monkeypatch,
+                                                                                       when) -> None:
+    """An episode quarantined after the snapshot, then restored while the backup looks for its file in
+    ``quarantine/`` (``before`` it reads it there: it is gone; ``after``: it was there). Before, the copy had it
+    quarantined with no file and no word said, or named it NOT COPIED while the source had it intact."""
+    data, dest = tmp_path / "data", tmp_path / "b"
+    want = _filled(data, rng)
+    cat = Catalog(data)
+    last = max((cat.get(i) for i in want["train"]), key=lambda r: str(r.path)).episode_id
+    kept = data / quarantine_path(cat.get(last).path.relative_to(data).as_posix())
+    restored, real_read = [], Path.read_bytes
+
+    def restore_once() -> None:
+        if not restored:
+            restored.append(True)  # (first: the restore reads files too)
+            cat.restore(last)
+
+    def read_bytes(path: Path) -> bytes:  # the restore lands right before, or right after, that read
+        if path == kept and when == "before":
+            restore_once()
+        data_read = real_read(path)
+        if path == kept and when == "after":
+            restore_once()
+        return data_read
+
+    def quarantine_once(done: int, total: int) -> None:  # after the snapshot, before that file is copied
+        if done == 1:
+            cat.quarantine(last, "operator: suspect")
+            monkeypatch.setattr(Path, "read_bytes", read_bytes)
+
+    result = backup(data, dest, progress=quarantine_once)
+
+    assert restored and cat.get(last).quarantined == ""
+    assert result.problems == [] and result.episodes == 5
+    copy = Catalog(dest)
+    assert copy.get(last).quarantined == "" and copy.verify(last)
+    assert not list((dest / "quarantine").rglob("*.mcap"))
+
+
+def test_a_quarantined_episode_whose_kept_file_is_missing_is_named(tmp_path, rng) -> None:
+    data, dest = tmp_path / "data", tmp_path / "b"
+    want = _filled(data, rng)
+    cat = Catalog(data)
+    kept = data / quarantine_path(cat.get(want["train"][0]).path.relative_to(data).as_posix())
+    cat.quarantine(want["train"][0], "operator: blurred")
+    kept.unlink()
+
+    result = backup(data, dest)
+
+    assert len(result.problems) == 1 and want["train"][0] in result.problems[0]
+    assert f"{kept} is missing" in result.problems[0] and result.episodes == 4
+    assert Catalog(dest).get(want["train"][0]).quarantined == "operator: blurred"  # as in the source
