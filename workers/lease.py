@@ -33,6 +33,10 @@ class Renewer:
         self._call, self._key, self._grant = call, key, grant
         self._msg = messages.RenewRequest(request_id=grant.request_id, token=grant.token,
                                           worker_id=worker_id).to_json()
+        self._worker_id = worker_id
+        self._done_by_this_id = f" is done with token {grant.token} held by {worker_id}"
+        """How the service's refusal ends when another process with this id completed the request under this lease
+        (``RequestQueue._stale``'s words)."""
         self._stop = threading.Event()
         self.lost: str | None = None
         """Why the lease is not ours any more (the service said so), or None."""
@@ -79,7 +83,12 @@ class Renewer:
             except ProtocolError as exc:
                 if exc.code in (ErrorCode.STALE_TOKEN, ErrorCode.UNKNOWN_REQUEST):
                     self.lost = exc.message
-                    if self.uploading:
+                    if not self.uploading and exc.message.endswith(self._done_by_this_id):
+                        log.error("lease of %s lost: the request was completed under this very lease (token %d) by "
+                                  "an upload from the id %s, which this worker has not sent: two workers share the "
+                                  "id %s and collect every request twice; give each its own --id",
+                                  self._grant.request_id, self._grant.token, self._worker_id, self._worker_id)
+                    elif self.uploading:
                         log.info("renewal of %s refused (%s) while its upload is out (which may have completed it: "
                                  "the upload's reply says): %s", self._grant.request_id, exc.code.value, exc.message)
                     else:

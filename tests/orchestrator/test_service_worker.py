@@ -173,3 +173,22 @@ def test_a_draining_worker_gives_up_an_upload_nobody_answers_when_its_lease_runs
     assert w.wait(30) == 0, w.log()  # (the old worker retried until killed)
     assert f"dropping the episode of {request.id}: draining" in w.log()
     assert Catalog(data_dir).count() == 0
+
+
+def test_a_worker_whose_lease_another_process_with_its_id_completed_says_the_id_is_shared(make_service,
+                                                                                        spawn_worker) -> None:
+    """Two processes given one --id: the second is answered the lease the first holds, and both collect it. The
+    one that uploads second is refused (the service logs the error); the one that is still collecting when the
+    other's upload completes the request learns it from its next renewal, and says why (it used to drop its
+    episode with a bare 'lease lost', and the shared id went unnoticed)."""
+    service = make_service(lease_s=0.6)
+    request, _ = service.queue.enqueue(new_request(steps=40))
+    slow = spawn_worker("X", "--realtime", "1", "--once")  # 4 s of paced collection
+    in_hand(slow, request.id)
+    fast = spawn_worker("X", "--once")  # the same id: handed the same lease, uploads at once
+    assert fast.wait(60) == 0, fast.log()
+    assert slow.wait(60) == 0, slow.log()
+    done = service.queue.get(request.id)
+    assert (done.status, done.attempts, done.token) == (RequestStatus.DONE, 0, 1)
+    assert "two workers share the id X and collect every request twice; give each its own --id" in slow.log()
+    assert "ERROR" not in fast.log()
