@@ -22,6 +22,9 @@ ACL_MESSAGES: tuple[str, ...] = ("put", "delete", "declare_subscriber", "query",
                                  "declare_queryable", "liveliness_token",
                                  "declare_liveliness_subscriber", "liveliness_query")
 DEFAULT_NAMESPACE = "activecollect"
+#: The key of a client config's ``metadata`` (which Zenoh keeps as it is) where ``secure init`` records the
+#: profile's namespace.
+NAMESPACE_METADATA = "activecollect_namespace"
 
 
 def _rule(rule_id: str, flows: list[str], messages: list[str], key_exprs: list[str]) -> dict[str, Any]:
@@ -100,7 +103,13 @@ def denied_by_acl(config: dict[str, Any], config_path: Path, key_expr: str, name
                    message: str = "query") -> str | None:
     """Why ``message``s (queries, or "declare_queryable") on ``key_expr`` with this parsed config will go unanswered,
     when it is the config of a secure profile's role that the profile's ACL does not let send them there (``what``:
-    "admin queries", say); else None."""
+    "admin queries", say), or the profile's of another namespace (its ACL lets none of this one's keys through);
+    else None."""
+    recorded = lookup_key(config, f"metadata/{NAMESPACE_METADATA}")
+    if isinstance(recorded, str) and recorded != namespace:  # (profiles from before it was recorded: not known)
+        return (f"{config_path} is a secure profile of the namespace {recorded!r}, whose router's ACL drops every "
+                f"key of {namespace!r}: give --namespace {recorded} (or a profile made with secure init "
+                f"--namespace {namespace})")
     role, allowed = client_role(config), roles_that_may_send(key_expr, namespace, message)
     if role is None or not allowed or role in allowed:
         return None

@@ -32,7 +32,7 @@ from cryptography.hazmat.primitives.asymmetric import ec
 from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 
 from orchestrator import secure_files
-from orchestrator.acl import DEFAULT_NAMESPACE, ROLES, build_acl
+from orchestrator.acl import DEFAULT_NAMESPACE, NAMESPACE_METADATA, ROLES, build_acl
 from orchestrator.endpoints import endpoint_problem
 from orchestrator.protocol import Keys, ProtocolError
 from orchestrator.transport import SecureConfigError, lookup_key
@@ -266,6 +266,9 @@ def client_config(cfg: SecureInitConfig, role: str, password: str) -> dict[str, 
             "link": {"protocols": ["tls"], "tls": _tls(d, role, listen=False)},
             "auth": {"usrpwd": {"user": role, "password": password}},
         },
+        # Zenoh keeps metadata as it is; the commands given this config check their --namespace against it
+        # (``acl.denied_by_acl``): the router's ACL lets this profile's keys through and drops any other's.
+        "metadata": {NAMESPACE_METADATA: cfg.namespace},
     }
 
 

@@ -183,3 +183,32 @@ def test_serve_with_another_roles_config_exits_2_naming_the_role(secure_router, 
                     "and the router's ACL drops the declarations of the service's queryables from every role but "
                     f"orchestrator (give --zenoh-config {secure_router.configs['orchestrator']})"), line
     assert not (tmp_path / "data").exists()
+
+
+# ---------------------------------------------------------------- a profile of another namespace
+
+@pytest.mark.parametrize("argv, role, prefix", [
+    (["worker", "--once"], "worker", "activecollect worker: error: --zenoh-config: "),
+    (["serve", "--init", "--data", "DATA"], "orchestrator", "activecollect: error: --zenoh-config: "),
+], ids=["worker", "serve"])
+def test_a_command_given_another_namespace_than_its_profiles_exits_2_naming_it(secure_router, tmp_path, capsys,
+                                                                                argv, role, prefix):
+    """The profile records its namespace in each client config; its router's ACL drops every key of another one,
+    so a --namespace typo would have had a worker wait for ever and a service serve nobody."""
+    config = secure_router.configs[role]
+    data = tmp_path / "data"
+    argv = [str(data) if a == "DATA" else a for a in argv]
+    rc = main([*argv, "--zenoh-config", str(config), "--namespace", "lab2"])
+    line = capsys.readouterr().err.strip()
+    assert rc == 2 and line == (f"{prefix}{config} is a secure profile of the namespace 'activecollect', whose "
+                                "router's ACL drops every key of 'lab2': give --namespace activecollect (or a "
+                                "profile made with secure init --namespace lab2)"), line
+    assert not data.exists()
+
+
+def test_an_operator_command_given_another_namespace_says_so_when_nobody_answers(secure_router, capsys):
+    config = secure_router.configs["operator"]
+    assert main(["stats", "--zenoh-config", str(config), "--namespace", "lab2", "--timeout", "0.5"]) == 1
+    line = one_line(capsys.readouterr().err)
+    assert line.startswith("activecollect: no orchestrator answered on lab2/admin/stats within 0.5 s, and none will: ")
+    assert "is a secure profile of the namespace 'activecollect'" in line, line
