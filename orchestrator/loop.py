@@ -3,13 +3,14 @@
 Parts, each usable alone (the champion scorer is ``orchestrator.champion``'s, the
 configuration ``orchestrator.loopconfig.RunConfig``):
 
-- ``RoundPlanner``: the service's planner in lockstep rounds: it keeps each round's
-  episodes and plans the next round when a retrain has finished.
+- ``RoundPlanner`` (``orchestrator.loop_rounds``): the service's planner in lockstep rounds:
+  it keeps each round's episodes and plans the next round when a retrain has finished.
 - ``LoopRun``: ``activecollect run``: the service, N worker processes over Zenoh on
   loopback, the eval split, the seed requests, the retrain scheduler, the dashboard
   and a progress line, until the episode budget is spent; then the report. Ctrl-C
-  (KeyboardInterrupt) and SIGTERM stop it early the same way: workers drained, a
-  running retrain stopped, the report written. The workers are told to drain with
+  and SIGTERM stop it early the same way: workers drained, a running retrain stopped,
+  the report written; once it stops (early or not), a further one cannot cut that short
+  (it stops a running retrain, and the report is still written). The workers are told to drain with
   ``workers.agent.DRAIN_SIGNAL``, never with a stop signal: a terminal's Ctrl-C,
   systemd's stop and ``kill -TERM -PGID`` reach them too, and a second stop signal
   would make them give their episode back unfinished.
@@ -19,6 +20,7 @@ from __future__ import annotations
 
 import logging
 import os
+import signal
 import socket
 import subprocess
 import sys
@@ -26,20 +28,23 @@ import threading
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Callable, Sequence
+from typing import Callable
 
 import numpy as np
 from tqdm import tqdm
 
 from orchestrator.champion import ChampionScorer, FramesSource
 from orchestrator.dashboard import Dashboard, DashboardConfig, DataSources, learning_curve
+from orchestrator.loop_catalog import eval_leftovers_warning, load_episodes
+from orchestrator.loop_rounds import RoundPlanner
 from orchestrator.loopconfig import RunConfig
 from orchestrator.metrics import ServiceMetrics, retrain_outcome
 from orchestrator.planner import ActivePlanner, ActivePlannerConfig, Planner, in_eval_split
 from orchestrator.uniform import UniformPlanner, UniformPlannerConfig
 from orchestrator.protocol import EventKind
 from orchestrator.report import ReportInputs, write_report
-from orchestrator.retrainjob import RetrainRecord, ScheduleConfig, die_with_parent
+from orchestrator.retrainjob import RetrainRecord, RetrainStatus, ScheduleConfig, die_with_parent
+from orchestrator.retrainlock import lock_held
 from orchestrator.scheduler import RetrainScheduler
 from orchestrator.service import Service
 from orchestrator.serviceconfig import ServiceConfig
@@ -47,72 +52,10 @@ from orchestrator.signals import on_stop_signals
 from storage.catalog import Catalog
 from storage.models import ModelRegistry, ModelStatus
 from storage.queue import RequestQueue, steady_clock
-from storage.requests import NewRequest
 from storage.records import Episode
 from workers.agent import DRAIN_SIGNAL
 
 log = logging.getLogger(__name__)
-
-
-class RoundPlanner:
-    """Lockstep rounds for the service: collect a round, retrain, then plan the next round.
-
-    The service calls ``plan`` for every stored episode (in its background thread);
-    this only keeps the round's episodes. ``release`` (called when a retrain has
-    finished, so the freshest champion scores them) asks the inner planner for the
-    next round and fills it up to ``round_episodes`` with uniform requests. Requests
-    never exceed what is left of ``budget``: workers idle while the model retrains,
-    which is what lets each round be planned by the model the previous rounds made.
-    """
-
-    def __init__(self, inner: Planner, round_episodes: int, budget: int, collected: Callable[[], int],
-                 outstanding: Callable[[], int]) -> None:
-        self.inner = inner
-        self.name = inner.name
-        self.round_episodes = round_episodes
-        self.budget = budget
-        self.collected = collected
-        self.outstanding = outstanding
-        self._buffer: list[Episode] = []
-        self._lock = threading.Lock()
-
-    def seed(self, n: int, why: str = "seed") -> list[NewRequest]:
-        return self.inner.seed(min(n, self._room()), why)
-
-    def observe(self, episodes: Sequence[Episode]) -> None:
-        self.inner.observe(episodes)
-
-    def plan(self, new_episodes: Sequence[Episode], limit: int | None = None) -> list[NewRequest]:
-        """Buffers the episodes for ``release``; plans nothing now."""
-        with self._lock:
-            self._buffer.extend(new_episodes)
-            del self._buffer[:-self.round_episodes]  # a round's worth is all a plan looks at
-        return []
-
-    def has_episodes(self) -> bool:
-        with self._lock:
-            return bool(self._buffer)
-
-    def remember(self, episodes: Sequence[Episode]) -> None:
-        """Put episodes back in the buffer (a resumed run plans from the catalog's latest)."""
-        self.plan(episodes)
-
-    def _room(self) -> int:
-        return max(0, min(self.round_episodes, self.budget - self.collected() - self.outstanding()))
-
-    def release(self, limit: int | None = None) -> list[NewRequest]:
-        """The next round's requests: planned from the buffered episodes, topped up uniformly.
-
-        ``limit``: at most this many (the rest of a round that a dead or cancelled request left short).
-        """
-        with self._lock:
-            episodes, self._buffer = self._buffer, []
-        room = self._room() if limit is None else min(self._room(), max(0, limit))
-        if room == 0:
-            return []
-        planned = self.inner.plan(episodes, limit=room) if episodes else []  # (not a cut: the planner
-        # remembers what it returns, and keeps its next candidates away from those states)
-        return planned + self.inner.seed(room - len(planned))
 
 
 #: Creates (or checks) the pinned eval split: (catalog, episodes, seed, steps, image size) -> its hash.
@@ -152,7 +95,7 @@ class RunResult:
 
     report: Path
     episodes: int
-    """Training episodes in the catalog (what ``--budget`` counts: earlier runs' too)."""
+    """Training episodes in the catalog (what ``--budget`` counts: earlier runs' too, and quarantined ones)."""
     collected: int
     """Of those, the ones this run added."""
     champion: str | None
@@ -186,7 +129,15 @@ class LoopRun:
         self._at_start: int | None = None
         """Training episodes in the catalog when this run began (a resumed run's report tells its own apart)."""
         self._terminated = threading.Event()
-        """Set by SIGTERM: stop as Ctrl-C does."""
+        """Set by SIGTERM, and by Ctrl-C once ``_take_ctrl_c`` has it: stop."""
+        self._ctrl_c = False
+        """A Ctrl-C stopped the loop (once ``_take_ctrl_c`` has it; before, it is a KeyboardInterrupt)."""
+        self._stopping = False
+        """The loop is over (early or not): a stop signal now can only hurry the tear-down, never end the run."""
+        self._stop_lock = threading.Lock()  # (between the two above: a Ctrl-C either stopped the loop or came after)
+        self._give_back_ctrl_c: Callable[[], None] | None = None
+        self._busy: tuple[RetrainRecord | None, bool] = (None, False)
+        """The last busy retrain record ``_lock_freed`` saw, and whether the loop asked for it again."""
         self._clock = steady_clock()
         """One clock for this run's queue writes, its own (top-ups, cancels) and its service's (``steady_clock``):
         after a step of the wall clock, their ``created`` and ``updated`` stamps still agree."""
@@ -204,6 +155,8 @@ class LoopRun:
         self.registry = ModelRegistry(cfg.data_dir)
         self._at_start = self._count()
         self.make_eval_split(self.catalog, cfg.eval_episodes, cfg.eval_seed, cfg.steps, cfg.image_size)
+        if leftovers := eval_leftovers_warning(self.catalog):
+            log.warning("%s", leftovers)
         if self._terminated.is_set():  # (during the eval split: set-up's slow part)
             return
         self._cancel_leftovers()
@@ -267,7 +220,12 @@ class LoopRun:
 
     # -- callbacks ------------------------------------------------------------------------------
     def _count(self) -> int:
+        """Training episodes in the catalog, quarantined ones too: what ``--budget`` counts."""
         return self.catalog.count(split="train")
+
+    def _trainable(self) -> int:
+        """Training episodes a retrain can load: ``_count`` less the quarantined."""
+        return self.catalog.count(split="train", quarantined=False)
 
     def _outstanding(self) -> int:
         counts = self.queue.counts()
@@ -285,15 +243,32 @@ class LoopRun:
     def run(self) -> RunResult:
         """Collect until the budget is spent and the last retrain is done; then write the report.
 
-        Ctrl-C (KeyboardInterrupt) or SIGTERM (taken while this runs, on the main thread) stop it
-        early: the workers finish and upload the episode in hand, a running retrain is stopped, the
-        report is written, and the result says ``interrupted``.
+        Ctrl-C or SIGTERM (taken while this runs, on the main thread) stop it early: the workers finish
+        and upload the episode in hand, a running retrain is stopped, the report is written, and the
+        result says ``interrupted``. One that comes once the loop is over (early or not) stops a
+        running retrain and is logged; the report is still written.
         """
-        restore = on_stop_signals(self._terminated.set, sigint=False)  # Ctrl-C stays a KeyboardInterrupt
+        restore = on_stop_signals(self._terminated.set, sigint=False)  # Ctrl-C: see _take_ctrl_c
         try:
             return self._run()
         finally:
             restore()
+
+    def _take_ctrl_c(self) -> None:
+        """From now on Ctrl-C is ``_on_ctrl_c``'s (on the stop-signals thread), no longer a KeyboardInterrupt: that
+        one interrupts set-up's slow part (the eval split), but raised in the tear-down or while the report is
+        written it lost the report. Unless SIGINT was ignored when the run began (``on_stop_signals``)."""
+        if self._give_back_ctrl_c is None and signal.getsignal(signal.SIGINT) is not signal.SIG_IGN:
+            self._give_back_ctrl_c = on_stop_signals(self._terminated.set, sigint=False,
+                                                     also={signal.SIGINT: self._on_ctrl_c})
+
+    def _on_ctrl_c(self) -> None:
+        with self._stop_lock:
+            stopping = self._stopping
+            self._ctrl_c = self._ctrl_c or not stopping
+        self._terminated.set()  # (once stopping: a running retrain is stopped, see _teardown)
+        if stopping:
+            log.warning("Ctrl-C: stopping already; the report is still to be written")
 
     def _run(self) -> RunResult:
         start = time.monotonic()  # a duration: a step of the wall clock (NTP) must not make it wrong or negative
@@ -301,12 +276,17 @@ class LoopRun:
         try:
             try:
                 self._setup()
+                self._take_ctrl_c()
                 if not self._terminated.is_set():
                     self._wait_until_done()
             except KeyboardInterrupt:
                 ctrl_c = True
             finally:
-                interrupted = ctrl_c or self._terminated.is_set()
+                self._take_ctrl_c()  # first: a Ctrl-C from here on must not cut the tear-down or the report short
+                with self._stop_lock:
+                    self._stopping = True
+                    ctrl_c = ctrl_c or self._ctrl_c
+                    interrupted = ctrl_c or self._terminated.is_set()
                 if interrupted:
                     log.warning("interrupted (%s): stopping workers; the next run resumes from the catalog",
                                 "Ctrl-C" if ctrl_c else "SIGTERM")
@@ -315,14 +295,41 @@ class LoopRun:
         finally:
             if self.service is not None:  # last: no `serve` starts on the directory while the report is written
                 self.service.release_claim()
+            if self._give_back_ctrl_c is not None:  # (before run()'s restore: the reverse order of installing)
+                self._give_back_ctrl_c()
 
-    def _trained_on(self) -> int:
-        """The most training episodes any finished retrain saw (this run's or an earlier one's). A candidate
-        is not finished: its job died before the gate (an earlier run SIGKILLed), and the round is retrained."""
-        seen = [int(m.metrics.get("train_episodes", 0)) for m in self.registry.list()
-                if m.status is not ModelStatus.CANDIDATE]
-        seen += [r.episodes for r in self.scheduler.history if r.finished is not None]
-        return max(seen, default=0)
+    def _all_trained(self) -> bool:
+        """Whether a finished retrain saw every training episode: the last of this run's saw the catalog's count
+        (which only grows), or, before any, this run collected nothing yet and a model of an earlier run saw every
+        episode a retrain can load (``_trainable``: not the quarantined, which ``_count`` holds; a directory with
+        one was retrained on every run). A model saw those it trained on and those it left out for their frame
+        size or as replays of eval episodes. A candidate is not finished: its job died before the gate (an earlier
+        run SIGKILLed), and the round is retrained. A job that found the retrain lock held trained nothing (see
+        ``_lock_freed``); one that failed otherwise counts, or a retrain that fails every time would hold the run
+        for ever."""
+        done = [r for r in self.scheduler.history if r.finished is not None and r.status is not RetrainStatus.busy]
+        if done:
+            return done[-1].episodes >= self._count()
+        seen = [sum(int(m.metrics.get(key, 0)) for key in ("train_episodes", "train_replays_left_out",
+                                                            "train_other_size_left_out"))
+                for m in self.registry.list() if m.status is not ModelStatus.CANDIDATE]
+        return self._count() == self._at_start and max(seen, default=0) >= self._trainable()
+
+    def _lock_freed(self) -> bool:
+        """Whether the round's retrain found the retrain lock held by another retrain (a cron job's, an operator's)
+        and the lock is free now: then it is asked for again, as ``serve``'s scheduled retrains are."""
+        last = self.scheduler.history[-1] if self.scheduler.history else None
+        if last is None or last.status is not RetrainStatus.busy or self._busy == (last, True):
+            return False
+        if lock_held(self.cfg.data_dir):
+            if self._busy[0] is not last:
+                log.warning("the round's retrain found the retrain lock held by another retrain: it runs once the "
+                            "lock is free (the run waits for it; Ctrl-C stops the run, and the next one retrains)")
+                self._busy = (last, False)
+            return False
+        self._busy = (last, True)
+        log.info("retrain lock free: the round's retrain that found it held runs now")
+        return True
 
     def _wait_until_done(self) -> None:
         cfg = self.cfg
@@ -334,12 +341,12 @@ class LoopRun:
                 count, running = self._count(), self.scheduler.running
                 self._show(bar, count)
                 if not running and self._outstanding() == 0:
-                    if self._trained_on() >= count:  # a retrain (of this run or an earlier one) saw it all
+                    if self._all_trained():  # a retrain (this run's or an earlier one's) saw them all
                         if count >= cfg.budget:
                             return
                         self._release()
                     elif count >= cfg.budget or count % cfg.round_episodes == 0:
-                        if asked_for != count:  # the round is complete: retrain, then plan the next
+                        if asked_for != count or self._lock_freed():  # complete: retrain, then plan the next
                             self.scheduler.request("round")
                             asked_for = count
                     else:  # mid-round and nothing outstanding (a request died): fill this round only
@@ -355,7 +362,7 @@ class LoopRun:
         if not self.planner.has_episodes():
             latest = self.catalog.list(split="train", limit=self.cfg.round_episodes, newest_first=True,
                                        quarantined=False)[::-1]
-            self.planner.remember([self.catalog.load(r.episode_id) for r in latest])
+            self.planner.remember(load_episodes(self.catalog, [r.episode_id for r in latest], "the next round's plan"))
         made = 0
         for request, created in self.queue.enqueue_many(self.planner.release(limit)):
             made += created
@@ -400,8 +407,8 @@ class LoopRun:
                 p.wait()
         if self.dashboard is not None:
             self.dashboard.stop()
-        if hasattr(self, "scheduler"):
-            self.scheduler.stop(kill_running=interrupted)
+        if hasattr(self, "scheduler"):  # (a stop signal since the loop ended: stop a running retrain too)
+            self.scheduler.stop(kill_running=interrupted or self._terminated.is_set())
         if self.service is not None:
             self.service.stop(keep_claim=True)  # (let go once the report is written: see _run)
 
@@ -424,25 +431,33 @@ class LoopRun:
         retrains = [r.to_json() for r in self.scheduler.history] if hasattr(self, "scheduler") else []
         count = self._count()
         collected = 0 if self._at_start is None else count - self._at_start  # (stopped before set-up counted)
-        summary = {"planner": self.cfg.planner, "episodes": count, "collected_this_run": collected,
+        train_sample, eval_sample = self._samples()  # (first: what they find lost is quarantined, and counted below)
+        summary = {"planner": self.cfg.planner, "episodes": count,
+                   "quarantined": self.catalog.count(split="train", quarantined=True), "collected_this_run": collected,
                    "budget": self.cfg.budget, "round_episodes": self.cfg.round_episodes, "workers": self.cfg.workers,
                    "image_size": self.cfg.image_size, "steps": self.cfg.steps, "champion": champion,
                    "champion_h1_mse": h1, "retrains": len(retrains), "interrupted": interrupted,
                    "seconds": round(time.monotonic() - start, 1), "queue": self.queue.counts()}
         if problem is not None:
             summary["champion_problem"] = problem
-        train_rows = self.catalog.list(split="train", limit=40, newest_first=True, quarantined=False)
-        split = self.catalog.eval_split()
-        inputs = ReportInputs(curve=learning_curve(self.catalog, self.registry), summary=summary,
-                              retrains=retrains, champion=ensemble,
-                              # (a catalog older than the one-frame-size rule may hold other sizes)
-                              train_sample=[ep for ep in (self.catalog.load(r.episode_id) for r in train_rows)
-                                            if ep.frames.shape[1] == self.cfg.image_size],
-                              eval_sample=[self.catalog.load(i) for i in (split.ids[:3] if split else [])])
+        if interrupted:  # (what was left to do: the report's headline says it)
+            summary["interrupted_in"] = ("set-up" if not hasattr(self, "scheduler") else
+                                         "collection" if count < self.cfg.budget else "the last retrain")
+        inputs = ReportInputs(curve=learning_curve(self.catalog, self.registry), summary=summary, retrains=retrains,
+                              champion=ensemble, train_sample=train_sample, eval_sample=eval_sample)
         report = write_report(self.cfg.data_dir, inputs)
         self.queue.close()
         return RunResult(report=report, episodes=count, collected=collected, champion=champion, champion_h1_mse=h1,
                          retrains=retrains, seconds=summary["seconds"], interrupted=interrupted)
+
+    def _samples(self) -> tuple[list[Episode], list[Episode]]:
+        """The report's episodes: the newest training ones of the run's frame size (a catalog older than the
+        one-frame-size rule may hold others) and the first eval ones; those whose files are lost are left out."""
+        rows = self.catalog.list(split="train", limit=40, newest_first=True, quarantined=False)
+        train = load_episodes(self.catalog, [r.episode_id for r in rows], "the report")
+        split = self.catalog.eval_split()
+        return ([ep for ep in train if ep.frames.shape[1] == self.cfg.image_size],
+                load_episodes(self.catalog, split.ids[:3] if split else [], "the report", quarantine=False))
 
 
 class LoopError(Exception):

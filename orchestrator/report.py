@@ -12,6 +12,8 @@ from __future__ import annotations
 import html
 import io
 import json
+import os
+import shutil
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -35,9 +37,11 @@ CURVE_X_LABEL = "training episodes the model was trained on"
 #: The report's names of ``activecollect run``'s summary keys whose bare name says less than they mean (summary.json
 #: keeps the keys): a resumed run's ``episodes`` are the catalog's, its retrains and seconds its own.
 SUMMARY_LABELS = {"planner": "planner (this run)", "episodes": "training episodes (catalog)",
+                  "quarantined": "of those, quarantined (not trained on)",
                   "collected_this_run": "collected by this run", "budget": "budget (training episodes)",
                   "round_episodes": "episodes per round", "retrains": "retrains (this run)",
-                  "champion_h1_mse": "champion eval h1 MSE", "seconds": "seconds (this run)"}
+                  "champion_h1_mse": "champion eval h1 MSE", "seconds": "seconds (this run)",
+                  "interrupted_in": "interrupted in"}
 
 
 def _png(fig: Figure) -> bytes:
@@ -163,14 +167,27 @@ class ReportInputs:
 
 
 def write_report(data_dir: Path, inputs: ReportInputs, when: float | None = None) -> Path:
-    """Write ``DATA/reports/<timestamp>/index.html`` with its PNGs; returns the index path."""
+    """Write ``DATA/reports/<timestamp>/index.html`` with its PNGs; returns the index path.
+
+    The files are written in a hidden sibling folder (``.<timestamp>-<pid>.tmp``) renamed into place
+    once whole, so a report cut short leaves no ``<timestamp>/`` folder without its page: one that
+    raises removes what it wrote, one killed leaves only the hidden folder.
+    """
+    reports = Path(data_dir) / "reports"
     stamp = time.strftime("%Y%m%dT%H%M%S", time.gmtime(when or time.time()))
-    out = Path(data_dir) / "reports" / stamp
-    n = 1
-    while out.exists():
-        out = Path(data_dir) / "reports" / f"{stamp}-{n}"
-        n += 1
-    out.mkdir(parents=True)
+    reports.mkdir(parents=True, exist_ok=True)
+    tmp = reports / f".{stamp}-{os.getpid()}.tmp"
+    shutil.rmtree(tmp, ignore_errors=True)  # (what a killed writer of this pid left: pids are used again)
+    tmp.mkdir()
+    try:
+        _write_files(tmp, inputs)
+        return _rename_into_place(tmp, reports, stamp) / "index.html"
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+
+
+def _write_files(out: Path, inputs: ReportInputs) -> None:
     images = {"curve.png": curve_png(inputs.curve)}
     if inputs.champion is not None:
         images["disagreement.png"] = disagreement_png(inputs.champion, inputs.train_sample)
@@ -180,7 +197,21 @@ def write_report(data_dir: Path, inputs: ReportInputs, when: float | None = None
     summary = {"summary": inputs.summary, "curve": inputs.curve, "retrains": inputs.retrains}
     (out / "summary.json").write_text(json.dumps(finite_json(summary), indent=2, default=str, allow_nan=False))
     (out / "index.html").write_text(_html(inputs, images))
-    return out / "index.html"
+
+
+def _rename_into_place(tmp: Path, reports: Path, stamp: str) -> Path:
+    """``tmp`` renamed to ``reports/<stamp>`` (``<stamp>-N`` when that is taken); the folder it now is."""
+    n = 0
+    while True:
+        out = reports / (f"{stamp}-{n}" if n else stamp)
+        if not out.exists():
+            try:
+                tmp.rename(out)
+                return out
+            except OSError:  # (made by another writer since the look: the next name)
+                if not out.exists():
+                    raise
+        n += 1
 
 
 def _html(inputs: ReportInputs, images: dict[str, bytes]) -> str:
@@ -214,13 +245,18 @@ img{{max-width:100%;border:1px solid #ddd}}</style></head><body>
 """
 
 
+#: What an interrupted run had left to do, by its summary's ``interrupted_in``.
+INTERRUPTED_IN = {"set-up": " during set-up", "collection": " before the budget was spent",
+                  "the last retrain": " with the budget spent, before its last retrain"}
+
+
 def _headline(summary: dict[str, Any], retrains: Sequence[dict]) -> list[str]:
     """What a reader must know before the numbers: a run stopped early, one that resumed an earlier run's
     catalog, one that has no champion to show or whose champion none of its retrains made."""
     lines = []
     if summary.get("interrupted"):
-        lines.append("Interrupted (Ctrl-C or SIGTERM) before the budget was spent: the next run on this data "
-                     "directory resumes from its catalog.")
+        lines.append(f"Interrupted (Ctrl-C or SIGTERM){INTERRUPTED_IN.get(summary.get('interrupted_in'), '')}: "
+                     "the next run on this data directory resumes from its catalog.")
     collected, episodes = summary.get("collected_this_run"), summary.get("episodes")
     if isinstance(collected, int) and isinstance(episodes, int) and collected != episodes:
         lines.append(f"This run collected {collected} of the catalog's {episodes} training episodes; the rest "

@@ -14,6 +14,7 @@ from typing import Any, Mapping
 from tqdm import tqdm
 
 from orchestrator.cli import common, episodes as episodes_cli
+from orchestrator.loop_catalog import eval_leftovers_warning
 from orchestrator.protocol import MAX_EPISODE_STEPS, POLICIES, SHAPES, episode_problem, one_line
 from storage.backup import backup, check_dest
 from storage.catalog import SPLITS, Catalog
@@ -362,10 +363,8 @@ def _eval_split_create(args: argparse.Namespace) -> int:
     else:
         print(f"eval split {'pinned' if pinned is None else 'already pinned, with these settings'}: {n} episodes, "
               f"hash {digest}")
-    if (left := cat.count(split="eval") - n) > 0:
-        print(f"activecollect: warning: {left} eval episode(s) in {args.data} are not in the split (an interrupted "
-              "create with other flags, or ingested as eval since): nothing trains or evaluates on them",
-              file=sys.stderr)
+    if leftovers := eval_leftovers_warning(cat):
+        print(f"activecollect: warning: {leftovers}", file=sys.stderr)
     return 0
 
 

@@ -1,0 +1,66 @@
+"""What ``activecollect run`` reads of the catalog besides its counts: episodes it loads past a lost or damaged file,
+and the eval episodes left outside the pinned split (said by ``run`` and ``eval-split create`` alike).
+
+Free of torch: the CLI's ``eval-split create`` imports it.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Iterable
+
+from storage.catalog import Catalog
+from storage.errors import DAMAGED_EPISODE_ERRORS, StorageError
+from storage.records import Episode
+
+log = logging.getLogger(__name__)
+
+
+def load_episodes(catalog: Catalog, ids: Iterable[str], purpose: str, quarantine: bool = True) -> list[Episode]:
+    """The episodes of ``ids`` that load, in order; each one that does not is left out with a warning naming
+    ``purpose`` (what they are loaded for), so one lost file neither stops the run nor keeps it from resuming.
+
+    ``quarantine``: a train episode whose file is gone or no longer holds the bytes indexed is quarantined, as
+    a retrain does (``uncertainty.data.load_train``); unless a repair came first (``only_if_damaged``), and then
+    it is loaded again. Eval-split episodes cannot be quarantined (the split is fixed): give False.
+    """
+    episodes = []
+    for episode_id in ids:
+        try:
+            episodes.append(catalog.load(episode_id))
+            continue
+        except DAMAGED_EPISODE_ERRORS as exc:
+            damaged: StorageError = exc
+        except StorageError as exc:  # a read that may pass (permissions, I/O): nothing to quarantine for
+            log.warning("episode %s left out of %s: %s", episode_id, purpose, exc)
+            continue
+        if quarantine and (episode := _quarantine(catalog, episode_id, damaged, purpose)) is not None:
+            episodes.append(episode)
+        elif not quarantine:
+            log.warning("episode %s left out of %s: %s", episode_id, purpose, damaged)
+    return episodes
+
+
+def _quarantine(catalog: Catalog, episode_id: str, damaged: StorageError, purpose: str) -> Episode | None:
+    """Quarantine the train episode ``episode_id`` found ``damaged``; the episode when a repair came first."""
+    try:
+        row = catalog.quarantine(episode_id, f"found by activecollect run: {damaged}", only_if_damaged=True)
+        if not row.quarantined:  # its bytes were ingested again since the read
+            return catalog.load(episode_id)
+    except StorageError as exc:
+        log.warning("episode %s left out of %s: %s; and it cannot be quarantined now: %s", episode_id, purpose,
+                    damaged, exc)
+        return None
+    log.warning("episode %s quarantined and left out of %s: %s", episode_id, purpose, damaged)
+    return None
+
+
+def eval_leftovers_warning(catalog: Catalog) -> str:
+    """The warning for eval episodes of ``catalog`` that are not in its pinned split (an interrupted ``eval-split
+    create`` or ``run`` taken up with other flags, or episodes ingested as eval since); "" when there are none."""
+    split = catalog.eval_split()
+    left = catalog.count(split="eval") - (len(split.ids) if split else 0)
+    if left <= 0:
+        return ""
+    return (f"{left} eval episode(s) in {catalog.data_dir} are not in the split (an interrupted `eval-split create` "
+            "or `run` with other flags, or ingested as eval since): nothing trains or evaluates on them")
