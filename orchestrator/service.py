@@ -411,9 +411,10 @@ class Service:
         sweeps.sweep_leftovers(self.catalog, self.config.data_dir, self.storage, log)
 
     def _sweep_all(self) -> None:
-        """The periodic sweep: crash leftovers, and the parts of uploads whose worker went away mid-way."""
-        self._sweep()
+        """The periodic sweep: the parts of uploads whose worker went away mid-way (first: memory, which a storage
+        failure of the other does not hold), and crash leftovers."""
         self._uploads.parts.sweep()
+        self._sweep()
 
     def _carry_leases_over(self) -> None:
         """At start-up: every live lease gets a full term from now. No worker could renew while the service

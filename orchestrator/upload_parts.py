@@ -10,11 +10,12 @@ part at most, and a lost reply or a link that drops costs one part, not the epis
 ``PartStaging`` holds the parts received, in memory, per request: only for the lease's holder (the upload handler
 checks the lease before a part is kept), one upload per request (a part of another upload of it, a new lease's or
 other bytes, starts it again), and for ``max_age_s`` after its last part (a worker that died mid-upload leaves
-nothing for long: the next part of any upload, or the service's next sweep, forgets it). A part is answered with
-the bytes held from the start (``received``), from which the worker sends on: a part past them (the service
-restarted and lost what it held) is not kept. The part that completes the bytes hands them, whole, to the upload
-path every whole upload takes (sha256, verification, one ingest transaction): nothing of a partial upload is
-written to disk or indexed.
+nothing for long: the next part of another upload, or the service's sweep every 5 minutes, forgets it). A part is
+answered with the bytes held from the start (``received``), from which the worker sends on: a part past them (the
+service restarted and lost what it held) is not kept. The part that completes the bytes hands them, whole, to the
+upload path every whole upload takes (sha256, verification, one ingest transaction), and are held until it has
+stored or refused them for good (a store that failed for a reason that passes is tried again with the last part
+alone): nothing of a partial upload is written to disk or indexed.
 """
 
 from __future__ import annotations
@@ -49,8 +50,10 @@ class PartStaging:
 
     def add(self, part: UploadPart, payload: bytes) -> int | bytes:
         """Keep ``payload`` at ``part.offset``. The number of bytes now held from the start (send on from there);
-        the whole upload's bytes once they are all here (and nothing is held for the request any more).
-        Raises ProtocolError ``bad_field`` for a part that ends past the upload's size (nothing kept)."""
+        the whole upload's bytes once they are all here, which stay held until ``drop`` (the caller's, once they
+        are stored or refused for good: a store that failed for a reason that passes, or a repeat of the last part
+        while it is stored, finds them whole again). Raises ProtocolError ``bad_field`` for a part that ends past
+        the upload's size (nothing kept)."""
         end = part.offset + len(payload)
         if not payload or end > part.size:
             raise ProtocolError(ErrorCode.BAD_FIELD, f"payload: expected 1 to {part.size - part.offset} bytes "
@@ -58,7 +61,7 @@ class PartStaging:
         whole = part.whole()
         with self._lock:
             now = self._clock()
-            self._drop_stale(now)
+            self._drop_stale(now, keep=part.request_id)  # (its lease was just checked: live, however slow its part)
             held = self._held.get(part.request_id)
             if held is None or held.header != whole:  # a new upload of this request: a new lease's, other bytes
                 held = self._held[part.request_id] = _Partial(whole, bytearray(), now)
@@ -66,10 +69,7 @@ class PartStaging:
             if part.offset > len(held.data):  # a gap: what came before it is not here (lost by a restart)
                 return len(held.data)
             held.data[part.offset:end] = payload  # a repeat of a part overwrites it with the same bytes
-            if len(held.data) < part.size:
-                return len(held.data)
-            del self._held[part.request_id]
-        return bytes(held.data)
+            return len(held.data) if len(held.data) < part.size else bytes(held.data)
 
     def drop(self, header: UploadHeader) -> None:
         """Forget the parts of ``header``'s upload (refused: its lease is not live any more, or it was stored)."""
@@ -79,7 +79,7 @@ class PartStaging:
                 del self._held[header.request_id]
 
     def held_bytes(self) -> int:
-        """Bytes held for uploads in progress."""
+        """Bytes held for uploads in progress (for tests and diagnostics)."""
         with self._lock:
             return sum(len(p.data) for p in self._held.values())
 
@@ -88,6 +88,6 @@ class PartStaging:
         with self._lock:
             self._drop_stale(self._clock())
 
-    def _drop_stale(self, now: float) -> None:
-        for request_id in [r for r, p in self._held.items() if now - p.touched > self.max_age_s]:
+    def _drop_stale(self, now: float, keep: str | None = None) -> None:
+        for request_id in [r for r, p in self._held.items() if now - p.touched > self.max_age_s and r != keep]:
             del self._held[request_id]

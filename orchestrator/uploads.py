@@ -139,7 +139,14 @@ class UploadHandler:
         got = self.parts.add(part, payload)
         if isinstance(got, int):
             return protocol.ok_reply(request_id=request.id, received=got)
-        return self._store(got, whole)
+        try:
+            reply = self._store(got, whole)
+        except ProtocolError as exc:
+            if exc.code not in (ErrorCode.UNAVAILABLE, ErrorCode.INTERNAL):  # else the last part again stores them
+                self.parts.drop(whole)
+            raise
+        self.parts.drop(whole)
+        return reply
 
     def _store(self, payload: bytes, header: messages.UploadHeader) -> bytes:
         request = self._request(header, payload)

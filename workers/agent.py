@@ -107,6 +107,8 @@ class Worker:
         self.released = 0
         self.dropped = 0
         """Episodes given up while draining because a live service would not store them (exit 1)."""
+        self._no_parts = False
+        """The service takes no upload in parts (an older version): episodes go whole (``workers.upload``)."""
         self.abandoned: list[str] = []
         """``<request id> (<what it was doing>)`` of an episode a second stop signal dropped unacknowledged (exit 1)."""
 
@@ -191,7 +193,8 @@ class Worker:
 
     def _retrying(self, what: str, fn: Callable[[], dict[str, Any]], attempts: int | None = None,
                   until_stopped: bool = False, give_up: Callable[[], bool] = lambda: False,
-                  transient: tuple[ErrorCode, ...] = ()) -> dict[str, Any] | None:
+                  transient: tuple[ErrorCode, ...] = (), progress: Callable[[], Any] = lambda: None
+                  ) -> dict[str, Any] | None:
         """``fn()`` retried with exponential backoff while nobody answers (or refuses with a ``transient`` code).
 
         None when out of ``attempts``, when ``give_up()`` says so, when told to give the request back,
@@ -200,6 +203,7 @@ class Worker:
         """
         delay, n = 0.1, 0
         while True:
+            before = progress()
             try:
                 return fn()
             except Abandoned:
@@ -213,6 +217,8 @@ class Worker:
                 if give_up() or (attempts is not None and n >= attempts):
                     log.warning("%s: giving up after %d attempts: %s", what, n, exc)
                     return None
+                if progress() != before:  # (an upload in parts that got on: its next trouble backs off from the start)
+                    delay = 0.1
                 wait = min(delay * (0.5 + self._rng.random()), self.config.max_backoff_s)
                 log.warning("%s: %s; retrying in %.2f s", what, exc, wait)
                 if (self._stop if until_stopped else self._abort).wait(wait):  # (a give-back sets both)
@@ -352,7 +358,8 @@ class Worker:
         is ours. While draining, for one more lease term at most (``Renewer.drain_left``), then
         ``_give_up``. A second stop signal gives the request back instead.
         """
-        upload = EpisodeUpload(data, grant.request_id, grant.token, self.config.worker_id, self.config.part_bytes)
+        upload = EpisodeUpload(data, grant.request_id, grant.token, self.config.worker_id,
+                               None if self._no_parts else self.config.part_bytes)
         last: list[Exception] = []  # the last try's failure
 
         def send(payload: bytes, attachment: bytes) -> dict[str, Any]:
@@ -383,7 +390,7 @@ class Worker:
 
         renewer.uploading = True
         try:
-            body = self._retrying("upload", attempt, give_up=give_up,
+            body = self._retrying("upload", attempt, give_up=give_up, progress=lambda: upload.held,
                                   transient=(ErrorCode.INTERNAL, ErrorCode.UNAVAILABLE))
         except ProtocolError as exc:
             if exc.code in (ErrorCode.STALE_TOKEN, ErrorCode.UNKNOWN_REQUEST):
@@ -392,6 +399,8 @@ class Worker:
                 log.warning("upload of %s refused: %s", grant.request_id, exc)
                 self._fail(grant, f"upload refused: {exc}")
             return
+        finally:
+            self._no_parts = self._no_parts or upload.no_parts_here
         if body is not None:
             self.uploaded += 1
             log.info("uploaded %s: episode %s%s", grant.request_id, body.get("episode_id"),

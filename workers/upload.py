@@ -30,12 +30,15 @@ class EpisodeUpload:
     returns the reply that stored it (or says it was stored before); it raises what ``send`` raises, and is
     called again (by the worker's retries) to go on from the last part the service said it holds."""
 
-    def __init__(self, data: bytes, request_id: str, token: int, worker_id: str, part_bytes: int) -> None:
+    def __init__(self, data: bytes, request_id: str, token: int, worker_id: str, part_bytes: int | None) -> None:
         self.data = data
         self.header = messages.UploadHeader.for_payload(data, request_id=request_id, token=token, worker_id=worker_id)
-        self.part_bytes = part_bytes
-        self.in_parts = len(data) > part_bytes
-        """False: one upload of the whole (also once a service that takes no parts refused the first)."""
+        self.part_bytes = part_bytes or len(data)
+        self.in_parts = len(data) > self.part_bytes
+        """False: one upload of the whole (``part_bytes`` None, or once a service that takes no parts refused the
+        first)."""
+        self.no_parts_here = False
+        """The service refused the first part as an older one does: the worker sends its next episodes whole."""
         self.held = 0
         """Bytes from the start the service said it holds."""
 
@@ -51,7 +54,7 @@ class EpisodeUpload:
                 if exc.code is ErrorCode.BAD_FIELD and "unknown field(s) 'offset'" in exc.message:
                     log.warning("the service takes no upload in parts (an older version): %s goes whole "
                                 "(%d bytes)", self.header.request_id, len(self.data))
-                    self.in_parts = False
+                    self.in_parts, self.no_parts_here = False, True
                     return send(self.data, self.header.to_json())
                 raise
             if "received" not in body:  # stored (or a duplicate of what was): the reply of a whole upload

@@ -5,6 +5,7 @@ a part of a lease that is not live, or past the upload's end, refused and nothin
 from __future__ import annotations
 
 import hashlib
+import threading
 
 import pytest
 
@@ -13,6 +14,7 @@ from orchestrator.messages import UploadHeader, UploadPart
 from orchestrator.protocol import ErrorCode, ProtocolError
 from orchestrator.upload_parts import PartStaging
 from storage.catalog import Catalog
+from storage.errors import CatalogUnavailableError
 from storage.requests import RequestStatus
 from tests.orchestrator.test_service import call, episode_bytes, lease, new_request, refused
 
@@ -157,11 +159,80 @@ def test_parts_no_part_has_come_for_are_dropped_after_their_age() -> None:
     assert staging.add(UploadPart.of(header, 4), b"ef") == 6  # touched: its age starts again
     now[0] = 20.5
     other = UploadHeader(request_id="r2", token=1, worker_id="w", sha256="0" * 64, size=3)
-    assert staging.add(UploadPart.of(other, 0), b"xyz") == b"xyz"  # complete: handed over, not held
-    assert staging.held_bytes() == 0  # r1 was older than 10 s when r2's part came
+    assert staging.add(UploadPart.of(other, 0), b"xyz") == b"xyz"  # complete: handed over, held until dropped
+    assert staging.held_bytes() == 3  # r1 was older than 10 s when r2's part came
+    staging.drop(other)
+    assert staging.held_bytes() == 0
     with pytest.raises(ProtocolError, match="expected 1 to 3 bytes"):
         staging.add(UploadPart.of(other, 0), b"")
     assert staging.add(UploadPart.of(header, 0), b"abcd") == 4
     now[0] = 30.6
     staging.sweep()  # what the service's periodic sweep does: no part has to come
     assert staging.held_bytes() == 0
+
+
+def test_a_last_part_whose_store_failed_for_a_passing_reason_stores_the_whole_when_sent_again(service, client, keys,
+                                                                                               data_dir) -> None:
+    """A full disk for a moment: the last part is answered `unavailable` and the bytes stay held, so the worker
+    sends that part alone again (the service used to have forgotten them: it asked for the whole episode again)."""
+    request, _ = service.queue.enqueue(new_request())
+    grant = lease(client, keys)
+    data = episode_bytes(grant)
+    header = header_of(grant, data)
+    real, failed = service.catalog.ingest_bytes, []
+
+    def full_disk_once(*args, **kw):
+        if not failed:
+            failed.append(1)
+            raise CatalogUnavailableError("database catalog.sqlite: database or disk is full")
+        return real(*args, **kw)
+
+    service.catalog.ingest_bytes = full_disk_once
+    send_part(client, keys, header, data, 0)
+    refused(ErrorCode.UNAVAILABLE, send_part, client, keys, header, data, PART, len(data))
+    assert service._uploads.parts.held_bytes() == len(data) and Catalog(data_dir).count() == 0
+    body = send_part(client, keys, header, data, PART, len(data))
+    assert body["episode_id"] and service.queue.get(request.id).status == RequestStatus.DONE
+    assert service._uploads.parts.held_bytes() == 0
+
+
+def test_a_repeat_of_the_last_part_while_it_is_stored_is_answered_as_stored(service, client, keys, data_dir) -> None:
+    """The worker's wait for the last part's reply ran out while the service was storing it: the repeat gets the
+    episode (stored, or a duplicate of it), not 'send from the start'."""
+    request, _ = service.queue.enqueue(new_request())
+    grant = lease(client, keys)
+    data = episode_bytes(grant)
+    header = header_of(grant, data)
+    send_part(client, keys, header, data, 0)
+    uploads, decoding, repeat_in = service._uploads, threading.Event(), threading.Event()
+    real = uploads._decode
+
+    def first_waits_for_the_repeat(*args, **kw):
+        if not decoding.is_set():
+            decoding.set()
+            assert repeat_in.wait(30)
+        else:
+            repeat_in.set()
+        return real(*args, **kw)
+
+    uploads._decode = first_waits_for_the_repeat
+    replies: list[dict] = []
+    first = threading.Thread(target=lambda: replies.append(send_part(client, keys, header, data, PART, len(data))))
+    first.start()
+    assert decoding.wait(30)
+    replies.append(send_part(client, keys, header, data, PART, len(data)))
+    first.join(30)
+    assert len(replies) == 2 and all(r.get("episode_id") == replies[0]["episode_id"] for r in replies), replies
+    assert service.queue.get(request.id).status == RequestStatus.DONE and Catalog(data_dir).count() == 1
+    assert uploads.parts.held_bytes() == 0
+
+
+def test_a_part_slower_than_the_staging_age_does_not_age_out_its_own_upload() -> None:
+    """Its lease was checked just before: live. (A part taking longer to arrive than max_age_s made the worker
+    start again from 0, for ever.)"""
+    now = [0.0]
+    staging = PartStaging(max_age_s=10.0, clock=lambda: now[0])
+    header = UploadHeader(request_id="r1", token=1, worker_id="w", sha256="0" * 64, size=6)
+    assert staging.add(UploadPart.of(header, 0), b"abc") == 3
+    now[0] = 11.0
+    assert staging.add(UploadPart.of(header, 3), b"def") == b"abcdef"

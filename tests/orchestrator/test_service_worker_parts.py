@@ -7,6 +7,7 @@ from __future__ import annotations
 
 from orchestrator import messages
 from storage.catalog import Catalog
+from storage.errors import CatalogUnavailableError
 from storage.requests import RequestStatus
 from tests.orchestrator.test_service import new_request
 
@@ -69,9 +70,37 @@ def test_parts_a_restarted_service_no_longer_holds_are_sent_again_from_the_start
     assert "the part at byte 2048 was not kept; the service holds 0 bytes" in w.log()
 
 
-def test_a_service_that_takes_no_parts_gets_the_episode_whole(make_service, spawn_worker, data_dir,
-                                                              monkeypatch) -> None:
-    """An older service refuses the part's header (an unknown field): the worker sends the episode whole."""
+def test_a_service_that_takes_no_parts_gets_the_episodes_whole(make_service, spawn_worker, data_dir,
+                                                               monkeypatch) -> None:
+    """An older service refuses the part's header (an unknown field): the worker sends the episode whole, and
+    its next episodes too, without trying parts again."""
     monkeypatch.setattr(messages, "upload_header", messages.UploadHeader.from_json)  # the older service's parse
-    offsets, _, w = upload_one(make_service, spawn_worker, data_dir)
-    assert offsets == [] and "the service takes no upload in parts" in w.log()
+    service = make_service()
+    requests = [service.queue.enqueue(new_request(steps=40))[0] for _ in range(3)]
+    w = spawn_worker("P", "--max-episodes", "3", "--upload-part-kb", "1")
+    assert w.wait(60) == 0, w.log()
+    assert all(service.queue.get(r.id).status == RequestStatus.DONE for r in requests), w.log()
+    assert w.log().count("the service takes no upload in parts") == 1, w.log()
+
+
+def test_a_last_part_the_service_could_not_store_for_now_is_the_only_part_sent_again(make_service, spawn_worker,
+                                                                                    data_dir) -> None:
+    """A full disk for a moment when the last part came: the service keeps the bytes, the worker sends that part
+    again, not the whole episode."""
+    service = make_service()
+    request, _ = service.queue.enqueue(new_request(steps=40))
+    offsets = parts_seen(service)
+    real, failed = service.catalog.ingest_bytes, []
+
+    def full_disk_once(*args, **kw):
+        if not failed:
+            failed.append(1)
+            raise CatalogUnavailableError("database catalog.sqlite: database or disk is full")
+        return real(*args, **kw)
+
+    service.catalog.ingest_bytes = full_disk_once
+    w = spawn_worker("P", "--once", "--upload-part-kb", str(PART // 1024))
+    assert w.wait(60) == 0, w.log()
+    done = service.queue.get(request.id)
+    every = list(range(0, Catalog(data_dir).get(done.episode_id).size_bytes, PART))
+    assert failed and done.attempts == 0 and offsets == every + every[-1:], w.log()
