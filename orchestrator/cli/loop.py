@@ -46,10 +46,11 @@ def register(sub: argparse._SubParsersAction) -> None:
                                    f"{retrain['members']} members, {retrain['epochs']} epochs, widths "
                                    f"{','.join(map(str, retrain['widths']))} (--retrain-args; `retrain` alone "
                                    f"trains {train_defaults(TrainConfig())}). --budget counts the catalog's "
-                                   "training episodes, old and new: a run over a finished directory stops at once. "
-                                   "Ctrl-C or SIGTERM stops it cleanly (the workers upload the episode in hand, the "
-                                   "report is written; exit 130) and the next run resumes; exit 1 when every "
-                                   "retrain of the run failed.")
+                                   "training episodes, old and new (quarantined ones too): a run over a finished "
+                                   "directory stops at once. Ctrl-C or SIGTERM stops it cleanly (the workers upload "
+                                   "the episode in hand, the report is written; exit 130) and the next run resumes; "
+                                   "one more while it stops only stops a running retrain, never the report; exit 1 "
+                                   "when every retrain of the run failed.")
     common.add_data_arg(p)
     common.add_json_arg(p)
     p.add_argument("--budget", type=common.positive_int, default=d.budget, metavar="N",
@@ -86,7 +87,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=_retrain)
 
     p = sub.add_parser("dashboard", help="serve the read-only dashboard over a data directory",
-                       description="Serve the read-only dashboard over --data until Ctrl-C: the HTML page, /api/... "
+                       description="Serve the read-only dashboard over --data until Ctrl-C or SIGTERM (exit 0): the "
+                                   "HTML page, /api/... "
                                    "JSON and /metrics for Prometheus (here only the gauges the data directory holds; "
                                    "the service's counters come from serve's or run's dashboard). It has no "
                                    "authentication: keep --host on loopback, or behind something that has. Exit 2 "
