@@ -11,6 +11,7 @@ from collections.abc import Iterable
 
 from storage.catalog import Catalog
 from storage.errors import DAMAGED_EPISODE_ERRORS, StorageError
+from storage.quarantine import looks_unmounted
 from storage.records import Episode
 
 log = logging.getLogger(__name__)
@@ -22,23 +23,32 @@ def load_episodes(catalog: Catalog, ids: Iterable[str], purpose: str, quarantine
 
     ``quarantine``: a train episode whose file is gone or no longer holds the bytes indexed is quarantined, as
     a retrain does (``uncertainty.data.load_train``); unless a repair came first (``only_if_damaged``), and then
-    it is loaded again. Eval-split episodes cannot be quarantined (the split is fixed): give False.
+    it is loaded again; and unless most of them are (``storage.quarantine.looks_unmounted``: a disk not mounted),
+    as a retrain does too. Eval-split episodes cannot be quarantined (the split is fixed): give False.
     """
-    episodes = []
+    ids = list(ids)
+    episodes: dict[str, Episode] = {}
+    damaged: dict[str, StorageError] = {}
     for episode_id in ids:
         try:
-            episodes.append(catalog.load(episode_id))
-            continue
+            episodes[episode_id] = catalog.load(episode_id)
         except DAMAGED_EPISODE_ERRORS as exc:
-            damaged: StorageError = exc
+            damaged[episode_id] = exc
         except StorageError as exc:  # a read that may pass (permissions, I/O): nothing to quarantine for
             log.warning("episode %s left out of %s: %s", episode_id, purpose, exc)
-            continue
-        if quarantine and (episode := _quarantine(catalog, episode_id, damaged, purpose)) is not None:
-            episodes.append(episode)
-        elif not quarantine:
-            log.warning("episode %s left out of %s: %s", episode_id, purpose, damaged)
-    return episodes
+    if quarantine and looks_unmounted(len(damaged), len(episodes) + len(damaged)):
+        first, exc = next(iter(damaged.items()))
+        log.warning("the files of %d of %d episodes loaded for %s are missing or damaged (first %s: %s); left out, "
+                    "nothing quarantined: check that the data directory's disk is there and readable, then "
+                    "`activecollect episodes verify --quarantine`", len(damaged), len(episodes) + len(damaged),
+                    purpose, first, exc)
+    else:
+        for episode_id, exc in damaged.items():
+            if quarantine and (episode := _quarantine(catalog, episode_id, exc, purpose)) is not None:
+                episodes[episode_id] = episode
+            elif not quarantine:
+                log.warning("episode %s left out of %s: %s", episode_id, purpose, exc)
+    return [episodes[i] for i in ids if i in episodes]
 
 
 def _quarantine(catalog: Catalog, episode_id: str, damaged: StorageError, purpose: str) -> Episode | None:

@@ -255,7 +255,10 @@ def _headline(summary: dict[str, Any], retrains: Sequence[dict]) -> list[str]:
     catalog, one that has no champion to show or whose champion none of its retrains made."""
     lines = []
     if summary.get("interrupted"):
-        lines.append(f"Interrupted (Ctrl-C or SIGTERM){INTERRUPTED_IN.get(summary.get('interrupted_in'), '')}: "
+        where = summary.get("interrupted_in")
+        if where is None and isinstance(summary.get("episodes"), int) and isinstance(summary.get("budget"), int):
+            where = "collection" if summary["episodes"] < summary["budget"] else None  # (a summary from before it)
+        lines.append(f"Interrupted (Ctrl-C or SIGTERM){INTERRUPTED_IN.get(where, '')}: "
                      "the next run on this data directory resumes from its catalog.")
     collected, episodes = summary.get("collected_this_run"), summary.get("episodes")
     if isinstance(collected, int) and isinstance(episodes, int) and collected != episodes:

@@ -45,6 +45,13 @@ MAX_REASON_CHARS = 500
 NOT_QUARANTINED = "episode_id NOT IN (SELECT episode_id FROM quarantine)"
 
 
+def looks_unmounted(damaged: int, read: int) -> bool:
+    """Whether ``damaged`` missing or damaged files among ``read`` episodes read at once say more than lost files:
+    more than one and more than half (a disk not mounted, a folder moved). Then nothing is quarantined (a retrain,
+    ``run``): each would stay out of training after the disk is back, until ``episodes restore``."""
+    return damaged > 1 and 2 * damaged > read
+
+
 def quarantine_path(rel: str) -> str:
     """Where ``Catalog.quarantine`` keeps the file of the episode indexed at ``rel`` (relative to the data
     directory): one place per episode, so a quarantine a crash cut short is found again."""

@@ -161,6 +161,21 @@ def test_a_lost_training_file_is_quarantined_by_the_run_which_reports_and_resume
     assert [r["status"] in ("promoted", "rejected") for r in result.retrains] == [True]
 
 
+def test_a_run_over_a_disk_not_mounted_quarantines_nothing(tmp_path, caplog):
+    """Most training files missing at once (the episodes' disk not mounted): left out of the report, none
+    quarantined, as a retrain does; once the disk is back they train again (the old run quarantined them all)."""
+    data = tmp_path / "data"
+    catalog = finished_dir(data, episodes=4)
+    (data / "episodes").rename(data / "episodes.away")
+    (data / "episodes").mkdir()
+    with caplog.at_level(logging.WARNING, logger="orchestrator.loop_catalog"):
+        result = LoopRun(config(data, 4), make_split).run()
+    assert result.report.is_file() and not result.interrupted
+    assert catalog.count(split="train", quarantined=True) == 0
+    assert "the files of 4 of 4 episodes loaded for the report are missing or damaged" in caplog.text
+    assert "nothing quarantined" in caplog.text
+
+
 @pytest.mark.slow
 @pytest.mark.timeout(300)
 def test_a_round_whose_retrain_found_the_lock_held_is_retrained_once_it_is_free(tmp_path):

@@ -21,6 +21,7 @@ import numpy as np
 import torch
 
 from storage.errors import DAMAGED_EPISODE_ERRORS
+from storage.quarantine import looks_unmounted
 from storage.records import Episode
 from storage.rows import Snapshot
 from uncertainty.errors import DataError
@@ -241,7 +242,7 @@ def load_train(catalog: CatalogLike, max_episodes: int | None = None, image_size
             damaged.append((episode_id, exc))
         else:
             keep(episode_id, episode)
-    if len(damaged) > 1 and 2 * len(damaged) > len(damaged) + len(kept):
+    if looks_unmounted(len(damaged), len(damaged) + len(kept)):
         raise DataError(f"the files of {len(damaged)} of {len(damaged) + len(kept)} train episodes are missing "
                         f"or damaged (first: {damaged[0][1]}); nothing was quarantined: check that the data "
                         "directory's disk is there and readable, then `activecollect episodes verify --quarantine`")
