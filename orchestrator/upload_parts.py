@@ -9,8 +9,8 @@ part at most, and a lost reply or a link that drops costs one part, not the epis
 
 ``PartStaging`` holds the parts received, in memory, per request: only for the lease's holder (the upload handler
 checks the lease before a part is kept), one upload per request (a part of another upload of it, a new lease's or
-other bytes, starts it again), and for ``max_age_s`` after its last part (a worker that died mid-upload leaves
-nothing for long: the next part of another upload, or the service's sweep every 5 minutes, forgets it). A part is
+other bytes, starts it again), and until its lease is not live any more and no part has come for ``max_age_s`` (a
+worker that died mid-upload leaves nothing for long: the service's sweep every 5 minutes forgets it). A part is
 answered with the bytes held from the start (``received``), from which the worker sends on: a part past them (the
 service restarted and lost what it held) is not kept. The part that completes the bytes hands them, whole, to the
 upload path every whole upload takes (sha256, verification, one ingest transaction), and are held until it has
@@ -42,9 +42,12 @@ class _Partial:
 class PartStaging:
     """The parts of uploads in progress, by request; thread-safe (the upload handler's threads share it)."""
 
-    def __init__(self, max_age_s: float, clock: Callable[[], float] = time.monotonic) -> None:
+    def __init__(self, max_age_s: float, clock: Callable[[], float] = time.monotonic,
+                 live: Callable[[UploadHeader], bool] = lambda header: False) -> None:
         self.max_age_s = max_age_s
         self._clock = clock
+        self._live = live
+        """Whether an upload's lease is still live (``sweep`` keeps those: a part may be slow to come)."""
         self._lock = threading.Lock()
         self._held: dict[str, _Partial] = {}
 
@@ -61,7 +64,6 @@ class PartStaging:
         whole = part.whole()
         with self._lock:
             now = self._clock()
-            self._drop_stale(now, keep=part.request_id)  # (its lease was just checked: live, however slow its part)
             held = self._held.get(part.request_id)
             if held is None or held.header != whole:  # a new upload of this request: a new lease's, other bytes
                 held = self._held[part.request_id] = _Partial(whole, bytearray(), now)
@@ -84,10 +86,11 @@ class PartStaging:
             return sum(len(p.data) for p in self._held.values())
 
     def sweep(self) -> None:
-        """Forget the uploads no part has come for in ``max_age_s`` (the service's sweeps call it)."""
+        """Forget the uploads no part has come for in ``max_age_s`` whose lease is not live any more (the service's
+        sweeps call it; a live one's next part may be slow to come over a slow link)."""
         with self._lock:
-            self._drop_stale(self._clock())
-
-    def _drop_stale(self, now: float, keep: str | None = None) -> None:
-        for request_id in [r for r, p in self._held.items() if now - p.touched > self.max_age_s and r != keep]:
-            del self._held[request_id]
+            now = self._clock()
+            old = [(r, p.header) for r, p in self._held.items() if now - p.touched > self.max_age_s]
+        for request_id, header in old:  # (the lease is looked up outside the lock: the database may be slow)
+            if not self._live(header):
+                self.drop(header)

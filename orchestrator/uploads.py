@@ -85,7 +85,7 @@ class UploadHandler:
         self.on_stored = on_stored
         self.frame_size = frame_size
         """The catalog's frame size (0 while unknown): bounds what an upload may inflate to."""
-        self.parts = PartStaging(parts_max_age_s)
+        self.parts = PartStaging(parts_max_age_s, live=self._lease_live)
         """Uploads sent in parts, held until their last part (``orchestrator.upload_parts``)."""
 
     def handle(self, msg: Incoming) -> bytes:
@@ -120,6 +120,17 @@ class UploadHandler:
             raise ProtocolError(ErrorCode.TOO_LARGE, f"payload: expected at most {self.max_upload_bytes} "
                                 f"bytes, found {max(header.size, len(payload))}")
         return request
+
+    def _lease_live(self, header: messages.UploadHeader) -> bool:
+        """Whether the lease ``header`` uploads under is still live (``PartStaging.sweep`` keeps its parts)."""
+        try:
+            request = self.queue.get(header.request_id)
+        except QueueError:  # unknown: gone
+            return False
+        except StorageError:  # cannot tell now: keep them until the next sweep
+            return True
+        return (request.status == RequestStatus.LEASED and request.token == header.token
+                and request.worker_id == header.worker_id)
 
     def _part(self, payload: bytes, part: messages.UploadPart) -> bytes:
         """One part of an upload in parts: kept for the lease's holder; the last one stores the whole."""

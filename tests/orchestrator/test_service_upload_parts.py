@@ -79,9 +79,10 @@ def test_parts_of_a_lease_that_is_not_live_are_refused_and_nothing_is_kept(servi
     data = episode_bytes(old, worker="slow")
     header = header_of(old, data, "slow")
     send_part(client, keys, header, data, 0)
-    assert service._uploads.parts.held_bytes() == PART
+    assert service._uploads.parts.held_bytes() == PART and service._uploads._lease_live(header)
     call(client, keys.fail, messages.FailRequest(request_id=old.request_id, token=old.token, worker_id="slow",
                                                  error="boom").to_json())
+    assert not service._uploads._lease_live(header)  # (what the sweep asks before it forgets old parts)
     refused(ErrorCode.STALE_TOKEN, send_part, client, keys, header, data, PART)
     assert service._uploads.parts.held_bytes() == 0  # what the lost lease had sent is dropped too
     new = lease(client, keys, worker="fast")
@@ -150,25 +151,24 @@ def test_a_stored_episode_whose_file_was_lost_is_put_back_from_its_parts_sent_ag
     assert path.read_bytes() == data
 
 
-def test_parts_no_part_has_come_for_are_dropped_after_their_age() -> None:
-    now = [0.0]
-    staging = PartStaging(max_age_s=10.0, clock=lambda: now[0])
-    header = UploadHeader(request_id="r1", token=1, worker_id="w", sha256="0" * 64, size=10)
-    assert staging.add(UploadPart.of(header, 0), b"abcd") == 4
+def test_parts_of_a_lease_that_ended_are_dropped_by_the_sweep_after_their_age() -> None:
+    now, live = [0.0], {"r1": True, "r2": False}
+    staging = PartStaging(max_age_s=10.0, clock=lambda: now[0], live=lambda header: live[header.request_id])
+    headers = {r: UploadHeader(request_id=r, token=1, worker_id="w", sha256="0" * 64, size=10) for r in live}
+    assert staging.add(UploadPart.of(headers["r1"], 0), b"abcd") == 4
+    assert staging.add(UploadPart.of(headers["r2"], 0), b"xyz") == 3
     now[0] = 10.0
-    assert staging.add(UploadPart.of(header, 4), b"ef") == 6  # touched: its age starts again
+    assert staging.add(UploadPart.of(headers["r1"], 4), b"ef") == 6  # touched: its age starts again
+    staging.sweep()
+    assert staging.held_bytes() == 6 + 3  # none older than 10 s
     now[0] = 20.5
-    other = UploadHeader(request_id="r2", token=1, worker_id="w", sha256="0" * 64, size=3)
-    assert staging.add(UploadPart.of(other, 0), b"xyz") == b"xyz"  # complete: handed over, held until dropped
-    assert staging.held_bytes() == 3  # r1 was older than 10 s when r2's part came
-    staging.drop(other)
+    staging.sweep()  # r2's lease has ended: its parts go; r1's is live: its next part may be slow to come
+    assert staging.held_bytes() == 6
+    live["r1"] = False
+    staging.sweep()
     assert staging.held_bytes() == 0
-    with pytest.raises(ProtocolError, match="expected 1 to 3 bytes"):
-        staging.add(UploadPart.of(other, 0), b"")
-    assert staging.add(UploadPart.of(header, 0), b"abcd") == 4
-    now[0] = 30.6
-    staging.sweep()  # what the service's periodic sweep does: no part has to come
-    assert staging.held_bytes() == 0
+    with pytest.raises(ProtocolError, match="expected 1 to 10 bytes"):
+        staging.add(UploadPart.of(headers["r1"], 0), b"")
 
 
 def test_a_last_part_whose_store_failed_for_a_passing_reason_stores_the_whole_when_sent_again(service, client, keys,
