@@ -268,7 +268,7 @@ class LoopRun:
             self._ctrl_c = self._ctrl_c or not stopping
         self._terminated.set()  # (once stopping: a running retrain is stopped, see _teardown)
         if stopping:
-            log.warning("Ctrl-C: stopping already; the report is still to be written")
+            log.warning("Ctrl-C: stopping already; a running retrain is stopped, the rest of the stop is not cut short")
 
     def _run(self) -> RunResult:
         start = time.monotonic()  # a duration: a step of the wall clock (NTP) must not make it wrong or negative
@@ -408,7 +408,7 @@ class LoopRun:
         if self.dashboard is not None:
             self.dashboard.stop()
         if hasattr(self, "scheduler"):  # (a stop signal since the loop ended: stop a running retrain too)
-            self.scheduler.stop(kill_running=interrupted or self._terminated.is_set())
+            self.scheduler.stop(kill_running=interrupted or self._terminated.is_set(), until=self._terminated)
         if self.service is not None:
             self.service.stop(keep_claim=True)  # (let go once the report is written: see _run)
 

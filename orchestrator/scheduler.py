@@ -95,6 +95,7 @@ class RetrainScheduler:
         self._retry = self._died_last_time()
         self._stop = threading.Event()
         self._outlive_job = False
+        self._until: threading.Event | None = None
         self._thread: threading.Thread | None = None
 
     # -- public -----------------------------------------------------------------
@@ -119,16 +120,24 @@ class RetrainScheduler:
         self._thread = threading.Thread(target=self._run, name="retrain-scheduler", daemon=True)
         self._thread.start()
 
-    def stop(self, kill_running: bool = True) -> None:
-        """Stop scheduling; a running job is terminated unless told otherwise (what it did by then is recorded)."""
-        self._outlive_job = not kill_running
+    def stop(self, kill_running: bool = True, until: threading.Event | None = None) -> None:
+        """Stop scheduling; a running job is terminated unless told otherwise (what it did by then is recorded);
+        one waited for is terminated as soon as ``until`` is set (a stop signal that comes meanwhile)."""
+        self._outlive_job, self._until = not kill_running, until
         self._stop.set()
         if self._thread is not None:
             self._thread.join()
         if kill_running:
             self._terminate("stopped with the scheduler")
         else:
-            self.wait_idle()
+            self._wait_job()
+
+    def _wait_job(self) -> None:
+        """Wait until no job runs; terminate it once ``stop``'s ``until`` is set."""
+        while not self.wait_idle(timeout=0.2):
+            if self._until is not None and self._until.is_set():
+                self._terminate("stopped with the scheduler")
+                return
 
     def wait_idle(self, timeout: float | None = None) -> bool:
         """Wait until no job runs (polling its exit); False on timeout."""
@@ -165,7 +174,7 @@ class RetrainScheduler:
                     log.info("retrain scheduler: ticks pass again, after %d that failed", failed)
                 failing, failed = "", 0
         if self._outlive_job:  # the job's parent-death signal comes when this thread ends (die_with_parent)
-            self.wait_idle()
+            self._wait_job()
 
     def _cron_after(self, t: float) -> float | None:
         return croniter(self.cfg.cron, t).get_next(float) if self.cfg.cron else None

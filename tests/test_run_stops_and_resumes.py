@@ -33,7 +33,7 @@ STEPS, SIZE = 8, 16
 #: A 1-epoch retrain of a tiny model, as ``run --retrain-args`` gives it.
 RETRAIN_ARGS = ("--members", "2", "--epochs", "1", "--widths", "4,4,4", "--batch-size", "8", "--from-champion",
                 "--device", "cpu", "--min-improvement", "0")
-STILL_TO_WRITE = "Ctrl-C: stopping already; the report is still to be written"
+STILL_TO_WRITE = "Ctrl-C: stopping already; a running retrain is stopped, the rest of the stop is not cut short"
 
 
 def make_split(catalog, episodes, seed, steps, size):

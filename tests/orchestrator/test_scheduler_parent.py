@@ -8,6 +8,7 @@ import os
 import signal
 import subprocess
 import sys
+import threading
 
 from orchestrator.retrainjob import RetrainStatus, ScheduleConfig
 from orchestrator.scheduler import RetrainScheduler
@@ -63,3 +64,18 @@ def test_stopping_without_killing_lets_the_job_finish(tmp_path):
     sched.stop(kill_running=False)
     rec = sched.history[0]
     assert (rec.status, rec.returncode, rec.version) == (RetrainStatus.rejected, 0, "m000003-cd"), rec
+
+
+def test_a_stop_signal_while_the_job_is_waited_for_terminates_it(tmp_path):
+    """``run``'s stop after an error waits for a running retrain: a Ctrl-C then (``until``) ends the wait, and the
+    job, at once (the old stop waited for the whole job, up to the retrain timeout)."""
+    code = "import time; time.sleep(600)"
+    sched = RetrainScheduler(ScheduleConfig(poll_s=0.05), tmp_path, lambda: 0,
+                             command=lambda d, extra: [sys.executable, "-c", code])
+    sched.start()
+    sched.request()
+    wait_for(lambda: sched.running, timeout=10, message="the job to start")
+    signalled = threading.Event()
+    threading.Timer(0.5, signalled.set).start()
+    sched.stop(kill_running=False, until=signalled)
+    assert not sched.running and sched.history[-1].status is RetrainStatus.killed
