@@ -49,7 +49,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                                    "training episodes, old and new (quarantined ones too): a run over a finished "
                                    "directory stops at once. Ctrl-C or SIGTERM stops it cleanly (the workers upload "
                                    "the episode in hand, the report is written; exit 130) and the next run resumes; "
-                                   "one more while it stops only stops a running retrain, never the report; exit 1 "
+                                   "one more while it stops only stops a running retrain, never the report (a "
+                                   "terminal's also makes the workers give their episode back unfinished); exit 1 "
                                    "when every retrain of the run failed.")
     common.add_data_arg(p)
     common.add_json_arg(p)
