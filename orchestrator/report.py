@@ -171,13 +171,15 @@ def write_report(data_dir: Path, inputs: ReportInputs, when: float | None = None
 
     The files are written in a hidden sibling folder (``.<timestamp>-<pid>.tmp``) renamed into place
     once whole, so a report cut short leaves no ``<timestamp>/`` folder without its page: one that
-    raises removes what it wrote, one killed leaves only the hidden folder.
+    raises removes what it wrote, one killed leaves only the hidden folder, which the next report deletes (the
+    caller holds the data directory: ``run`` holds its service lock while it writes).
     """
     reports = Path(data_dir) / "reports"
     stamp = time.strftime("%Y%m%dT%H%M%S", time.gmtime(when or time.time()))
     reports.mkdir(parents=True, exist_ok=True)
+    for left in reports.glob(".*.tmp"):  # what killed writers left: only run writes here, holding the directory
+        shutil.rmtree(left, ignore_errors=True)
     tmp = reports / f".{stamp}-{os.getpid()}.tmp"
-    shutil.rmtree(tmp, ignore_errors=True)  # (what a killed writer of this pid left: pids are used again)
     tmp.mkdir()
     try:
         _write_files(tmp, inputs)

@@ -110,6 +110,9 @@ def test_a_report_cut_short_leaves_no_report_folder(tmp_path, monkeypatch):
         write_report(tmp_path, ReportInputs(curve=[], summary={"episodes": 0}))
     assert list((tmp_path / "reports").iterdir()) == []
     monkeypatch.undo()
+    killed = tmp_path / "reports" / ".20010909T014639-99999.tmp"  # what a writer SIGKILLed midway leaves
+    (killed / "curve.png").parent.mkdir()
+    (killed / "curve.png").write_bytes(b"half")
     first = write_report(tmp_path, ReportInputs(curve=[], summary={"episodes": 0}), when=1e9)
     second = write_report(tmp_path, ReportInputs(curve=[], summary={"episodes": 0}), when=1e9)
     assert (first.parent.name, second.parent.name) == ("20010909T014640", "20010909T014640-1")
