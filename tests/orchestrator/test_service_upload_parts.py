@@ -21,6 +21,20 @@ from tests.orchestrator.test_service import call, episode_bytes, lease, new_requ
 PART = 1000
 
 
+def full_disk_once(catalog) -> list[int]:
+    """``catalog.ingest_bytes`` refuses the next ingest as a full disk does; the list it returns records it."""
+    real, failed = catalog.ingest_bytes, []
+
+    def ingest(*args, **kw):
+        if not failed:
+            failed.append(1)
+            raise CatalogUnavailableError("database catalog.sqlite: database or disk is full")
+        return real(*args, **kw)
+
+    catalog.ingest_bytes = ingest
+    return failed
+
+
 def header_of(grant, data: bytes, worker: str = "w1") -> UploadHeader:
     return UploadHeader.for_payload(data, request_id=grant.request_id, token=grant.token, worker_id=worker)
 
@@ -179,15 +193,7 @@ def test_a_last_part_whose_store_failed_for_a_passing_reason_stores_the_whole_wh
     grant = lease(client, keys)
     data = episode_bytes(grant)
     header = header_of(grant, data)
-    real, failed = service.catalog.ingest_bytes, []
-
-    def full_disk_once(*args, **kw):
-        if not failed:
-            failed.append(1)
-            raise CatalogUnavailableError("database catalog.sqlite: database or disk is full")
-        return real(*args, **kw)
-
-    service.catalog.ingest_bytes = full_disk_once
+    full_disk_once(service.catalog)
     send_part(client, keys, header, data, 0)
     refused(ErrorCode.UNAVAILABLE, send_part, client, keys, header, data, PART, len(data))
     assert service._uploads.parts.held_bytes() == len(data) and Catalog(data_dir).count() == 0

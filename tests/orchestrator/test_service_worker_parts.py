@@ -7,9 +7,9 @@ from __future__ import annotations
 
 from orchestrator import messages
 from storage.catalog import Catalog
-from storage.errors import CatalogUnavailableError
 from storage.requests import RequestStatus
 from tests.orchestrator.test_service import new_request
+from tests.orchestrator.test_service_upload_parts import full_disk_once
 
 PART = 1024
 
@@ -90,15 +90,7 @@ def test_a_last_part_the_service_could_not_store_for_now_is_the_only_part_sent_a
     service = make_service()
     request, _ = service.queue.enqueue(new_request(steps=40))
     offsets = parts_seen(service)
-    real, failed = service.catalog.ingest_bytes, []
-
-    def full_disk_once(*args, **kw):
-        if not failed:
-            failed.append(1)
-            raise CatalogUnavailableError("database catalog.sqlite: database or disk is full")
-        return real(*args, **kw)
-
-    service.catalog.ingest_bytes = full_disk_once
+    failed = full_disk_once(service.catalog)
     w = spawn_worker("P", "--once", "--upload-part-kb", str(PART // 1024))
     assert w.wait(60) == 0, w.log()
     done = service.queue.get(request.id)
