@@ -7,18 +7,10 @@ from __future__ import annotations
 import threading
 from pathlib import Path
 
-import pytest
 
 from storage.queue import RequestQueue
 from storage.requests import RequestStatus
 from tests.storage.test_queue import new
-
-
-@pytest.fixture
-def queue(tmp_path: Path):
-    q = RequestQueue(tmp_path / "catalog.sqlite")
-    yield q
-    q.close()
 
 
 def test_a_worker_holding_a_lease_gets_it_again_with_its_token_and_a_longer_term(queue: RequestQueue) -> None:
