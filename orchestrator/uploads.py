@@ -129,8 +129,7 @@ class UploadHandler:
             return False
         except StorageError:  # cannot tell now: keep them until the next sweep
             return True
-        return (request.status == RequestStatus.LEASED and request.token == header.token
-                and request.worker_id == header.worker_id)
+        return _under(request, header, RequestStatus.LEASED)
 
     def _part(self, payload: bytes, part: messages.UploadPart) -> bytes:
         """One part of an upload in parts: kept for the lease's holder; the last one stores the whole."""
@@ -206,8 +205,7 @@ class UploadHandler:
         """The row of the episode that completed ``request`` when this is a repeat of that upload (same token,
         same worker, same bytes); None otherwise. Another worker's copy of those bytes is no repeat: it held no
         such lease, and ``_check_live`` refuses it as stale rather than telling it they were stored for it."""
-        if (request.status != RequestStatus.DONE or request.token != header.token or not request.episode_id
-                or request.worker_id != header.worker_id):
+        if not _under(request, header, RequestStatus.DONE) or not request.episode_id:
             return None
         row = self.catalog.find(request.episode_id)
         return row if row is not None and row.sha256 == header.sha256 else None
@@ -234,8 +232,7 @@ class UploadHandler:
                         row.episode_id, row.path, written, header.request_id)
 
     def _check_live(self, request: Request, header: messages.UploadHeader) -> None:
-        if (request.status == RequestStatus.DONE and request.token == header.token
-                and request.worker_id == header.worker_id):  # (the same bytes again were a duplicate, answered)
+        if _under(request, header, RequestStatus.DONE):  # (the same bytes again were a duplicate, answered)
             log.error("two workers use the id %s: both collected %s under its lease (token %d) and uploaded other "
                       "bytes; every request is collected twice: give each worker its own --id",
                       header.worker_id, request.id, header.token)
@@ -243,8 +240,7 @@ class UploadHandler:
                 ErrorCode.STALE_TOKEN, f"upload {request.id}: another worker with the id {header.worker_id} "
                 f"has already uploaded other bytes for this lease (token {header.token}); two workers share the "
                 f"id {header.worker_id}: give each its own --id")
-        if (request.status != RequestStatus.LEASED or request.token != header.token
-                or request.worker_id != header.worker_id):
+        if not _under(request, header, RequestStatus.LEASED):
             raise ProtocolError(
                 ErrorCode.STALE_TOKEN, f"upload {request.id}: expected the live lease, found token "
                 f"{header.token} from {header.worker_id} while the request is {request.status.value} "
@@ -271,6 +267,11 @@ class UploadHandler:
             "request_id": header.request_id if header is not None else None,
             "worker_id": header.worker_id if header is not None else None,
             "error": code, "message": message[:500]})
+
+
+def _under(request: Request, header: messages.UploadHeader, status: RequestStatus) -> bool:
+    """Whether ``request`` is in ``status`` under the lease ``header`` names (its token, its worker)."""
+    return request.status == status and request.token == header.token and request.worker_id == header.worker_id
 
 
 def _ingest_refusal(exc: StorageError) -> ErrorCode:
