@@ -71,9 +71,13 @@ def refuse_pinned(conn: sqlite3.Connection, episode_id: str) -> None:
     """``CatalogError`` when the episode is in the pinned eval split, which cannot change."""
     if conn.execute("SELECT 1 FROM eval_split_members WHERE episode_id = ?",
                     (episode_id,)).fetchone():
-        raise CatalogError(f"episode {episode_id} is in the pinned eval split, which cannot "
-                           "change: restore its file instead (ingest its bytes again, e.g. from "
-                           "a backup)")
+        raise CatalogError(pinned_refusal(episode_id))
+
+
+def pinned_refusal(episode_id: str) -> str:
+    """Why the pinned eval split's episode ``episode_id`` cannot be quarantined, and what to do instead."""
+    return (f"episode {episode_id} is in the pinned eval split, which cannot change: restore its file "
+            "instead (ingest its bytes again, e.g. from a backup)")
 
 
 def find(conn: sqlite3.Connection, episode_id: str) -> sqlite3.Row | None:

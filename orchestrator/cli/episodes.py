@@ -14,6 +14,7 @@ from tqdm import tqdm
 
 from orchestrator.cli import common
 from orchestrator.protocol import SHAPES, one_line
+from storage import quarantine as quarantines
 from storage.catalog import ORPHANS_DIR, SPLITS, Catalog, EpisodeRow
 from storage.database import QUARANTINE_DIR
 from storage.errors import DAMAGED_EPISODE_ERRORS, CatalogError, NotFoundError, StorageError
@@ -182,6 +183,10 @@ def _episodes_quarantine(args: argparse.Namespace) -> int:
     if not args.reason.strip():
         raise common.UsageError("--reason must say why")
     rows = [resolve(cat, i) for i in args.episode_ids]  # all known before any changes
+    split = cat.eval_split()
+    for row in rows:
+        if split is not None and row.episode_id in split.ids:  # (one pinned meanwhile is refused by the catalog)
+            raise common.UsageError(quarantines.pinned_refusal(row.episode_id))
     return _each(args, rows, lambda row: cat.quarantine(row.episode_id, args.reason),
                  lambda row: "already quarantined (the first reason stays)" if row.quarantined else "quarantined")
 
