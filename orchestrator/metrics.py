@@ -94,6 +94,8 @@ class ServiceMetrics:
         self.leases = Counter("leases", "Leases handed to workers.", namespace=ns, registry=r)
         self.uploads = Counter("uploads", "Episode uploads, by result (stored, duplicate, refused).",
                                ["result"], namespace=ns, registry=r)
+        self.upload_parts_held_bytes = Gauge("upload_parts_held_bytes", "Bytes the service holds in memory for "
+                                             "uploads sent in parts and not yet complete.", namespace=ns, registry=r)
         self.refusals = Counter("refusals", "Inbound messages refused, by reason (protocol error code) and source "
                                 "(worker: the collection protocol; operator: an admin query).",
                                 ["reason", "source"], namespace=ns, registry=r)

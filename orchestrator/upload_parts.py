@@ -10,7 +10,11 @@ part at most, and a lost reply or a link that drops costs one part, not the epis
 ``PartStaging`` holds the parts received, in memory, per request: only for the lease's holder (the upload handler
 checks the lease before a part is kept), one upload per request (a part of another upload of it, a new lease's or
 other bytes, starts it again), and until its lease is not live any more and no part has come for ``max_age_s`` (a
-worker that died mid-upload leaves nothing for long: the service's sweep every 5 minutes forgets it). A part is
+worker that died mid-upload leaves nothing for long: the service's sweep every 5 minutes forgets it), and at
+most ``max_total_bytes`` for every upload together (a part past that, once the parts of ended leases are forgotten,
+is answered ``unavailable``: the worker sends it again later). Another upload of other bytes under the same lease
+while one is in progress (two processes with one worker id) is refused ``unavailable`` and logged as an error:
+each used to restart the other's for ever, the second's bytes stored nowhere, nobody told why. A part is
 answered with the bytes held from the start (``received``), from which the worker sends on: a part past them (the
 service restarted and lost what it held) is not kept. The part that completes the bytes hands them, whole, to the
 upload path every whole upload takes (sha256, verification, one ingest transaction), and are held until it has
@@ -20,6 +24,7 @@ alone): nothing of a partial upload is written to disk or indexed.
 
 from __future__ import annotations
 
+import logging
 import threading
 import time
 from collections.abc import Callable
@@ -27,6 +32,8 @@ from dataclasses import dataclass
 
 from orchestrator.messages import UploadHeader, UploadPart
 from orchestrator.protocol import ErrorCode, ProtocolError
+
+log = logging.getLogger(__name__)
 
 
 @dataclass
@@ -43,8 +50,16 @@ class PartStaging:
     """The parts of uploads in progress, by request; thread-safe (the upload handler's threads share it)."""
 
     def __init__(self, max_age_s: float, clock: Callable[[], float] = time.monotonic,
-                 live: Callable[[UploadHeader], bool] = lambda header: False) -> None:
+                 live: Callable[[UploadHeader], bool] = lambda header: False,
+                 max_total_bytes: int | None = None, replace_after_s: float | None = None) -> None:
         self.max_age_s = max_age_s
+        self.max_total_bytes = max_total_bytes
+        """The most bytes held for all uploads in progress together (None: no bound); a part that would go past
+        it is answered ``unavailable`` (the worker sends it again after a backoff)."""
+        self.replace_after_s = max_age_s / 4 if replace_after_s is None else replace_after_s
+        """Another upload under the same lease (other sha256 or size) replaces the one held only once no part of
+        that one has come for this long; before, it is refused: two processes share one worker id."""
+
         self._clock = clock
         self._live = live
         """Whether an upload's lease is still live (``sweep`` keeps those: a part may be slow to come)."""
@@ -56,15 +71,44 @@ class PartStaging:
         the whole upload's bytes once they are all here, which stay held until ``drop`` (the caller's, once they
         are stored or refused for good: a store that failed for a reason that passes, or a repeat of the last part
         while it is stored, finds them whole again). Raises ProtocolError ``bad_field`` for a part that ends past
-        the upload's size (nothing kept)."""
+        the upload's size (nothing kept), ``unavailable`` for another upload under the lease of one still in
+        progress (two processes with one worker id) and for a part past ``max_total_bytes`` (once the uploads
+        whose lease ended are forgotten)."""
         end = part.offset + len(payload)
         if not payload or end > part.size:
             raise ProtocolError(ErrorCode.BAD_FIELD, f"payload: expected 1 to {part.size - part.offset} bytes "
                                 f"(offset {part.offset} of size {part.size}), found {len(payload)}")
+        try:
+            return self._add(part, payload, end)
+        except _Full:
+            self.sweep(idle_s=0.0)  # an ended lease's parts go now, not at the next periodic sweep
+        try:
+            return self._add(part, payload, end)
+        except _Full as full:
+            log.warning("upload parts: %d bytes held for uploads in progress, at most %d: %s's part waits",
+                        full.held, self.max_total_bytes, part.request_id)
+            raise ProtocolError(ErrorCode.UNAVAILABLE, f"upload {part.request_id}: the service holds {full.held} "
+                                f"bytes of uploads in parts, at most {self.max_total_bytes}: send this part again "
+                                "later") from None
+
+    def _add(self, part: UploadPart, payload: bytes, end: int) -> int | bytes:
         whole = part.whole()
         with self._lock:
             now = self._clock()
             held = self._held.get(part.request_id)
+            if held is not None and held.header != whole and _same_lease(held.header, whole) \
+                    and now - held.touched < self.replace_after_s:
+                log.error("two uploads of other bytes under one lease of %s (token %d): two workers use the id %s; "
+                          "give each its own --id", whole.request_id, whole.token, whole.worker_id)
+                raise ProtocolError(ErrorCode.UNAVAILABLE, f"upload {whole.request_id}: another upload of other "
+                                    f"bytes under this lease (token {whole.token}) is in progress: two workers "
+                                    f"share the id {whole.worker_id}? give each its own --id")
+            kept = len(held.data) if held is not None and held.header == whole else 0  # (another upload: replaced)
+            grown = max(kept, end) if part.offset <= kept else kept
+            if self.max_total_bytes is not None and grown > kept:
+                total = sum(len(p.data) for p in self._held.values())
+                if total - (len(held.data) if held is not None else 0) + grown > self.max_total_bytes:
+                    raise _Full(total)
             if held is None or held.header != whole:  # a new upload of this request: a new lease's, other bytes
                 held = self._held[part.request_id] = _Partial(whole, bytearray(), now)
             held.touched = now
@@ -85,12 +129,26 @@ class PartStaging:
         with self._lock:
             return sum(len(p.data) for p in self._held.values())
 
-    def sweep(self) -> None:
-        """Forget the uploads no part has come for in ``max_age_s`` whose lease is not live any more (the service's
-        sweeps call it; a live one's next part may be slow to come over a slow link)."""
+    def sweep(self, idle_s: float | None = None) -> None:
+        """Forget the uploads no part has come for in ``idle_s`` (default ``max_age_s``) whose lease is not live any
+        more (the service's sweeps call it; a live one's next part may be slow to come over a slow link)."""
+        idle_s = self.max_age_s if idle_s is None else idle_s
         with self._lock:
             now = self._clock()
-            old = [(r, p.header) for r, p in self._held.items() if now - p.touched > self.max_age_s]
+            old = [(r, p.header) for r, p in self._held.items() if now - p.touched > idle_s]
         for request_id, header in old:  # (the lease is looked up outside the lock: the database may be slow)
             if not self._live(header):
                 self.drop(header)
+
+
+class _Full(Exception):
+    """A part would take the bytes held past ``PartStaging.max_total_bytes``."""
+
+    def __init__(self, held: int) -> None:
+        super().__init__(held)
+        self.held = held
+
+
+def _same_lease(a: UploadHeader, b: UploadHeader) -> bool:
+    """Whether two uploads' headers name one lease (request, token, worker), whatever bytes they send."""
+    return (a.request_id, a.token, a.worker_id) == (b.request_id, b.token, b.worker_id)

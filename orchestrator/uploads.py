@@ -70,7 +70,7 @@ class UploadHandler:
                  turn: Callable[[], AbstractContextManager[None]],
                  max_upload_bytes: int, on_stored: Callable[[StoredEpisode], None],
                  frame_size: Callable[[], int] = lambda: 0, *, health: StorageHealth,
-                 parts_max_age_s: float = 60.0) -> None:
+                 parts_max_age_s: float = 60.0, parts_max_bytes: int | None = None) -> None:
         self.queue = queue
         self.catalog = catalog
         self.metrics = metrics
@@ -85,7 +85,9 @@ class UploadHandler:
         self.on_stored = on_stored
         self.frame_size = frame_size
         """The catalog's frame size (0 while unknown): bounds what an upload may inflate to."""
-        self.parts = PartStaging(parts_max_age_s, live=self._lease_live)
+        self.parts = PartStaging(parts_max_age_s, live=self._lease_live,
+                                 max_total_bytes=4 * max_upload_bytes if parts_max_bytes is None else parts_max_bytes)
+        metrics.upload_parts_held_bytes.set_function(self.parts.held_bytes)
         """Uploads sent in parts, held until their last part (``orchestrator.upload_parts``)."""
 
     def handle(self, msg: Incoming) -> bytes:
@@ -143,6 +145,10 @@ class UploadHandler:
         if row is None:
             try:
                 self._check_live(request, whole)  # before a byte is kept
+                if whole.size > self._most_bytes(request):  # no episode of this request is that big: hold nothing
+                    raise ProtocolError(ErrorCode.TOO_LARGE, f"size: expected at most {self._most_bytes(request)} "
+                                        f"bytes for {len(request.action_prefix) + request.steps} steps, found "
+                                        f"{whole.size}")
             except ProtocolError:
                 self.parts.drop(whole)
                 raise
@@ -248,9 +254,8 @@ class UploadHandler:
 
     def _decode(self, data: bytes, header: messages.UploadHeader, request: Request) -> Episode:
         try:
-            size = self.frame_size() or protocol.MAX_FRAME_SIZE
             episode = read_episode(data, name=f"upload for {header.request_id}",  # no more than the request needs
-                                   max_decoded=decoded_limit(len(request.action_prefix) + request.steps, size))
+                                   max_decoded=self._most_bytes(request))
         except OversizedEpisodeError as exc:
             raise ProtocolError(ErrorCode.TOO_LARGE, str(exc)) from exc
         except EpisodeError as exc:
@@ -259,6 +264,12 @@ class UploadHandler:
         if mismatch:
             raise ProtocolError(ErrorCode.BAD_FIELD, f"episode provenance: {mismatch}")
         return episode
+
+    def _most_bytes(self, request: Request) -> int:
+        """The most bytes an episode of ``request`` may inflate to: also the most its file may hold (compression
+        never grows it past the per-step margin), so an upload in parts declaring more is refused before its
+        first part is kept."""
+        return decoded_limit(len(request.action_prefix) + request.steps, self.frame_size() or protocol.MAX_FRAME_SIZE)
 
     def _refused(self, header: messages.UploadHeader | None, code: str, message: str) -> None:
         """Count and publish one refused upload (``header`` None: it was malformed, so whose is unknown)."""

@@ -111,6 +111,7 @@ def test_a_part_of_another_upload_of_the_request_starts_it_again(service, client
     grant = lease(client, keys)
     data = episode_bytes(grant)
     other = header_of(grant, data[:-1] + bytes([data[-1] ^ 1]))  # other bytes: another sha256
+    service._uploads.parts.replace_after_s = 0.0  # (the other upload went quiet: a worker that restarted)
     send_part(client, keys, other, data, 0)
     send_part(client, keys, other, data, PART)
     assert send_part(client, keys, header_of(grant, data), data, PART)["received"] == 0  # not this upload's
@@ -242,3 +243,61 @@ def test_a_part_slower_than_the_staging_age_does_not_age_out_its_own_upload() ->
     assert staging.add(UploadPart.of(header, 0), b"abc") == 3
     now[0] = 11.0
     assert staging.add(UploadPart.of(header, 3), b"def") == b"abcdef"
+
+
+def test_two_uploads_of_other_bytes_under_one_lease_do_not_reset_each_other(service, client, keys, caplog) -> None:
+    """Two processes with one worker id: the second's parts are refused (unavailable, sent again later) while the
+    first's go on; they used to reset each other's parts, each told 'received 0', for ever, and nothing said why."""
+    request, _ = service.queue.enqueue(new_request())
+    grant = lease(client, keys)
+    data = episode_bytes(grant)
+    other_data = data[:-1] + bytes([data[-1] ^ 1])
+    header, other = header_of(grant, data), header_of(grant, other_data)
+    assert send_part(client, keys, header, data, 0)["received"] == PART
+    assert "share the id w1" in refused(ErrorCode.UNAVAILABLE, send_part, client, keys, other, other_data, 0)
+    assert send_part(client, keys, header, data, PART, len(data))["episode_id"]
+    refused(ErrorCode.STALE_TOKEN, send_part, client, keys, other, other_data, 0)  # the whole upload's refusal
+    assert "two workers use the id w1" in caplog.text
+    assert service.queue.get(request.id).status == RequestStatus.DONE
+
+
+def test_parts_are_held_up_to_a_total_and_to_what_the_request_can_be(make_service, client, keys) -> None:
+    service = make_service(max_upload_bytes=4 * PART)  # at most 16 parts held in all
+    for _ in range(6):
+        service.queue.enqueue(new_request())
+    grants = [lease(client, keys, worker=f"w{i}") for i in range(6)]
+    headers = [UploadHeader(request_id=g.request_id, token=g.token, worker_id=f"w{i}", sha256="0" * 64,
+                            size=4 * PART) for i, g in enumerate(grants)]
+    junk = bytes(3 * PART)
+    for h in headers[:5]:
+        assert call(client, keys.upload, junk, UploadPart.of(h, 0).to_json())["received"] == 3 * PART
+    assert service._uploads.parts.held_bytes() == 15 * PART
+    assert "at most" in refused(ErrorCode.UNAVAILABLE, call, client, keys.upload, junk,
+                                UploadPart.of(headers[5], 0).to_json())
+    assert service._uploads.parts.held_bytes() == 15 * PART
+    assert f"activecollect_upload_parts_held_bytes {15 * PART}.0" in service.metrics.render()
+
+
+def test_parts_of_an_upload_bigger_than_its_request_can_be_are_refused(service, client, keys) -> None:
+    service.queue.enqueue(new_request(steps=5))
+    grant = lease(client, keys)
+    header = UploadHeader(request_id=grant.request_id, token=grant.token, worker_id="w1", sha256="0" * 64,
+                          size=protocol.MAX_UPLOAD_BYTES)
+    refused(ErrorCode.TOO_LARGE, call, client, keys.upload, bytes(PART), UploadPart.of(header, 0).to_json())
+    assert service._uploads.parts.held_bytes() == 0
+
+
+def test_a_full_staging_forgets_the_parts_of_ended_leases_before_it_refuses_a_part() -> None:
+    now, live = [0.0], {"r1": True, "r2": False, "r3": True}
+    staging = PartStaging(max_age_s=60.0, clock=lambda: now[0], live=lambda header: live[header.request_id],
+                          max_total_bytes=10)
+    headers = {r: UploadHeader(request_id=r, token=1, worker_id=r, sha256="0" * 64, size=10) for r in live}
+    assert staging.add(UploadPart.of(headers["r1"], 0), b"abcd") == 4
+    assert staging.add(UploadPart.of(headers["r2"], 0), b"efghij") == 6
+    now[0] = 1.0
+    assert staging.add(UploadPart.of(headers["r3"], 0), b"klmnop") == 6  # r2's lease ended: its 6 bytes went
+    assert staging.held_bytes() == 10
+    with pytest.raises(ProtocolError, match="holds 10 bytes of uploads in parts, at most 10") as refused:
+        staging.add(UploadPart.of(headers["r1"], 4), b"q")  # both live: the part waits, nothing kept
+    assert refused.value.code == ErrorCode.UNAVAILABLE and staging.held_bytes() == 10
+    assert staging.add(UploadPart.of(headers["r1"], 0), b"abcd") == 4  # a repeat grows nothing: answered
