@@ -168,6 +168,8 @@ class LoopRun:
             ActivePlannerConfig(steps=cfg.steps, budget_per_round=cfg.round_episodes,
                                 max_queue_depth=cfg.round_episodes, seed_uniform=uniform), self.scorer, rng, depth,
             is_eval=in_eval_split(self.catalog)))
+        if isinstance(inner, ActivePlanner):  # a resumed run keeps away from the states it asked for before
+            inner.remember_queue(self.queue)
         self.planner = RoundPlanner(inner, cfg.round_episodes, cfg.budget, self._count, self._outstanding)
         # Workers first, while this process has no other threads yet but the stop-signals one, which
         # holds no lock (see die_with_parent); they retry until the service below answers.

@@ -35,7 +35,9 @@ class ActivePlannerConfig:
     memory: int = 256
     """How many recent requests the planner remembers: new candidates keep away from their states, and their
     (episode, step) is not requested again; older ones are forgotten, so a ``serve`` that runs for months holds
-    no more (the queue's idempotency key still refuses a step requested before)."""
+    no more (the queue's idempotency key still refuses a step requested before, but not the same pose held at
+    the start of the episode collected from it). ``serve`` and ``run`` fill it from the queue's latest requests
+    when they start (``ActivePlanner.remember_queue``)."""
     explore_fraction: float = 0.0
     """Share of each round's budget given to uniform requests (0 = pure active)."""
     replay_prefix: bool = False

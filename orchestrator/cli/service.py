@@ -147,8 +147,10 @@ def planner_factory(name: str, steps: int, seed: int, threads: int = 0) -> Plann
         if name == "uniform":
             return UniformPlanner(uniform, rng, depth)
         scorer = ChampionScorer(ctx.data_dir, observe=ctx.metrics.observe_scoring, threads=threads)
-        return ActivePlanner(ActivePlannerConfig(steps=steps, seed_uniform=uniform), scorer, rng, depth,
-                             is_eval=in_eval_split(ctx.catalog))
+        planner = ActivePlanner(ActivePlannerConfig(steps=steps, seed_uniform=uniform), scorer, rng, depth,
+                                is_eval=in_eval_split(ctx.catalog))
+        planner.remember_queue(ctx.queue)
+        return planner
 
     return build
 

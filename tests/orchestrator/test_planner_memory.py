@@ -3,9 +3,12 @@ runs unattended for months needs, and within the bound no state is requested twi
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 
 from orchestrator.planner import ActivePlanner
+from orchestrator.uniform import UniformPlanner, UniformPlannerConfig
 from tests.orchestrator.test_planner import acfg, make_episode, step_scorer
 
 
@@ -26,3 +29,35 @@ def test_the_planner_remembers_its_last_requests_only_and_never_repeats_one_of_t
     # the old requests are forgotten: the queue's idempotency key (the same for the same state) refuses them
     again = planner.plan([ep])
     assert steps(again) == [19, 18] and again[0].idempotency_key == f"active:{ep.meta.episode_id}:19"
+
+
+def test_serves_planner_remembers_the_queues_requests_across_a_restart(tmp_path):
+    """An episode collected at a requested pose holds it (at rest) while its new pusher approaches; a restarted
+    service's planner used to ask for that very pose again (its key names the new episode)."""
+    from orchestrator.cli.service import planner_factory
+    from orchestrator.metrics import ServiceMetrics
+    from orchestrator.protocol import Keys
+    from orchestrator.serviceconfig import ServiceContext
+    from storage.catalog import Catalog
+    from storage.models import ModelRegistry
+    from storage.queue import RequestQueue
+
+    rng = np.random.default_rng(31)
+    catalog = Catalog(tmp_path / "data")
+    queue = RequestQueue(catalog.db_path)
+    ctx = ServiceContext(catalog.data_dir, Keys("t"), queue, catalog, ModelRegistry(catalog.data_dir),
+                         ServiceMetrics(), lambda kind, body: None)
+    source = make_episode(rng, steps=20, jitter=0.0)  # one pose throughout, as a follow-up's approach holds it
+
+    def restarted():
+        planner = planner_factory("active", 20, 0)(ctx)
+        planner.cfg = dataclasses.replace(planner.cfg, task_space_only=False, percentile=0.0)
+        planner.scorer = step_scorer()
+        return planner
+
+    first = restarted().plan([source])
+    assert len(first) == 1 and all(queue.enqueue(r)[1] for r in first)
+    follow_up = dataclasses.replace(source, meta=dataclasses.replace(source.meta, episode_id="follow-up"))
+    assert restarted().plan([follow_up]) == []  # the same pose: asked for already
+    queue.enqueue(UniformPlanner(UniformPlannerConfig(), rng).seed(1)[0])  # another planner's: passed over
+    assert restarted().plan([make_episode(rng, steps=20)])  # a new pose is asked for
