@@ -19,7 +19,15 @@ finite mass is stopped by it.
 ``PushSim`` is the simulator itself (reset to a ``SimState``, step, read state,
 render into a buffer); ``PushEnv`` wraps it as a ``gymnasium.Env``. Every reset
 rebuilds the pymunk space, so the same start state and actions give the same
-frames, byte for byte.
+frames, byte for byte. A state read mid-episode and reset to does not go on
+exactly as the recording did where the pusher touches the object: pymunk keeps
+contact and friction impulses between steps, which ``SimState`` does not hold
+and a rebuilt space starts without (of 480 resets to recorded states with their
+velocities, 6 were more than 1 unit off after one step, 31 after twenty). A
+reset at rest, as the planner's requests are by default, starts exactly at the
+state asked for, and a replayed prefix reaches it exactly (0.0 over 1,989
+requests): where a transition itself must be reproduced, replay the prefix
+(``ActivePlannerConfig.replay_prefix``).
 """
 
 from __future__ import annotations
@@ -110,7 +118,8 @@ def _floats(name: str, value: Any, n: int, low: float, high: float) -> tuple[flo
 
 @dataclass(kw_only=True)
 class SimState:
-    """A complete simulator state: what ``PushSim.reset`` takes and ``get_state`` returns (keywords only)."""
+    """The simulator state ``PushSim.reset`` takes and ``get_state`` returns (keywords only): poses, velocities,
+    physics; not pymunk's contact impulses, so a reset mid-contact goes on slightly otherwise (module docstring)."""
 
     shape: str
     """Object shape, one of ``SHAPES``."""
