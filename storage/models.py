@@ -339,9 +339,9 @@ class ModelRegistry:
                 unusable = str(exc)
         with self._transaction() as conn:
             current = promotions.champion(conn)
-            if current == version:
-                return GateDecision(False, f"{version} is already the champion", version, current,
-                                    metric)
+            if current == version:  # promoted by an operator between its register and its gate: it *is* champion
+                before, how = promotions.how_promoted(conn, version)
+                return GateDecision(True, f"{version} is already the champion ({how})", version, before, metric)
             now = self._get(conn, version)
             if now.status != ModelStatus.CANDIDATE:  # a rolled-back or refused model is not re-judged
                 return self._not_a_candidate(now, current, metric)

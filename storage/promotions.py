@@ -46,6 +46,13 @@ def history(conn: sqlite3.Connection) -> list[ChampionEntry]:
     return [ChampionEntry(*tuple(r)) for r in rows]
 
 
+def how_promoted(conn: sqlite3.Connection, version: str) -> tuple[str | None, str]:
+    """The champion before the champion ``version`` (None for the first), and the reason of its promotion."""
+    entries = history(conn)
+    before = next((e.version for e in reversed(entries) if e.version != version), None)
+    return before, entries[-1].reason if entries and entries[-1].version == version else "promoted"
+
+
 def live_history(conn: sqlite3.Connection) -> list[tuple[int, str]]:
     """(id, version) of promotions not rolled back, oldest first."""
     return [(r[0], r[1]) for r in conn.execute(

@@ -113,6 +113,9 @@ def fit(ensemble: Ensemble, windows: Windows, cfg: TrainConfig,
     k, b, device = ensemble.members, cfg.batch_size, ensemble.device
     variance = ensemble.config.predict_variance
     pools = member_indices(windows, k, cfg.bootstrap, rng)
+    # A batch larger than a member's pool only repeats its windows (np.resize below) and allocates
+    # batch_size frames per step: --batch-size 10**7 on 40 windows was a MemoryError traceback.
+    b = min(b, max(len(p) for p in pools))
     steps = max(1, math.ceil(max(len(p) for p in pools) / b))
     opt = torch.optim.Adam(ensemble.params.parameters(), lr=cfg.lr)
     sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=steps * cfg.epochs, eta_min=cfg.lr / 10)

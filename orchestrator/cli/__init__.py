@@ -65,6 +65,16 @@ def main(argv: list[str] | None = None) -> int:
     except BrokenPipeError:  # the reader went away (`... | head`): stop quietly, as `yes | head` does
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # no second error at exit's flush
         return 128 + signal.SIGPIPE
+    except (MemoryError, RuntimeError) as exc:
+        # numpy's MemoryError; torch's CPU allocator ("can't allocate memory") and torch.OutOfMemoryError (CUDA)
+        # are RuntimeErrors: one line, exit 1, as for a full disk. Other RuntimeErrors are bugs: keep the traceback.
+        text = str(exc)
+        if not (isinstance(exc, MemoryError) or "can't allocate memory" in text
+                or type(exc).__name__ == "OutOfMemoryError"):
+            raise
+        print(f"activecollect: out of memory: {one_line(text.splitlines()[0] if text else 'an allocation failed')} "
+              "(a smaller --batch, --batch-size, --size, --members or --widths needs less)", file=sys.stderr)
+        return 1
     except (StorageError, OSError) as exc:  # a full disk, a damaged catalog: one line, not a traceback
         detail = str(exc) if isinstance(exc, StorageError) else f"{exc}{space_note(exc.filename or '.')}"
         print(f"activecollect: {one_line(detail)}", file=sys.stderr)

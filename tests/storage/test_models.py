@@ -224,6 +224,15 @@ def test_promote_overrides_metrics_but_not_the_split(reg: ModelRegistry) -> None
     assert reg.champion() == worse
 
 
+def test_a_gate_after_an_operator_promoted_its_candidate_says_promoted(reg: ModelRegistry) -> None:
+    champ = _register(reg, 0.010)
+    reg.gate(champ)
+    cand = _register(reg, 0.5)
+    reg.promote(cand)  # between the job's register and its gate (the job then recorded 'rejected')
+    d = reg.gate(cand)
+    assert d.promoted and d.champion_before == champ and "promoted by the operator" in d.reason
+
+
 @pytest.mark.parametrize("metrics", [{"h1_mse": math.nan}, {"h1_psnr": math.inf}])
 def test_promote_refuses_a_model_whose_training_diverged(reg: ModelRegistry, metrics) -> None:
     """The operator's override of the metrics still wants numbers: a diverged model's scores rank nothing."""

@@ -31,6 +31,15 @@ def test_same_seed_same_training():
     assert all(np.array_equal(x.detach().numpy(), y.detach().numpy()) for x, y in zip(a.params, b.params))
 
 
+def test_a_batch_larger_than_the_data_trains_on_the_data_once_per_step():
+    """A batch past a member's windows only repeated them, allocating the batch: --batch-size 10**12 on a few
+    windows was a MemoryError traceback."""
+    eps = [make_episode(s, steps=6) for s in range(2)]
+    huge, fits = (TrainConfig(epochs=1, seed=3, **{**TINY, "batch_size": b}) for b in (10**12, 10**3))
+    a, b = new_ensemble(huge, eps), new_ensemble(fits, eps)
+    assert fit(a, train_windows(eps, a, huge), huge) == fit(b, train_windows(eps, b, fits), fits)
+
+
 def test_disagreement_is_higher_out_of_distribution(trained):
     ens, _ = trained
     held_out = [make_episode(seed, "T", steps=12) for seed in range(100, 104)]
