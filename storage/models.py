@@ -1,11 +1,11 @@
 """The model registry: versioned checkpoints on disk, their rows in the catalog, and the promotion gate.
 
 Layout: ``DATA/models/<version>/`` holds ``weights.pt`` (opaque bytes, whatever the trainer
-serialised), ``config.json``, ``metrics.json``, ``meta.json`` (snapshot id, eval split hash,
-parent, created, sha256 of the weights) and ``snapshot.json`` (the training episodes' ids and sha256s,
-when the trainer gave them; they hash to the snapshot id). The rows live in the ``models`` table of
-``DATA/catalog.sqlite`` next to the episodes; the alias ``champion`` (table ``model_aliases``) names
-the model in service and ``champion_history`` remembers every promotion, so a rollback can walk back.
+serialised), ``config.json``, ``metrics.json`` (strict JSON: NaN as null, where the row keeps NaN), ``meta.json``
+(snapshot id, eval split hash, parent, created, sha256 of the weights) and ``snapshot.json`` (the training
+episodes' ids and sha256s, when the trainer gave them; they hash to the snapshot id). The rows live in the
+``models`` table of ``DATA/catalog.sqlite`` next to the episodes; the alias ``champion`` (table ``model_aliases``)
+names the model in service and ``champion_history`` remembers every promotion, so a rollback can walk back.
 
 Versions are ``m<6-digit sequence>-<8 hex of the weights' sha256>``: unique, and they sort in
 registration order. Every change is one ``BEGIN IMMEDIATE`` transaction, so the alias switch is atomic.
@@ -37,7 +37,7 @@ from contextlib import AbstractContextManager, contextmanager
 from pathlib import Path
 from typing import Any
 
-from storage import checkpoint_files, promotions, pruning, strays
+from storage import checkpoint_files, jsonsafe, promotions, pruning, strays
 from storage.database import (DB_NAME, MODELS_DIR, Migration, connection, ensure_schema, refuse_lost_database,
                               storage_error, transaction, undo_unless_committed)
 from storage.errors import CorruptCheckpointError, RegistryError, RegistryUnavailableError, UnknownModelError
@@ -87,9 +87,9 @@ _MIGRATIONS: tuple[Migration, ...] = (
 )
 
 
-def _dump(obj: Any, what: str) -> bytes:
-    try:
-        return json.dumps(obj, sort_keys=True, indent=2).encode()
+def _dump(obj: Any, what: str, finite: bool = False) -> bytes:
+    try:  # (finite: NaN and infinities as null, for a file strict readers take; a row keeps them, the gate reads it)
+        return json.dumps(jsonsafe.finite_json(obj) if finite else obj, sort_keys=True, indent=2).encode()
     except (TypeError, ValueError) as exc:
         raise RegistryError(f"{what} must be JSON-serialisable: {exc}") from exc
 
@@ -271,8 +271,8 @@ class ModelRegistry:
         # The big writes and their fsyncs happen before taking the write lock (leases wait on it).
         tmp = final = None
         try:
-            tmp = checkpoint_files.stage(self.models_dir, {WEIGHTS_FILE: weights, CONFIG_FILE: config_bytes,
-                                                           METRICS_FILE: metrics_bytes, **files})
+            tmp = checkpoint_files.stage(self.models_dir, {WEIGHTS_FILE: weights, CONFIG_FILE: config_bytes, **files,
+                                                           METRICS_FILE: _dump(metrics, "metrics", finite=True)})
             with self._connect() as conn:
                 try:
                     with transaction(conn):

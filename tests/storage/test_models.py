@@ -137,6 +137,8 @@ def test_first_model_with_nan_or_wrong_split_is_refused(reg: ModelRegistry) -> N
     nan = _register(reg, math.nan)
     d = reg.gate(nan, eval_split_hash=SPLIT)
     assert not d.promoted and "not finite" in d.reason and "h1_mse" in d.reason
+    strict = json.loads((reg.get(nan).path / "metrics.json").read_text(), parse_constant=pytest.fail)  # (jq's way)
+    assert strict["h1_mse"] is None and math.isnan(reg.get(nan).metrics["h1_mse"])  # the row keeps it for the gate
     wrong = _register(reg, 0.01, split="split-other")
     d = reg.gate(wrong, eval_split_hash=SPLIT)
     assert not d.promoted and "wrong eval split" in d.reason
