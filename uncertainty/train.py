@@ -207,22 +207,25 @@ def _horizon_metrics(stats: dict[str, np.ndarray], col: int, h: int) -> dict[str
 
 def _longer_horizons(ensemble: Ensemble, episodes: Sequence[Episode], horizons: Sequence[int], rollout_stride: int,
                      batch_size: int) -> dict[str, Any]:
-    """The metrics of the horizons past 1, from one rollout as long as the longest that the episodes allow;
-    NaN mse, psnr and ssim for those they are too short for."""
+    """The metrics of the horizons past 1, each from a rollout over every episode long enough for it: one rollout
+    as long as the longest horizon serves the shorter ones its episodes all reach (one rollout where the episodes
+    are of one length; another where some reach a shorter horizon only); NaN mse, psnr and ssim for a horizon
+    every episode is too short for."""
     out: dict[str, Any] = {}
-    longer = sorted(h for h in horizons if h > 1)
+    reach = {h: sum(len(ep) >= ensemble.config.context + h for ep in episodes) for h in horizons if h > 1}
+    longer = sorted(reach)
     while longer:
-        try:
-            wl = build_windows(episodes, ensemble.config, horizon=longer[-1], stride=rollout_stride)
-        except DataError:  # no episode long enough: this horizon is NaN, a shorter one may still be measured
-            h = longer.pop()
+        if not reach[h := longer[-1]]:  # no episode long enough: this one is NaN, a shorter one may be measured
             out.update({f"h{h}_{k}": float("nan") for k in ("mse", "psnr", "ssim")})
+            longer.pop()
             continue
+        served = [h for h in longer if reach[h] == reach[longer[-1]]]
+        wl = build_windows(episodes, ensemble.config, horizon=longer[-1], stride=rollout_stride)
         sl = _rollout_stats(ensemble, wl, batch_size)
-        for h in longer:
+        for h in served:
             out.update(_horizon_metrics(sl, h - 1, h))
         out[f"h{longer[-1]}_windows"] = len(wl)
-        break
+        longer = [h for h in longer if h not in served]
     return out
 
 

@@ -128,3 +128,15 @@ def test_a_horizon_the_eval_episodes_are_too_short_for_leaves_the_shorter_ones_m
     assert all(math.isfinite(m[f"h5_{k}"]) for k in ("mse", "psnr", "ssim", "disagreement"))
     assert m["h5_windows"] == 3 * 2 and m["h5_mse"] > m["h1_mse"]  # starts 1 and 2 of each episode
     assert all(math.isnan(m[f"h10_{k}"]) for k in ("mse", "psnr", "ssim"))
+
+
+def test_a_horizon_is_measured_on_every_eval_episode_long_enough_for_it(trained):
+    """Three episodes reach h5 only, one reaches h10 too (an eval split ingested and pinned by hand): h5 came from
+    the h10 rollout alone, one window of the one long episode."""
+    ens, _ = trained
+    short, long = [make_episode(seed, "T", steps=8) for seed in range(200, 203)], make_episode(203, "T", steps=12)
+    both = evaluate_episodes(ens, [*short, long], "hash", horizons=(1, 5, 10), rollout_stride=1)
+    alone = {h: evaluate_episodes(ens, eps, "hash", horizons=(1, h), rollout_stride=1)
+             for h, eps in ((5, [*short, long]), (10, [long]))}
+    assert both["h5_windows"] == 3 * 2 + 6 and both["h10_windows"] == 1  # (starts 1..6 of the long one at h5)
+    assert all(both[f"h{h}_{k}"] == alone[h][f"h{h}_{k}"] for h in (5, 10) for k in ("mse", "ssim", "disagreement"))
