@@ -59,7 +59,6 @@ class PartStaging:
         self.replace_after_s = max_age_s / 4 if replace_after_s is None else replace_after_s
         """Another upload under the same lease (other sha256 or size) replaces the one held only once no part of
         that one has come for this long; before, it is refused: two processes share one worker id."""
-
         self._clock = clock
         self._live = live
         """Whether an upload's lease is still live (``sweep`` keeps those: a part may be slow to come)."""
