@@ -103,7 +103,8 @@ def test_quarantining_a_pinned_eval_episode_is_a_usage_error_and_changes_nothing
     train = cat.add_episode(make_episode(rng)).episode_id
     pinned = cat.add_episode(make_episode(rng), split="eval").episode_id
     cat.pin_eval_split([pinned])
-    rc, out, err = run_cli(capsys, "episodes", "quarantine", train, pinned[:10], "--reason", "x", "--data", str(data_dir))
+    rc, out, err = run_cli(capsys, "episodes", "quarantine", train, pinned[:10], "--reason", "x",
+                           "--data", str(data_dir))
     assert rc == 2 and out == "" and err.count("\n") == 1, err
     assert f"{pinned} is in the pinned eval split, which cannot change" in err and "ingest its bytes" in err
     assert cat.count(quarantined=True) == 0  # not the train episode named before it either
