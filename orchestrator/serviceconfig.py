@@ -43,6 +43,11 @@ PlannerFactory = Callable[[ServiceContext], Planner]
 EpisodeCallback = Callable[[StoredEpisode], None]
 
 
+
+#: The seconds each of these ``ServiceConfig`` fields may be (and ``serve``'s flags for them take).
+SECONDS_RANGES = {"lease_s": (0.05, 86400.0), "reap_interval_s": (0.01, 3600.0), "lost_worker_grace_s": (0.0, 86400.0)}
+
+
 @dataclass
 class ServiceConfig:
     """Everything ``activecollect serve`` decides."""
@@ -100,9 +105,7 @@ class ServiceConfig:
             raise ServiceError(f"namespace: {exc.message}") from None
         if self.mode not in transport.MODES:
             raise ServiceError(f"mode: expected one of {transport.MODES}, found {self.mode!r}")
-        numbers = [("lease_s", self.lease_s, 0.05, 86400.0),
-                   ("reap_interval_s", self.reap_interval_s, 0.01, 3600.0),
-                   ("lost_worker_grace_s", self.lost_worker_grace_s, 0.0, 86400.0)]
+        numbers = [(name, getattr(self, name), *SECONDS_RANGES[name]) for name in SECONDS_RANGES]
         counts = [("max_upload_bytes", self.max_upload_bytes, 1, protocol.MAX_UPLOAD_BYTES),
                   ("seed_requests", self.seed_requests, 0, 10_000), ("min_queued", self.min_queued, 0, 10_000),
                   ("handler_threads", self.handler_threads, 1, 64)]

@@ -7,7 +7,7 @@ import json
 import math
 import re
 import sys
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any, NoReturn
 
@@ -269,6 +269,19 @@ def positive_float(text: str) -> float:
 
 #: What every ``--device`` takes: the devices ``TrainConfig.device`` names (it takes no ``cuda:N``).
 DEVICES = ("auto", "cpu", "cuda")
+
+
+def seconds_in(low: float, high: float) -> Callable[[str], float]:
+    """An argparse type: a finite number of seconds in [``low``, ``high``] (nan and inf refused)."""
+    def seconds(text: str) -> float:
+        try:
+            value = finite_float(text)
+        except argparse.ArgumentTypeError:
+            value = math.nan
+        if not low <= value <= high:
+            raise argparse.ArgumentTypeError(f"expected seconds in {low:g}..{high:g}, found {text!r}")
+        return value
+    return seconds
 
 
 def torch_device(text: str) -> str:

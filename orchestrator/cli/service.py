@@ -24,7 +24,8 @@ from orchestrator.planner import ActivePlanner, ActivePlannerConfig, in_eval_spl
 from orchestrator.protocol import one_line
 from orchestrator.uniform import UniformPlanner, UniformPlannerConfig
 from orchestrator.service import Service
-from orchestrator.serviceconfig import PlannerFactory, ServiceConfig, ServiceContext, ServiceError, where_served
+from orchestrator.serviceconfig import (SECONDS_RANGES, PlannerFactory, ServiceConfig, ServiceContext, ServiceError,
+                                        where_served)
 from orchestrator.signals import on_stop_signals
 from storage.database import DB_NAME
 from storage.errors import StorageError
@@ -55,12 +56,14 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "holds no catalog is refused: a misspelt path, or the data directory's parent, must not "
                         "start a new, empty catalog)")
     endpoints.add_connection_args(p, listen=True)
-    p.add_argument("--lease-s", type=common.positive_float, default=30.0, metavar="S",
+    p.add_argument("--lease-s", type=common.seconds_in(*SECONDS_RANGES["lease_s"]), default=30.0, metavar="S",
                    help="seconds a worker holds a request before it must renew the lease or lose it, 0.05..86400 "
                         "(default 30)")
-    p.add_argument("--reap-interval-s", type=common.positive_float, default=1.0, metavar="S",
+    p.add_argument("--reap-interval-s", type=common.seconds_in(*SECONDS_RANGES["reap_interval_s"]), default=1.0,
+                   metavar="S",
                    help="seconds between looks for expired leases, 0.01..3600 (default 1)")
-    p.add_argument("--lost-worker-grace", type=lost_worker_grace, default=ServiceConfig.lost_worker_grace_s,
+    p.add_argument("--lost-worker-grace", type=common.seconds_in(*SECONDS_RANGES["lost_worker_grace_s"]),
+                   default=ServiceConfig.lost_worker_grace_s,
                    metavar="S", help="seconds a worker whose liveliness token went keeps its leases before they go "
                    "back to the queue, 0..86400 (default %(default)g; 0 = at once). When a Zenoh router restarts or "
                    "a link blips, every worker's token goes and comes back a few seconds later: within the grace "
@@ -126,14 +129,6 @@ def register_bench(bench_sub: argparse._SubParsersAction) -> None:
 
 
 # --- serve ---------------------------------------------------------------------------------------
-
-def lost_worker_grace(text: str) -> float:
-    """``--lost-worker-grace``: a finite number of seconds in [0, 86400]."""
-    value = common.finite_float(text)
-    if not 0 <= value <= 86400:
-        raise argparse.ArgumentTypeError(f"expected seconds in 0..86400, found {text!r}")
-    return value
-
 
 def planner_factory(name: str, steps: int, seed: int, threads: int = 0) -> PlannerFactory | None:
     """The factory ``serve --planner`` names (None for ``none``); ``threads`` is the champion scorer's."""
