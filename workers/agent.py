@@ -355,15 +355,19 @@ class Worker:
 
         No reply, ``internal`` and ``unavailable`` (a full disk, a busy database, a service going
         down) are retried with the same bytes: a collected episode is not dropped while its lease
-        is ours. While draining, for one more lease term at most (``Renewer.drain_left``), then
-        ``_give_up``. A second stop signal gives the request back instead.
+        is ours. While draining, for one more lease term at most (``Renewer.drain_left``; each part the
+        service takes starts it again), then ``_give_up``. A second stop signal gives the request back instead.
         """
         upload = EpisodeUpload(data, grant.request_id, grant.token, self.config.worker_id,
                                None if self._no_parts else self.config.part_bytes)
         last: list[Exception] = []  # the last try's failure
+        seen = [0]  # the most bytes the service said it held: a new high is progress (once a part at most)
 
         def send(payload: bytes, attachment: bytes) -> dict[str, Any]:
             timeout = self.config.timeout_s
+            if upload.held > seen[0]:  # the last part was taken: a draining worker's term goes on from here
+                seen[0] = upload.held
+                renewer.drain_progress()
             if self._stop.is_set():  # draining: no wait past the end of the lease or of the drain's term
                 timeout = min(timeout, max(renewer.drain_left(), MIN_DRAIN_ATTEMPT_S))
             return self._call(self.keys.upload, payload, attachment, timeout=timeout)

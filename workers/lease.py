@@ -55,13 +55,20 @@ class Renewer:
 
     def drain_left(self) -> float:
         """Seconds a draining worker may still try to upload: what is left of the lease, and of one lease term
-        from the first call, however often the service renews the lease meanwhile (a live service that renews it
+        from the first call or the last part the service took (``drain_progress``), however often the service
+        renews the lease meanwhile (a live service that renews it
         but will not store the episode, ``unavailable``, must not hold a draining worker for ever); <= 0 once
         either has run out. Renewals go on: the request stays this worker's while it tries."""
         now = time.monotonic()
         if self._drain_until is None:
             self._drain_until = now + self._grant.lease_s
         return min(self._until, self._drain_until) - now
+
+    def drain_progress(self) -> None:
+        """The service took more of the episode (a part acknowledged): a draining worker's term starts again from
+        now. A slow uplink is not a service that will not store: only a term without progress ends the drain."""
+        if self._drain_until is not None:
+            self._drain_until = time.monotonic() + self._grant.lease_s
 
     def _run(self) -> None:
         # By the clock, not after each call: a renewal nobody answered must not push the next one

@@ -147,3 +147,28 @@ def test_a_paced_episode_whose_lease_is_lost_is_dropped_without_waiting_out_its_
     assert service.queue.get(request.id).status == RequestStatus.CANCELLED and Catalog(data_dir).count() == 0
     w.signal(signal.SIGTERM)
     assert w.wait(30) == 0, w.log()
+
+
+def test_a_draining_worker_goes_on_uploading_while_the_service_takes_its_parts(make_service, spawn_worker,
+                                                                               data_dir) -> None:
+    """A slow uplink, not a service that will not store: each part is taken, but the whole upload takes longer than
+    a lease term. The draining worker used to give up one term after its first upload call (each part's wait cut
+    to 0.5 s, the next slower part ended it) and drop an episode the service was storing."""
+    lease_s, per_part_s = 2.0, 0.6
+    service = make_service(lease_s=lease_s)
+    request, _ = service.queue.enqueue(new_request(steps=10))  # 1 s of paced collection: the stop comes in it
+    handler = service._uploads
+    part, parts = handler._part, []
+
+    def slow_link(payload, header):  # (each part's reply comes per_part_s after it was sent, as over ~2 kB/s)
+        parts.append(len(payload))
+        threading.Event().wait(per_part_s)
+        return part(payload, header)
+
+    handler._part = slow_link
+    w = spawn_worker("S", "--realtime", "1", "--upload-part-kb", "1")
+    in_hand(w, request.id)
+    send(w, signal.SIGTERM, "draining:")
+    assert w.wait(60) == 0, w.log()
+    assert len(parts) * per_part_s > 1.5 * lease_s, parts  # (the upload did outlast the drain's first term)
+    assert service.queue.get(request.id).status == RequestStatus.DONE and Catalog(data_dir).count() == 1, w.log()
