@@ -109,6 +109,10 @@ class Worker:
         """Episodes given up while draining because a live service would not store them (exit 1)."""
         self._no_parts = False
         """The service takes no upload in parts (an older version): episodes go whole (``workers.upload``)."""
+        self.refused: str | None = None
+        """Why the last lease query was refused (not ``no_work``) or its reply could not be read; None once one is
+        answered. Such queries back off up to ``max_backoff_s``; ``--once`` exits 1 on one."""
+        self._refusals = 0
         self.abandoned: list[str] = []
         """``<request id> (<what it was doing>)`` of an episode a second stop signal dropped unacknowledged (exit 1)."""
 
@@ -166,9 +170,13 @@ class Worker:
                 if self._stop.is_set():  # drained while waiting for an answer: not "no work"
                     return
                 if cfg.once:
-                    log.info("no work; exiting (--once)")
+                    if self.refused is None:
+                        log.info("no work; exiting (--once)")
                     return
-                self._stop.wait(cfg.idle_poll_s)
+                # (a refusal that will not pass, another release's service, must not be asked 2 times a second)
+                self._stop.wait(cfg.idle_poll_s if self.refused is None else
+                                min(cfg.idle_poll_s * 2 ** min(self._refusals, 16), max(cfg.max_backoff_s,
+                                                                                         cfg.idle_poll_s)))
                 continue
             if self._stop.is_set():  # drained while the lease was asked for: this request is not in hand yet
                 log.info("draining: giving back %s, granted after the drain began", grant.request_id)
@@ -233,15 +241,16 @@ class Worker:
             body = self._retrying("lease", lambda: self._call(self.keys.lease, msg), until_stopped=True,
                                   transient=(ErrorCode.UNAVAILABLE,))  # e.g. its disk is full: back off
         except ProtocolError as exc:
-            if exc.code != ErrorCode.NO_WORK:
-                log.warning("lease refused: %s", exc)
-            return None
+            if exc.code == ErrorCode.NO_WORK:
+                self.refused, self._refusals = None, 0
+                return None
+            return self._lease_refused(f"the lease query was refused, or its reply could not be read: {exc}")
         if body is None:
             return None
         raw = body.get("grant")
         if not isinstance(raw, dict):  # names no request: there is nothing to report failed
-            log.warning("lease reply is malformed: expected a grant object, found %.80r", raw)
-            return None
+            return self._lease_refused(f"the lease reply is malformed: expected a grant object, found {raw!r:.80}")
+        self.refused, self._refusals = None, 0
         try:
             grant = LeaseGrant.from_dict(raw)
         except ProtocolError as exc:  # a request no worker can do: say so, so it ends dead, not looping
@@ -249,6 +258,11 @@ class Worker:
             self._fail_raw(str(raw.get("request_id")), raw.get("token"), f"malformed lease: {exc}")
             return None
         return grant
+
+    def _lease_refused(self, why: str) -> None:
+        self.refused, self._refusals = why, self._refusals + 1
+        log.warning("%s (are this worker and the service of one release? %d in a row; asking again after a "
+                    "backoff)", why, self._refusals)
 
     def _fail(self, grant: LeaseGrant, error: str) -> None:
         self._fail_raw(grant.request_id, grant.token, error)

@@ -70,7 +70,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help='what it can collect: "push:T,box", "T,box" or "push" (default: anything)')
     parser.add_argument("--once", action="store_true",
                         help="handle at most one request, then exit; exit at once when the service has no work "
-                             "for this worker (a service that does not answer is waited for)")
+                             "for this worker (a service that does not answer is waited for; one that refuses the "
+                             "lease query, another release's, or whose reply cannot be read: exit 1)")
     parser.add_argument("--max-episodes", type=flags.positive_int, default=None, metavar="N",
                         help="exit after N uploads (default: run until stopped)")
     parser.add_argument("--size", type=flags.frame_size, default=64, metavar="PX",
@@ -153,7 +154,10 @@ def _work(worker: Worker, prog: str) -> int:
     if worker.dropped:
         print(f"{prog}: gave up {worker.dropped} collected episode(s) the service would not store while draining "
               "(see the log)", file=sys.stderr)
-    return 1 if worker.abandoned or worker.dropped else 0
+    refused = worker.config.once and worker.refused is not None  # not "no work": a script must tell them apart
+    if refused:
+        print(f"{prog}: {protocol.one_line(str(worker.refused))}", file=sys.stderr)
+    return 1 if worker.abandoned or worker.dropped or refused else 0
 
 
 def build_parser() -> argparse.ArgumentParser:

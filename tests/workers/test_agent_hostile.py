@@ -76,15 +76,22 @@ def _ok(**body: Any) -> bytes:
     (_ok(), "lease reply is malformed: expected a grant object, found None"),
     (_ok(grant=[1, 2]), "lease reply is malformed: expected a grant object, found [1, 2]"),
     (_ok(grant="r-1"), "lease reply is malformed: expected a grant object, found 'r-1'"),
-], ids=["no-grant", "a-list", "a-string"])
-def test_a_lease_reply_without_a_grant_object_is_a_warning_not_a_crash(fake_service, spawn_worker, reply,
-                                                                       words) -> None:
-    """(The old worker died on it with a KeyError / AttributeError traceback: restarted, it asked again.)"""
+    (protocol.error_reply(ErrorCode.BAD_FIELD, "tasks: expected a list"), "was refused, or its reply could not be "
+                                                                          "read: bad_field: tasks: expected a list"),
+    (protocol.encode({"v": protocol.PROTOCOL_VERSION + 1, "ok": True}), "bad_version"),
+], ids=["no-grant", "a-list", "a-string", "refused", "another-release"])
+def test_a_lease_reply_without_a_grant_is_a_warning_and_once_exits_1(fake_service, spawn_worker, reply,
+                                                                     words) -> None:
+    """(The old worker died on it with a KeyError / AttributeError traceback: restarted, it asked again. Then it
+    said 'no work' and exited 0 with --once: a script could not tell another release's service from an empty
+    queue.)"""
     service = fake_service(reply)
     w = spawn_worker("X", "--once")
-    assert w.wait(60) == 0, w.log()
+    assert w.wait(60) == 1, w.log()
     log = w.log()
-    assert words in log and "Traceback" not in log, log
+    assert words in log and "Traceback" not in log and "no work" not in log, log
+    assert "are this worker and the service of one release?" in log
+    assert any(line.startswith("python -m workers.agent: ") and words in line for line in log.splitlines()), log
     assert service.leases >= 1 and service.fails == []  # no request named: no failure to report
 
 
