@@ -11,8 +11,9 @@ part at most, and a lost reply or a link that drops costs one part, not the epis
 checks the lease before a part is kept), one upload per request (a part of another upload of it, a new lease's or
 other bytes, starts it again), and until its lease is not live any more and no part has come for ``max_age_s`` (a
 worker that died mid-upload leaves nothing for long: the service's sweep every 5 minutes forgets it), and at
-most ``max_total_bytes`` for every upload together (a part past that, once the parts of ended leases are forgotten,
-is answered ``unavailable``: the worker sends it again later). Another upload of other bytes under the same lease
+most ``max_total_bytes`` for every upload together, each counted at its whole size from its first part (a new
+upload past that, once the parts of ended leases are forgotten, is answered ``unavailable``: the worker sends it
+again later; one let in always gets its parts taken, so uploads under way never hold each other up for ever). Another upload of other bytes under the same lease
 while one is in progress (two processes with one worker id) is refused ``unavailable`` and logged as an error:
 each used to restart the other's for ever, the second's bytes stored nowhere, nobody told why. A part is
 answered with the bytes held from the start (``received``), from which the worker sends on: a part past them (the
@@ -54,8 +55,9 @@ class PartStaging:
                  max_total_bytes: int | None = None, replace_after_s: float | None = None) -> None:
         self.max_age_s = max_age_s
         self.max_total_bytes = max_total_bytes
-        """The most bytes held for all uploads in progress together (None: no bound); a part that would go past
-        it is answered ``unavailable`` (the worker sends it again after a backoff)."""
+        """The most bytes set aside for all uploads in progress together, each its whole size from its first part
+        on (None: no bound), so every upload let in can end; a new upload past it is answered ``unavailable`` (the
+        worker sends it again after a backoff)."""
         self.replace_after_s = max_age_s / 4 if replace_after_s is None else replace_after_s
         """Another upload under the same lease (other sha256 or size) replaces the one held only once no part of
         that one has come for this long; before, it is refused: two processes share one worker id."""
@@ -71,8 +73,8 @@ class PartStaging:
         are stored or refused for good: a store that failed for a reason that passes, or a repeat of the last part
         while it is stored, finds them whole again). Raises ProtocolError ``bad_field`` for a part that ends past
         the upload's size (nothing kept), ``unavailable`` for another upload under the lease of one still in
-        progress (two processes with one worker id) and for a part past ``max_total_bytes`` (once the uploads
-        whose lease ended are forgotten)."""
+        progress (two processes with one worker id) and for a new upload whose size would take the bytes set
+        aside past ``max_total_bytes`` (once the uploads whose lease ended are forgotten)."""
         end = part.offset + len(payload)
         if not payload or end > part.size:
             raise ProtocolError(ErrorCode.BAD_FIELD, f"payload: expected 1 to {part.size - part.offset} bytes "
@@ -84,11 +86,11 @@ class PartStaging:
         try:
             return self._add(part, payload, end)
         except _Full as full:
-            log.warning("upload parts: %d bytes held for uploads in progress, at most %d: %s's part waits",
-                        full.held, self.max_total_bytes, part.request_id)
-            raise ProtocolError(ErrorCode.UNAVAILABLE, f"upload {part.request_id}: the service holds {full.held} "
-                                f"bytes of uploads in parts, at most {self.max_total_bytes}: send this part again "
-                                "later") from None
+            log.warning("upload parts: %d bytes set aside for uploads in progress, at most %d: %s's upload of %d "
+                        "bytes waits", full.promised, self.max_total_bytes, part.request_id, part.size)
+            raise ProtocolError(ErrorCode.UNAVAILABLE, f"upload {part.request_id}: the service has {full.promised} "
+                                f"bytes set aside for uploads in parts, at most {self.max_total_bytes}: send this "
+                                "part again later") from None
 
     def _add(self, part: UploadPart, payload: bytes, end: int) -> int | bytes:
         whole = part.whole()
@@ -102,13 +104,11 @@ class PartStaging:
                 raise ProtocolError(ErrorCode.UNAVAILABLE, f"upload {whole.request_id}: another upload of other "
                                     f"bytes under this lease (token {whole.token}) is in progress: two workers "
                                     f"share the id {whole.worker_id}? give each its own --id")
-            kept = len(held.data) if held is not None and held.header == whole else 0  # (another upload: replaced)
-            grown = max(kept, end) if part.offset <= kept else kept
-            if self.max_total_bytes is not None and grown > kept:
-                total = sum(len(p.data) for p in self._held.values())
-                if total - (len(held.data) if held is not None else 0) + grown > self.max_total_bytes:
-                    raise _Full(total)
             if held is None or held.header != whole:  # a new upload of this request: a new lease's, other bytes
+                if self.max_total_bytes is not None:  # its whole size is set aside: an upload let in always ends
+                    promised = sum(p.header.size for r, p in self._held.items() if r != part.request_id)
+                    if promised + whole.size > self.max_total_bytes:
+                        raise _Full(promised)
                 held = self._held[part.request_id] = _Partial(whole, bytearray(), now)
             held.touched = now
             if part.offset > len(held.data):  # a gap: what came before it is not here (lost by a restart)
@@ -141,11 +141,11 @@ class PartStaging:
 
 
 class _Full(Exception):
-    """A part would take the bytes held past ``PartStaging.max_total_bytes``."""
+    """A new upload's size would take the bytes set aside past ``PartStaging.max_total_bytes``."""
 
-    def __init__(self, held: int) -> None:
-        super().__init__(held)
-        self.held = held
+    def __init__(self, promised: int) -> None:
+        super().__init__(promised)
+        self.promised = promised
 
 
 def _same_lease(a: UploadHeader, b: UploadHeader) -> bool:

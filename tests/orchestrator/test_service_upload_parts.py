@@ -262,20 +262,23 @@ def test_two_uploads_of_other_bytes_under_one_lease_do_not_reset_each_other(serv
 
 
 def test_parts_are_held_up_to_a_total_and_to_what_the_request_can_be(make_service, client, keys) -> None:
-    service = make_service(max_upload_bytes=4 * PART)  # at most 16 parts held in all
-    for _ in range(6):
+    service = make_service(max_upload_bytes=4 * PART)  # at most 16 parts set aside in all
+    for _ in range(5):
         service.queue.enqueue(new_request())
-    grants = [lease(client, keys, worker=f"w{i}") for i in range(6)]
+    grants = [lease(client, keys, worker=f"w{i}") for i in range(5)]
     headers = [UploadHeader(request_id=g.request_id, token=g.token, worker_id=f"w{i}", sha256="0" * 64,
                             size=4 * PART) for i, g in enumerate(grants)]
     junk = bytes(3 * PART)
-    for h in headers[:5]:
+    for h in headers[:4]:
         assert call(client, keys.upload, junk, UploadPart.of(h, 0).to_json())["received"] == 3 * PART
-    assert service._uploads.parts.held_bytes() == 15 * PART
+    assert service._uploads.parts.held_bytes() == 12 * PART
     assert "at most" in refused(ErrorCode.UNAVAILABLE, call, client, keys.upload, junk,
-                                UploadPart.of(headers[5], 0).to_json())
-    assert service._uploads.parts.held_bytes() == 15 * PART
-    assert f"activecollect_upload_parts_held_bytes {15 * PART}.0" in service.metrics.render()
+                                UploadPart.of(headers[4], 0).to_json())
+    assert service._uploads.parts.held_bytes() == 12 * PART
+    assert f"activecollect_upload_parts_held_bytes {12 * PART}.0" in service.metrics.render()
+    for h in headers[:4]:  # every upload let in ends (their bytes are junk: refused, and forgotten)
+        refused(ErrorCode.HASH_MISMATCH, call, client, keys.upload, bytes(PART), UploadPart.of(h, 3 * PART).to_json())
+    assert service._uploads.parts.held_bytes() == 0
 
 
 def test_parts_of_an_upload_bigger_than_its_request_can_be_are_refused(service, client, keys) -> None:
@@ -287,17 +290,21 @@ def test_parts_of_an_upload_bigger_than_its_request_can_be_are_refused(service, 
     assert service._uploads.parts.held_bytes() == 0
 
 
-def test_a_full_staging_forgets_the_parts_of_ended_leases_before_it_refuses_a_part() -> None:
-    now, live = [0.0], {"r1": True, "r2": False, "r3": True}
+def test_a_full_staging_forgets_ended_leases_then_refuses_new_uploads_but_not_those_it_let_in() -> None:
+    """Each upload is counted at its whole size from its first part: uploads under way that filled the staging
+    between them were each refused their next part, for ever (a review's reproduction)."""
+    now, live = [0.0], {"r1": True, "r2": False, "r3": True, "r4": True}
     staging = PartStaging(max_age_s=60.0, clock=lambda: now[0], live=lambda header: live[header.request_id],
                           max_total_bytes=10)
-    headers = {r: UploadHeader(request_id=r, token=1, worker_id=r, sha256="0" * 64, size=10) for r in live}
-    assert staging.add(UploadPart.of(headers["r1"], 0), b"abcd") == 4
-    assert staging.add(UploadPart.of(headers["r2"], 0), b"efghij") == 6
+    headers = {r: UploadHeader(request_id=r, token=1, worker_id=r, sha256="0" * 64, size=5) for r in live}
+    assert staging.add(UploadPart.of(headers["r1"], 0), b"ab") == 2
+    assert staging.add(UploadPart.of(headers["r2"], 0), b"cd") == 2
     now[0] = 1.0
-    assert staging.add(UploadPart.of(headers["r3"], 0), b"klmnop") == 6  # r2's lease ended: its 6 bytes went
-    assert staging.held_bytes() == 10
-    with pytest.raises(ProtocolError, match="holds 10 bytes of uploads in parts, at most 10") as refused:
-        staging.add(UploadPart.of(headers["r1"], 4), b"q")  # both live: the part waits, nothing kept
-    assert refused.value.code == ErrorCode.UNAVAILABLE and staging.held_bytes() == 10
-    assert staging.add(UploadPart.of(headers["r1"], 0), b"abcd") == 4  # a repeat grows nothing: answered
+    assert staging.add(UploadPart.of(headers["r3"], 0), b"ef") == 2  # r2's lease ended: its 5 bytes went
+    with pytest.raises(ProtocolError, match="10 bytes set aside for uploads in parts, at most 10") as refused:
+        staging.add(UploadPart.of(headers["r4"], 0), b"g")  # a new upload waits, nothing kept
+    assert refused.value.code == ErrorCode.UNAVAILABLE and staging.held_bytes() == 4
+    assert staging.add(UploadPart.of(headers["r1"], 2), b"xyz") == b"abxyz"  # one let in ends
+    assert staging.add(UploadPart.of(headers["r3"], 2), b"uvw") == b"efuvw"
+    staging.drop(headers["r1"])
+    assert staging.add(UploadPart.of(headers["r4"], 0), b"g") == 1  # room again
