@@ -13,9 +13,10 @@ other bytes, starts it again), and until its lease is not live any more and no p
 worker that died mid-upload leaves nothing for long: the service's sweep every 5 minutes forgets it), and at
 most ``max_total_bytes`` for every upload together, each counted at its whole size from its first part (a new
 upload past that, once the parts of ended leases are forgotten, is answered ``unavailable``: the worker sends it
-again later; one let in always gets its parts taken, so uploads under way never hold each other up for ever). Another upload of other bytes under the same lease
-while one is in progress (two processes with one worker id) is refused ``unavailable`` and logged as an error:
-each used to restart the other's for ever, the second's bytes stored nowhere, nobody told why. A part is
+again later; one let in always gets its parts taken, so uploads under way never hold each other up for ever).
+Another upload of other bytes under the same lease while one is in progress (two processes with one worker id) is
+refused ``unavailable`` and logged as an error: each used to restart the other's for ever, the second's bytes
+stored nowhere, nobody told why. A part is
 answered with the bytes held from the start (``received``), from which the worker sends on: a part past them (the
 service restarted and lost what it held) is not kept. The part that completes the bytes hands them, whole, to the
 upload path every whole upload takes (sha256, verification, one ingest transaction), and are held until it has
