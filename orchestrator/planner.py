@@ -148,10 +148,12 @@ class ActivePlanner:
             self._requested.append(state_features(r.shape, agent, start["object"], start.get("physics") or {}))
             self._requested_steps.append((str(reason.get("source_episode")), int(reason.get("step", -1))))
 
-    def remember_queue(self, queue: RequestQueue) -> None:
-        """``remember`` the latest requests of ``queue`` (as many as the memory holds): a service or a run that
+    def remember_queue(self, queue: RequestQueue, look_back: int = 16) -> None:
+        """``remember`` the active requests of ``queue`` last made, as many as the memory holds, of its latest
+        ``look_back`` times that many (uniform seeds and top-ups are half of ``serve``'s): a service or a run that
         starts again keeps away from what it asked for before."""
-        self.remember(queue.list(limit=self.cfg.memory)[::-1])
+        latest = sorted(queue.list(limit=look_back * self.cfg.memory), key=lambda r: r.created)
+        self.remember([r for r in latest if (r.reason or {}).get("planner") == "active"][-self.cfg.memory:])
 
     def seed(self, n: int, why: str = "seed") -> list[NewRequest]:
         """Uniform requests: before any model exists there is nothing to be uncertain about (and when

@@ -34,7 +34,8 @@ class GateDecision:
     version: str = ""
     """The candidate."""
     champion_before: str | None = None
-    """The champion when the gate ran (None for the first model)."""
+    """The champion when the gate ran (None for the first model); for a candidate an operator promoted before its
+    gate ran, the champion before that promotion."""
     metric: str = DEFAULT_METRIC
     """The metric compared."""
     candidate_value: float | None = None

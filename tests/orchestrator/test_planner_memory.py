@@ -59,5 +59,8 @@ def test_serves_planner_remembers_the_queues_requests_across_a_restart(tmp_path)
     assert len(first) == 1 and all(queue.enqueue(r)[1] for r in first)
     follow_up = dataclasses.replace(source, meta=dataclasses.replace(source.meta, episode_id="follow-up"))
     assert restarted().plan([follow_up]) == []  # the same pose: asked for already
-    queue.enqueue(UniformPlanner(UniformPlannerConfig(), rng).seed(1)[0])  # another planner's: passed over
+    uniform = UniformPlanner(UniformPlannerConfig(), rng)
+    for _ in range(300):  # more top-ups since than the memory holds, each gone by now (below the depth cap)
+        queue.cancel(queue.enqueue(uniform.seed(1)[0])[0].id)
+    assert restarted().plan([follow_up]) == []  # (the latest 256 of every planner's held no active one)
     assert restarted().plan([make_episode(rng, steps=20)])  # a new pose is asked for
