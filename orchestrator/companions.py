@@ -49,8 +49,8 @@ class CompanionConfig:
     """Retrain each time the training episode count crosses a multiple of this (0 = not on count)."""
     retrain_cron: str = ""
     """Also retrain on this cron expression, e.g. ``0 * * * *`` ('' = not on time)."""
-    retrain_timeout_s: float = 1800.0
-    """A retrain running longer than this is killed (changing nothing, unless its gate had already decided)."""
+    retrain_timeout_s: float = ScheduleConfig.timeout_s
+    """A retrain running longer than this is killed (``ScheduleConfig.timeout_s``; ``serve --retrain-timeout``)."""
     retrain_args: tuple[str, ...] = ()
     """Extra ``activecollect retrain`` arguments (training and gate settings)."""
     retrain_threads: int | None = None

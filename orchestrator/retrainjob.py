@@ -38,8 +38,11 @@ class ScheduleConfig:
     """Retrain each time the training episode count crosses a multiple of this (0 = never on count)."""
     cron: str = ""
     """Also retrain on this cron expression of 5 fields, e.g. ``*/10 * * * *``, read in UTC ('' = never on time)."""
-    timeout_s: float = 1800.0
-    """A job running longer than this is killed (changing nothing, unless its gate had already decided)."""
+    timeout_s: float = 4 * 3600.0
+    """A job running longer than this is killed (changing nothing, unless its gate had already decided). A job
+    trains on every training window unless its arguments bound them (``--max-windows``): its time grows with the
+    catalog (retrain's defaults on 2 CPU cores: ~90 ms a window, so 30 minutes, the old default, was past at ~400
+    episodes of 50 steps and every retrain then failed)."""
     poll_s: float = 0.5
     """How often the scheduler thread checks whether a job is due or done."""
     retrain_args: tuple[str, ...] = ()

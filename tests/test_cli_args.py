@@ -122,6 +122,7 @@ def _connect() -> list[str]:
      "argument --retrain-cron: cron '0 0 31 2 *' never fires"),
     (["serve", "--lease-s", "1e6", "--data", "DATA"], "argument --lease-s: expected seconds in 0.05..86400, found"),
     (["serve", "--lease-s", "0", "--data", "DATA"], "argument --lease-s: expected seconds in 0.05..86400, found '0'"),
+    (["serve", "--retrain-timeout", "0", "--data", "DATA"], "--retrain-timeout: expected seconds in 1..604800"),
     (["serve", "--namespace", "a*b", "--data", "DATA"], "error: --namespace: expected chunks of"),
     (["stats", "--namespace", "a*b"], "error: --namespace: expected chunks of"),
     (["secure", "init", "DATA", "--namespace", "a*b"], "error: --namespace: expected chunks of"),

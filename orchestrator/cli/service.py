@@ -103,6 +103,11 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="also retrain on this cron expression of 5 fields (minute hour day month weekday), read in "
                         "UTC, e.g. '0 * * * *' or @hourly (default: not on time)")
     add_retrain_args_arg(p, d.retrain_args)
+    p.add_argument("--retrain-timeout", type=common.seconds_in(1, 7 * 86400), default=d.retrain_timeout_s,
+                   metavar="S", help="a retrain job running longer than S seconds is killed, changing nothing unless "
+                   "its gate had decided (default %(default)g: 4 h). A job trains on every training window unless "
+                   "--retrain-args bounds them with --max-windows, so its time grows with the catalog: on 2 CPU "
+                   "cores retrain's defaults take ~90 ms a window (30 minutes at ~400 episodes of 50 steps)")
     p.add_argument("--log-level", default="INFO", choices=("DEBUG", "INFO", "WARNING", "ERROR"),
                    help="least severe log messages written to stderr (default INFO)")
     p.set_defaults(func=cmd_serve)
@@ -156,7 +161,8 @@ def companion_config(args: argparse.Namespace) -> CompanionConfig:
         return CompanionConfig(dashboard_port=args.dashboard_port, dashboard_max_connections=args.max_connections,
                                dashboard_request_timeout_s=args.request_timeout, retrain_every=args.retrain_every,
                                retrain_cron=args.retrain_cron, retrain_args=args.retrain_args,
-                               retrain_threads=args.retrain_threads, scoring_threads=args.scoring_threads)
+                               retrain_threads=args.retrain_threads, scoring_threads=args.scoring_threads,
+                               retrain_timeout_s=args.retrain_timeout)
     except ValueError as exc:
         raise common.config_error(exc) from None
 

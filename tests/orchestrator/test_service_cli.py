@@ -266,6 +266,16 @@ def test_serve_scores_with_one_torch_thread_and_gives_its_retrains_the_other_cor
     assert planner_factory("active", 20, 0)(service.context).scorer.threads == 0  # the library leaves torch alone
 
 
+def test_serve_takes_a_retrain_timeout_for_its_jobs() -> None:
+    """A job trains on every window unless told otherwise: 30 minutes, fixed, was past at ~400 episodes on 2 cores,
+    and every scheduled retrain of a growing catalog then failed (a helper's measurement)."""
+    from orchestrator.cli import build_parser
+    from orchestrator.cli.service import companion_config
+    assert companion_config(build_parser().parse_args(["serve"])).schedule().timeout_s == 4 * 3600
+    args = build_parser().parse_args(["serve", "--retrain-timeout", "90"])
+    assert companion_config(args).schedule().timeout_s == 90
+
+
 @pytest.mark.parametrize("failing", ["seed", "scheduler"])
 def test_serve_reports_a_storage_error_at_start_in_one_line_and_stops_what_it_started(
         failing, capsys, monkeypatch, data_dir, endpoint, port, namespace) -> None:
