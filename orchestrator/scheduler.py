@@ -55,6 +55,15 @@ LOGS_KEPT = 200
 #: A step back of the wall clock (NTP, a host set right) larger than this reckons the next cron retrain from the
 #: new time; after a smaller one the schedule waits for the times it already ran, as cron does (3 h).
 CRON_STEP_BACK_S = 3 * 3600.0
+#: Written (with the trigger) when a scheduled job starts and removed when it ends, unless the service's stop ended it
+#: before its gate: a job killed while it was still starting (before it took the retrain lock, so its notes there are
+#: an earlier holder's) or between its register and its gate (lock phase "registered") is run again at the next start.
+DUE_MARKER = "retrain.due"
+#: The reason a stop gives the job it terminates.
+STOPPED = "stopped with the scheduler"
+#: The training episodes counted when the last job started: a start reckons its count trigger from it, so a multiple of
+#: ``every_episodes`` crossed while no service ran (its last uploads during a stop, an offline ingest) still retrains.
+COUNT_FILE = "retrain.count"
 
 
 class RetrainScheduler:
@@ -85,7 +94,7 @@ class RetrainScheduler:
         # The time.monotonic() past which the running job is killed: a wall-clock step (NTP) must neither kill
         # a healthy job nor spare a stuck one. ``RetrainRecord.started`` stays the Unix time shown to users.
         self._deadline = 0.0
-        self._last_count = count_episodes()
+        self._last_count = self._counted_before(count_episodes())
         self._next_cron = self._cron_after(time.time())
         self._last_now = time.time()  # the wall clock at the last tick, to see it stepped back (``_due``)
         self._pending_manual = ""
@@ -128,7 +137,7 @@ class RetrainScheduler:
         if self._thread is not None:
             self._thread.join()
         if kill_running:
-            self._terminate("stopped with the scheduler")
+            self._terminate(STOPPED)
         else:
             self._wait_job()
 
@@ -136,7 +145,7 @@ class RetrainScheduler:
         """Wait until no job runs; terminate it once ``stop``'s ``until`` is set."""
         while not self.wait_idle(timeout=0.2):
             if self._until is not None and self._until.is_set():
-                self._terminate("stopped with the scheduler")
+                self._terminate(STOPPED)
                 return
 
     def wait_idle(self, timeout: float | None = None) -> bool:
@@ -155,7 +164,13 @@ class RetrainScheduler:
         if self.running:
             return None
         trigger = self._due(now)
-        return self._launch(trigger) if trigger else None
+        if not trigger:
+            return None
+        try:
+            return self._launch(trigger)
+        except Exception:  # (the episodes counted once more failed): not lost, tried again at the next tick
+            self._retry = self._retry or trigger
+            raise
 
     # -- internals --------------------------------------------------------------
     def _run(self) -> None:
@@ -209,12 +224,24 @@ class RetrainScheduler:
         it ran beside, or in a crash: its notes in the lock file stop at "locked" or "training"), so that its
         retrain runs now rather than at the next trigger; "" otherwise."""
         trigger = "episodes" if self.cfg.every_episodes else "cron" if self.cfg.cron else ""
+        with contextlib.suppress(OSError):
+            if trigger and (self.data_dir / DUE_MARKER).exists():
+                log.info("the last scheduled retrain here was stopped before its gate: it runs again once the "
+                         "retrain lock is free")
+                return trigger
         info = read_lock_info(self.data_dir)
         if not trigger or not info.get("job") or info.get("phase") not in ("locked", "training"):
             return ""
         log.info("the last scheduled retrain here (pid %s) died while %s: it runs again once the retrain lock is "
                  "free", info.get("pid", "?"), info["phase"])
         return trigger
+
+    def _counted_before(self, now: int) -> int:
+        """The count at the last job's start (``COUNT_FILE``; ``now`` when none was kept or it is larger)."""
+        try:
+            return min(int((self.data_dir / COUNT_FILE).read_text()), now)
+        except (OSError, ValueError):
+            return now
 
     def job_args(self) -> tuple[str, ...]:
         """What each job is given after ``--data`` and ``--json``: ``--threads`` when set, then ``retrain_args``."""
@@ -230,6 +257,10 @@ class RetrainScheduler:
         rec.log_path = str(logs / f"retrain-{time.strftime('%Y%m%dT%H%M%S')}-{self._jobs}.log")
         try:
             logs.mkdir(parents=True, exist_ok=True)
+            if trigger in ("episodes", "cron"):
+                (self.data_dir / DUE_MARKER).write_text(trigger)
+            with contextlib.suppress(OSError):
+                (self.data_dir / COUNT_FILE).write_text(str(episodes))
             with open(rec.log_path + ".out", "wb") as out, open(rec.log_path, "wb") as err:
                 proc = subprocess.Popen(self.command(self.data_dir, self.job_args()),  # (gone with us: see _run)
                                         stdout=out, stderr=err, stdin=subprocess.DEVNULL, preexec_fn=die_with_parent,
@@ -317,8 +348,10 @@ class RetrainScheduler:
         else:
             rec.status = RetrainStatus.failed
             rec.reason = f"exit status {rc}: {log_tail(Path(rec.log_path))}"
-        if not reported:
-            self._read_what_it_left(proc.pid, rec)
+        gated = reported or self._read_what_it_left(proc.pid, rec)
+        if gated or reason != STOPPED:  # (a stop before the gate keeps it: the next start runs the retrain again)
+            with contextlib.suppress(OSError):
+                (self.data_dir / DUE_MARKER).unlink(missing_ok=True)
         for path in (notes_path(rec), Path(f"{notes_path(rec)}.tmp")):  # read once; (.tmp: a job killed while noting)
             with contextlib.suppress(OSError):
                 path.unlink(missing_ok=True)
@@ -351,7 +384,7 @@ class RetrainScheduler:
         except Exception:  # noqa: BLE001 -- boundary: a listener's failure is its own
             log.exception("retrain: %s failed", getattr(callback, "__name__", "a callback"))
 
-    def _read_what_it_left(self, pid: int, rec: RetrainRecord) -> None:
+    def _read_what_it_left(self, pid: int, rec: RetrainRecord) -> bool:
         """Complete the record of a job that ended without reporting: its notes file names the model it registered
         (when it got that far; failing that, the lock file, when no job has taken the lock since), the registry
         what its gate made of it. A promotion is recorded as one, with how the job ended, so that the history and
@@ -360,7 +393,7 @@ class RetrainScheduler:
         info = own if own.get("version") else read_lock_info(self.data_dir)
         version = info.get("version")
         if info.get("job") != rec.job or info.get("pid") != pid or not isinstance(version, str) or not version:
-            return  # (the job id, not the pid alone: an earlier holder's notes may carry a pid used again)
+            return False  # (the job id, not the pid alone: an earlier holder's notes may carry a pid used again)
         rec.version, ended = version, rec.reason
         try:
             registry = ModelRegistry(self.data_dir)
@@ -368,7 +401,7 @@ class RetrainScheduler:
             promotions = [entry.reason for entry in registry.history() if entry.version == version]
         except (StorageError, OSError) as exc:
             rec.reason = f"{ended}; it had registered {version}, whose gate's verdict cannot be read now: {exc}"
-            return
+            return False
         rec.metrics = {k: v for k, v in model.metrics.items() if not isinstance(v, (list, dict))}
         if promotions:
             rec.status = RetrainStatus.promoted
@@ -377,3 +410,5 @@ class RetrainScheduler:
             rec.reason = f"{ended}, after its gate had rejected {version}: {model.reason}"
         else:
             rec.reason = f"{ended} before its gate judged {version} (the next retrain rejects it as abandoned)"
+            return False
+        return True
