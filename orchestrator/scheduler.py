@@ -230,10 +230,18 @@ class RetrainScheduler:
                          "retrain lock is free")
                 return trigger
         info = read_lock_info(self.data_dir)
+        held = False
+        with contextlib.suppress(OSError):
+            held = lock_held(self.data_dir)
+        if held:  # (not dead: a job a killed service left running, stopped or stuck, holds it until it ends)
+            log.warning("the retrain lock is held by pid %s (%s, phase %s): scheduled retrains wait until it is free; "
+                        "if that process is stuck or stopped (a job left by a service that was killed), end it",
+                        info.get("pid", "?"), info.get("job") or "not a scheduled job", info.get("phase", "?"))
         if not trigger or not info.get("job") or info.get("phase") not in ("locked", "training"):
             return ""
-        log.info("the last scheduled retrain here (pid %s) died while %s: it runs again once the retrain lock is "
-                 "free", info.get("pid", "?"), info["phase"])
+        if not held:
+            log.info("the last scheduled retrain here (pid %s) died while %s: it runs again once the retrain lock "
+                     "is free", info.get("pid", "?"), info["phase"])
         return trigger
 
     def _counted_before(self, now: int) -> int:

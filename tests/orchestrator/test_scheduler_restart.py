@@ -4,11 +4,14 @@ launch could not count the episodes."""
 
 from __future__ import annotations
 
+import logging
+import os
 import pathlib
 
 import pytest
 
 from orchestrator.retrainjob import RetrainStatus, ScheduleConfig
+from orchestrator.retrainlock import JOB_ENV, note_phase, retrain_lock
 from orchestrator.scheduler import RetrainScheduler
 from storage.errors import StorageUnavailableError
 from tests.orchestrator.test_scheduler import HANGS, PROMOTES, Counter, script_command
@@ -62,3 +65,15 @@ def test_a_trigger_whose_launch_could_not_count_the_episodes_is_tried_at_the_nex
     rec = sched.tick(now=due + 2)
     assert rec is not None and rec.trigger == "cron" and sched.wait_idle(timeout=60)
     assert not pathlib.Path(tmp_path, "retrain.due").exists()  # (a job that ended leaves no mark)
+
+
+def test_a_start_beside_a_live_holder_of_the_retrain_lock_says_so_not_that_it_died(tmp_path, caplog, monkeypatch):
+    """A job a SIGKILLed service left stopped (SIGSTOP) keeps the lock: the next start said the job 'died' and every
+    scheduled retrain then waited on the lock without a word."""
+    monkeypatch.setenv(JOB_ENV, "job-1")  # (what the scheduler gives its jobs)
+    with retrain_lock(tmp_path):
+        note_phase(tmp_path, "training")
+        with caplog.at_level(logging.INFO, logger="orchestrator.scheduler"):
+            RetrainScheduler(ScheduleConfig(every_episodes=5), tmp_path, Counter(), command=script_command(PROMOTES))
+    said = " ".join(r.getMessage() for r in caplog.records)
+    assert f"the retrain lock is held by pid {os.getpid()}" in said and "died" not in said, said
