@@ -450,12 +450,16 @@ def request_json(r: Any) -> dict:
 def learning_curve(catalog: Catalog, registry: ModelRegistry) -> list[dict]:
     """Eval error of every registered model against the training episodes it saw, oldest first."""
     points = []
+    history = registry.history()
+    live = {e.version for e in history if e.rolled_back_at is None}   # promotions that stand
+    withdrawn = {e.version for e in history} - live                    # every promotion of it rolled back
     for m in sorted(registry.list(), key=lambda m: m.version):
         episodes = m.metrics.get("train_episodes")
         if episodes is None:  # models trained elsewhere: count what the catalog held when it was made
             episodes = _episodes_before(catalog, m.created)
         points.append({"version": m.version, "episodes": int(episodes), "status": m.status.value,
-                       "promoted": m.status.value in ("champion", "retired"),
+                       "promoted": m.version in live or m.status.value == "champion",
+                       "rolled_back": m.version in withdrawn and m.status.value != "champion",
                        "h1_mse": m.metrics.get("h1_mse"), "h5_mse": m.metrics.get("h5_mse")})
     return points
 

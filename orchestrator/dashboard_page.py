@@ -37,7 +37,8 @@ PAGE = """<!doctype html>
  <div class="card">last retrain<b id="last-retrain">-</b><span id="last-retrain-reason" class="muted"></span></div>
  <div class="card">disk free<b id="disk-free">-</b><span id="disk-size" class="muted"></span></div>
 </div>
-<h2>Learning curve (eval h1 MSE per training episodes: champions joined, other candidates grey)</h2>
+<h2>Learning curve (eval h1 MSE per training episodes: champions joined, the current one green, rolled back
+orange, other candidates grey)</h2>
 <svg id="curve" width="560" height="220" viewBox="0 0 560 220"></svg>
 <h2>Models</h2>
 <table id="models"><thead><tr><th>version</th><th>status</th><th>h1 MSE</th><th>h5 MSE</th>
@@ -86,7 +87,8 @@ function drawCurve(points) {
   svg.appendChild(line);
   for (const p of pts) { const c = document.createElementNS(ns, "circle"); c.setAttribute("cx", sx(p.episodes));
     c.setAttribute("cy", sy(p.h1_mse)); c.setAttribute("r", 4);
-    c.setAttribute("fill", p.status === "champion" ? "#2e7d32" : (p.promoted ? "#1565c0" : "#bbb"));
+    c.setAttribute("fill", p.status === "champion" ? "#2e7d32" : (p.promoted ? "#1565c0" :
+      (p.rolled_back ? "#ef6c00" : "#bbb")));
     svg.appendChild(c); }
   const labels = [[L, H - 8, x0 + " ep"], [W - 60, H - 8, x1 + " ep"], [4, sy(y1 / 1.1) + 4, fmt(y1 / 1.1)],
                   [4, H - B, "0"]];

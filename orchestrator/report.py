@@ -41,7 +41,7 @@ SUMMARY_LABELS = {"planner": "planner (this run)", "episodes": "training episode
                   "collected_this_run": "collected by this run", "budget": "budget (training episodes)",
                   "round_episodes": "episodes per round", "retrains": "retrains (this run)",
                   "champion_h1_mse": "champion eval h1 MSE", "seconds": "seconds (this run)",
-                  "interrupted_in": "interrupted in"}
+                  "interrupted_in": "interrupted in", "champion_problem": "champion cannot be loaded"}
 
 
 def _png(fig: Figure) -> bytes:
@@ -73,6 +73,14 @@ def curve_figure(points: Sequence[dict], title: str = "Eval error per training e
         if champs:
             ax.plot([p["episodes"] for p in champs], [p[key] for p in champs], "o-", color=color,
                     label=f"{key} (promoted)")
+        withdrawn = [p for p in pts if p.get("rolled_back")]
+        if withdrawn:  # promoted once, then rolled back: not part of the champions' line
+            ax.scatter([p["episodes"] for p in withdrawn], [p[key] for p in withdrawn], marker="x", color=color,
+                       s=40, label=f"{key} (rolled back)")
+        current = [p for p in pts if p.get("status") == "champion"]
+        if current:
+            ax.scatter([p["episodes"] for p in current], [p[key] for p in current], marker="*", s=160,
+                       color=color, edgecolors="black", zorder=5, label=f"{key} (champion now)")
     ax.set_xlabel(CURVE_X_LABEL)
     ax.set_ylabel("eval MSE")
     ax.set_title(title)
@@ -133,10 +141,14 @@ def frames_png(ensemble: Ensemble, episodes: Sequence[Episode], samples: int = 3
         rows.append((ep.frames[t], ep.frames[t + 1], mean, var, f"{ep.meta.shape} step {t}"))
     fig = Figure(figsize=(8, 2.1 * max(1, len(rows))))
     titles = ("context (t)", "real (t+1)", "predicted mean (t+1)", "member variance")
+    vmax = max([float(r[3].max()) for r in rows] + [1e-12])  # one scale for every row, so rows compare
     for r, (ctx_f, real, mean, var, label) in enumerate(rows):
         for c, img in enumerate((ctx_f, real, mean, var)):
             ax = fig.add_subplot(len(rows), 4, r * 4 + c + 1)
-            ax.imshow(img, cmap="magma" if c == 3 else None, interpolation="nearest")
+            shown = ax.imshow(img, cmap="magma" if c == 3 else None, interpolation="nearest",
+                              **({"vmin": 0.0, "vmax": vmax} if c == 3 else {}))
+            if c == 3:
+                fig.colorbar(shown, ax=ax, fraction=0.046, pad=0.04)
             ax.set_xticks([])
             ax.set_yticks([])
             if r == 0:
@@ -267,8 +279,16 @@ def _headline(summary: dict[str, Any], retrains: Sequence[dict]) -> list[str]:
         lines.append(f"This run collected {collected} of the catalog's {episodes} training episodes; the rest "
                      "came before it. Its retrains, time and planner are its own; the learning curve shows "
                      "every model of the data directory.")
+    failed = [r for r in retrains if r.get("status") not in ("promoted", "rejected", "busy", "running")]
+    if retrains and len(failed) == len(retrains):
+        lines.append(f"Every one of this run's {len(retrains)} retrains ended without a model ("
+                     f"{', '.join(sorted({str(r.get('status')) for r in failed}))}; see below): nothing was gated.")
     if "champion" in summary and not summary["champion"]:
-        lines.append("No champion: no candidate has passed the promotion gate yet (see the retrains below).")
+        lines.append("No champion: no candidate has passed the promotion gate yet (see the retrains below); "
+                     "the disagreement map and the predicted-vs-real frames need one.")
+    elif summary.get("champion_problem"):
+        lines.append(f"The champion, {summary['champion']}, cannot be loaded, so the disagreement map and the "
+                     f"predicted-vs-real frames are left out: {summary['champion_problem']}")
     elif retrains and not any(r.get("status") == "promoted" for r in retrains):
         lines.append(f"None of this run's {len(retrains)} retrains was promoted (see below): the champion, "
                      f"{summary.get('champion')}, is a model made before them.")

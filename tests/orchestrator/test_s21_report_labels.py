@@ -58,3 +58,34 @@ def test_a_run_whose_every_retrain_was_rejected_says_its_champion_is_older(tmp_p
     html = write_report(tmp_path, ReportInputs(curve=[], summary=summary, retrains=[rejected] * 2)).read_text()
     assert ("None of this run&#x27;s 2 retrains was promoted (see below): the champion, m000001-aa, is a model made "
             "before them.") in html.split("<table>")[0]
+
+
+def test_a_rolled_back_model_is_not_on_the_champions_line(tmp_path) -> None:
+    """Rollback retires the withdrawn model, and 'retired' counted as promoted: the line ended at it, in the report
+    and on the dashboard, as if it were still the champion (a helper's reproduction)."""
+    registry = ModelRegistry(tmp_path)
+    first, second = (registry.register(b"w%d" % n, {}, {"h1_mse": h1, "train_episodes": n}, snapshot_id=f"s{n}",
+                                       eval_split_hash="h") for n, h1 in ((4, 0.05), (8, 0.02)))
+    registry.gate(first)
+    registry.gate(second)
+    registry.rollback()
+    points = {p["version"]: p for p in learning_curve(Catalog(tmp_path), registry)}
+    assert (points[first]["promoted"], points[first]["rolled_back"], points[first]["status"]) == (True, False,
+                                                                                                  "champion")
+    assert (points[second]["promoted"], points[second]["rolled_back"]) == (False, True)
+    labels = curve_figure(list(points.values())).axes[0].get_legend_handles_labels()[1]
+    assert "h1_mse (rolled back)" in labels and "h1_mse (champion now)" in labels
+
+
+def test_a_run_whose_every_retrain_failed_and_one_whose_champion_cannot_be_loaded_say_so(tmp_path) -> None:
+    failed = {"trigger": "round", "episodes": 8, "status": "failed", "version": None, "started": 1.0,
+              "finished": 2.0, "metrics": {}, "reason": "training diverged"}
+    summary = {"episodes": 8, "collected_this_run": 8, "champion": None, "interrupted": False}
+    head = write_report(tmp_path / "a", ReportInputs(curve=[], summary=summary, retrains=[failed] * 2)
+                        ).read_text().split("<table>")[0]
+    assert "Every one of this run&#x27;s 2 retrains ended without a model (failed; see below)" in head
+    assert "the disagreement map and the predicted-vs-real frames need one" in head
+    summary = {**summary, "champion": "m000001-aa", "champion_problem": "weights do not match their sha256"}
+    head = write_report(tmp_path / "b", ReportInputs(curve=[], summary=summary)).read_text().split("<table>")[0]
+    assert ("The champion, m000001-aa, cannot be loaded, so the disagreement map and the predicted-vs-real frames "
+            "are left out: weights do not match their sha256") in head
