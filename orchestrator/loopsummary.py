@@ -111,7 +111,14 @@ def _ratios(active: list[tuple[int, float]], uniform: list[tuple[int, float]]) -
 
 
 def plot(points: list[dict], path: Path) -> None:
-    """Mean +- std eval MSE (h1 and h5) per episodes collected, both arms."""
+    """Mean +- std eval MSE (h1 and h5) per episodes collected, both arms (``figure``), to ``path``."""
+    figure(points).savefig(path, dpi=100, bbox_inches="tight")
+
+
+def figure(points: list[dict]) -> Figure:
+    """The plot of ``comparable`` points only, as the headline: a stopped run's arms at the counts both reached
+    (every point used to be drawn, so each x could average another set of seeds than its other arm's)."""
+    points = comparable(points)
     fig = Figure(figsize=(10, 3.8))
     for i, metric in enumerate(("h1_mse", "h5_mse")):
         ax = fig.add_subplot(1, 2, i + 1)
@@ -125,7 +132,9 @@ def plot(points: list[dict], path: Path) -> None:
             xs = sorted(by_ep)
             mu = np.array([np.mean(by_ep[x]) for x in xs])
             sd = np.array([np.std(by_ep[x]) for x in xs])
-            ax.plot(xs, mu, "o-", color=color, label=f"{arm} (mean of {len(by_ep[xs[-1]])} seeds)")
+            seeds = sorted({len(by_ep[x]) for x in xs})
+            ax.plot(xs, mu, "o-", color=color, label=f"{arm} (mean of {seeds[0]} seeds)" if len(seeds) == 1 else
+                    f"{arm} (mean of {seeds[0]} to {seeds[-1]} seeds per point)")
             ax.fill_between(xs, mu - sd, mu + sd, color=color, alpha=0.15)
         ax.set_xlabel("training episodes collected")
         ax.set_ylabel(f"eval {metric.replace('_', ' ')}")
@@ -135,8 +144,7 @@ def plot(points: list[dict], path: Path) -> None:
         else:
             ax.text(0.5, 0.5, "no finite values", ha="center", va="center", transform=ax.transAxes)
     fig.suptitle("activecollect bench loop: active vs uniform planner")
-    fig.savefig(path, dpi=100, bbox_inches="tight")
-
+    return fig
 
 
 def write_summary(summary: dict, out_dir: Path) -> None:

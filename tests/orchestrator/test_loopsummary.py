@@ -81,3 +81,16 @@ def test_a_damaged_summary_is_rebuilt_and_a_missing_directory_refused(tmp_path, 
     assert "active's final over uniform's, per seed" in stdout
     rc, _, err = run_cli(capsys, "bench", "loop-summary", str(tmp_path / "nowhere"))
     assert rc == 2 and "no such directory" in err
+
+
+def test_a_stopped_runs_plot_draws_the_points_its_headline_compares():
+    """Seed 1's uniform arm stopped a round short: its active point at 4 was drawn, so the active arm's mean at 4
+    was of two seeds and the uniform arm's of one."""
+    from orchestrator.loopsummary import figure
+    points = [{"arm": arm, "seed": seed, "episodes": n, "h1_mse": 0.01 * (seed + 1), "h5_mse": 0.02}
+              for seed in (0, 1) for arm in ("active", "uniform") for n in (2, 4)
+              if (seed, arm, n) != (1, "uniform", 4)]
+    ax = figure(points).axes[0]
+    assert {label: list(line.get_xdata()) for line, label in zip(*ax.get_legend_handles_labels())} == {
+        "active (mean of 1 to 2 seeds per point)": [2, 4], "uniform (mean of 1 to 2 seeds per point)": [2, 4]}
+    assert [round(y, 4) for y in ax.get_lines()[0].get_ydata()] == [0.015, 0.01]  # at 4: seed 0 alone
