@@ -460,7 +460,9 @@ def learning_curve(catalog: Catalog, registry: ModelRegistry) -> list[dict]:
         points.append({"version": m.version, "episodes": int(episodes), "status": m.status.value,
                        "promoted": m.version in live or m.status.value == "champion",
                        "rolled_back": m.version in withdrawn and m.status.value != "champion",
-                       "h1_mse": m.metrics.get("h1_mse"), "h5_mse": m.metrics.get("h5_mse")})
+                       "h1_mse": m.metrics.get("h1_mse"), "h5_mse": m.metrics.get("h5_mse"),
+                       "baseline_h1_mse": m.metrics.get("baseline_h1_mse"),
+                       "baseline_h5_mse": m.metrics.get("baseline_h5_mse")})
     return points
 
 

@@ -59,7 +59,8 @@ def curve_figure(points: Sequence[dict], title: str = "Eval error per training e
     """Eval MSE (h1, h5) of each model against the training episodes it was trained on (not the episodes
     collected when it was made: a quarantined episode, or one of another frame size, is left out of training).
 
-    ``points``: dicts with episodes, h1_mse, h5_mse, promoted (as ``dashboard.learning_curve``).
+    ``points``: dicts with episodes, h1_mse, h5_mse, promoted, rolled_back, status and the copy-last baselines
+    (as ``dashboard.learning_curve``; the newest baseline is drawn dashed).
     """
     fig = Figure(figsize=(6, 3.6))
     ax = fig.add_subplot(1, 1, 1)
@@ -81,6 +82,10 @@ def curve_figure(points: Sequence[dict], title: str = "Eval error per training e
         if current:
             ax.scatter([p["episodes"] for p in current], [p[key] for p in current], marker="*", s=160,
                        color=color, edgecolors="black", zorder=5, label=f"{key} (champion now)")
+        base = [p[f"baseline_{key}"] for p in pts if isinstance(p.get(f"baseline_{key}"), (int, float))
+                and np.isfinite(p[f"baseline_{key}"])]
+        if base:  # copy-last's error on the eval split (the same for every model of one split): what to beat
+            ax.axhline(base[-1], color=color, linestyle="--", linewidth=1, label=f"{key} of copy-last-frame")
     ax.set_xlabel(CURVE_X_LABEL)
     ax.set_ylabel("eval MSE")
     ax.set_title(title)

@@ -64,8 +64,8 @@ def test_a_rolled_back_model_is_not_on_the_champions_line(tmp_path) -> None:
     """Rollback retires the withdrawn model, and 'retired' counted as promoted: the line ended at it, in the report
     and on the dashboard, as if it were still the champion (a helper's reproduction)."""
     registry = ModelRegistry(tmp_path)
-    first, second = (registry.register(b"w%d" % n, {}, {"h1_mse": h1, "train_episodes": n}, snapshot_id=f"s{n}",
-                                       eval_split_hash="h") for n, h1 in ((4, 0.05), (8, 0.02)))
+    first, second = (registry.register(b"w%d" % n, {}, {"h1_mse": h1, "train_episodes": n, "baseline_h1_mse": 0.06},
+                                       snapshot_id=f"s{n}", eval_split_hash="h") for n, h1 in ((4, 0.05), (8, 0.02)))
     registry.gate(first)
     registry.gate(second)
     registry.rollback()
@@ -75,6 +75,7 @@ def test_a_rolled_back_model_is_not_on_the_champions_line(tmp_path) -> None:
     assert (points[second]["promoted"], points[second]["rolled_back"]) == (False, True)
     labels = curve_figure(list(points.values())).axes[0].get_legend_handles_labels()[1]
     assert "h1_mse (rolled back)" in labels and "h1_mse (champion now)" in labels
+    assert "h1_mse of copy-last-frame" in labels  # what a model must beat
 
 
 def test_a_run_whose_every_retrain_failed_and_one_whose_champion_cannot_be_loaded_say_so(tmp_path) -> None:
