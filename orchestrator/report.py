@@ -62,7 +62,7 @@ def curve_figure(points: Sequence[dict], title: str = "Eval error per training e
     ``points``: dicts with episodes, h1_mse, h5_mse, promoted, rolled_back, status and the copy-last baselines
     (as ``dashboard.learning_curve``; the newest baseline is drawn dashed).
     """
-    fig = Figure(figsize=(6, 3.6))
+    fig = Figure(figsize=(8.4, 3.6))
     ax = fig.add_subplot(1, 1, 1)
     for key, color in (("h1_mse", "#1565c0"), ("h5_mse", "#c62828")):
         pts = [p for p in points if isinstance(p.get(key), (int, float)) and np.isfinite(p[key])]
@@ -91,7 +91,8 @@ def curve_figure(points: Sequence[dict], title: str = "Eval error per training e
     ax.set_title(title)
     ax.grid(alpha=0.3)
     if ax.has_data():
-        ax.legend(fontsize=8)
+        ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0))  # (beside the lines, not over them)
+        fig.tight_layout()
     else:
         ax.text(0.5, 0.5, "no model evaluated yet", ha="center", transform=ax.transAxes)
     return fig
