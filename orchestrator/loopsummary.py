@@ -118,7 +118,9 @@ def plot(points: list[dict], path: Path) -> None:
 def figure(points: list[dict]) -> Figure:
     """The plot of ``comparable`` points only, as the headline: a stopped run's arms at the counts both reached
     (every point used to be drawn, so each x could average another set of seeds than its other arm's)."""
-    points = comparable(points)
+    drawn = comparable(points)
+    empty = "no finite values" if drawn or not points else "no episode count that both arms reached yet"
+    points = drawn
     fig = Figure(figsize=(10, 3.8))
     for i, metric in enumerate(("h1_mse", "h5_mse")):
         ax = fig.add_subplot(1, 2, i + 1)
@@ -142,7 +144,7 @@ def figure(points: list[dict]) -> Figure:
         if ax.get_legend_handles_labels()[0]:
             ax.legend(fontsize=8)
         else:
-            ax.text(0.5, 0.5, "no finite values", ha="center", va="center", transform=ax.transAxes)
+            ax.text(0.5, 0.5, empty, ha="center", va="center", transform=ax.transAxes)
     fig.suptitle("activecollect bench loop: active vs uniform planner")
     return fig
 

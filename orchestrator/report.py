@@ -285,7 +285,8 @@ def _headline(summary: dict[str, Any], retrains: Sequence[dict]) -> list[str]:
         lines.append(f"This run collected {collected} of the catalog's {episodes} training episodes; the rest "
                      "came before it. Its retrains, time and planner are its own; the learning curve shows "
                      "every model of the data directory.")
-    failed = [r for r in retrains if r.get("status") not in ("promoted", "rejected", "busy", "running")]
+    failed = [r for r in retrains  # (a job killed after its gate keeps its version: it made a model)
+              if r.get("status") not in ("promoted", "rejected", "busy", "running") and not r.get("version")]
     if retrains and len(failed) == len(retrains):
         lines.append(f"Every one of this run's {len(retrains)} retrains ended without a model ("
                      f"{', '.join(sorted({str(r.get('status')) for r in failed}))}; see below): nothing was gated.")

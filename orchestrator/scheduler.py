@@ -25,6 +25,7 @@ The job's schedule, record and status, its command line and the readers of what 
 from __future__ import annotations
 
 import contextlib
+import json
 import logging
 import os
 import signal
@@ -55,9 +56,10 @@ LOGS_KEPT = 200
 #: A step back of the wall clock (NTP, a host set right) larger than this reckons the next cron retrain from the
 #: new time; after a smaller one the schedule waits for the times it already ran, as cron does (3 h).
 CRON_STEP_BACK_S = 3 * 3600.0
-#: Written (with the trigger) when a scheduled job starts and removed when it ends, unless the service's stop ended it
-#: before its gate: a job killed while it was still starting (before it took the retrain lock, so its notes there are
-#: an earlier holder's) or between its register and its gate (lock phase "registered") is run again at the next start.
+#: Written (with the trigger and the job's notes file) when a scheduled job starts and removed when it ends, unless the
+#: service's stop ended it before its gate: a job killed while it was still starting (before it took the retrain lock,
+#: so its notes there are an earlier holder's) or between its register and its gate is run again at the next start;
+#: one whose notes say it got past its gate (the service killed before it reaped the job) is not.
 DUE_MARKER = "retrain.due"
 #: The reason a stop gives the job it terminates.
 STOPPED = "stopped with the scheduler"
@@ -220,15 +222,11 @@ class RetrainScheduler:
         return ""
 
     def _died_last_time(self) -> str:
-        """The schedule's trigger when the last job a scheduler started here died midway (killed with the service
-        it ran beside, or in a crash: its notes in the lock file stop at "locked" or "training"), so that its
-        retrain runs now rather than at the next trigger; "" otherwise."""
+        """The schedule's trigger when the last job a scheduler started here ended before its gate because the
+        service did (stopped, killed, crashed: ``DUE_MARKER`` names the job, whose own notes say how far it got; a
+        job of an older release: the lock file's notes stop at "locked" or "training"), so that its retrain runs
+        now rather than at the next trigger; "" otherwise."""
         trigger = "episodes" if self.cfg.every_episodes else "cron" if self.cfg.cron else ""
-        with contextlib.suppress(OSError):
-            if trigger and (self.data_dir / DUE_MARKER).exists():
-                log.info("the last scheduled retrain here was stopped before its gate: it runs again once the "
-                         "retrain lock is free")
-                return trigger
         info = read_lock_info(self.data_dir)
         held = False
         with contextlib.suppress(OSError):
@@ -237,12 +235,42 @@ class RetrainScheduler:
             log.warning("the retrain lock is held by pid %s (%s, phase %s): scheduled retrains wait until it is free; "
                         "if that process is stuck or stopped (a job left by a service that was killed), end it",
                         info.get("pid", "?"), info.get("job") or "not a scheduled job", info.get("phase", "?"))
+        marked = self._marked_job()
+        if marked is not None:
+            if trigger and marked:
+                log.info("the last scheduled retrain here ended before its gate (%s): it runs again once the "
+                         "retrain lock is free", marked)
+                return trigger
+            with contextlib.suppress(OSError):  # (it ended by itself, or there is no schedule now)
+                (self.data_dir / DUE_MARKER).unlink()
+            return ""
         if not trigger or not info.get("job") or info.get("phase") not in ("locked", "training"):
             return ""
         if not held:
             log.info("the last scheduled retrain here (pid %s) died while %s: it runs again once the retrain lock "
                      "is free", info.get("pid", "?"), info["phase"])
         return trigger
+
+    def _marked_job(self) -> str | None:
+        """How far the job ``DUE_MARKER`` names got when the service ended ("" when it got past its gate, or
+        failed by itself: nothing to run again); None without a marker."""
+        try:
+            marker = json.loads((self.data_dir / DUE_MARKER).read_text())
+        except FileNotFoundError:
+            return None
+        except (OSError, ValueError):
+            marker = {}
+        notes = read_holder(Path(marker["notes"])) if isinstance(marker, dict) and marker.get("notes") else {}
+        phase, version = notes.get("phase"), notes.get("version")
+        if phase == "failed":
+            return ""
+        if isinstance(version, str) and version:
+            try:
+                if ModelRegistry(self.data_dir).get(version).status != ModelStatus.CANDIDATE:
+                    return ""  # gated: promoted or rejected
+            except (StorageError, OSError):
+                pass  # cannot tell: run it again rather than lose it
+        return "" if phase == "done" else f"{phase or 'starting'}, by the notes it left"
 
     def _counted_before(self, now: int) -> int:
         """The count at the last job's start (``COUNT_FILE``; ``now`` when none was kept or it is larger)."""
@@ -265,8 +293,8 @@ class RetrainScheduler:
         rec.log_path = str(logs / f"retrain-{time.strftime('%Y%m%dT%H%M%S')}-{self._jobs}.log")
         try:
             logs.mkdir(parents=True, exist_ok=True)
-            if trigger in ("episodes", "cron"):
-                (self.data_dir / DUE_MARKER).write_text(trigger)
+            if trigger in ("episodes", "cron"):  # (which job: its notes tell the next start how far it got)
+                (self.data_dir / DUE_MARKER).write_text(json.dumps({"trigger": trigger, "notes": str(notes_path(rec))}))
             with contextlib.suppress(OSError):
                 (self.data_dir / COUNT_FILE).write_text(str(episodes))
             with open(rec.log_path + ".out", "wb") as out, open(rec.log_path, "wb") as err:

@@ -261,8 +261,8 @@ class Worker:
 
     def _lease_refused(self, why: str) -> None:
         self.refused, self._refusals = why, self._refusals + 1
-        log.warning("%s (are this worker and the service of one release? %d in a row; asking again after a "
-                    "backoff)", why, self._refusals)
+        log.warning("%s (a service of another release than this worker's, or one in trouble: see its log; %d in "
+                    "a row; asking again after a backoff)", why, self._refusals)
 
     def _fail(self, grant: LeaseGrant, error: str) -> None:
         self._fail_raw(grant.request_id, grant.token, error)

@@ -94,3 +94,6 @@ def test_a_stopped_runs_plot_draws_the_points_its_headline_compares():
     assert {label: list(line.get_xdata()) for line, label in zip(*ax.get_legend_handles_labels())} == {
         "active (mean of 1 to 2 seeds per point)": [2, 4], "uniform (mean of 1 to 2 seeds per point)": [2, 4]}
     assert [round(y, 4) for y in ax.get_lines()[0].get_ydata()] == [0.015, 0.01]  # at 4: seed 0 alone
+    one_arm = [p for p in points if p["arm"] == "active"]  # stopped before any uniform arm finished a round
+    assert [t.get_text() for ax in figure(one_arm).axes for t in ax.texts] == [
+        "no episode count that both arms reached yet"] * 2

@@ -86,6 +86,11 @@ def test_a_run_whose_every_retrain_failed_and_one_whose_champion_cannot_be_loade
                         ).read_text().split("<table>")[0]
     assert "Every one of this run&#x27;s 2 retrains ended without a model (failed; see below)" in head
     assert "the disagreement map and the predicted-vs-real frames need one" in head
+    timed_out = {**failed, "status": "timeout", "version": "m000002-bb", "reason": "timed out, after its gate had "
+                 "rejected m000002-bb"}  # (killed after its gate: it made a model)
+    head = write_report(tmp_path / "c", ReportInputs(curve=[], summary=summary, retrains=[timed_out])
+                        ).read_text().split("<table>")[0]
+    assert "ended without a model" not in head
     summary = {**summary, "champion": "m000001-aa", "champion_problem": "weights do not match their sha256"}
     head = write_report(tmp_path / "b", ReportInputs(curve=[], summary=summary)).read_text().split("<table>")[0]
     assert ("The champion, m000001-aa, cannot be loaded, so the disagreement map and the predicted-vs-real frames "

@@ -4,6 +4,7 @@ launch could not count the episodes."""
 
 from __future__ import annotations
 
+import json
 import logging
 import os
 import pathlib
@@ -14,6 +15,7 @@ from orchestrator.retrainjob import RetrainStatus, ScheduleConfig
 from orchestrator.retrainlock import JOB_ENV, note_phase, retrain_lock
 from orchestrator.scheduler import RetrainScheduler
 from storage.errors import StorageUnavailableError
+from storage.models import ModelRegistry
 from tests.orchestrator.test_scheduler import HANGS, PROMOTES, Counter, script_command
 
 
@@ -71,9 +73,35 @@ def test_a_start_beside_a_live_holder_of_the_retrain_lock_says_so_not_that_it_di
     """A job a SIGKILLed service left stopped (SIGSTOP) keeps the lock: the next start said the job 'died' and every
     scheduled retrain then waited on the lock without a word."""
     monkeypatch.setenv(JOB_ENV, "job-1")  # (what the scheduler gives its jobs)
+    (tmp_path / "retrain.due").write_text("{}")  # (the dead service's mark of its job: said after the lock's holder)
     with retrain_lock(tmp_path):
         note_phase(tmp_path, "training")
         with caplog.at_level(logging.INFO, logger="orchestrator.scheduler"):
             RetrainScheduler(ScheduleConfig(every_episodes=5), tmp_path, Counter(), command=script_command(PROMOTES))
     said = " ".join(r.getMessage() for r in caplog.records)
     assert f"the retrain lock is held by pid {os.getpid()}" in said and "died" not in said, said
+
+
+@pytest.mark.parametrize("phase, gated, again", [(None, False, True), ("registered", False, True),
+                                                 ("registered", True, False), ("done", True, False),
+                                                 ("failed", False, False)],
+                         ids=["starting", "before-its-gate", "gated", "done", "failed-by-itself"])
+def test_a_job_the_services_death_left_unreaped_runs_again_only_if_it_had_not_passed_its_gate(tmp_path, phase, gated,
+                                                                                             again):
+    """The service SIGKILLed after a job's gate had decided (before it reaped the job) left the mark, and the next
+    start retrained once more, saying the job was stopped before its gate (a review's reproduction)."""
+    registry = ModelRegistry(tmp_path)
+    version = registry.register(b"w", {}, {"h1_mse": 0.01}, snapshot_id="s", eval_split_hash="h")
+    if gated:
+        registry.gate(version)
+    notes = tmp_path / "logs" / "retrain-x.log.notes"
+    notes.parent.mkdir()
+    if phase is not None:
+        notes.write_text(json.dumps({"pid": 1, "phase": phase, "job": "j", **({"version": version} if phase in
+                                                                              ("registered", "done") else {})}))
+    (tmp_path / "retrain.due").write_text(json.dumps({"trigger": "episodes", "notes": str(notes)}))
+    sched = RetrainScheduler(ScheduleConfig(every_episodes=5), tmp_path, Counter(), command=script_command(PROMOTES))
+    rec = sched.tick()
+    assert (rec is not None) == again
+    assert sched.wait_idle(timeout=60)
+    assert not (tmp_path / "retrain.due").exists()

@@ -90,7 +90,7 @@ def test_a_lease_reply_without_a_grant_is_a_warning_and_once_exits_1(fake_servic
     assert w.wait(60) == 1, w.log()
     log = w.log()
     assert words in log and "Traceback" not in log and "no work" not in log, log
-    assert "are this worker and the service of one release?" in log
+    assert "a service of another release than this worker's, or one in trouble" in log
     assert any(line.startswith("python -m workers.agent: ") and words in line for line in log.splitlines()), log
     assert service.leases >= 1 and service.fails == []  # no request named: no failure to report
 
