@@ -394,7 +394,9 @@ def test_the_report_shows_no_other_models_frames_when_the_champion_cannot_be_loa
     summary = json.loads((result.report.parent / "summary.json").read_text())["summary"]
     assert summary["champion_problem"].startswith(f"cannot load champion {second}: ")
     assert not (result.report.parent / "frames.png").exists()
-    assert "frames.png" not in result.report.read_text() and "champion_problem" in result.report.read_text()
+    html = result.report.read_text()
+    assert "frames.png" not in html and "<th>champion cannot be loaded</th>" in html  # (the row's label)
+    assert f"The champion, {second}, cannot be loaded, so the disagreement map and the predicted-vs-real" in html
 
     weights_ok = _promoted(registry, 2, 0.005)  # a loadable champion: its frames, and no problem
     result = run._finish(time.time(), interrupted=False)
