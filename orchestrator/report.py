@@ -121,7 +121,7 @@ def disagreement_png(ensemble: Ensemble, episodes: Sequence[Episode]) -> bytes:
     ax.set_aspect("equal")
     ax.set_xlabel("object x")
     ax.set_ylabel("object y")
-    ax.set_title(f"Disagreement over object position ({len(episodes)} episodes)")
+    ax.set_title(f"Disagreement over object position ({len(episodes)} episodes)", fontsize=10)
     return _png(fig)
 
 
@@ -245,7 +245,8 @@ def _html(inputs: ReportInputs, images: dict[str, bytes]) -> str:
         f"<td>{esc(r.get('reason') or '')}</td></tr>"
         for r in inputs.retrains)
     figs = {"curve.png": f"Eval error per {CURVE_X_LABEL}",
-            "disagreement.png": "Champion disagreement over object position",
+            "disagreement.png": "Champion disagreement over object position (each step of the newest training "
+                                "episodes, at its object's position on the table; world units, y up)",
             "frames.png": "Predicted versus real frames (champion, eval episodes)"}
     body = "".join(f"<h2>{esc(title)}</h2><img src='{name}' alt='{esc(title)}'>"
                    for name, title in figs.items() if name in images)
