@@ -328,7 +328,7 @@ class RetrainScheduler:
         for old in logs[:-LOGS_KEPT]:
             if str(old) == current.log_path:
                 continue
-            for path in (old, Path(f"{old}.out")):
+            for path in (old, Path(f"{old}.out"), Path(f"{old}.notes")):  # (notes: a killed service's job left them)
                 with contextlib.suppress(OSError):
                     path.unlink(missing_ok=True)
 

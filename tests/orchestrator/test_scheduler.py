@@ -462,6 +462,9 @@ def test_a_long_lived_scheduler_keeps_the_newest_records_and_job_logs(tmp_path, 
     sched = RetrainScheduler(ScheduleConfig(), tmp_path, Counter(), command=script_command(REJECTS))
     (tmp_path / "logs").mkdir()
     (tmp_path / "logs" / "run-w0.log").write_text("a worker's log is not a retrain's")
+    for name in ("retrain-20260101T000000-1.log", "retrain-20260101T000000-1.log.notes"):  # a killed service's job
+        (tmp_path / "logs" / name).write_text("{}")
+        os.utime(tmp_path / "logs" / name, (1.0, 1.0))
     started = []
     for _ in range(5):
         sched.request()
