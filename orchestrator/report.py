@@ -87,7 +87,11 @@ def curve_figure(points: Sequence[dict], title: str = "Eval error per training e
         if base:  # copy-last's error on the eval split (the same for every model of one split): what to beat
             ax.axhline(base[-1], color=color, linestyle="--", linewidth=1, label=f"{key} of copy-last-frame")
     ax.set_xlabel(CURVE_X_LABEL)
-    ax.set_ylabel("eval MSE")
+    values = [y for line in ax.get_lines() for y in line.get_ydata()] + \
+        [y for coll in ax.collections for _, y in coll.get_offsets()]
+    if values and min(values) > 0:  # h5 is several times h1: on one linear axis h1's fall looked flat
+        ax.set_yscale("log")
+    ax.set_ylabel("eval MSE (log scale)" if ax.get_yscale() == "log" else "eval MSE")
     ax.set_title(title)
     ax.grid(alpha=0.3)
     if ax.has_data():

@@ -76,6 +76,9 @@ def test_a_rolled_back_model_is_not_on_the_champions_line(tmp_path) -> None:
     labels = curve_figure(list(points.values())).axes[0].get_legend_handles_labels()[1]
     assert "h1_mse (rolled back)" in labels and "h1_mse (champion now)" in labels
     assert "h1_mse of copy-last-frame" in labels  # what a model must beat
+    assert curve_figure(list(points.values())).axes[0].get_yscale() == "log"  # (h5 several times h1: h1 looked flat)
+    static = [{**p, "h1_mse": 0.0} for p in points.values()]  # an error of 0 (frames that never change): linear
+    assert curve_figure(static).axes[0].get_yscale() == "linear"
 
 
 def test_a_run_whose_every_retrain_failed_and_one_whose_champion_cannot_be_loaded_say_so(tmp_path) -> None:
