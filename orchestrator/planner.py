@@ -59,7 +59,7 @@ from orchestrator.messages import RequestSpec
 from orchestrator.plannerconfig import ActivePlannerConfig
 from orchestrator.shapeprogress import ShapeProgress
 from orchestrator.uniform import MIX_POLICIES, UniformPlanner, agent_away_from
-from storage.requests import NewRequest, Request
+from storage.requests import NewRequest
 from storage.records import STATE_COLUMN as _COL, Episode
 
 if TYPE_CHECKING:  # only for type hints: the planner needs no catalog or queue of its own
@@ -133,27 +133,21 @@ class ActivePlanner:
         """With ``shapes_by_progress``: the last round's requests per shape."""
         self._refused: set[str] = set()  # the RequestSpec fields dropped requests failed (each warned of once)
 
-    def remember(self, requests: Sequence[NewRequest | Request]) -> None:
-        """Take ``requests`` (active planners' stored requests, oldest first: ``serve`` gives the queue's latest at
-        start-up) into the memory of requested states, so a restarted service keeps new candidates away from them:
-        an episode collected at a requested pose holds that pose (at rest) while its new pusher approaches, and its
-        idempotency key names another episode, so without this the same pose was asked for again after every
-        restart. A request that replays a prefix (its start state is its episode's start, not the state asked
-        for) and any other planner's are passed over."""
-        for r in requests:
-            reason, start = r.reason or {}, r.start_state or {}
-            if reason.get("planner") != "active" or r.action_prefix or "object" not in start:
+    def remember_queue(self, queue: RequestQueue, look_back: int = 16) -> None:
+        """Take the active requests of ``queue`` last made (as many as the memory holds, of its latest ``look_back``
+        times that many: uniform seeds and top-ups are half of ``serve``'s) into the memory of requested states, so a
+        service or a run that starts again keeps new candidates away from them: an episode collected at a requested
+        pose holds that pose (at rest) while its new pusher approaches, and its idempotency key names another
+        episode, so without this the same pose was asked for again after every restart. A request that replays a
+        prefix (its start state is its episode's start, not the state asked for) is passed over."""
+        latest = sorted(queue.list(limit=look_back * self.cfg.memory), key=lambda r: r.created)
+        for r in [r for r in latest if (r.reason or {}).get("planner") == "active"][-self.cfg.memory:]:
+            start = r.start_state or {}
+            if r.action_prefix or "object" not in start:
                 continue
             agent = start.get("agent") if self._keeps_agent() else None
             self._requested.append(state_features(r.shape, agent, start["object"], start.get("physics") or {}))
-            self._requested_steps.append((str(reason.get("source_episode")), int(reason.get("step", -1))))
-
-    def remember_queue(self, queue: RequestQueue, look_back: int = 16) -> None:
-        """``remember`` the active requests of ``queue`` last made, as many as the memory holds, of its latest
-        ``look_back`` times that many (uniform seeds and top-ups are half of ``serve``'s): a service or a run that
-        starts again keeps away from what it asked for before."""
-        latest = sorted(queue.list(limit=look_back * self.cfg.memory), key=lambda r: r.created)
-        self.remember([r for r in latest if (r.reason or {}).get("planner") == "active"][-self.cfg.memory:])
+            self._requested_steps.append((str(r.reason.get("source_episode")), int(r.reason.get("step", -1))))
 
     def seed(self, n: int, why: str = "seed") -> list[NewRequest]:
         """Uniform requests: before any model exists there is nothing to be uncertain about (and when

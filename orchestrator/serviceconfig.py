@@ -42,8 +42,6 @@ class ServiceContext:
 PlannerFactory = Callable[[ServiceContext], Planner]
 EpisodeCallback = Callable[[StoredEpisode], None]
 
-
-
 #: The seconds each of these ``ServiceConfig`` fields may be (and ``serve``'s flags for them take).
 SECONDS_RANGES = {"lease_s": (0.05, 86400.0), "reap_interval_s": (0.01, 3600.0), "lost_worker_grace_s": (0.0, 86400.0)}
 

@@ -145,10 +145,10 @@ class UploadHandler:
         if row is None:
             try:
                 self._check_live(request, whole)  # before a byte is kept
-                if whole.size > self._most_bytes(request):  # no episode of this request is that big: hold nothing
-                    raise ProtocolError(ErrorCode.TOO_LARGE, f"size: expected at most {self._most_bytes(request)} "
-                                        f"bytes for {len(request.action_prefix) + request.steps} steps, found "
-                                        f"{whole.size}")
+                most = self._most_bytes(request)
+                if whole.size > most:  # no episode of this request is that big: hold nothing
+                    raise ProtocolError(ErrorCode.TOO_LARGE, f"size: expected at most {most} bytes for "
+                                        f"{len(request.action_prefix) + request.steps} steps, found {whole.size}")
             except ProtocolError:
                 self.parts.drop(whole)
                 raise

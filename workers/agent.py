@@ -173,10 +173,7 @@ class Worker:
                     if self.refused is None:
                         log.info("no work; exiting (--once)")
                     return
-                # (a refusal that will not pass, another release's service, must not be asked 2 times a second)
-                self._stop.wait(cfg.idle_poll_s if self.refused is None else
-                                min(cfg.idle_poll_s * 2 ** min(self._refusals, 16), max(cfg.max_backoff_s,
-                                                                                         cfg.idle_poll_s)))
+                self._stop.wait(self._idle_wait())
                 continue
             if self._stop.is_set():  # drained while the lease was asked for: this request is not in hand yet
                 log.info("draining: giving back %s, granted after the drain began", grant.request_id)
@@ -258,6 +255,14 @@ class Worker:
             self._fail_raw(str(raw.get("request_id")), raw.get("token"), f"malformed lease: {exc}")
             return None
         return grant
+
+    def _idle_wait(self) -> float:
+        """Seconds before the next lease query: the idle poll, doubled with each refusal in a row up to the backoff's
+        most (a refusal that will not pass, another release's service, must not be asked twice a second)."""
+        cfg = self.config
+        if self.refused is None:
+            return cfg.idle_poll_s
+        return min(cfg.idle_poll_s * 2 ** min(self._refusals, 16), max(cfg.max_backoff_s, cfg.idle_poll_s))
 
     def _lease_refused(self, why: str) -> None:
         self.refused, self._refusals = why, self._refusals + 1
