@@ -20,6 +20,9 @@ from orchestrator.protocol import ErrorCode, ProtocolError
 
 log = logging.getLogger("workers.agent")
 
+WARN_EVERY_S = 5.0
+"""A run of failed renewals is logged at most this often (each one at the default 30 s lease: they go 10 s apart)."""
+
 
 class Renewer:
     """Renews one lease every lease_s / 3 on its own thread until stopped; notes when it is lost.
@@ -45,6 +48,9 @@ class Renewer:
         that upload completed (its reply still on the way), so it is said at INFO and the upload's reply decides."""
         self._until = time.monotonic() + grant.lease_s
         self._drain_until: float | None = None
+        self._failures = 0
+        """Renewals failed since the last one answered."""
+        self._warned_at: float | None = None
         self._thread = threading.Thread(target=self._run, name=f"renew:{grant.request_id}", daemon=True)
         self._thread.start()
 
@@ -81,7 +87,7 @@ class Renewer:
             try:
                 self._call(self._key, self._msg, interval)
             except transport.TransportError as exc:  # transient: try again next tick
-                log.warning("renew %s: %s", self._grant.request_id, exc)
+                self._failed("renew %s: %s", exc)
                 continue
             except zenoh.ZError:
                 if self._stop.is_set():  # the worker gave its request back and closed the session under us
@@ -101,9 +107,23 @@ class Renewer:
                     else:
                         log.warning("lease of %s lost (%s): %s", self._grant.request_id, exc.code.value, exc.message)
                     return
-                log.warning("renew %s refused: %s", self._grant.request_id, exc)
+                self._failed("renew %s refused: %s", exc)
                 continue
             self._until = sent + self._grant.lease_s  # (the service extended it after we sent)
+            if self._failures:
+                log.info("renew %s answered again after %d failed", self._grant.request_id, self._failures)
+                self._failures, self._warned_at = 0, None
+
+    def _failed(self, what: str, exc: Exception) -> None:
+        """One renewal that failed (unanswered, or refused but for a lost lease): a WARNING for the first of a run
+        of them, then at most one every ``WARN_EVERY_S`` with the count (at ``--lease-s 0.05`` a lost service made
+        60 lines a second)."""
+        self._failures += 1
+        now = time.monotonic()
+        if self._warned_at is None or now - self._warned_at >= WARN_EVERY_S:
+            self._warned_at = now
+            more = f" ({self._failures} failed in a row)" if self._failures > 1 else ""
+            log.warning(what + "%s", self._grant.request_id, exc, more)
 
     def stop(self, wait: bool = True, timeout: float | None = None) -> None:
         """No more renewals; ``wait``: also for one in flight, ``timeout`` seconds at most (a worker giving its

@@ -92,3 +92,45 @@ def test_the_lease_lasts_lease_s_past_the_last_renewal_the_service_acknowledged(
         assert renewer.lost is None and len(calls) >= 5  # renewals went on, unanswered
     finally:
         renewer.stop()
+
+
+def test_a_run_of_failed_renewals_is_logged_once_per_interval_then_its_end(monkeypatch, caplog):
+    """At a tiny lease a lost service made a WARNING per renewal (60 a second at --lease-s 0.05): a run of failures
+    is one WARNING, then at most one per WARN_EVERY_S with the count, and an INFO when renewals are answered again."""
+    clock = _Clock()
+    answered = threading.Event()
+
+    class Stop(threading.Event):  # the renewer's stop event: waiting on it moves the test's clock on
+        def wait(self, timeout: float | None = None) -> bool:
+            if not self.is_set() and timeout is not None:
+                clock.now += timeout
+            return self.is_set()
+
+    monkeypatch.setattr(workers.lease, "time", types.SimpleNamespace(monotonic=clock.monotonic))
+    monkeypatch.setattr(workers.lease, "threading", types.SimpleNamespace(Event=Stop, Thread=threading.Thread))
+    grant = LeaseGrant(request_id="r3", task="push", shape="box", start_state=START, policy="push",
+                       policy_params={}, action_prefix=[], steps=5, model_version="", token=1,
+                       expires_at=time.time() + 0.06, lease_s=0.06)  # a renewal every 0.02 s of the test's clock
+    calls: list[float] = []
+
+    def call(key: str, msg: bytes, timeout: float) -> dict:
+        calls.append(clock.now)
+        if clock.now < 2.5 * workers.lease.WARN_EVERY_S:  # 12.5 s of the test's clock without an answer
+            raise transport.TransportError("no reply")
+        answered.set()
+        return {}
+
+    caplog.set_level("INFO", logger="workers.agent")
+    renewer = Renewer(call, "ns/orch/renew", grant, "w1")
+    try:
+        wait_for(answered.is_set, timeout=30, message="the renewals answered again")
+        wait_for(lambda: any("answered again" in r.getMessage() for r in caplog.records), timeout=10,
+                 message="the log of the renewals answered again")
+    finally:
+        renewer.stop()
+    warnings = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
+    assert len(calls) > 300  # (the renewer went on asking every interval)
+    assert len(warnings) == 3, warnings  # at 0, WARN_EVERY_S and twice that: one per 5 s of failures
+    assert warnings[0] == "renew r3: no reply"
+    assert warnings[1].startswith("renew r3: no reply (") and "failed in a row)" in warnings[1]
+    assert renewer.lost is None
