@@ -20,22 +20,21 @@ class _Clock:
 
     def __init__(self) -> None:
         self.now = 0.0
+        self.stops: list[threading.Event] = []
+        """The stop events made since: the renewer's."""
 
     def monotonic(self) -> float:
         return self.now
 
 
-def test_a_lost_renewal_waits_one_interval_and_the_next_comes_on_schedule(monkeypatch):
-    """On a clock of the test's (no wall-clock figure): the renewal whose reply is lost waits its whole timeout, one
-    interval, and the next goes out when it was due, not an interval after the loss."""
+def _on_the_tests_clock(monkeypatch) -> _Clock:
+    """The renewer's module on a clock of the test's (no wall-clock figure): waiting on its stop event moves it."""
     clock = _Clock()
 
-    stops: list[threading.Event] = []
-
-    class Stop(threading.Event):  # the renewer's stop event: waiting on it moves the clock on
+    class Stop(threading.Event):
         def __init__(self) -> None:
             super().__init__()
-            stops.append(self)
+            clock.stops.append(self)
 
         def wait(self, timeout: float | None = None) -> bool:
             if not self.is_set() and timeout is not None:
@@ -44,6 +43,13 @@ def test_a_lost_renewal_waits_one_interval_and_the_next_comes_on_schedule(monkey
 
     monkeypatch.setattr(workers.lease, "time", types.SimpleNamespace(monotonic=clock.monotonic))
     monkeypatch.setattr(workers.lease, "threading", types.SimpleNamespace(Event=Stop, Thread=threading.Thread))
+    return clock
+
+
+def test_a_lost_renewal_waits_one_interval_and_the_next_comes_on_schedule(monkeypatch):
+    """On a clock of the test's: the renewal whose reply is lost waits its whole timeout, one interval, and the
+    next goes out when it was due, not an interval after the loss."""
+    clock = _on_the_tests_clock(monkeypatch)
     grant = LeaseGrant(request_id="r1", task="push", shape="box", start_state=START, policy="push",
                        policy_params={}, action_prefix=[], steps=5, model_version="", token=1,
                        expires_at=time.time() + 0.6, lease_s=0.6)
@@ -52,7 +58,7 @@ def test_a_lost_renewal_waits_one_interval_and_the_next_comes_on_schedule(monkey
     def call(key: str, msg: bytes, timeout: float) -> dict:
         calls.append((clock.now, timeout))
         if len(calls) == 4:
-            stops[0].set()  # (the renewer's thread may get here before its constructor has returned)
+            clock.stops[0].set()  # (the renewer's thread may get here before its constructor has returned)
         if len(calls) == 1:  # the first renewal's reply is lost: the query waits its whole timeout
             clock.now += timeout
             raise transport.TransportError("no reply")
@@ -97,17 +103,8 @@ def test_the_lease_lasts_lease_s_past_the_last_renewal_the_service_acknowledged(
 def test_a_run_of_failed_renewals_is_logged_once_per_interval_then_its_end(monkeypatch, caplog):
     """At a tiny lease a lost service made a WARNING per renewal (60 a second at --lease-s 0.05): a run of failures
     is one WARNING, then at most one per WARN_EVERY_S with the count, and an INFO when renewals are answered again."""
-    clock = _Clock()
     answered = threading.Event()
-
-    class Stop(threading.Event):  # the renewer's stop event: waiting on it moves the test's clock on
-        def wait(self, timeout: float | None = None) -> bool:
-            if not self.is_set() and timeout is not None:
-                clock.now += timeout
-            return self.is_set()
-
-    monkeypatch.setattr(workers.lease, "time", types.SimpleNamespace(monotonic=clock.monotonic))
-    monkeypatch.setattr(workers.lease, "threading", types.SimpleNamespace(Event=Stop, Thread=threading.Thread))
+    clock = _on_the_tests_clock(monkeypatch)
     grant = LeaseGrant(request_id="r3", task="push", shape="box", start_state=START, policy="push",
                        policy_params={}, action_prefix=[], steps=5, model_version="", token=1,
                        expires_at=time.time() + 0.06, lease_s=0.06)  # a renewal every 0.02 s of the test's clock
