@@ -13,6 +13,7 @@ champion), ``/metrics``.
 from __future__ import annotations
 
 import functools
+import http.client
 import io
 import json
 import logging
@@ -32,7 +33,7 @@ from urllib.parse import urlsplit
 from orchestrator.dashboard_page import render_page
 from orchestrator.metrics import ServiceMetrics
 from orchestrator.storagehealth import StorageHealth
-from storage.database import DB_NAME, disk_json
+from storage.database import DB_NAME, busy_timeout, disk_json
 from storage.catalog import Catalog
 from storage.jsonsafe import finite_json
 from storage.errors import CatalogError, StorageError, StorageUnavailableError
@@ -49,6 +50,11 @@ SERVER_NAME = "activecollect-dashboard"
 
 #: What a 503 for a data directory that cannot be read now (busy, locked, a full disk) asks a client to wait.
 RETRY_AFTER_S = 5
+
+#: How long a request waits for a locked database before its 503: well inside a scraper's timeout (Prometheus's
+#: default is 10 s), where the stores' own 30 s made every scrape of a locked directory time out instead, and
+#: held a connection slot for all that time.
+READ_BUSY_TIMEOUT_S = 2.0
 
 #: The longest request timeout (a day): sockets refuse timeouts past ~9e9 s, and every connection's
 #: handler would die on one.
@@ -198,7 +204,8 @@ class Dashboard:
         full), else a 500, warned of at most once a minute per path; anything else is a bug of ours, logged
         with its traceback."""
         try:
-            status, ctype, body = self.route(path)
+            with busy_timeout(READ_BUSY_TIMEOUT_S):
+                status, ctype, body = self.route(path)
         except StorageError as exc:
             self._health.read_failed(f"{path} for the dashboard", exc)
             if isinstance(exc, StorageUnavailableError):
@@ -232,8 +239,17 @@ class Dashboard:
         return 404, _TEXT, f"no such page: {path}\n".encode()
 
 
+#: The most header bytes a request may send. The base class bounds only each line (64 KiB) and their number
+#: (100): 6.4 MB a connection, a few hundred MB of the serving process (the service's, under `serve`) for 32.
+MAX_HEADER_BYTES = 64 * 1024
+#: What a connection may send in all: its request line (the base class's 64 KiB, answered 414 past it), what the
+#: reader buffers past it, and its headers.
+_MAX_REQUEST_BYTES = 65537 + io.DEFAULT_BUFFER_SIZE + MAX_HEADER_BYTES
+
+
 class _DeadlineReader(io.RawIOBase):
-    """The reading side of a socket whose every read ends by ``deadline`` (``time.monotonic()``).
+    """The reading side of a socket whose every read ends by ``deadline`` (``time.monotonic()``), and that
+    gives at most ``_MAX_REQUEST_BYTES`` in all.
 
     The socket's own timeout bounds each read; a client sending a byte every few seconds
     would pass each one. Writes keep the socket's timeout.
@@ -242,6 +258,7 @@ class _DeadlineReader(io.RawIOBase):
     def __init__(self, sock: socket.socket) -> None:
         self._sock = sock
         self.deadline = math.inf
+        self._left = _MAX_REQUEST_BYTES
 
     def readable(self) -> bool:
         return True
@@ -250,10 +267,15 @@ class _DeadlineReader(io.RawIOBase):
         left = self.deadline - time.monotonic()
         if left <= 0:
             raise TimeoutError("the client did not send its request in time")
+        if self._left <= 0:  # the base class answers it 431, as for a header line too long
+            raise http.client.HTTPException(f"the request's headers are over {MAX_HEADER_BYTES} bytes")
         per_read = self._sock.gettimeout()
         self._sock.settimeout(left if per_read is None else min(left, per_read))
         try:
-            return self._sock.recv_into(buf)
+            with memoryview(buf) as view:
+                n = self._sock.recv_into(view[:self._left])
+            self._left -= n
+            return n
         finally:
             self._sock.settimeout(per_read)
 
@@ -376,7 +398,7 @@ class DataSources:
         the stores would make a new empty one, and the page would show an empty fleet."""
         self._refuse_lost()
         catalog = Catalog(self.data_dir)
-        with RequestQueue(catalog.db_path) as queue:
+        with RequestQueue(catalog.db_path, busy_timeout_s=READ_BUSY_TIMEOUT_S) as queue:
             yield catalog, queue, ModelRegistry(self.data_dir)
 
     def _refuse_lost(self) -> None:

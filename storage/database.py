@@ -19,6 +19,7 @@ import shutil
 import sqlite3
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
+from contextvars import ContextVar
 from dataclasses import dataclass
 from datetime import datetime, timezone
 from pathlib import Path
@@ -39,6 +40,9 @@ EPISODES_DIR, MODELS_DIR = "episodes", "models"
 #: Where ``Catalog.quarantine`` keeps the files of episodes it takes out of training.
 QUARANTINE_DIR = "quarantine"
 BUSY_TIMEOUT_MS = 30_000
+#: The busy timeout ``connect`` gives the connections a thread opens (``busy_timeout`` sets it for a block;
+#: None: ``BUSY_TIMEOUT_MS``).
+_BUSY_TIMEOUT_MS: ContextVar[int | None] = ContextVar("busy_timeout_ms", default=None)
 #: What the WAL file is cut back to once a checkpoint has emptied it. SQLite reuses the file instead of
 #: shrinking it, so without a limit one burst (or a long backup, during which it cannot be reset) would
 #: hold its high-water size for as long as any connection stays open -- the service's always does.
@@ -155,15 +159,30 @@ def storage_error(exc: sqlite3.Error | OSError, error: type[StorageError], messa
     return _UNAVAILABLE.get(error, error)(message + space_note(path))
 
 
+@contextmanager
+def busy_timeout(seconds: float) -> Iterator[None]:
+    """Within the block, the connections ``connect`` opens in this thread wait at most ``seconds`` for a lock
+    (``BUSY_TIMEOUT_MS`` elsewhere): a reader that answers someone waiting (the dashboard's HTTP clients,
+    whose scrapes time out after 10 s) says "busy, retry" sooner than a writer that must get through."""
+    token = _BUSY_TIMEOUT_MS.set(max(0, int(seconds * 1000)))
+    try:
+        yield
+    finally:
+        _BUSY_TIMEOUT_MS.reset(token)
+
+
 def connect(db_path: str | Path) -> sqlite3.Connection:
-    """Opens the catalog database: autocommit (explicit transactions), WAL, busy timeout.
+    """Opens the catalog database: autocommit (explicit transactions), WAL, busy timeout (``busy_timeout``).
 
     One connection per thread: open one where you need it and close it after.
     """
-    conn = sqlite3.connect(db_path, timeout=BUSY_TIMEOUT_MS / 1000, isolation_level=None)
+    busy_ms = _BUSY_TIMEOUT_MS.get()
+    if busy_ms is None:
+        busy_ms = BUSY_TIMEOUT_MS
+    conn = sqlite3.connect(db_path, timeout=busy_ms / 1000, isolation_level=None)
     try:
         conn.row_factory = sqlite3.Row
-        configure(conn, BUSY_TIMEOUT_MS, "FULL")  # FULL: a committed ingest survives power loss
+        configure(conn, busy_ms, "FULL")  # FULL: a committed ingest survives power loss
         conn.execute("PRAGMA foreign_keys = ON")
     except BaseException:
         conn.close()

@@ -1,0 +1,104 @@
+"""A data directory whose database another process holds locked: the dashboard says so (503, Retry-After) in a
+scraper's time, not after the stores' 30 s busy timeout (Prometheus's default scrape timeout is 10 s)."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import time
+import urllib.error
+import urllib.request
+
+import pytest
+
+from orchestrator.dashboard import READ_BUSY_TIMEOUT_S, RETRY_AFTER_S, Dashboard, DashboardConfig, DataSources
+from storage.catalog import Catalog
+from storage.queue import RequestQueue
+
+_LOCKER = """
+import sqlite3, sys
+c = sqlite3.connect(sys.argv[1], isolation_level=None)
+c.execute("PRAGMA locking_mode = EXCLUSIVE")
+c.execute("BEGIN EXCLUSIVE")
+c.execute("CREATE TABLE IF NOT EXISTS locker_probe(x)")  # a write: the exclusive lock is taken, WAL or not
+print("locked", flush=True)
+sys.stdin.readline()
+c.execute("ROLLBACK")
+"""
+
+
+def _get(url: str) -> tuple[int, dict, bytes]:
+    try:
+        with urllib.request.urlopen(url, timeout=60) as r:
+            return r.status, dict(r.headers), r.read()
+    except urllib.error.HTTPError as exc:
+        return exc.code, dict(exc.headers), exc.read()
+
+
+@pytest.mark.parametrize("path", ["/api/stats", "/api/queue", "/api/models", "/metrics"])
+def test_a_database_locked_by_another_process_is_503_within_a_scrape_timeout(tmp_path, path) -> None:
+    catalog = Catalog(tmp_path)
+    RequestQueue(catalog.db_path).close()
+    dash = Dashboard(DashboardConfig(port=0), DataSources(tmp_path).sources())
+    dash.start()
+    locker = subprocess.Popen([sys.executable, "-c", _LOCKER, str(catalog.db_path)], stdin=subprocess.PIPE,
+                              stdout=subprocess.PIPE, text=True)
+    try:
+        assert locker.stdout.readline().strip() == "locked"
+        start = time.monotonic()
+        status, headers, body = _get(dash.url.rstrip("/") + path)
+        took = time.monotonic() - start
+        assert status == 503 and headers["Retry-After"] == str(RETRY_AFTER_S), (status, body)
+        assert b"locked" in body
+        assert took < READ_BUSY_TIMEOUT_S * 3 + 2 < 10, took  # a few reads may each wait; all well inside 10 s
+    finally:
+        locker.communicate("\n", timeout=30)
+    try:
+        assert _get(dash.url.rstrip("/") + path)[0] == 200  # the lock gone, it reads again
+    finally:
+        dash.stop()
+
+
+def test_the_short_busy_timeout_is_the_dashboards_alone(tmp_path) -> None:
+    """The service's own reads and writes, in other threads, keep the stores' busy timeout."""
+    from storage import database
+    with database.busy_timeout(0.5):
+        conn = database.connect(Catalog(tmp_path).db_path)
+        assert conn.execute("PRAGMA busy_timeout").fetchone()[0] == 500
+        conn.close()
+    conn = database.connect(tmp_path / database.DB_NAME)
+    assert conn.execute("PRAGMA busy_timeout").fetchone()[0] == database.BUSY_TIMEOUT_MS
+    conn.close()
+
+
+def _send_all_then_read(url: str, data: bytes) -> bytes:
+    import socket
+    from urllib.parse import urlsplit
+    u = urlsplit(url)
+    with socket.create_connection((u.hostname, u.port), timeout=30) as s:
+        try:
+            s.sendall(data)
+        except OSError:  # answered and closed before it all went: what was answered is still read below
+            pass
+        out = b""
+        while chunk := s.recv(65536):
+            out += chunk
+        return out
+
+
+def test_a_request_with_megabytes_of_headers_is_431_and_an_ordinary_one_is_served(tmp_path) -> None:
+    """The base class took 100 header lines of 64 KiB each: 6.4 MB held per connection, ~200-600 MB of the
+    serving process (the service's, under serve) for 32 connections."""
+    from orchestrator.dashboard import MAX_HEADER_BYTES
+    Catalog(tmp_path)
+    dash = Dashboard(DashboardConfig(port=0), DataSources(tmp_path).sources())
+    dash.start()
+    try:
+        huge = b"GET / HTTP/1.0\r\n" + b"".join(b"X%d: " % i + b"y" * 60000 + b"\r\n" for i in range(99)) + b"\r\n"
+        assert _send_all_then_read(dash.url, huge).startswith(b"HTTP/1.0 431 ")
+        fits = b"GET / HTTP/1.0\r\n" + b"X: " + b"y" * (MAX_HEADER_BYTES - 100) + b"\r\n\r\n"
+        assert _send_all_then_read(dash.url, fits).startswith(b"HTTP/1.0 200 ")
+        long_line = b"GET /" + b"a" * 70000 + b" HTTP/1.0\r\n\r\n"
+        assert _send_all_then_read(dash.url, long_line).startswith(b"HTTP/1.0 414 ")
+    finally:
+        dash.stop()
