@@ -21,7 +21,7 @@ import numpy as np
 import torch
 
 from storage.errors import DAMAGED_EPISODE_ERRORS
-from storage.quarantine import looks_unmounted
+from storage.quarantine import clean_reason, looks_unmounted
 from storage.records import Episode
 from storage.rows import Snapshot
 from uncertainty.errors import DataError
@@ -37,6 +37,7 @@ class CatalogLike(Protocol):
     def eval_split(self): ...
     def load(self, episode_id: str) -> Episode: ...
     def quarantine(self, episode_id: str, reason: str, only_if_damaged: bool = False): ...
+    def get(self, episode_id: str): ...
     def replays(self, split: str = "train") -> dict[str, str]: ...
 
 
@@ -239,7 +240,8 @@ def load_train(catalog: CatalogLike, max_episodes: int | None = None, image_size
         try:
             episode = catalog.load(episode_id)
         except DAMAGED_EPISODE_ERRORS as exc:
-            damaged.append((episode_id, exc))
+            if not catalog.get(episode_id).quarantined:  # (else quarantined since the snapshot, its file moved
+                damaged.append((episode_id, exc))          # aside: `episodes quarantine` beside this job; left out)
         else:
             keep(episode_id, episode)
     if looks_unmounted(len(damaged), len(damaged) + len(kept)):
@@ -248,10 +250,14 @@ def load_train(catalog: CatalogLike, max_episodes: int | None = None, image_size
                         "directory's disk is there and readable, then `activecollect episodes verify --quarantine`")
     lost = []
     for episode_id, exc in damaged:
-        if catalog.quarantine(episode_id, f"found by a training job: {exc}", only_if_damaged=True).quarantined:
+        reason = clean_reason(f"found by a training job: {exc}")
+        row = catalog.quarantine(episode_id, reason, only_if_damaged=True)
+        if row.quarantined == reason:
             lost.append(episode_id)
-        else:  # repaired (its bytes ingested again) since it was read
+        elif not row.quarantined:  # repaired (its bytes ingested again) since it was read
             keep(episode_id, catalog.load(episode_id))
+        # else quarantined by someone else since the snapshot (`episodes quarantine` moved its intact file to
+        # DATA/quarantine/): left out, but not this job's finding of a missing or damaged file
     if not kept and other_size:
         first, px = min(other_size.items())
         raise DataError(f"no train episode has the eval split's {image_size}px frames: {len(other_size)} of another "

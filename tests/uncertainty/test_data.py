@@ -186,3 +186,36 @@ def test_a_retrain_on_an_old_catalog_with_an_eval_copy_trains_without_it_and_say
     assert result.metrics["train_episodes"] == 2 and result.metrics["train_replays_left_out"] == 1
     assert registry.snapshot(result.version).ids == ids  # what it was trained on
     assert any(f"{copy} (of {ev.meta.episode_id})" in line for line in result.warnings)  # retrain --json's
+
+
+def test_an_episode_the_operator_quarantines_while_a_job_loads_is_not_reported_as_damaged(tmp_path):
+    """`episodes quarantine` beside a running retrain: the file it moves aside is missing where the job's
+    snapshot said, but it is the operator's quarantine, not a lost file the job found and quarantined."""
+    ids = sorted(Catalog(tmp_path).add_episode(make_episode(s, steps=5)).episode_id for s in range(4))
+
+    class OperatorMeanwhile(Catalog):  # a real catalog; a second one (the operator's command) acts between reads
+        def load(self, episode_id):
+            if episode_id == ids[0] and not self.get(ids[0]).quarantined:
+                Catalog(tmp_path).quarantine(ids[0], "operator: bad lighting")
+            return super().load(episode_id)
+
+    train = load_train(OperatorMeanwhile(tmp_path))
+    assert train.quarantined == [] and train.episode_ids == ids[1:]
+    row = Catalog(tmp_path).get(ids[0])
+    assert row.quarantined == "operator: bad lighting"
+
+
+def test_most_train_episodes_quarantined_by_the_operator_while_a_job_loads_is_no_unmounted_disk(tmp_path):
+    """An operator who quarantines a bad batch (most of the train split) beside a running retrain: the job trains
+    on what is left; it does not fail saying the data directory's disk looks unmounted."""
+    ids = sorted(Catalog(tmp_path).add_episode(make_episode(s, steps=5)).episode_id for s in range(4))
+
+    class OperatorMeanwhile(Catalog):
+        def load(self, episode_id):
+            if not self.get(ids[1]).quarantined:
+                for other in ids[1:]:
+                    Catalog(tmp_path).quarantine(other, "operator: bad batch")
+            return super().load(episode_id)
+
+    train = load_train(OperatorMeanwhile(tmp_path))
+    assert train.episode_ids == ids[:1] and train.quarantined == []
