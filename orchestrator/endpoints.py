@@ -95,7 +95,9 @@ def add_connection_args(parser: argparse.ArgumentParser, *, listen: bool = False
                             help=f"Zenoh endpoint to listen on (repeatable; default {DEFAULT_ENDPOINT} "
                                  "when no --connect or --zenoh-config is given)")
     parser.add_argument("--connect", action="append", default=[], metavar="EP", type=endpoint,
-                        help="Zenoh endpoint to connect to, e.g. tcp/10.0.0.5:7447 (repeatable"
+                        help="Zenoh endpoint to connect to, e.g. tcp/10.0.0.5:7447 (repeatable; added after a "
+                             "--zenoh-config's own, which a client links to first: to use another router, edit "
+                             "the config's connect/endpoints"
                              + ("" if listen else f"; default {DEFAULT_ENDPOINT} without --zenoh-config") + ")")
     parser.add_argument("--zenoh-config", type=Path, default=None, metavar="FILE",
                         help="Zenoh JSON5 config file, used as written (routers, TLS, passwords, ACL); "

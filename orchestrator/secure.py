@@ -280,6 +280,43 @@ def _json5_text(role: str, cfg: SecureInitConfig, body: dict[str, Any]) -> str:
     return header + json.dumps(body, indent=2) + "\n"
 
 
+def profile_settings(directory: Path) -> dict[str, Any]:
+    """What the secure profile in ``directory`` was made with, under ``SecureInitConfig``'s field names:
+    ``namespace`` (profiles from before it was recorded have none), ``router_endpoint``, ``router_listen`` (None
+    where the router binds the endpoint) and ``extra_hosts`` (the router certificate's names beyond those every
+    profile has). Each one it cannot read is left out; {} where no profile is there. ``secure init --force``
+    keeps them for the flags not given: a rotation must not move a profile to the defaults' 127.0.0.1."""
+    found: dict[str, Any] = {}
+    try:
+        client = json5.loads((directory / "orchestrator.json5").read_text())
+        endpoints = lookup_key(client, "connect/endpoints") or []
+        if endpoints:
+            found["router_endpoint"] = str(endpoints[0])
+        namespace = (client.get("metadata") or {}).get(NAMESPACE_METADATA)
+        if namespace:
+            found["namespace"] = str(namespace)
+    except (OSError, ValueError, AttributeError):
+        pass
+    try:
+        router = json5.loads((directory / "router.json5").read_text())
+        listen = lookup_key(router, "listen/endpoints") or []
+        if listen and "router_endpoint" in found:
+            found["router_listen"] = None if listen[0] == found["router_endpoint"] else str(listen[0])
+    except (OSError, ValueError, AttributeError):
+        pass
+    try:
+        cert = x509.load_pem_x509_certificate((directory / "router.pem").read_bytes())
+        san = cert.extensions.get_extension_for_class(x509.SubjectAlternativeName).value
+        names = [*san.get_values_for_type(x509.DNSName), *(str(ip) for ip in san.get_values_for_type(x509.IPAddress))]
+        usual = {"localhost", "127.0.0.1", "router"}
+        if "router_endpoint" in found:
+            usual.add(router_endpoint_host(found["router_endpoint"]).strip("[]"))
+        found["extra_hosts"] = tuple(n for n in names if n not in usual)
+    except (OSError, ValueError, x509.ExtensionNotFound, SecureConfigError):
+        pass
+    return found
+
+
 def planned_files(directory: Path) -> list[Path]:
     """Every file ``init_secure`` writes into ``directory``."""
     names = ["ca.pem", "users.txt"]

@@ -103,6 +103,8 @@ def _connect() -> list[str]:
     (["serve", "--min-queued", "65", "--data", "DATA"], "--min-queued 65 is above the planner's queue depth cap of 64"),
     (["serve", "--planner", "none", "--min-queued", "3", "--data", "DATA"],
      "--min-queued needs a planner to draw requests from"),
+    (["serve", "--planner", "none", "--seed-requests", "5", "--data", "DATA"],
+     "--seed-requests needs a planner to draw requests from"),
     (["retrain", "--keep-models", "0", "--data", "DATA"], "expected a positive integer"),
     (["bench", "sim", "--seconds", "inf"], "expected a positive number"),
     (["bench", "dispatch", "--seconds", "inf"], "expected a positive number"),

@@ -164,7 +164,8 @@ def test_episodes_ingested_as_eval_are_pinned_by_eval_split_pin(capsys, data, rn
     assert rc == 2 and err.count("\n") == 1 and "no eval episodes to pin" in err and "--split eval" in err
     assert run_cli(capsys, "ingest", str(src), "--split", "eval", "--data", str(data))[0] == 0
     rc, _, err = run_cli(capsys, "eval-split", "show", "--data", str(data))
-    assert rc == 1 and "3 eval episodes are indexed: pin them with activecollect eval-split pin" in err
+    assert rc == 1 and "3 eval episodes are indexed, not pinned" in err
+    assert "pin episodes ingested with --split eval with activecollect eval-split pin" in err
     cat = Catalog(data)
     evals, train = sorted(cat.snapshot("eval").ids), cat.snapshot("train").ids
     rc, _, err = run_cli(capsys, "eval-split", "pin", evals[0], train[0][:12], "--data", str(data))
@@ -418,3 +419,31 @@ def test_ingesting_another_directorys_eval_episodes_as_train_is_refused_per_file
     cat = Catalog(data)
     assert len(sorted(data.rglob("*.mcap"))) == len(files) + 1 and cat.count(split="train") == 1
     assert cat.eval_split().ids == ours
+
+
+def test_eval_split_show_after_an_interrupted_create_says_to_run_create_again(capsys, tmp_path, monkeypatch):
+    """A create stopped midway leaves unpinned eval episodes. `eval-split show` used to tell the operator only to
+    pin them with `eval-split pin`, which pins the partial split for good (a pinned split is never replaced);
+    it now says that running the create again finishes it, and doing so pins the whole split."""
+    import workers.collect as wc
+
+    data = tmp_path / "d"
+    real, calls = wc.collect_episode, [0]
+
+    def interrupted(*a, **kw):
+        calls[0] += 1
+        if calls[0] == 4:  # (the operator's Ctrl-C, in the middle of the fourth episode)
+            raise KeyboardInterrupt
+        return real(*a, **kw)
+
+    monkeypatch.setattr(wc, "collect_episode", interrupted)
+    args = ("eval-split", "create", "--data", str(data), "--episodes", "8", "--steps", "5", "--size", "16")
+    rc, _, _ = run_cli(capsys, *args)
+    assert rc == 130 and Catalog(data).eval_split() is None and Catalog(data).count(split="eval") == 3
+    rc, _, err = run_cli(capsys, "eval-split", "show", "--data", str(data))
+    assert rc == 1 and len(err.strip().splitlines()) == 1, err
+    assert "3 eval episodes are indexed, not pinned" in err and "run again with the same flags" in err, err
+    monkeypatch.setattr(wc, "collect_episode", real)
+    rc, _, err = run_cli(capsys, *args)
+    assert rc == 0, err
+    assert len(Catalog(data).eval_split().ids) == 8 and Catalog(data).count(split="eval") == 8

@@ -396,7 +396,9 @@ def _eval_split_show(args: argparse.Namespace) -> int:
     split = cat.eval_split()
     if split is None:
         waiting = len(cat.snapshot("eval").ids)
-        hint = (f"{waiting} eval episodes are indexed: pin them with activecollect eval-split pin" if waiting
+        hint = (f"{waiting} eval episodes are indexed, not pinned: an `eval-split create` that was interrupted "
+                "finishes when run again with the same flags (pinning what it left would fix a partial split for "
+                "good); pin episodes ingested with --split eval with activecollect eval-split pin" if waiting
                 else "create one: activecollect eval-split create")
         print(f"activecollect: no eval split is pinned in {cat.data_dir} ({hint})", file=sys.stderr)
         return 1

@@ -11,7 +11,7 @@ from orchestrator.cli.common import (Parser, UsageError, add_json_arg, config_er
 from orchestrator.protocol import one_line
 from orchestrator.router import RouterConfig, RouterError, RouterStartError, run_router
 from orchestrator.secure import (DEFAULT_NAMESPACE, DEFAULT_ROUTER_ENDPOINT, MAX_VALID_DAYS, SecureInitConfig,
-                                 host_problem, init_secure, router_endpoint_host, tls_endpoint)
+                                 host_problem, init_secure, profile_settings, router_endpoint_host, tls_endpoint)
 from orchestrator.endpoints import endpoint
 from orchestrator.transport import SecureConfigError, validate_secure_config
 
@@ -48,15 +48,19 @@ def register(sub) -> None:
     init.add_argument("directory", type=_profile_dir, metavar="DIR",
                       help="where to write the profile: a new or empty directory (made private, mode 0700: it "
                            "holds the keys), or one holding a profile to replace with --force")
-    init.add_argument("--namespace", default=DEFAULT_NAMESPACE,
-                      help=f"key namespace the ACL protects (default {DEFAULT_NAMESPACE})")
-    init.add_argument("--router-endpoint", type=_router_endpoint, default=DEFAULT_ROUTER_ENDPOINT,
+    init.add_argument("--namespace", default=None,
+                      help=f"key namespace the ACL protects (default {DEFAULT_NAMESPACE}; with --force, the "
+                           "replaced profile's)")
+    init.add_argument("--router-endpoint", type=_router_endpoint, default=None,
                       metavar="tls/HOST:PORT",
-                      help=f"where clients reach the router (default {DEFAULT_ROUTER_ENDPOINT})")
+                      help=f"where clients reach the router (default {DEFAULT_ROUTER_ENDPOINT}; with --force, the "
+                           "replaced profile's)")
     init.add_argument("--router-listen", type=_router_listen, metavar="tls/ADDR:PORT",
-                      help="what the router binds, e.g. tls/0.0.0.0:7447 (default: --router-endpoint)")
-    init.add_argument("--host", action="append", type=_host, default=[], dest="hosts", metavar="NAME",
-                      help="another DNS name or IP address of the router for its certificate (repeatable)")
+                      help="what the router binds, e.g. tls/0.0.0.0:7447 (default: --router-endpoint; with "
+                           "--force, the replaced profile's)")
+    init.add_argument("--host", action="append", type=_host, default=None, dest="hosts", metavar="NAME",
+                      help="another DNS name or IP address of the router for its certificate (repeatable; with "
+                           "--force, default the replaced profile's)")
     init.add_argument("--valid-days", type=_valid_days, default=825, metavar="DAYS",
                       help=f"certificate lifetime in days, at most {MAX_VALID_DAYS} (default 825)")
     init.add_argument("--force", action="store_true",
@@ -127,10 +131,23 @@ def _router(args: argparse.Namespace) -> int:
 
 
 def _init(args: argparse.Namespace) -> int:
+    given = {"namespace": args.namespace, "router_endpoint": args.router_endpoint,
+             "router_listen": args.router_listen, "extra_hosts": None if args.hosts is None else tuple(args.hosts)}
+    settings = {"namespace": DEFAULT_NAMESPACE, "router_endpoint": DEFAULT_ROUTER_ENDPOINT, "router_listen": None,
+                "extra_hosts": ()}
+    # a rotation (--force) keeps what the profile was made for, its hosts' endpoint and the router's names,
+    # for each flag not given: the defaults' profile (127.0.0.1) would fail on every host it is copied to
+    kept = {k: v for k, v in (profile_settings(args.directory) if args.force else {}).items()
+            if given[k] is None and v != settings[k]}
+    if kept:
+        flags = {"namespace": "--namespace", "router_endpoint": "--router-endpoint",
+                 "router_listen": "--router-listen", "extra_hosts": "--host"}
+        shown = [f"{flags[k]} {x}" for k, v in kept.items() for x in (v if isinstance(v, tuple) else (v,))]
+        print(f"activecollect secure init: keeping the replaced profile's {' '.join(shown)}", file=sys.stderr)
+    settings.update(kept)
+    settings.update({k: v for k, v in given.items() if v is not None})
     try:
-        cfg = SecureInitConfig(directory=args.directory, namespace=args.namespace,
-                               router_endpoint=args.router_endpoint, router_listen=args.router_listen,
-                               extra_hosts=tuple(args.hosts), force=args.force, valid_days=args.valid_days)
+        cfg = SecureInitConfig(directory=args.directory, force=args.force, valid_days=args.valid_days, **settings)
         result = init_secure(cfg)
     except SecureConfigError as exc:
         raise config_error(exc, {"namespace": "--namespace"} if str(exc).startswith("namespace:") else {}) from exc

@@ -6,6 +6,7 @@ from __future__ import annotations
 import datetime
 import errno
 
+import json5
 import pytest
 from cryptography import x509
 
@@ -105,3 +106,39 @@ def test_a_failed_write_into_an_existing_directory_leaves_it_and_no_temporary_fi
     first = init_secure(SecureInitConfig(directory))  # and a later init works there
     assert sorted(p.name for p in directory.iterdir()) == sorted(p.name for p in planned_files(directory))
     assert first.configs["worker"].is_file()
+
+
+def test_a_forced_init_keeps_what_the_profile_was_made_for_unless_told_otherwise(capsys, tmp_path):
+    """`secure init --force DIR` (README: how to add or rotate a credential) used to write the defaults' profile:
+    namespace activecollect and a router certificate for 127.0.0.1 only, clients connecting to
+    tls/127.0.0.1:7447, so every host's new files failed against the real router. The flags not given now keep
+    the replaced profile's; the flags given win."""
+    directory = tmp_path / "p"
+    rc, _, err = run_cli(capsys, "secure", "init", str(directory), "--namespace", "prod",
+                         "--router-endpoint", "tls/ac.example.org:7447", "--router-listen", "tls/0.0.0.0:7447",
+                         "--host", "10.0.0.5", "--host", "r2.lan")
+    assert rc == 0, err
+
+    def made_with() -> tuple:
+        worker = json5.loads((directory / "worker.json5").read_text())
+        router = json5.loads((directory / "router.json5").read_text())
+        cert = x509.load_pem_x509_certificate((directory / "router.pem").read_bytes())
+        san = cert.extensions.get_extension_for_class(x509.SubjectAlternativeName).value
+        names = {*san.get_values_for_type(x509.DNSName), *(str(ip) for ip in san.get_values_for_type(x509.IPAddress))}
+        return (worker["metadata"]["activecollect_namespace"], worker["connect"]["endpoints"],
+                router["listen"]["endpoints"], names)
+
+    before = made_with()
+    old_ca = (directory / "ca.pem").read_bytes()
+    rc, _, err = run_cli(capsys, "secure", "init", str(directory), "--force")
+    assert rc == 0, err
+    assert (directory / "ca.pem").read_bytes() != old_ca  # rotated
+    assert made_with() == before, err
+    assert "--namespace prod" in err and "--host 10.0.0.5" in err and "--host r2.lan" in err
+
+    rc, _, err = run_cli(capsys, "secure", "init", str(directory), "--force", "--router-endpoint",
+                         "tls/other.lan:7447", "--namespace", "staging")
+    assert rc == 0, err
+    namespace, connect, listen, names = made_with()
+    assert (namespace, connect, listen) == ("staging", ["tls/other.lan:7447"], ["tls/0.0.0.0:7447"])
+    assert {"other.lan", "10.0.0.5", "r2.lan"} <= names and "ac.example.org" not in names
