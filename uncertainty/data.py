@@ -240,8 +240,10 @@ def load_train(catalog: CatalogLike, max_episodes: int | None = None, image_size
         try:
             episode = catalog.load(episode_id)
         except DAMAGED_EPISODE_ERRORS as exc:
-            if not catalog.get(episode_id).quarantined:  # (else quarantined since the snapshot, its file moved
-                damaged.append((episode_id, exc))          # aside: `episodes quarantine` beside this job; left out)
+            # one quarantined since the snapshot (`episodes quarantine` beside this job moved its file aside) is
+            # left out, and is not a damaged file: nor a sign of an unmounted disk
+            if not catalog.get(episode_id).quarantined:
+                damaged.append((episode_id, exc))
         else:
             keep(episode_id, episode)
     if looks_unmounted(len(damaged), len(damaged) + len(kept)):
