@@ -280,6 +280,10 @@ def _json5_text(role: str, cfg: SecureInitConfig, body: dict[str, Any]) -> str:
     return header + json.dumps(body, indent=2) + "\n"
 
 
+#: The names every router certificate carries besides the router's own host: it also serves clients on its host.
+_LOCAL_ROUTER_NAMES = ("localhost", "127.0.0.1")
+
+
 def profile_settings(directory: Path) -> dict[str, Any]:
     """What the secure profile in ``directory`` was made with, under ``SecureInitConfig``'s field names:
     ``namespace`` (profiles from before it was recorded have none), ``router_endpoint``, ``router_listen`` (None
@@ -308,7 +312,7 @@ def profile_settings(directory: Path) -> dict[str, Any]:
         cert = x509.load_pem_x509_certificate((directory / "router.pem").read_bytes())
         san = cert.extensions.get_extension_for_class(x509.SubjectAlternativeName).value
         names = [*san.get_values_for_type(x509.DNSName), *(str(ip) for ip in san.get_values_for_type(x509.IPAddress))]
-        usual = {"localhost", "127.0.0.1", "router"}
+        usual = {*_LOCAL_ROUTER_NAMES, "router"}  # (and its common name)
         if "router_endpoint" in found:
             usual.add(router_endpoint_host(found["router_endpoint"]).strip("[]"))
         found["extra_hosts"] = tuple(n for n in names if n not in usual)
@@ -331,7 +335,7 @@ def _render(cfg: SecureInitConfig) -> tuple[SecureSet, dict[Path, tuple[bytes, b
     out = SecureSet(directory=d, ca_certificate=d / "ca.pem")
     ca_key, ca_cert = make_ca(valid_days=cfg.valid_days)
     files: dict[Path, tuple[bytes, bool]] = {d / "ca.pem": (cert_pem(ca_cert), False)}
-    router_hosts = (cfg.router_host(), *cfg.extra_hosts, "localhost", "127.0.0.1")
+    router_hosts = (cfg.router_host(), *cfg.extra_hosts, *_LOCAL_ROUTER_NAMES)
     for role in ROLES:
         key, cert = issue_certificate(ca_key, ca_cert, role,
                                       hosts=router_hosts if role == "router" else (),

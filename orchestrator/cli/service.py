@@ -168,7 +168,7 @@ def companion_config(args: argparse.Namespace) -> CompanionConfig:
 
 
 def _min_queued(args: argparse.Namespace) -> int:
-    """``--min-queued`` checked against the planner that would have to keep it."""
+    """``--min-queued``, and ``--seed-requests``, checked against the planner that would have to draw them."""
     if args.seed_requests and args.planner == "none":  # (it used to queue nothing, silently)
         raise common.UsageError("--seed-requests needs a planner to draw requests from; with --planner none "
                                 "nothing is seeded (use --planner uniform or active, or queue add)")
