@@ -42,7 +42,7 @@ from orchestrator.retrainjob import (RetrainRecord, RetrainStatus, ScheduleConfi
                                      notes_path, quarantined_note, retrain_command, signal_name)
 from orchestrator.retrainlock import EXIT_BUSY, JOB_ENV, NOTES_ENV, lock_held, read_lock_info
 from storage.errors import StorageError
-from storage.files import age_s
+from storage.files import age_s, write_synced
 from storage.models import ModelRegistry, ModelStatus
 from storage.servicelock import read_holder
 
@@ -66,6 +66,7 @@ STOPPED = "stopped with the scheduler"
 #: The training episodes counted when the last job started: a start reckons its count trigger from it, so a multiple of
 #: ``every_episodes`` crossed while no service ran (its last uploads during a stop, an offline ingest) still retrains.
 COUNT_FILE = "retrain.count"
+_BY_NOTES = ", by the notes it left"
 
 
 class RetrainScheduler:
@@ -235,7 +236,7 @@ class RetrainScheduler:
             log.warning("the retrain lock is held by pid %s (%s, phase %s): scheduled retrains wait until it is free; "
                         "if that process is stuck or stopped (a job left by a service that was killed), end it",
                         info.get("pid", "?"), info.get("job") or "not a scheduled job", info.get("phase", "?"))
-        marked = self._marked_job()
+        marked = marked_job(self.data_dir)
         if marked is not None:
             if trigger and marked:
                 log.info("the last scheduled retrain here ended before its gate (%s): it runs again once the "
@@ -250,27 +251,6 @@ class RetrainScheduler:
             log.info("the last scheduled retrain here (pid %s) died while %s: it runs again once the retrain lock "
                      "is free", info.get("pid", "?"), info["phase"])
         return trigger
-
-    def _marked_job(self) -> str | None:
-        """How far the job ``DUE_MARKER`` names got when the service ended ("" when it got past its gate, or
-        failed by itself: nothing to run again); None without a marker."""
-        try:
-            marker = json.loads((self.data_dir / DUE_MARKER).read_text())
-        except FileNotFoundError:
-            return None
-        except (OSError, ValueError):
-            marker = {}
-        notes = read_holder(Path(marker["notes"])) if isinstance(marker, dict) and marker.get("notes") else {}
-        phase, version = notes.get("phase"), notes.get("version")
-        if phase == "failed":
-            return ""
-        if isinstance(version, str) and version:
-            try:
-                if ModelRegistry(self.data_dir).get(version).status != ModelStatus.CANDIDATE:
-                    return ""  # gated: promoted or rejected
-            except (StorageError, OSError):
-                pass  # cannot tell: run it again rather than lose it
-        return "" if phase == "done" else f"{phase or 'starting'}, by the notes it left"
 
     def _counted_before(self, now: int) -> int:
         """The count at the last job's start (``COUNT_FILE``; ``now`` when none was kept or it is larger)."""
@@ -448,3 +428,48 @@ class RetrainScheduler:
             rec.reason = f"{ended} before its gate judged {version} (the next retrain rejects it as abandoned)"
             return False
         return True
+
+
+def marked_job(data_dir: Path, registry_dir: Path | None = None) -> str | None:
+    """How far the job ``DUE_MARKER`` in ``data_dir`` names got when the service ended ("" when it got past its gate,
+    or failed by itself: nothing to run again); None without a marker. Its model is looked up in the registry of
+    ``registry_dir`` (default ``data_dir``; a backup's copy)."""
+    try:
+        marker = json.loads((data_dir / DUE_MARKER).read_text())
+    except FileNotFoundError:
+        return None
+    except (OSError, ValueError):
+        marker = {}
+    marker = marker if isinstance(marker, dict) else {}
+    if not marker.get("notes") and isinstance(marker.get("copied"), str):  # a backup's: see ``carry_schedule``
+        return marker["copied"]
+    notes = read_holder(Path(marker["notes"])) if marker.get("notes") else {}
+    phase, version = notes.get("phase"), notes.get("version")
+    if phase == "failed":
+        return ""
+    if isinstance(version, str) and version:
+        try:
+            if ModelRegistry(registry_dir or data_dir).get(version).status != ModelStatus.CANDIDATE:
+                return ""  # gated: promoted or rejected
+        except (StorageError, OSError):
+            pass  # cannot tell: run it again rather than lose it
+    return "" if phase == "done" else f"{phase or 'starting'}{_BY_NOTES}"
+
+
+def carry_schedule(source: Path, copy: Path) -> None:
+    """Give ``copy``, a backup of ``source`` just taken (its catalog and registry snapshotted), the retrain schedule
+    ``source`` had then: ``COUNT_FILE`` as it is, so a multiple of ``--retrain-every`` reached before the backup and
+    not yet retrained is retrained where the copy serves, and ``DUE_MARKER`` when its job had not passed its gate
+    in the snapshot (its model not gated in the copy's registry, or not in it), so the copy runs that job again.
+    The marker names no notes (they stay with ``source``'s logs): it says how far the job had got."""
+    count = None
+    with contextlib.suppress(OSError, ValueError):  # (none kept: the copy reckons from its own count, as here)
+        count = int((source / COUNT_FILE).read_text())
+    if count is not None:
+        write_synced(copy / COUNT_FILE, str(count).encode())
+    marked = marked_job(source, copy)
+    if marked:
+        copied = marked.removesuffix(_BY_NOTES)
+        if not copied.endswith(" was backed up"):  # (a backup of a backup keeps the first one's words)
+            copied = f"{copied}, when {source} was backed up"
+        write_synced(copy / DUE_MARKER, json.dumps({"copied": copied}).encode())

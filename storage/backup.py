@@ -22,9 +22,10 @@ hidden folder, which the next backup to ``dest`` deletes (``swept``). One backup
 at once naming the first rather than copying everything only to find ``dest`` taken; the holder deletes the file
 when done, and the kernel lets go of the lock of one killed midway (the next backup takes it and deletes it).
 ``storage.backup_dest`` checks ``dest`` (see ``check_dest``), holds its lock and moves the copy into place.
-Not copied: ``reports/`` (made again by ``run``), lock files, and what crashed calls left (staging files,
-``orphans/``, ``models/.orphans/``). To restore, stop the service and serve from the backup (``--data DEST``) or
-move it into place.
+The service's retrain schedule is carried as it was at the snapshot when the caller asks (``backup``'s
+``carry``). Not copied: ``reports/`` (made again by ``run``), ``logs/``, lock files, and what crashed calls left
+(staging files, ``orphans/``, ``models/.orphans/``). To restore, stop the service and serve from the backup
+(``--data DEST``) or move it into place.
 """
 
 from __future__ import annotations
@@ -211,10 +212,13 @@ def _copy_found(data_dir: Path, work: Path, episode: tuple[str, str, str], state
 
 
 def backup(data_dir: str | os.PathLike[str], dest: str | os.PathLike[str],
-           progress: Callable[[int, int], None] | None = None) -> BackupResult:
+           progress: Callable[[int, int], None] | None = None,
+           carry: Callable[[Path, Path], None] | None = None) -> BackupResult:
     """Copy the data directory ``data_dir`` to ``dest`` (a new directory), consistently, while it is in use.
 
-    ``progress(done, total)`` is called after each file. Raises ``BackupError`` when there is no
+    ``progress(done, total)`` is called after each file; ``carry(data_dir, copy)`` right after each snapshot, with
+    the copy's catalog and registry in place, to copy what else the copy needs as ``data_dir`` has it then (the
+    service's retrain schedule: ``orchestrator.scheduler.carry_schedule``). Raises ``BackupError`` when there is no
     catalog in ``data_dir``, ``dest`` is in the way (see ``check_dest``), another backup to ``dest`` is running
     (at once, naming its pid), something else took ``dest`` meanwhile, or the copy cannot be written (a full
     disk): then this backup leaves nothing, at ``dest`` or beside it. Files the snapshot names that cannot be
@@ -233,20 +237,20 @@ def backup(data_dir: str | os.PathLike[str], dest: str | os.PathLike[str],
     with dest_locked(dest):
         check_dest(data_dir, dest)  # again, as the lock's holder: an earlier backup may have just finished it
         swept = sweep_unfinished(dest)
-        result = _build(data_dir, dest, progress)
+        result = _build(data_dir, dest, progress, carry)
     episodes, models, size, problems = result
     return BackupResult(dest=dest, episodes=episodes, models=models, bytes=size, problems=problems,
                         seconds=round(time.perf_counter() - t0, 3), swept=swept)
 
 
-def _build(data_dir: Path, dest: Path, progress: Callable[[int, int], None] | None
-           ) -> tuple[int, int, int, list[str]]:
+def _build(data_dir: Path, dest: Path, progress: Callable[[int, int], None] | None,
+           carry: Callable[[Path, Path], None] | None) -> tuple[int, int, int, list[str]]:
     """``_fill`` a hidden folder beside ``dest`` and rename it into place; on any failure the folder is deleted."""
     work = work_folder(dest)
     try:
         work.mkdir()
         with locked(work):  # until it is renamed into place: no other backup's sweep takes it
-            result = _fill(data_dir, work, progress)
+            result = _fill(data_dir, work, progress, carry)
             move_into_place(work, dest)
     except BaseException as exc:
         shutil.rmtree(work, ignore_errors=True)
@@ -282,8 +286,8 @@ class _Tally:
             self.progress(self.done, self.total)
 
 
-def _fill(data_dir: Path, work: Path, progress: Callable[[int, int], None] | None
-          ) -> tuple[int, int, int, list[str]]:
+def _fill(data_dir: Path, work: Path, progress: Callable[[int, int], None] | None,
+          carry: Callable[[Path, Path], None] | None) -> tuple[int, int, int, list[str]]:
     """The backup's contents under ``work``: (episodes, models, bytes, problems).
 
     The checkpoints first, right after the snapshot (a few small folders), then the episodes (the long
@@ -305,6 +309,8 @@ def _fill(data_dir: Path, work: Path, progress: Callable[[int, int], None] | Non
         _snapshot_db(source_db, db)
         Catalog(work)  # the copy at this code's schema (an older source has fewer columns)
         ModelRegistry(work)
+        if carry is not None:
+            carry(data_dir, work)
         with connection(db, BackupError) as conn:
             episodes = conn.execute("SELECT e.episode_id, e.path, e.sha256, q.moved_to FROM episodes e "
                                     "LEFT JOIN quarantine q USING (episode_id) ORDER BY e.path").fetchall()

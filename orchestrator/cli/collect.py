@@ -16,6 +16,7 @@ from tqdm import tqdm
 from orchestrator.cli import common, episodes as episodes_cli
 from orchestrator.loop_catalog import eval_leftovers_warning
 from orchestrator.protocol import MAX_EPISODE_STEPS, POLICIES, SHAPES, episode_problem, one_line
+from orchestrator.scheduler import carry_schedule
 from storage.backup import backup, check_dest
 from storage.catalog import SPLITS, Catalog
 from storage.database import DB_NAME
@@ -430,7 +431,7 @@ def _backup(args: argparse.Namespace) -> int:
             bar.total = total
             bar.update(done - bar.n)
         try:
-            result = backup(args.data, args.dest, progress=progress)
+            result = backup(args.data, args.dest, progress=progress, carry=carry_schedule)
         except BackupError as exc:
             bar.close()
             print(f"activecollect: backup failed, nothing written at {args.dest}: {exc}", file=sys.stderr)

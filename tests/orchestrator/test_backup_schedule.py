@@ -1,0 +1,78 @@
+"""A backup carries the retrain schedule of its source: a retrain owed when it was taken is run where it serves."""
+
+from __future__ import annotations
+
+import json
+import logging
+
+import numpy as np
+
+from orchestrator.retrainjob import RetrainStatus, ScheduleConfig
+from orchestrator.scheduler import COUNT_FILE, DUE_MARKER, RetrainScheduler
+from tests.conftest import run_cli, wait_for
+from tests.orchestrator.test_scheduler import HANGS, PROMOTES, Counter, script_command
+from tests.storage.test_backup import _filled
+
+
+def test_a_multiple_reached_before_the_backup_and_not_yet_retrained_is_retrained_where_it_serves(tmp_path, capsys):
+    data, dest = tmp_path / "data", tmp_path / "b1"
+    _filled(data, np.random.default_rng(3))
+    episodes = Counter()
+    sched = RetrainScheduler(ScheduleConfig(every_episodes=10), data, episodes, command=script_command(PROMOTES))
+    episodes.n = 10
+    assert sched.tick() is not None and sched.wait_idle(timeout=60)
+    sched.stop()
+    episodes.n = 21  # 20 reached while no service ran (an offline ingest): owed at the next start here
+
+    assert run_cli(capsys, "backup", "--data", str(data), str(dest))[0] == 0
+
+    assert (dest / COUNT_FILE).read_text() == "10"
+    copy = RetrainScheduler(ScheduleConfig(every_episodes=10), dest, episodes, command=script_command(PROMOTES))
+    rec = copy.tick()
+    assert rec is not None and rec.trigger == "episodes" and copy.wait_idle(timeout=60)
+    copy.stop()
+
+
+def test_a_job_running_when_the_backup_was_taken_runs_again_where_it_serves(tmp_path, capsys, caplog):
+    """Its model is not in the backup's snapshot: the copy started with the job's count and ran nothing."""
+    data, dest, again = tmp_path / "data", tmp_path / "b1", tmp_path / "b2"
+    _filled(data, np.random.default_rng(4))
+    episodes = Counter()
+    sched = RetrainScheduler(ScheduleConfig(every_episodes=5), data, episodes, command=script_command(HANGS))
+    episodes.n = 5
+    assert sched.tick() is not None
+    wait_for(lambda: (data / "started").exists(), message="the job to start")
+    try:
+        assert run_cli(capsys, "backup", "--data", str(data), str(dest))[0] == 0
+    finally:
+        sched.stop()
+    assert run_cli(capsys, "backup", "--data", str(dest), str(again))[0] == 0  # a backup of the backup
+
+    words = json.loads((dest / DUE_MARKER).read_text())["copied"]
+    assert words == f"starting, when {data} was backed up"
+    assert json.loads((again / DUE_MARKER).read_text())["copied"] == words
+    with caplog.at_level(logging.INFO, logger="orchestrator.scheduler"):
+        copy = RetrainScheduler(ScheduleConfig(every_episodes=5), dest, episodes, command=script_command(PROMOTES))
+    assert words in caplog.text
+    rec = copy.tick()
+    assert rec is not None and rec.trigger == "episodes" and copy.wait_idle(timeout=60)
+    assert rec.status is RetrainStatus.promoted and not (dest / DUE_MARKER).exists()
+    copy.stop()
+
+
+def test_a_job_past_its_gate_by_its_notes_is_not_run_again_from_the_backup(tmp_path, capsys):
+    data, dest = tmp_path / "data", tmp_path / "b1"
+    _filled(data, np.random.default_rng(5))
+    notes = data / "logs" / "retrain-1.log.notes"
+    notes.parent.mkdir()
+    notes.write_text(json.dumps({"phase": "done", "version": "m000009-ff"}))
+    (data / DUE_MARKER).write_text(json.dumps({"trigger": "episodes", "notes": str(notes)}))  # (its service killed)
+    (data / COUNT_FILE).write_text("5")
+
+    assert run_cli(capsys, "backup", "--data", str(data), str(dest))[0] == 0
+
+    assert not (dest / DUE_MARKER).exists() and (dest / COUNT_FILE).read_text() == "5"
+    episodes = Counter()
+    episodes.n = 5
+    assert RetrainScheduler(ScheduleConfig(every_episodes=5), dest, episodes,
+                            command=script_command(PROMOTES)).tick() is None
