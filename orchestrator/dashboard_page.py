@@ -65,7 +65,11 @@ function fill(tableId, rows, build) { const body = document.querySelector("#" + 
   body.replaceChildren(); for (const r of rows) { const tr = document.createElement("tr");
     try { build(tr, r); } catch (err) { tr.replaceChildren(); cell(tr, "unreadable row: " + err.message); }
     body.appendChild(tr); } }
-async function getJSON(path) { const r = await fetch(path, {cache: "no-store"});
+// a refresh waits for the last one, and a request for at most FETCH_TIMEOUT_MS: a slow directory no longer piles
+// up requests that fill the server's connection slots; a hidden tab does not refresh
+const FETCH_TIMEOUT_MS = Math.max(10000, 5 * REFRESH_MS);
+async function getJSON(path) {
+  const r = await fetch(path, {cache: "no-store", signal: AbortSignal.timeout(FETCH_TIMEOUT_MS)});
   // the server's one line says why (no catalog, a locked or damaged database), not only the status
   if (!r.ok) throw new Error(path + " answered " + r.status + ": " + (await r.text()).trim().slice(0, 300));
   return r.json(); }
@@ -134,8 +138,12 @@ async function refresh() {
     text("updated", "refresh failed: " + err.message);
   }
 }
-refresh();
-setInterval(refresh, REFRESH_MS);
+let next = null;
+async function loop() { clearTimeout(next); next = null;
+  if (!document.hidden) await refresh();
+  next = setTimeout(loop, REFRESH_MS); }
+document.addEventListener("visibilitychange", () => { if (!document.hidden && next !== null) loop(); });
+loop();
 </script>
 </body>
 </html>

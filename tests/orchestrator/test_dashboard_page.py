@@ -1,0 +1,62 @@
+"""The dashboard page's own script, run by Node against a stub page: a refresh waits for the last one, every request
+has a timeout, and a hidden tab does not refresh (about six tabs on a slow data directory filled the server's 32
+connection slots with refreshes that piled up every 2 s)."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+
+import pytest
+
+from orchestrator.dashboard_page import render_page
+
+NODE = shutil.which("node")
+
+HARNESS = r"""
+const script = require("fs").readFileSync(0, "utf8");
+const fetches = [], pending = [];
+let timers = [];  // [fn, repeats]
+globalThis.fetch = (path, opts) => { fetches.push({path, signal: !!(opts && opts.signal instanceof AbortSignal)});
+  return new Promise((resolve) => pending.push({path, resolve})); };
+globalThis.setTimeout = (fn) => { timers.push([fn, false]); return timers.length; };
+globalThis.setInterval = (fn) => { timers.push([fn, true]); return timers.length; };
+globalThis.clearTimeout = () => {};
+const el = () => ({textContent: "", src: "", replaceChildren() {}, appendChild() {}, setAttribute() {}});
+globalThis.document = {hidden: false, getElementById: el, querySelector: el, createElement: el,
+  createElementNS: el, addEventListener() {}};
+const settle = () => new Promise((r) => setImmediate(r));
+function tick() { const now = timers; timers = now.filter(([, repeats]) => repeats); for (const [fn] of now) fn(); }
+const BODIES = {"/api/stats": {episodes: {train: 1}, workers_alive: 0, champion_h1_mse: null},
+  "/api/queue": {counts: {}, requests: []}, "/api/models": {champion: null, models: []},
+  "/api/workers": {workers: []}, "/api/curve": {points: []}};
+(async () => {
+  const seen = {};
+  new Function(script)();
+  await settle(); seen.first = fetches.length;
+  for (let i = 0; i < 3; i++) { tick(); await settle(); }
+  seen.while_slow = fetches.length;
+  for (const p of pending.splice(0)) p.resolve({ok: true, json: async () => BODIES[p.path]});
+  for (let i = 0; i < 5; i++) await settle();
+  tick(); await settle(); seen.after_answers = fetches.length;
+  for (const p of pending.splice(0)) p.resolve({ok: true, json: async () => BODIES[p.path]});
+  for (let i = 0; i < 5; i++) await settle();
+  document.hidden = true; tick(); await settle(); seen.hidden = fetches.length; seen.timers_hidden = timers.length;
+  seen.signals = fetches.every((f) => f.signal);
+  console.log(JSON.stringify(seen));
+})();
+"""
+
+
+@pytest.mark.skipif(NODE is None, reason="needs Node.js to run the page's script")
+def test_a_refresh_waits_for_the_last_one_and_each_request_times_out():
+    page = render_page(2.0).decode()
+    script = page[page.index("<script>") + len("<script>"):page.index("</script>")]
+    out = subprocess.run([NODE, "-e", HARNESS], input=script, capture_output=True, text=True, timeout=60, check=True)
+    seen = json.loads(out.stdout)
+    assert seen["first"] == 5  # the five API reads of one refresh
+    assert seen["while_slow"] == 5  # unanswered: no refresh on top of them (setInterval added 5 every period)
+    assert seen["after_answers"] == 10  # answered: the next refresh comes a period later
+    assert seen["hidden"] == 10 and seen["timers_hidden"] == 1  # hidden: no requests, the loop goes on
+    assert seen["signals"]  # each request is aborted after FETCH_TIMEOUT_MS
