@@ -384,8 +384,8 @@ def cmd_watch(args: argparse.Namespace) -> int:
             admin_call(session, keys, "stats", {}, args.timeout, args.zenoh_config)
             sub = session.declare_subscriber(keys.events_all, lambda s: _print_event(s, args.json, left))
             querier, listener = _follow_service(session, keys)
-            if not args.json:
-                print(f"watching {keys.events_all} (Ctrl-C to stop)", flush=True)
+            if not args.json:  # (on stderr, as the service's coming and going: stdout holds the events only)
+                print(f"# watching {keys.events_all} (Ctrl-C to stop)", file=sys.stderr, flush=True)
             try:
                 left.done.wait()
                 if left.error is not None:  # (stdout closed: `watch | head`; main says so, as for any command)

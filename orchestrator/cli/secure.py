@@ -159,8 +159,9 @@ def _init(args: argparse.Namespace) -> int:
                     "configs": {role: str(p) for role, p in result.configs.items()},
                     "left_over": None if result.left_over is None else str(result.left_over)})
         return 0
-    print(f"wrote a secure profile to {result.directory} (namespace {cfg.namespace}, "
-          f"router {cfg.router_listen or cfg.router_endpoint})")
+    listen = f", listening on {cfg.router_listen}" if cfg.router_listen not in (None, cfg.router_endpoint) else ""
+    print(f"wrote a secure profile to {result.directory} (namespace {cfg.namespace}, clients connect to the router "
+          f"at {cfg.router_endpoint}{listen})")
     for role, path in result.configs.items():
         print(f"  {role:<12} {path}")
     print("start the router:  activecollect router --zenoh-config "

@@ -114,10 +114,12 @@ def test_a_forced_init_keeps_what_the_profile_was_made_for_unless_told_otherwise
     tls/127.0.0.1:7447, so every host's new files failed against the real router. The flags not given now keep
     the replaced profile's; the flags given win."""
     directory = tmp_path / "p"
-    rc, _, err = run_cli(capsys, "secure", "init", str(directory), "--namespace", "prod",
-                         "--router-endpoint", "tls/ac.example.org:7447", "--router-listen", "tls/0.0.0.0:7447",
-                         "--host", "10.0.0.5", "--host", "r2.lan")
+    rc, out, err = run_cli(capsys, "secure", "init", str(directory), "--namespace", "prod",
+                           "--router-endpoint", "tls/ac.example.org:7447", "--router-listen", "tls/0.0.0.0:7447",
+                           "--host", "10.0.0.5", "--host", "r2.lan")
     assert rc == 0, err
+    # (the endpoint clients are given first: it printed only the listen address, which no client can use)
+    assert "clients connect to the router at tls/ac.example.org:7447, listening on tls/0.0.0.0:7447" in out
 
     def made_with() -> tuple:
         worker = json5.loads((directory / "worker.json5").read_text())

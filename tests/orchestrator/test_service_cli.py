@@ -100,14 +100,15 @@ def test_refusals_and_usage_errors(service, cli) -> None:
     assert info.value.code == 2
 
 
-def _watch_while_publishing(service, endpoint: str, namespace: str, count: int, burst: int) -> int | None:
-    """``watch --count COUNT --json`` in a thread while the service publishes events ``burst`` at a time, until
+def _watch_while_publishing(service, endpoint: str, namespace: str, count: int, burst: int,
+                            as_json: bool = True) -> int | None:
+    """``watch --count COUNT [--json]`` in a thread while the service publishes events ``burst`` at a time, until
     the watcher (which subscribes after its first query) has its events; its exit status (None: still running)."""
     result: dict = {}
 
     def watch() -> None:
-        result["rc"] = main(["watch", "--count", str(count), "--json", "--connect", endpoint, "--namespace",
-                             namespace])
+        result["rc"] = main(["watch", "--count", str(count), *(["--json"] if as_json else []), "--connect", endpoint,
+                             "--namespace", namespace])
 
     t = threading.Thread(target=watch)
     t.start()
@@ -309,13 +310,22 @@ def test_watch_count_prints_exactly_that_many_events_of_a_burst(service, endpoin
     assert len(lines) == 3 and all(json.loads(line)["kind"] == "request.queued" for line in lines), lines
 
 
+def test_text_watch_count_prints_that_many_lines_on_stdout(service, endpoint, namespace, capsys) -> None:
+    """`watch --count N | wc -l` counted one more: the "watching" line went to stdout, before the events."""
+    assert _watch_while_publishing(service, endpoint, namespace, count=2, burst=5, as_json=False) == 0
+    out, err = capsys.readouterr()
+    lines = out.strip().splitlines()
+    assert len(lines) == 2 and all("request.queued" in line for line in lines), lines
+    assert err.startswith("# watching "), err
+
+
 def test_watch_into_a_closed_pipe_ends_quietly(service, endpoint, namespace) -> None:
     """`watch | head -1`: once the reader is gone, watch ends as any command does on a closed pipe (128 + SIGPIPE,
     no traceback), instead of waiting on for ever while Zenoh's thread logs each failed print."""
     proc = subprocess.Popen([sys.executable, "-m", "orchestrator", "watch", "--connect", endpoint, "--namespace",
                              namespace], stdout=subprocess.PIPE, stderr=subprocess.PIPE, cwd=REPO)
     try:
-        assert proc.stdout.readline().startswith(b"watching ")
+        assert proc.stderr.readline().startswith(b"# watching ")
         proc.stdout.close()  # (head has its line)
         n = 0
         while proc.poll() is None and n < 400:  # events until the watcher, subscribed, fails to print one
