@@ -228,7 +228,8 @@ def _stats(queue: RequestQueue, catalog: Any, registry: Any,
         disk = disk_json(catalog.data_dir)
         held = quarantine_bytes(catalog.data_dir)  # a walk, asked for by an operator (not on every scrape)
     champion = registry.champion() if registry is not None else None
-    return {"requests": queue.counts(), "episodes": episodes, "champion": champion,
+    h1 = registry.get(champion).metrics.get("h1_mse") if champion is not None else None  # (the dashboard's too)
+    return {"requests": queue.counts(), "episodes": episodes, "champion": champion, "champion_h1_mse": h1,
             "champion_problem": registry.weights_problem(champion) if champion is not None else None,
             "workers": len(_worker_ids(workers)), "disk": disk, "quarantine_bytes": held}
 

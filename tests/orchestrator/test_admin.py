@@ -168,7 +168,8 @@ def test_workers_and_stats(queue: RequestQueue, tmp_path: Path) -> None:
     registry = ModelRegistry(tmp_path)
     stats = call("stats", queue=queue, registry=registry, workers=lambda: ["w1"])
     assert stats == {"requests": {"queued": 1, "leased": 2, "done": 0, "dead": 0, "cancelled": 0},
-                     "episodes": None, "champion": None, "champion_problem": None, "workers": 1, "disk": None,
+                     "episodes": None, "champion": None, "champion_h1_mse": None, "champion_problem": None,
+                     "workers": 1, "disk": None,
                      "quarantine_bytes": None}
 
 
@@ -190,7 +191,8 @@ def test_stats_say_when_the_champion_cannot_be_served(queue: RequestQueue, tmp_p
     registry = ModelRegistry(tmp_path)
     version = registry.register(b"weights" * 10, {}, {"h1_mse": 0.01}, snapshot_id="s", eval_split_hash="h")
     registry.promote(version)
-    assert call("stats", queue=queue, registry=registry)["champion_problem"] is None
+    stats = call("stats", queue=queue, registry=registry)
+    assert stats["champion_problem"] is None and stats["champion_h1_mse"] == 0.01  # (as the dashboard's /api/stats)
     registry.get(version).weights_path.unlink()
     problem = call("stats", queue=queue, registry=registry)["champion_problem"]
     assert problem == f"checkpoint {version}: weights file {registry.get(version).weights_path} is missing"
