@@ -15,6 +15,7 @@ its certificate alone, is not enough to act as that role.
 from __future__ import annotations
 
 import datetime
+import functools
 import ipaddress
 import json
 import os
@@ -291,8 +292,9 @@ def profile_settings(directory: Path) -> dict[str, Any]:
     profile has). Each one it cannot read is left out; {} where no profile is there. ``secure init --force``
     keeps them for the flags not given: a rotation must not move a profile to the defaults' 127.0.0.1."""
     found: dict[str, Any] = {}
+    file = functools.partial(_profile_file, directory)
     try:
-        client = json5.loads((directory / "orchestrator.json5").read_text())
+        client = json5.loads(file("orchestrator.json5").read_text())
         endpoints = lookup_key(client, "connect/endpoints") or []
         if endpoints:
             found["router_endpoint"] = str(endpoints[0])
@@ -302,14 +304,19 @@ def profile_settings(directory: Path) -> dict[str, Any]:
     except (OSError, ValueError, AttributeError):
         pass
     try:
-        router = json5.loads((directory / "router.json5").read_text())
+        router = json5.loads(file("router.json5").read_text())
+        if "namespace" not in found:  # a profile from before the clients recorded it: the ACL's link rule has it
+            link = [r for r in lookup_key(router, "access_control/rules") or [] if r.get("id") == "router-link"]
+            keys = link[0].get("key_exprs") or [] if link else []
+            if keys and str(keys[0]).endswith("/**"):
+                found["namespace"] = str(keys[0])[:-len("/**")]
         listen = lookup_key(router, "listen/endpoints") or []
         if listen and "router_endpoint" in found:
             found["router_listen"] = None if listen[0] == found["router_endpoint"] else str(listen[0])
     except (OSError, ValueError, AttributeError):
         pass
     try:
-        cert = x509.load_pem_x509_certificate((directory / "router.pem").read_bytes())
+        cert = x509.load_pem_x509_certificate(file("router.pem").read_bytes())
         san = cert.extensions.get_extension_for_class(x509.SubjectAlternativeName).value
         names = [*san.get_values_for_type(x509.DNSName), *(str(ip) for ip in san.get_values_for_type(x509.IPAddress))]
         usual = {*_LOCAL_ROUTER_NAMES, "router"}  # (and its common name)
@@ -319,6 +326,19 @@ def profile_settings(directory: Path) -> dict[str, Any]:
     except (OSError, ValueError, x509.ExtensionNotFound, SecureConfigError):
         pass
     return found
+
+
+def _profile_file(directory: Path, name: str) -> Path:
+    """``directory / name``, or where a forced init that a crash cut short left the replaced profile's copy of it
+    (a ``.NAME.old-*`` folder beside ``directory``, which may then be missing, or a ``.old-*`` folder inside it):
+    the profile ``secure init --force`` replaces then, and reads the settings of."""
+    path = directory / name
+    if path.exists():
+        return path
+    aside = [*secure_files.sibling_swaps(directory),
+             *(secure_files.interrupted_swaps(directory) if directory.is_dir() else [])]
+    copies = [f / name for f in aside if ".old-" in f.name and (f / name).is_file()]
+    return max(copies, key=lambda c: c.stat().st_mtime) if copies else path
 
 
 def planned_files(directory: Path) -> list[Path]:

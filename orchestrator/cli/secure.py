@@ -137,8 +137,19 @@ def _init(args: argparse.Namespace) -> int:
                 "extra_hosts": ()}
     # a rotation (--force) keeps what the profile was made for, its hosts' endpoint and the router's names,
     # for each flag not given: the defaults' profile (127.0.0.1) would fail on every host it is copied to
-    kept = {k: v for k, v in (profile_settings(args.directory) if args.force else {}).items()
-            if given[k] is None and v != settings[k]}
+    replaced = profile_settings(args.directory) if args.force else {}
+    kept = {k: v for k, v in replaced.items() if given[k] is None and v != settings[k]}
+    if "router_listen" in kept and given["router_endpoint"] is not None:
+        # a bind on the old endpoint's port, kept for a new port, would leave clients connecting where nothing listens
+        try:
+            old_port = tls_endpoint(replaced["router_endpoint"])[1]
+            moved = tls_endpoint(kept["router_listen"])[1] == old_port != tls_endpoint(given["router_endpoint"])[1]
+        except SecureConfigError:
+            moved = False  # (the config's own check names it below)
+        if moved:
+            raise UsageError(f"the replaced profile's router listens on {kept['router_listen']}, the port of its "
+                             f"old endpoint {replaced['router_endpoint']}, not of --router-endpoint "
+                             f"{given['router_endpoint']}: give --router-listen too")
     if kept:
         flags = {"namespace": "--namespace", "router_endpoint": "--router-endpoint",
                  "router_listen": "--router-listen", "extra_hosts": "--host"}

@@ -144,3 +144,62 @@ def test_a_forced_init_keeps_what_the_profile_was_made_for_unless_told_otherwise
     namespace, connect, listen, names = made_with()
     assert (namespace, connect, listen) == ("staging", ["tls/other.lan:7447"], ["tls/0.0.0.0:7447"])
     assert {"other.lan", "10.0.0.5", "r2.lan"} <= names and "ac.example.org" not in names
+
+
+def _namespace_and_endpoint(directory) -> tuple:
+    worker = json5.loads((directory / "worker.json5").read_text())
+    return worker["metadata"]["activecollect_namespace"], worker["connect"]["endpoints"]
+
+
+def test_a_forced_init_keeps_the_namespace_of_a_profile_from_before_clients_recorded_it(capsys, tmp_path):
+    """Profiles written before 6e5d02e carry no namespace metadata in their client configs; the router's ACL has
+    it. A rotation of such a profile moved it to the default namespace, whose ACL denies the running service."""
+    directory = tmp_path / "p"
+    rc, _, err = run_cli(capsys, "secure", "init", str(directory), "--namespace", "prod",
+                         "--router-endpoint", "tls/ac.example.org:7447")
+    assert rc == 0, err
+    for role in ("orchestrator", "worker", "operator"):  # what the earlier release wrote: no metadata
+        config = json5.loads((directory / f"{role}.json5").read_text())
+        del config["metadata"]
+        (directory / f"{role}.json5").write_text(json5.dumps(config))
+    rc, _, err = run_cli(capsys, "secure", "init", str(directory), "--force")
+    assert rc == 0, err
+    assert _namespace_and_endpoint(directory) == ("prod", ["tls/ac.example.org:7447"])
+    assert "--namespace prod" in err
+
+
+def test_the_force_that_finishes_a_rotation_cut_short_keeps_the_profile_set_aside(capsys, tmp_path):
+    """A forced init killed between its folder renames leaves DIR missing and the old profile whole in
+    .DIR.old-*; `secure init` then says to pass --force, which wrote the defaults' profile (127.0.0.1, namespace
+    activecollect) and deleted the old one."""
+    directory = tmp_path / "p"
+    rc, _, err = run_cli(capsys, "secure", "init", str(directory), "--namespace", "prod",
+                         "--router-endpoint", "tls/ac.example.org:7447", "--host", "10.0.0.5")
+    assert rc == 0, err
+    directory.rename(tmp_path / ".p.old-0123abcd")  # what the crash leaves (secure_files._replace_folder)
+    rc, _, err = run_cli(capsys, "secure", "init", str(directory))
+    assert rc != 0 and "--force" in err
+    rc, _, err = run_cli(capsys, "secure", "init", str(directory), "--force")
+    assert rc == 0, err
+    assert _namespace_and_endpoint(directory) == ("prod", ["tls/ac.example.org:7447"])
+    assert not (tmp_path / ".p.old-0123abcd").exists()
+
+
+def test_a_forced_init_to_another_port_does_not_keep_a_bind_on_the_old_one(capsys, tmp_path):
+    """--router-listen tls/0.0.0.0:7447 kept for --router-endpoint tls/HOST:7500: clients connect where the router
+    does not listen. Refused, naming the flag to give."""
+    directory = tmp_path / "p"
+    rc, _, err = run_cli(capsys, "secure", "init", str(directory), "--router-endpoint", "tls/ac.example.org:7447",
+                         "--router-listen", "tls/0.0.0.0:7447")
+    assert rc == 0, err
+    before = (directory / "ca.pem").read_bytes()
+    rc, _, err = run_cli(capsys, "secure", "init", str(directory), "--force", "--router-endpoint",
+                         "tls/ac.example.org:7500")
+    assert rc == 2 and "--router-listen" in err, err
+    assert (directory / "ca.pem").read_bytes() == before  # nothing written
+    rc, _, err = run_cli(capsys, "secure", "init", str(directory), "--force", "--router-endpoint",
+                         "tls/ac.example.org:7500", "--router-listen", "tls/0.0.0.0:7500")
+    assert rc == 0, err
+    rc, _, err = run_cli(capsys, "secure", "init", str(directory), "--force", "--router-endpoint",
+                         "tls/other.example.org:7500")  # the same port: the bind is kept
+    assert rc == 0 and "--router-listen tls/0.0.0.0:7500" in err, err
