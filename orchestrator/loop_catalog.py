@@ -11,7 +11,7 @@ from collections.abc import Iterable
 
 from storage.catalog import Catalog
 from storage.errors import DAMAGED_EPISODE_ERRORS, StorageError
-from storage.quarantine import looks_unmounted
+from storage.quarantine import clean_reason, looks_unmounted
 from storage.records import Episode
 
 log = logging.getLogger(__name__)
@@ -33,7 +33,10 @@ def load_episodes(catalog: Catalog, ids: Iterable[str], purpose: str, quarantine
         try:
             episodes[episode_id] = catalog.load(episode_id)
         except DAMAGED_EPISODE_ERRORS as exc:
-            damaged[episode_id] = exc
+            # one quarantined since its id was read (`episodes quarantine` moved its file aside) is left out, and is
+            # neither a damaged file nor a sign of an unmounted disk (as in `uncertainty.data.load_train`)
+            if not catalog.get(episode_id).quarantined:
+                damaged[episode_id] = exc
         except StorageError as exc:  # a read that may pass (permissions, I/O): nothing to quarantine for
             log.warning("episode %s left out of %s: %s", episode_id, purpose, exc)
     if quarantine and looks_unmounted(len(damaged), len(episodes) + len(damaged)):
@@ -53,10 +56,13 @@ def load_episodes(catalog: Catalog, ids: Iterable[str], purpose: str, quarantine
 
 def _quarantine(catalog: Catalog, episode_id: str, damaged: StorageError, purpose: str) -> Episode | None:
     """Quarantine the train episode ``episode_id`` found ``damaged``; the episode when a repair came first."""
+    reason = clean_reason(f"found by activecollect run: {damaged}")
     try:
-        row = catalog.quarantine(episode_id, f"found by activecollect run: {damaged}", only_if_damaged=True)
+        row = catalog.quarantine(episode_id, reason, only_if_damaged=True)
         if not row.quarantined:  # its bytes were ingested again since the read
             return catalog.load(episode_id)
+        if row.quarantined != reason:  # someone else's quarantine, committed since the read: not ours to report
+            return None
     except StorageError as exc:
         log.warning("episode %s left out of %s: %s; and it cannot be quarantined now: %s", episode_id, purpose,
                     damaged, exc)
