@@ -239,11 +239,13 @@ class Dashboard:
         return 404, _TEXT, f"no such page: {path}\n".encode()
 
 
-#: The most header bytes a request may send. The base class bounds only each line (64 KiB) and their number
-#: (100): 6.4 MB a connection, a few hundred MB of the serving process (the service's, under `serve`) for 32.
+#: The header bytes a request may send past what its request line may take. The base class bounds only each line
+#: (64 KiB) and their number (100): 6.4 MB a connection, a few hundred MB of the serving process (the service's,
+#: under `serve`) for 32.
 MAX_HEADER_BYTES = 64 * 1024
-#: What a connection may send in all: its request line (the base class's 64 KiB, answered 414 past it), what the
-#: reader buffers past it, and its headers.
+#: What a connection may send in all, its request line and headers together (~136 KiB): the line's allowance (the
+#: base class's 64 KiB, answered 414 past it), what the reader buffers past it, and ``MAX_HEADER_BYTES``; past it
+#: the request is answered 431. (A short request line leaves its allowance to the headers.)
 _MAX_REQUEST_BYTES = 65537 + io.DEFAULT_BUFFER_SIZE + MAX_HEADER_BYTES
 
 
@@ -268,7 +270,7 @@ class _DeadlineReader(io.RawIOBase):
         if left <= 0:
             raise TimeoutError("the client did not send its request in time")
         if self._left <= 0:  # the base class answers it 431, as for a header line too long
-            raise http.client.HTTPException(f"the request's headers are over {MAX_HEADER_BYTES} bytes")
+            raise http.client.HTTPException(f"the request's line and headers are over {_MAX_REQUEST_BYTES} bytes")
         per_read = self._sock.gettimeout()
         self._sock.settimeout(left if per_read is None else min(left, per_read))
         try:

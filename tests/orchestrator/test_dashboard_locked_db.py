@@ -6,6 +6,7 @@ from __future__ import annotations
 import socket
 import subprocess
 import sys
+import threading
 import time
 import urllib.error
 import urllib.request
@@ -18,6 +19,7 @@ from orchestrator.dashboard import (MAX_HEADER_BYTES, READ_BUSY_TIMEOUT_S, RETRY
 from storage import database
 from storage.catalog import Catalog
 from storage.queue import RequestQueue
+from tests.conftest import wait_for
 
 _LOCKER = """
 import sqlite3, sys
@@ -103,4 +105,39 @@ def test_a_request_with_megabytes_of_headers_is_431_and_an_ordinary_one_is_serve
         long_line = b"GET /" + b"a" * 70000 + b" HTTP/1.0\r\n\r\n"
         assert _send_all_then_read(dash.url, long_line).startswith(b"HTTP/1.0 414 ")
     finally:
+        dash.stop()
+
+
+def test_while_a_request_waits_on_the_lock_other_threads_keep_the_stores_busy_timeout(tmp_path) -> None:
+    """The short wait is set per request thread (a ContextVar): while a dashboard request is waiting on a locked
+    database, connections opened by the service's own threads, and by a thread started meanwhile, keep the
+    stores' 30 s (a module-wide setting would give the service's writes 2 s then)."""
+    catalog = Catalog(tmp_path)
+    RequestQueue(catalog.db_path).close()
+    dash = Dashboard(DashboardConfig(port=0), DataSources(tmp_path).sources())
+    dash.start()
+    locker = subprocess.Popen([sys.executable, "-c", _LOCKER, str(catalog.db_path)], stdin=subprocess.PIPE,
+                              stdout=subprocess.PIPE, text=True)
+    statuses: list[int] = []
+    request = threading.Thread(target=lambda: statuses.append(_get(dash.url.rstrip("/") + "/api/stats")[0]))
+    try:
+        assert locker.stdout.readline().strip() == "locked"
+        request.start()
+        wait_for(lambda: any("process_request_thread" in t.name for t in threading.enumerate()),
+                 message="the dashboard serving the request")
+        seen: list[int] = []
+
+        def busy_ms() -> None:
+            conn = database.connect(tmp_path / "other.sqlite")
+            seen.append(conn.execute("PRAGMA busy_timeout").fetchone()[0])
+            conn.close()
+
+        busy_ms()
+        other = threading.Thread(target=busy_ms)
+        other.start()
+        other.join()
+        request.join(timeout=60)
+        assert statuses == [503] and seen == [database.BUSY_TIMEOUT_MS] * 2
+    finally:
+        locker.communicate("\n", timeout=30)
         dash.stop()
