@@ -443,17 +443,28 @@ def marked_job(data_dir: Path, registry_dir: Path | None = None) -> str | None:
     marker = marker if isinstance(marker, dict) else {}
     if not marker.get("notes") and isinstance(marker.get("copied"), str):  # a backup's: see ``carry_schedule``
         return marker["copied"]
-    notes = read_holder(Path(marker["notes"])) if marker.get("notes") else {}
+    named = marker.get("notes")  # (a hand-edited marker may hold anything: a job to run again, not a crash)
+    notes = read_holder(Path(named)) if isinstance(named, str) and named else {}
     phase, version = notes.get("phase"), notes.get("version")
     if phase == "failed":
         return ""
     if isinstance(version, str) and version:
-        try:
-            if ModelRegistry(registry_dir or data_dir).get(version).status != ModelStatus.CANDIDATE:
-                return ""  # gated: promoted or rejected
-        except (StorageError, OSError):
-            pass  # cannot tell: run it again rather than lose it
+        gated = _gated(registry_dir or data_dir, version)  # (None: cannot tell: run it again rather than lose it)
+        if gated:
+            return ""  # gated: promoted or rejected
+        if phase == "done" and registry_dir is not None and (gated is False or _gated(data_dir, version) is not None):
+            # a copy's snapshot taken before the gate the notes, read after it, report: not gated in the copy
+            return "gated after the snapshot"
     return "" if phase == "done" else f"{phase or 'starting'}{_BY_NOTES}"
+
+
+def _gated(registry_dir: Path, version: str) -> bool | None:
+    """Whether ``version`` is past its gate (promoted or rejected) in ``registry_dir``'s registry; None when it is not
+    there or cannot be read."""
+    try:
+        return ModelRegistry(registry_dir).get(version).status != ModelStatus.CANDIDATE
+    except (StorageError, OSError):
+        return None
 
 
 def carry_schedule(source: Path, copy: Path) -> None:
@@ -471,5 +482,5 @@ def carry_schedule(source: Path, copy: Path) -> None:
     if marked:
         copied = marked.removesuffix(_BY_NOTES)
         if not copied.endswith(" was backed up"):  # (a backup of a backup keeps the first one's words)
-            copied = f"{copied}, when {source} was backed up"
+            copied = f"{copied}, when {source.resolve()} was backed up"
         write_synced(copy / DUE_MARKER, json.dumps({"copied": copied}).encode())

@@ -49,7 +49,7 @@ def test_a_job_running_when_the_backup_was_taken_runs_again_where_it_serves(tmp_
     assert run_cli(capsys, "backup", "--data", str(dest), str(again))[0] == 0  # a backup of the backup
 
     words = json.loads((dest / DUE_MARKER).read_text())["copied"]
-    assert words == f"starting, when {data} was backed up"
+    assert words == f"starting, when {data.resolve()} was backed up"
     assert json.loads((again / DUE_MARKER).read_text())["copied"] == words
     with caplog.at_level(logging.INFO, logger="orchestrator.scheduler"):
         copy = RetrainScheduler(ScheduleConfig(every_episodes=5), dest, episodes, command=script_command(PROMOTES))
@@ -76,3 +76,49 @@ def test_a_job_past_its_gate_by_its_notes_is_not_run_again_from_the_backup(tmp_p
     episodes.n = 5
     assert RetrainScheduler(ScheduleConfig(every_episodes=5), dest, episodes,
                             command=script_command(PROMOTES)).tick() is None
+
+
+def test_a_job_gated_between_the_snapshot_and_the_schedule_read_runs_again_from_the_backup(tmp_path, capsys):
+    """``carry`` reads the job's notes after the snapshot: a gate and its "done" note that land in between left
+    the copy with the model a candidate, no marker and the job's count (a diff review's reproduction)."""
+    from storage.backup import backup
+    from storage.models import ModelRegistry, ModelStatus
+
+    from orchestrator.scheduler import carry_schedule
+    data, dest = tmp_path / "data", tmp_path / "b1"
+    _filled(data, np.random.default_rng(6))
+    registry = ModelRegistry(data)
+    version = registry.register(b"weights" * 10, {}, {"h1_mse": 0.01}, snapshot_id="s", eval_split_hash="h")
+    notes = data / "logs" / "retrain-1.log.notes"
+    notes.parent.mkdir(exist_ok=True)
+    notes.write_text(json.dumps({"phase": "registered", "version": version}))
+    (data / DUE_MARKER).write_text(json.dumps({"trigger": "episodes", "notes": str(notes)}))
+    (data / COUNT_FILE).write_text("5")
+
+    def carry(source, copy):  # the job's gate and its last note, in the window before the read
+        ModelRegistry(source).gate(version)  # (no champion here: promoted)
+        notes.write_text(json.dumps({"phase": "done", "version": version}))
+        carry_schedule(source, copy)
+
+    backup(data, dest, carry=carry)
+
+    assert ModelRegistry(dest).get(version).status is ModelStatus.CANDIDATE
+    assert json.loads((dest / DUE_MARKER).read_text())["copied"].startswith("gated after the snapshot")
+    episodes = Counter()
+    episodes.n = 5
+    assert RetrainScheduler(ScheduleConfig(every_episodes=5), dest, episodes,
+                            command=script_command(PROMOTES))._retry == "episodes"
+
+
+def test_a_hand_edited_marker_is_a_job_to_run_again_and_names_the_source_by_its_full_path(tmp_path, capsys,
+                                                                                            monkeypatch):
+    """A marker whose notes are not a path (``{"notes": 5}``) stopped the backup with a TypeError after its copy;
+    a relative ``--data`` was named relative in the copy's words, which the copy's service reads elsewhere."""
+    data, dest = tmp_path / "data", tmp_path / "b1"
+    _filled(data, np.random.default_rng(7))
+    (data / DUE_MARKER).write_text(json.dumps({"trigger": "episodes", "notes": 5}))
+    monkeypatch.chdir(tmp_path)
+
+    assert run_cli(capsys, "backup", "--data", "data", str(dest))[0] == 0
+
+    assert json.loads((dest / DUE_MARKER).read_text())["copied"] == f"starting, when {data.resolve()} was backed up"
