@@ -69,7 +69,9 @@ function fill(tableId, rows, build) { const body = document.querySelector("#" + 
 // up requests that fill the server's connection slots; a hidden tab does not refresh
 const FETCH_TIMEOUT_MS = Math.max(10000, 5 * REFRESH_MS);
 async function getJSON(path) {
-  const r = await fetch(path, {cache: "no-store", signal: AbortSignal.timeout(FETCH_TIMEOUT_MS)});
+  // (AbortSignal.timeout: not in browsers before 2022, e.g. Safari 15: there a request has no timeout)
+  const signal = typeof AbortSignal.timeout === "function" ? AbortSignal.timeout(FETCH_TIMEOUT_MS) : undefined;
+  const r = await fetch(path, {cache: "no-store", signal});
   // the server's one line says why (no catalog, a locked or damaged database), not only the status
   if (!r.ok) throw new Error(path + " answered " + r.status + ": " + (await r.text()).trim().slice(0, 300));
   return r.json(); }
@@ -101,8 +103,13 @@ function drawCurve(points) {
 }
 async function refresh() {
   try {
-    const [stats, queue, models, workers, curve] = await Promise.all(
+    // every read answered (or timed out) before the refresh ends, a failed one too: Promise.all ended it at the
+    // first failure (a fast 503) and the next refresh came while the others were still being served
+    const results = await Promise.allSettled(
       ["/api/stats", "/api/queue", "/api/models", "/api/workers", "/api/curve"].map(getJSON));
+    const failed = results.find((r) => r.status === "rejected");
+    if (failed) throw failed.reason;
+    const [stats, queue, models, workers, curve] = results.map((r) => r.value);
     text("episodes", stats.episodes.train);
     const space = typeof stats.quarantine_bytes === "number" && stats.quarantine_bytes > 0
       ? " (" + size(stats.quarantine_bytes) + ")" : "";

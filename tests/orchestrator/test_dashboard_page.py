@@ -60,3 +60,46 @@ def test_a_refresh_waits_for_the_last_one_and_each_request_times_out():
     assert seen["after_answers"] == 10  # answered: the next refresh comes a period later
     assert seen["hidden"] == 10 and seen["timers_hidden"] == 1  # hidden: no requests, the loop goes on
     assert seen["signals"]  # each request is aborted after FETCH_TIMEOUT_MS
+
+
+FAST_FAILURE = r"""
+const script = require("fs").readFileSync(0, "utf8");
+let sent = 0, unanswered = 0, peak = 0, timers = [];
+globalThis.fetch = (path) => { sent++;
+  if (path === "/api/stats") return Promise.resolve({ok: false, status: 503, text: async () => "busy"});
+  unanswered++; peak = Math.max(peak, unanswered); return new Promise(() => {}); };
+globalThis.setTimeout = (fn) => { timers.push(fn); return timers.length; };
+globalThis.clearTimeout = () => {};
+const el = () => ({textContent: "", src: "", replaceChildren() {}, appendChild() {}, setAttribute() {}});
+globalThis.document = {hidden: false, getElementById: el, querySelector: el, createElement: el,
+  createElementNS: el, addEventListener() {}};
+const settle = () => new Promise((r) => setImmediate(r));
+(async () => {
+  new Function(script)();
+  for (let period = 0; period < 5; period++) { for (let i = 0; i < 5; i++) await settle();
+    const now = timers; timers = []; for (const fn of now) fn(); }
+  console.log(JSON.stringify({sent, peak}));
+})();
+"""
+
+
+@pytest.mark.skipif(NODE is None, reason="needs Node.js to run the page's script")
+def test_a_read_that_fails_fast_does_not_start_the_next_refresh_while_the_others_are_unanswered():
+    """A server at its connection cap answers one read 503 at once while the refresh's other reads are still
+    served: the next refresh waits for them too (with Promise.all it came a period later, 4 more each period)."""
+    page = render_page(2.0).decode()
+    script = page[page.index("<script>") + len("<script>"):page.index("</script>")]
+    out = subprocess.run([NODE, "-e", FAST_FAILURE], input=script, capture_output=True, text=True, timeout=60,
+                         check=True)
+    assert json.loads(out.stdout) == {"sent": 5, "peak": 4}
+
+
+@pytest.mark.skipif(NODE is None, reason="needs Node.js to run the page's script")
+def test_a_browser_without_abort_signal_timeout_still_refreshes():
+    """AbortSignal.timeout came in 2022 (Safari 16, Chrome 103, Firefox 100): without it every refresh failed
+    ("AbortSignal.timeout is not a function") and the page showed nothing."""
+    page = render_page(2.0).decode()
+    script = page[page.index("<script>") + len("<script>"):page.index("</script>")]
+    out = subprocess.run([NODE, "-e", "delete AbortSignal.timeout;" + FAST_FAILURE], input=script,
+                         capture_output=True, text=True, timeout=60, check=True)
+    assert json.loads(out.stdout)["sent"] == 5
