@@ -333,12 +333,14 @@ def _profile_file(directory: Path, name: str) -> Path:
     (a ``.NAME.old-*`` folder beside ``directory``, which may then be missing, or a ``.old-*`` folder inside it):
     the profile ``secure init --force`` replaces then, and reads the settings of."""
     path = directory / name
-    if path.exists():
+    if all(p.exists() for p in planned_files(directory)):  # whole: a forced init cut short left none of it
         return path
+    # one cut short inside ``directory`` (a mount point) moved every old file into ``.old-*`` before the first new
+    # one came in: a file of ``directory`` may be the new profile's, the copy aside is the replaced one's
     aside = [*secure_files.sibling_swaps(directory),
              *(secure_files.interrupted_swaps(directory) if directory.is_dir() else [])]
     copies = [f / name for f in aside if ".old-" in f.name and (f / name).is_file()]
-    return max(copies, key=lambda c: c.stat().st_mtime) if copies else path
+    return max(copies, key=lambda c: c.stat().st_mtime) if copies else path  # (DIR's own: an old one not yet moved)
 
 
 def planned_files(directory: Path) -> list[Path]:

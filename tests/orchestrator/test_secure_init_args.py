@@ -203,3 +203,26 @@ def test_a_forced_init_to_another_port_does_not_keep_a_bind_on_the_old_one(capsy
     rc, _, err = run_cli(capsys, "secure", "init", str(directory), "--force", "--router-endpoint",
                          "tls/other.example.org:7500")  # the same port: the bind is kept
     assert rc == 0 and "--router-listen tls/0.0.0.0:7500" in err, err
+
+
+def test_the_force_that_finishes_a_rotation_cut_short_inside_the_folder_reads_the_old_profile_whole(capsys, tmp_path):
+    """Inside a mount point the old files go into DIR/.old-* one by one, then the new ones come in one by one: a
+    crash between two new ones leaves DIR with the new router.json5 and no client config. Read file by file, the
+    settings mixed the old endpoint with the new profile's bind (clients at :7447, the router on :7500); the
+    replaced profile is the one aside (a diff review's reproduction)."""
+    directory, other = tmp_path / "p", tmp_path / "p2"
+    for target, port in ((directory, 7447), (other, 7500)):
+        rc, _, err = run_cli(capsys, "secure", "init", str(target), "--router-endpoint", f"tls/a.example.org:{port}",
+                             "--router-listen", f"tls/0.0.0.0:{port}")
+        assert rc == 0, err
+    aside = directory / ".old-0123abcd"
+    aside.mkdir()
+    for path in [p for p in directory.iterdir() if p.is_file()]:
+        path.rename(aside / path.name)
+    for name in ("ca.pem", "router.pem", "router-key.pem", "router.json5"):  # (the new ones placed so far)
+        (directory / name).write_bytes((other / name).read_bytes())
+    rc, _, err = run_cli(capsys, "secure", "init", str(directory), "--force")
+    assert rc == 0, err
+    router = json5.loads((directory / "router.json5").read_text())
+    assert router["listen"]["endpoints"] == ["tls/0.0.0.0:7447"]
+    assert _namespace_and_endpoint(directory)[1] == ["tls/a.example.org:7447"]
