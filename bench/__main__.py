@@ -12,6 +12,7 @@ import argparse
 import datetime as dt
 import json
 import platform
+import signal
 import subprocess
 import sys
 from pathlib import Path
@@ -44,6 +45,35 @@ def _last_json(text: str) -> object:
     return {"error": "no JSON in output", "tail": text[-2000:]}
 
 
+class _Terminated(Exception):
+    """SIGTERM, raised in the main thread as Ctrl-C raises KeyboardInterrupt."""
+
+
+def _raise_terminated(signum: int, frame: object) -> None:
+    raise _Terminated()
+
+
+def _run(cmd: list[str]) -> tuple[int, str, str, int | None]:
+    """(exit status, stdout, stderr, the signal that stopped this run or None). A Ctrl-C reached the benchmark too
+    (the terminal sends it to the whole process group), a SIGTERM is passed on to it; either way the benchmark is
+    left to stop as it does alone (``bench loop`` summarises the rounds it finished, ``bench dispatch`` stops its
+    servers and removes its temporary directory) before it is killed."""
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        out, err = proc.communicate()
+        return proc.returncode, out, err, None
+    except (KeyboardInterrupt, _Terminated) as exc:
+        stopped = signal.SIGTERM if isinstance(exc, _Terminated) else signal.SIGINT
+        if stopped == signal.SIGTERM:
+            proc.terminate()
+        try:
+            out, err = proc.communicate(timeout=120)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            out, err = proc.communicate()
+        return proc.returncode, out, err, stopped
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m bench", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -61,19 +91,26 @@ def main(argv: list[str] | None = None) -> int:
                     "python": platform.python_version(), "platform": platform.platform()},
     }
     failed = []
+    stopped = None
+    signal.signal(signal.SIGTERM, _raise_terminated)
     for name in names:
         print(f"== bench {name}: {' '.join(BENCHES[name])}", file=sys.stderr, flush=True)
-        proc = subprocess.run(BENCHES[name], capture_output=True, text=True)
-        results[name] = _last_json(proc.stdout)
-        if proc.returncode != 0:
+        returncode, out, err, stopped = _run(BENCHES[name])
+        results[name] = _last_json(out)
+        if returncode != 0:
             failed.append(name)
-            results[name] = {"error": f"exit {proc.returncode}", "stderr": proc.stderr[-2000:]}
+            results[name] = {"error": f"exit {returncode}", "stderr": err[-2000:], "output": results[name]}
         print(json.dumps(results[name], indent=2, default=str))
+        if stopped is not None:
+            results["interrupted"] = {"by": stopped.name, "during": name}
+            break
     out_dir = HERE / "results"
     out_dir.mkdir(exist_ok=True)
     out = out_dir / f"{started:%Y%m%dT%H%M%SZ}.json"
     out.write_text(json.dumps(results, indent=2, default=str))
     print(f"results written to {out}", file=sys.stderr)
+    if stopped is not None:
+        return 128 + stopped
     return 1 if failed else 0
 
 

@@ -404,6 +404,12 @@ def summarize(chaos: Chaos) -> dict:
     }
 
 
+def exit_on_sigterm(signum: int, frame: object) -> None:
+    """SIGTERM (a supervisor, ``timeout``) unwinds as Ctrl-C does, through the ``finally`` that kills the service
+    and the workers: they run in sessions of their own, so nothing else would stop them."""
+    sys.exit(128 + signum)
+
+
 def main(argv=None) -> int:
     p = Parser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--data", type=Path, required=True, metavar="DIR",
@@ -436,6 +442,7 @@ def main(argv=None) -> int:
         a.seed = int(np.random.SeedSequence().entropy % (1 << 30))
     log(f"data {a.data}, seed {a.seed}")
     chaos = Chaos(a)
+    signal.signal(signal.SIGTERM, exit_on_sigterm)  # the service and workers are in sessions of their own
     try:
         chaos.run()
     finally:

@@ -30,6 +30,7 @@ import venv
 from pathlib import Path
 
 from workers.simbench import run_sim_bench
+from storage.records import MAX_FRAME_SIZE, MIN_FRAME_SIZE
 
 HERE = Path(__file__).resolve().parent
 PUSHT_VENV = HERE / ".venv-pusht"
@@ -134,6 +135,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--mode", choices=("concurrent", "alternate"), default="concurrent",
                         help="run the two at the same time (default) or one after the other")
     args = parser.parse_args(argv)
+    # before the venv is made (a download) and before either side starts: one line, exit 2
+    if args.rounds < 1 or not 0 < args.seconds < float("inf") or not MIN_FRAME_SIZE <= args.size <= MAX_FRAME_SIZE:
+        parser.error(f"--rounds must be at least 1, --seconds positive and --size in [{MIN_FRAME_SIZE}, "
+                     f"{MAX_FRAME_SIZE}]; found {args.rounds}, {args.seconds}, {args.size}")
     ensure_pusht_venv()
     rounds = []
     for i in range(args.rounds):

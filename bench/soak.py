@@ -33,6 +33,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import signal
 import sqlite3
 import subprocess
 import sys
@@ -43,7 +44,8 @@ from pathlib import Path
 
 import numpy as np
 
-from chaos import ACTIVECOLLECT, Cluster, check_episode_rows, check_files, free_port, log, read_rows, request_counts
+from chaos import (ACTIVECOLLECT, Cluster, check_episode_rows, check_files, exit_on_sigterm, free_port, log, read_rows,
+                   request_counts)
 from orchestrator.cli.common import Parser, trainable_image_size
 from storage.database import DB_NAME
 from storage.records import TRAINABLE_SIZES
@@ -300,6 +302,7 @@ def main(argv=None) -> int:
     log(f"data {a.data}, {a.minutes:g} min")
     soak = Soak(a)
     t0 = time.monotonic()
+    signal.signal(signal.SIGTERM, exit_on_sigterm)  # the service and workers are in sessions of their own
     try:
         soak.run()
     finally:

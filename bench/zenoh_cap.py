@@ -41,12 +41,16 @@ def answer(query):
     size = len(query.payload.to_bytes()) if query.payload is not None else 0
     seen.append(size)
     query.reply(key, str(size))
-queryable = session.declare_queryable(key, answer)
-print(json.dumps({"ready": True, "maxrss_kib": peak_kib()}), flush=True)
-sys.stdin.readline()  # the sender is done
-print(json.dumps({"seen_bytes": seen, "maxrss_kib": peak_kib()}), flush=True)
-queryable.undeclare()
-session.close()
+try:  # an open session's threads would keep this process alive: close it however we leave
+    queryable = session.declare_queryable(key, answer)
+    print(json.dumps({"ready": True, "maxrss_kib": peak_kib()}), flush=True)
+    sys.stdin.readline()  # the sender is done (or gone: end of file)
+    print(json.dumps({"seen_bytes": seen, "maxrss_kib": peak_kib()}), flush=True)
+    queryable.undeclare()
+except BrokenPipeError:  # the sender went away
+    pass
+finally:
+    session.close()
 """
 
 
@@ -66,8 +70,9 @@ def measure(mb: int, timeout: float, uncapped: bool) -> dict:
     import zenoh
     from orchestrator import transport
     endpoint, key = f"tcp/127.0.0.1:{_free_port()}", "bench/zenoh_cap"
+    # Its own process group: a terminal's Ctrl-C is ours to handle; the receiver stops when its stdin closes.
     proc = subprocess.Popen([sys.executable, "-c", RECEIVER, endpoint, key, "1" if uncapped else "0"],
-                            cwd=REPO, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+                            cwd=REPO, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, process_group=0)
     try:
         before = json.loads(proc.stdout.readline())
         config = transport.make_config(connect=[endpoint])
@@ -88,7 +93,12 @@ def measure(mb: int, timeout: float, uncapped: bool) -> dict:
         after = json.loads(proc.stdout.readline())
     finally:
         proc.stdin.close()
-        proc.wait(timeout=30)
+        try:
+            proc.wait(timeout=30)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+            raise
     return {"cap_bytes": (1 << 30) if uncapped else transport.RX_MAX_MESSAGE_BYTES,
             "big_reply": big, "big_seconds": round(big_s, 2), "small_reply": small,
             "handler_saw_big": any(n >= mb << 20 for n in after["seen_bytes"]),

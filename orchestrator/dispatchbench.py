@@ -102,22 +102,29 @@ class BenchConfig:
 
 def _serve_echo(listen: str, key: str) -> None:
     session = transport.open_session(listen=[listen])
-    queryable = session.declare_queryable(key, lambda q: q.reply(key, q.payload.to_bytes() if q.payload else b""))
-    _ready_and_wait()
-    queryable.undeclare()
-    session.close()
+    try:
+        queryable = session.declare_queryable(key, lambda q: q.reply(key, q.payload.to_bytes() if q.payload else b""))
+        _ready_and_wait()
+        queryable.undeclare()
+    finally:
+        session.close()  # an open session's threads would keep the process from exiting
 
 
 def _serve_service(listen: str, namespace: str, data_dir: str, lease_s: float) -> None:
     service = Service(ServiceConfig(data_dir=Path(data_dir), namespace=namespace, listen=(listen,),
                                     lease_s=lease_s, reap_interval_s=5.0))
     service.start()
-    _ready_and_wait()
-    service.stop()
+    try:
+        _ready_and_wait()
+    finally:
+        service.stop()  # its threads would keep the process from exiting
 
 
 def _ready_and_wait() -> None:
-    print("ready", flush=True)
+    try:
+        print("ready", flush=True)
+    except BrokenPipeError:  # the parent went away while we started
+        return
     sys.stdin.read()  # the parent closes our stdin to stop us
 
 
@@ -126,9 +133,17 @@ class _Child:
 
     def __init__(self, *role_args: str, timeout: float = 60.0) -> None:
         env = dict(os.environ, PYTHONUNBUFFERED="1")
+        # A process group of its own: a terminal's Ctrl-C, sent to our group, is ours to handle; the child stops
+        # when we close its stdin (or die). Taken as a KeyboardInterrupt there, it would end the role before its
+        # session or service closed, and their threads would keep the child alive, ours waiting on it.
         self.popen = subprocess.Popen([sys.executable, "-m", "orchestrator.dispatchbench", *role_args],
-                                      stdin=subprocess.PIPE, stdout=subprocess.PIPE, env=env, text=True)
-        line = _readline(self.popen, timeout)
+                                      stdin=subprocess.PIPE, stdout=subprocess.PIPE, env=env, text=True,
+                                      process_group=0)
+        try:
+            line = _readline(self.popen, timeout)
+        except BaseException:  # Ctrl-C while it starts: stop it before unwinding
+            self.stop()
+            raise
         if line.strip() != "ready":
             self.stop()
             raise RuntimeError(f"benchmark server {role_args[0]} did not start (said {line!r})")
@@ -181,9 +196,10 @@ def _drive(workers: int, seconds: float, cycle: Cycle, session: zenoh.Session) -
     lats: list[dict[str, list[float]]] = [{} for _ in range(workers)]
     counts = [0] * workers
     deadline = time.perf_counter() + seconds
+    stop = threading.Event()
 
     def loop(i: int) -> None:
-        while time.perf_counter() < deadline:
+        while time.perf_counter() < deadline and not stop.is_set():
             if not cycle(session, i, lats[i]):
                 return
             counts[i] += 1
@@ -192,8 +208,14 @@ def _drive(workers: int, seconds: float, cycle: Cycle, session: zenoh.Session) -
     start = time.perf_counter()
     for t in threads:
         t.start()
-    for t in threads:
-        t.join()
+    try:
+        for t in threads:
+            t.join()
+    except BaseException:  # Ctrl-C: let each client finish its cycle before the caller closes the session
+        stop.set()
+        for t in threads:
+            t.join()
+        raise
     merged: dict[str, list[float]] = {}
     for per_thread in lats:
         for name, values in per_thread.items():

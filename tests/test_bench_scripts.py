@@ -221,3 +221,12 @@ def test_store_counts_times_the_counts_of_a_long_history_and_refuses_bad_sizes(t
     assert (figures["rows"], figures["repeats"], figures["cycles"]) == (50, 2, 20)
     assert all(figures[k] > 0 for k in ("count_split_ms", "count_split_rows_ms", "read_stores_ms", "queue_counts_ms",
                                         "queue_counts_rows_ms", "complete_per_s_kept", "release_per_s_bare"))
+
+
+@pytest.mark.parametrize("bad", [["--rounds", "0"], ["--seconds", "0"], ["--seconds", "nan"], ["--size", "7"]])
+def test_sim_vs_pusht_refuses_a_bad_setting_before_it_installs_or_runs_anything(bad):
+    proc = subprocess.run([sys.executable, str(ROOT / "bench" / "sim_vs_pusht.py"), *bad], cwd=ROOT,
+                          capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 2, proc.stderr[-2000:]
+    assert "Traceback" not in proc.stderr and "creating" not in proc.stderr
+    assert proc.stderr.strip().splitlines()[-1].startswith("sim_vs_pusht.py: error: --rounds must be at least 1")

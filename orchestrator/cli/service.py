@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import signal
 import sys
 import threading
 from pathlib import Path
@@ -26,7 +27,7 @@ from orchestrator.uniform import UniformPlanner, UniformPlannerConfig
 from orchestrator.service import Service
 from orchestrator.serviceconfig import (SECONDS_RANGES, PlannerFactory, ServiceConfig, ServiceContext, ServiceError,
                                         where_served)
-from orchestrator.signals import on_stop_signals
+from orchestrator.signals import Terminated, on_stop_signals, sigterm_raises
 from storage.database import DB_NAME
 from storage.errors import StorageError
 from storage.requests import RequestStatus
@@ -128,7 +129,7 @@ def register_bench(bench_sub: argparse._SubParsersAction) -> None:
     p.add_argument("--seconds", type=common.positive_float, default=5.0, metavar="S",
                    help="measuring time per phase in seconds (default 5)")
     p.add_argument("--data", type=common.data_dir, default=None, metavar="DIR",
-                   help="data directory (default: a temporary one)")
+                   help="a new or empty data directory, kept afterwards (default: a temporary one)")
     common.add_json_arg(p)
     p.set_defaults(func=cmd_bench_dispatch)
 
@@ -253,8 +254,16 @@ def _no_eval_split(service: Service) -> bool:
 # --- bench -------------------------------------------------------------------------------------
 
 def cmd_bench_dispatch(args: argparse.Namespace) -> int:
-    result = dispatchbench.run(dispatchbench.BenchConfig(workers=args.workers, seconds=args.seconds,
-                                                         data_dir=args.data))
+    if args.data is not None and args.data.exists() and (not args.data.is_dir() or any(args.data.iterdir())):
+        # a run leaves requests in its queues: the next one would lease them, with no episode made for them
+        raise common.UsageError(f"--data {args.data} is not an empty directory; give a new or empty one")
+    try:
+        with sigterm_raises():  # a supervisor's stop unwinds as Ctrl-C does: servers stopped, temp dir gone
+            result = dispatchbench.run(dispatchbench.BenchConfig(workers=args.workers, seconds=args.seconds,
+                                                                 data_dir=args.data))
+    except Terminated:
+        print("activecollect: terminated", file=sys.stderr)
+        return 128 + signal.SIGTERM
     if args.json:
         common.print_json(result)
     else:

@@ -20,7 +20,7 @@ from orchestrator.serviceconfig import ServiceConfig
 from storage.catalog import Catalog
 from storage.errors import CatalogUnavailableError
 from storage.requests import RequestStatus
-from tests.conftest import REPO, free_port, wait_for
+from tests.conftest import REPO, free_port, run_cli, wait_for
 from tests.orchestrator.test_service import new_request
 from workers.agent import WorkerError
 from workers.cli import parse_capabilities
@@ -353,3 +353,14 @@ def _ended_within(proc: subprocess.Popen, seconds: float) -> bool:
         return True
     except subprocess.TimeoutExpired:
         return False
+
+
+def test_dispatch_bench_refuses_a_data_directory_a_run_left(tmp_path, capsys) -> None:
+    """A second run on the same --data leased the first run's leftover requests, for which it had no episode: its
+    upload clients died (KeyError), and it printed 0 uploads/s and exited 0."""
+    dispatchbench.run(dispatchbench.BenchConfig(workers=1, seconds=0.2, dispatch_requests=5, upload_requests=5,
+                                                queue_requests=5, data_dir=tmp_path))
+    rc, out, err = run_cli(capsys, "bench", "dispatch", "--seconds", "0.2", "--data", str(tmp_path))
+    assert rc == 2 and out == ""
+    assert err.splitlines() == [f"activecollect: error: --data {tmp_path} is not an empty directory; "
+                                "give a new or empty one"]
