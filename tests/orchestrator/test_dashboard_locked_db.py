@@ -41,14 +41,21 @@ def _get(url: str) -> tuple[int, dict, bytes]:
         return exc.code, dict(exc.headers), exc.read()
 
 
-@pytest.mark.parametrize("path", ["/api/stats", "/api/queue", "/api/models", "/metrics"])
-def test_a_database_locked_by_another_process_is_503_within_a_scrape_timeout(tmp_path, path) -> None:
-    catalog = Catalog(tmp_path)
+def _dashboard_and_locker(data_dir) -> tuple[Dashboard, subprocess.Popen]:
+    """A started dashboard over a new catalog in ``data_dir``, and a process that locks its database (it prints
+    "locked" once it holds the lock, and lets go at a line on its stdin)."""
+    catalog = Catalog(data_dir)
     RequestQueue(catalog.db_path).close()
-    dash = Dashboard(DashboardConfig(port=0), DataSources(tmp_path).sources())
+    dash = Dashboard(DashboardConfig(port=0), DataSources(data_dir).sources())
     dash.start()
     locker = subprocess.Popen([sys.executable, "-c", _LOCKER, str(catalog.db_path)], stdin=subprocess.PIPE,
                               stdout=subprocess.PIPE, text=True)
+    return dash, locker
+
+
+@pytest.mark.parametrize("path", ["/api/stats", "/api/queue", "/api/models", "/metrics"])
+def test_a_database_locked_by_another_process_is_503_within_a_scrape_timeout(tmp_path, path) -> None:
+    dash, locker = _dashboard_and_locker(tmp_path)
     try:
         assert locker.stdout.readline().strip() == "locked"
         start = time.monotonic()
@@ -112,12 +119,7 @@ def test_while_a_request_waits_on_the_lock_other_threads_keep_the_stores_busy_ti
     """The short wait is set per request thread (a ContextVar): while a dashboard request is waiting on a locked
     database, connections opened by the service's own threads, and by a thread started meanwhile, keep the
     stores' 30 s (a module-wide setting would give the service's writes 2 s then)."""
-    catalog = Catalog(tmp_path)
-    RequestQueue(catalog.db_path).close()
-    dash = Dashboard(DashboardConfig(port=0), DataSources(tmp_path).sources())
-    dash.start()
-    locker = subprocess.Popen([sys.executable, "-c", _LOCKER, str(catalog.db_path)], stdin=subprocess.PIPE,
-                              stdout=subprocess.PIPE, text=True)
+    dash, locker = _dashboard_and_locker(tmp_path)
     statuses: list[int] = []
     request = threading.Thread(target=lambda: statuses.append(_get(dash.url.rstrip("/") + "/api/stats")[0]))
     try:
