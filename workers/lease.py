@@ -51,6 +51,8 @@ class Renewer:
         self._failures = 0
         """Renewals failed since the last one answered."""
         self._warned_at: float | None = None
+        self._warned_failures = 0
+        """``_failures`` as the last WARNING of a run said it."""
         self._thread = threading.Thread(target=self._run, name=f"renew:{grant.request_id}", daemon=True)
         self._thread.start()
 
@@ -77,6 +79,14 @@ class Renewer:
             self._drain_until = time.monotonic() + self._grant.lease_s
 
     def _run(self) -> None:
+        try:
+            self._renew()
+        finally:
+            if self._failures > self._warned_failures:  # a run's count since its last WARNING was never said
+                log.info("renew %s: %d failed in a row when renewals stopped%s", self._grant.request_id,
+                         self._failures, " (the lease was lost)" if self.lost is not None else "")
+
+    def _renew(self) -> None:
         # By the clock, not after each call: a renewal nobody answered must not push the next one
         # back; and one call waits at most one interval, so two more tries fit in the lease.
         interval = max(self._grant.lease_s / 3.0, 0.01)
@@ -112,7 +122,7 @@ class Renewer:
             self._until = sent + self._grant.lease_s  # (the service extended it after we sent)
             if self._failures:
                 log.info("renew %s answered again after %d failed", self._grant.request_id, self._failures)
-                self._failures, self._warned_at = 0, None
+                self._failures, self._warned_at, self._warned_failures = 0, None, 0
 
     def _failed(self, what: str, exc: Exception) -> None:
         """One renewal that failed (unanswered, or refused but for a lost lease): a WARNING for the first of a run
@@ -121,7 +131,7 @@ class Renewer:
         self._failures += 1
         now = time.monotonic()
         if self._warned_at is None or now - self._warned_at >= WARN_EVERY_S:
-            self._warned_at = now
+            self._warned_at, self._warned_failures = now, self._failures
             more = f" ({self._failures} failed in a row)" if self._failures > 1 else ""
             log.warning(what + "%s", self._grant.request_id, exc, more)
 

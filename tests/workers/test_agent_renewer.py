@@ -131,3 +131,30 @@ def test_a_run_of_failed_renewals_is_logged_once_per_interval_then_its_end(monke
     assert warnings[0] == "renew r3: no reply"
     assert warnings[1].startswith("renew r3: no reply (") and "failed in a row)" in warnings[1]
     assert renewer.lost is None
+
+
+def test_a_run_of_failed_renewals_ended_by_a_stop_says_its_count(monkeypatch, caplog):
+    """The failures after a run's last WARNING were never counted in the log when the episode ended first (or the
+    lease was lost): one said 1 failure, the next 300 went unsaid."""
+    clock = _on_the_tests_clock(monkeypatch)
+    grant = LeaseGrant(request_id="r4", task="push", shape="box", start_state=START, policy="push",
+                       policy_params={}, action_prefix=[], steps=5, model_version="", token=1,
+                       expires_at=time.time() + 0.06, lease_s=0.06)
+    calls: list[float] = []
+    fifth, stopped = threading.Event(), threading.Event()
+
+    def call(key: str, msg: bytes, timeout: float) -> dict:
+        calls.append(clock.now)
+        if len(calls) == 5:  # in flight when the episode ends
+            fifth.set()
+            stopped.wait(30)
+        raise transport.TransportError("no reply")
+
+    caplog.set_level("INFO", logger="workers.agent")
+    renewer = Renewer(call, "ns/orch/renew", grant, "w1")
+    wait_for(fifth.is_set, timeout=30, message="five renewals sent")
+    renewer.stop(wait=False)
+    stopped.set()
+    renewer.stop()
+    said = [r.getMessage() for r in caplog.records]
+    assert said == ["renew r4: no reply", "renew r4: 5 failed in a row when renewals stopped"]
