@@ -75,10 +75,12 @@ class ChampionScorer:
     A champion that cannot be loaded (damaged weights) is logged once and tried again when
     its weights file changes (restored), another model becomes champion, or ``RETRY_S`` have
     passed (a read error that passes); meanwhile the one loaded before keeps scoring, and
-    ``problem`` says why.
+    ``problem`` says why. A registry that cannot be read now (its database locked past the busy
+    timeout: the dashboard's is 2 s) is no sign of damage: tried again after ``BUSY_RETRY_S``.
     """
 
     RETRY_S = 60.0
+    BUSY_RETRY_S = 5.0
 
     def __init__(self, data_dir: Path, device: str = "cpu",
                  observe: Callable[[float], None] = lambda seconds: None, with_error: bool = False,
@@ -105,7 +107,7 @@ class ChampionScorer:
         self.problem: str | None = None
         """Why the registry's champion is not the one loaded (None when it is)."""
         self._failed: tuple[str, tuple[int, int, int, int] | None] | None = None
-        self._failed_at = 0.0
+        self._retry_at = 0.0
 
     def _registry(self) -> ModelRegistry:
         if not hasattr(self._local, "registry"):
@@ -126,17 +128,20 @@ class ChampionScorer:
                 self.version, self.ensemble, self.problem = None, None, None
                 return None
             attempt = (champion, file_state(registry.get(champion).weights_path))
-            if attempt == self._failed and time.monotonic() - self._failed_at < self.RETRY_S:
+            if attempt == self._failed and time.monotonic() < self._retry_at:
                 return self.version  # nothing has changed since it failed: not read (and hashed) again yet
             from uncertainty.checkpoint import load_ensemble  # torch: start-up cost, see the module docstring
             limit_torch_threads(self.threads)
             try:
                 ensemble = load_ensemble(registry, champion, self.device)
             except RegistryError as exc:  # a corrupt checkpoint: keep scoring with the one we have
-                level = logging.DEBUG if attempt == self._failed else logging.ERROR  # once, not every RETRY_S
-                self._failed, self._failed_at = attempt, time.monotonic()
-                self.problem = f"cannot load champion {champion}: {exc}"
-                log.log(level, "could not load champion %s, keeping %s: %s", champion, self.version, exc)
+                busy = isinstance(exc, StorageUnavailableError)
+                level = logging.DEBUG if attempt == self._failed else logging.WARNING if busy else logging.ERROR
+                self._failed = attempt  # (logged once, not every retry)
+                self._retry_at = time.monotonic() + (self.BUSY_RETRY_S if busy else self.RETRY_S)
+                self.problem = f"cannot load champion {champion}{' now' if busy else ''}: {exc}"
+                log.log(level, "could not load champion %s%s, keeping %s: %s", champion,
+                        f" now (trying again in {self.BUSY_RETRY_S:g} s)" if busy else "", self.version, exc)
                 return self.version
             self.version, self.ensemble, self.problem, self._failed = champion, ensemble, None, None
             log.info("scorer now uses champion %s", champion)

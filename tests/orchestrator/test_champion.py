@@ -125,6 +125,28 @@ def test_the_scorer_tries_again_after_a_read_error(tmp_path, monkeypatch):
     assert scorer.reload() == version and scorer.problem is None
 
 
+
+def test_a_registry_busy_now_is_tried_again_soon_and_not_called_damage(tmp_path, monkeypatch, caplog):
+    """The dashboard reads with a 2 s busy timeout: a load that met the database locked was logged as an ERROR and
+    not tried again for RETRY_S (a minute of the old champion's frames after a promotion)."""
+    registry = ModelRegistry(tmp_path)
+    version = _promoted(registry, 0, 0.02)
+    scorer = ChampionScorer(tmp_path)
+    scorer.BUSY_RETRY_S = 0.0  # (5 s in service; RETRY_S, a minute, still holds for damage)
+    busy = [True]
+    real = ModelRegistry.load_weights
+
+    def load_weights(self, v):
+        if busy.pop() if busy else False:
+            raise RegistryUnavailableError("database is locked")
+        return real(self, v)
+
+    monkeypatch.setattr(ModelRegistry, "load_weights", load_weights)
+    with caplog.at_level(logging.INFO, logger="orchestrator.champion"):
+        assert scorer.reload() is None and scorer.problem.startswith(f"cannot load champion {version} now")
+    assert [r.levelname for r in caplog.records if "could not load" in r.getMessage()] == ["WARNING"]
+    assert scorer.reload() == version and scorer.problem is None
+
 THREADS_PROBE = """
 import sys, threading, torch
 from orchestrator.champion import ChampionScorer
