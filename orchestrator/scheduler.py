@@ -430,17 +430,24 @@ class RetrainScheduler:
         return True
 
 
-def marked_job(data_dir: Path, registry_dir: Path | None = None) -> str | None:
-    """How far the job ``DUE_MARKER`` in ``data_dir`` names got when the service ended ("" when it got past its gate,
-    or failed by itself: nothing to run again); None without a marker. Its model is looked up in the registry of
-    ``registry_dir`` (default ``data_dir``; a backup's copy)."""
+def read_marker(data_dir: Path) -> dict | None:
+    """``DUE_MARKER`` in ``data_dir`` (``{}`` when it cannot be read, or holds no object); None without one."""
     try:
         marker = json.loads((data_dir / DUE_MARKER).read_text())
     except FileNotFoundError:
         return None
     except (OSError, ValueError):
         marker = {}
-    marker = marker if isinstance(marker, dict) else {}
+    return marker if isinstance(marker, dict) else {}
+
+
+def marked_job(data_dir: Path, registry_dir: Path | None = None, marker: dict | None = None) -> str | None:
+    """How far the job ``DUE_MARKER`` in ``data_dir`` names got when the service ended ("" when it got past its gate,
+    or failed by itself: nothing to run again); None without a marker. Its model is looked up in the registry of
+    ``registry_dir`` (default ``data_dir``; a backup's copy); ``marker``: as read earlier (None: read it now)."""
+    marker = read_marker(data_dir) if marker is None else marker
+    if marker is None:
+        return None
     if not marker.get("notes") and isinstance(marker.get("copied"), str):  # a backup's: see ``carry_schedule``
         return marker["copied"]
     named = marker.get("notes")  # (a hand-edited marker may hold anything: a job to run again, not a crash)
@@ -467,20 +474,27 @@ def _gated(registry_dir: Path, version: str) -> bool | None:
         return None
 
 
-def carry_schedule(source: Path, copy: Path) -> None:
-    """Give ``copy``, a backup of ``source`` just taken (its catalog and registry snapshotted), the retrain schedule
-    ``source`` had then: ``COUNT_FILE`` as it is, so a multiple of ``--retrain-every`` reached before the backup and
-    not yet retrained is retrained where the copy serves, and ``DUE_MARKER`` when its job had not passed its gate
-    in the snapshot (its model not gated in the copy's registry, or not in it), so the copy runs that job again.
-    The marker names no notes (they stay with ``source``'s logs): it says how far the job had got."""
+def carry_schedule(source: Path) -> Callable[[Path], None]:
+    """Read ``source``'s retrain schedule before a backup's snapshot; the function returned gives ``copy``, the
+    backup with its catalog and registry snapshotted, that schedule: ``COUNT_FILE`` as it was, so a multiple of
+    ``--retrain-every`` reached before the snapshot and not yet retrained is retrained where the copy serves, and
+    ``DUE_MARKER`` when the job it named had not passed its gate in the snapshot (its model not gated in the copy's
+    registry, or not in it), so the copy runs that job again. Read before, not after: a job whose gate came between
+    the snapshot and the read had its marker deleted by then, and the copy's candidate was never gated.
+    The copy's marker names no notes (they stay with ``source``'s logs): it says how far the job had got."""
     count = None
     with contextlib.suppress(OSError, ValueError):  # (none kept: the copy reckons from its own count, as here)
         count = int((source / COUNT_FILE).read_text())
-    if count is not None:
-        write_synced(copy / COUNT_FILE, str(count).encode())
-    marked = marked_job(source, copy)
-    if marked:
-        copied = marked.removesuffix(_BY_NOTES)
-        if not copied.endswith(" was backed up"):  # (a backup of a backup keeps the first one's words)
-            copied = f"{copied}, when {source.resolve()} was backed up"
-        write_synced(copy / DUE_MARKER, json.dumps({"copied": copied}).encode())
+    marker = read_marker(source)
+
+    def carry(copy: Path) -> None:
+        if count is not None:
+            write_synced(copy / COUNT_FILE, str(count).encode())
+        marked = marked_job(source, copy, marker) if marker is not None else None  # (its notes as they are now)
+        if marked:
+            copied = marked.removesuffix(_BY_NOTES)
+            if not copied.endswith(" was backed up"):  # (a backup of a backup keeps the first one's words)
+                copied = f"{copied}, when {source.resolve()} was backed up"
+            write_synced(copy / DUE_MARKER, json.dumps({"copied": copied}).encode())
+
+    return carry

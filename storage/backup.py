@@ -23,9 +23,9 @@ at once naming the first rather than copying everything only to find ``dest`` ta
 when done, and the kernel lets go of the lock of one killed midway (the next backup takes it and deletes it).
 ``storage.backup_dest`` checks ``dest`` (see ``check_dest``), holds its lock and moves the copy into place.
 The service's retrain schedule is carried as it was at the snapshot when the caller asks (``backup``'s
-``carry``). Not copied: ``reports/`` (made again by ``run``), ``logs/``, lock files, and what crashed calls left
-(staging files, ``orphans/``, ``models/.orphans/``). To restore, stop the service and serve from the backup
-(``--data DEST``) or move it into place.
+``carry``: read before the snapshot, written into the copy after it). Not copied: ``reports/`` (made again by
+``run``), ``logs/``, lock files, and what crashed calls left (staging files, ``orphans/``, ``models/.orphans/``).
+To restore, stop the service and serve from the backup (``--data DEST``) or move it into place.
 """
 
 from __future__ import annotations
@@ -213,12 +213,13 @@ def _copy_found(data_dir: Path, work: Path, episode: tuple[str, str, str], state
 
 def backup(data_dir: str | os.PathLike[str], dest: str | os.PathLike[str],
            progress: Callable[[int, int], None] | None = None,
-           carry: Callable[[Path, Path], None] | None = None) -> BackupResult:
+           carry: Callable[[Path], Callable[[Path], None]] | None = None) -> BackupResult:
     """Copy the data directory ``data_dir`` to ``dest`` (a new directory), consistently, while it is in use.
 
-    ``progress(done, total)`` is called after each file; ``carry(data_dir, copy)`` right after each snapshot, with
-    the copy's catalog and registry in place, to copy what else the copy needs as ``data_dir`` has it then (the
-    service's retrain schedule: ``orchestrator.scheduler.carry_schedule``). Raises ``BackupError`` when there is no
+    ``progress(done, total)`` is called after each file; ``carry(data_dir)`` right before each snapshot, to read
+    what else the copy needs as ``data_dir`` has it then, and the function it returns with the copy right after,
+    its catalog and registry in place, to write it there (the service's retrain schedule:
+    ``orchestrator.scheduler.carry_schedule``). Raises ``BackupError`` when there is no
     catalog in ``data_dir``, ``dest`` is in the way (see ``check_dest``), another backup to ``dest`` is running
     (at once, naming its pid), something else took ``dest`` meanwhile, or the copy cannot be written (a full
     disk): then this backup leaves nothing, at ``dest`` or beside it. Files the snapshot names that cannot be
@@ -244,7 +245,7 @@ def backup(data_dir: str | os.PathLike[str], dest: str | os.PathLike[str],
 
 
 def _build(data_dir: Path, dest: Path, progress: Callable[[int, int], None] | None,
-           carry: Callable[[Path, Path], None] | None) -> tuple[int, int, int, list[str]]:
+           carry: Callable[[Path], Callable[[Path], None]] | None) -> tuple[int, int, int, list[str]]:
     """``_fill`` a hidden folder beside ``dest`` and rename it into place; on any failure the folder is deleted."""
     work = work_folder(dest)
     try:
@@ -287,7 +288,7 @@ class _Tally:
 
 
 def _fill(data_dir: Path, work: Path, progress: Callable[[int, int], None] | None,
-          carry: Callable[[Path, Path], None] | None) -> tuple[int, int, int, list[str]]:
+          carry: Callable[[Path], Callable[[Path], None]] | None) -> tuple[int, int, int, list[str]]:
     """The backup's contents under ``work``: (episodes, models, bytes, problems).
 
     The checkpoints first, right after the snapshot (a few small folders), then the episodes (the long
@@ -306,11 +307,12 @@ def _fill(data_dir: Path, work: Path, progress: Callable[[int, int], None] | Non
                     path.unlink()
             tally.restart()
         db = work / DB_NAME
+        carried = carry(data_dir) if carry is not None else None
         _snapshot_db(source_db, db)
         Catalog(work)  # the copy at this code's schema (an older source has fewer columns)
         ModelRegistry(work)
-        if carry is not None:
-            carry(data_dir, work)
+        if carried is not None:
+            carried(work)
         with connection(db, BackupError) as conn:
             episodes = conn.execute("SELECT e.episode_id, e.path, e.sha256, q.moved_to FROM episodes e "
                                     "LEFT JOIN quarantine q USING (episode_id) ORDER BY e.path").fetchall()

@@ -79,8 +79,9 @@ def test_a_job_past_its_gate_by_its_notes_is_not_run_again_from_the_backup(tmp_p
 
 
 def test_a_job_gated_between_the_snapshot_and_the_schedule_read_runs_again_from_the_backup(tmp_path, capsys):
-    """``carry`` reads the job's notes after the snapshot: a gate and its "done" note that land in between left
-    the copy with the model a candidate, no marker and the job's count (a diff review's reproduction)."""
+    """A gate, its "done" note and the marker's removal that land between the snapshot and the schedule's read left
+    the copy with the model a candidate, no marker and the job's count (a diff review's reproduction, and the
+    marker's removal beside it: the marker is read before the snapshot now)."""
     from storage.backup import backup
     from storage.models import ModelRegistry, ModelStatus
 
@@ -95,10 +96,15 @@ def test_a_job_gated_between_the_snapshot_and_the_schedule_read_runs_again_from_
     (data / DUE_MARKER).write_text(json.dumps({"trigger": "episodes", "notes": str(notes)}))
     (data / COUNT_FILE).write_text("5")
 
-    def carry(source, copy):  # the job's gate and its last note, in the window before the read
-        ModelRegistry(source).gate(version)  # (no champion here: promoted)
-        notes.write_text(json.dumps({"phase": "done", "version": version}))
-        carry_schedule(source, copy)
+    def carry(source):  # the job's gate, its last note and its marker's removal, between the snapshot and the copy
+        write = carry_schedule(source)
+
+        def after_the_snapshot(copy):
+            ModelRegistry(source).gate(version)  # (no champion here: promoted)
+            notes.write_text(json.dumps({"phase": "done", "version": version}))
+            (source / DUE_MARKER).unlink()  # (the service's ``_finish``)
+            write(copy)
+        return after_the_snapshot
 
     backup(data, dest, carry=carry)
 
