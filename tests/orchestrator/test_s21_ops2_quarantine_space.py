@@ -101,9 +101,13 @@ def test_the_dashboard_shows_it_and_walks_once_for_many_requests(tmp_path: Path,
 
 def test_the_stats_command_says_the_space_of_the_quarantine(service, data_dir, endpoint, namespace, capsys) -> None:
     size = quarantine_one(Catalog(data_dir), 0)
+    registry = ModelRegistry(data_dir)  # and the champion's h1 MSE beside its version
+    champion = registry.register(b"weights" * 10, {}, {"h1_mse": 0.0123456}, snapshot_id="s", eval_split_hash="h")
+    registry.promote(champion)
     argv = ["stats", "--connect", endpoint, "--namespace", namespace, "--timeout", "10"]
     assert main(argv) == 0
     out = capsys.readouterr().out
     assert f"quarantined=1 (their files take {size / 1e6:.1f} MB in DATA/quarantine/)" in out, out
+    assert f"champion: {champion} (h1 MSE 0.0123)\n" in out, out
     assert main([*argv, "--json"]) == 0
     assert json.loads(capsys.readouterr().out)["quarantine_bytes"] == size
