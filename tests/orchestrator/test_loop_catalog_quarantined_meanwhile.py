@@ -32,3 +32,23 @@ def test_a_lost_file_is_still_quarantined_and_said(tmp_path, caplog):
     assert [e.meta.episode_id for e in loaded] == ids[1:]
     assert Catalog(tmp_path).get(ids[0]).quarantined.startswith("found by activecollect run")
     assert any("quarantined and left out of the report" in r.getMessage() for r in caplog.records)
+
+
+def test_a_lost_file_the_operator_quarantines_first_is_not_said_to_be_ours(tmp_path, caplog, monkeypatch):
+    """The operator's quarantine commits between `run`'s failed load and its own quarantine: the row keeps the
+    operator's reason, and `run` neither claims it nor warns."""
+    cat = Catalog(tmp_path)
+    ids = sorted(cat.add_episode(make_episode(s, steps=5)).episode_id for s in range(4))
+    cat.get(ids[0]).path.unlink()
+    ours = cat.quarantine
+
+    def operator_first(episode_id, reason, **kw):
+        Catalog(tmp_path).quarantine(episode_id, "operator: wrong object")  # another process, committed first
+        return ours(episode_id, reason, **kw)
+
+    monkeypatch.setattr(cat, "quarantine", operator_first)
+    caplog.set_level(logging.WARNING, logger="orchestrator.loop_catalog")
+    loaded = load_episodes(cat, ids, "the report")
+    assert [e.meta.episode_id for e in loaded] == ids[1:]
+    assert Catalog(tmp_path).get(ids[0]).quarantined == "operator: wrong object"
+    assert not [r.getMessage() for r in caplog.records if r.levelno >= logging.WARNING]
