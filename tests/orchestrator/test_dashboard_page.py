@@ -103,3 +103,39 @@ def test_a_browser_without_abort_signal_timeout_still_refreshes():
     out = subprocess.run([NODE, "-e", "delete AbortSignal.timeout;" + FAST_FAILURE], input=script,
                          capture_output=True, text=True, timeout=60, check=True)
     assert json.loads(out.stdout)["sent"] == 5
+
+
+SHOWN_AGAIN = r"""
+const script = require("fs").readFileSync(0, "utf8");
+const pending = [], listeners = {};
+let sent = 0, timers = [];
+globalThis.fetch = (path) => { sent++; return new Promise((resolve) => pending.push({path, resolve})); };
+globalThis.setTimeout = (fn) => { timers.push(fn); return timers.length; };
+globalThis.clearTimeout = () => {};
+const el = () => ({textContent: "", src: "", replaceChildren() {}, appendChild() {}, setAttribute() {}});
+globalThis.document = {hidden: false, getElementById: el, querySelector: el, createElement: el,
+  createElementNS: el, addEventListener(type, fn) { listeners[type] = fn; }};
+const settle = async () => { for (let i = 0; i < 5; i++) await new Promise((r) => setImmediate(r)); };
+const answer = () => { for (const p of pending.splice(0)) p.resolve({ok: true, json: async () => ({})}); };
+const change = (hidden) => { document.hidden = hidden; if (listeners.visibilitychange) listeners.visibilitychange(); };
+(async () => {
+  const seen = {};
+  new Function(script)(); await settle(); answer(); await settle();
+  change(true); await settle(); seen.hidden = sent;
+  const now = timers; timers = []; for (const fn of now) fn(); await settle(); seen.hidden_period = sent;
+  change(false); await settle(); seen.shown = sent;
+  change(true); change(false); await settle(); seen.shown_twice_while_refreshing = sent;
+  console.log(JSON.stringify(seen));
+})();
+"""
+
+
+@pytest.mark.skipif(NODE is None, reason="needs Node.js to run the page's script")
+def test_a_tab_shown_again_refreshes_at_once_and_once():
+    """Shown again after a hidden period, the page refreshes then, not a period later; shown again while that
+    refresh is still unanswered, it starts no second one."""
+    page = render_page(2.0).decode()
+    script = page[page.index("<script>") + len("<script>"):page.index("</script>")]
+    out = subprocess.run([NODE, "-e", SHOWN_AGAIN], input=script, capture_output=True, text=True, timeout=60,
+                         check=True)
+    assert json.loads(out.stdout) == {"hidden": 5, "hidden_period": 5, "shown": 10, "shown_twice_while_refreshing": 10}
