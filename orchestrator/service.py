@@ -268,6 +268,8 @@ class Service:
                  "seed": messages.request_seed(r.id, lease.token)}
         if req.image_size:  # a worker that records at the catalog's size (older ones refuse the field)
             grant["image_size"] = frame_size
+        if not frame_size:  # it records at its own size: an upload of another than the catalog's is given back
+            self._uploads.sizeless(r.id, lease.token, older=not req.image_size)
         if lease.again:
             log.info("lease of %s (token %d) answered again for %s, which asked again", r.id, lease.token,
                      req.worker_id)

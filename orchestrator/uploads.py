@@ -15,12 +15,20 @@ the service's ``StorageHealth``'s to know (no lease expires meanwhile) and the w
 upload's own content only. Stored episodes are handed to ``on_stored`` (the service's background
 thread: scoring and planning never run on this path). An upload sent in parts (``orchestrator.upload_parts``)
 takes this path once its last part has come, with its bytes whole.
+
+An episode of another frame size than the catalog's is refused ``bad_field`` from its metadata, before a chunk is
+inflated (its upload is bounded by the catalog's size). Under a lease granted without a frame size
+(``UploadHandler.sizeless``: a worker from before ``image_size``, whose lease request gives none, or any worker
+while the catalog held no episode), whose worker recorded at its own size as its grant allowed, the refusal says
+what to do and comes after the request was given back with no attempt counted: the worker's ``fail`` is stale.
 """
 
 from __future__ import annotations
 
 import logging
 import math
+import threading
+from collections import OrderedDict
 from collections.abc import Callable
 from contextlib import AbstractContextManager
 from dataclasses import dataclass
@@ -36,7 +44,7 @@ from orchestrator.transport import Incoming
 from orchestrator.upload_parts import PartStaging
 from storage.catalog import Catalog
 from storage.episode_reader import EpisodeInfo, decoded_limit, read_episode
-from storage.errors import (EpisodeError, OversizedEpisodeError, QueueError, StaleLeaseError,
+from storage.errors import (EpisodeError, FrameSizeError, OversizedEpisodeError, QueueError, StaleLeaseError,
                             StorageError, StorageUnavailableError)
 from storage.files import holds
 from storage.queue import RequestQueue
@@ -46,6 +54,10 @@ from storage.rows import EpisodeRow
 from workers.env import resolve_physics
 
 log = logging.getLogger(__name__)
+
+SIZELESS_MAX = 4096
+"""The most leases granted without a frame size (and workers warned of) the upload path keeps in memory: the
+oldest are forgotten first (an upload of a forgotten one is bounded and checked as any other)."""
 
 
 @dataclass(frozen=True)
@@ -89,6 +101,29 @@ class UploadHandler:
                                  max_total_bytes=4 * max_upload_bytes if parts_max_bytes is None else parts_max_bytes)
         metrics.upload_parts_held_bytes.set_function(self.parts.held_bytes)
         """Uploads sent in parts, held until their last part (``orchestrator.upload_parts``)."""
+        self._sizeless: OrderedDict[tuple[str, int], bool] = OrderedDict()
+        """(request id, token) of each lease granted without a frame size: whether its worker is an older one."""
+        self._warned: OrderedDict[str, None] = OrderedDict()
+        """The older workers whose frame size was refused: warned of once each."""
+        self._sizeless_lock = threading.Lock()
+
+    def sizeless(self, request_id: str, token: int, *, older: bool = True) -> None:
+        """Remember a lease whose grant named no frame size, so its worker records at its own: ``older``, one from
+        before ``image_size`` (its lease request gave none), else the catalog held no episode when it was granted.
+        An upload of another size than the catalog's is refused and its request given back uncharged
+        (``_check_size``). The newest ``SIZELESS_MAX`` are kept."""
+        with self._sizeless_lock:
+            _remember(self._sizeless, (request_id, token), older)
+
+    def _unsized(self, header: messages.UploadHeader) -> bool | None:
+        """Whether the lease ``header`` uploads under was granted without a frame size to an older worker (True) or
+        while the catalog's size was unknown (False); None: it named one (or was forgotten)."""
+        with self._sizeless_lock:
+            return self._sizeless.get((header.request_id, header.token))
+
+    def _forget(self, header: messages.UploadHeader) -> None:
+        with self._sizeless_lock:
+            self._sizeless.pop((header.request_id, header.token), None)
 
     def handle(self, msg: Incoming) -> bytes:
         """Answer one ``NS/orch/upload`` query: store the episode and complete its request, or refuse.
@@ -192,7 +227,11 @@ class UploadHandler:
         except EpisodeError as exc:
             raise ProtocolError(ErrorCode.CORRUPT_EPISODE, str(exc)) from exc
         except StorageError as exc:  # nothing stored
-            raise ProtocolError(_ingest_refusal(exc), str(exc)) from exc
+            code = _ingest_refusal(exc)
+            if code == ErrorCode.BAD_FIELD:  # a size fixed since it was read (a racing upload, another process)?
+                self._check_size(request, header, episode.meta.image_size, self._catalog_size())
+            raise ProtocolError(code, str(exc)) from exc
+        self._forget(header)
         if result.duplicate:  # indexed before: by a racing identical upload, or for another request
             if self._duplicate_of(self.queue.get(header.request_id), header) is not None:
                 self.metrics.upload("duplicate")
@@ -255,7 +294,11 @@ class UploadHandler:
     def _decode(self, data: bytes, header: messages.UploadHeader, request: Request) -> Episode:
         try:
             episode = read_episode(data, name=f"upload for {header.request_id}",  # no more than the request needs
-                                   max_decoded=self._most_bytes(request))
+                                   max_decoded=self._most_bytes(request), frame_size=self.frame_size())
+        except FrameSizeError as exc:  # from its metadata, before a chunk is inflated
+            self._check_size(request, header, exc.found, exc.expected)  # (a lease that named no size)
+            raise ProtocolError(ErrorCode.BAD_FIELD, f"upload {request.id}: {exc.found}px frames; this catalog holds "
+                                f"{exc.expected}px episodes, the size its lease named") from exc
         except OversizedEpisodeError as exc:
             raise ProtocolError(ErrorCode.TOO_LARGE, str(exc)) from exc
         except EpisodeError as exc:
@@ -271,6 +314,61 @@ class UploadHandler:
         first part is kept."""
         return decoded_limit(len(request.action_prefix) + request.steps, self.frame_size() or protocol.MAX_FRAME_SIZE)
 
+    def _catalog_size(self) -> int:
+        """The catalog's frame size read now (0: none yet, or it cannot be read: the catalog's refusal stands)."""
+        try:
+            return self.catalog.frame_size() or 0
+        except StorageError:
+            return 0
+
+    def _check_size(self, request: Request, header: messages.UploadHeader, found: int, holds: int) -> None:
+        """Refuse (``bad_field``) an episode of ``found`` px under a lease granted without a frame size when the
+        catalog holds ``holds`` px, once its request is given back with no attempt counted: its worker recorded
+        at its own size, as its grant said, and the request did nothing wrong (charged, a few such workers would
+        kill every request). Under a lease that named the size, the caller refuses it as its worker's fault."""
+        older = self._unsized(header)
+        if older is None or not holds or found == holds:
+            return
+        released = self._give_back(request, header)
+        self._forget(header)
+        worker = header.worker_id
+        if older:
+            self._warn_once(worker, found, holds)
+            why = (f"worker {worker} records {found}px frames; this catalog holds {holds}px episodes. It does not say "
+                   f"its size when it asks for a lease (a worker from before image_size), so it cannot be told "
+                   f"the catalog's: upgrade it or start it with --size {holds}")
+        else:
+            why = (f"worker {worker} recorded {found}px frames, its own size: its lease was granted while the catalog "
+                   f"held no episode, and it holds {holds}px episodes since (its next lease names that size)")
+        raise ProtocolError(ErrorCode.BAD_FIELD, f"upload {request.id}: {why}; " + (
+            "the request is queued again, no attempt counted" if released else "its lease had ended already"))
+
+    def _give_back(self, request: Request, header: messages.UploadHeader) -> bool:
+        """Queue ``request`` again, no attempt counted, before the refusal is answered; False when its lease had
+        ended. Raises ProtocolError ``unavailable`` when the queue cannot be written now (the worker sends the
+        upload again, and it is refused then)."""
+        try:
+            with self.turn():
+                after = self.queue.release(request.id, header.token, worker_id=header.worker_id)
+        except StaleLeaseError:  # expired or ended meanwhile: nothing to give back
+            return False
+        except StorageError as exc:
+            raise admin.protocol_error(exc) from exc
+        self.publish(EventKind.REQUEST_RELEASED, {"request_id": after.id, "worker_id": header.worker_id,
+                                                  "token": header.token, "status": after.status.value,
+                                                  "attempts": after.attempts})
+        return True
+
+    def _warn_once(self, worker_id: str, found: int, holds: int) -> None:
+        """The service log's line for an older worker of another frame size: once per worker, not per upload."""
+        with self._sizeless_lock:
+            if worker_id in self._warned:
+                return
+            _remember(self._warned, worker_id, None)
+        log.warning("worker %s records %dpx frames, not this catalog's %dpx, and is from before workers say their "
+                    "size: each of its uploads is refused and its request queued again (no attempt counted); "
+                    "upgrade it or start it with --size %d", worker_id, found, holds, holds)
+
     def _refused(self, header: messages.UploadHeader | None, code: str, message: str) -> None:
         """Count and publish one refused upload (``header`` None: it was malformed, so whose is unknown)."""
         self.metrics.upload("refused")
@@ -278,6 +376,14 @@ class UploadHandler:
             "request_id": header.request_id if header is not None else None,
             "worker_id": header.worker_id if header is not None else None,
             "error": code, "message": message[:500]})
+
+
+def _remember(kept: OrderedDict[Any, Any], key: Any, value: Any) -> None:
+    """Put ``key`` in ``kept`` as its newest, forgetting the oldest past ``SIZELESS_MAX``."""
+    kept[key] = value
+    kept.move_to_end(key)
+    while len(kept) > SIZELESS_MAX:
+        kept.popitem(last=False)
 
 
 def _under(request: Request, header: messages.UploadHeader, status: RequestStatus) -> bool:

@@ -41,8 +41,8 @@ from mcap.stream_reader import CRCValidationError
 from storage.episodes import (ACTION_KEYS, ACTION_SCALAR, ACTION_SCHEMA, FORMAT, IMAGE_SCHEMA, METADATA_NAME,
                               STATE_SCALAR, STATE_SCHEMA, TOPIC_ACTION, TOPIC_CAMERA, TOPIC_STATE, ActionMessage,
                               StateMessage, check_meta, image_prefix, row_dtype, tag, timestamp_field)
-from storage.errors import (CorruptEpisodeError, EpisodeError, ForeignFileError, OversizedEpisodeError, StorageError,
-                            TruncatedEpisodeError)
+from storage.errors import (CorruptEpisodeError, EpisodeError, ForeignFileError, FrameSizeError, OversizedEpisodeError,
+                            StorageError, TruncatedEpisodeError)
 from storage.records import MAX_FRAME_SIZE, STATE_FIELDS, Episode, EpisodeMeta
 
 Source = Union[str, os.PathLike, bytes, bytearray, memoryview]
@@ -154,8 +154,8 @@ def decoded_limit(frames: int, image_size: int) -> int:
 MAX_DECODED_BYTES = decoded_limit(1000, MAX_FRAME_SIZE)
 
 
-def _scan(data: bytes, name: str,
-          max_decoded: int | None = None) -> tuple[_Scan, EpisodeMeta, int, dict[str, int]]:
+def _scan(data: bytes, name: str, max_decoded: int | None = None,
+          frame_size: int | None = None) -> tuple[_Scan, EpisodeMeta, int, dict[str, int]]:
     """Summary, metadata, our three channels' ids, and every message, with chunk CRCs checked.
 
     The chunks are inflated only up to what the metadata's frames and frame size need (and at
@@ -175,6 +175,9 @@ def _scan(data: bytes, name: str,
         if meta.image_size > MAX_FRAME_SIZE:  # no catalog takes it: refused before its chunks are inflated
             raise OversizedEpisodeError(f"{name}: episode metadata says {meta.image_size}px frames; no episode has "
                                         f"frames larger than {MAX_FRAME_SIZE}px")
+        if frame_size and meta.image_size != frame_size:  # (not inflated to the size it says, either)
+            raise FrameSizeError(f"{name}: {meta.image_size}px frames, expected {frame_size}px", meta.image_size,
+                                 frame_size)
         ids = {TOPIC_CAMERA: _channel(scan, TOPIC_CAMERA, IMAGE_SCHEMA, "protobuf", name),
                TOPIC_ACTION: _channel(scan, TOPIC_ACTION, ACTION_SCHEMA, "protobuf", name),
                TOPIC_STATE: _channel(scan, TOPIC_STATE, STATE_SCHEMA, "protobuf", name)}
@@ -303,11 +306,11 @@ def _check_counts(scan: _Scan, ids: dict[str, int], frames: int, name: str) -> N
                                       f"step {back - 1} ({times[back - 1]} ns)")
 
 
-def _examine(source: Source, name: str | None,
-             max_decoded: int | None = None) -> tuple[_Scan, EpisodeMeta, dict[str, int], str]:
+def _examine(source: Source, name: str | None, max_decoded: int | None = None,
+             frame_size: int | None = None) -> tuple[_Scan, EpisodeMeta, dict[str, int], str]:
     data, name = _load(source, name)
     _check_envelope(data, name)
-    scan, meta, frames, ids = _scan(data, name, max_decoded)
+    scan, meta, frames, ids = _scan(data, name, max_decoded, frame_size)
     _check_counts(scan, ids, frames, name)
     return scan, meta, ids, name
 
@@ -370,21 +373,24 @@ def _decode_numeric(msgs: list[Message], cls, keys: tuple[str, ...], scalar: str
     return out
 
 
-def read_episode(source: Source, *, name: str | None = None, max_decoded: int | None = None) -> Episode:
+def read_episode(source: Source, *, name: str | None = None, max_decoded: int | None = None,
+                 frame_size: int | None = None) -> Episode:
     """Reads and fully validates an episode file (a path or the file's bytes).
 
     ``name`` labels the source in error messages (default: the path, or ``<bytes>``). The chunks
     are inflated only as far as the metadata's frames need (see ``decoded_limit``), and to at most
     ``max_decoded`` bytes: what a caller expecting a given episode (the service, for an upload) allows.
+    ``frame_size``: the only frame size taken (None or 0: any); another is ``FrameSizeError``, from the metadata.
 
     Raises ``TruncatedEpisodeError`` (the file ends early), ``CorruptEpisodeError``
     (CRC mismatch, undecodable record, counts that disagree, non-finite actions or
     states, actions or states with fields their schema lacks, images too small for the
     metadata's size), ``OversizedEpisodeError`` (frames larger than ``MAX_FRAME_SIZE``, chunks
     inflating past what the frames need), ``ForeignFileError``
-    (not MCAP, or MCAP without our channels/metadata) or ``EpisodeError`` (unreadable path).
+    (not MCAP, or MCAP without our channels/metadata), ``FrameSizeError`` (not ``frame_size``) or ``EpisodeError``
+    (unreadable path).
     """
-    scan, meta, ids, name = _examine(source, name, max_decoded)
+    scan, meta, ids, name = _examine(source, name, max_decoded, frame_size)
     frames = _decode_frames(scan.messages[ids[TOPIC_CAMERA]], meta.image_size, name)
     actions = _decode_numeric(scan.messages[ids[TOPIC_ACTION]], ActionMessage, ACTION_KEYS, ACTION_SCALAR,
                               TOPIC_ACTION, name)

@@ -30,6 +30,15 @@ class OversizedEpisodeError(EpisodeError):
     before that memory is taken."""
 
 
+class FrameSizeError(EpisodeError):
+    """The file's frames are not the size the reader asked for (``read_episode``'s ``frame_size``): refused from
+    its metadata, before a chunk is inflated."""
+
+    def __init__(self, message: str, found: int, expected: int) -> None:
+        super().__init__(message)
+        self.found, self.expected = found, expected
+
+
 #: What reading an indexed episode raises when its file no longer holds what was acknowledged (gone, other
 #: bytes, an unreadable structure), unlike a read that may pass (permissions, I/O): what
 #: ``Catalog.quarantine`` is for.

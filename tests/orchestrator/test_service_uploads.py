@@ -17,11 +17,13 @@ from orchestrator.messages import LeaseGrant
 from orchestrator.protocol import ErrorCode
 from orchestrator.transport import Incoming
 from storage.catalog import Catalog
+from storage.episode_reader import read_episode
 from storage.quarantine import quarantine_path
 from storage.requests import RequestStatus
 from tests.conftest import wait_for
 from tests.orchestrator.test_service import (DEFAULT_PHYSICS, call, episode_bytes, lease, new_request, refused,
                                              upload)
+from tests.storage.test_episodes import _episode_like_mcap
 
 
 def test_upload_stores_indexes_and_completes_once(service, client, keys, data_dir) -> None:
@@ -185,12 +187,14 @@ def test_a_first_upload_at_a_size_no_model_trains_on_is_refused_and_changes_noth
 
 def test_an_upload_that_would_inflate_past_what_the_request_needs_is_refused_before(service, client, keys,
                                                                                     data_dir) -> None:
+    """Its frames are the catalog's size, and a chunk holds 32 MiB more (an episode that says another size is refused
+    from its metadata: the test above)."""
     for _ in range(2):
         service.queue.enqueue(new_request())
     first = lease(client, keys)
     upload(client, keys, first, episode_bytes(first))  # the catalog holds 16 px frames from now on
     grant = lease(client, keys)
-    data = episode_bytes(grant, size=1024)  # 15 MiB of pixels in a small file
+    data = _episode_like_mcap(read_episode(episode_bytes(grant)), pad=32 << 20)  # in a small file
     assert len(data) < 1 << 20
     message = refused(ErrorCode.TOO_LARGE, upload, client, keys, grant, data)
     assert "inflates to" in message and "frames need at most" in message, message

@@ -86,3 +86,16 @@ def test_pinning_refuses_params_that_misstate_the_frame_size_and_odd_sizes_are_r
     tiny = make_episode(rng, size=4)
     with pytest.raises(CatalogError, match="4px frames; expected 8..1024"):
         cat.add_episode(tiny)
+
+
+def test_a_reader_that_asks_for_a_frame_size_refuses_another_from_the_metadata_before_inflating(rng):
+    """What the service's upload path asks for: a file of another size is refused before a chunk is inflated, even
+    one whose chunk would inflate past what its frames need."""
+    from storage.episode_reader import read_episode
+    from storage.errors import FrameSizeError
+    from tests.storage.test_episodes import _episode_like_mcap
+    other = make_episode(rng, size=24)
+    assert read_episode(episodes.encode_episode(other), frame_size=24).meta.image_size == 24
+    with pytest.raises(FrameSizeError, match=r"<bytes>: 24px frames, expected 16px") as info:
+        read_episode(_episode_like_mcap(other, pad=32 << 20), frame_size=16)  # (else OversizedEpisodeError)
+    assert (info.value.found, info.value.expected) == (24, 16)
