@@ -3,7 +3,10 @@
 Each benchmark measures its figure next to a baseline taken in the same run
 (a ratio), because the machines are shared and noisy. Results are written to
 ``bench/results/<UTC timestamp>.json`` and printed; copy the figures, the
-command, the machine and the date into BENCHMARKS.md.
+command, the machine and the date into BENCHMARKS.md. ``bench loop`` also
+leaves its run (each seed's arms, config.json, summary.json, loop.png) in
+``./activecollect-bench/loop-<local time>/`` under the directory make bench
+runs in (its default --out; ``bench loop-summary`` reads it).
 """
 
 from __future__ import annotations

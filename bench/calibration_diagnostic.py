@@ -7,17 +7,23 @@ copy-last error (how much the frame changes), each also split into changing and 
 Prints the Spearman correlations between them. Inference only.
 
     .venv/bin/python bench/calibration_diagnostic.py --data DIR [--version V]
+
+--version takes what ``activecollect models show`` takes (a version or a unique prefix of one); a
+--data that is no data directory, a version it does not hold (or a prefix of several) and a directory with
+no champion and no --version exit 2 in one line before anything is loaded.
 """
 
 from __future__ import annotations
 
 import json
+import sys
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from orchestrator.cli.common import Parser
+from orchestrator.cli.common import Parser, UsageError
+from orchestrator.cli.registry import resolve_model
 from storage.catalog import Catalog
 from storage.database import DB_NAME
 from storage.models import ModelRegistry
@@ -29,13 +35,9 @@ from uncertainty.train import build_windows, load_eval
 CHANGE = 0.02
 
 
-def diagnose(data: Path, version: str | None = None, batch: int = 64) -> dict:
-    if not (data / DB_NAME).is_file():
-        raise SystemExit(f"{data}: not a data directory (no {DB_NAME})")
+def diagnose(data: Path, version: str, batch: int = 64) -> dict:
+    """The figures of ``version`` (registered in ``data``, as ``resolve_version`` names it) on ``data``'s eval split."""
     catalog, registry = Catalog(data), ModelRegistry(data)
-    version = version or registry.champion()
-    if version is None:
-        raise SystemExit(f"{data}: no champion and no --version")
     ens = load_ensemble(registry, version)
     episodes, _ = load_eval(catalog)
     windows = build_windows(episodes, ens.config, horizon=1)
@@ -71,13 +73,38 @@ def diagnose(data: Path, version: str | None = None, batch: int = 64) -> dict:
     }
 
 
-def main() -> None:
+def resolve_version(data: Path, version: str | None) -> str:
+    """The registered version ``version`` names as ``models show`` takes it (in full or by a unique prefix), or
+    the champion when it is None. Raises ``UsageError`` when ``data`` is no data directory or holds no such model."""
+    if not (data / DB_NAME).is_file():
+        raise UsageError(f"--data {data}: not a data directory (no {DB_NAME})")
+    registry = ModelRegistry(data)
+    if version is None:
+        champion = registry.champion()
+        if champion is None:
+            raise UsageError(f"--data {data}: no champion; give --version")
+        return champion
+    return resolve_model(registry, version).version
+
+
+def build_parser() -> Parser:
     p = Parser(description=__doc__.splitlines()[0])
     p.add_argument("--data", type=Path, required=True, help="a data directory with an eval split and models")
-    p.add_argument("--version", help="model version (default: the champion)")
-    args = p.parse_args()
-    print(json.dumps(diagnose(args.data, args.version), indent=1))
+    p.add_argument("--version", help="model version, or a unique prefix of one as `activecollect models show` "
+                                     "takes (default: the champion)")
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = build_parser()
+    args = p.parse_args(argv)
+    try:
+        version = resolve_version(args.data, args.version)
+    except UsageError as exc:
+        p.error(str(exc))
+    print(json.dumps(diagnose(args.data, version), indent=1))
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

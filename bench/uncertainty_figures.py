@@ -17,11 +17,17 @@ Usage: .venv/bin/python bench/uncertainty_figures.py --data /tmp/figs [--train-e
        [--epochs 4] [--bootstrap] [--image-size 64] [--members 5] [--threads 2] [--device cpu]
        [--ood-train-episodes 80 --ood-epochs 40 --ood-image-size 32 --ood-cache oodL.pt]
        [--skip main,ood,bench] [--json out.json]
+(``--help`` for every flag.) Every flag is checked before anything is collected or trained, exit 2 in one line:
+its value, and the flags against each other -- a flag of a figure ``--skip`` leaves out, ``--steps`` too short
+for ``--context`` or ``--ood-horizon``, an ``--ood-cache`` that is no OOD ensemble of ``--members``, a
+``--json`` or ``--ood-cache`` that could not be written at the end; ``--data`` is needed unless ``--skip main``.
 """
 
 from __future__ import annotations
 
+import argparse
 import json
+import pickle
 import sys
 import time
 from pathlib import Path
@@ -29,7 +35,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from orchestrator.cli.common import Parser, torch_device, trainable_image_size
+from orchestrator.cli.common import (Parser, data_dir, ensemble_size, episode_steps, non_negative_int, positive_float,
+                                     positive_int, torch_device, trainable_image_size)
 from storage.catalog import Catalog
 from storage.models import ModelRegistry
 from storage.records import TRAINABLE_SIZES
@@ -37,11 +44,19 @@ from uncertainty.benchmark import run_score_bench
 from uncertainty import metrics as M
 from uncertainty.checkpoint import load_ensemble
 from uncertainty.data import build_windows, load_eval
+from uncertainty.ensemble import Ensemble
+from uncertainty.model import PredictorConfig
 from uncertainty.train import TrainConfig, fit, new_ensemble, resolve_device, train_candidate, train_windows
-from workers.collect import collect_episode, create_eval_split
+from workers.collect import EvalSplitConflict, collect_episode, create_eval_split
 from workers.env import SHAPE_PALETTE, sample_state
 
 SHAPES = ("T", "box", "L", "disk")
+
+#: How many steps ``calibration_variants`` rolls out after the context frames (the eval episodes need as many).
+CALIBRATION_HORIZON = 5
+
+#: The OOD ensemble's context frames (``TrainConfig``'s default).
+OOD_CONTEXT = TrainConfig.context
 
 
 def collect(shapes, n: int, seed: int, steps: int, size: int, random_physics: bool = False, palette=None):
@@ -95,7 +110,7 @@ def main_figure(cat: Catalog, data: Path, args) -> dict:
 
 
 @torch.inference_mode()
-def calibration_variants(ens, cat: Catalog, horizon: int = 5) -> dict:
+def calibration_variants(ens, cat: Catalog, horizon: int = CALIBRATION_HORIZON) -> dict:
     """Spearman(disagreement, error of the ensemble mean) on the eval split, per sample definition.
 
     per_window_h1 is the figure ``evaluate`` reports (one sample per window, next frame);
@@ -146,7 +161,8 @@ def ood_figure(args) -> dict:
                              random_physics=args.ood_random_physics, palette=palette)
               for i, shape in enumerate(SHAPES)}
     cfg = TrainConfig(members=args.members, epochs=args.ood_epochs, batch_size=args.ood_batch_size,
-                      lr=args.ood_lr, seed=args.seed, device=args.device, bootstrap=args.ood_bootstrap, progress=True)
+                      lr=args.ood_lr, seed=args.seed, device=args.device, bootstrap=args.ood_bootstrap, progress=True,
+                      context=OOD_CONTEXT)
     ens = new_ensemble(cfg, train)
     losses: list[float] = []
     if args.ood_cache is not None and args.ood_cache.exists():
@@ -227,49 +243,164 @@ def _moving_variance(ens, ep) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return mv.double().cpu().numpy(), e.double().cpu().numpy(), pc.double().cpu().numpy()
 
 
-def main(argv=None) -> int:
+#: The figures ``--skip`` can leave out, in the order they are made.
+FIGURES = ("main", "ood", "bench")
+
+#: The flags that set one figure (or two) only: given with every figure they set skipped, they contradict --skip.
+#: (Not --data: the recorded commands of BENCHMARKS.md pass it to every figure; it is unused without the main one.)
+FIGURE_OF = {"train_episodes": {"main"}, "image_size": {"main"}, "epochs": {"main"},
+             "batch_size": {"main"}, "lr": {"main"}, "context": {"main"}, "bootstrap": {"main"},
+             "variance_head": {"main"}, "steps": {"main", "ood"}, "members": {"main", "ood"},
+             "seed": {"main", "ood"}, "palette": {"main", "ood"},
+             **{dest: {"ood"} for dest in ("ood_train_episodes", "ood_epochs", "ood_test_episodes", "ood_image_size",
+                                          "ood_batch_size", "ood_lr", "ood_bootstrap", "ood_random_physics",
+                                          "ood_horizon", "ood_cache")},
+             "bench_seconds": {"bench"}, "bench_threads": {"bench"}}
+
+
+def _skip(text: str) -> frozenset[str]:
+    names = [n.strip() for n in text.split(",") if n.strip()]
+    unknown = [n for n in names if n not in FIGURES]
+    if unknown:
+        raise argparse.ArgumentTypeError(f"expected a comma list of {', '.join(FIGURES)}, found {unknown[0]!r}")
+    return frozenset(names)
+
+
+def _thread_counts(text: str) -> list[int]:
+    try:
+        return [positive_int(t) for t in text.split(",")]
+    except argparse.ArgumentTypeError:
+        raise argparse.ArgumentTypeError(f"expected a comma list of positive integers such as 1,2, "
+                                         f"found {text!r}") from None
+
+
+def _output_file(text: str) -> Path:
+    """A file to write at the end of a long run: refused now if it cannot be written then."""
+    path = Path(text)
+    if path.is_dir():
+        raise argparse.ArgumentTypeError(f"expected a file, found a directory at {path}")
+    if not path.parent.is_dir():
+        raise argparse.ArgumentTypeError(f"expected a file in an existing directory, found no directory "
+                                         f"{path.parent}")
+    return path
+
+
+def build_parser() -> Parser:
+    """The command line; every value is checked as it is parsed, the flags against each other by ``check_args``."""
     p = Parser(description=__doc__.splitlines()[0])
-    p.add_argument("--data", type=Path, required=True)
-    p.add_argument("--train-episodes", type=int, default=80)
-    p.add_argument("--steps", type=int, default=50)
-    p.add_argument("--image-size", type=trainable_image_size, default=64, help=f"frame size, {TRAINABLE_SIZES}")
-    p.add_argument("--members", type=int, default=5)
-    p.add_argument("--epochs", type=int, default=4)
-    p.add_argument("--batch-size", type=int, default=16)
-    p.add_argument("--lr", type=float, default=1.5e-3)
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--context", type=int, default=2, help="main figure: context frames per prediction")
+    p.add_argument("--data", type=data_dir, metavar="DIR",
+                   help="main figure: data directory of the eval split and the train episodes, collected into if "
+                        "short of --train-episodes (required unless --skip main; unused then)")
+    p.add_argument("--train-episodes", type=positive_int, default=80, help="main figure: train episodes (default 80)")
+    p.add_argument("--steps", type=episode_steps, default=50,
+                   help="steps of every episode collected, main and OOD (default 50)")
+    p.add_argument("--image-size", type=trainable_image_size, default=64,
+                   help=f"main figure: frame size, {TRAINABLE_SIZES} (default 64)")
+    p.add_argument("--members", type=ensemble_size, default=5,
+                   help="ensemble members of the main and OOD figures (default 5; the scoring bench always has 5)")
+    p.add_argument("--epochs", type=positive_int, default=4, help="main figure: training epochs (default 4)")
+    p.add_argument("--batch-size", type=positive_int, default=16, help="main figure: training batch (default 16)")
+    p.add_argument("--lr", type=positive_float, default=1.5e-3, help="main figure: learning rate (default 1.5e-3)")
+    p.add_argument("--seed", type=non_negative_int, default=0, help="seed of the members' training (default 0)")
+    p.add_argument("--context", type=positive_int, default=2,
+                   help=f"main figure: context frames per prediction (default 2; --steps at least this + "
+                        f"{CALIBRATION_HORIZON})")
     p.add_argument("--bootstrap", action="store_true", help="main figure: members train on bootstrap resamples")
     p.add_argument("--variance-head", action="store_true",
                    help="main figure: members also predict their error variance (total-variance calibration)")
     p.add_argument("--palette", choices=("uniform", "per-shape"), default="uniform",
                    help="object colours: all alike (the service's world) or one per shape (workers.env.SHAPE_PALETTE);"
                         " (a data directory collected with the other one is refused: its eval split is pinned)")
-    p.add_argument("--threads", type=int, default=2)
+    p.add_argument("--threads", type=positive_int, default=2, help="torch threads (default 2)")
     p.add_argument("--device", type=torch_device, default="cpu",
                    help="where the figures train and score: cpu (the default: the issue's figures are the CPU's), "
                         "cuda or auto")
-    p.add_argument("--ood-train-episodes", type=int, default=80)
-    p.add_argument("--ood-epochs", type=int, default=40)
-    p.add_argument("--ood-test-episodes", type=int, default=8)
-    p.add_argument("--ood-image-size", type=trainable_image_size, default=32, help="frame size of the OOD check")
-    p.add_argument("--ood-batch-size", type=int, default=32)
-    p.add_argument("--ood-lr", type=float, default=2e-3)
-    p.add_argument("--ood-bootstrap", action="store_true", help="members train on bootstrap resamples")
-    p.add_argument("--ood-random-physics", action="store_true", help="draw mass and frictions per episode")
-    p.add_argument("--ood-horizon", type=int, default=1, help="disagreement horizon of the OOD check")
-    p.add_argument("--ood-cache", type=Path,
-                   help="save the trained OOD ensemble here; reuse it if present (pass the same OOD flags)")
-    p.add_argument("--bench-seconds", type=float, default=20.0)
-    p.add_argument("--bench-threads", default="", help="comma list of torch thread counts (default --threads)")
-    p.add_argument("--skip", default="", help="comma list of main, ood, bench")
-    p.add_argument("--json", type=Path, help="also write the figures here")
+    p.add_argument("--ood-train-episodes", type=positive_int, default=80,
+                   help="OOD figure: T-shape episodes the OOD ensemble trains on (default 80)")
+    p.add_argument("--ood-epochs", type=positive_int, default=40, help="OOD figure: training epochs (default 40)")
+    p.add_argument("--ood-test-episodes", type=positive_int, default=8,
+                   help="OOD figure: held-out episodes per shape (default 8)")
+    p.add_argument("--ood-image-size", type=trainable_image_size, default=32,
+                   help=f"OOD figure: frame size, {TRAINABLE_SIZES} (default 32)")
+    p.add_argument("--ood-batch-size", type=positive_int, default=32, help="OOD figure: training batch (default 32)")
+    p.add_argument("--ood-lr", type=positive_float, default=2e-3, help="OOD figure: learning rate (default 2e-3)")
+    p.add_argument("--ood-bootstrap", action="store_true", help="OOD figure: members train on bootstrap resamples")
+    p.add_argument("--ood-random-physics", action="store_true", help="OOD figure: draw mass and frictions per episode")
+    p.add_argument("--ood-horizon", type=positive_int, default=1,
+                   help=f"OOD figure: disagreement horizon (default 1; at most --steps - {OOD_CONTEXT})")
+    p.add_argument("--ood-cache", type=_output_file, metavar="FILE",
+                   help="OOD figure: save the trained OOD ensemble here; reuse it if present (pass the same OOD "
+                        "flags: one of other --members is refused, other OOD flags are not recorded in it)")
+    p.add_argument("--bench-seconds", type=positive_float, default=20.0,
+                   help="scoring bench: seconds per thread count, split over batch 48 and batch 1 (default 20)")
+    p.add_argument("--bench-threads", type=_thread_counts, metavar="N[,N...]",
+                   help="scoring bench: comma list of torch thread counts (default --threads)")
+    p.add_argument("--skip", type=_skip, default=frozenset(), metavar="FIGURE[,FIGURE...]",
+                   help=f"leave these figures out, a comma list of {', '.join(FIGURES)} (not all three)")
+    p.add_argument("--json", type=_output_file, metavar="FILE", help="also write the figures here")
+    return p
+
+
+def check_args(p: Parser, args: argparse.Namespace) -> None:
+    """The flags against each other, before any work: exits 2 in one line (``p.error``) on the first conflict."""
+    skip = args.skip
+    if skip == set(FIGURES):
+        p.error(f"--skip {','.join(FIGURES)} leaves no figure to make")
+    for action in p._actions:
+        figures = FIGURE_OF.get(action.dest)
+        if figures and figures <= skip and getattr(args, action.dest) != p.get_default(action.dest):
+            which = " and ".join(f for f in FIGURES if f in figures)
+            p.error(f"{action.option_strings[0]} sets the {which} figure{'s' * (len(figures) > 1)}, which --skip "
+                    f"leaves out")
+    if "main" not in skip:
+        if args.data is None:
+            p.error("--data is required for the main figure (or --skip main)")
+        if args.steps < args.context + CALIBRATION_HORIZON:
+            p.error(f"--steps {args.steps} is too short for --context {args.context}: the main figure's calibration "
+                    f"rolls out {CALIBRATION_HORIZON} steps after the context (--steps at least "
+                    f"{args.context + CALIBRATION_HORIZON})")
+    if "ood" not in skip:
+        if args.ood_horizon > args.steps - OOD_CONTEXT:
+            p.error(f"--ood-horizon {args.ood_horizon} leaves no step to score in episodes of --steps {args.steps} "
+                    f"({OOD_CONTEXT} context frames first: at most {args.steps - OOD_CONTEXT})")
+        if args.ood_cache is not None and args.ood_cache.exists():
+            _check_ood_cache(p, args)
+    if args.json is not None and args.ood_cache is not None and args.json.resolve() == args.ood_cache.resolve():
+        p.error(f"--json and --ood-cache name the same file {args.json}")
+
+
+def _check_ood_cache(p: Parser, args: argparse.Namespace) -> None:
+    """A cache that cannot be read, or holds an ensemble of other --members, is refused now, not after the main
+    figure. (The members are convolutional: weights of any --ood-image-size load; nothing records the size.)"""
+    try:
+        state = torch.load(args.ood_cache, map_location="cpu", weights_only=True)
+    except OSError as exc:
+        p.error(f"--ood-cache {args.ood_cache}: cannot read it ({exc.strerror})")
+    except (RuntimeError, pickle.UnpicklingError, EOFError, ValueError):
+        p.error(f"--ood-cache {args.ood_cache}: not a file torch.save wrote; give another file or remove it")
+    if not (isinstance(state, dict) and isinstance(state.get("weights"), dict) and "losses" in state):
+        p.error(f"--ood-cache {args.ood_cache}: not a saved OOD ensemble (no weights and losses in it)")
+    weights = state["weights"]
+    shape = PredictorConfig(image_size=args.ood_image_size, context=OOD_CONTEXT)
+    try:
+        Ensemble(shape, members=args.members).load_state_dict(weights)
+    except RuntimeError:
+        p.error(f"--ood-cache {args.ood_cache}: not the OOD ensemble of --members {args.members} (its weights "
+                "differ in shape); give its --members, or another file")
+
+
+def main(argv=None) -> int:
+    p = build_parser()
     args = p.parse_args(argv)
+    check_args(p, args)
     torch.set_num_threads(args.threads)
-    skip = set(filter(None, args.skip.split(",")))
+    skip = args.skip
     figures: dict = {"threads": args.threads, "device": args.device}
     if "main" not in skip:
-        cat = prepare(args.data, args.train_episodes, args.steps, args.image_size, _palette(args))
+        try:
+            cat = prepare(args.data, args.train_episodes, args.steps, args.image_size, _palette(args))
+        except EvalSplitConflict as exc:  # (raised before anything is collected)
+            p.error(f"--data {args.data}: {exc}")
         figures["main"] = main_figure(cat, args.data, args)
         print(json.dumps(figures["main"], indent=1, default=str), file=sys.stderr)
     if "ood" not in skip:
@@ -278,7 +409,7 @@ def main(argv=None) -> int:
     if "bench" not in skip:
         # Several thread counts: with 2 threads on a busy 2-core machine every parallel region waits
         # for a descheduled thread, which hurts the loop (5x the regions) far more than the fused pass.
-        threads = [int(t) for t in args.bench_threads.split(",")] if args.bench_threads else [args.threads]
+        threads = args.bench_threads or [args.threads]
         figures["bench"] = {f"threads{t}_batch{b}": run_score_bench(members=5, image_size=64, batch=b, threads=t,
                                                                    seconds=args.bench_seconds / 2, rounds=5,
                                                                    device=args.device)

@@ -101,6 +101,104 @@ def test_figure_scripts_refuse_a_frame_size_no_model_trains_on_in_one_line(tmp_p
     assert not data.exists()  # refused before anything was made
 
 
+UNCERTAINTY_FIGURES_REFUSALS = [
+    (["--skip", "foo"], "argument --skip: expected a comma list of main, ood, bench, found 'foo'"),
+    (["--skip", "main,ood,bench"], "--skip main,ood,bench leaves no figure to make"),
+    (["--members", "1"], "argument --members: expected an ensemble of at least 2 members (one cannot disagree), "
+                         "found 1"),
+    (["--threads", "0"], "argument --threads: expected a positive integer, found 0"),
+    (["--epochs", "0"], "argument --epochs: expected a positive integer, found 0"),
+    (["--lr", "nan"], "argument --lr: expected a positive number, found 'nan'"),
+    (["--steps", "2"], "argument --steps: expected at least 3 steps (a model learns from 2 frames of context and "
+                       "the next one), found 2"),
+    (["--bench-threads", "2,x"], "argument --bench-threads: expected a comma list of positive integers such as "
+                                 "1,2, found '2,x'"),
+    (["--json", "{tmp}/no/such/dir/figures.json"], "argument --json: expected a file in an existing directory, "
+                                                  "found no directory {tmp}/no/such/dir"),
+    (["--skip", "ood", "--ood-epochs", "3"], "--ood-epochs sets the ood figure, which --skip leaves out"),
+    (["--skip", "main,ood", "--steps", "30"], "--steps sets the main and ood figures, which --skip leaves out"),
+    (["--skip", "bench", "--bench-threads", "1"], "--bench-threads sets the bench figure, which --skip leaves out"),
+    (["--steps", "6"], "--steps 6 is too short for --context 2: the main figure's calibration rolls out 5 steps "
+                       "after the context (--steps at least 7)"),
+    (["--skip", "main,bench", "--ood-horizon", "49"], "--ood-horizon 49 leaves no step to score in episodes of "
+                                                      "--steps 50 (2 context frames first: at most 48)"),
+    (["--skip", "main,bench", "--ood-cache", "{tmp}/cache.pt"],
+     "--ood-cache {tmp}/cache.pt: not a file torch.save wrote; give another file or remove it"),
+]
+
+
+@pytest.mark.parametrize("flags, message", UNCERTAINTY_FIGURES_REFUSALS)
+def test_uncertainty_figures_refuses_bad_flags_in_one_line_before_any_work(tmp_path, flags, message):
+    """Each bad value or pair of flags that contradict each other: exit 2, one line, nothing collected (the
+    --skip typo ran every figure; the rest failed after collecting 80 episodes, or after training)."""
+    data = tmp_path / "data"
+    (tmp_path / "cache.pt").write_text("not a checkpoint\n")
+    main_flags = [] if "main" in " ".join(flags) else ["--data", str(data)]
+    argv = [sys.executable, str(ROOT / "bench" / "uncertainty_figures.py"), *main_flags,
+            *(f.format(tmp=tmp_path) for f in flags)]
+    proc = subprocess.run(argv, cwd=ROOT, capture_output=True, text=True, timeout=120)
+    assert (proc.returncode, proc.stderr.splitlines()) == (2, [f"uncertainty_figures.py: error: "
+                                                               f"{message.format(tmp=tmp_path)}"])
+    assert proc.stdout == "" and not data.exists()
+
+
+def test_uncertainty_figures_needs_data_for_the_main_figure_only_and_explains_every_flag():
+    proc = subprocess.run([sys.executable, str(ROOT / "bench" / "uncertainty_figures.py"), "--skip", "bench"],
+                          cwd=ROOT, capture_output=True, text=True, timeout=120)
+    assert (proc.returncode, proc.stderr.splitlines()) == (2, ["uncertainty_figures.py: error: --data is required "
+                                                               "for the main figure (or --skip main)"])
+    from bench.uncertainty_figures import build_parser, check_args
+    parser = build_parser()
+    assert [a.option_strings for a in parser._actions if not a.help] == []  # --help explains every flag
+    for recorded in (["--data", "DIR", "--skip", "main,bench", "--threads", "1", "--ood-epochs", "40"],
+                     ["--data", "DIR", "--skip", "main,ood", "--bench-threads", "1,2", "--bench-seconds", "20"]):
+        check_args(parser, parser.parse_args(recorded))  # BENCHMARKS.md's commands: --data unused, not refused
+
+
+def test_uncertainty_figures_refuses_a_data_directory_of_another_eval_split_before_collecting(tmp_path):
+    """A data directory whose pinned eval split was made with other settings (here 2 episodes): one line, exit 2,
+    nothing added (it was a traceback)."""
+    from workers.collect import create_eval_split
+    data = tmp_path / "data"
+    catalog = Catalog(data)
+    create_eval_split(catalog, episodes=2, seed=1234, steps=8, image_size=16)
+    proc = subprocess.run([sys.executable, str(ROOT / "bench" / "uncertainty_figures.py"), "--data", str(data),
+                           "--steps", "8", "--image-size", "16", "--skip", "ood,bench"], cwd=ROOT,
+                          capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 2, proc.stderr[-2000:]
+    assert [line.startswith(f"uncertainty_figures.py: error: --data {data}: ") for line in proc.stderr.splitlines()] \
+        == [True]
+    assert catalog.count(split="train") == 0 and catalog.count(split="eval") == 2
+
+
+def test_uncertainty_figures_refuses_an_ood_cache_of_other_members_before_the_main_figure(tmp_path):
+    import torch
+    from uncertainty.ensemble import Ensemble
+    from uncertainty.model import PredictorConfig
+    cache = tmp_path / "ood.pt"
+    torch.save({"weights": Ensemble(PredictorConfig(image_size=16), members=2).state_dict(), "losses": [1.0]}, cache)
+    proc = subprocess.run([sys.executable, str(ROOT / "bench" / "uncertainty_figures.py"), "--data",
+                           str(tmp_path / "data"), "--members", "3", "--ood-cache", str(cache)], cwd=ROOT,
+                          capture_output=True, text=True, timeout=120)
+    assert (proc.returncode, proc.stderr.splitlines()) == (2, [
+        f"uncertainty_figures.py: error: --ood-cache {cache}: not the OOD ensemble of --members 3 (its weights "
+        "differ in shape); give its --members, or another file"])
+    assert not (tmp_path / "data").exists()
+
+
+def test_torch_threads_reports_a_failed_timing_process_with_its_stderr(tmp_path):
+    """A timing process that fails: its exit status is checked before its output is parsed, its stderr's end
+    shown, exit 1 (it was a ValueError from unpacking an empty output). A torch.py in the working directory
+    shadows torch in the `python -c` children only (the script itself imports no torch)."""
+    (tmp_path / "torch.py").write_text("import sys\nsys.stderr.write('torch broken on purpose\\n')\nsys.exit(3)\n")
+    proc = subprocess.run([sys.executable, str(ROOT / "bench" / "torch_threads.py"), "--steps", "3"], cwd=tmp_path,
+                          capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 1 and "Traceback" not in proc.stderr, proc.stderr[-2000:]
+    assert proc.stderr.splitlines() == ["torch_threads.py: a timing process of 'alone' exited 3; its stderr ends:",
+                                        "torch broken on purpose"]
+    assert proc.stdout == ""
+
+
 def test_torch_threads_times_every_setting_and_refuses_no_steps(tmp_path):
     out = tmp_path / "threads.json"
     script = str(ROOT / "bench" / "torch_threads.py")
@@ -113,7 +211,8 @@ def test_torch_threads_times_every_setting_and_refuses_no_steps(tmp_path):
     assert settings["one thread, two at once"]["threads"] == 1
     bad = subprocess.run([sys.executable, script, "--steps", "0"], cwd=ROOT, capture_output=True, text=True,
                          timeout=60)
-    assert bad.returncode == 2 and "--steps must be at least 1" in bad.stderr
+    assert (bad.returncode, bad.stderr.splitlines()) == (2, ["torch_threads.py: error: --steps must be at least 1, "
+                                                            "found 0"])  # one line: no usage above it
 
 
 def _data_with_a_champion(data: Path) -> None:
@@ -183,6 +282,26 @@ def test_heap_trim_plays_the_episodes_through_the_planner_in_each_setting(tmp_pa
     assert settings["no trim"]["per_s_over_no_trim"] == 1.0
     trims = [s["trims"] for s in settings.values()]
     assert trims in ([0, 3, 1, 0], [0, 0, 0, 0])  # (all 0: a C library without malloc_trim)
+
+
+def test_calibration_diagnostic_takes_a_version_as_models_show_does(tmp_path):
+    """An unknown version, a directory that is no data directory and one without a champion: exit 2 in one line
+    (they were a traceback, or exit 1); a unique prefix of a version is taken as `models show` takes it."""
+    script, data = str(ROOT / "bench" / "calibration_diagnostic.py"), tmp_path / "data"
+    run = lambda *a: subprocess.run([sys.executable, script, "--data", str(data), *a], cwd=ROOT,  # noqa: E731
+                                    capture_output=True, text=True, timeout=120)
+    error = lambda proc: (proc.returncode, proc.stderr.splitlines())  # noqa: E731
+    prefix = "calibration_diagnostic.py: error:"
+    assert error(run()) == (2, [f"{prefix} --data {data}: not a data directory (no catalog.sqlite)"])
+    Catalog(data)
+    assert error(run()) == (2, [f"{prefix} --data {data}: no champion; give --version"])
+    assert error(run("--version", "m9")) == (2, [f"{prefix} unknown model version 'm9'; the registry is empty"])
+    _data_with_a_champion(data)
+    version = ModelRegistry(data).champion()
+    assert error(run("--version", "m9")) == (2, [f"{prefix} unknown model version 'm9'; latest: {version}"])
+    proc = run("--version", version[:7])
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert json.loads(proc.stdout)["version"] == version
 
 
 def test_make_bench_keeps_each_benchmarks_whole_json_indented_or_compact():
