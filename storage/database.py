@@ -240,6 +240,17 @@ def _use_wal(conn: sqlite3.Connection, busy_timeout_ms: int) -> None:
         conn.execute(f"PRAGMA busy_timeout = {busy_timeout_ms}")
 
 
+def _unwritable_note(exc: sqlite3.Error, db_path: str | Path) -> str:
+    """Why a database in a folder that cannot be written (a read-only mount, a copy on read-only media) fails to
+    open even to be read, or ''. SQLite's error says only "unable to open database file"."""
+    folder = Path(db_path).parent
+    code = (getattr(exc, "sqlite_errorcode", None) or 0) & 0xFF
+    if code not in (sqlite3.SQLITE_CANTOPEN, sqlite3.SQLITE_READONLY) or os.access(folder, os.W_OK):
+        return ""
+    return (f" ({folder} cannot be written: SQLite writes its -wal and -shm files beside the database even to "
+            "read it; make it writable, or copy the data directory somewhere that is)")
+
+
 @contextmanager
 def connection(db_path: str | Path, error: type[StorageError]) -> Iterator[sqlite3.Connection]:
     """``connect`` for the length of a ``with`` block, closed after it.
@@ -252,7 +263,8 @@ def connection(db_path: str | Path, error: type[StorageError]) -> Iterator[sqlit
     try:
         conn = connect(db_path)
     except sqlite3.Error as exc:
-        raise storage_error(exc, error, f"cannot open the database {db_path}: {exc}", db_path) from exc
+        raise storage_error(exc, error, f"cannot open the database {db_path}: {exc}{_unwritable_note(exc, db_path)}",
+                            db_path) from exc
     try:
         yield conn
     except sqlite3.Error as exc:

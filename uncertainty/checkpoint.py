@@ -80,8 +80,17 @@ def _check_shapes(config: PredictorConfig, members: int, params: Any) -> None:
             or not all(isinstance(k, str) for k in params)):
         found = type(params).__name__ if not isinstance(params, dict) else "other keys or values"
         raise CheckpointError(f"checkpoint parameters must be a dict of names to tensors, found {found}")
-    with torch.device("meta"):
-        template = Predictor(config)
+    odd = next((k for k, t in params.items() if not _dense_float(t)), None)
+    if odd is not None:
+        t = params[odd]
+        raise CheckpointError(f"checkpoint parameter {odd} must be a dense floating-point tensor, found a "
+                              f"{t.layout} {t.dtype} tensor on {t.device}")
+    try:
+        with torch.device("meta"):
+            template = Predictor(config)
+    except (TypeError, ValueError, OverflowError, RuntimeError) as exc:  # sizes past torch's 64 bits
+        raise CheckpointError(f"checkpoint config is invalid: {config} makes no predictor: {type(exc).__name__}: "
+                              f"{str(exc).splitlines()[0] if str(exc) else ''}") from exc
     expected = {name: (members, *p.shape) for name, p in template.named_parameters()}
     if set(params) != set(expected):
         raise CheckpointError(f"checkpoint parameters must be {sorted(expected)}, found {sorted(params)}")
@@ -90,6 +99,12 @@ def _check_shapes(config: PredictorConfig, members: int, params: Any) -> None:
             raise CheckpointError(f"checkpoint config does not match its weights: parameter {name} of "
                                   f"{members} member(s) of {config} must have shape {shape}, "
                                   f"found {tuple(params[name].shape)}")
+
+
+def _dense_float(t: torch.Tensor) -> bool:
+    """Whether ``t`` holds numbers a parameter can take: dense floats in memory (not sparse, not ``meta``, not
+    integers or complex numbers that ``copy_`` would cast without a word)."""
+    return t.layout == torch.strided and t.is_floating_point() and t.device.type == "cpu"
 
 
 def _load_tensors(ensemble: Ensemble, payload: dict[str, Any]) -> None:
@@ -102,10 +117,12 @@ def _load_tensors(ensemble: Ensemble, payload: dict[str, Any]) -> None:
             p.copy_(t)
         for key in ("action_mean", "action_std"):
             t = payload.get(key)
-            if (not isinstance(t, torch.Tensor) or t.shape != (ensemble.config.action_dim,)
+            if (not isinstance(t, torch.Tensor) or not _dense_float(t) or t.shape != (ensemble.config.action_dim,)
                     or not bool(torch.isfinite(t).all())):
-                raise CheckpointError(f"checkpoint {key} must be a finite tensor of shape "
-                                      f"({ensemble.config.action_dim},), found {t!r}")
+                found = (f"a {t.layout} {t.dtype} tensor of shape {tuple(t.shape)}" if isinstance(t, torch.Tensor)
+                         else repr(t)[:80])  # (a tensor's repr runs over lines)
+                raise CheckpointError(f"checkpoint {key} must be a finite floating-point tensor of shape "
+                                      f"({ensemble.config.action_dim},), found {found}")
         try:
             ensemble.set_action_stats(payload["action_mean"].numpy(), payload["action_std"].numpy())
         except ConfigError as exc:

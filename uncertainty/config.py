@@ -17,6 +17,8 @@ from uncertainty.errors import ConfigError
 #: 500``, ``--widths 16,32,6400``) would allocate gigabytes, or run for days, before anything says so.
 MAX_MEMBERS = 64
 MAX_WIDTH = 1024
+#: Largest seed: torch's generators take 64 bits, and a larger ``--seed`` failed deep in the trainer.
+MAX_SEED = 2**64 - 1
 
 
 @dataclass
@@ -65,6 +67,8 @@ class TrainConfig:
                 raise ConfigError(f"{name} must be >= 1, found {getattr(self, name)}")
         if self.members < 2:  # its disagreement is 0 everywhere: nothing for the planner, nan for calibration
             raise ConfigError(f"members must be >= 2 (one member cannot disagree), found {self.members}")
+        if not 0 <= self.seed <= MAX_SEED:
+            raise ConfigError(f"seed must be an integer from 0 to {MAX_SEED} (2**64 - 1), found {self.seed}")
         if self.members > MAX_MEMBERS:
             raise ConfigError(f"members must be <= {MAX_MEMBERS}, found {self.members}")
         if not self.lr > 0 or not math.isfinite(self.lr):

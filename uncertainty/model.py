@@ -14,6 +14,7 @@ Imports nothing of ours but the package's errors: no training, storage or I/O.
 from __future__ import annotations
 
 import math
+import numbers
 from dataclasses import dataclass
 
 import torch
@@ -52,13 +53,15 @@ class PredictorConfig:
     """Also predict a per-pixel log-variance of the next frame (see ``Predictor.forward``)."""
 
     def __post_init__(self) -> None:
+        for name in ("image_size", "context", "action_dim", "action_hidden"):
+            object.__setattr__(self, name, _whole(name, getattr(self, name)))
         if not 8 <= self.image_size <= MAX_IMAGE_SIZE or self.image_size % 8:
             raise ConfigError(f"image_size must be a multiple of 8 in [8, {MAX_IMAGE_SIZE}], found {self.image_size}")
         if self.context < 1:
             raise ConfigError(f"context must be >= 1, found {self.context}")
         if self.action_dim < 1:
             raise ConfigError(f"action_dim must be >= 1, found {self.action_dim}")
-        widths = tuple(int(w) for w in self.widths)
+        widths = tuple(_whole("widths", w) for w in self.widths)
         if len(widths) != 3 or min(widths) < 1:
             raise ConfigError(f"widths must be three positive channel counts, found {self.widths}")
         object.__setattr__(self, "widths", widths)
@@ -83,6 +86,14 @@ class PredictorConfig:
         if "widths" in d:
             d["widths"] = tuple(d["widths"])
         return cls(**d)
+
+
+def _whole(name: str, value: object) -> int:
+    """``value`` as an int; ``ConfigError`` for anything else (a float, a string, a bool), which a config read
+    from a file may hold and torch's layers refuse with a TypeError of their own."""
+    if isinstance(value, bool) or not isinstance(value, numbers.Integral):
+        raise ConfigError(f"{name}: expected an integer, found {value!r}")
+    return int(value)
 
 
 #: Range of the predicted log-variance: ``LOGVAR_MID +- LOGVAR_HALF_RANGE`` (a tanh squashes the raw output),

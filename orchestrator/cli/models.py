@@ -50,7 +50,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="members also predict the variance of their own error (a fresh model only); eval then "
                         "reports the calibration of the total predictive variance next to the disagreement's")
     p.add_argument("--seed", type=common.non_negative_int, default=TrainConfig.seed, metavar="K",
-                   help=f"seed of the initialisation and the shuffling (default {TrainConfig.seed})")
+                   help=f"seed of the initialisation and the shuffling, 0 to 2**64-1 (default {TrainConfig.seed})")
     p.add_argument("--device", type=common.torch_device, default="auto",
                    help="torch device: auto, cpu or cuda (default auto: cuda when there is one)")
     p.add_argument("--min-improvement", type=common.fraction, default=TrainConfig.min_rel_improvement,

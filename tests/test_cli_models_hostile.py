@@ -1,0 +1,136 @@
+"""The model commands (``train``, ``eval``, ``score``, ``models``) given what an operator, or a damaged or hand-made
+file, should not give them: one line and a non-zero exit, never a traceback, and nothing changed."""
+
+from __future__ import annotations
+
+import io
+import shlex
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from tests.conftest import run_cli
+from tests.test_cli_models import _episode
+from storage.catalog import Catalog
+from storage.models import ModelRegistry
+from uncertainty.checkpoint import ensemble_from_bytes, ensemble_to_bytes
+from uncertainty.config import MAX_SEED, TrainConfig
+from uncertainty.ensemble import Ensemble
+from uncertainty.errors import CheckpointError, ConfigError
+from uncertainty.model import PredictorConfig
+
+
+@pytest.fixture(scope="module")
+def catalog_dir(tmp_path_factory):
+    """A data dir with 2 train and 1 pinned eval episode (16x16), no model."""
+    data = tmp_path_factory.mktemp("hostile") / "data"
+    catalog, rng = Catalog(data), np.random.default_rng(11)
+    for _ in range(2):
+        catalog.add_episode(_episode(rng), split="train")
+    catalog.pin_eval_split([catalog.add_episode(_episode(rng), split="eval").episode_id])
+    return data
+
+
+@pytest.mark.parametrize("seed", [MAX_SEED + 1, 10**30])
+def test_train_with_a_seed_past_64_bits_is_a_usage_error_and_registers_nothing(capsys, catalog_dir, seed) -> None:
+    """torch's generators take 64 bits: ``--seed 2**64`` was a ValueError traceback from inside the trainer."""
+    rc, out, err = run_cli(capsys, "train", "--data", str(catalog_dir), "--members", "2", "--epochs", "1",
+                           "--device", "cpu", "--seed", str(seed))
+    assert rc == 2 and out == "" and len(err.strip().splitlines()) == 1, err
+    assert f"--seed must be an integer from 0 to {MAX_SEED} (2**64 - 1), found {seed}" in err
+    assert ModelRegistry(catalog_dir).list() == []
+
+
+def test_train_config_takes_every_64_bit_seed() -> None:
+    assert TrainConfig(seed=MAX_SEED).seed == MAX_SEED
+    with pytest.raises(ConfigError, match="seed must be"):
+        TrainConfig(seed=-1)
+
+
+def _checkpoint(change) -> bytes:
+    """A real 16px, 2-member checkpoint's bytes with ``change(payload)`` applied (what a hand-made or foreign
+    file may hold: its sha256 is registered with it, so only the loader's checks stand in the way)."""
+    payload = torch.load(io.BytesIO(ensemble_to_bytes(Ensemble(PredictorConfig(image_size=16), members=2))),
+                         weights_only=True)
+    change(payload)
+    buf = io.BytesIO()
+    torch.save(payload, buf)
+    return buf.getvalue()
+
+
+def _first_param(payload: dict, make) -> None:
+    name = next(iter(payload["params"]))
+    payload["params"][name] = make(payload["params"][name])
+
+
+# Each was a traceback (TypeError, NotImplementedError or RuntimeError from torch) out of `eval` and `score`.
+HOSTILE = {
+    "a context past 64 bits": (lambda p: p["predictor"].update(context=10**30), "makes no predictor"),
+    "a width past 64 bits": (lambda p: p["predictor"].update(widths=[16, 32, 10**30]), "makes no predictor"),
+    "a float action_dim": (lambda p: p["predictor"].update(action_dim=2.0), "action_dim: expected an integer"),
+    "a float context": (lambda p: p["predictor"].update(context=2.0), "context: expected an integer"),
+    "a sparse parameter": (lambda p: _first_param(p, lambda t: t.to_sparse()), "dense floating-point tensor"),
+    "a meta parameter": (lambda p: _first_param(p, lambda t: torch.empty(t.shape, device="meta")),
+                         "dense floating-point tensor"),
+    "a sparse action_mean": (lambda p: p.update(action_mean=torch.zeros(2).to_sparse()),
+                             "action_mean must be a finite floating-point tensor of shape (2,), found a "
+                             "torch.sparse_coo"),
+}
+
+
+@pytest.mark.parametrize("what", list(HOSTILE))
+def test_eval_and_score_refuse_a_checkpoint_torch_cannot_build_in_one_line(capsys, tmp_path, what) -> None:
+    change, words = HOSTILE[what]
+    data = tmp_path / "data"
+    reg = ModelRegistry(data)
+    version = reg.register(_checkpoint(change), {"members": 2}, {"h1_mse": 0.01}, "snap", "split")
+    reg.gate(version)  # the first champion
+    episode = Catalog(data).add_episode(_episode(np.random.default_rng(2))).episode_id
+    for argv in (("eval", version[:7]), ("eval",), ("score", episode)):
+        rc, out, err = run_cli(capsys, *argv, "--data", str(data), "--device", "cpu")
+        assert rc == 1 and out == "" and len(err.strip().splitlines()) == 1, (argv, err)
+        assert "cannot load" in err and "checkpoint" in err and words in err, (argv, err)
+    assert reg.champion() == version
+
+
+@pytest.mark.parametrize("dtype", [torch.int64, torch.bool, torch.complex64])
+def test_a_checkpoint_of_integer_or_complex_weights_is_refused_not_cast(dtype) -> None:
+    """``copy_`` would cast them into the float parameters without a word (complex: with a warning)."""
+    data = _checkpoint(lambda p: _first_param(p, lambda t: t.to(dtype)))
+    with pytest.raises(CheckpointError, match=f"must be a dense floating-point tensor, found a torch.strided {dtype}"):
+        ensemble_from_bytes(data, "cpu")
+
+
+def test_a_whole_checkpoint_still_loads() -> None:
+    ensemble = ensemble_from_bytes(_checkpoint(lambda p: None), "cpu")
+    assert ensemble.members == 2 and ensemble.config.image_size == 16
+
+
+def _read_only_mount_works() -> bool:
+    probe = subprocess.run(["unshare", "-m", "true"], capture_output=True) if shutil.which("unshare") else None
+    return probe is not None and probe.returncode == 0
+
+
+@pytest.mark.skipif(not _read_only_mount_works(), reason="needs unshare -m (root) for a real read-only bind mount")
+@pytest.mark.parametrize("argv", [("models", "ls"), ("eval",), ("score", "0")])
+def test_a_read_only_data_directory_is_named_as_such_in_one_line(tmp_path, argv) -> None:
+    """SQLite said only 'unable to open database file' of a data directory on a read-only mount."""
+    data = tmp_path / "data"
+    Catalog(data).add_episode(_episode(np.random.default_rng(5)))
+    ModelRegistry(data)
+    before = sorted((p.name, p.stat().st_size) for p in data.iterdir())
+    cli = " ".join(shlex.quote(a) for a in (sys.executable, "-m", "orchestrator", *argv, "--data", str(data)))
+    script = (f"mount --bind {shlex.quote(str(data))} {shlex.quote(str(data))} && "
+              f"mount -o remount,ro,bind {shlex.quote(str(data))} || exit 99; exec {cli}")
+    proc = subprocess.run(["unshare", "-m", "sh", "-c", script], capture_output=True, text=True, timeout=120,
+                          cwd=Path(__file__).parents[1])
+    if proc.returncode == 99:
+        pytest.skip(f"no read-only bind mount here: {proc.stderr.strip()}")
+    assert proc.returncode == 1 and proc.stdout == "" and len(proc.stderr.strip().splitlines()) == 1, proc.stderr
+    assert f"({data} cannot be written: SQLite writes its -wal and -shm files beside the database" in proc.stderr
+    assert sorted((p.name, p.stat().st_size) for p in data.iterdir()) == before
