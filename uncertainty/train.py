@@ -307,7 +307,8 @@ def check_evaluable(config: PredictorConfig, eval_episodes: Sequence[Episode]) -
     sizes = sorted({int(ep.frames.shape[1]) for ep in eval_episodes})
     if sizes != [config.image_size]:
         raise DataError(f"the eval split has {'/'.join(map(str, sizes))}px frames, the model {config.image_size}px: "
-                        "train on episodes of the eval split's size (or pin a new eval split)")
+                        "train on episodes of the eval split's size (its pinned split is never replaced: a "
+                        "model of another size needs a data directory of its own)")
     if config.image_size < M.SSIM_WINDOW:
         raise DataError(f"{config.image_size}px frames are too small to evaluate: SSIM needs at least "
                         f"{M.SSIM_WINDOW}x{M.SSIM_WINDOW}")

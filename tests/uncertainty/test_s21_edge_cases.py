@@ -66,8 +66,9 @@ def test_evaluate_says_when_the_model_has_another_frame_size_than_the_eval_split
     cat = _catalog(tmp_path, size=32)
     eps = [make_episode(s, steps=6) for s in range(2)]  # 16px
     ens = new_ensemble(TrainConfig(epochs=1, **TINY), eps)
-    with pytest.raises(DataError, match="the eval split has 32px frames, the model 16px"):
+    with pytest.raises(DataError, match="the eval split has 32px frames, the model 16px") as info:
         evaluate(ens, cat)
+    assert "pin a new" not in str(info.value) and "a data directory of its own" in str(info.value)  # (never replaced)
 
 
 def _old_catalog(tmp_path, monkeypatch, train_sizes) -> tuple[Catalog, list[str]]:
