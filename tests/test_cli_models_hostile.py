@@ -134,3 +134,17 @@ def test_a_read_only_data_directory_is_named_as_such_in_one_line(tmp_path, argv)
     assert proc.returncode == 1 and proc.stdout == "" and len(proc.stderr.strip().splitlines()) == 1, proc.stderr
     assert f"({data} cannot be written: SQLite writes its -wal and -shm files beside the database" in proc.stderr
     assert sorted((p.name, p.stat().st_size) for p in data.iterdir()) == before
+
+
+def test_score_of_an_episode_of_another_frame_size_than_the_champion_says_both_sizes(capsys, tmp_path) -> None:
+    """It said ``frames must be (T,16,16,3), found (12, 24, 24, 3)``: the arrays, not what differs or why."""
+    from storage.episodes import encode_episode
+    data = tmp_path / "data"
+    reg = ModelRegistry(data)
+    reg.gate(reg.register(_checkpoint(lambda p: None), {"members": 2}, {"h1_mse": 0.01}, "snap", "split"))
+    episode = _episode(np.random.default_rng(3), size=24)
+    path = tmp_path / "other.mcap"
+    path.write_bytes(encode_episode(episode))
+    rc, out, err = run_cli(capsys, "score", str(path), "--data", str(data), "--device", "cpu")
+    assert rc == 1 and out == "" and len(err.strip().splitlines()) == 1, err
+    assert f"episode {episode.meta.episode_id}: its frames are 24px, the champion's 16px" in err, err

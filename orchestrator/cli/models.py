@@ -229,6 +229,10 @@ def _score(args: argparse.Namespace) -> int:
     ensemble = _load(ModelRegistry(data), None, args.device)
     if ensemble is None:
         return 1
+    size = ensemble.config.image_size
+    if episode.meta.image_size != size:  # (the ensemble's own check says only the array shapes)
+        return fail(f"cannot score episode {episode.meta.episode_id}: its frames are {episode.meta.image_size}px, "
+                    f"the champion's {size}px: a model scores episodes of the size it trained on")
     _check_horizon(args.horizon, episode, ensemble.config.context)
     from uncertainty.score import score_episode  # torch (already loaded by _load): start-up cost, not a cycle
     try:
