@@ -108,6 +108,8 @@ class ChampionScorer:
         """Why the registry's champion is not the one loaded (None when it is)."""
         self._failed: tuple[str, tuple[int, int, int, int] | None] | None = None
         self._retry_at = 0.0
+        self._said: frozenset[bool] = frozenset()
+        """The kinds of failure (busy or not) logged above DEBUG for ``_failed``."""
 
     def _registry(self) -> ModelRegistry:
         if not hasattr(self._local, "registry"):
@@ -136,8 +138,10 @@ class ChampionScorer:
                 ensemble = load_ensemble(registry, champion, self.device)
             except RegistryError as exc:  # a corrupt checkpoint: keep scoring with the one we have
                 busy = isinstance(exc, StorageUnavailableError)
-                level = logging.DEBUG if attempt == self._failed else logging.WARNING if busy else logging.ERROR
-                self._failed = attempt  # (logged once, not every retry)
+                # each kind logged once, not every retry: damage found after a busy read is still an ERROR
+                said = self._said if attempt == self._failed else frozenset()
+                level = logging.DEBUG if busy in said else logging.WARNING if busy else logging.ERROR
+                self._failed, self._said = attempt, said | {busy}
                 self._retry_at = time.monotonic() + (self.BUSY_RETRY_S if busy else self.RETRY_S)
                 self.problem = f"cannot load champion {champion}{' now' if busy else ''}: {exc}"
                 log.log(level, "could not load champion %s%s, keeping %s: %s", champion,

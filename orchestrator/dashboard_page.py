@@ -68,10 +68,11 @@ function fill(tableId, rows, build) { const body = document.querySelector("#" + 
 // a refresh waits for the last one, and a request for at most FETCH_TIMEOUT_MS: a slow directory no longer piles
 // up requests that fill the server's connection slots; a hidden tab does not refresh
 const FETCH_TIMEOUT_MS = Math.max(10000, 5 * REFRESH_MS);
+function timeoutSignal(ms) {  // (AbortSignal.timeout: not in browsers before 2022, e.g. Safari 15: a timer aborts)
+  if (typeof AbortSignal.timeout === "function") return AbortSignal.timeout(ms);
+  const c = new AbortController(); setTimeout(() => c.abort(), ms); return c.signal; }
 async function getJSON(path) {
-  // (AbortSignal.timeout: not in browsers before 2022, e.g. Safari 15: there a request has no timeout)
-  const signal = typeof AbortSignal.timeout === "function" ? AbortSignal.timeout(FETCH_TIMEOUT_MS) : undefined;
-  const r = await fetch(path, {cache: "no-store", signal});
+  const r = await fetch(path, {cache: "no-store", signal: timeoutSignal(FETCH_TIMEOUT_MS)});
   // the server's one line says why (no catalog, a locked or damaged database), not only the status
   if (!r.ok) throw new Error(path + " answered " + r.status + ": " + (await r.text()).trim().slice(0, 300));
   return r.json(); }

@@ -298,7 +298,8 @@ class UploadHandler:
         except FrameSizeError as exc:  # from its metadata, before a chunk is inflated
             self._check_size(request, header, exc.found, exc.expected)  # (a lease that named no size)
             raise ProtocolError(ErrorCode.BAD_FIELD, f"upload {request.id}: {exc.found}px frames; this catalog holds "
-                                f"{exc.expected}px episodes, the size its lease named") from exc
+                                f"{exc.expected}px episodes (the size each lease names to a worker that says its own; "
+                                f"a worker from before image_size: start it with --size {exc.expected})") from exc
         except OversizedEpisodeError as exc:
             raise ProtocolError(ErrorCode.TOO_LARGE, str(exc)) from exc
         except EpisodeError as exc:

@@ -128,3 +128,71 @@ def test_a_hand_edited_marker_is_a_job_to_run_again_and_names_the_source_by_its_
     assert run_cli(capsys, "backup", "--data", "data", str(dest))[0] == 0
 
     assert json.loads((dest / DUE_MARKER).read_text())["copied"] == f"starting, when {data.resolve()} was backed up"
+
+
+def test_a_job_registered_and_gated_after_the_snapshot_runs_again_from_the_backup(tmp_path, capsys):
+    """The job was training at the snapshot: its model, registered and gated after it, is not in the copy, and its
+    notes say "done" by the time they are read. The copy, with the job's count and no model of it, owes the job."""
+    from storage.backup import backup
+    from storage.models import ModelRegistry
+
+    from orchestrator.scheduler import carry_schedule
+    data, dest = tmp_path / "data", tmp_path / "b1"
+    _filled(data, np.random.default_rng(8))
+    notes = data / "logs" / "retrain-1.log.notes"
+    notes.parent.mkdir(exist_ok=True)
+    notes.write_text(json.dumps({"phase": "training"}))
+    (data / DUE_MARKER).write_text(json.dumps({"trigger": "episodes", "notes": str(notes)}))
+    (data / COUNT_FILE).write_text("5")
+    registered = []
+
+    def carry(source):
+        write = carry_schedule(source)
+
+        def after_the_snapshot(copy):  # the job registers, gates and notes "done" before its notes are read
+            registry = ModelRegistry(source)
+            version = registry.register(b"weights" * 10, {}, {"h1_mse": 0.01}, snapshot_id="s", eval_split_hash="h")
+            registry.gate(version)
+            notes.write_text(json.dumps({"phase": "done", "version": version}))
+            registered.append(version)
+            write(copy)
+        return after_the_snapshot
+
+    backup(data, dest, carry=carry)
+
+    assert registered[0] not in [m.version for m in ModelRegistry(dest).list()]
+    assert json.loads((dest / DUE_MARKER).read_text())["copied"].startswith("gated after the snapshot")
+    episodes = Counter()
+    episodes.n = 5
+    assert RetrainScheduler(ScheduleConfig(every_episodes=5), dest, episodes,
+                            command=script_command(PROMOTES))._retry == "episodes"
+
+
+def test_the_schedule_is_read_before_the_snapshot_so_a_gate_just_before_the_read_is_in_the_copy(tmp_path, capsys):
+    """``carry(source)`` is called before the snapshot: a gate (and the marker's removal) that lands just before the
+    schedule is read is in the snapshot too. Read after the snapshot, the copy kept the model a candidate with
+    nothing owed: the job lost where the copy serves."""
+    from storage.backup import backup
+    from storage.models import ModelRegistry, ModelStatus
+
+    from orchestrator.scheduler import carry_schedule
+    data, dest = tmp_path / "data", tmp_path / "b1"
+    _filled(data, np.random.default_rng(9))
+    registry = ModelRegistry(data)
+    version = registry.register(b"weights" * 10, {}, {"h1_mse": 0.01}, snapshot_id="s", eval_split_hash="h")
+    notes = data / "logs" / "retrain-1.log.notes"
+    notes.parent.mkdir(exist_ok=True)
+    notes.write_text(json.dumps({"phase": "registered", "version": version}))
+    (data / DUE_MARKER).write_text(json.dumps({"trigger": "episodes", "notes": str(notes)}))
+    (data / COUNT_FILE).write_text("5")
+
+    def carry(source):  # the job's gate, its last note and its marker's removal, then the schedule's read
+        ModelRegistry(source).gate(version)
+        notes.write_text(json.dumps({"phase": "done", "version": version}))
+        (source / DUE_MARKER).unlink()
+        return carry_schedule(source)
+
+    backup(data, dest, carry=carry)
+
+    gated = ModelRegistry(dest).get(version).status is not ModelStatus.CANDIDATE
+    assert gated and not (dest / DUE_MARKER).exists()  # (a candidate with no marker would be a job lost)

@@ -283,3 +283,30 @@ def test_frames_png_gives_the_ensemble_actions_on_its_own_device():
     with pytest.raises(Seen):
         frames_png(ensemble, [make_episode(0, size=16)])
     assert seen == [torch.device("meta")] == [ensemble.device]
+
+
+def test_damage_found_after_a_busy_registry_is_still_an_error(tmp_path, monkeypatch, caplog):
+    """The first try met the database locked (a WARNING), the next one damaged weights: that one was logged at DEBUG
+    as a repeat of the same failure, so the damage was never said at ERROR (a review's reproduction)."""
+    registry = ModelRegistry(tmp_path)
+    version = _promoted(registry, 0, 0.02)
+    weights = registry.get(version).weights_path
+    weights.write_bytes(weights.read_bytes()[:-7])
+    scorer = ChampionScorer(tmp_path)
+    scorer.BUSY_RETRY_S = 0.0
+    busy = [True]
+    real = ModelRegistry.load_weights
+
+    def load_weights(self, v):
+        if busy.pop() if busy else False:
+            raise RegistryUnavailableError("database is locked")
+        return real(self, v)
+
+    monkeypatch.setattr(ModelRegistry, "load_weights", load_weights)
+    with caplog.at_level(logging.DEBUG, logger="orchestrator.champion"):
+        for _ in range(3):
+            assert scorer.reload() is None
+    said = [(r.levelname, "sha256" in r.getMessage()) for r in caplog.records if "could not load" in r.getMessage()]
+    assert said[:2] == [("WARNING", False), ("ERROR", True)], said
+    assert all(level == "DEBUG" for level, _ in said[2:]), said
+    assert "sha256" in scorer.problem

@@ -139,3 +139,36 @@ def test_a_tab_shown_again_refreshes_at_once_and_once():
     out = subprocess.run([NODE, "-e", SHOWN_AGAIN], input=script, capture_output=True, text=True, timeout=60,
                          check=True)
     assert json.loads(out.stdout) == {"hidden": 5, "hidden_period": 5, "shown": 10, "shown_twice_while_refreshing": 10}
+
+
+NO_TIMEOUT_HANGS = r"""
+delete AbortSignal.timeout;
+const script = require("fs").readFileSync(0, "utf8");
+let sent = 0, timers = [];
+globalThis.fetch = (path, opts) => { sent++; const signal = opts && opts.signal;  // never answered: only an abort
+  return new Promise((resolve, reject) => { if (signal) signal.addEventListener("abort", () => reject(new Error(
+    "aborted"))); }); };
+globalThis.setTimeout = (fn, ms) => { timers.push(fn); return timers.length; };
+globalThis.clearTimeout = () => {};
+const el = () => ({textContent: "", src: "", replaceChildren() {}, appendChild() {}, setAttribute() {}});
+globalThis.document = {hidden: false, getElementById: el, querySelector: el, createElement: el,
+  createElementNS: el, addEventListener() {}};
+const settle = async () => { for (let i = 0; i < 5; i++) await new Promise((r) => setImmediate(r)); };
+(async () => {
+  new Function(script)(); await settle();
+  for (let period = 0; period < 2; period++) { const now = timers; timers = []; for (const fn of now) fn();
+    await settle(); }
+  console.log(JSON.stringify({sent}));
+})();
+"""
+
+
+@pytest.mark.skipif(NODE is None, reason="needs Node.js to run the page's script")
+def test_without_abort_signal_timeout_a_read_never_answered_still_gives_up():
+    """A browser from before AbortSignal.timeout (Safari 15) had no timeout on a read: one the server never answered
+    held its refresh, and the page never refreshed again (each read waits for all: a refresh ends with its last)."""
+    page = render_page(2.0).decode()
+    script = page[page.index("<script>") + len("<script>"):page.index("</script>")]
+    out = subprocess.run([NODE, "-e", NO_TIMEOUT_HANGS], input=script, capture_output=True, text=True, timeout=60,
+                         check=True)
+    assert json.loads(out.stdout) == {"sent": 10}  # the reads given up on, then the next period's refresh

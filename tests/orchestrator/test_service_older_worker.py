@@ -154,3 +154,37 @@ def test_a_size_fixed_by_another_process_after_the_service_last_read_it_is_caugh
     assert "records 24px frames; this catalog holds 16px episodes" in message, message
     request = service.queue.get(grant.request_id)
     assert (request.status, request.attempts) == (RequestStatus.QUEUED, 0)
+
+
+def test_an_older_workers_upload_at_the_catalogs_size_refused_for_another_reason_is_charged_as_before(
+        service, client, keys) -> None:
+    """Only a size the catalog does not hold gives a request back uncharged: the catalog's other refusals of the
+    upload itself (here its episode id indexed with other bytes) are the worker's, as under any lease."""
+    for _ in range(2):
+        service.queue.enqueue(new_request())
+    first = lease(client, keys, image_size=16)
+    stored = upload(client, keys, first, episode_bytes(first))
+    grant = older_lease(client, keys, "old")
+    data = episode_bytes(grant, "old", episode_id=stored["episode_id"])
+    message = refused(ErrorCode.BAD_FIELD, upload, client, keys, grant, data, worker="old")
+    assert "already indexed" in message and "px" not in message, message
+    request = service.queue.get(grant.request_id)
+    assert (request.status, request.token) == (RequestStatus.LEASED, grant.token)  # its worker's fail charges it
+
+
+def test_an_older_workers_lease_from_before_a_restart_is_refused_without_claiming_its_lease_named_a_size(
+        make_service, client, keys) -> None:
+    """The leases granted without a size are remembered in memory: after a restart the upload is refused as any
+    other of another size, an attempt counted (see README "Upgrading"), and its words do not say that the lease
+    named the size (an older worker's never does)."""
+    service = make_service()
+    for _ in range(2):
+        service.queue.enqueue(new_request())
+    first = lease(client, keys, image_size=16)
+    upload(client, keys, first, episode_bytes(first))
+    grant = older_lease(client, keys, "old")
+    service.stop()
+    service = make_service()
+    message = refused(ErrorCode.BAD_FIELD, upload, client, keys, grant, episode_bytes(grant, "old", 24), worker="old")
+    assert "24px frames; this catalog holds 16px episodes" in message and "lease named" not in message, message
+    assert service.queue.get(grant.request_id).status == RequestStatus.LEASED  # its worker's fail charges it

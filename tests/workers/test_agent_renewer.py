@@ -6,8 +6,11 @@ import threading
 import time
 import types
 
+import zenoh
+
 from orchestrator import transport
 from orchestrator.messages import LeaseGrant
+from orchestrator.protocol import ErrorCode, ProtocolError
 from tests.conftest import wait_for
 import workers.lease
 from workers.lease import Renewer
@@ -158,3 +161,58 @@ def test_a_run_of_failed_renewals_ended_by_a_stop_says_its_count(monkeypatch, ca
     renewer.stop()
     said = [r.getMessage() for r in caplog.records]
     assert said == ["renew r4: no reply", "renew r4: 5 failed in a row when renewals stopped"]
+
+
+def _failing_then(clock, failures: int, then):
+    """A renewal call that fails ``failures`` times unanswered, then does ``then()``."""
+    calls: list[float] = []
+
+    def call(key: str, msg: bytes, timeout: float) -> dict:
+        calls.append(clock.now)
+        if len(calls) <= failures:
+            raise transport.TransportError("no reply")
+        return then()
+    return call
+
+
+def test_a_run_whose_failures_were_all_said_adds_no_line_when_renewals_stop(monkeypatch, caplog):
+    """The count is said at the end only for failures after the run's last WARNING: one failure, warned, then the
+    worker gives its request back and closes its session under the next renewal: the WARNING alone."""
+    clock = _on_the_tests_clock(monkeypatch)
+    grant = LeaseGrant(request_id="r5", task="push", shape="box", start_state=START, policy="push",
+                       policy_params={}, action_prefix=[], steps=5, model_version="", token=1,
+                       expires_at=time.time() + 0.06, lease_s=0.06)
+    second, stopped = threading.Event(), threading.Event()
+
+    def in_flight_when_the_episode_ends() -> dict:
+        second.set()
+        stopped.wait(30)
+        raise zenoh.ZError("session closed")
+
+    caplog.set_level("INFO", logger="workers.agent")
+    renewer = Renewer(_failing_then(clock, 1, in_flight_when_the_episode_ends), "ns/orch/renew", grant, "w1")
+    wait_for(second.is_set, timeout=30, message="the second renewal sent")
+    renewer.stop(wait=False)
+    stopped.set()
+    renewer.stop()
+    assert [r.getMessage() for r in caplog.records] == ["renew r5: no reply"]
+
+
+def test_a_run_of_failed_renewals_ended_by_a_lost_lease_says_its_count_and_why(monkeypatch, caplog):
+    clock = _on_the_tests_clock(monkeypatch)
+    grant = LeaseGrant(request_id="r6", task="push", shape="box", start_state=START, policy="push",
+                       policy_params={}, action_prefix=[], steps=5, model_version="", token=1,
+                       expires_at=time.time() + 0.06, lease_s=0.06)
+
+    def lost() -> dict:
+        raise ProtocolError(ErrorCode.STALE_TOKEN, "expected the live lease")
+
+    caplog.set_level("INFO", logger="workers.agent")
+    renewer = Renewer(_failing_then(clock, 3, lost), "ns/orch/renew", grant, "w1")
+    try:
+        wait_for(lambda: renewer.lost is not None, timeout=30, message="the lease lost")
+    finally:
+        renewer.stop()
+    said = [r.getMessage() for r in caplog.records]
+    assert said[0] == "renew r6: no reply" and said[1].startswith("lease of r6 lost (stale_token)"), said
+    assert said[2:] == ["renew r6: 3 failed in a row when renewals stopped (the lease was lost)"], said
