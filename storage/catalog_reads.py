@@ -99,7 +99,7 @@ class CatalogReads:
         sql = f"{episode_table.SELECT_ROWS}{where} ORDER BY e.rowid {'DESC' if newest_first else 'ASC'}"
         if limit is not None:
             sql += " LIMIT ?"
-            args.append(int(limit))
+            args.append(min(int(limit), 2**63 - 1))  # (more than SQLite's int64 holds: no fewer rows than all)
         with self._connect() as conn:
             return [self._row(r) for r in conn.execute(sql, args).fetchall()]
 

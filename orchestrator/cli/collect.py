@@ -106,7 +106,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                                    "train episodes in the catalog at --data (made when missing). Refused (exit 2) "
                                    "before anything is recorded when --size differs from the frame size the "
                                    "catalog holds, or when --seed would record eval episodes again.")
-    p.add_argument("--episodes", type=common.positive_int, default=10, metavar="N", help="how many (default 10)")
+    p.add_argument("--episodes", type=common.episode_count, default=10, metavar="N",
+                   help=f"how many, at most {common.MAX_COLLECT_EPISODES} (default 10)")
     p.add_argument("--shape", choices=(*SHAPES, "all"), default="all",
                    help="object shape; 'all' takes the shapes in turn (default)")
     p.add_argument("--policy", choices=POLICIES, default="push", help="collection policy (default push)")
@@ -128,7 +129,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                                    "go on: exit 1 when any was refused. The bytes of an episode already indexed "
                                    "repair its missing, damaged or quarantined file. Where --data holds no "
                                    "catalog, the first good file starts one (said on stderr).")
-    p.add_argument("paths", nargs="+", type=Path, metavar="PATH", help="MCAP files, or directories of them")
+    p.add_argument("paths", nargs="+", type=common.given_path, metavar="PATH",
+                   help="MCAP files, or directories of them")
     p.add_argument("--split", choices=SPLITS, default="train",
                    help="split to index them in (default train); eval episodes are neither trained nor evaluated "
                         "on until `eval-split pin` pins them")
@@ -145,8 +147,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                                     "them. A pinned split is never replaced: the same settings again change "
                                     "nothing, other settings exit 2 naming the flags to give, before anything is "
                                     "collected.")
-    p.add_argument("--episodes", type=common.positive_int, default=24, metavar="N",
-                   help="evaluation episodes; shapes take turns (default 24)")
+    p.add_argument("--episodes", type=common.episode_count, default=24, metavar="N",
+                   help=f"evaluation episodes, at most {common.MAX_COLLECT_EPISODES}; shapes take turns (default 24)")
     p.add_argument("--seed", type=common.non_negative_int, default=1234, metavar="K",
                    help="seed of their start states and policies (default 1234, as `run --eval-seed`)")
     p.add_argument("--size", type=common.trainable_image_size, default=64, metavar="PX",
@@ -215,17 +217,26 @@ def _collect(args: argparse.Namespace) -> int:
     plan = collect_plan(args.episodes, args.seed, None if args.shape == "all" else args.shape)
     _refuse_replays(args.data, plan, args.policy, args.size, "train", args.seed)
     cat = Catalog(args.data)
-    results, frames, size = [], 0, 0
+    results, frames, size, ep = [], 0, 0, None
     started = time.perf_counter()
-    with tqdm(total=args.episodes, unit="ep", desc="collect", file=sys.stderr, disable=None) as bar:
-        for policy_seed, start in plan:
-            ep = collect_episode(start_state=start, policy=args.policy, seed=policy_seed,
-                                 steps=args.steps, image_size=args.size)
-            res = cat.add_episode(ep)
-            results.append(res)
-            frames += len(ep)
-            size += res.path.stat().st_size
-            bar.update(1)
+    try:
+        with tqdm(total=args.episodes, unit="ep", desc="collect", file=sys.stderr, disable=None) as bar:
+            for policy_seed, start in plan:
+                ep = None
+                ep = collect_episode(start_state=start, policy=args.policy, seed=policy_seed,
+                                     steps=args.steps, image_size=args.size)
+                res = cat.add_episode(ep)
+                results.append(res)
+                frames += len(ep)
+                size += res.path.stat().st_size
+                bar.update(1)
+    except KeyboardInterrupt:  # what is kept, and why the same command would now be refused
+        in_hand = ep is not None and ep.meta.episode_id not in {r.episode_id for r in results}
+        kept = len(results) + bool(in_hand and cat.find(ep.meta.episode_id))
+        again = f"; --seed {args.seed} would record them again: give another --seed for more" if kept else ""
+        print(one_line(f"activecollect: interrupted: {kept} of the {args.episodes} episodes asked for are indexed "
+                       f"in {cat.data_dir} and kept{again}"), file=sys.stderr)
+        return 130
     seconds = time.perf_counter() - started
     out = {"episodes": [r.episode_id for r in results], "frames": frames, "bytes": size,
            "seconds": round(seconds, 3), "data_dir": str(cat.data_dir),
@@ -305,7 +316,28 @@ def _ingest(args: argparse.Namespace) -> int:
     if args.split == "eval" and cat is not None and cat.eval_split() is not None:
         print(f"activecollect: warning: {args.data} has its eval split pinned already (fixed for good): episodes "
               "ingested as eval now are kept, but nothing trains or evaluates on them", file=sys.stderr)
-    report = []
+    report: list[dict] = []
+    try:
+        cat = _ingest_each(args, files, cat, report)
+    except KeyboardInterrupt:  # (each file indexed is committed before the next is read)
+        indexed, at = sum(r["ok"] for r in report), min(len(report), len(files) - 1)
+        print(one_line(f"activecollect: interrupted at file {at + 1} of {len(files)} ({files[at]}): the {indexed} "
+                       "indexed before it are kept; run it again to index the rest (files already indexed are "
+                       "not indexed twice)"), file=sys.stderr)
+        return 130
+    refused = sum(not r["ok"] for r in report)
+    if args.json:
+        common.print_json({"ingested": len(report) - refused, "refused": refused, "files": report})
+    else:
+        where = cat.db_path if cat is not None else f"{Path(args.data) / DB_NAME} (not made: nothing to index)"
+        print(f"{len(report) - refused} of {len(report)} files indexed in {where}")
+    return 1 if refused else 0
+
+
+def _ingest_each(args: argparse.Namespace, files: list[Path], cat: Catalog | None,
+                 report: list[dict]) -> Catalog | None:
+    """Ingests each of ``files`` into ``cat`` (made with the first good file when None), appending to ``report``
+    as each is done; the catalog (None when none was made)."""
     for path in files:
         try:
             if cat is None:
@@ -328,13 +360,7 @@ def _ingest(args: argparse.Namespace) -> int:
         if not args.json:
             state = "restored" if res.restored else "already indexed" if res.duplicate else "ingested"
             print(f"{state} {res.episode_id} from {path}")
-    refused = sum(not r["ok"] for r in report)
-    if args.json:
-        common.print_json({"ingested": len(report) - refused, "refused": refused, "files": report})
-    else:
-        where = cat.db_path if cat is not None else f"{Path(args.data) / DB_NAME} (not made: nothing to index)"
-        print(f"{len(report) - refused} of {len(report)} files indexed in {where}")
-    return 1 if refused else 0
+    return cat
 
 
 # -- eval split --------------------------------------------------------------------------------

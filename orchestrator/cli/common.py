@@ -67,8 +67,11 @@ class Parser(argparse.ArgumentParser):
 def directory_path(text: str, what: str = "a directory") -> Path:
     """A directory, or a path where one can be made (no file on the way); ``what`` names it in the error.
 
-    Checks only; nothing is created. Raises ArgumentTypeError (exit 2) for a file in the way.
+    Checks only; nothing is created. Raises ArgumentTypeError (exit 2) for a file in the way, and for an empty
+    path (an unset shell variable), which Path would take for the current directory.
     """
+    if not text:
+        raise argparse.ArgumentTypeError(f"expected {what}, found an empty path (for this directory, give .)")
     path = Path(text)
     for step in (path, *path.parents):
         try:
@@ -115,6 +118,29 @@ def _int_at_least(text: str, low: int, what: str) -> int:
 
 def positive_int(text: str) -> int:
     return _int_at_least(text, 1, "a positive integer")
+
+
+#: The most episodes one ``collect`` or ``eval-split create`` records: each is planned and checked against the
+#: catalog before the first is recorded (~0.5 ms each, so ~1 min at the cap); run more commands, each with its
+#: own --seed, for more.
+MAX_COLLECT_EPISODES = 100_000
+
+
+def episode_count(text: str) -> int:
+    """``--episodes`` of the commands that record episodes: 1..``MAX_COLLECT_EPISODES``."""
+    value = positive_int(text)
+    if value > MAX_COLLECT_EPISODES:
+        raise argparse.ArgumentTypeError(f"expected at most {MAX_COLLECT_EPISODES} episodes per command (each is "
+                                         f"planned before the first is recorded), found {value}")
+    return value
+
+
+def given_path(text: str) -> Path:
+    """A path given as an argument to read from: an empty one (an unset shell variable) is refused, where Path
+    would take it for the current directory."""
+    if not text:
+        raise argparse.ArgumentTypeError("expected a path, found an empty path (for this directory, give .)")
+    return Path(text)
 
 
 def ensemble_size(text: str) -> int:

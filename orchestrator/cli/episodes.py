@@ -75,6 +75,16 @@ def resolve(cat: Catalog, episode_id: str) -> EpisodeRow:
         raise common.UsageError(str(exc)) from None
 
 
+def resolve_all(cat: Catalog, episode_ids: list[str]) -> list[EpisodeRow]:
+    """The episodes ``episode_ids`` name (``resolve``), each once in the order first named: an id given twice, or
+    as itself and as a prefix, is one episode (a second restore of it would be refused as not quarantined)."""
+    rows = {}
+    for i in episode_ids:
+        row = resolve(cat, i)
+        rows.setdefault(row.episode_id, row)
+    return list(rows.values())
+
+
 def _episodes_ls(args: argparse.Namespace) -> int:
     cat = common.existing_catalog(args)
     quarantined = True if args.quarantined else None
@@ -136,7 +146,7 @@ def _episodes_show(args: argparse.Namespace) -> int:
 
 def _episodes_verify(args: argparse.Namespace) -> int:
     cat = common.existing_catalog(args)
-    rows = [resolve(cat, i) for i in args.episode_ids] if args.episode_ids else cat.list(quarantined=False)
+    rows = resolve_all(cat, args.episode_ids) if args.episode_ids else cat.list(quarantined=False)
     report = []
     for row in tqdm(rows, unit="ep", desc="verify", file=sys.stderr, disable=None):
         entry = {"episode_id": row.episode_id, "ok": True, "error": "", "quarantined": bool(row.quarantined)}
@@ -182,7 +192,7 @@ def _episodes_quarantine(args: argparse.Namespace) -> int:
     cat = common.existing_catalog(args)
     if not args.reason.strip():
         raise common.UsageError("--reason must say why")
-    rows = [resolve(cat, i) for i in args.episode_ids]  # all known before any changes
+    rows = resolve_all(cat, args.episode_ids)  # all known before any changes
     split = cat.eval_split()
     for row in rows:
         if split is not None and row.episode_id in split.ids:  # (one pinned meanwhile is refused by the catalog)
@@ -195,7 +205,7 @@ def _episodes_restore(args: argparse.Namespace) -> int:
     if bool(args.episode_ids) == args.all:
         raise common.UsageError("give the episodes to restore, or --all (not both)")
     cat = common.existing_catalog(args)
-    rows = cat.list(quarantined=True) if args.all else [resolve(cat, i) for i in args.episode_ids]
+    rows = cat.list(quarantined=True) if args.all else resolve_all(cat, args.episode_ids)
     if not rows and not args.json:
         print(f"nothing is quarantined in {cat.data_dir}")
     return _each(args, rows, lambda row: cat.restore(row.episode_id), "restored")
