@@ -17,6 +17,7 @@ import errno
 import os
 import shutil
 import sqlite3
+import time
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from contextvars import ContextVar
@@ -228,7 +229,7 @@ def _use_wal(conn: sqlite3.Connection, busy_timeout_ms: int) -> None:
     if conn.execute("PRAGMA journal_mode").fetchone()[0] == "wal":  # the first read of the file: not a database?
         return
     if not conn.execute("PRAGMA page_count").fetchone()[0]:  # a new file: made WAL, as any write would wait
-        conn.execute("PRAGMA journal_mode = WAL")
+        _new_file_wal(conn, busy_timeout_ms)
         return
     conn.execute("PRAGMA busy_timeout = 0")
     try:
@@ -238,6 +239,25 @@ def _use_wal(conn: sqlite3.Connection, busy_timeout_ms: int) -> None:
             raise
     finally:
         conn.execute(f"PRAGMA busy_timeout = {busy_timeout_ms}")
+
+
+def _new_file_wal(conn: sqlite3.Connection, busy_timeout_ms: int) -> None:
+    """Make a new, empty file WAL. Connections opening it at once (``collect`` making a catalog while a dashboard
+    or ``stats`` reads it) each hold the shared lock the others' conversion needs: SQLite answers all but one
+    "database is locked" at once, without the busy wait (it would deadlock). Such a one finds the file WAL once
+    the other has made it, or tries again, within the busy timeout."""
+    deadline = time.monotonic() + busy_timeout_ms / 1000
+    while True:
+        try:
+            conn.execute("PRAGMA journal_mode = WAL")
+            return
+        except sqlite3.OperationalError as exc:
+            busy = (getattr(exc, "sqlite_errorcode", 0) or 0) & 0xFF == sqlite3.SQLITE_BUSY
+            if not busy or time.monotonic() >= deadline:
+                raise
+        if conn.execute("PRAGMA journal_mode").fetchone()[0] == "wal":
+            return
+        time.sleep(0.005)
 
 
 def _unwritable_note(exc: sqlite3.Error, db_path: str | Path) -> str:
