@@ -14,6 +14,21 @@ from tests.orchestrator.test_scheduler import HANGS, PROMOTES, Counter, script_c
 from tests.storage.test_backup import _filled
 
 
+def _job_registered(data, seed: int):
+    """A filled data directory whose scheduled job (5 episodes) has registered its model, not yet gated: the
+    model's version and the job's notes file."""
+    from storage.models import ModelRegistry
+    _filled(data, np.random.default_rng(seed))
+    version = ModelRegistry(data).register(b"weights" * 10, {}, {"h1_mse": 0.01}, snapshot_id="s",
+                                           eval_split_hash="h")
+    notes = data / "logs" / "retrain-1.log.notes"
+    notes.parent.mkdir(exist_ok=True)
+    notes.write_text(json.dumps({"phase": "registered", "version": version}))
+    (data / DUE_MARKER).write_text(json.dumps({"trigger": "episodes", "notes": str(notes)}))
+    (data / COUNT_FILE).write_text("5")
+    return version, notes
+
+
 def test_a_multiple_reached_before_the_backup_and_not_yet_retrained_is_retrained_where_it_serves(tmp_path, capsys):
     data, dest = tmp_path / "data", tmp_path / "b1"
     _filled(data, np.random.default_rng(3))
@@ -87,14 +102,7 @@ def test_a_job_gated_between_the_snapshot_and_the_schedule_read_runs_again_from_
 
     from orchestrator.scheduler import carry_schedule
     data, dest = tmp_path / "data", tmp_path / "b1"
-    _filled(data, np.random.default_rng(6))
-    registry = ModelRegistry(data)
-    version = registry.register(b"weights" * 10, {}, {"h1_mse": 0.01}, snapshot_id="s", eval_split_hash="h")
-    notes = data / "logs" / "retrain-1.log.notes"
-    notes.parent.mkdir(exist_ok=True)
-    notes.write_text(json.dumps({"phase": "registered", "version": version}))
-    (data / DUE_MARKER).write_text(json.dumps({"trigger": "episodes", "notes": str(notes)}))
-    (data / COUNT_FILE).write_text("5")
+    version, notes = _job_registered(data, 6)
 
     def carry(source):  # the job's gate, its last note and its marker's removal, between the snapshot and the copy
         write = carry_schedule(source)
@@ -177,14 +185,7 @@ def test_the_schedule_is_read_before_the_snapshot_so_a_gate_just_before_the_read
 
     from orchestrator.scheduler import carry_schedule
     data, dest = tmp_path / "data", tmp_path / "b1"
-    _filled(data, np.random.default_rng(9))
-    registry = ModelRegistry(data)
-    version = registry.register(b"weights" * 10, {}, {"h1_mse": 0.01}, snapshot_id="s", eval_split_hash="h")
-    notes = data / "logs" / "retrain-1.log.notes"
-    notes.parent.mkdir(exist_ok=True)
-    notes.write_text(json.dumps({"phase": "registered", "version": version}))
-    (data / DUE_MARKER).write_text(json.dumps({"trigger": "episodes", "notes": str(notes)}))
-    (data / COUNT_FILE).write_text("5")
+    version, notes = _job_registered(data, 9)
 
     def carry(source):  # the job's gate, its last note and its marker's removal, then the schedule's read
         ModelRegistry(source).gate(version)

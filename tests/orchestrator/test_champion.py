@@ -37,6 +37,19 @@ def _promoted(registry: ModelRegistry, seed: int, h1_mse: float) -> str:
     return version
 
 
+def _busy_once(monkeypatch) -> None:
+    """The registry's next load of weights meets its database locked (past the dashboard's busy timeout)."""
+    busy = [True]
+    real = ModelRegistry.load_weights
+
+    def load_weights(self, v):
+        if busy.pop() if busy else False:
+            raise RegistryUnavailableError("database is locked")
+        return real(self, v)
+
+    monkeypatch.setattr(ModelRegistry, "load_weights", load_weights)
+
+
 def test_a_damaged_champion_is_reported_once_and_loaded_once_restored(tmp_path, caplog):
     registry = ModelRegistry(tmp_path)
     first = _promoted(registry, 0, 0.02)
@@ -133,15 +146,7 @@ def test_a_registry_busy_now_is_tried_again_soon_and_not_called_damage(tmp_path,
     version = _promoted(registry, 0, 0.02)
     scorer = ChampionScorer(tmp_path)
     scorer.BUSY_RETRY_S = 0.0  # (5 s in service; RETRY_S, a minute, still holds for damage)
-    busy = [True]
-    real = ModelRegistry.load_weights
-
-    def load_weights(self, v):
-        if busy.pop() if busy else False:
-            raise RegistryUnavailableError("database is locked")
-        return real(self, v)
-
-    monkeypatch.setattr(ModelRegistry, "load_weights", load_weights)
+    _busy_once(monkeypatch)
     with caplog.at_level(logging.INFO, logger="orchestrator.champion"):
         assert scorer.reload() is None and scorer.problem.startswith(f"cannot load champion {version} now")
     assert [r.levelname for r in caplog.records if "could not load" in r.getMessage()] == ["WARNING"]
@@ -294,15 +299,7 @@ def test_damage_found_after_a_busy_registry_is_still_an_error(tmp_path, monkeypa
     weights.write_bytes(weights.read_bytes()[:-7])
     scorer = ChampionScorer(tmp_path)
     scorer.BUSY_RETRY_S = 0.0
-    busy = [True]
-    real = ModelRegistry.load_weights
-
-    def load_weights(self, v):
-        if busy.pop() if busy else False:
-            raise RegistryUnavailableError("database is locked")
-        return real(self, v)
-
-    monkeypatch.setattr(ModelRegistry, "load_weights", load_weights)
+    _busy_once(monkeypatch)
     with caplog.at_level(logging.DEBUG, logger="orchestrator.champion"):
         for _ in range(3):
             assert scorer.reload() is None
