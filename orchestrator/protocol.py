@@ -126,7 +126,7 @@ def bad_field(message: str) -> ProtocolError:
 
 def check_id(name: str, value: Any) -> str:
     """A request / worker / episode id: 1-128 chars of ``[A-Za-z0-9_.-]`` (safe as one key chunk)."""
-    if not isinstance(value, str) or not _ID_RE.match(value):
+    if not isinstance(value, str) or not _ID_RE.fullmatch(value):
         raise bad_field(f"{name}: expected 1-128 characters of [A-Za-z0-9_.-], found {value!r:.80}")
     return value
 
@@ -173,7 +173,7 @@ class Keys:
     """Prefix of every key: chunks of ``[A-Za-z0-9_-]`` joined by ``/``, no wildcards."""
 
     def __post_init__(self) -> None:
-        if not isinstance(self.namespace, str) or not _NAMESPACE_RE.match(self.namespace):
+        if not isinstance(self.namespace, str) or not _NAMESPACE_RE.fullmatch(self.namespace):
             raise bad_field(f"namespace: expected chunks of [A-Za-z0-9_-] joined by '/', "
                             f"found {self.namespace!r}")
 

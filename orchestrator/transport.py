@@ -226,8 +226,22 @@ def cap_incoming(config: zenoh.Config, written: dict[str, Any] | None = None) ->
         config.insert_json5(RX_MAX_MESSAGE_SIZE_KEY, str(RX_MAX_MESSAGE_BYTES))
 
 
+#: How long one link's Zenoh handshake may take (in ms), and Zenoh's default for it.
+OPEN_TIMEOUT_KEY = "transport/unicast/open_timeout"
+DEFAULT_OPEN_TIMEOUT_S = 10.0
+
+
+def cap_handshake(config: zenoh.Config, seconds: float, written: dict[str, Any] | None = None) -> None:
+    """A link's handshake gives up after ``seconds`` (at most Zenoh's default), unless ``written`` (the parsed
+    config file) sets ``OPEN_TIMEOUT_KEY`` itself. An endpoint that takes the connection and never speaks Zenoh
+    (an HTTP port, a TLS link to a plain TCP listener) holds the handshake that long, and closing the session
+    waits for it."""
+    if written is None or lookup_key(written, OPEN_TIMEOUT_KEY) is None:
+        config.insert_json5(OPEN_TIMEOUT_KEY, str(max(1, round(1000 * min(seconds, DEFAULT_OPEN_TIMEOUT_S)))))
+
+
 def make_config(mode: str = "peer", listen: Sequence[str] = (), connect: Sequence[str] = (),
-                config_file: str | Path | None = None) -> zenoh.Config:
+                config_file: str | Path | None = None, handshake_s: float | None = None) -> zenoh.Config:
     """Build a Zenoh config.
 
     With ``config_file`` the file (Zenoh's own JSON5 format: routers, TLS, user/password, ACL) is used as written;
@@ -241,6 +255,8 @@ def make_config(mode: str = "peer", listen: Sequence[str] = (), connect: Sequenc
     ``get`` ends at its timeout (:class:`NoReplyError` from :func:`request`). Same-host peers may hand a message
     over in shared memory, which is not reassembled and so not capped (Zenoh's implicit pool is 16 MiB).
 
+    ``handshake_s``: how long a link's handshake may take (``cap_handshake``); None: Zenoh's default, 10 s.
+
     Raises ``SecureConfigError`` when a file the config names (CA, certificate, key, password dictionary) is missing
     or unreadable or a certificate TLS would refuse, ``TransportError`` for an unknown mode or a config file Zenoh
     refuses.
@@ -253,6 +269,8 @@ def make_config(mode: str = "peer", listen: Sequence[str] = (), connect: Sequenc
         except (zenoh.ZError, OSError, ValueError) as exc:
             raise TransportError(f"cannot load Zenoh config {config_file}: {zenoh_error(exc)}") from exc
         cap_incoming(config, written)
+        if handshake_s is not None:
+            cap_handshake(config, handshake_s, written)
         _add_endpoints(config, "listen", listen)
         _add_endpoints(config, "connect", connect)
         return config
@@ -266,6 +284,8 @@ def make_config(mode: str = "peer", listen: Sequence[str] = (), connect: Sequenc
         config.insert_json5("scouting/multicast/enabled", "false")
         config.insert_json5("scouting/gossip/enabled", "false")  # peers learn no endpoints from each other
         cap_incoming(config)
+        if handshake_s is not None:
+            cap_handshake(config, handshake_s)
         config.insert_json5("listen/endpoints", json.dumps(list(listen)))
         config.insert_json5("connect/endpoints", json.dumps(list(connect)))
     except zenoh.ZError as exc:
@@ -292,14 +312,14 @@ def _add_endpoints(config: zenoh.Config, section: str, endpoints: Sequence[str])
 
 
 def open_session(mode: str = "peer", listen: Sequence[str] = (), connect: Sequence[str] = (),
-                 config_file: str | Path | None = None) -> zenoh.Session:
+                 config_file: str | Path | None = None, handshake_s: float | None = None) -> zenoh.Session:
     """Open a Zenoh session from :func:`make_config`'s arguments; it says when a router link goes and comes back.
 
     Raises ``TransportError`` when Zenoh cannot open it (port in use, bad endpoint). When a client reaches none of
     its routers, the message says why instead of Zenoh's "Unable to connect": nothing listens there, a certificate
     is refused, or the router took the connection and refused the login (``orchestrator.linkprobe``).
     """
-    config = make_config(mode, listen, connect, config_file)
+    config = make_config(mode, listen, connect, config_file, handshake_s)
     try:
         session = zenoh.open(config)
     except zenoh.ZError as exc:

@@ -155,6 +155,19 @@ def non_negative_int(text: str) -> int:
     return _int_at_least(text, 0, "an integer >= 0")
 
 
+#: Most torch threads a flag takes: torch's pool of many thousands fails (libgomp "Thread creation failed") or
+#: crashes the process (SIGSEGV at 100000) at its first matrix product, long after the flag was taken.
+MAX_TORCH_THREADS = 1024
+
+
+def torch_threads(text: str) -> int:
+    """A number of torch threads, 0 (torch's default, one per core) to ``MAX_TORCH_THREADS``."""
+    value = non_negative_int(text)
+    if value > MAX_TORCH_THREADS:
+        raise argparse.ArgumentTypeError(f"expected at most {MAX_TORCH_THREADS} threads, found {value}")
+    return value
+
+
 def _int(text: str, what: str) -> int:
     try:
         return int(text)

@@ -140,7 +140,7 @@ def _retrain_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--keep-models", type=common.positive_int, default=None, metavar="N",
                    help="after the gate, delete the files of retired and rejected models except the champion's "
                         "rollback chain of N (as 'models prune --keep N'; default: keep every model)")
-    p.add_argument("--threads", type=common.non_negative_int, default=0, metavar="N",
+    p.add_argument("--threads", type=common.torch_threads, default=0, metavar="N",
                    help="torch threads to train with (default 0: torch's own, one per core; serve gives its jobs "
                         "the cores its scoring leaves, see serve --retrain-threads)")
 

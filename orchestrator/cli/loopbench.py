@@ -124,7 +124,7 @@ def register_bench(bench: argparse._SubParsersAction) -> None:
                    help="run the seeds' arms in N processes at once, each arm in its own (default 1: one after "
                         "the other in this process); on the CPU an arm's figures are the same either way at the "
                         "same --threads")
-    p.add_argument("--threads", type=common.non_negative_int, default=0, metavar="N",
+    p.add_argument("--threads", type=common.torch_threads, default=0, metavar="N",
                    help="torch threads of each arm (default 0: torch's own, a thread per core, with --jobs 1; "
                         "the cores shared out with more)")
     p.add_argument("--out", type=lambda t: common.directory_path(t, "an output directory"), metavar="DIR",

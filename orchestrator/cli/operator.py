@@ -69,7 +69,7 @@ def _register_queue(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=cmd_queue_ls)
     p = qsub.add_parser("show", help="one request in full")
     _operator_args(p)
-    p.add_argument("id", metavar="ID", help="a request id, or a unique prefix of one")
+    p.add_argument("id", type=_request_id, metavar="ID", help="a request id, or a unique prefix of one")
     p.set_defaults(func=lambda a: _print_op(a, "queue.show", {"id": a.id}, _print_request))
     p = qsub.add_parser("add", help="queue a manual request (a uniform start state unless --start-state)",
                         description="Queue a manual collection request: the next free worker that can collect "
@@ -110,11 +110,11 @@ def _register_queue(sub: argparse._SubParsersAction) -> None:
                                 ("retry", "queue.retry", "put a dead or cancelled request back in the queue")):
         p = qsub.add_parser(name, help=help_text)
         _operator_args(p)
-        p.add_argument("id", metavar="ID", help="a request id, or a unique prefix of one")
+        p.add_argument("id", type=_request_id, metavar="ID", help="a request id, or a unique prefix of one")
         p.set_defaults(func=lambda a, op=op: _print_op(a, op, {"id": a.id}, _print_request))
     p = qsub.add_parser("prioritize", help="set a request's priority (higher is leased first)")
     _operator_args(p)
-    p.add_argument("id", metavar="ID", help="a request id, or a unique prefix of one")
+    p.add_argument("id", type=_request_id, metavar="ID", help="a request id, or a unique prefix of one")
     p.add_argument("priority", type=_priority, metavar="PRIORITY",
                    help=f"the new priority, a number within ±{protocol.MAX_PRIORITY:g}; higher is leased first "
                         "(manual requests start at 0, planned ones at their score)")
@@ -131,6 +131,14 @@ def _operator_args(p: argparse.ArgumentParser) -> None:
     endpoints.add_connection_args(p)
     common.add_json_arg(p)
     p.epilog = OPERATOR_EPILOG
+
+
+def _request_id(text: str) -> str:
+    """An ID argument, checked as the service checks it (a usage error here, with or without a service)."""
+    try:
+        return protocol.check_id("ID", text)
+    except ProtocolError as exc:
+        raise argparse.ArgumentTypeError(exc.message.removeprefix("ID: ")) from None
 
 
 def _priority(text: str) -> float:
@@ -188,7 +196,8 @@ class _NoService(Exception):
 def _session(args: argparse.Namespace) -> Iterator[zenoh.Session]:
     listen, connect = endpoints.endpoints_from_args(args)
     try:
-        session = transport.open_session(args.mode, listen, connect, args.zenoh_config)
+        # (a link's handshake that outlasts --timeout cannot bring the reply in time: closing waits for it)
+        session = transport.open_session(args.mode, listen, connect, args.zenoh_config, handshake_s=args.timeout)
     except transport.TransportError as exc:
         raise _NoService(str(exc)) from None
     try:
@@ -340,7 +349,13 @@ def cmd_queue_add(args: argparse.Namespace) -> int:
         if args.start_state is None:  # (then only the key can be wrong: the other fields are argparse's)
             raise common.config_error(ValueError(exc.message), {"idempotency_key": "--idempotency-key"}) from None
         raise common.UsageError(f"--start-state: {exc.message}") from None
-    return _print_op(args, "queue.add", op_args, _print_request)
+    def show(body: dict[str, Any]) -> None:
+        _print_request(body)
+        held = body["request"]["priority"]
+        if not body.get("created") and held != args.priority:  # (a repeat changes nothing: priority is no ask)
+            print(f"its priority stays {held:g}, not --priority {args.priority:g}: `queue prioritize "
+                  f"{body['request']['id']} {args.priority:g}` sets it")
+    return _print_op(args, "queue.add", op_args, show)
 
 
 def cmd_workers_ls(args: argparse.Namespace) -> int:

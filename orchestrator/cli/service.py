@@ -40,6 +40,8 @@ SCORING_THREADS = 1
 MIN_QUEUED = 2
 #: The planners ``serve`` builds stop adding requests once this many are queued (their configs' default).
 QUEUE_DEPTH_CAP = min(UniformPlannerConfig.max_queue_depth, ActivePlannerConfig.max_queue_depth)
+#: ``serve``'s seconds between looks for expired leases (at most its lease).
+REAP_INTERVAL_S = 1.0
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -60,9 +62,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--lease-s", type=common.seconds_in(*SECONDS_RANGES["lease_s"]), default=30.0, metavar="S",
                    help="seconds a worker holds a request before it must renew the lease or lose it, 0.05..86400 "
                         "(default 30)")
-    p.add_argument("--reap-interval-s", type=common.seconds_in(*SECONDS_RANGES["reap_interval_s"]), default=1.0,
+    p.add_argument("--reap-interval-s", type=common.seconds_in(*SECONDS_RANGES["reap_interval_s"]), default=None,
                    metavar="S",
-                   help="seconds between looks for expired leases, 0.01..3600 (default 1)")
+                   help=f"seconds between looks for expired leases, 0.01..3600 and at most --lease-s (default "
+                        f"{REAP_INTERVAL_S:g}, or --lease-s when shorter)")
     p.add_argument("--lost-worker-grace", type=common.seconds_in(*SECONDS_RANGES["lost_worker_grace_s"]),
                    default=ServiceConfig.lost_worker_grace_s,
                    metavar="S", help="seconds a worker whose liveliness token went keeps its leases before they go "
@@ -83,10 +86,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "(default 50)")
     p.add_argument("--seed", type=common.non_negative_int, default=0, metavar="K",
                    help="seed of the planner's generator (default 0)")
-    p.add_argument("--scoring-threads", type=common.non_negative_int, default=SCORING_THREADS, metavar="N",
+    p.add_argument("--scoring-threads", type=common.torch_threads, default=SCORING_THREADS, metavar="N",
                    help=f"torch threads the service scores episodes with (default {SCORING_THREADS}; 0 = torch's "
                         f"default, one per core)")
-    p.add_argument("--retrain-threads", type=common.non_negative_int, default=None, metavar="N",
+    p.add_argument("--retrain-threads", type=common.torch_threads, default=None, metavar="N",
                    help="torch threads of each retrain job (default: the cores the scoring leaves, here "
                         f"{fitted_retrain_threads(SCORING_THREADS)}; 0 = torch's default, one per core; a --threads "
                         "in --retrain-args wins). Two processes with more threads than cores between them slow "
@@ -184,8 +187,21 @@ def _min_queued(args: argparse.Namespace) -> int:
     return args.min_queued
 
 
+def _reap_interval(args: argparse.Namespace) -> float:
+    """``--reap-interval-s``, at most ``--lease-s``: a lease that ran out waits for the next look to go back to the
+    queue, so a longer interval would keep a lost worker's request out of it for longer than the lease itself."""
+    if args.reap_interval_s is None:
+        return min(REAP_INTERVAL_S, args.lease_s)
+    if args.reap_interval_s > args.lease_s:
+        raise common.UsageError(f"--reap-interval-s {args.reap_interval_s:g} is longer than --lease-s "
+                                f"{args.lease_s:g}: an expired lease would wait up to {args.reap_interval_s:g} s "
+                                f"more to go back to the queue; give at most {args.lease_s:g}")
+    return args.reap_interval_s
+
+
 def cmd_serve(args: argparse.Namespace) -> int:
     min_queued = _min_queued(args)
+    reap_interval_s = _reap_interval(args)
     keys = namespace_keys(args)
     logging.basicConfig(level=args.log_level, format="%(asctime)s %(name)s %(levelname)s %(message)s")
     listen, connect = endpoints.endpoints_from_args(args)
@@ -201,7 +217,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
     try:
         config = ServiceConfig(data_dir=args.data, namespace=args.namespace, mode=args.mode, listen=listen,
                                connect=connect, zenoh_config=args.zenoh_config, lease_s=args.lease_s,
-                               reap_interval_s=args.reap_interval_s, lost_worker_grace_s=args.lost_worker_grace,
+                               reap_interval_s=reap_interval_s, lost_worker_grace_s=args.lost_worker_grace,
                                seed_requests=args.seed_requests,
                                min_queued=min_queued,
                                planner=planner_factory(args.planner, args.steps, args.seed, args.scoring_threads))
