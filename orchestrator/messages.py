@@ -204,7 +204,7 @@ class UploadHeader(LeaseRef):
 
     def validate(self) -> None:
         super().validate()
-        if not isinstance(self.sha256, str) or not _SHA256_RE.match(self.sha256):
+        if not isinstance(self.sha256, str) or not _SHA256_RE.fullmatch(self.sha256):
             raise bad_field(f"sha256: expected 64 lower-case hex digits, found {self.sha256!r:.80}")
         if isinstance(self.size, int) and not isinstance(self.size, bool) and self.size > MAX_UPLOAD_BYTES:
             raise ProtocolError(ErrorCode.TOO_LARGE,

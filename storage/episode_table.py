@@ -71,7 +71,7 @@ def _episode_date(created: str) -> str:
 def file_path(meta: EpisodeMeta) -> str:
     """Where the file of the episode ``meta`` describes goes, relative to the data directory
     (``episodes/<yyyy-mm-dd>/<episode_id>.mcap``); ``CatalogError`` when its id is not a safe file name."""
-    if not isinstance(meta.episode_id, str) or not _SAFE_ID.match(meta.episode_id):
+    if not isinstance(meta.episode_id, str) or not _SAFE_ID.fullmatch(meta.episode_id):
         raise CatalogError(f"episode id {meta.episode_id!r} is not a safe file name "
                            "(expected 1-128 letters, digits, '-' or '_')")
     return f"{EPISODES_DIR}/{_episode_date(meta.created)}/{meta.episode_id}.mcap"

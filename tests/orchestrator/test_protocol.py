@@ -121,6 +121,8 @@ BAD = [
     (m.RenewRequest, b'{"v": 1, "request_id": "r", "token": -1, "worker_id": "w"}', ErrorCode.BAD_FIELD),
     (m.UploadHeader, b'{"v": 1, "request_id": "r", "token": 1, "worker_id": "w", "sha256": "ab", "size": 3}',
      ErrorCode.BAD_FIELD),
+    (m.UploadHeader, json.dumps({"v": 1, "request_id": "r", "token": 1, "worker_id": "w", "sha256": "a" * 64 + "\n",
+                                 "size": 3}).encode(), ErrorCode.BAD_FIELD),  # (a `$` check took it)
     (m.UploadHeader, json.dumps({"v": 1, "request_id": "r", "token": 1, "worker_id": "w", "sha256": "a" * 64,
                                  "size": p.MAX_UPLOAD_BYTES + 1}).encode(), ErrorCode.TOO_LARGE),
     (m.FailRequest, json.dumps({"v": 1, "request_id": "r", "token": 1, "worker_id": "w",

@@ -214,9 +214,10 @@ def test_damaged_file_on_disk_detected(cat, rng):
         cat.load(ep.meta.episode_id)
 
 
-def test_unsafe_episode_id_refused(cat, rng):
+@pytest.mark.parametrize("episode_id", ["../../etc/passwd", "abc\n"])  # (the second passed a `$` check)
+def test_unsafe_episode_id_refused(cat, rng, episode_id):
     ep = make_episode(rng)
-    ep.meta.episode_id = "../../etc/passwd"
+    ep.meta.episode_id = episode_id
     with pytest.raises(CatalogError, match="not a safe file name"):
         cat.add_episode(ep)
     assert all_files(cat) == []
