@@ -8,7 +8,8 @@ Loop (``Worker.run``)::
 While an episode is being collected a background timer renews the lease every
 ``lease_s / 3`` (by the clock; one renewal waits at most that long). Transient
 failures (nobody answers: the service is restarting or unreachable; an upload
-answered ``internal`` or ``unavailable``) are retried with exponential backoff,
+answered ``internal`` or ``unavailable``, or with a reply it cannot read:
+``read_reply``) are retried with exponential backoff,
 an upload until it is acknowledged or the lease is lost. Real failures are
 reported with ``fail``, which counts an attempt: the collection raised (for
 instance the request names a policy parameter this worker does not know --
@@ -87,6 +88,19 @@ STOPPING_TIMEOUT_S = 2.0
 MIN_DRAIN_ATTEMPT_S = 0.5
 #: How often a paced episode (``--realtime``) looks whether its lease was lost meanwhile.
 PACE_CHECK_S = 0.5
+
+
+def read_reply(data: bytes) -> dict[str, Any]:
+    """``protocol.parse_reply``, except that a reply this worker cannot read (not JSON, not an object, another
+    version's, no ``ok``) is ``internal``, as a refusal code it does not know is: not a refusal of what it sent
+    (an upload answered so is sent again, not reported failed: the service may hold the episode or not)."""
+    try:
+        ok = protocol.decode(data).get("ok")
+        if not isinstance(ok, bool):
+            raise protocol.bad_field(f'expected "ok": true or false, found {ok!r:.40}')
+    except ProtocolError as exc:
+        raise ProtocolError(ErrorCode.INTERNAL, f"the reply could not be read ({exc})") from None
+    return protocol.parse_reply(data)
 
 
 class Worker:
@@ -194,7 +208,7 @@ class Worker:
         signal came first, unless ``abandon`` is False) or ProtocolError (refused)."""
         def ask() -> bytes:
             return transport.query(self.session, key, payload, attachment, timeout=timeout or self.config.timeout_s)
-        return protocol.parse_reply(self._calls.run(ask, key) if abandon else ask())
+        return read_reply(self._calls.run(ask, key) if abandon else ask())
 
     def _retrying(self, what: str, fn: Callable[[], dict[str, Any]], attempts: int | None = None,
                   until_stopped: bool = False, give_up: Callable[[], bool] = lambda: False,

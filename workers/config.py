@@ -88,6 +88,9 @@ class WorkerConfig:
                               f"found {self.image_size}")
         if self.max_episodes is not None and self.max_episodes < 1:
             raise WorkerError(f"max_episodes: expected a positive integer (None: no limit), found {self.max_episodes}")
+        if self.once and self.max_episodes not in (None, 1):  # (the old worker dropped the N without a word)
+            raise WorkerError(f"max_episodes: expected 1 with --once (it handles at most one request), "
+                              f"found {self.max_episodes}")
         if not 0 <= self.realtime <= MAX_REALTIME:  # nan fails too; inf would overflow the wait in _pace
             raise WorkerError(f"realtime: expected a number from 0 (flat out) to {MAX_REALTIME:g}, "
                               f"found {self.realtime!r}")
