@@ -20,6 +20,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+from orchestrator.cli.common import Parser
+
 HERE = Path(__file__).resolve().parent
 PY = sys.executable
 CLI = [PY, "-m", "orchestrator"]
@@ -78,8 +80,7 @@ def _run(cmd: list[str]) -> tuple[int, str, str, int | None]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m bench", description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = Parser(prog="python -m bench", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--only", default=",".join(BENCHES),
                         help=f"comma-separated subset of {','.join(BENCHES)} (default: all)")
     args = parser.parse_args(argv)
@@ -87,6 +88,11 @@ def main(argv: list[str] | None = None) -> int:
     unknown = [n for n in names if n not in BENCHES]
     if unknown:
         parser.error(f"unknown benchmark(s) {unknown}; choose from {list(BENCHES)}")
+    if not names:  # (an unset $ONLY: nothing would run, and an empty results file would say it passed)
+        parser.error(f"--only names no benchmark, found {args.only!r}; choose from {list(BENCHES)}")
+    twice = sorted({n for n in names if names.count(n) > 1})
+    if twice:  # (the second run's figures would replace the first's in the results file)
+        parser.error(f"--only names {', '.join(twice)} twice; a benchmark runs once per run")
     started = dt.datetime.now(dt.timezone.utc)
     results: dict[str, object] = {
         "started": started.isoformat(timespec="seconds"),

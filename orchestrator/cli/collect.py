@@ -184,7 +184,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                     "to DEST at a time: a second one exits 1 at once naming the first's pid. Restore: stop "
                     "the service and serve from DEST (--data DEST), or move it into place. Exit 1 when "
                     "a file could not be copied intact (the rest is backed up and the files are named).")
-    p.add_argument("dest", type=Path, metavar="DEST",
+    p.add_argument("dest", type=common.given_path, metavar="DEST",
                    help="a new (or empty) directory outside the data directory, ideally on another disk")
     common.add_data_arg(p)
     common.add_json_arg(p)

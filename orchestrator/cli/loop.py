@@ -95,10 +95,18 @@ def register(sub: argparse._SubParsersAction) -> None:
                                    "authentication: keep --host on loopback, or behind something that has. Exit 2 "
                                    "when it cannot listen there.")
     common.add_data_arg(p)
-    p.add_argument("--host", default="127.0.0.1", help="address to bind (default 127.0.0.1)")
+    p.add_argument("--host", type=_bind_address, default="127.0.0.1", help="address to bind (default 127.0.0.1)")
     p.add_argument("--port", type=common.tcp_port, default=8765, help="TCP port (default 8765, 0 = any)")
     common.add_dashboard_limit_args(p)
     p.set_defaults(func=_dashboard)
+
+
+def _bind_address(text: str) -> str:
+    """``dashboard --host``: an empty one (an unset shell variable) would bind every interface, unauthenticated."""
+    if not text.strip():
+        raise argparse.ArgumentTypeError(f"expected an address to bind such as 127.0.0.1, found {text!r} (which "
+                                         "would bind every interface: give 0.0.0.0 for that)")
+    return text
 
 
 def add_train_args(p: argparse.ArgumentParser, defaults: TrainConfig | None = None) -> None:

@@ -39,8 +39,8 @@ def register_bench(bench: argparse._SubParsersAction) -> None:
                                      "so does an arm that fails (exit 1). A run killed outright (SIGKILL, the "
                                      "machine lost) is summarised afterwards by `bench loop-summary DIR`.")
     common.add_json_arg(p)
-    p.add_argument("--seeds", type=common.positive_int, default=len(d.seeds), metavar="N",
-                   help=f"seeds 0..N-1, one run of each arm per seed (default {len(d.seeds)})")
+    p.add_argument("--seeds", type=_seed_count, default=len(d.seeds), metavar="N",
+                   help=f"seeds 0..N-1, one run of each arm per seed, at most {MAX_SEEDS} (default {len(d.seeds)})")
     p.add_argument("--budget", type=common.positive_int, default=d.budget, metavar="N",
                    help=f"training episodes per arm, at least 2 rounds (default {d.budget})")
     p.add_argument("--round", type=common.positive_int, default=d.round_episodes, dest="round_episodes", metavar="N",
@@ -128,7 +128,7 @@ def register_bench(bench: argparse._SubParsersAction) -> None:
                    help="torch threads of each arm (default 0: torch's own, a thread per core, with --jobs 1; "
                         "the cores shared out with more)")
     p.add_argument("--out", type=lambda t: common.directory_path(t, "an output directory"), metavar="DIR",
-                   help="output directory (default ./activecollect-bench/loop-<timestamp>)")
+                   help="a new or empty output directory (default ./activecollect-bench/loop-<timestamp>)")
     p.set_defaults(func=_bench_loop)
     p = bench.add_parser("loop-summary", help="summarise a bench loop run that was killed, or is still running",
                          description="Writes summary.json and loop.png in DIR, the --out of a bench loop run that "
@@ -143,6 +143,18 @@ def register_bench(bench: argparse._SubParsersAction) -> None:
     p.add_argument("dir", type=lambda t: common.directory_path(t, "a bench loop output directory"), metavar="DIR",
                    help="the bench loop run's --out")
     p.set_defaults(func=_loop_summary)
+
+
+#: The most seeds one run compares: each is two arms of minutes (10^20 was a traceback, 10^10 a hang listing them).
+MAX_SEEDS = 1000
+
+
+def _seed_count(text: str) -> int:
+    value = common.positive_int(text)
+    if value > MAX_SEEDS:
+        raise argparse.ArgumentTypeError(f"expected at most {MAX_SEEDS} seeds (each is two arms of minutes), "
+                                         f"found {value}")
+    return value
 
 
 def shape_weights(text: str) -> tuple[float, ...]:
@@ -207,6 +219,10 @@ def _bench_loop(args: argparse.Namespace) -> int:
     out = args.out or Path("activecollect-bench") / time.strftime("loop-%Y%m%dT%H%M%S")
     if (out / "summary.json").exists() or any(out.glob("seed*/*/catalog.sqlite")):  # (or a stopped run's arms)
         raise common.UsageError(f"{out} already holds a bench loop result, or a stopped run's; give a fresh --out")
+    held = sorted(p.name for p in out.iterdir()) if out.is_dir() else []
+    if held:  # a data directory, a home: its config.json, summary.json and loop.png would replace theirs
+        raise common.UsageError(f"{out} is not empty (it holds {', '.join(held[:3])}{', ...' if held[3:] else ''}); "
+                                "give a new or empty --out")
     # torch: imported once the arguments are known good (start-up cost)
     from orchestrator.loopbench import ArmFailed, log_stderr, run_bench
     try:

@@ -103,8 +103,8 @@ def register_bench(bench_sub: argparse._SubParsersAction) -> None:
                    help="windows per forward (default 48: one 50-step episode; 1: online, one step at a time)")
     p.add_argument("--seconds", type=common.positive_float, default=10.0, metavar="S",
                    help="rough total measuring time, in seconds (default 10)")
-    p.add_argument("--threads", type=common.positive_int, default=None, metavar="N",
-                   help="torch intra-op threads (default: torch's)")
+    p.add_argument("--threads", type=common.torch_threads, default=0, metavar="N",
+                   help=f"torch intra-op threads, at most {common.MAX_TORCH_THREADS} (default 0: torch's own)")
     p.add_argument("--device", type=common.torch_device, default="auto",
                    help="torch device: auto, cpu or cuda (default auto: cuda when there is one)")
     common.add_json_arg(p)
@@ -275,7 +275,7 @@ def _bench_score(args: argparse.Namespace) -> int:
     from uncertainty.benchmark import CEILING_CONV, run_score_bench
     try:
         out = run_score_bench(members=args.members, image_size=args.size, seconds=args.seconds,
-                              batch=args.batch, threads=args.threads, device=args.device)
+                              batch=args.batch, threads=args.threads or None, device=args.device)
     except ConfigError as exc:
         raise common.config_error(exc, {"image_size": "--size", "members": "--members", "batch": "--batch",
                                         "seconds": "--seconds", "threads": "--threads"}) from None

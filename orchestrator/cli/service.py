@@ -127,14 +127,23 @@ def register_bench(bench_sub: argparse._SubParsersAction) -> None:
                              description="Lease round trips/s and latency of a service in a child process over "
                                          "loopback, with --workers concurrent clients, against raw Zenoh queries "
                                          "measured in the same run; then the queue alone and the upload path.")
-    p.add_argument("--workers", type=common.positive_int, default=8, metavar="N",
-                   help="concurrent dispatch clients (default 8)")
+    p.add_argument("--workers", type=_dispatch_clients, default=8, metavar="N",
+                   help=f"concurrent dispatch clients, at most {dispatchbench.MAX_WORKERS} (default 8)")
     p.add_argument("--seconds", type=common.positive_float, default=5.0, metavar="S",
                    help="measuring time per phase in seconds (default 5)")
     p.add_argument("--data", type=common.data_dir, default=None, metavar="DIR",
                    help="a new or empty data directory, kept afterwards (default: a temporary one)")
     common.add_json_arg(p)
     p.set_defaults(func=cmd_bench_dispatch)
+
+
+def _dispatch_clients(text: str) -> int:
+    """``bench dispatch --workers``: 1..``dispatchbench.MAX_WORKERS`` (episodes are encoded per client up front)."""
+    value = common.positive_int(text)
+    if value > dispatchbench.MAX_WORKERS:
+        raise argparse.ArgumentTypeError(f"expected at most {dispatchbench.MAX_WORKERS} clients (the upload phase "
+                                         f"encodes 1500 episodes per client before it starts), found {value}")
+    return value
 
 
 # --- serve ---------------------------------------------------------------------------------------
