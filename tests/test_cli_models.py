@@ -10,6 +10,7 @@ import subprocess
 import sys
 
 import uuid
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -225,14 +226,19 @@ def _episode(rng: np.random.Generator, steps: int = 12, size: int = 16) -> Episo
     return Episode(meta, frames, actions, states)
 
 
+def small_catalog(data: Path, seed: int, train: int, eval_: int) -> Path:
+    """``data`` with a catalog of ``train`` 16 px train episodes and a pinned eval split of ``eval_``."""
+    catalog, rng = Catalog(data), np.random.default_rng(seed)
+    for _ in range(train):
+        catalog.add_episode(_episode(rng), split="train")
+    catalog.pin_eval_split([catalog.add_episode(_episode(rng), split="eval").episode_id for _ in range(eval_)])
+    return data
+
+
 @pytest.fixture(scope="module")
 def trained(tmp_path_factory):
     """A data dir with 6 train and 2 pinned eval episodes, and one ``train`` run's JSON output."""
-    data = tmp_path_factory.mktemp("trained") / "data"
-    catalog, rng = Catalog(data), np.random.default_rng(7)
-    for _ in range(6):
-        catalog.add_episode(_episode(rng), split="train")
-    catalog.pin_eval_split([catalog.add_episode(_episode(rng), split="eval").episode_id for _ in range(2)])
+    data = small_catalog(tmp_path_factory.mktemp("trained") / "data", seed=7, train=6, eval_=2)
     rc = main(["train", "--data", str(data), "--members", "2", "--epochs", "1", "--device", "cpu", "--json"])
     return data, rc
 

@@ -15,7 +15,7 @@ import pytest
 import torch
 
 from tests.conftest import run_cli
-from tests.test_cli_models import _episode
+from tests.test_cli_models import _episode, small_catalog
 from storage.catalog import Catalog
 from storage.models import ModelRegistry
 from uncertainty.checkpoint import ensemble_from_bytes, ensemble_to_bytes
@@ -28,12 +28,7 @@ from uncertainty.model import PredictorConfig
 @pytest.fixture(scope="module")
 def catalog_dir(tmp_path_factory):
     """A data dir with 2 train and 1 pinned eval episode (16x16), no model."""
-    data = tmp_path_factory.mktemp("hostile") / "data"
-    catalog, rng = Catalog(data), np.random.default_rng(11)
-    for _ in range(2):
-        catalog.add_episode(_episode(rng), split="train")
-    catalog.pin_eval_split([catalog.add_episode(_episode(rng), split="eval").episode_id])
-    return data
+    return small_catalog(tmp_path_factory.mktemp("hostile") / "data", seed=11, train=2, eval_=1)
 
 
 @pytest.mark.parametrize("seed", [MAX_SEED + 1, 10**30])
