@@ -485,7 +485,11 @@ def duplicate_reply(**body: Any) -> bytes:
 
 def parse_reply(data: bytes | bytearray | memoryview | str | None) -> dict[str, Any]:
     """The body of a reply (without v / ok); an error reply raises ProtocolError with its code."""
-    obj = decode(data)
+    return reply_body(decode(data))
+
+
+def reply_body(obj: dict[str, Any]) -> dict[str, Any]:
+    """``parse_reply`` of a reply already decoded."""
     ok = obj.pop("ok", None)
     if ok is True:
         return obj

@@ -45,7 +45,7 @@ from orchestrator.protocol import ErrorCode, EventKind, Keys, ProtocolError
 from orchestrator.serviceconfig import ServiceConfig, ServiceContext, ServiceError, where_served
 from orchestrator.storagehealth import StorageHealth
 from orchestrator.transport import Incoming, Response
-from orchestrator.uploads import StoredEpisode, UploadHandler
+from orchestrator.uploads import StoredEpisode, UploadHandler, release_lease
 from storage.catalog import STAGING_MAX_AGE_S, Catalog
 from storage.errors import QueueError, StorageError, StorageUnavailableError
 from storage.models import ModelRegistry
@@ -322,13 +322,9 @@ class Service:
     def _release(self, msg: Incoming) -> bytes:
         req = messages.ReleaseRequest.from_json(msg.payload)
         try:
-            with self._writing():
-                request = self.queue.release(req.request_id, req.token, worker_id=req.worker_id)
+            request = release_lease(self.queue, self._writing, self.publish, req.request_id, req.token, req.worker_id)
         except QueueError as exc:
             raise admin.protocol_error(exc) from exc
-        self.publish(EventKind.REQUEST_RELEASED, {"request_id": request.id, "worker_id": req.worker_id,
-                                                  "token": req.token, "status": request.status.value,
-                                                  "attempts": request.attempts})
         return protocol.ok_reply(status=request.status.value, attempts=request.attempts)
 
     def _admin(self, msg: Incoming) -> bytes:

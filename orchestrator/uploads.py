@@ -349,15 +349,11 @@ class UploadHandler:
         ended. Raises ProtocolError ``unavailable`` when the queue cannot be written now (the worker sends the
         upload again, and it is refused then)."""
         try:
-            with self.turn():
-                after = self.queue.release(request.id, header.token, worker_id=header.worker_id)
+            release_lease(self.queue, self.turn, self.publish, request.id, header.token, header.worker_id)
         except StaleLeaseError:  # expired or ended meanwhile: nothing to give back
             return False
         except StorageError as exc:
             raise admin.protocol_error(exc) from exc
-        self.publish(EventKind.REQUEST_RELEASED, {"request_id": after.id, "worker_id": header.worker_id,
-                                                  "token": header.token, "status": after.status.value,
-                                                  "attempts": after.attempts})
         return True
 
     def _warn_once(self, worker_id: str, found: int, holds: int) -> None:
@@ -377,6 +373,19 @@ class UploadHandler:
             "request_id": header.request_id if header is not None else None,
             "worker_id": header.worker_id if header is not None else None,
             "error": code, "message": message[:500]})
+
+
+def release_lease(queue: RequestQueue, turn: Callable[[], AbstractContextManager[None]],
+                  publish: Callable[[EventKind, dict[str, Any]], None], request_id: str, token: int,
+                  worker_id: str) -> Request:
+    """Give the request ``request_id`` leased under ``token`` back to the queue, no attempt counted, in the writer's
+    ``turn``, and announce it (a worker's ``release``, or an upload refused for its size). Raises ``QueueError``
+    (``StaleLeaseError``: the lease has ended)."""
+    with turn():
+        after = queue.release(request_id, token, worker_id=worker_id)
+    publish(EventKind.REQUEST_RELEASED, {"request_id": after.id, "worker_id": worker_id, "token": token,
+                                         "status": after.status.value, "attempts": after.attempts})
+    return after
 
 
 def _remember(kept: OrderedDict[Any, Any], key: Any, value: Any) -> None:

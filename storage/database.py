@@ -89,13 +89,17 @@ _UNAVAILABLE: dict[type[StorageError], type[StorageError]] = {
 LOW_SPACE_BYTES = 16 << 20
 
 
+def _primary_code(exc: sqlite3.Error) -> int:
+    """SQLite's primary result code of ``exc`` (its extended code's low byte; 0 when it carries none)."""
+    return (getattr(exc, "sqlite_errorcode", None) or 0) & 0xFF
+
+
 def is_transient(exc: BaseException) -> bool:
     """Whether ``exc`` (an ``sqlite3.Error`` or ``OSError``) is a condition that passes: a full disk, an
     I/O error, a busy database, a read-only one or a read-only file system (which an operator makes
     writable again: refusing the write as bad input would make workers drop what they collected)."""
     if isinstance(exc, sqlite3.Error):
-        code = getattr(exc, "sqlite_errorcode", None)
-        return code is not None and (code & 0xFF) in _TRANSIENT_SQLITE and code not in _LASTING_SQLITE
+        return _primary_code(exc) in _TRANSIENT_SQLITE and exc.sqlite_errorcode not in _LASTING_SQLITE
     return isinstance(exc, OSError) and exc.errno in _TRANSIENT_ERRNO
 
 
@@ -252,8 +256,7 @@ def _new_file_wal(conn: sqlite3.Connection, busy_timeout_ms: int) -> None:
             conn.execute("PRAGMA journal_mode = WAL")
             return
         except sqlite3.OperationalError as exc:
-            busy = (getattr(exc, "sqlite_errorcode", 0) or 0) & 0xFF == sqlite3.SQLITE_BUSY
-            if not busy or time.monotonic() >= deadline:
+            if _primary_code(exc) != sqlite3.SQLITE_BUSY or time.monotonic() >= deadline:
                 raise
         if conn.execute("PRAGMA journal_mode").fetchone()[0] == "wal":
             return
@@ -264,8 +267,7 @@ def _unwritable_note(exc: sqlite3.Error, db_path: str | Path) -> str:
     """Why a database in a folder that cannot be written (a read-only mount, a copy on read-only media) fails to
     open even to be read, or ''. SQLite's error says only "unable to open database file"."""
     folder = Path(db_path).parent
-    code = (getattr(exc, "sqlite_errorcode", None) or 0) & 0xFF
-    if code not in (sqlite3.SQLITE_CANTOPEN, sqlite3.SQLITE_READONLY) or os.access(folder, os.W_OK):
+    if _primary_code(exc) not in (sqlite3.SQLITE_CANTOPEN, sqlite3.SQLITE_READONLY) or os.access(folder, os.W_OK):
         return ""
     return (f" ({folder} cannot be written: SQLite writes its -wal and -shm files beside the database even to "
             "read it; make it writable, or copy the data directory somewhere that is)")

@@ -95,12 +95,12 @@ def read_reply(data: bytes) -> dict[str, Any]:
     version's, no ``ok``) is ``internal``, as a refusal code it does not know is: not a refusal of what it sent
     (an upload answered so is sent again, not reported failed: the service may hold the episode or not)."""
     try:
-        ok = protocol.decode(data).get("ok")
-        if not isinstance(ok, bool):
-            raise protocol.bad_field(f'expected "ok": true or false, found {ok!r:.40}')
+        obj = protocol.decode(data)
+        if not isinstance(obj.get("ok"), bool):
+            raise protocol.bad_field(f'expected "ok": true or false, found {obj.get("ok")!r:.40}')
     except ProtocolError as exc:
         raise ProtocolError(ErrorCode.INTERNAL, f"the reply could not be read ({exc})") from None
-    return protocol.parse_reply(data)
+    return protocol.reply_body(obj)
 
 
 class Worker:

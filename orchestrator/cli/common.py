@@ -116,6 +116,15 @@ def _int_at_least(text: str, low: int, what: str) -> int:
     return value
 
 
+def int_in(text: str, low: int, high: int, what: str, most: str) -> int:
+    """An integer from ``low`` (below: "expected WHAT") to ``high`` (above: "expected at most HIGH MOST"), for a
+    flag whose larger values would only fail, hang or crash later."""
+    value = _int_at_least(text, low, what)
+    if value > high:
+        raise argparse.ArgumentTypeError(f"expected at most {high} {most}, found {value}")
+    return value
+
+
 def positive_int(text: str) -> int:
     return _int_at_least(text, 1, "a positive integer")
 
@@ -128,11 +137,8 @@ MAX_COLLECT_EPISODES = 100_000
 
 def episode_count(text: str) -> int:
     """``--episodes`` of the commands that record episodes: 1..``MAX_COLLECT_EPISODES``."""
-    value = positive_int(text)
-    if value > MAX_COLLECT_EPISODES:
-        raise argparse.ArgumentTypeError(f"expected at most {MAX_COLLECT_EPISODES} episodes per command (each is "
-                                         f"planned before the first is recorded), found {value}")
-    return value
+    return int_in(text, 1, MAX_COLLECT_EPISODES, "a positive integer",
+                  "episodes per command (each is planned before the first is recorded)")
 
 
 def given_path(text: str) -> Path:
@@ -145,10 +151,7 @@ def given_path(text: str) -> Path:
 
 def ensemble_size(text: str) -> int:
     """``--members`` of the commands that train or score: one member cannot disagree (no score, no calibration)."""
-    value = _int_at_least(text, 2, "an ensemble of at least 2 members (one cannot disagree)")
-    if value > MAX_MEMBERS:
-        raise argparse.ArgumentTypeError(f"expected at most {MAX_MEMBERS} members, found {value}")
-    return value
+    return int_in(text, 2, MAX_MEMBERS, "an ensemble of at least 2 members (one cannot disagree)", "members")
 
 
 def non_negative_int(text: str) -> int:
@@ -162,10 +165,7 @@ MAX_TORCH_THREADS = 1024
 
 def torch_threads(text: str) -> int:
     """A number of torch threads, 0 (torch's default, one per core) to ``MAX_TORCH_THREADS``."""
-    value = non_negative_int(text)
-    if value > MAX_TORCH_THREADS:
-        raise argparse.ArgumentTypeError(f"expected at most {MAX_TORCH_THREADS} threads, found {value}")
-    return value
+    return int_in(text, 0, MAX_TORCH_THREADS, "an integer >= 0", "threads")
 
 
 def _int(text: str, what: str) -> int:

@@ -150,11 +150,7 @@ MAX_SEEDS = 1000
 
 
 def _seed_count(text: str) -> int:
-    value = common.positive_int(text)
-    if value > MAX_SEEDS:
-        raise argparse.ArgumentTypeError(f"expected at most {MAX_SEEDS} seeds (each is two arms of minutes), "
-                                         f"found {value}")
-    return value
+    return common.int_in(text, 1, MAX_SEEDS, "a positive integer", "seeds (each is two arms of minutes)")
 
 
 def shape_weights(text: str) -> tuple[float, ...]:

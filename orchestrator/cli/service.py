@@ -139,11 +139,8 @@ def register_bench(bench_sub: argparse._SubParsersAction) -> None:
 
 def _dispatch_clients(text: str) -> int:
     """``bench dispatch --workers``: 1..``dispatchbench.MAX_WORKERS`` (episodes are encoded per client up front)."""
-    value = common.positive_int(text)
-    if value > dispatchbench.MAX_WORKERS:
-        raise argparse.ArgumentTypeError(f"expected at most {dispatchbench.MAX_WORKERS} clients (the upload phase "
-                                         f"encodes 1500 episodes per client before it starts), found {value}")
-    return value
+    return common.int_in(text, 1, dispatchbench.MAX_WORKERS, "a positive integer",
+                         "clients (the upload phase encodes 1500 episodes per client before it starts)")
 
 
 # --- serve ---------------------------------------------------------------------------------------
