@@ -35,8 +35,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from orchestrator.cli.common import (Parser, data_dir, ensemble_size, episode_steps, non_negative_int, positive_float,
-                                     positive_int, torch_device, trainable_image_size)
+from orchestrator.cli.common import (Parser, data_dir, ensemble_size, epoch_count, episode_steps, non_negative_int,
+                                     positive_float, positive_int, torch_device, trainable_image_size)
 from storage.catalog import Catalog
 from storage.models import ModelRegistry
 from storage.records import TRAINABLE_SIZES
@@ -298,7 +298,7 @@ def build_parser() -> Parser:
                    help=f"main figure: frame size, {TRAINABLE_SIZES} (default 64)")
     p.add_argument("--members", type=ensemble_size, default=5,
                    help="ensemble members of the main and OOD figures (default 5; the scoring bench always has 5)")
-    p.add_argument("--epochs", type=positive_int, default=4, help="main figure: training epochs (default 4)")
+    p.add_argument("--epochs", type=epoch_count, default=4, help="main figure: training epochs (default 4)")
     p.add_argument("--batch-size", type=positive_int, default=16, help="main figure: training batch (default 16)")
     p.add_argument("--lr", type=positive_float, default=1.5e-3, help="main figure: learning rate (default 1.5e-3)")
     p.add_argument("--seed", type=non_negative_int, default=0, help="seed of the members' training (default 0)")
@@ -317,7 +317,7 @@ def build_parser() -> Parser:
                         "cuda or auto")
     p.add_argument("--ood-train-episodes", type=positive_int, default=80,
                    help="OOD figure: T-shape episodes the OOD ensemble trains on (default 80)")
-    p.add_argument("--ood-epochs", type=positive_int, default=40, help="OOD figure: training epochs (default 40)")
+    p.add_argument("--ood-epochs", type=epoch_count, default=40, help="OOD figure: training epochs (default 40)")
     p.add_argument("--ood-test-episodes", type=positive_int, default=8,
                    help="OOD figure: held-out episodes per shape (default 8)")
     p.add_argument("--ood-image-size", type=trainable_image_size, default=32,

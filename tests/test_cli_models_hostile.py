@@ -14,12 +14,13 @@ import numpy as np
 import pytest
 import torch
 
+from orchestrator.cli import build_parser
 from tests.conftest import run_cli
 from tests.test_cli_models import _episode, small_catalog
 from storage.catalog import Catalog
 from storage.models import ModelRegistry
 from uncertainty.checkpoint import ensemble_from_bytes, ensemble_to_bytes
-from uncertainty.config import MAX_SEED, TrainConfig
+from uncertainty.config import MAX_EPOCHS, MAX_SEED, TrainConfig
 from uncertainty.ensemble import Ensemble
 from uncertainty.errors import CheckpointError, ConfigError
 from uncertainty.model import PredictorConfig
@@ -143,3 +144,27 @@ def test_score_of_an_episode_of_another_frame_size_than_the_champion_says_both_s
     rc, out, err = run_cli(capsys, "score", str(path), "--data", str(data), "--device", "cpu")
     assert rc == 1 and out == "" and len(err.strip().splitlines()) == 1, err
     assert f"episode {episode.meta.episode_id}: its frames are 24px, the champion's 16px" in err, err
+
+
+@pytest.mark.parametrize("command", [["train"], ["retrain"], ["bench", "loop"]])
+@pytest.mark.parametrize("epochs", [str(10**20), str(MAX_EPOCHS + 1)])
+def test_epochs_past_the_cap_are_refused_when_parsed(capsys, tmp_path, command, epochs) -> None:
+    """``--epochs 10**20`` was taken, and trained until Ctrl-C (parsed only: the old code would train)."""
+    with pytest.raises(SystemExit) as stop:
+        build_parser().parse_args([*command, "--epochs", epochs, "--data", str(tmp_path / "d")])
+    err = capsys.readouterr().err
+    assert stop.value.code == 2 and err.count("\n") == 1, err
+    assert f"argument --epochs: expected at most {MAX_EPOCHS} epochs, found {epochs}" in err
+    assert build_parser().parse_args([*command, "--epochs", str(MAX_EPOCHS)]).epochs == MAX_EPOCHS
+
+
+def test_run_refuses_retrain_args_of_too_many_epochs(capsys) -> None:
+    with pytest.raises(SystemExit) as stop:
+        build_parser().parse_args(["run", "--retrain-args", f"--epochs {10**20}"])
+    assert stop.value.code == 2 and f"expected at most {MAX_EPOCHS} epochs" in capsys.readouterr().err
+
+
+def test_train_config_refuses_too_many_epochs() -> None:
+    assert TrainConfig(epochs=MAX_EPOCHS).epochs == MAX_EPOCHS
+    with pytest.raises(ConfigError, match=f"epochs must be <= {MAX_EPOCHS}, found {MAX_EPOCHS + 1}"):
+        TrainConfig(epochs=MAX_EPOCHS + 1)

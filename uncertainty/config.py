@@ -17,6 +17,9 @@ from uncertainty.errors import ConfigError
 #: 500``, ``--widths 16,32,6400``) would allocate gigabytes, or run for days, before anything says so.
 MAX_MEMBERS = 64
 MAX_WIDTH = 1024
+#: Most passes over the training windows: ``--epochs 10**20`` trained until Ctrl-C. The README's longest runs train
+#: 30; a cap far above them stops only a typo's extra zeros.
+MAX_EPOCHS = 10_000
 #: Largest seed: torch's generators take 64 bits, and a larger ``--seed`` failed deep in the trainer.
 MAX_SEED = 2**64 - 1
 
@@ -69,6 +72,8 @@ class TrainConfig:
             raise ConfigError(f"members must be >= 2 (one member cannot disagree), found {self.members}")
         if not 0 <= self.seed <= MAX_SEED:
             raise ConfigError(f"seed must be an integer from 0 to {MAX_SEED} (2**64 - 1), found {self.seed}")
+        if self.epochs > MAX_EPOCHS:
+            raise ConfigError(f"epochs must be <= {MAX_EPOCHS}, found {self.epochs}")
         if self.members > MAX_MEMBERS:
             raise ConfigError(f"members must be <= {MAX_MEMBERS}, found {self.members}")
         if not self.lr > 0 or not math.isfinite(self.lr):

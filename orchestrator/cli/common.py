@@ -19,7 +19,7 @@ from orchestrator.retrainjob import cron_problem
 from storage.catalog import Catalog
 from storage.database import DB_NAME
 from storage.records import TRAINABLE_SIZES, trainable_size
-from uncertainty.config import MAX_MEMBERS, MAX_WIDTH, TrainConfig
+from uncertainty.config import MAX_EPOCHS, MAX_MEMBERS, MAX_WIDTH, TrainConfig
 
 DEFAULT_DATA = Path("activecollect-data")
 
@@ -152,6 +152,11 @@ def given_path(text: str) -> Path:
 def ensemble_size(text: str) -> int:
     """``--members`` of the commands that train or score: one member cannot disagree (no score, no calibration)."""
     return int_in(text, 2, MAX_MEMBERS, "an ensemble of at least 2 members (one cannot disagree)", "members")
+
+
+def epoch_count(text: str) -> int:
+    """``--epochs`` of the commands that train: 1..``MAX_EPOCHS`` (``10**20`` trained until Ctrl-C)."""
+    return int_in(text, 1, MAX_EPOCHS, "a positive integer", "epochs")
 
 
 def non_negative_int(text: str) -> int:

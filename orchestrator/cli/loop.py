@@ -114,8 +114,8 @@ def add_train_args(p: argparse.ArgumentParser, defaults: TrainConfig | None = No
     d = defaults or TrainConfig()
     p.add_argument("--members", type=common.ensemble_size, default=d.members, metavar="K",
                    help=f"ensemble size (default {d.members})")
-    p.add_argument("--epochs", type=common.positive_int, default=d.epochs, metavar="N",
-                   help=f"passes over the training windows (default {d.epochs})")
+    p.add_argument("--epochs", type=common.epoch_count, default=d.epochs, metavar="N",
+                   help=f"passes over the training windows, at most {common.MAX_EPOCHS} (default {d.epochs})")
     p.add_argument("--batch-size", type=common.positive_int, default=d.batch_size, metavar="N",
                    help=f"windows per member per step (default {d.batch_size})")
     p.add_argument("--lr", type=common.positive_float, default=d.lr, metavar="LR",

@@ -46,7 +46,7 @@ def register_bench(bench: argparse._SubParsersAction) -> None:
     p.add_argument("--round", type=common.positive_int, default=d.round_episodes, dest="round_episodes", metavar="N",
                    help=f"retrain every N episodes (default {d.round_episodes})")
     common.add_episode_args(p, d.steps, d.image_size)
-    p.add_argument("--epochs", type=common.positive_int, default=d.train.epochs, metavar="N",
+    p.add_argument("--epochs", type=common.epoch_count, default=d.train.epochs, metavar="N",
                    help=f"training epochs per retrain (default {d.train.epochs})")
     p.add_argument("--members", type=common.ensemble_size, default=d.train.members, metavar="K",
                    help=f"ensemble size (default {d.train.members})")

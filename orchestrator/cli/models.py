@@ -43,8 +43,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                                    "training fails (e.g. no eval split pinned).")
     p.add_argument("--members", type=common.ensemble_size, default=TrainConfig.members, metavar="K",
                    help=f"ensemble size (default {TrainConfig.members})")
-    p.add_argument("--epochs", type=common.positive_int, default=TrainConfig.epochs, metavar="N",
-                   help=f"passes over the training windows (default {TrainConfig.epochs})")
+    p.add_argument("--epochs", type=common.epoch_count, default=TrainConfig.epochs, metavar="N",
+                   help=f"passes over the training windows, at most {common.MAX_EPOCHS} (default {TrainConfig.epochs})")
     p.add_argument("--from-champion", action="store_true", help="warm-start from the champion's weights")
     p.add_argument("--variance-head", action="store_true",
                    help="members also predict the variance of their own error (a fresh model only); eval then "

@@ -21,6 +21,7 @@ from storage.catalog import Catalog
 from storage.models import ModelRegistry
 from tests.conftest import wait_for
 from tests.orchestrator.conftest import small_training_data
+from uncertainty.config import MAX_EPOCHS
 
 
 
@@ -321,7 +322,7 @@ def test_retrain_json_is_strict_json_when_a_horizon_cannot_be_measured(tmp_path)
 def test_a_retrain_killed_midway_leaves_the_champion(trained):
     before, versions = champion(trained), models(trained)
     promoted: list[str] = []
-    sched = RetrainScheduler(ScheduleConfig(retrain_args=(*TINY, "--epochs", "100000")), trained,
+    sched = RetrainScheduler(ScheduleConfig(retrain_args=(*TINY, "--epochs", str(MAX_EPOCHS))), trained,
                              Counter(), promoted.append)
     sched.request()
     rec = sched.tick()
