@@ -57,8 +57,8 @@ RETRY_AFTER_S = 5
 READ_BUSY_TIMEOUT_S = 2.0
 
 #: The longest request timeout (a day): sockets refuse timeouts past ~9e9 s, and every connection's
-#: handler would die on one.
-MAX_REQUEST_TIMEOUT_S = 86400.0
+#: handler would die on one; the shortest, a tenth of a second (at 1e-300 every client was dropped).
+MAX_REQUEST_TIMEOUT_S, MIN_REQUEST_TIMEOUT_S = 86400.0, 0.1
 
 
 @dataclass
@@ -81,8 +81,8 @@ class DashboardConfig:
     def __post_init__(self) -> None:
         if not 0 <= self.port <= 65535:
             raise ValueError(f"port must be in [0, 65535], found {self.port}")
-        if not 0 < self.request_timeout_s <= MAX_REQUEST_TIMEOUT_S:
-            raise ValueError(f"request_timeout_s must be in (0, {MAX_REQUEST_TIMEOUT_S:g}], "
+        if not MIN_REQUEST_TIMEOUT_S <= self.request_timeout_s <= MAX_REQUEST_TIMEOUT_S:
+            raise ValueError(f"request_timeout_s must be in [{MIN_REQUEST_TIMEOUT_S:g}, {MAX_REQUEST_TIMEOUT_S:g}], "
                              f"found {self.request_timeout_s}")
         if self.max_connections < 1:
             raise ValueError(f"max_connections must be >= 1, found {self.max_connections}")

@@ -13,7 +13,7 @@ from typing import Any, NoReturn
 
 
 from orchestrator import protocol
-from orchestrator.dashboard import MAX_REQUEST_TIMEOUT_S, DashboardConfig
+from orchestrator.dashboard import MAX_REQUEST_TIMEOUT_S, MIN_REQUEST_TIMEOUT_S, DashboardConfig
 from orchestrator.protocol import MAX_EPISODE_STEPS, one_line
 from orchestrator.retrainjob import cron_problem
 from storage.catalog import Catalog
@@ -351,6 +351,9 @@ def _request_timeout(text: str) -> float:
     value = positive_float(text)
     if value > MAX_REQUEST_TIMEOUT_S:
         raise argparse.ArgumentTypeError(f"expected at most {MAX_REQUEST_TIMEOUT_S:g} seconds (a day), found {text!r}")
+    if value < MIN_REQUEST_TIMEOUT_S:  # (1e-300 dropped every client before its request came)
+        raise argparse.ArgumentTypeError(f"expected at least {MIN_REQUEST_TIMEOUT_S:g} seconds (shorter drops "
+                                         f"clients before their request arrives), found {text!r}")
     return value
 
 
@@ -365,7 +368,7 @@ def add_dashboard_limit_args(p: argparse.ArgumentParser, prefix: str = "") -> No
     p.add_argument(f"--{prefix}request-timeout", type=_request_timeout, default=d.request_timeout_s, metavar="S",
                    dest="request_timeout",
                    help=f"seconds a dashboard client may take to send its whole request before it is "
-                        f"dropped (default {d.request_timeout_s:g})")
+                        f"dropped, {MIN_REQUEST_TIMEOUT_S:g} to {MAX_REQUEST_TIMEOUT_S:g} (default {d.request_timeout_s:g})")
 
 
 def require_frame_size(data: Path, size: int, flag: str) -> None:

@@ -28,6 +28,7 @@ import numpy as np
 import pytest
 from prometheus_client.parser import text_string_to_metric_families
 
+from orchestrator.cli import build_parser
 from orchestrator.companions import CompanionConfig
 from orchestrator.dashboard import Dashboard, DashboardConfig, DataSources
 from orchestrator.metrics import ServiceMetrics
@@ -444,3 +445,18 @@ def test_dashboard_limits_must_be_positive(capsys):
         assert rc == 2 and "at most 86400 seconds" in err
     with pytest.raises(ValueError, match="max_connections"):
         CompanionConfig(dashboard_max_connections=0)
+
+
+@pytest.mark.parametrize("argv", [["dashboard", "--request-timeout", "1e-300"],
+                                  ["serve", "--dashboard-request-timeout", "0.05"]])
+def test_a_request_timeout_too_short_for_any_request_is_refused(capsys, argv):
+    """``--request-timeout 1e-300`` was taken, and every client dropped (parsed only: the old code served)."""
+    with pytest.raises(SystemExit) as stop:
+        build_parser().parse_args(argv)
+    err = capsys.readouterr().err
+    assert stop.value.code == 2 and err.count("\n") == 1, err
+    assert f"expected at least 0.1 seconds (shorter drops clients before their request arrives), found '{argv[-1]}'" \
+        in err
+    with pytest.raises(ValueError, match=r"request_timeout_s must be in \[0.1, 86400\], found 1e-300"):
+        DashboardConfig(request_timeout_s=1e-300)
+    assert DashboardConfig(request_timeout_s=0.1).request_timeout_s == 0.1
