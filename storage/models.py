@@ -105,7 +105,7 @@ class ModelRegistry:
         self.data_dir = Path(data_dir)
         refuse_lost_database(self.data_dir, RegistryError)
         self.models_dir = self.data_dir / MODELS_DIR
-        self.models_dir.mkdir(parents=True, exist_ok=True)
+        checkpoint_files.make_models_dir(self.models_dir)
         self.db_path = self.data_dir / DB_NAME
         with self._connect() as conn:
             ensure_schema(conn, "models", _MIGRATIONS, RegistryError)

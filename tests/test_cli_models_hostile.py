@@ -168,3 +168,17 @@ def test_train_config_refuses_too_many_epochs() -> None:
     assert TrainConfig(epochs=MAX_EPOCHS).epochs == MAX_EPOCHS
     with pytest.raises(ConfigError, match=f"epochs must be <= {MAX_EPOCHS}, found {MAX_EPOCHS + 1}"):
         TrainConfig(epochs=MAX_EPOCHS + 1)
+
+
+@pytest.mark.parametrize("argv", [("train", "--members", "2", "--epochs", "1", "--device", "cpu"), ("models", "ls"),
+                                  ("eval", "--device", "cpu"), ("score", "ID", "--device", "cpu")])
+def test_a_file_where_the_models_folder_goes_is_named_in_one_line(capsys, tmp_path, argv) -> None:
+    """Every model command said only "[Errno 17] File exists: '.../models'"."""
+    data = small_catalog(tmp_path / "data", seed=3, train=1, eval_=1)
+    (data / "models").write_text("not a folder")
+    episode = Catalog(data).list()[0].episode_id
+    rc, out, err = run_cli(capsys, *(episode if a == "ID" else a for a in argv), "--data", str(data))
+    assert rc == 1 and out == "" and err.count("\n") == 1, err
+    assert f"{data / 'models'} is not a directory: the registry keeps its checkpoints there; move the file away" \
+        in err
+    assert (data / "models").read_text() == "not a folder"

@@ -367,8 +367,8 @@ def add_dashboard_limit_args(p: argparse.ArgumentParser, prefix: str = "") -> No
                         f"(default {d.max_connections})")
     p.add_argument(f"--{prefix}request-timeout", type=_request_timeout, default=d.request_timeout_s, metavar="S",
                    dest="request_timeout",
-                   help=f"seconds a dashboard client may take to send its whole request before it is "
-                        f"dropped, {MIN_REQUEST_TIMEOUT_S:g} to {MAX_REQUEST_TIMEOUT_S:g} (default {d.request_timeout_s:g})")
+                   help=f"seconds a dashboard client may take to send its whole request before it is dropped, "
+                        f"{MIN_REQUEST_TIMEOUT_S:g} to {MAX_REQUEST_TIMEOUT_S:g} (default {d.request_timeout_s:g})")
 
 
 def require_frame_size(data: Path, size: int, flag: str) -> None:
