@@ -32,6 +32,8 @@ ARM_POINTS = "points.json"
 CONFIG = "config.json"
 #: The summary, written when the run ends or is stopped, or by ``rebuild``.
 SUMMARY = "summary.json"
+#: The plot, written with the summary.
+PLOT = "loop.png"
 TRANSPORT = "in-process collection (no Zenoh); real queue, catalog, trainer and gate"
 
 
@@ -151,8 +153,8 @@ def figure(points: list[dict]) -> Figure:
 
 def write_summary(summary: dict, out_dir: Path) -> None:
     """``loop.png`` (its path added to ``summary``), then ``summary.json``, in ``out_dir``."""
-    plot(summary["points"], out_dir / "loop.png")
-    summary["plot"] = str(out_dir / "loop.png")
+    plot(summary["points"], out_dir / PLOT)
+    summary["plot"] = str(out_dir / PLOT)
     # (h5 of episodes too short for it is NaN: null, so that strict parsers read the file)
     write_bytes_atomic(out_dir / SUMMARY,
                        json.dumps(finite_json(summary), indent=2, default=str, allow_nan=False).encode())
@@ -214,6 +216,8 @@ def _read_json(path: Path) -> object:
         return json.loads(path.read_bytes())
     except (UnicodeDecodeError, json.JSONDecodeError) as exc:
         raise SummaryError(f"{path}: not JSON ({exc})") from None
+    except OSError as exc:  # (a folder of that name, a file it may not read: not a raw errno line)
+        raise SummaryError(f"{path}: cannot read it ({exc.strerror})") from None
 
 
 def rebuild(out_dir: Path) -> dict:
@@ -225,6 +229,9 @@ def rebuild(out_dir: Path) -> dict:
     summarised itself (that summary is kept: it knows how the run ended and how long it took).
     """
     out_dir = Path(out_dir)
+    for name in (PLOT, SUMMARY):  # (before anything is written: a raw errno line, once loop.png was written)
+        if (out_dir / name).is_dir():
+            raise SummaryError(f"cannot write {out_dir / name}: a directory is in its place (move it away)")
     path = out_dir / CONFIG
     if not path.is_file():
         raise SummaryError(f"{out_dir} holds no {CONFIG}: not the output directory of a bench loop run")
@@ -248,5 +255,8 @@ def rebuild(out_dir: Path) -> dict:
     finished = all(last.get((seed, arm)) == budget for seed in seeds for arm in ARMS)
     out = summary(config, seeds, points, interrupted=not finished, jobs=run.get("jobs"),
                   threads=run.get("threads")) | {"rebuilt": True}
-    write_summary(out, out_dir)
+    try:
+        write_summary(out, out_dir)
+    except OSError as exc:
+        raise SummaryError(f"cannot write {exc.filename or out_dir}: {exc.strerror or exc}") from None
     return out

@@ -64,6 +64,8 @@ def test_the_rounds_both_arms_of_a_seed_finished_are_compared(tmp_path, capsys):
      1, "active/points.json: not the points of the active arm of seed 0"),
     (lambda d: [(arm_dir(d, 0, arm) / ARM_POINTS).unlink() for arm in ("active", "uniform")], 1,
      "no round had finished in"),
+    (lambda d: ((arm_dir(d, 0, "uniform") / ARM_POINTS).unlink(), (arm_dir(d, 0, "uniform") / ARM_POINTS).mkdir()),
+     1, "uniform/points.json: cannot read it (Is a directory)"),
 ])
 def test_a_directory_it_cannot_summarise_is_refused_with_the_reason(tmp_path, capsys, damage, code, message):
     _stopped_run(tmp_path, {(0, "active"): [2, 4], (0, "uniform"): [2, 4]})
@@ -97,3 +99,16 @@ def test_a_stopped_runs_plot_draws_the_points_its_headline_compares():
     one_arm = [p for p in points if p["arm"] == "active"]  # stopped before any uniform arm finished a round
     assert [t.get_text() for ax in figure(one_arm).axes for t in ax.texts] == [
         "no episode count that both arms reached yet"] * 2
+
+
+@pytest.mark.parametrize("name", ["loop.png", SUMMARY])
+def test_a_directory_where_an_output_goes_is_named_in_one_line_and_nothing_written(tmp_path, capsys, name):
+    """It was a raw "[Errno 21] Is a directory" line (and loop.png was written before summary.json failed)."""
+    _stopped_run(tmp_path, {(0, "active"): [2, 4], (0, "uniform"): [2, 4]})
+    (tmp_path / name).mkdir()
+    rc, stdout, err = run_cli(capsys, "bench", "loop-summary", str(tmp_path))
+    assert rc == 1 and stdout == "" and err.count("\n") == 1, err
+    assert err == (f"activecollect: cannot summarise: cannot write {tmp_path / name}: a directory is in its place "
+                   "(move it away)\n")
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted([CONFIG, "seed0", name])
+    assert list((tmp_path / name).iterdir()) == []
