@@ -86,8 +86,8 @@ class CatalogQuarantine(CatalogReads):
         """Puts a quarantined episode back into training; returns its row as it is now.
 
         Its file moves back from ``DATA/quarantine/`` if it still holds the bytes indexed (or is already
-        back in place). ``CatalogError`` when it is not quarantined, or its file is gone or damaged: then
-        ingesting its original bytes again restores it.
+        back in place). ``quarantine.NotQuarantinedError`` when it is not quarantined; ``CatalogError`` when its
+        file is gone or damaged: then ingesting its original bytes again restores it.
         """
         row = self.get(episode_id)
         kept = self._kept(row)

@@ -31,6 +31,10 @@ from storage.errors import CatalogError
 from storage.files import holds, move
 from storage.rows import EpisodeRow
 
+class NotQuarantinedError(CatalogError):
+    """A restore of an episode that is in training: nothing to do (``episodes restore`` says so, exit 0)."""
+
+
 #: The table, as the catalog's schema version 2 made it (``storage.catalog._CATALOG_MIGRATIONS``): a change
 #: to it is a new migration, never an edit here. Episodes taken out of training (see Catalog.quarantine);
 #: moved_to '' when the file was already gone (until a worker's repeated upload keeps a copy: ``keep_copy``).
@@ -117,14 +121,14 @@ def record(conn: sqlite3.Connection, row: EpisodeRow, kept: Path, data_dir: Path
 
 def put_back(conn: sqlite3.Connection, row: EpisodeRow, kept: Path) -> None:
     """In a write transaction: ends the quarantine of ``row``, its file moved back from ``kept`` if it still
-    holds the bytes indexed (or is already back in place). ``CatalogError`` when it is not quarantined, or
-    its file is gone or damaged. An episode in training whose file a quarantine a crash cut short left at
-    ``kept`` is healed instead (``heal``)."""
+    holds the bytes indexed (or is already back in place). ``NotQuarantinedError`` when it is not quarantined,
+    ``CatalogError`` when its file is gone or damaged. An episode in training whose file a quarantine a crash
+    cut short left at ``kept`` is healed instead (``heal``)."""
     q = find(conn, row.episode_id)
     if q is None:
         if heal(conn, row, kept):
             return
-        raise CatalogError(f"episode {row.episode_id} is not quarantined")
+        raise NotQuarantinedError(f"episode {row.episode_id} is not quarantined")
     if not holds(row.path, row.sha256):
         if not holds(kept, row.sha256):
             state = (f"{kept} does not hold the bytes indexed (sha256 {row.sha256[:16]}...)"

@@ -108,3 +108,18 @@ def test_quarantining_a_pinned_eval_episode_is_a_usage_error_and_changes_nothing
     assert rc == 2 and out == "" and err.count("\n") == 1, err
     assert f"{pinned} is in the pinned eval split, which cannot change" in err and "ingest its bytes" in err
     assert cat.count(quarantined=True) == 0  # not the train episode named before it either
+
+
+def test_restoring_an_episode_in_training_is_a_no_op_that_says_so(capsys, data_dir, rng):
+    """As ``quarantine`` of a quarantined episode is (exit 0): ``restore`` of one in training was an error, exit 1."""
+    cat = Catalog(data_dir)
+    ids = [cat.add_episode(make_episode(rng)).episode_id for _ in range(2)]
+    cat.quarantine(ids[1], "suspect")
+    before = cat.get(ids[0]).path.read_bytes()
+    rc, out, err = run_cli(capsys, "episodes", "restore", ids[0], ids[1], "--data", str(data_dir))
+    assert (rc, err) == (0, ""), err
+    assert out == f"not quarantined (already in training) {ids[0]}\nrestored {ids[1]}\n"
+    rc, out, err = run_cli(capsys, "episodes", "restore", ids[1], "--data", str(data_dir), "--json")
+    assert (rc, err) == (0, "") and json.loads(out) == [{"episode_id": ids[1], "ok": True, "quarantined": ""}]
+    assert cat.count(quarantined=True) == 0 and sorted(cat.snapshot().ids) == sorted(ids)
+    assert cat.get(ids[0]).path.read_bytes() == before

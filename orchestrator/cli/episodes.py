@@ -58,7 +58,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p = esub.add_parser("restore", help="put quarantined episodes back into training",
                         description="Move quarantined episodes' files back (when they still hold the bytes "
                                     "indexed) and let training use them again. For one whose file is gone or "
-                                    "damaged, ingest its original bytes again instead (`activecollect ingest`).")
+                                    "damaged, ingest its original bytes again instead (`activecollect ingest`). "
+                                    "One already in training is left as it is and said to be (exit 0), as "
+                                    "`quarantine` leaves one already quarantined.")
     p.add_argument("episode_ids", nargs="*", metavar="ID", help="episode ids or unique prefixes")
     p.add_argument("--all", action="store_true", help="every quarantined episode (e.g. after a disk came back)")
     p.set_defaults(func=_episodes_restore)
@@ -77,7 +79,7 @@ def resolve(cat: Catalog, episode_id: str) -> EpisodeRow:
 
 def resolve_all(cat: Catalog, episode_ids: list[str]) -> list[EpisodeRow]:
     """The episodes ``episode_ids`` name (``resolve``), each once in the order first named: an id given twice, or
-    as itself and as a prefix, is one episode (a second restore of it would be refused as not quarantined)."""
+    as itself and as a prefix, is one episode (a second restore of it would say it is not quarantined)."""
     rows = {}
     for i in episode_ids:
         row = resolve(cat, i)
@@ -208,7 +210,17 @@ def _episodes_restore(args: argparse.Namespace) -> int:
     rows = cat.list(quarantined=True) if args.all else resolve_all(cat, args.episode_ids)
     if not rows and not args.json:
         print(f"nothing is quarantined in {cat.data_dir}")
-    return _each(args, rows, lambda row: cat.restore(row.episode_id), "restored")
+    return _each(args, rows, lambda row: _restore(cat, row),
+                 lambda row: "restored" if row.quarantined else "not quarantined (already in training)")
+
+
+def _restore(cat: Catalog, row: EpisodeRow) -> EpisodeRow:
+    """``cat.restore``, where an episode in training is left as it is (as ``quarantine`` leaves a quarantined
+    one): a restore asked twice, or racing another, is not a failure."""
+    try:
+        return cat.restore(row.episode_id)
+    except quarantines.NotQuarantinedError:
+        return cat.get(row.episode_id)
 
 
 def _each(args: argparse.Namespace, rows: list[EpisodeRow], change: Callable[[EpisodeRow], EpisodeRow],
