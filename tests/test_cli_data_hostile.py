@@ -142,3 +142,25 @@ def test_ctrl_c_in_ingest_says_what_is_kept_and_a_second_run_indexes_the_rest(tm
     out, err = again.communicate(timeout=120)
     assert again.returncode == 0 and out.endswith(f"600 of 600 files indexed in {data / DB_NAME}\n"), err
     assert Catalog(data).count() == 600 and out.count("already indexed") == kept
+
+
+def test_ctrl_c_in_ingest_json_prints_what_was_indexed_so_far_marked_interrupted(tmp_path, rng):
+    """``ingest --json`` interrupted printed nothing on stdout: a script reading it got no JSON at all."""
+    files = tmp_path / "files"
+    files.mkdir()
+    for i in range(300):
+        episodes.write_episode(files / f"e{i:03}.mcap", make_episode(rng, steps=3))
+    data = tmp_path / "data"
+    proc = _cli("ingest", str(files), "--data", str(data), "--json")
+    try:
+        wait_for(lambda: _published(data) >= 3 or proc.poll() is not None, timeout=60, message="3 files indexed")
+        proc.send_signal(signal.SIGINT)
+        out, err = proc.communicate(timeout=60)
+    finally:
+        proc.kill()
+    assert proc.returncode == 130 and "activecollect: interrupted at file" in err, (out[-300:], err)
+    result = json.loads(out)
+    indexed = int(re.search(r"the (\d+) indexed before it are kept", err)[1])
+    assert result["interrupted"] is True and result["refused"] == 0 and result["ingested"] == indexed >= 2
+    assert [f["path"] for f in result["files"]] == [str(files / f"e{i:03}.mcap") for i in range(indexed)]
+    assert {f["episode_id"] for f in result["files"]} <= {r.episode_id for r in Catalog(data).list()}

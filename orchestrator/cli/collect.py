@@ -317,21 +317,22 @@ def _ingest(args: argparse.Namespace) -> int:
         print(f"activecollect: warning: {args.data} has its eval split pinned already (fixed for good): episodes "
               "ingested as eval now are kept, but nothing trains or evaluates on them", file=sys.stderr)
     report: list[dict] = []
+    interrupted = False
     try:
         cat = _ingest_each(args, files, cat, report)
     except KeyboardInterrupt:  # (each file indexed is committed before the next is read)
-        indexed, at = sum(r["ok"] for r in report), min(len(report), len(files) - 1)
+        indexed, at, interrupted = sum(r["ok"] for r in report), min(len(report), len(files) - 1), True
         print(one_line(f"activecollect: interrupted at file {at + 1} of {len(files)} ({files[at]}): the {indexed} "
                        "indexed before it are kept; run it again to index the rest (files already indexed are "
                        "not indexed twice)"), file=sys.stderr)
-        return 130
     refused = sum(not r["ok"] for r in report)
-    if args.json:
-        common.print_json({"ingested": len(report) - refused, "refused": refused, "files": report})
-    else:
+    if args.json:  # (interrupted too: what was done so far, where a script reading it got nothing)
+        common.print_json({"ingested": len(report) - refused, "refused": refused, "files": report,
+                           "interrupted": interrupted})
+    elif not interrupted:
         where = cat.db_path if cat is not None else f"{Path(args.data) / DB_NAME} (not made: nothing to index)"
         print(f"{len(report) - refused} of {len(report)} files indexed in {where}")
-    return 1 if refused else 0
+    return 130 if interrupted else 1 if refused else 0
 
 
 def _ingest_each(args: argparse.Namespace, files: list[Path], cat: Catalog | None,
