@@ -19,7 +19,7 @@ Usage: .venv/bin/python bench/uncertainty_figures.py --data /tmp/figs [--train-e
        [--skip main,ood,bench] [--json out.json]
 (``--help`` for every flag.) Every flag is checked before anything is collected or trained, exit 2 in one line:
 its value, and the flags against each other -- a flag of a figure ``--skip`` leaves out, ``--steps`` too short
-for ``--context`` or ``--ood-horizon``, an ``--ood-cache`` that is no OOD ensemble of ``--members``, a
+for ``--context`` or ``--ood-horizon``, an ``--ood-cache`` made with other flags than those given, a
 ``--json`` or ``--ood-cache`` that could not be written at the end; ``--data`` is needed unless ``--skip main``.
 """
 
@@ -172,7 +172,7 @@ def ood_figure(args) -> dict:
     else:
         losses = fit(ens, train_windows(train, ens, cfg), cfg)
         if args.ood_cache is not None:
-            torch.save({"weights": ens.state_dict(), "losses": losses}, args.ood_cache)
+            torch.save({"weights": ens.state_dict(), "losses": losses, "flags": ood_flags(args)}, args.ood_cache)
     train_s = time.perf_counter() - t0
     # Training episodes too: how far members agree where they have seen the data (convergence).
     groups["T_train"] = train[:args.ood_test_episodes]
@@ -329,8 +329,8 @@ def build_parser() -> Parser:
     p.add_argument("--ood-horizon", type=positive_int, default=1,
                    help=f"OOD figure: disagreement horizon (default 1; at most --steps - {OOD_CONTEXT})")
     p.add_argument("--ood-cache", type=_output_file, metavar="FILE",
-                   help="OOD figure: save the trained OOD ensemble here; reuse it if present (pass the same OOD "
-                        "flags: one of other --members is refused, other OOD flags are not recorded in it)")
+                   help="OOD figure: save the trained OOD ensemble here, with the flags it was trained with; "
+                        "reuse it if present (one made with other flags is refused, naming them)")
     p.add_argument("--bench-seconds", type=positive_float, default=20.0,
                    help="scoring bench: seconds per thread count, split over batch 48 and batch 1 (default 20)")
     p.add_argument("--bench-threads", type=_thread_counts, metavar="N[,N...]",
@@ -369,9 +369,18 @@ def check_args(p: Parser, args: argparse.Namespace) -> None:
         p.error(f"--json and --ood-cache name the same file {args.json}")
 
 
+def ood_flags(args: argparse.Namespace) -> dict:
+    """The flags the OOD ensemble's training depends on, by name: an ``--ood-cache`` records them, and one made with
+    others is refused (its members are convolutional: weights of any --ood-image-size load, and were reused)."""
+    return {"--members": args.members, "--seed": args.seed, "--steps": args.steps, "--palette": args.palette,
+            "--ood-train-episodes": args.ood_train_episodes, "--ood-epochs": args.ood_epochs,
+            "--ood-image-size": args.ood_image_size, "--ood-batch-size": args.ood_batch_size, "--ood-lr": args.ood_lr,
+            "--ood-bootstrap": args.ood_bootstrap, "--ood-random-physics": args.ood_random_physics}
+
+
 def _check_ood_cache(p: Parser, args: argparse.Namespace) -> None:
-    """A cache that cannot be read, or holds an ensemble of other --members, is refused now, not after the main
-    figure. (The members are convolutional: weights of any --ood-image-size load; nothing records the size.)"""
+    """A cache that cannot be read, holds an ensemble of other --members, or was made with other flags
+    (``ood_flags``), is refused now, not after the main figure."""
     try:
         state = torch.load(args.ood_cache, map_location="cpu", weights_only=True)
     except OSError as exc:
@@ -387,6 +396,15 @@ def _check_ood_cache(p: Parser, args: argparse.Namespace) -> None:
     except RuntimeError:
         p.error(f"--ood-cache {args.ood_cache}: not the OOD ensemble of --members {args.members} (its weights "
                 "differ in shape); give its --members, or another file")
+    made = state.get("flags")
+    if not isinstance(made, dict):
+        p.error(f"--ood-cache {args.ood_cache}: it does not record the flags it was made with (written before "
+                "they were recorded); give another file, or remove it to train again")
+    other = [f"{flag} {made.get(flag)} (not {value})" for flag, value in ood_flags(args).items()
+             if made.get(flag) != value]
+    if other:
+        p.error(f"--ood-cache {args.ood_cache}: made with {', '.join(other)}; give the flags it was made with, "
+                "or another file, or remove it to train again")
 
 
 def main(argv=None) -> int:

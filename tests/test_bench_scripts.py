@@ -186,6 +186,43 @@ def test_uncertainty_figures_refuses_an_ood_cache_of_other_members_before_the_ma
     assert not (tmp_path / "data").exists()
 
 
+OOD_TINY = ["--skip", "main,bench", "--members", "2", "--steps", "8", "--ood-train-episodes", "2",
+            "--ood-test-episodes", "1", "--ood-epochs", "1", "--threads", "1"]
+
+
+def _figures(*flags: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, str(ROOT / "bench" / "uncertainty_figures.py"), *OOD_TINY, *flags],
+                          cwd=ROOT, capture_output=True, text=True, timeout=300)
+
+
+def test_uncertainty_figures_refuses_an_ood_cache_made_with_other_flags_and_reuses_one_made_with_these(tmp_path):
+    """A cache made at --ood-image-size 16 was reused at 32 without a word (the members are convolutional)."""
+    cache = tmp_path / "ood.pt"
+    made = _figures("--ood-image-size", "16", "--ood-cache", str(cache))
+    assert made.returncode == 0 and cache.is_file(), made.stderr[-2000:]
+    written = cache.read_bytes()
+    other = _figures("--ood-image-size", "32", "--ood-epochs", "2", "--ood-cache", str(cache))
+    assert (other.returncode, other.stderr.splitlines()) == (2, [
+        f"uncertainty_figures.py: error: --ood-cache {cache}: made with --ood-epochs 1 (not 2), --ood-image-size 16 "
+        "(not 32); give the flags it was made with, or another file, or remove it to train again"])
+    again = _figures("--ood-image-size", "16", "--ood-cache", str(cache))
+    assert again.returncode == 0, again.stderr[-2000:]
+    assert json.loads(again.stdout)["ood"]["train_losses"] == json.loads(made.stdout)["ood"]["train_losses"]
+    assert cache.read_bytes() == written
+
+
+def test_uncertainty_figures_refuses_an_ood_cache_that_records_no_flags(tmp_path):
+    import torch
+    from uncertainty.ensemble import Ensemble
+    from uncertainty.model import PredictorConfig
+    cache = tmp_path / "ood.pt"
+    torch.save({"weights": Ensemble(PredictorConfig(image_size=16), members=2).state_dict(), "losses": [1.0]}, cache)
+    proc = _figures("--ood-image-size", "16", "--ood-cache", str(cache))
+    assert (proc.returncode, proc.stderr.splitlines()) == (2, [
+        f"uncertainty_figures.py: error: --ood-cache {cache}: it does not record the flags it was made with (written "
+        "before they were recorded); give another file, or remove it to train again"])
+
+
 def test_torch_threads_reports_a_failed_timing_process_with_its_stderr(tmp_path):
     """A timing process that fails: its exit status is checked before its output is parsed, its stderr's end
     shown, exit 1 (it was a ValueError from unpacking an empty output). A torch.py in the working directory
