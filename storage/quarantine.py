@@ -31,6 +31,7 @@ from storage.errors import CatalogError
 from storage.files import holds, move
 from storage.rows import EpisodeRow
 
+
 class NotQuarantinedError(CatalogError):
     """A restore of an episode that is in training: nothing to do (``episodes restore`` says so, exit 0)."""
 
