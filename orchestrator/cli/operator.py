@@ -60,7 +60,7 @@ def _register_queue(sub: argparse._SubParsersAction) -> None:
     q = sub.add_parser("queue", help="the collection request queue of a running service")
     qsub = q.add_subparsers(dest="queue_command", metavar="CMD", parser_class=common.Parser)
     qsub.required = True
-    p = qsub.add_parser("ls", help="requests, newest change first (queued: in lease order)")
+    p = qsub.add_parser("ls", help="requests, newest change first (--status queued: in lease order)")
     _operator_args(p)
     p.add_argument("--status", choices=[s.value for s in RequestStatus], default=None,
                    help="only requests in this state (default: all)")
