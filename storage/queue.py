@@ -269,7 +269,7 @@ class RequestQueue:
         raise UnknownRequestError(f"no request {id_or_prefix!r}: expected a known request id or a unique prefix")
 
     def list(self, status: RequestStatus | str | None = None, limit: int | None = None) -> list[Request]:
-        """Requests, newest change first; queued ones in the order they will be leased."""
+        """Requests, newest change first; with ``status`` queued, in the order they will be leased."""
         sql, args = SELECT, []
         if status is not None:
             try:
