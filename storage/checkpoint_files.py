@@ -51,16 +51,6 @@ def file_state(path: Path) -> tuple[int, int, int, int] | None:
 # -- writing -----------------------------------------------------------------------------------
 
 
-def make_models_dir(models_dir: Path) -> None:
-    """``mkdir -p models_dir``; ``RegistryError`` naming it when a file (or a link to one) is in its place, where
-    mkdir said only "[Errno 17] File exists"."""
-    try:
-        models_dir.mkdir(parents=True, exist_ok=True)
-    except FileExistsError:
-        raise RegistryError(f"{models_dir} is not a directory: the registry keeps its checkpoints there; move "
-                            "the file away") from None
-
-
 def snapshot_json(snapshot: Snapshot, snapshot_id: str) -> bytes:
     """What ``snapshot.json`` holds for the episodes ``snapshot``; ``RegistryError`` unless they are
     ``snapshot_id`` (sorted by id, one sha256 each)."""

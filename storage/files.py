@@ -66,6 +66,15 @@ def ensure_dir(path: str | os.PathLike) -> None:
         fsync_dir(d.parent)
 
 
+def make_folder(path: Path, error: type[Exception], purpose: str) -> None:
+    """``mkdir -p path``; ``error`` naming it when a file (or a link to one) is in its place, where mkdir said only
+    "[Errno 17] File exists". ``purpose`` says what the folder is for."""
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except FileExistsError:
+        raise error(f"{path} is not a directory: {purpose}; move the file away") from None
+
+
 def stage_bytes(path: str | os.PathLike, data: bytes) -> Path:
     """Writes ``data`` to a fresh temporary file next to ``path`` and fsyncs it; returns its path.
 

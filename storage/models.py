@@ -41,7 +41,7 @@ from storage import checkpoint_files, jsonsafe, promotions, pruning, strays
 from storage.database import (DB_NAME, MODELS_DIR, Migration, connection, ensure_schema, refuse_lost_database,
                               storage_error, transaction, undo_unless_committed)
 from storage.errors import CorruptCheckpointError, RegistryError, RegistryUnavailableError, UnknownModelError
-from storage.files import write_synced
+from storage.files import make_folder, write_synced
 from storage.gate import DEFAULT_METRIC, DEFAULT_MIN_REL_IMPROVEMENT, GateDecision, diverged, judge
 from storage.model_rows import (CONFIG_FILE, META_FILE, METRICS_FILE, SNAPSHOT_FILE, WEIGHTS_FILE, ChampionEntry,
                                 ModelRecord, ModelStatus, PruneResult, StrayFolders, record_of)
@@ -105,7 +105,7 @@ class ModelRegistry:
         self.data_dir = Path(data_dir)
         refuse_lost_database(self.data_dir, RegistryError)
         self.models_dir = self.data_dir / MODELS_DIR
-        checkpoint_files.make_models_dir(self.models_dir)
+        make_folder(self.models_dir, RegistryError, "the registry keeps its checkpoints there")
         self.db_path = self.data_dir / DB_NAME
         with self._connect() as conn:
             ensure_schema(conn, "models", _MIGRATIONS, RegistryError)

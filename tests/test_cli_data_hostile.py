@@ -164,3 +164,19 @@ def test_ctrl_c_in_ingest_json_prints_what_was_indexed_so_far_marked_interrupted
     assert result["interrupted"] is True and result["refused"] == 0 and result["ingested"] == indexed >= 2
     assert [f["path"] for f in result["files"]] == [str(files / f"e{i:03}.mcap") for i in range(indexed)]
     assert {f["episode_id"] for f in result["files"]} <= {r.episode_id for r in Catalog(data).list()}
+
+
+@pytest.mark.parametrize("argv", [("collect", "--episodes", "1", "--steps", "3"), ("ingest", "EP")])
+def test_a_file_where_the_episodes_folder_goes_is_named_in_one_line(capsys, tmp_path, argv) -> None:
+    """collect and ingest into a directory whose ``episodes`` is a file said only "[Errno 17] File exists"; nothing
+    is made beside it."""
+    data = tmp_path / "data"
+    data.mkdir()
+    (data / "episodes").write_text("not a folder")
+    episode = tmp_path / "ep.mcap"
+    episode.write_bytes(episodes.encode_episode(make_episode(np.random.default_rng(0), steps=3)))
+    rc, out, err = run_cli(capsys, *(str(episode) if a == "EP" else a for a in argv), "--data", str(data))
+    assert rc == 1 and err.count("\n") == 1, err  # (ingest: the file refused for it, and its count on stdout)
+    assert f"{data / 'episodes'} is not a directory: the catalog keeps its episode files there; move the file away" \
+        in err
+    assert sorted(p.name for p in data.iterdir()) == ["episodes"]
