@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import socket
 from pathlib import Path
 
 from orchestrator.transport import (MODES, RX_MAX_MESSAGE_BYTES, RX_MAX_MESSAGE_SIZE_KEY, SecureConfigError,
@@ -63,6 +64,44 @@ def endpoint_problem(text: str) -> str:
     return ""
 
 
+def config_file(text: str) -> Path:
+    """A ``--zenoh-config`` (argparse type): an empty path (an unset shell variable) is refused as empty, where
+    Path would take it for the current directory and the error would name "."."""
+    if not text:
+        raise argparse.ArgumentTypeError("expected a Zenoh config file, found an empty path")
+    return Path(text)
+
+
+def with_ports_chosen(listen: tuple[str, ...]) -> tuple[str, ...]:
+    """``listen`` with each port 0 (any free port) replaced by one the system picks now, so that what is printed
+    is where it listens: Zenoh binds port 0 itself and tells no one which port it got (zenoh-python 1.x has no
+    session locators; only Zenoh's admin space, which is off by default and would answer any peer, says).
+
+    A socket is bound at the endpoint's host, port 0, and closed: another process could take that port before
+    Zenoh binds it, and then the session fails to open saying so (a port in use). An endpoint whose host cannot
+    be bound here is left as it is, for Zenoh to refuse in its own words.
+    """
+    return tuple(_port_chosen(ep) for ep in listen)
+
+
+def _port_chosen(text: str) -> str:
+    proto, _, rest = text.partition("/")
+    address, at, tail = rest.partition("?") if "?" in rest.split("#", 1)[0] else rest.partition("#")
+    host, colon, port = address.rpartition(":")
+    if proto not in _INET_PROTOCOLS or not colon or port != "0":
+        return text
+    kind = socket.SOCK_DGRAM if proto in ("udp", "quic") else socket.SOCK_STREAM
+    try:
+        family, _, _, _, where = socket.getaddrinfo(host.removeprefix("[").removesuffix("]"), 0, type=kind,
+                                                    flags=socket.AI_PASSIVE)[0]
+        with socket.socket(family, kind) as sock:
+            sock.bind(where)
+            chosen = sock.getsockname()[1]
+    except (OSError, UnicodeError):
+        return text
+    return f"{proto}/{host}:{chosen}{at}{tail}"
+
+
 def keyless_tls_listener(listen: tuple[str, ...], zenoh_config: object) -> str:
     """What is wrong with listening on a ``tls/`` or ``quic/`` endpoint with no config ('' when nothing): the
     listener has no certificate and key to present (Zenoh refuses it at start, "Missing TLS private key"). An
@@ -99,7 +138,7 @@ def add_connection_args(parser: argparse.ArgumentParser, *, listen: bool = False
                              "--zenoh-config's own, which a client links to first: to use another router, edit "
                              "the config's connect/endpoints"
                              + ("" if listen else f"; default {DEFAULT_ENDPOINT} without --zenoh-config") + ")")
-    parser.add_argument("--zenoh-config", type=Path, default=None, metavar="FILE",
+    parser.add_argument("--zenoh-config", type=config_file, default=None, metavar="FILE",
                         help="Zenoh JSON5 config file, used as written (routers, TLS, passwords, ACL); "
                              f"incoming messages are capped at {RX_MAX_MESSAGE_BYTES >> 20} MiB unless it "
                              f"sets {RX_MAX_MESSAGE_SIZE_KEY}")

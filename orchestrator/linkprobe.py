@@ -1,4 +1,5 @@
-"""Why a Zenoh client could not connect, found by connecting again by hand (``transport.open_session`` asks).
+"""Why a Zenoh client could not connect, found by connecting again by hand (``transport.open_session`` asks);
+and whether anything at all takes a TCP connection where a peer dials (``unreachable``).
 
 Zenoh says the same "Unable to connect to any of [...]" whether nothing listens at the router's address, the
 router refuses this config's certificate, or it took the TLS connection and then refused the login (wrong
@@ -67,22 +68,53 @@ def _address(endpoint: str) -> tuple[str, str, int] | None:
     return proto, host.removeprefix("[").removesuffix("]"), int(port)
 
 
+def unreachable(endpoints: Sequence[str], timeout: float = CONNECT_TIMEOUT_S, who: str = "the router") -> str:
+    """Why nothing takes a TCP connection at any of ``endpoints`` (one line, their findings joined by '; '); ''
+    when one does, or when one cannot be tried that way (not tcp/ or tls/: quic and udp are UDP, a unix socket is
+    no address) or there are more than ``MAX_ENDPOINTS``: then it cannot be told that nothing answers.
+
+    ``timeout``: seconds to wait for each connection, at most ``CONNECT_TIMEOUT_S``; ``who``: what should listen
+    there, for the message. A Zenoh peer's session opens whether or not its connect endpoints answer (it keeps
+    dialling them): ``transport.open_session`` asks this when one opened with no link.
+    """
+    if not endpoints or len(endpoints) > MAX_ENDPOINTS:
+        return ""
+    found = []
+    for ep in endpoints:
+        address = _address(ep)
+        if address is None:
+            return ""
+        tried = _connect(ep, address[1], address[2], min(timeout, CONNECT_TIMEOUT_S), who)
+        if isinstance(tried, socket.socket):
+            tried.close()
+            return ""
+        found.append(tried)
+    return "; ".join(found)
+
+
+def _connect(endpoint: str, host: str, port: int, timeout: float, who: str = "the router") -> socket.socket | str:
+    """A TCP connection to ``host``:``port``, or why there is none."""
+    try:
+        return socket.create_connection((host, port), timeout=timeout)
+    except socket.gaierror as exc:
+        return f"cannot resolve the host of {endpoint} ({exc.strerror})"
+    except TimeoutError:
+        return (f"nothing answers at {endpoint} within {timeout:g} s (the host is down or a firewall "
+                f"drops the connection)")
+    except ConnectionRefusedError:
+        return f"nothing listens at {endpoint} (connection refused): is {who} running there?"
+    except OSError as exc:
+        return f"cannot reach {endpoint} ({exc.strerror or exc})"
+
+
 def _endpoint(endpoint: str, tls: ClientTls, user: str | None, config: str | None) -> str:
     address = _address(endpoint)
     if address is None:
         return ""
     proto, host, port = address
-    try:
-        sock = socket.create_connection((host, port), timeout=CONNECT_TIMEOUT_S)
-    except socket.gaierror as exc:
-        return f"cannot resolve the host of {endpoint} ({exc.strerror})"
-    except TimeoutError:
-        return (f"nothing answers at {endpoint} within {CONNECT_TIMEOUT_S:g} s (the host is down or a firewall "
-                f"drops the connection)")
-    except ConnectionRefusedError:
-        return f"nothing listens at {endpoint} (connection refused): is the router running there?"
-    except OSError as exc:
-        return f"cannot reach {endpoint} ({exc.strerror or exc})"
+    sock = _connect(endpoint, host, port, CONNECT_TIMEOUT_S)
+    if isinstance(sock, str):
+        return sock
     with sock:
         if proto == "tls":
             refused = _tls_refusal(sock, endpoint, host, tls)

@@ -22,6 +22,7 @@ import json
 import logging
 import os
 import re
+import socket
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -312,12 +313,19 @@ def _add_endpoints(config: zenoh.Config, section: str, endpoints: Sequence[str])
 
 
 def open_session(mode: str = "peer", listen: Sequence[str] = (), connect: Sequence[str] = (),
-                 config_file: str | Path | None = None, handshake_s: float | None = None) -> zenoh.Session:
+                 config_file: str | Path | None = None, handshake_s: float | None = None,
+                 require_link: bool = False) -> zenoh.Session:
     """Open a Zenoh session from :func:`make_config`'s arguments; it says when a router link goes and comes back.
 
     Raises ``TransportError`` when Zenoh cannot open it (port in use, bad endpoint). When a client reaches none of
     its routers, the message says why instead of Zenoh's "Unable to connect": nothing listens there, a certificate
     is refused, or the router took the connection and refused the login (``orchestrator.linkprobe``).
+
+    A peer's session opens whether or not anything answers at its connect endpoints (Zenoh keeps dialling them).
+    ``require_link`` (a command that asks once and exits): a peer that opened with no link, scouts for no others
+    and finds nothing taking a TCP connection at any of its connect endpoints fails as a client would, at once,
+    saying so, instead of waiting its whole timeout. Endpoints a TCP connection cannot try (quic/, udp/, a unix
+    socket) are left to Zenoh: a peer with one of them waits as before.
     """
     config = make_config(mode, listen, connect, config_file, handshake_s)
     try:
@@ -328,8 +336,57 @@ def open_session(mode: str = "peer", listen: Sequence[str] = (), connect: Sequen
             said = _why_unreachable(config, config_file) or said
         raise TransportError(f"cannot open Zenoh session (listen={list(listen)}, "
                              f"connect={list(connect)}, config={config_file}): {said}") from exc
+    if require_link and not session.info.links() and (said := _why_unlinked(config, handshake_s)):
+        session.close()
+        raise TransportError(f"cannot link to a Zenoh peer (listen={list(listen)}, connect={list(connect)}, "
+                             f"config={config_file}): {said}")
     _say_router_links(session)
     return session
+
+
+def unlinked(session: zenoh.Session, endpoints: Sequence[str]) -> dict[str, str]:
+    """Those of ``endpoints`` (connect endpoints) that ``session`` has no link to now (a peer's session keeps
+    dialling them), each with why (``linkprobe``: nothing listens there, ...).
+
+    A link's far end is an address (``tcp/127.0.0.1:7447``): an endpoint's host is resolved to compare.
+    """
+    far_ends = {link.dst for link in session.info.links()}
+    return {ep: linkprobe.unreachable([ep], who="a Zenoh peer or router") or "no Zenoh link came up there"
+            for ep in endpoints if not far_ends & _locators(ep)}
+
+
+def _locators(endpoint: str) -> set[str]:
+    """The far ends a link to ``endpoint`` may show: the endpoint without its metadata, and its host resolved."""
+    locator = endpoint.split("#", 1)[0].split("?", 1)[0]
+    proto, _, address = locator.partition("/")
+    host, colon, port = address.rpartition(":")
+    if not colon or not port.isdigit():
+        return {locator}
+    try:
+        infos = socket.getaddrinfo(host.removeprefix("[").removesuffix("]"), int(port), type=socket.SOCK_STREAM)
+    except (OSError, UnicodeError):
+        return {locator}
+    return {locator} | {f"{proto}/{_bracketed(str(info[4][0]))}:{port}" for info in infos}
+
+
+def _bracketed(host: str) -> str:
+    return f"[{host}]" if ":" in host else host
+
+
+def _why_unlinked(config: zenoh.Config, handshake_s: float | None) -> str:
+    """``linkprobe.unreachable`` of a peer ``config``'s connect endpoints; '' for a client (it fails at open) or a
+    peer that scouts (it may find the others by multicast)."""
+    def value(key: str) -> Any:
+        return json.loads(config.get_json(key) or "null")
+
+    mode = value("mode") or "peer"  # (Zenoh's default)
+    if mode != "peer" or value("scouting/multicast/enabled") is not False:
+        return ""
+    endpoints = value("connect/endpoints") or []
+    if isinstance(endpoints, dict):  # per-mode form
+        endpoints = endpoints.get(mode) or []
+    return linkprobe.unreachable(endpoints, handshake_s or linkprobe.CONNECT_TIMEOUT_S,
+                                 "`activecollect serve` (or a Zenoh router)")
 
 
 #: How Zenoh says that a client reached none of its connect endpoints, whatever the reason.

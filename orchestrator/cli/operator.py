@@ -124,7 +124,7 @@ def _register_queue(sub: argparse._SubParsersAction) -> None:
 
 #: Every operator command's --help ends with this.
 OPERATOR_EPILOG = ("Asks a running `activecollect serve` over Zenoh; exit 1 in one line when none answers within "
-                   "--timeout, or when it refuses.")
+                   "--timeout (at once when nothing listens at any --connect endpoint), or when it refuses.")
 
 
 def _operator_args(p: argparse.ArgumentParser) -> None:
@@ -197,7 +197,8 @@ def _session(args: argparse.Namespace) -> Iterator[zenoh.Session]:
     listen, connect = endpoints.endpoints_from_args(args)
     try:
         # (a link's handshake that outlasts --timeout cannot bring the reply in time: closing waits for it)
-        session = transport.open_session(args.mode, listen, connect, args.zenoh_config, handshake_s=args.timeout)
+        session = transport.open_session(args.mode, listen, connect, args.zenoh_config, handshake_s=args.timeout,
+                                         require_link=True)
     except transport.TransportError as exc:
         raise _NoService(str(exc)) from None
     try:

@@ -12,7 +12,7 @@ from orchestrator.protocol import one_line
 from orchestrator.router import RouterConfig, RouterError, RouterStartError, run_router
 from orchestrator.secure import (DEFAULT_NAMESPACE, DEFAULT_ROUTER_ENDPOINT, MAX_VALID_DAYS, SecureInitConfig,
                                  host_problem, init_secure, profile_settings, router_endpoint_host, tls_endpoint)
-from orchestrator.endpoints import endpoint
+from orchestrator.endpoints import config_file, endpoint, with_ports_chosen
 from orchestrator.transport import SecureConfigError, validate_secure_config
 
 
@@ -30,7 +30,7 @@ def register(sub) -> None:
                         "file's; default tcp/127.0.0.1:7447 without --zenoh-config)")
     p.add_argument("--connect", action="append", default=[], metavar="EP", type=endpoint,
                    help="another site's router to link to (repeatable; replaces the config file's)")
-    p.add_argument("--zenoh-config", type=Path, metavar="FILE",
+    p.add_argument("--zenoh-config", type=config_file, metavar="FILE",
                    help="Zenoh JSON5 config, e.g. router.json5 from `secure init`")
     p.set_defaults(func=_router)
 
@@ -74,7 +74,7 @@ def register(sub) -> None:
                                         "their dates, match their keys and are signed by the CA they name, as every "
                                         "process given --zenoh-config does before it starts. Exit 2 in one line "
                                         "naming the first one that is not.")
-    check.add_argument("config", type=Path, metavar="FILE",
+    check.add_argument("config", type=config_file, metavar="FILE",
                        help="a Zenoh JSON5 config, e.g. DIR/worker.json5 from `secure init`")
     add_json_arg(check)
     check.set_defaults(func=_check)
@@ -120,7 +120,7 @@ def _valid_days(text: str) -> int:
 
 def _router(args: argparse.Namespace) -> int:
     try:
-        cfg = RouterConfig(listen=tuple(args.listen), connect=tuple(args.connect),
+        cfg = RouterConfig(listen=with_ports_chosen(tuple(args.listen)), connect=tuple(args.connect),
                            zenoh_config=args.zenoh_config)
         return run_router(cfg, out=sys.stdout)
     except RouterStartError as exc:  # not a usage error: as `serve`, a port in use exits 1

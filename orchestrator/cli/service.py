@@ -211,6 +211,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
     keys = namespace_keys(args)
     logging.basicConfig(level=args.log_level, format="%(asctime)s %(name)s %(levelname)s %(message)s")
     listen, connect = endpoints.endpoints_from_args(args)
+    listen = endpoints.with_ports_chosen(listen)  # (Zenoh would not say which port :0 got)
     if args.mode == "client" and not connect and args.zenoh_config is None:  # (Zenoh would refuse it at start)
         raise common.UsageError("--mode client needs --connect EP: a client listens on nothing and reaches the "
                                 "others through a router (activecollect router)")
@@ -254,7 +255,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
         logging.getLogger("orchestrator.service").warning(
             "no eval split is pinned in %s: every scheduled retrain fails until one is (activecollect eval-split "
             "create --data %s, or ingest --split eval and eval-split pin)", args.data, args.data)
-    print(f"serving {args.namespace} {where_served(listen, connect, args.zenoh_config)} "
+    print(f"serving {args.namespace} {_reached(service, listen, connect, args.zenoh_config)} "
           f"(data {args.data}, planner {args.planner}); Ctrl-C to stop", flush=True)
     try:
         stop.wait()
@@ -262,6 +263,17 @@ def cmd_serve(args: argparse.Namespace) -> int:
         companions.stop()
         service.stop()
     return 0
+
+
+def _reached(service: Service, listen: tuple[str, ...], connect: tuple[str, ...], zenoh_config: Path | None) -> str:
+    """``where_served``, where a --connect endpoint the session has no link to is "dialling" (a peer's session
+    opens without one and keeps trying), with a warning saying why."""
+    dialling = transport.unlinked(service.session, connect)
+    for ep, why in dialling.items():
+        logging.getLogger("orchestrator.service").warning("no link to --connect %s yet (%s); Zenoh keeps dialling it",
+                                                          ep, why)
+    where = where_served(listen, tuple(ep for ep in connect if ep not in dialling), zenoh_config)
+    return ", ".join(filter(None, [where, f"dialling {', '.join(dialling)}" if dialling else ""]))
 
 
 def _no_eval_split(service: Service) -> bool:
