@@ -246,6 +246,7 @@ class Service:
 
     def _lease(self, msg: Incoming) -> bytes:
         req = messages.LeaseRequest.from_json(msg.payload)
+        self._uploads.check_lease(req.worker_id, req.image_size)  # an older worker of another size: refused
         lease_s = self.config.lease_s
         frame_size = self._frame_size() if req.image_size else 0  # before the lease: it must not fail after
         try:
@@ -353,6 +354,7 @@ class Service:
         except ProtocolError as exc:
             log.warning("ignoring liveliness token %s: %s", sample.key_expr, exc)
             return
+        self._uploads.forget_worker(worker_id)  # (before ``workers()`` says so) restarted, perhaps at another size
         if sample.kind == zenoh.SampleKind.PUT:
             if self.presence.joined(worker_id):  # back within its grace
                 self._tasks.put(self.presence.say_back)

@@ -21,6 +21,9 @@ inflated (its upload is bounded by the catalog's size). Under a lease granted wi
 (``UploadHandler.sizeless``: a worker from before ``image_size``, whose lease request gives none, or any worker
 while the catalog held no episode), whose worker recorded at its own size as its grant allowed, the refusal says
 what to do and comes after the request was given back with no attempt counted: the worker's ``fail`` is stale.
+Such an older worker, refused for its size, is then refused its leases (``check_lease``: nothing it collects could be
+stored) until it says its size (an upgraded worker) or its liveliness token comes or goes (``forget_worker``: a
+restart, perhaps at the catalog's size).
 """
 
 from __future__ import annotations
@@ -56,8 +59,9 @@ from workers.env import resolve_physics
 log = logging.getLogger(__name__)
 
 SIZELESS_MAX = 4096
-"""The most leases granted without a frame size (and workers warned of) the upload path keeps in memory: the
-oldest are forgotten first (an upload of a forgotten one is bounded and checked as any other)."""
+"""The most leases granted without a frame size (and older workers refused for theirs) the upload path keeps in
+memory: the oldest are forgotten first (an upload of a forgotten one is bounded and checked as any other; a
+forgotten worker is leased to again, and refused for its size again)."""
 
 
 @dataclass(frozen=True)
@@ -103,8 +107,9 @@ class UploadHandler:
         """Uploads sent in parts, held until their last part (``orchestrator.upload_parts``)."""
         self._sizeless: OrderedDict[tuple[str, int], bool] = OrderedDict()
         """(request id, token) of each lease granted without a frame size: whether its worker is an older one."""
-        self._warned: OrderedDict[str, None] = OrderedDict()
-        """The older workers whose frame size was refused: warned of once each."""
+        self._older: OrderedDict[str, tuple[int, int]] = OrderedDict()
+        """The older workers whose frame size was refused: (theirs, the catalog's). Warned of once each; their leases
+        are refused until they say their size or their liveliness token comes or goes."""
         self._sizeless_lock = threading.Lock()
 
     def sizeless(self, request_id: str, token: int, *, older: bool = True) -> None:
@@ -114,6 +119,26 @@ class UploadHandler:
         (``_check_size``). The newest ``SIZELESS_MAX`` are kept."""
         with self._sizeless_lock:
             _remember(self._sizeless, (request_id, token), older)
+
+    def check_lease(self, worker_id: str, image_size: int) -> None:
+        """A lease request of ``worker_id`` giving ``image_size`` (0: none): refused (ProtocolError ``bad_field``)
+        from an older worker whose upload was refused for its frame size, before it collects another that would be;
+        one that says its size is an upgraded worker, forgotten."""
+        if not self._older:  # (the hot path: no such worker)
+            return
+        with self._sizeless_lock:
+            sizes = self._older.pop(worker_id, None) if image_size else self._older.get(worker_id)
+        if sizes is not None and not image_size:
+            found, holds = sizes
+            raise ProtocolError(ErrorCode.BAD_FIELD, f"worker {worker_id} records {found}px frames; this catalog holds "
+                                f"{holds}px episodes, and its upload was refused for that. It does not say its size "
+                                f"when it asks for a lease (a worker from before image_size), so it gets none until "
+                                f"it restarts: upgrade it or start it with --size {holds}")
+
+    def forget_worker(self, worker_id: str) -> None:
+        """``worker_id``'s liveliness token came or went (a restart, perhaps at another size): it may lease again."""
+        with self._sizeless_lock:
+            self._older.pop(worker_id, None)
 
     def _unsized(self, header: messages.UploadHeader) -> bool | None:
         """Whether the lease ``header`` uploads under was granted without a frame size to an older worker (True) or
@@ -334,7 +359,7 @@ class UploadHandler:
         self._forget(header)
         worker = header.worker_id
         if older:
-            self._warn_once(worker, found, holds)
+            self._mark_older(worker, found, holds)
             why = (f"worker {worker} records {found}px frames; this catalog holds {holds}px episodes. It does not say "
                    f"its size when it asks for a lease (a worker from before image_size), so it cannot be told "
                    f"the catalog's: upgrade it or start it with --size {holds}")
@@ -356,15 +381,17 @@ class UploadHandler:
             raise admin.protocol_error(exc) from exc
         return True
 
-    def _warn_once(self, worker_id: str, found: int, holds: int) -> None:
-        """The service log's line for an older worker of another frame size: once per worker, not per upload."""
+    def _mark_older(self, worker_id: str, found: int, holds: int) -> None:
+        """An older worker of another frame size: its leases are refused from now on (``check_lease``), and the
+        service log says so once while it is marked, not once per upload."""
         with self._sizeless_lock:
-            if worker_id in self._warned:
-                return
-            _remember(self._warned, worker_id, None)
-        log.warning("worker %s records %dpx frames, not this catalog's %dpx, and is from before workers say their "
-                    "size: each of its uploads is refused and its request queued again (no attempt counted); "
-                    "upgrade it or start it with --size %d", worker_id, found, holds, holds)
+            known = worker_id in self._older
+            _remember(self._older, worker_id, (found, holds))
+        if not known:
+            log.warning("worker %s records %dpx frames, not this catalog's %dpx, and is from before workers say their "
+                        "size: its upload was refused and its request queued again (no attempt counted), and its "
+                        "lease requests are refused until it restarts; upgrade it or start it with --size %d",
+                        worker_id, found, holds, holds)
 
     def _refused(self, header: messages.UploadHeader | None, code: str, message: str) -> None:
         """Count and publish one refused upload (``header`` None: it was malformed, so whose is unknown)."""

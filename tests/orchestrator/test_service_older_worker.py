@@ -53,16 +53,19 @@ def test_an_older_workers_upload_of_another_size_is_refused_saying_so_and_its_re
     assert len(warned) == 1 and "old" in warned[0].getMessage() and "--size 16" in warned[0].getMessage()
 
 
-def test_the_service_warns_once_per_older_worker_not_per_upload(service, client, keys, caplog) -> None:
+def test_the_service_warns_once_per_older_worker_not_per_refusal(service, client, keys, caplog) -> None:
+    """Its next lease requests are refused too (``test_older_worker_size_leases``), without another line."""
     for _ in range(5):
         service.queue.enqueue(new_request())
     first = lease(client, keys, image_size=16)
     upload(client, keys, first, episode_bytes(first))
     with caplog.at_level(logging.WARNING, logger="orchestrator.uploads"):
-        for worker in ("old", "old", "other"):
+        for worker in ("old", "other"):
             grant = older_lease(client, keys, worker)
             refused(ErrorCode.BAD_FIELD, upload, client, keys, grant, episode_bytes(grant, worker, 24), worker=worker)
             assert service.queue.get(grant.request_id).attempts == 0
+            for _ in range(2):
+                refused(ErrorCode.BAD_FIELD, older_lease, client, keys, worker)
     warned = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
     assert [w.split()[1] for w in warned] == ["old", "other"], warned
     assert "records 24px frames, not this catalog's 16px" in warned[0] and "--size 16" in warned[0]
