@@ -25,6 +25,7 @@ from storage.catalog import Catalog
 from storage.models import ModelRegistry
 from storage.queue import RequestQueue
 from storage.requests import RequestStatus
+from uncertainty.config import MAX_EPOCHS
 from tests.conftest import REPO, alive, children, holds, wait_for
 from tests.orchestrator import conftest as orchestrator_fixtures
 from tests.orchestrator.test_service import new_request
@@ -140,7 +141,7 @@ def test_run_collects_retrains_promotes_reports_and_resumes_after_ctrl_c(tmp_pat
 @pytest.mark.timeout(120)
 @pytest.mark.parametrize("when, extra", [
     ("collecting", ["--round", "40"]),  # a long first round: the workers hold episodes when it comes
-    ("retraining", ["--retrain-args", "--members 2 --epochs 100000 --widths 4,4,4 --device cpu"]),  # till stopped
+    ("retraining", ["--retrain-args", f"--members 2 --epochs {MAX_EPOCHS} --widths 4,4,4 --device cpu"]),  # ~forever
 ])
 def test_sigterm_stops_a_run_as_ctrl_c_does(tmp_path, when, extra):
     """SIGTERM to `run` alone (kill, timeout, systemd, a CI runner): no lease is left held, a running retrain job is
@@ -152,9 +153,11 @@ def test_sigterm_stops_a_run_as_ctrl_c_does(tmp_path, when, extra):
                            start_new_session=True)
     try:
         if when == "collecting":  # the first round's requests are leased: episodes in hand
-            wait_for(lambda: train_count(data) >= 1, 60, "the first uploads")
+            wait_for(lambda: run.poll() is not None or train_count(data) >= 1, 60, "the first uploads")
         else:
-            wait_for(lambda: any(" retrain " in c for c in children(run.pid).values()), 60, "the first retrain job")
+            wait_for(lambda: run.poll() is not None or any(" retrain " in c for c in children(run.pid).values()), 60,
+                     "the first retrain job")
+        assert run.poll() is None, run.communicate()  # (a run that refused its flags: say why, not wait 60 s)
         started = children(run.pid)
         assert sum("workers.agent" in c for c in started.values()) == 2, started
         run.send_signal(signal.SIGTERM)
