@@ -9,6 +9,7 @@ import re
 import signal
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -116,20 +117,26 @@ def test_ctrl_c_in_collect_says_what_is_kept_and_why_the_same_seed_is_refused(ca
     assert rc == 2 and "give another --seed" in err and Catalog(data).count() == kept
 
 
-def test_ctrl_c_in_ingest_says_what_is_kept_and_a_second_run_indexes_the_rest(tmp_path, rng):
+def _ingest_interrupted(tmp_path, rng, n: int, *flags: str) -> tuple[Path, Path, subprocess.Popen, str, str]:
+    """``ingest`` of ``n`` small files into a new ``data``, Ctrl-C once 3 are indexed: (files, data, the process,
+    its stdout, its stderr)."""
     files = tmp_path / "files"
     files.mkdir()
-    for i in range(600):
+    for i in range(n):
         episodes.write_episode(files / f"e{i:03}.mcap", make_episode(rng, steps=3))
     data = tmp_path / "data"
-    proc = _cli("ingest", str(files), "--data", str(data))
+    proc = _cli("ingest", str(files), "--data", str(data), *flags)
     try:
-        wait_for(lambda: _published(data) >= 3 or proc.poll() is not None, timeout=60,
-                 message="3 files indexed")
+        wait_for(lambda: _published(data) >= 3 or proc.poll() is not None, timeout=60, message="3 files indexed")
         proc.send_signal(signal.SIGINT)
         out, err = proc.communicate(timeout=60)
     finally:
         proc.kill()
+    return files, data, proc, out, err
+
+
+def test_ctrl_c_in_ingest_says_what_is_kept_and_a_second_run_indexes_the_rest(tmp_path, rng):
+    files, data, proc, out, err = _ingest_interrupted(tmp_path, rng, 600)
     kept = _indexed(data)
     assert proc.returncode == 130, (out[-300:], err)
     said = re.fullmatch(r"activecollect: interrupted at file (\d+) of 600 \((.*)\): the (\d+) indexed before it are "
@@ -146,18 +153,7 @@ def test_ctrl_c_in_ingest_says_what_is_kept_and_a_second_run_indexes_the_rest(tm
 
 def test_ctrl_c_in_ingest_json_prints_what_was_indexed_so_far_marked_interrupted(tmp_path, rng):
     """``ingest --json`` interrupted printed nothing on stdout: a script reading it got no JSON at all."""
-    files = tmp_path / "files"
-    files.mkdir()
-    for i in range(300):
-        episodes.write_episode(files / f"e{i:03}.mcap", make_episode(rng, steps=3))
-    data = tmp_path / "data"
-    proc = _cli("ingest", str(files), "--data", str(data), "--json")
-    try:
-        wait_for(lambda: _published(data) >= 3 or proc.poll() is not None, timeout=60, message="3 files indexed")
-        proc.send_signal(signal.SIGINT)
-        out, err = proc.communicate(timeout=60)
-    finally:
-        proc.kill()
+    files, data, proc, out, err = _ingest_interrupted(tmp_path, rng, 300, "--json")
     assert proc.returncode == 130 and "activecollect: interrupted at file" in err, (out[-300:], err)
     result = json.loads(out)
     indexed = int(re.search(r"the (\d+) indexed before it are kept", err)[1])
