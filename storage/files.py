@@ -67,11 +67,15 @@ def ensure_dir(path: str | os.PathLike) -> None:
 
 
 def make_folder(path: Path, error: type[Exception], purpose: str) -> None:
-    """``mkdir -p path``; ``error`` naming it when a file (or a link to one) is in its place, where mkdir said only
-    "[Errno 17] File exists". ``purpose`` says what the folder is for."""
+    """``mkdir -p path``; ``error`` naming it when a file, or a link to no directory, is in its place, where mkdir
+    said only "[Errno 17] File exists". ``purpose`` says what the folder is for. A link is not to be moved away: it
+    may point at a volume not mounted now (``move``'s folders on file systems of their own)."""
     try:
         path.mkdir(parents=True, exist_ok=True)
     except FileExistsError:
+        if path.is_symlink():
+            raise error(f"{path} is a link to {os.readlink(path)}, which is not a directory (a volume not "
+                        f"mounted?): {purpose}; mount it, or point the link at the folder") from None
         raise error(f"{path} is not a directory: {purpose}; move the file away") from None
 
 

@@ -176,3 +176,21 @@ def test_a_file_where_the_episodes_folder_goes_is_named_in_one_line(capsys, tmp_
     assert f"{data / 'episodes'} is not a directory: the catalog keeps its episode files there; move the file away" \
         in err
     assert sorted(p.name for p in data.iterdir()) == ["episodes"]
+
+
+@pytest.mark.parametrize("argv", [("episodes", "ls"), ("ingest", "EP")])
+def test_a_dangling_link_where_the_episodes_folder_goes_is_named_as_a_link(capsys, tmp_path, argv) -> None:
+    """``DATA/episodes`` a link to a volume not mounted: it said "not a directory ... move the file away", advice that
+    would start an empty episodes/ beside the catalog that indexes the volume's files."""
+    data = tmp_path / "data"
+    Catalog(data)
+    (data / "episodes").rmdir()
+    (data / "episodes").symlink_to(tmp_path / "volume" / "episodes")
+    episode = tmp_path / "ep.mcap"
+    episode.write_bytes(episodes.encode_episode(make_episode(np.random.default_rng(0), steps=3)))
+    rc, _, err = run_cli(capsys, *(str(episode) if a == "EP" else a for a in argv), "--data", str(data))
+    assert rc == 1 and err.count("\n") == 1, err
+    assert (f"{data / 'episodes'} is a link to {tmp_path / 'volume' / 'episodes'}, which is not a directory (a volume "
+            "not mounted?): the catalog keeps its episode files there; mount it, or point the link at the folder") in err
+    assert "move the file away" not in err
+    assert (data / "episodes").is_symlink() and not (tmp_path / "volume").exists()

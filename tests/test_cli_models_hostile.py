@@ -182,3 +182,14 @@ def test_a_file_where_the_models_folder_goes_is_named_in_one_line(capsys, tmp_pa
     assert f"{data / 'models'} is not a directory: the registry keeps its checkpoints there; move the file away" \
         in err
     assert (data / "models").read_text() == "not a folder"
+
+
+def test_a_dangling_link_where_the_models_folder_goes_is_named_as_a_link(capsys, tmp_path) -> None:
+    """``DATA/models`` a link to a volume not mounted: not a file to move away."""
+    data = small_catalog(tmp_path / "data", seed=3, train=1, eval_=1)
+    (data / "models").symlink_to(tmp_path / "volume")
+    rc, out, err = run_cli(capsys, "models", "ls", "--data", str(data))
+    assert rc == 1 and out == "" and err.count("\n") == 1, err
+    assert f"{data / 'models'} is a link to {tmp_path / 'volume'}, which is not a directory (a volume not mounted?): " \
+        "the registry keeps its checkpoints there; mount it, or point the link at the folder" in err
+    assert (data / "models").is_symlink() and not (tmp_path / "volume").exists()
