@@ -191,6 +191,7 @@ def test_a_dangling_link_where_the_episodes_folder_goes_is_named_as_a_link(capsy
     rc, _, err = run_cli(capsys, *(str(episode) if a == "EP" else a for a in argv), "--data", str(data))
     assert rc == 1 and err.count("\n") == 1, err
     assert (f"{data / 'episodes'} is a link to {tmp_path / 'volume' / 'episodes'}, which is not a directory (a volume "
-            "not mounted?): the catalog keeps its episode files there; mount it, or point the link at the folder") in err
+            "not mounted?): the catalog keeps its episode files there; mount it, or point the link at the folder") \
+        in err
     assert "move the file away" not in err
     assert (data / "episodes").is_symlink() and not (tmp_path / "volume").exists()
