@@ -72,11 +72,11 @@ def make_folder(path: Path, error: type[Exception], purpose: str) -> None:
     may point at a volume not mounted now (``move``'s folders on file systems of their own)."""
     try:
         path.mkdir(parents=True, exist_ok=True)
-    except FileExistsError:
+    except FileExistsError as exc:  # (the cause kept: a sweep that may pass it over knows it by it)
         if path.is_symlink():
             raise error(f"{path} is a link to {os.readlink(path)}, which is not a directory (a volume not "
-                        f"mounted?): {purpose}; mount it, or point the link at the folder") from None
-        raise error(f"{path} is not a directory: {purpose}; move the file away") from None
+                        f"mounted?): {purpose}; mount it, or point the link at the folder") from exc
+        raise error(f"{path} is not a directory: {purpose}; move the file away") from exc
 
 
 def stage_bytes(path: str | os.PathLike, data: bytes) -> Path:

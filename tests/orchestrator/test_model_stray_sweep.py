@@ -7,9 +7,12 @@ from __future__ import annotations
 import errno
 import logging
 
+import pytest
+
 from orchestrator import sweeps
 from orchestrator.storagehealth import StorageHealth
 from storage.catalog import Catalog
+from storage.errors import RegistryError
 from storage.models import ModelRegistry
 from tests.conftest import failing_renames_of
 
@@ -57,3 +60,32 @@ def test_the_staging_folders_a_killed_register_left_are_deleted_once_stale_and_s
     assert [r.getMessage() for r in caplog.records] == [
         "deleted 1 staging folder(s) a retrain or prune killed midway left in models/ (none was acknowledged): "
         ".tmp-m000003-killed"]
+
+
+@pytest.mark.parametrize("link", [False, True])
+def test_a_file_where_models_goes_is_one_warning_of_the_sweep(tmp_path, caplog, link) -> None:
+    """The running service's sweep said so in a warning, as for any models/ it cannot list; once ModelRegistry named
+    the file, its RegistryError escaped the sweep (the maintenance thread's traceback, every sweep)."""
+    data = tmp_path / "data"
+    catalog = Catalog(data)
+    if link:  # a volume not mounted
+        (data / "models").symlink_to(tmp_path / "volume")
+    else:
+        (data / "models").write_text("not a folder")
+    log = logging.getLogger("test.sweeps")
+    with caplog.at_level(logging.WARNING, logger="test.sweeps"):
+        sweeps.sweep_leftovers(catalog, data, StorageHealth(log), log)
+
+    said = [r.getMessage() for r in caplog.records]
+    assert len(said) == 1 and said[0].startswith(f"cannot look for checkpoint folders no model row names ({data}"), said
+    assert "which is not a directory" in said[0] if link else "is not a directory" in said[0], said
+
+
+def test_a_registry_it_cannot_open_for_another_reason_is_still_raised(tmp_path) -> None:
+    """Only a file where models/ goes is passed over: a registry refusing to open (here its database lost, in a
+    directory of its own so that the catalog's sweep goes through) is raised on, as before."""
+    catalog, data = Catalog(tmp_path / "data"), tmp_path / "lost"
+    (data / "models" / "m000001-0badf00d").mkdir(parents=True)
+    log = logging.getLogger("test.sweeps")
+    with pytest.raises(RegistryError, match="catalog.sqlite is missing"):
+        sweeps.sweep_leftovers(catalog, data, StorageHealth(log), log)
