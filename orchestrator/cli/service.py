@@ -255,7 +255,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
         logging.getLogger("orchestrator.service").warning(
             "no eval split is pinned in %s: every scheduled retrain fails until one is (activecollect eval-split "
             "create --data %s, or ingest --split eval and eval-split pin)", args.data, args.data)
-    print(f"serving {args.namespace} {_reached(service, listen, connect, args.zenoh_config)} "
+    print(f"serving {args.namespace} {_reached(service, listen, connect, args.zenoh_config, _mode(args))} "
           f"(data {args.data}, planner {args.planner}); Ctrl-C to stop", flush=True)
     try:
         stop.wait()
@@ -265,15 +265,27 @@ def cmd_serve(args: argparse.Namespace) -> int:
     return 0
 
 
-def _reached(service: Service, listen: tuple[str, ...], connect: tuple[str, ...], zenoh_config: Path | None) -> str:
+def _reached(service: Service, listen: tuple[str, ...], connect: tuple[str, ...], zenoh_config: Path | None,
+             mode: str) -> str:
     """``where_served``, where a --connect endpoint the session has no link to is "dialling" (a peer's session
-    opens without one and keeps trying), with a warning saying why."""
-    dialling = transport.unlinked(service.session, connect)
+    opens without one and keeps trying), with a warning saying why. Only a peer's: a client links to one of its
+    routers and dials none of the others while it has that link (and it opens with none only to fail)."""
+    dialling = transport.unlinked(service.session, connect) if mode == "peer" else {}
     for ep, why in dialling.items():
         logging.getLogger("orchestrator.service").warning("no link to --connect %s yet (%s); Zenoh keeps dialling it",
                                                           ep, why)
     where = where_served(listen, tuple(ep for ep in connect if ep not in dialling), zenoh_config)
     return ", ".join(filter(None, [where, f"dialling {', '.join(dialling)}" if dialling else ""]))
+
+
+def _mode(args: argparse.Namespace) -> str:
+    """The Zenoh mode serve runs in: --mode, or its --zenoh-config's (read already: the session opened with it)."""
+    if args.zenoh_config is None:
+        return args.mode
+    try:
+        return str(transport.read_config(args.zenoh_config).get("mode") or "peer")  # (Zenoh's default)
+    except transport.SecureConfigError:  # (gone since: say what a peer would)
+        return "peer"
 
 
 def _no_eval_split(service: Service) -> bool:

@@ -117,6 +117,22 @@ def test_serve_says_dialling_for_a_connect_endpoint_nothing_answers(spawn, data_
         peer.close()
 
 
+def test_a_client_serve_claims_no_dialling_of_the_routers_it_need_not_link_to(spawn, data_dir, namespace) -> None:
+    """A client links to one of its routers and dials no other while it has that link: it said "dialling" the
+    second router, and warned that Zenoh kept dialling it."""
+    routers = [f"tcp/127.0.0.1:{free_port()}" for _ in range(2)]
+    for i, ep in enumerate(routers):
+        router = spawn(f"router{i}", "router", "--listen", ep)
+        wait_for(lambda: f" listening on {ep}" in router.log(), 30, "the router's ready line")
+    serve = spawn("service", "serve", "--data", str(data_dir), "--init", "--namespace", namespace, "--mode",
+                  "client", *(a for ep in routers for a in ("--connect", ep)), "--planner", "none",
+                  "--dashboard-port", "-1")
+    line = _serving_line(serve)
+    assert line.startswith(f"serving {namespace} connected to {', '.join(routers)} (data "), line
+    assert "dialling" not in serve.log(), serve.log()
+    assert serve.stop() == 0, serve.log()
+
+
 # ---------------------------------------------------------------- --listen ...:0
 
 def test_ports_chosen_for_port_zero_only() -> None:
