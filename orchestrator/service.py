@@ -42,6 +42,7 @@ from orchestrator.metrics import ServiceMetrics
 from orchestrator.planfeed import PlanFeed
 from orchestrator.planner import Planner
 from orchestrator.protocol import ErrorCode, EventKind, Keys, ProtocolError
+from orchestrator.refusallog import RefusalLog
 from orchestrator.serviceconfig import ServiceConfig, ServiceContext, ServiceError, where_served
 from orchestrator.storagehealth import StorageHealth
 from orchestrator.transport import Incoming, Response
@@ -94,6 +95,8 @@ class Service:
         self.heap = HeapTrimmer()
         """Gives the heap's free memory back after the planner's batches (scoring's tensors), every few seconds."""
         self._lock = ServiceLock(config.data_dir)
+        self.refusals = RefusalLog(log, clock=elapsed)
+        """The line for a refused query: one per (key, code, worker) a minute, with a count of those not logged."""
 
     # --- lifecycle -----------------------------------------------------------------------------
 
@@ -234,8 +237,8 @@ class Service:
             try:
                 return Response(handler(msg))
             except ProtocolError as exc:
-                self.metrics.refusal(exc.code.value, source)
-                log.info("refused %s: %s", msg.key, protocol.one_line(str(exc)))  # peer text: no forged lines
+                self.metrics.refusal(exc.code.value, source)  # every one; the log line, rate-limited
+                self.refusals.refused(msg, exc)
                 return Response(exc.reply())
 
         def crashed(code: str, message: str) -> bytes:  # a bug in a handler: logged by the Server
