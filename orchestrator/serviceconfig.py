@@ -115,9 +115,12 @@ class ServiceConfig:
             raise ServiceError("on_episode: expected callables")
 
 
-def where_served(listen: tuple[str, ...], connect: tuple[str, ...], zenoh_config: Path | None) -> str:
-    """``listening on EP``, ``connected to EP`` and/or ``with Zenoh config FILE``: how a service is reached."""
+def where_served(listen: tuple[str, ...], connect: tuple[str, ...], zenoh_config: Path | None, *,
+                 linked: bool = False) -> str:
+    """``listening on EP``, ``--connect EP`` and/or ``with Zenoh config FILE``: how a service is reached. A
+    ``connect`` endpoint is ``connected to EP`` only where ``linked`` (the caller saw a link to each): a peer's
+    session opens with none and keeps dialling (the text in ``DATA/service.lock`` is written before it opens)."""
     parts = ([f"listening on {', '.join(listen)}"] if listen else []) + \
-        ([f"connected to {', '.join(connect)}"] if connect else []) + \
+        ([f"{'connected to' if linked else '--connect'} {', '.join(connect)}"] if connect else []) + \
         ([f"with Zenoh config {zenoh_config}"] if zenoh_config is not None else [])
     return ", ".join(parts)

@@ -274,7 +274,7 @@ def _reached(service: Service, listen: tuple[str, ...], connect: tuple[str, ...]
     for ep, why in dialling.items():
         logging.getLogger("orchestrator.service").warning("no link to --connect %s yet (%s); Zenoh keeps dialling it",
                                                           ep, why)
-    where = where_served(listen, tuple(ep for ep in connect if ep not in dialling), zenoh_config)
+    where = where_served(listen, tuple(ep for ep in connect if ep not in dialling), zenoh_config, linked=True)
     return ", ".join(filter(None, [where, f"dialling {', '.join(dialling)}" if dialling else ""]))
 
 

@@ -208,10 +208,11 @@ def test_serve_warns_at_start_when_its_retrains_have_no_eval_split(tmp_path, spa
 def test_serve_says_how_it_is_reached() -> None:
     from orchestrator.cli.service import where_served
     assert where_served(("tcp/127.0.0.1:7447",), (), None) == "listening on tcp/127.0.0.1:7447"
-    assert where_served((), ("tcp/10.0.0.5:7447",), None) == "connected to tcp/10.0.0.5:7447"
+    assert where_served((), ("tcp/10.0.0.5:7447",), None) == "--connect tcp/10.0.0.5:7447"  # (no link known)
+    assert where_served((), ("tcp/10.0.0.5:7447",), None, linked=True) == "connected to tcp/10.0.0.5:7447"
     assert where_served((), (), Path("orchestrator.json5")) == "with Zenoh config orchestrator.json5"
     assert (where_served(("tcp/0.0.0.0:7448",), ("tls/r:7447",), Path("o.json5"))
-            == "listening on tcp/0.0.0.0:7448, connected to tls/r:7447, with Zenoh config o.json5")
+            == "listening on tcp/0.0.0.0:7448, --connect tls/r:7447, with Zenoh config o.json5")
 
 
 def test_parse_capabilities() -> None:

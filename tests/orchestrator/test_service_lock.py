@@ -161,6 +161,23 @@ def test_a_second_service_in_one_process_is_refused_and_one_after_stop_starts(da
     again.stop()
 
 
+def test_the_holders_text_claims_no_connection_to_its_connect_endpoints(data_dir, namespace) -> None:
+    """It said "connected to EP", written before the session opened, of an endpoint nothing listened on (a peer's
+    session opens without a link and keeps dialling)."""
+    dead = f"tcp/127.0.0.1:{free_port()}"
+    first = Service(ServiceConfig(data_dir=data_dir, namespace=namespace, connect=(dead,)))
+    first.start()
+    try:
+        assert read_holder(data_dir / LOCK_NAME)["where"] == f"--connect {dead}"
+        second = Service(ServiceConfig(data_dir=data_dir, namespace=namespace, connect=(dead,)))
+        with pytest.raises(ServiceError) as refusal:
+            second.start()
+        assert f"(pid {os.getpid()}, " in str(refusal.value) and f", --connect {dead}, namespace " in str(refusal.value)
+        assert "connected" not in str(refusal.value)
+    finally:
+        first.stop()
+
+
 def _children(pid: int) -> list[int]:
     """The OUTLIVES processes whose parent is ``pid``."""
     return [child for child, cmdline in child_processes(pid).items() if "# outlives" in cmdline]
