@@ -17,7 +17,7 @@ from collections.abc import Callable
 from orchestrator import protocol
 from orchestrator.protocol import ProtocolError
 from orchestrator.transport import Incoming
-from orchestrator.uploads import _remember
+from orchestrator.uploads import remember
 
 WINDOW_S = 60.0
 """At most one line per (key, code, worker) this often."""
@@ -46,7 +46,7 @@ class RefusalLog:
             if last is not None and now - last[0] < self._window_s:
                 self._kinds[kind] = (last[0], last[1] + 1)
                 return
-            _remember(self._kinds, kind, (now, 0))
+            remember(self._kinds, kind, (now, 0))
         who = f" from worker {worker}" if worker else ""  # (a valid id: no forged lines)
         text = protocol.one_line(str(exc))  # peer text: no forged lines
         if last is not None and last[1]:

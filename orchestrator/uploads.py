@@ -118,7 +118,7 @@ class UploadHandler:
         An upload of another size than the catalog's is refused and its request given back uncharged
         (``_check_size``). The newest ``SIZELESS_MAX`` are kept."""
         with self._sizeless_lock:
-            _remember(self._sizeless, (request_id, token), older)
+            remember(self._sizeless, (request_id, token), older)
 
     def check_lease(self, worker_id: str, image_size: int) -> None:
         """A lease request of ``worker_id`` giving ``image_size`` (0: none): refused (ProtocolError ``bad_field``)
@@ -386,7 +386,7 @@ class UploadHandler:
         service log says so once while it is marked, not once per upload."""
         with self._sizeless_lock:
             known = worker_id in self._older
-            _remember(self._older, worker_id, (found, holds))
+            remember(self._older, worker_id, (found, holds))
         if not known:
             log.warning("worker %s records %dpx frames, not this catalog's %dpx, and is from before workers say their "
                         "size: its upload was refused and its request queued again (no attempt counted), and its "
@@ -415,8 +415,9 @@ def release_lease(queue: RequestQueue, turn: Callable[[], AbstractContextManager
     return after
 
 
-def _remember(kept: OrderedDict[Any, Any], key: Any, value: Any) -> None:
-    """Put ``key`` in ``kept`` as its newest, forgetting the oldest past ``SIZELESS_MAX``."""
+def remember(kept: OrderedDict[Any, Any], key: Any, value: Any) -> None:
+    """Put ``key`` in ``kept`` as its newest, forgetting the oldest past ``SIZELESS_MAX`` (a memory bounded against
+    any peer: also ``orchestrator.refusallog``'s)."""
     kept[key] = value
     kept.move_to_end(key)
     while len(kept) > SIZELESS_MAX:
