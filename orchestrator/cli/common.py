@@ -357,14 +357,23 @@ def _request_timeout(text: str) -> float:
     return value
 
 
+#: The most dashboard connections served at once (a thread each): past the system's thread limit, each one more
+#: would be an ERROR with a traceback, not a 503.
+MAX_DASHBOARD_CONNECTIONS = 4096
+
+
+def _max_connections(text: str) -> int:
+    return int_in(text, 1, MAX_DASHBOARD_CONNECTIONS, "a positive integer", "connections (a thread each)")
+
+
 def add_dashboard_limit_args(p: argparse.ArgumentParser, prefix: str = "") -> None:
     """``--[PREFIX]max-connections`` and ``--[PREFIX]request-timeout`` (``args.max_connections``,
     ``args.request_timeout``): the dashboard's limits on clients, for ``dashboard`` and ``serve``."""
     d = DashboardConfig
-    p.add_argument(f"--{prefix}max-connections", type=positive_int, default=d.max_connections, metavar="N",
+    p.add_argument(f"--{prefix}max-connections", type=_max_connections, default=d.max_connections, metavar="N",
                    dest="max_connections",
-                   help=f"dashboard connections served at once; one more is answered 503 with Retry-After "
-                        f"(default {d.max_connections})")
+                   help=f"dashboard connections served at once, at most {MAX_DASHBOARD_CONNECTIONS}; one more is "
+                        f"answered 503 with Retry-After (default {d.max_connections})")
     p.add_argument(f"--{prefix}request-timeout", type=_request_timeout, default=d.request_timeout_s, metavar="S",
                    dest="request_timeout",
                    help=f"seconds a dashboard client may take to send its whole request before it is dropped, "

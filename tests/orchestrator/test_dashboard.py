@@ -460,3 +460,15 @@ def test_a_request_timeout_too_short_for_any_request_is_refused(capsys, argv):
     with pytest.raises(ValueError, match=r"request_timeout_s must be in \[0.1, 86400\], found 1e-300"):
         DashboardConfig(request_timeout_s=1e-300)
     assert DashboardConfig(request_timeout_s=0.1).request_timeout_s == 0.1
+
+
+@pytest.mark.parametrize("argv", [["dashboard", "--max-connections", "100000000000000000000"],
+                                  ["serve", "--dashboard-max-connections", "4097"]])
+def test_more_connections_than_threads_can_serve_are_refused(capsys, argv):
+    """``--max-connections 10**20`` was taken: no cap at all, a thread per client until the system refused one."""
+    with pytest.raises(SystemExit) as stop:
+        build_parser().parse_args(argv)
+    err = capsys.readouterr().err
+    assert stop.value.code == 2 and err.count("\n") == 1, err
+    assert f"expected at most 4096 connections (a thread each), found {argv[-1]}" in err
+    assert build_parser().parse_args(["dashboard", "--max-connections", "4096"]).max_connections == 4096
