@@ -67,7 +67,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                                    "disagreement ranks its error (Spearman). Changes nothing; exit 1 when there is "
                                    "no champion or its weights cannot be loaded.")
     p.add_argument("version", nargs="?", metavar="VERSION",
-                   help="a registered version or a unique prefix of one (default: the champion)")
+                   help="a registered version, a unique prefix of one, or champion (the default)")
     p.add_argument("--device", type=common.torch_device, default="auto",
                    help="torch device: auto, cpu or cuda (default auto: cuda when there is one)")
     p.set_defaults(func=_eval)

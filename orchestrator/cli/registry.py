@@ -17,7 +17,7 @@ from orchestrator.cli import common
 from storage.catalog import Catalog
 from storage.errors import CorruptCheckpointError, NotFoundError, RegistryError
 from storage.jsonsafe import finite_json as strict_json  # (the name every --json of these commands uses)
-from storage.models import SNAPSHOT_FILE, ModelRecord, ModelRegistry, PruneResult
+from storage.models import CHAMPION, SNAPSHOT_FILE, ModelRecord, ModelRegistry, PruneResult
 from storage.rows import Snapshot
 from storage.strays import MODEL_ORPHANS_DIR
 
@@ -30,8 +30,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p = msub.add_parser("ls", help="list registered models, champion marked")
     p.set_defaults(func=_models_ls)
     p = msub.add_parser("show", help="one model: metrics, lineage, status and reason")
-    p.add_argument("version", metavar="VERSION", help="a model version (as `models ls` lists), or a unique prefix "
-                                                      "of one such as m000003")
+    p.add_argument("version", metavar="VERSION", help="a model version (as `models ls` lists), a unique prefix "
+                                                      "of one such as m000003, or champion")
     p.add_argument("--episodes", action="store_true",
                    help="list the episodes it was trained on instead, one id per line (with --json: the model "
                         "and its episodes' ids and sha256s): those of the job that trained it (a model warm-"
@@ -43,7 +43,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                                     "override); the champion before it can be returned to with `models rollback`. "
                                     "Exit 1 when its weights fail their sha256, are pruned, or it was evaluated on "
                                     "another eval split than the pinned one.")
-    p.add_argument("version", metavar="VERSION", help="a model version, or a unique prefix of one such as m000003")
+    p.add_argument("version", metavar="VERSION", help="a model version, a unique prefix of one such as m000003, or "
+                                                      "champion (already the champion: says so, changes nothing)")
     p.set_defaults(func=_models_promote)
     p = msub.add_parser("rollback", help="return to the previous champion whose weights are intact",
                         description="Make the previous champion whose weights still match their sha256 the "
@@ -92,7 +93,15 @@ def _registry(args: argparse.Namespace) -> ModelRegistry:
 
 
 def resolve_model(registry: ModelRegistry, version: str) -> ModelRecord:
-    """The model ``version`` names, in full or by a unique prefix; a usage error when none does."""
+    """The model ``version`` names, in full or by a unique prefix, or the champion for its alias ``champion``
+    (no version reads so: they are ``mNNNNNN-hex``); a usage error when none does. Raises ``RegistryError``
+    (exit 1, as ``eval`` without a champion) for ``champion`` while nothing has been promoted."""
+    if version == CHAMPION:
+        current = registry.champion()
+        if current is None:
+            raise RegistryError(f"no champion model yet: '{CHAMPION}' names none (train one first: "
+                                "activecollect train)")
+        version = current
     try:
         return registry.resolve(version)
     except NotFoundError as exc:  # (a damaged registry is not a usage error: exit 1)
