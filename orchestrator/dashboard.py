@@ -33,7 +33,7 @@ from urllib.parse import urlsplit
 from orchestrator.dashboard_page import render_page
 from orchestrator.metrics import ServiceMetrics
 from orchestrator.storagehealth import StorageHealth
-from storage.database import DB_NAME, busy_timeout, disk_json
+from storage.database import DB_NAME, MODELS_DIR, busy_timeout, disk_json
 from storage.catalog import Catalog
 from storage.jsonsafe import finite_json
 from storage.errors import CatalogError, StorageError, StorageUnavailableError
@@ -397,11 +397,12 @@ class DataSources:
         """The data directory's stores for one read, the queue's connections closed after it: http.server runs
         each connection on a new thread, so stores kept per thread held their files open until the GC ran.
         CatalogError when the catalog is not there (the directory moved, removed, its disk unmounted): opening
-        the stores would make a new empty one, and the page would show an empty fleet."""
+        the stores would make a new empty one, and the page would show an empty fleet. The registry makes no
+        ``models/`` folder where there is none (no model trained yet): the dashboard writes nothing."""
         self._refuse_lost()
         catalog = Catalog(self.data_dir)
         with RequestQueue(catalog.db_path, busy_timeout_s=READ_BUSY_TIMEOUT_S) as queue:
-            yield catalog, queue, ModelRegistry(self.data_dir)
+            yield catalog, queue, ModelRegistry(self.data_dir, make_models_dir=False)
 
     def _refuse_lost(self) -> None:
         if not (Path(self.data_dir) / DB_NAME).is_file():
@@ -409,9 +410,11 @@ class DataSources:
                                f"disk unmounted? (the dashboard only reads; it creates none)")
 
     def _frames(self) -> bytes:
-        """``frames_png``, checked as ``_stores`` is: the champion's loader opens the registry, which would make
-        the lost data directory anew (the page asks for this picture on its first refresh)."""
+        """``frames_png``, checked as ``_stores`` is: the champion's loader opens the registry, which would make the
+        lost data directory anew, or ``models/`` where there is none (no weights to draw with then: not asked)."""
         self._refuse_lost()
+        if not (Path(self.data_dir) / MODELS_DIR).is_dir():
+            return b""
         return self.frames_png()
 
     def sources(self) -> DashboardSources:

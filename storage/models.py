@@ -101,11 +101,12 @@ class ModelRegistry:
     change is one ``BEGIN IMMEDIATE`` transaction.
     """
 
-    def __init__(self, data_dir: str | os.PathLike[str]) -> None:
+    def __init__(self, data_dir: str | os.PathLike[str], make_models_dir: bool = True) -> None:
         self.data_dir = Path(data_dir)
         refuse_lost_database(self.data_dir, RegistryError)
         self.models_dir = self.data_dir / MODELS_DIR
-        make_folder(self.models_dir, RegistryError, "the registry keeps its checkpoints there")
+        if make_models_dir:  # (False: a reader that must write nothing, the dashboard; it stores no checkpoint)
+            make_folder(self.models_dir, RegistryError, "the registry keeps its checkpoints there")
         self.db_path = self.data_dir / DB_NAME
         with self._connect() as conn:
             ensure_schema(conn, "models", _MIGRATIONS, RegistryError)
@@ -386,8 +387,7 @@ class ModelRegistry:
                 return GateDecision(False, f"{version} is already the champion", version, current)
             checkpoint_files.refuse_pruned(self._get(conn, version))  # a prune may have landed since the sha256 check
             champ = self._get(conn, current) if current is not None else None
-            expected = eval_split_hash if eval_split_hash is not None else (
-                champ.eval_split_hash if champ else None)
+            expected = eval_split_hash if eval_split_hash is not None else (champ.eval_split_hash if champ else None)
             if expected is not None and rec.eval_split_hash != expected:
                 raise RegistryError(
                     f"refusing to promote {version}: it was evaluated on eval split "
