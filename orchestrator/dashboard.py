@@ -13,11 +13,9 @@ champion), ``/metrics``.
 from __future__ import annotations
 
 import functools
-import http.client
 import io
 import json
 import logging
-import math
 import socket
 import sys
 import threading
@@ -31,6 +29,7 @@ from typing import Any, Callable, Iterator
 from urllib.parse import urlsplit
 
 from orchestrator.dashboard_page import render_page
+from orchestrator.dashboard_reader import DeadlineReader
 from orchestrator.metrics import ServiceMetrics
 from orchestrator.storagehealth import StorageHealth
 from storage.database import DB_NAME, MODELS_DIR, busy_timeout, disk_json
@@ -239,49 +238,6 @@ class Dashboard:
         return 404, _TEXT, f"no such page: {path}\n".encode()
 
 
-#: The header bytes a request may send past what its request line may take. The base class bounds only each line
-#: (64 KiB) and their number (100): 6.4 MB a connection, a few hundred MB of the serving process (the service's,
-#: under `serve`) for 32.
-MAX_HEADER_BYTES = 64 * 1024
-#: What a connection may send in all, its request line and headers together (~136 KiB): the line's allowance (the
-#: base class's 64 KiB, answered 414 past it), what the reader buffers past it, and ``MAX_HEADER_BYTES``; past it
-#: the request is answered 431. (A short request line leaves its allowance to the headers.)
-_MAX_REQUEST_BYTES = 65537 + io.DEFAULT_BUFFER_SIZE + MAX_HEADER_BYTES
-
-
-class _DeadlineReader(io.RawIOBase):
-    """The reading side of a socket whose every read ends by ``deadline`` (``time.monotonic()``), and that
-    gives at most ``_MAX_REQUEST_BYTES`` in all.
-
-    The socket's own timeout bounds each read; a client sending a byte every few seconds
-    would pass each one. Writes keep the socket's timeout.
-    """
-
-    def __init__(self, sock: socket.socket) -> None:
-        self._sock = sock
-        self.deadline = math.inf
-        self._left = _MAX_REQUEST_BYTES
-
-    def readable(self) -> bool:
-        return True
-
-    def readinto(self, buf: Any) -> int:
-        left = self.deadline - time.monotonic()
-        if left <= 0:
-            raise TimeoutError("the client did not send its request in time")
-        if self._left <= 0:  # the base class answers it 431, as for a header line too long
-            raise http.client.HTTPException(f"the request's line and headers are over {_MAX_REQUEST_BYTES} bytes")
-        per_read = self._sock.gettimeout()
-        self._sock.settimeout(left if per_read is None else min(left, per_read))
-        try:
-            with memoryview(buf) as view:
-                n = self._sock.recv_into(view[:self._left])
-            self._left -= n
-            return n
-        finally:
-            self._sock.settimeout(per_read)
-
-
 class _Handler(BaseHTTPRequestHandler):
     """GET and HEAD; every other method is 405. One request per connection (HTTP/1.0, the base class's default)."""
 
@@ -294,7 +250,7 @@ class _Handler(BaseHTTPRequestHandler):
     def setup(self) -> None:
         super().setup()
         self.rfile.close()  # the base class's reader; an open one would keep the socket from closing
-        self._reader = _DeadlineReader(self.connection)
+        self._reader = DeadlineReader(self.connection)
         self.rfile = io.BufferedReader(self._reader)
 
     def handle_one_request(self) -> None:
@@ -303,6 +259,13 @@ class _Handler(BaseHTTPRequestHandler):
         super().handle_one_request()
 
     def parse_request(self) -> bool:
+        if len(self.raw_requestline.split()) == 2:
+            # HTTP/0.9's "GET /", no version: the base class would go on to read headers such a client never sends,
+            # holding a connection slot until the request timeout. Answered at once, as HTTP/1.0 answers.
+            self.command, self.request_version = "", self.default_request_version
+            self.requestline = str(self.raw_requestline, "iso-8859-1").rstrip("\r\n")
+            self._send(HTTPStatus.HTTP_VERSION_NOT_SUPPORTED, _TEXT, b"HTTP/0.9 is not served: send HTTP/1.0 or 1.1\n")
+            return False
         if not super().parse_request():  # it has answered the error
             return False
         if self.command not in ("GET", "HEAD"):  # rather than the base class's 501 for methods with no do_*

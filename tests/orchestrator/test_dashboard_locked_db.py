@@ -14,8 +14,8 @@ from urllib.parse import urlsplit
 
 import pytest
 
-from orchestrator.dashboard import (MAX_HEADER_BYTES, READ_BUSY_TIMEOUT_S, RETRY_AFTER_S, Dashboard, DashboardConfig,
-                                    DataSources)
+from orchestrator.dashboard import READ_BUSY_TIMEOUT_S, RETRY_AFTER_S, Dashboard, DashboardConfig, DataSources
+from orchestrator.dashboard_reader import MAX_HEADER_BYTES
 from storage import database
 from storage.catalog import Catalog
 from storage.queue import RequestQueue
