@@ -15,9 +15,9 @@ from collections import OrderedDict
 from collections.abc import Callable
 
 from orchestrator import protocol
+from orchestrator.bounded import remember
 from orchestrator.protocol import ProtocolError
 from orchestrator.transport import Incoming
-from orchestrator.uploads import remember
 
 WINDOW_S = 60.0
 """At most one line per (key, code, worker) this often."""
@@ -25,10 +25,14 @@ WINDOW_S = 60.0
 MAX_PARSED_BYTES = 4096
 """A refused query's body (or upload header) longer than this is not read for its worker id."""
 
+KINDS_MAX = 4096
+"""The most (key, code, worker) kinds a ``RefusalLog`` keeps in memory, the oldest forgotten first (a forgotten kind
+is logged afresh): a bound against any peer, which chooses the keys and worker ids it is refused for."""
+
 
 class RefusalLog:
     """Logs refused queries on ``log`` (info), rate-limited; thread-safe. The (key, code, worker) kinds it keeps
-    are bounded (``uploads.SIZELESS_MAX``, the oldest forgotten first: a forgotten kind is logged afresh)."""
+    are bounded (``KINDS_MAX``)."""
 
     def __init__(self, log: logging.Logger, clock: Callable[[], float] = time.monotonic,
                  window_s: float = WINDOW_S) -> None:
@@ -46,7 +50,7 @@ class RefusalLog:
             if last is not None and now - last[0] < self._window_s:
                 self._kinds[kind] = (last[0], last[1] + 1)
                 return
-            remember(self._kinds, kind, (now, 0))
+            remember(self._kinds, kind, (now, 0), KINDS_MAX)
         who = f" from worker {worker}" if worker else ""  # (a valid id: no forged lines)
         text = protocol.one_line(str(exc))  # peer text: no forged lines
         if last is not None and last[1]:

@@ -40,6 +40,7 @@ from typing import Any
 import numpy as np
 
 from orchestrator import admin, messages, protocol
+from orchestrator.bounded import remember
 from orchestrator.metrics import ServiceMetrics
 from orchestrator.protocol import ErrorCode, EventKind, ProtocolError
 from orchestrator.storagehealth import StorageHealth
@@ -118,7 +119,7 @@ class UploadHandler:
         An upload of another size than the catalog's is refused and its request given back uncharged
         (``_check_size``). The newest ``SIZELESS_MAX`` are kept."""
         with self._sizeless_lock:
-            remember(self._sizeless, (request_id, token), older)
+            remember(self._sizeless, (request_id, token), older, SIZELESS_MAX)
 
     def check_lease(self, worker_id: str, image_size: int) -> None:
         """A lease request of ``worker_id`` giving ``image_size`` (0: none): refused (ProtocolError ``bad_field``)
@@ -386,7 +387,7 @@ class UploadHandler:
         service log says so once while it is marked, not once per upload."""
         with self._sizeless_lock:
             known = worker_id in self._older
-            remember(self._older, worker_id, (found, holds))
+            remember(self._older, worker_id, (found, holds), SIZELESS_MAX)
         if not known:
             log.warning("worker %s records %dpx frames, not this catalog's %dpx, and is from before workers say their "
                         "size: its upload was refused and its request queued again (no attempt counted), and its "
@@ -413,15 +414,6 @@ def release_lease(queue: RequestQueue, turn: Callable[[], AbstractContextManager
     publish(EventKind.REQUEST_RELEASED, {"request_id": after.id, "worker_id": worker_id, "token": token,
                                          "status": after.status.value, "attempts": after.attempts})
     return after
-
-
-def remember(kept: OrderedDict[Any, Any], key: Any, value: Any) -> None:
-    """Put ``key`` in ``kept`` as its newest, forgetting the oldest past ``SIZELESS_MAX`` (a memory bounded against
-    any peer: also ``orchestrator.refusallog``'s)."""
-    kept[key] = value
-    kept.move_to_end(key)
-    while len(kept) > SIZELESS_MAX:
-        kept.popitem(last=False)
 
 
 def _under(request: Request, header: messages.UploadHeader, status: RequestStatus) -> bool:

@@ -7,11 +7,10 @@ from __future__ import annotations
 import logging
 import time
 
-from orchestrator import messages
+from orchestrator import messages, refusallog, uploads
 from orchestrator.protocol import ErrorCode, ProtocolError
 from orchestrator.refusallog import RefusalLog, claimed_worker
 from orchestrator.transport import Incoming
-from orchestrator.uploads import SIZELESS_MAX
 from tests.orchestrator.test_service import call, refused
 
 UNKNOWN = "0123456789abcdef0123456789abcdef"
@@ -53,13 +52,16 @@ def test_a_client_refused_again_and_again_gets_one_line_a_minute_with_a_count(ma
     assert counted == 23  # every one
 
 
-def test_the_kinds_it_keeps_are_bounded() -> None:
+def test_the_kinds_it_keeps_are_bounded_by_its_own_cap(monkeypatch) -> None:
+    """``KINDS_MAX`` bounds the refusal log, not the upload path's ``SIZELESS_MAX``; the oldest kind goes first."""
+    monkeypatch.setattr(refusallog, "KINDS_MAX", 3)
+    monkeypatch.setattr(uploads, "SIZELESS_MAX", 1)
     log = logging.getLogger("test.refusallog")
     refusals = RefusalLog(log, clock=lambda: 0.0)
     exc = ProtocolError(ErrorCode.BAD_FIELD, "x")
-    for n in range(SIZELESS_MAX + 10):
+    for n in range(13):
         refusals.refused(Incoming(f"ns/orch/lease/{n}", b"", None), exc)
-    assert len(refusals._kinds) == SIZELESS_MAX
+    assert [key for key, _, _ in refusals._kinds] == [f"ns/orch/lease/{n}" for n in (10, 11, 12)]
 
 
 def test_the_worker_is_read_from_an_upload_header_or_the_body_and_only_a_valid_id() -> None:
