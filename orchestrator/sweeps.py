@@ -17,7 +17,7 @@ from pathlib import Path
 
 from orchestrator.storagehealth import StorageHealth
 from storage.catalog import ORPHANS_DIR, Catalog, Strays
-from storage.errors import RegistryError
+from storage.errors import RegistryFolderError
 from storage.models import ModelRegistry
 from storage.strays import MODEL_ORPHANS_DIR
 
@@ -36,10 +36,7 @@ def sweep_leftovers(catalog: Catalog, data_dir: Path, health: StorageHealth, log
     try:
         with health.writing():
             models = ModelRegistry(data_dir).sweep_strays()
-    except (OSError, RegistryError) as exc:  # models/ could not be made, opened or listed: nothing was moved
-        # (of RegistryErrors, only make_folder's: a file or a dangling link where models/ goes)
-        if isinstance(exc, RegistryError) and not isinstance(exc.__cause__, FileExistsError):
-            raise
+    except (OSError, RegistryFolderError) as exc:  # models/ could not be made, opened or listed: nothing was moved
         log.warning("cannot look for checkpoint folders no model row names (%s); any stay where they are, unused, "
                     "until a later sweep", exc)
         return

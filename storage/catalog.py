@@ -46,7 +46,7 @@ from storage.episode_reader import EpisodeInfo, inspect_episode, read_file
 from storage.episodes import encode_episode
 from storage.database import (DB_NAME, EPISODES_DIR, Migration, ensure_schema, refuse_lost_database, storage_error,
                               transaction, undo_unless_committed)
-from storage.errors import CatalogError, CorruptEpisodeError, EpisodeError, OtherSplitError
+from storage.errors import CatalogError, CatalogFolderError, CorruptEpisodeError, EpisodeError, OtherSplitError
 from storage.files import holds, make_folder, move, publish, sha256_hex, stage_bytes
 from storage import episode_table
 # (named apart from the methods Catalog.eval_split, Catalog.quarantine and Catalog.strays)
@@ -109,7 +109,7 @@ class Catalog(CatalogQuarantine, CatalogEvalSplit, CatalogStrays):
         self.data_dir = Path(data_dir).absolute()
         refuse_lost_database(self.data_dir, CatalogError)
         self.episodes_dir = self.data_dir / EPISODES_DIR
-        make_folder(self.episodes_dir, CatalogError, "the catalog keeps its episode files there")
+        make_folder(self.episodes_dir, CatalogFolderError, "the catalog keeps its episode files there")
         self._db_path = self.data_dir / DB_NAME
         with self._connect() as conn:
             ensure_schema(conn, "catalog", _CATALOG_MIGRATIONS)

@@ -45,8 +45,18 @@ class FrameSizeError(EpisodeError):
 DAMAGED_EPISODE_ERRORS = (MissingEpisodeError, CorruptEpisodeError, TruncatedEpisodeError, ForeignFileError)
 
 
+class MisplacedFolderError(StorageError):
+    """A file, or a link to no directory, is where a folder of the data directory goes (``storage.files.make_folder``):
+    nothing was made, and nothing is until it is moved away (or its volume mounted). Each component raises its own
+    subclass (``CatalogFolderError`` ...), so it is also that component's error."""
+
+
 class CatalogError(StorageError):
     """The catalog refused an operation (unknown id, conflicting row, bad split)."""
+
+
+class CatalogFolderError(CatalogError, MisplacedFolderError):
+    """A file, or a link to no directory, is where the catalog's episodes/ goes (see ``MisplacedFolderError``)."""
 
 
 class OtherSplitError(CatalogError):
@@ -101,6 +111,10 @@ class RegistryError(StorageError):
 
 class UnknownModelError(RegistryError, NotFoundError):
     """No model has this version."""
+
+
+class RegistryFolderError(RegistryError, MisplacedFolderError):
+    """A file, or a link to no directory, is where the registry's models/ goes (see ``MisplacedFolderError``)."""
 
 
 class RegistryUnavailableError(RegistryError, StorageUnavailableError):

@@ -20,6 +20,8 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import BinaryIO
 
+from storage.errors import MisplacedFolderError
+
 #: Read and written at a time when ``move`` copies a file across file systems.
 _COPY_CHUNK = 1 << 20
 
@@ -66,13 +68,14 @@ def ensure_dir(path: str | os.PathLike) -> None:
         fsync_dir(d.parent)
 
 
-def make_folder(path: Path, error: type[Exception], purpose: str) -> None:
-    """``mkdir -p path``; ``error`` naming it when a file, or a link to no directory, is in its place, where mkdir
-    said only "[Errno 17] File exists". ``purpose`` says what the folder is for. A link is not to be moved away: it
-    may point at a volume not mounted now (``move``'s folders on file systems of their own)."""
+def make_folder(path: Path, error: type[MisplacedFolderError], purpose: str) -> None:
+    """``mkdir -p path``; ``error`` (the caller's ``MisplacedFolderError``) naming it when a file, or a link to no
+    directory, is in its place, where mkdir said only "[Errno 17] File exists". ``purpose`` says what the folder is
+    for. A link is not to be moved away: it may point at a volume not mounted now (``move``'s folders on file
+    systems of their own)."""
     try:
         path.mkdir(parents=True, exist_ok=True)
-    except FileExistsError as exc:  # (the cause kept: a sweep that may pass it over knows it by it)
+    except FileExistsError as exc:
         if path.is_symlink():
             raise error(f"{path} is a link to {os.readlink(path)}, which is not a directory (a volume not "
                         f"mounted?): {purpose}; mount it, or point the link at the folder") from exc

@@ -37,7 +37,7 @@ from contextlib import AbstractContextManager, contextmanager
 from pathlib import Path
 from typing import Any
 
-from storage import checkpoint_files, jsonsafe, promotions, pruning, strays
+from storage import checkpoint_files, errors, jsonsafe, promotions, pruning, strays
 from storage.database import (DB_NAME, MODELS_DIR, Migration, connection, ensure_schema, refuse_lost_database,
                               storage_error, transaction, undo_unless_committed)
 from storage.errors import CorruptCheckpointError, RegistryError, RegistryUnavailableError, UnknownModelError
@@ -106,7 +106,7 @@ class ModelRegistry:
         refuse_lost_database(self.data_dir, RegistryError)
         self.models_dir = self.data_dir / MODELS_DIR
         if make_models_dir:  # (False: a reader that must write nothing, the dashboard; it stores no checkpoint)
-            make_folder(self.models_dir, RegistryError, "the registry keeps its checkpoints there")
+            make_folder(self.models_dir, errors.RegistryFolderError, "the registry keeps its checkpoints there")
         self.db_path = self.data_dir / DB_NAME
         with self._connect() as conn:
             ensure_schema(conn, "models", _MIGRATIONS, RegistryError)
