@@ -12,6 +12,7 @@ import signal
 import sys
 import threading
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -215,8 +216,9 @@ def cmd_serve(args: argparse.Namespace) -> int:
     if args.mode == "client" and not connect and args.zenoh_config is None:  # (Zenoh would refuse it at start)
         raise common.UsageError("--mode client needs --connect EP: a client listens on nothing and reaches the "
                                 "others through a router (activecollect router)")
-    if args.zenoh_config is not None:  # another role's profile config: no request would ever reach this service
-        if denied := acl.denied_by_acl(transport.read_config(args.zenoh_config), Path(args.zenoh_config), keys.lease,
+    written = transport.read_config(args.zenoh_config) if args.zenoh_config is not None else None
+    if written is not None:  # another role's profile config: no request would ever reach this service
+        if denied := acl.denied_by_acl(written, Path(args.zenoh_config), keys.lease,
                                        keys.namespace, "the declarations of the service's queryables",
                                        "declare_queryable"):
             raise common.UsageError(f"--zenoh-config: {denied}")
@@ -255,7 +257,8 @@ def cmd_serve(args: argparse.Namespace) -> int:
         logging.getLogger("orchestrator.service").warning(
             "no eval split is pinned in %s: every scheduled retrain fails until one is (activecollect eval-split "
             "create --data %s, or ingest --split eval and eval-split pin)", args.data, args.data)
-    print(f"serving {args.namespace} {_reached(service, listen, connect, args.zenoh_config, _mode(args))} "
+    where = _reached(service, listen, connect, args.zenoh_config, _mode(args.mode, written))
+    print(f"serving {args.namespace} {where} "
           f"(data {args.data}, planner {args.planner}); Ctrl-C to stop", flush=True)
     try:
         stop.wait()
@@ -278,14 +281,10 @@ def _reached(service: Service, listen: tuple[str, ...], connect: tuple[str, ...]
     return ", ".join(filter(None, [where, f"dialling {', '.join(dialling)}" if dialling else ""]))
 
 
-def _mode(args: argparse.Namespace) -> str:
-    """The Zenoh mode serve runs in: --mode, or its --zenoh-config's (read already: the session opened with it)."""
-    if args.zenoh_config is None:
-        return args.mode
-    try:
-        return str(transport.read_config(args.zenoh_config).get("mode") or "peer")  # (Zenoh's default)
-    except transport.SecureConfigError:  # (gone since: say what a peer would)
-        return "peer"
+def _mode(given: str, written: dict[str, Any] | None) -> str:
+    """The Zenoh mode serve runs in: ``given`` (--mode), or the mode of its --zenoh-config as ``written`` there (read
+    once, before the session opened with it: a Zenoh session does not say its mode)."""
+    return given if written is None else str(written.get("mode") or "peer")  # (Zenoh's default)
 
 
 def _no_eval_split(service: Service) -> bool:

@@ -133,6 +133,31 @@ def test_a_client_serve_claims_no_dialling_of_the_routers_it_need_not_link_to(sp
     assert serve.stop() == 0, serve.log()
 
 
+def test_a_serve_with_a_zenoh_config_in_peer_mode_says_dialling(spawn, data_dir, endpoint, namespace,
+                                                                 tmp_path) -> None:
+    """The mode of its "serving" line is its --zenoh-config's (here a peer's, --mode client given and ignored)."""
+    dead = f"tcp/127.0.0.1:{free_port()}"
+    config = tmp_path / "peer.json5"
+    config.write_text(json.dumps({"mode": "peer", "scouting": {"multicast": {"enabled": False}},
+                                  "listen": {"endpoints": [endpoint]}}))
+    serve = spawn("service", "serve", "--data", str(data_dir), "--init", "--namespace", namespace, "--mode",
+                  "client", "--zenoh-config", str(config), "--connect", dead, "--planner", "none",
+                  "--dashboard-port", "-1")
+    line = _serving_line(serve)
+    assert line.startswith(f"serving {namespace} with Zenoh config {config}, dialling {dead} (data "), line
+    assert serve.stop() == 0, serve.log()
+
+
+def test_serves_mode_is_its_zenoh_configs_as_read_once() -> None:
+    """--mode, or its --zenoh-config's as serve read it before the session opened with it (``written``): the file is
+    not read again for it (it was, once the session had opened)."""
+    from orchestrator.cli.service import _mode
+    assert _mode("client", None) == "client"
+    assert _mode("client", {"mode": "peer"}) == "peer"
+    assert _mode("peer", {"mode": "client", "connect": {"endpoints": []}}) == "client"
+    assert _mode("client", {}) == "peer"  # (Zenoh's default)
+
+
 # ---------------------------------------------------------------- --listen ...:0
 
 def test_ports_chosen_for_port_zero_only() -> None:
