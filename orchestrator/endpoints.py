@@ -4,8 +4,8 @@
 sees them, ``--timeout`` for range; :func:`endpoints_from_args` applies the default endpoint and
 checks a ``--zenoh-config``'s files first. Sessions and queries are ``orchestrator.transport``'s.
 
-A leaf module like ``orchestrator.transport``, the one module of ours it imports, so workers on
-any host can use it.
+A leaf module like ``orchestrator.transport``, which it imports (and ``orchestrator.locators``, a leaf), so
+workers on any host can use it.
 """
 
 from __future__ import annotations
@@ -15,6 +15,7 @@ import math
 import socket
 from pathlib import Path
 
+from orchestrator.locators import split_endpoint
 from orchestrator.transport import (MODES, RX_MAX_MESSAGE_BYTES, RX_MAX_MESSAGE_SIZE_KEY, SecureConfigError,
                                     validate_secure_config)
 
@@ -55,9 +56,8 @@ def endpoint_problem(text: str) -> str:
     if proto not in known:
         return f"unknown protocol {proto!r} in {text!r}; expected one of {', '.join(known)}"
     if proto in _INET_PROTOCOLS:
-        address = rest.split("#", 1)[0].split("?", 1)[0]
-        host, colon, port = address.rpartition(":")
-        if not colon or not host or host in ("[", "[]") or (address.startswith("[") and not host.endswith("]")):
+        _, _, host, port = split_endpoint(text)
+        if not host or host in ("[", "[]") or (host.startswith("[") and not host.endswith("]")):
             return f"expected HOST:PORT after {proto}/, found {text!r}"
         if not (port.isascii() and port.isdigit() and int(port) <= 65535):
             return f"port must be 0-65535, found {port!r} in {text!r}"
@@ -85,21 +85,18 @@ def with_ports_chosen(listen: tuple[str, ...]) -> tuple[str, ...]:
 
 
 def _port_chosen(text: str) -> str:
-    proto, _, rest = text.partition("/")
-    address, at, tail = rest.partition("?") if "?" in rest.split("#", 1)[0] else rest.partition("#")
-    host, colon, port = address.rpartition(":")
-    if proto not in _INET_PROTOCOLS or not colon or port != "0":
+    parts = split_endpoint(text)
+    if parts.proto not in _INET_PROTOCOLS or parts.port != "0":
         return text
-    kind = socket.SOCK_DGRAM if proto in ("udp", "quic") else socket.SOCK_STREAM
+    kind = socket.SOCK_DGRAM if parts.proto in ("udp", "quic") else socket.SOCK_STREAM
     try:
-        family, _, _, _, where = socket.getaddrinfo(host.removeprefix("[").removesuffix("]"), 0, type=kind,
-                                                    flags=socket.AI_PASSIVE)[0]
+        family, _, _, _, where = socket.getaddrinfo(parts.bare_host, 0, type=kind, flags=socket.AI_PASSIVE)[0]
         with socket.socket(family, kind) as sock:
             sock.bind(where)
             chosen = sock.getsockname()[1]
     except (OSError, UnicodeError):
         return text
-    return f"{proto}/{host}:{chosen}{at}{tail}"
+    return f"{parts.proto}/{parts.host}:{chosen}{text[len(parts.locator):]}"
 
 
 def keyless_tls_listener(listen: tuple[str, ...], zenoh_config: object) -> str:

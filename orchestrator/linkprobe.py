@@ -13,8 +13,8 @@ own log). Each endpoint is tried again here, one step at a time, with Python's `
    handshake, within ``ALERT_WAIT_S``, TLS 1.3 sending it only then);
 3. all of that taken: what is left is Zenoh's own handshake, where the router checks the user and password.
 
-A leaf module like ``orchestrator.transport``: it imports nothing of ours. Only called when a session failed
-to open, so the normal start pays nothing.
+A leaf module like ``orchestrator.transport``: it imports nothing of ours but ``orchestrator.locators`` (a leaf).
+Only called when a session failed to open, so the normal start pays nothing.
 """
 
 from __future__ import annotations
@@ -24,6 +24,8 @@ import ssl
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
+
+from orchestrator.locators import split_endpoint
 
 #: Seconds to wait for a TCP connection (and then the TLS handshake) to an endpoint.
 CONNECT_TIMEOUT_S = 3.0
@@ -59,13 +61,10 @@ def diagnose(endpoints: Sequence[str], tls: ClientTls, user: str | None, config:
 
 def _address(endpoint: str) -> tuple[str, str, int] | None:
     """(protocol, host, port) of a tcp/ or tls/ endpoint, brackets taken off an IPv6 host; None for others."""
-    proto, _, rest = endpoint.partition("/")
-    if proto not in ("tcp", "tls"):
+    parts = split_endpoint(endpoint)
+    if parts.proto not in ("tcp", "tls") or not parts.port.isdigit() or not parts.host:
         return None
-    host, _, port = rest.split("#", 1)[0].split("?", 1)[0].rpartition(":")
-    if not port.isdigit() or not host:
-        return None
-    return proto, host.removeprefix("[").removesuffix("]"), int(port)
+    return parts.proto, parts.bare_host, int(parts.port)
 
 
 def unreachable(endpoints: Sequence[str], timeout: float = CONNECT_TIMEOUT_S, who: str = "the router") -> str:

@@ -1,9 +1,9 @@
 """Zenoh plumbing shared by the service, the workers and the operator CLI.
 
-A leaf module: it imports nothing else of ours but ``orchestrator.linkprobe`` (a leaf too), so workers on any host
-can use it. It knows bytes, keys and endpoints, not the JSON messages riding on them (those are the business of
-``orchestrator.protocol`` and ``orchestrator.messages``). The command-line flags that name endpoints, a config file
-and a timeout live in ``orchestrator.endpoints``.
+A leaf module: it imports nothing else of ours but ``orchestrator.linkprobe`` and ``orchestrator.locators`` (leaves
+too), so workers on any host can use it. It knows bytes, keys and endpoints, not the JSON messages riding on them
+(those are the business of ``orchestrator.protocol`` and ``orchestrator.messages``). The command-line flags that name
+endpoints, a config file and a timeout live in ``orchestrator.endpoints``.
 
 Two things about zenoh-python 1.x shape this module:
 
@@ -33,6 +33,7 @@ import json5
 import zenoh
 
 from orchestrator import linkprobe
+from orchestrator.locators import split_endpoint
 
 log = logging.getLogger(__name__)
 
@@ -357,16 +358,14 @@ def unlinked(session: zenoh.Session, endpoints: Sequence[str]) -> dict[str, str]
 
 def _locators(endpoint: str) -> set[str]:
     """The far ends a link to ``endpoint`` may show: the endpoint without its metadata, and its host resolved."""
-    locator = endpoint.split("#", 1)[0].split("?", 1)[0]
-    proto, _, address = locator.partition("/")
-    host, colon, port = address.rpartition(":")
-    if not colon or not port.isdigit():
-        return {locator}
+    parts = split_endpoint(endpoint)
+    if not parts.port.isdigit():
+        return {parts.locator}
     try:
-        infos = socket.getaddrinfo(host.removeprefix("[").removesuffix("]"), int(port), type=socket.SOCK_STREAM)
+        infos = socket.getaddrinfo(parts.bare_host, int(parts.port), type=socket.SOCK_STREAM)
     except (OSError, UnicodeError):
-        return {locator}
-    return {locator} | {f"{proto}/{_bracketed(str(info[4][0]))}:{port}" for info in infos}
+        return {parts.locator}
+    return {parts.locator} | {f"{parts.proto}/{_bracketed(str(info[4][0]))}:{parts.port}" for info in infos}
 
 
 def _bracketed(host: str) -> str:

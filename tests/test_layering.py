@@ -29,11 +29,12 @@ ALLOWED = {
 LEAVES = {
     "orchestrator.protocol": set(),
     "orchestrator.messages": {"orchestrator.protocol"},
-    "orchestrator.transport": {"orchestrator.tlscheck", "orchestrator.linkprobe"},  # (tlscheck: when a config names
-    # TLS files; linkprobe: when a session cannot reach its router)
-    "orchestrator.linkprobe": set(),
+    "orchestrator.transport": {"orchestrator.tlscheck", "orchestrator.linkprobe", "orchestrator.locators"},
+    # (tlscheck: when a config names TLS files; linkprobe: when a session cannot reach its router)
+    "orchestrator.linkprobe": {"orchestrator.locators"},
+    "orchestrator.locators": set(),
     "orchestrator.tlscheck": {"orchestrator.transport"},
-    "orchestrator.endpoints": {"orchestrator.transport"},
+    "orchestrator.endpoints": {"orchestrator.transport", "orchestrator.locators"},
     "orchestrator.signals": set(),
     "orchestrator.acl": {"orchestrator.protocol", "orchestrator.transport"},
     "uncertainty.model": {"uncertainty.errors"},
