@@ -1,5 +1,6 @@
 """The figure scripts under bench/ still run end to end (tiny sizes; the figures themselves are in BENCHMARKS.md)."""
 
+import importlib
 import json
 import subprocess
 import sys
@@ -91,13 +92,18 @@ def test_upload_parts_bench_stores_both_ways_over_the_veth_pair(tmp_path):
 
 @pytest.mark.parametrize("script, flag", [("soak.py", "--size"), ("uncertainty_figures.py", "--image-size"),
                                           ("uncertainty_figures.py", "--ood-image-size")])
-def test_figure_scripts_refuse_a_frame_size_no_model_trains_on_in_one_line(tmp_path, script, flag):
+def test_figure_scripts_refuse_a_frame_size_no_model_trains_on_in_one_line(tmp_path, monkeypatch, capsys, script,
+                                                                          flag):
+    """(The script's ``main`` in this process: its parser is all this runs.)"""
     data = tmp_path / "data"
-    proc = subprocess.run([sys.executable, str(ROOT / "bench" / script), "--data", str(data), flag, "12"],
-                          cwd=ROOT, capture_output=True, text=True, timeout=120)
-    assert proc.returncode == 2
-    assert proc.stderr.splitlines() == [f"{script}: error: argument {flag}: expected a multiple of 8 from 16 to "
-                                        "1024 (what a model trains on), found 12"]
+    monkeypatch.syspath_prepend(str(ROOT / "bench"))  # (soak.py imports its neighbour chaos.py)
+    main = importlib.import_module(script.removesuffix(".py")).main
+    monkeypatch.setattr(sys, "argv", [script])  # (argparse's prog)
+    with pytest.raises(SystemExit) as stopped:
+        main(["--data", str(data), flag, "12"])
+    assert stopped.value.code == 2
+    assert capsys.readouterr().err.splitlines() == [f"{script}: error: argument {flag}: expected a multiple of 8 "
+                                                    "from 16 to 1024 (what a model trains on), found 12"]
     assert not data.exists()  # refused before anything was made
 
 
@@ -128,18 +134,23 @@ UNCERTAINTY_FIGURES_REFUSALS = [
 
 
 @pytest.mark.parametrize("flags, message", UNCERTAINTY_FIGURES_REFUSALS)
-def test_uncertainty_figures_refuses_bad_flags_in_one_line_before_any_work(tmp_path, flags, message):
+def test_uncertainty_figures_refuses_bad_flags_in_one_line_before_any_work(tmp_path, monkeypatch, capsys, flags,
+                                                                          message):
     """Each bad value or pair of flags that contradict each other: exit 2, one line, nothing collected (the
-    --skip typo ran every figure; the rest failed after collecting 80 episodes, or after training)."""
+    --skip typo ran every figure; the rest failed after collecting 80 episodes, or after training).
+    The script's own ``main`` in this process: a process each took ~4 s for torch's import (the script's exit path
+    is run as a process by the next test)."""
+    from bench.uncertainty_figures import main
     data = tmp_path / "data"
     (tmp_path / "cache.pt").write_text("not a checkpoint\n")
     main_flags = [] if "main" in " ".join(flags) else ["--data", str(data)]
-    argv = [sys.executable, str(ROOT / "bench" / "uncertainty_figures.py"), *main_flags,
-            *(f.format(tmp=tmp_path) for f in flags)]
-    proc = subprocess.run(argv, cwd=ROOT, capture_output=True, text=True, timeout=120)
-    assert (proc.returncode, proc.stderr.splitlines()) == (2, [f"uncertainty_figures.py: error: "
-                                                               f"{message.format(tmp=tmp_path)}"])
-    assert proc.stdout == "" and not data.exists()
+    monkeypatch.setattr(sys, "argv", ["uncertainty_figures.py"])  # (argparse's prog)
+    with pytest.raises(SystemExit) as stopped:
+        main([*main_flags, *(f.format(tmp=tmp_path) for f in flags)])
+    out, err = capsys.readouterr()
+    assert (stopped.value.code, err.splitlines()) == (2, [f"uncertainty_figures.py: error: "
+                                                          f"{message.format(tmp=tmp_path)}"])
+    assert out == "" and not data.exists()
 
 
 def test_uncertainty_figures_needs_data_for_the_main_figure_only_and_explains_every_flag():
@@ -321,22 +332,28 @@ def test_heap_trim_plays_the_episodes_through_the_planner_in_each_setting(tmp_pa
     assert trims in ([0, 3, 1, 0], [0, 0, 0, 0])  # (all 0: a C library without malloc_trim)
 
 
-def test_calibration_diagnostic_takes_a_version_as_models_show_does(tmp_path):
+def test_calibration_diagnostic_takes_a_version_as_models_show_does(tmp_path, monkeypatch, capsys):
     """An unknown version, a directory that is no data directory and one without a champion: exit 2 in one line
-    (they were a traceback, or exit 1); a unique prefix of a version is taken as `models show` takes it."""
+    (they were a traceback, or exit 1); a unique prefix of a version is taken as `models show` takes it. The
+    refusals run the script's ``main`` in this process (a process each took ~4 s for torch's import)."""
+    from bench.calibration_diagnostic import main
     script, data = str(ROOT / "bench" / "calibration_diagnostic.py"), tmp_path / "data"
-    run = lambda *a: subprocess.run([sys.executable, script, "--data", str(data), *a], cwd=ROOT,  # noqa: E731
-                                    capture_output=True, text=True, timeout=120)
-    error = lambda proc: (proc.returncode, proc.stderr.splitlines())  # noqa: E731
+    monkeypatch.setattr(sys, "argv", ["calibration_diagnostic.py"])  # (argparse's prog)
+
+    def error(*flags: str) -> tuple[object, list[str]]:
+        with pytest.raises(SystemExit) as stopped:
+            main(["--data", str(data), *flags])
+        return stopped.value.code, capsys.readouterr().err.splitlines()
     prefix = "calibration_diagnostic.py: error:"
-    assert error(run()) == (2, [f"{prefix} --data {data}: not a data directory (no catalog.sqlite)"])
+    assert error() == (2, [f"{prefix} --data {data}: not a data directory (no catalog.sqlite)"])
     Catalog(data)
-    assert error(run()) == (2, [f"{prefix} --data {data}: no champion; give --version"])
-    assert error(run("--version", "m9")) == (2, [f"{prefix} unknown model version 'm9'; the registry is empty"])
+    assert error() == (2, [f"{prefix} --data {data}: no champion; give --version"])
+    assert error("--version", "m9") == (2, [f"{prefix} unknown model version 'm9'; the registry is empty"])
     _data_with_a_champion(data)
     version = ModelRegistry(data).champion()
-    assert error(run("--version", "m9")) == (2, [f"{prefix} unknown model version 'm9'; latest: {version}"])
-    proc = run("--version", version[:7])
+    assert error("--version", "m9") == (2, [f"{prefix} unknown model version 'm9'; latest: {version}"])
+    proc = subprocess.run([sys.executable, script, "--data", str(data), "--version", version[:7]], cwd=ROOT,
+                          capture_output=True, text=True, timeout=120)
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert json.loads(proc.stdout)["version"] == version
 
