@@ -360,10 +360,11 @@ class DataSources:
         """The data directory's stores for one read, the queue's connections closed after it: http.server runs
         each connection on a new thread, so stores kept per thread held their files open until the GC ran.
         CatalogError when the catalog is not there (the directory moved, removed, its disk unmounted): opening
-        the stores would make a new empty one, and the page would show an empty fleet. The registry makes no
-        ``models/`` folder where there is none (no model trained yet): the dashboard writes nothing."""
+        the stores would make a new empty one, and the page would show an empty fleet. The catalog makes no
+        ``episodes/`` folder, nor the registry ``models/``, where there is none (no episode ingested, no model
+        trained yet): the dashboard writes nothing."""
         self._refuse_lost()
-        catalog = Catalog(self.data_dir)
+        catalog = Catalog(self.data_dir, make_episodes_dir=False)
         with RequestQueue(catalog.db_path, busy_timeout_s=READ_BUSY_TIMEOUT_S) as queue:
             yield catalog, queue, ModelRegistry(self.data_dir, make_models_dir=False)
 

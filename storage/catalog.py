@@ -105,11 +105,12 @@ def _check_frame_size(conn: sqlite3.Connection, meta: EpisodeMeta) -> None:
 class Catalog(CatalogQuarantine, CatalogEvalSplit, CatalogStrays):
     """Index of the episodes under ``data_dir``; safe to share between threads and processes."""
 
-    def __init__(self, data_dir: str | Path):
+    def __init__(self, data_dir: str | Path, make_episodes_dir: bool = True):
         self.data_dir = Path(data_dir).absolute()
         refuse_lost_database(self.data_dir, CatalogError)
         self.episodes_dir = self.data_dir / EPISODES_DIR
-        make_folder(self.episodes_dir, CatalogFolderError, "the catalog keeps its episode files there")
+        if make_episodes_dir:  # (False: a reader that must write nothing, the dashboard; ingests make their folders)
+            make_folder(self.episodes_dir, CatalogFolderError, "the catalog keeps its episode files there")
         self._db_path = self.data_dir / DB_NAME
         with self._connect() as conn:
             ensure_schema(conn, "catalog", _CATALOG_MIGRATIONS)

@@ -304,7 +304,7 @@ def _retrain(args: argparse.Namespace) -> int:
 
 def _dashboard(args: argparse.Namespace) -> int:
     common.require_catalog(args.data)
-    frames = FramesSource(ChampionScorer(args.data), Catalog(args.data))
+    frames = FramesSource(ChampionScorer(args.data), Catalog(args.data, make_episodes_dir=False))
     config = DashboardConfig(host=args.host, port=args.port, max_connections=args.max_connections,
                              request_timeout_s=args.request_timeout)
     dash = Dashboard(config, DataSources(args.data, frames_png=frames).sources())
