@@ -109,8 +109,8 @@ class Catalog(CatalogQuarantine, CatalogEvalSplit, CatalogStrays):
         self.data_dir = Path(data_dir).absolute()
         refuse_lost_database(self.data_dir, CatalogError)
         self.episodes_dir = self.data_dir / EPISODES_DIR
-        if make_episodes_dir:  # (False: a reader that must write nothing, the dashboard; ingests make their folders)
-            make_folder(self.episodes_dir, CatalogFolderError, "the catalog keeps its episode files there")
+        make_folder(self.episodes_dir, CatalogFolderError, "the catalog keeps its episode files there",
+                    create=make_episodes_dir)  # (False: a reader that must write nothing; ingests make their folders)
         self._db_path = self.data_dir / DB_NAME
         with self._connect() as conn:
             ensure_schema(conn, "catalog", _CATALOG_MIGRATIONS)

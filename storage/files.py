@@ -68,18 +68,25 @@ def ensure_dir(path: str | os.PathLike) -> None:
         fsync_dir(d.parent)
 
 
-def make_folder(path: Path, error: type[MisplacedFolderError], purpose: str) -> None:
+def make_folder(path: Path, error: type[MisplacedFolderError], purpose: str, create: bool = True) -> None:
     """``mkdir -p path``; ``error`` (the caller's ``MisplacedFolderError``) naming it when a file, or a link to no
     directory, is in its place, where mkdir said only "[Errno 17] File exists". ``purpose`` says what the folder is
     for. A link is not to be moved away: it may point at a volume not mounted now (``move``'s folders on file
-    systems of their own)."""
-    try:
-        path.mkdir(parents=True, exist_ok=True)
-    except FileExistsError as exc:
-        if path.is_symlink():
-            raise error(f"{path} is a link to {os.readlink(path)}, which is not a directory (a volume not "
-                        f"mounted?): {purpose}; mount it, or point the link at the folder") from exc
-        raise error(f"{path} is not a directory: {purpose}; move the file away") from exc
+    systems of their own). ``create=False`` (a reader that must write nothing) makes none where none is: only
+    what is in its place is checked."""
+    cause: OSError | None = None
+    if create:
+        try:
+            path.mkdir(parents=True, exist_ok=True)
+            return
+        except FileExistsError as exc:
+            cause = exc
+    elif path.is_dir() or not (path.exists() or path.is_symlink()):
+        return
+    if path.is_symlink():
+        raise error(f"{path} is a link to {os.readlink(path)}, which is not a directory (a volume not "
+                    f"mounted?): {purpose}; mount it, or point the link at the folder") from cause
+    raise error(f"{path} is not a directory: {purpose}; move the file away") from cause
 
 
 def stage_bytes(path: str | os.PathLike, data: bytes) -> Path:

@@ -105,8 +105,8 @@ class ModelRegistry:
         self.data_dir = Path(data_dir)
         refuse_lost_database(self.data_dir, RegistryError)
         self.models_dir = self.data_dir / MODELS_DIR
-        if make_models_dir:  # (False: a reader that must write nothing, the dashboard; it stores no checkpoint)
-            make_folder(self.models_dir, errors.RegistryFolderError, "the registry keeps its checkpoints there")
+        make_folder(self.models_dir, errors.RegistryFolderError, "the registry keeps its checkpoints there",
+                    create=make_models_dir)  # (False: a reader that must write nothing; it stores no checkpoint)
         self.db_path = self.data_dir / DB_NAME
         with self._connect() as conn:
             ensure_schema(conn, "models", _MIGRATIONS, RegistryError)

@@ -4,6 +4,8 @@ same message as before (real folders, files and links on disk)."""
 
 from __future__ import annotations
 
+from functools import partial
+
 import pytest
 
 from storage.catalog import Catalog
@@ -16,7 +18,12 @@ from storage.models import ModelRegistry
 @pytest.mark.parametrize(("folder", "opener", "component", "error", "purpose"), [
     ("episodes", Catalog, CatalogError, CatalogFolderError, "the catalog keeps its episode files there"),
     ("models", ModelRegistry, RegistryError, RegistryFolderError, "the registry keeps its checkpoints there"),
-])
+    # a reader that makes no folder (the dashboard, `models ls`) still names what is in its place
+    ("episodes", partial(Catalog, make_episodes_dir=False), CatalogError, CatalogFolderError,
+     "the catalog keeps its episode files there"),
+    ("models", partial(ModelRegistry, make_models_dir=False), RegistryError, RegistryFolderError,
+     "the registry keeps its checkpoints there"),
+], ids=["episodes", "models", "episodes read-only", "models read-only"])
 def test_a_file_where_a_folder_goes_is_the_components_misplaced_folder_error(tmp_path, link, folder, opener,
                                                                            component, error, purpose) -> None:
     data = tmp_path / "data"
