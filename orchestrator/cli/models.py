@@ -186,7 +186,7 @@ def _load(registry: ModelRegistry, version: str | None, device: str) -> Ensemble
 
 def _eval(args: argparse.Namespace) -> int:
     data = model_data_dir(args)
-    registry = ModelRegistry(data)
+    registry = ModelRegistry(data, make_models_dir=False)  # (it only reads: no models/ where none is)
     version = None if args.version is None else resolve_model(registry, args.version).version
     ensemble = _load(registry, version, args.device)
     if ensemble is None:
@@ -226,7 +226,7 @@ def _score(args: argparse.Namespace) -> int:
         episode = _episode(args.episode, data)
     except EpisodeError as exc:
         return fail(f"cannot read episode {args.episode}: {exc}")
-    ensemble = _load(ModelRegistry(data), None, args.device)
+    ensemble = _load(ModelRegistry(data, make_models_dir=False), None, args.device)
     if ensemble is None:
         return 1
     size = ensemble.config.image_size

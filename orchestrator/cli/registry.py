@@ -88,8 +88,9 @@ def model_data_dir(args: argparse.Namespace) -> Path:
     return data
 
 
-def _registry(args: argparse.Namespace) -> ModelRegistry:
-    return ModelRegistry(model_data_dir(args))
+def _registry(args: argparse.Namespace, writes: bool = True) -> ModelRegistry:
+    """The registry at ``--data``; a command that only reads (``writes=False``) makes no ``models/`` folder."""
+    return ModelRegistry(model_data_dir(args), make_models_dir=writes)
 
 
 def resolve_model(registry: ModelRegistry, version: str) -> ModelRecord:
@@ -125,7 +126,7 @@ def num(value: Any, fmt: str = ".5g", undefined: str = "undefined") -> str:
 
 
 def _models_ls(args: argparse.Namespace) -> int:
-    registry = _registry(args)
+    registry = _registry(args, writes=False)
     records, champion = registry.list(), registry.champion()
     problem = registry.weights_problem(champion) if champion is not None else None
     if problem:  # (stderr: --json output stays parseable)
@@ -164,7 +165,7 @@ def _train_episodes(registry: ModelRegistry, rec: ModelRecord) -> tuple[Snapshot
 
 
 def _models_show(args: argparse.Namespace) -> int:
-    registry = _registry(args)
+    registry = _registry(args, writes=False)
     rec = resolve_model(registry, args.version)
     history = [e for e in registry.history() if e.version == rec.version]
     snap, why = _train_episodes(registry, rec)
