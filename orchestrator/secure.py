@@ -35,6 +35,7 @@ from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 from orchestrator import secure_files
 from orchestrator.acl import DEFAULT_NAMESPACE, NAMESPACE_METADATA, ROLES, build_acl
 from orchestrator.endpoints import endpoint_problem
+from orchestrator.locators import split_endpoint
 from orchestrator.protocol import Keys, ProtocolError
 from orchestrator.transport import SecureConfigError, lookup_key
 
@@ -70,8 +71,7 @@ def tls_endpoint(endpoint: str, what: str = "router endpoint") -> tuple[str, int
         raise SecureConfigError(f"expected a {what} like tls/HOST:PORT: {problem}")
     if not endpoint.startswith("tls/"):
         raise SecureConfigError(f"expected a {what} like tls/HOST:PORT, found {endpoint!r}")
-    address = endpoint.removeprefix("tls/").split("#", 1)[0].split("?", 1)[0]
-    host, _, port = address.rpartition(":")
+    _, _, host, port = split_endpoint(endpoint)
     if host.startswith("[") and host.endswith("]"):
         host = host[1:-1]
         if ":" not in host:
