@@ -10,26 +10,17 @@ import pytest
 
 from storage.models import ModelRegistry, ModelStatus
 from tests.conftest import run_cli
-from tests.test_cli_models import small_catalog
-
-SPLIT = "split-aaaa"
+from tests.test_cli_models import _register, small_catalog
 
 
 @pytest.fixture
-def data(tmp_path):
-    return tmp_path / "data"
+def reg(tmp_path) -> ModelRegistry:
+    """The registry of a new data directory (``reg.data_dir``)."""
+    return ModelRegistry(tmp_path / "data")
 
 
-@pytest.fixture
-def reg(data) -> ModelRegistry:
-    return ModelRegistry(data)
-
-
-def _register(reg: ModelRegistry, h1_mse: float) -> str:
-    return reg.register(f"w{h1_mse}".encode(), {"members": 2}, {"h1_mse": h1_mse}, "snap", SPLIT)
-
-
-def test_models_show_and_promote_take_champion_for_the_champion(capsys, data, reg) -> None:
+def test_models_show_and_promote_take_champion_for_the_champion(capsys, reg) -> None:
+    data = reg.data_dir
     a, b = _register(reg, 0.01), _register(reg, 0.5)
     assert all(re.fullmatch(r"m\d{6}-[0-9a-f]{8}", v) for v in (a, b))  # no version is, or starts, 'champion'
     reg.gate(a)
@@ -51,8 +42,8 @@ def test_models_show_and_promote_take_champion_for_the_champion(capsys, data, re
 @pytest.mark.parametrize("argv", [("models", "show", "champion"), ("models", "promote", "champion"),
                                   ("eval", "champion")])
 @pytest.mark.parametrize("models", [0, 1])
-def test_champion_with_no_champion_is_one_line_and_exit_1_and_changes_nothing(capsys, data, reg, argv,
-                                                                               models) -> None:
+def test_champion_with_no_champion_is_one_line_and_exit_1_and_changes_nothing(capsys, reg, argv, models) -> None:
+    data = reg.data_dir
     candidates = [_register(reg, 0.01) for _ in range(models)]
     rc, out, err = run_cli(capsys, *argv, "--data", str(data))
     assert rc == 1 and out == "" and err.count("\n") == 1, err
