@@ -66,7 +66,7 @@ def refuse_other_settings(data: Path, flags: dict[str, str], command: str, asks:
     if not (Path(data) / DB_NAME).is_file():
         return None
     try:
-        pinned = check_eval_split(Catalog(data), **settings)
+        pinned = check_eval_split(Catalog(data, make_episodes_dir=False), **settings)  # (a refusal makes nothing)
     except EvalSplitConflict as exc:
         raise eval_split_refusal(data, exc, flags, command, asks) from None
     common.require_frame_size(data, settings["image_size"], size_flag)
@@ -263,7 +263,7 @@ def _refuse_replays(data: Path, plan: list, policy: str, size: int, split: str, 
     make its episodes again, under new ids), which the catalog would refuse one by one (``plan_replays``)."""
     if not (Path(data) / DB_NAME).is_file():
         return
-    cat = Catalog(data)
+    cat = Catalog(data, make_episodes_dir=False)  # (a refusal makes nothing)
     if split == "train" and (again := plan_replays(cat, plan, policy, size, split, within=True)):
         raise common.UsageError(f"--seed {seed} would record train episode {again[min(again)]} again ({len(again)} "
                                 f"of the {len(plan)} episodes asked for are in {data} already: the same --seed, "
@@ -397,7 +397,7 @@ def _eval_split_create(args: argparse.Namespace) -> int:
 
 
 def _eval_split_pin(args: argparse.Namespace) -> int:
-    cat = common.existing_catalog(args)
+    cat = common.existing_catalog(args, writes=True)
     if args.episode_ids:
         rows = [episodes_cli.resolve(cat, i) for i in args.episode_ids]
         ids = [r.episode_id for r in rows]

@@ -385,7 +385,7 @@ def require_frame_size(data: Path, size: int, flag: str) -> None:
     ``flag``): one other episode would fail every retrain there. Nothing is created."""
     if not (Path(data) / DB_NAME).is_file():
         return
-    held = Catalog(data).frame_size()
+    held = Catalog(data, make_episodes_dir=False).frame_size()
     if held is not None and held != size:
         if not trainable_size(held):  # made before sizes were checked: no flag value matches it
             raise UsageError(f"{data} holds {held}px episodes, a size no model trains on: give another --data")
@@ -399,12 +399,12 @@ def require_catalog(data: Path) -> None:
         raise UsageError(f"no catalog at {data} (give --data DIR, or collect episodes first)")
 
 
-def existing_catalog(args: argparse.Namespace) -> Catalog:
-    """The catalog at ``args.data`` (for the commands that only read it); UsageError (exit 2) unless
-    there is one, nothing is created."""
+def existing_catalog(args: argparse.Namespace, writes: bool = False) -> Catalog:
+    """The catalog at ``args.data``; UsageError (exit 2) unless there is one. A command that only reads it
+    creates nothing; one that ``writes`` (moves episode files) makes its episodes/ folder where none is."""
     data = Path(args.data)
     require_catalog(data)
-    return Catalog(data)
+    return Catalog(data, make_episodes_dir=writes)
 
 
 def add_episode_args(p: argparse.ArgumentParser, steps: int, image_size: int) -> None:

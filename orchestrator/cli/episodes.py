@@ -147,7 +147,7 @@ def _episodes_show(args: argparse.Namespace) -> int:
 
 
 def _episodes_verify(args: argparse.Namespace) -> int:
-    cat = common.existing_catalog(args)
+    cat = common.existing_catalog(args, writes=args.quarantine)
     rows = resolve_all(cat, args.episode_ids) if args.episode_ids else cat.list(quarantined=False)
     report = []
     for row in tqdm(rows, unit="ep", desc="verify", file=sys.stderr, disable=None):
@@ -191,7 +191,7 @@ def _quarantine_bad(cat: Catalog, row: EpisodeRow, exc: StorageError) -> bool:
 
 
 def _episodes_quarantine(args: argparse.Namespace) -> int:
-    cat = common.existing_catalog(args)
+    cat = common.existing_catalog(args, writes=True)
     if not args.reason.strip():
         raise common.UsageError("--reason must say why")
     rows = resolve_all(cat, args.episode_ids)  # all known before any changes
@@ -206,7 +206,7 @@ def _episodes_quarantine(args: argparse.Namespace) -> int:
 def _episodes_restore(args: argparse.Namespace) -> int:
     if bool(args.episode_ids) == args.all:
         raise common.UsageError("give the episodes to restore, or --all (not both)")
-    cat = common.existing_catalog(args)
+    cat = common.existing_catalog(args, writes=True)
     rows = cat.list(quarantined=True) if args.all else resolve_all(cat, args.episode_ids)
     if not rows and not args.json:
         print(f"nothing is quarantined in {cat.data_dir}")

@@ -193,7 +193,7 @@ def _eval(args: argparse.Namespace) -> int:
         return 1
     from uncertainty.train import evaluate  # torch (already loaded by _load): start-up cost, not a cycle
     try:
-        metrics = evaluate(ensemble, Catalog(data))
+        metrics = evaluate(ensemble, Catalog(data, make_episodes_dir=False))  # (it only reads)
     except (UncertaintyError, StorageError) as exc:
         return fail(f"evaluation failed: {exc}")
     if args.json:
@@ -213,7 +213,7 @@ def _episode(arg: str, data: Path) -> Episode:
         return read_episode(path)
     if not data.is_dir():
         raise common.UsageError(f"{arg!r} is not a file, and there is no data directory at {data} to look it up")
-    catalog = Catalog(data)
+    catalog = Catalog(data, make_episodes_dir=False)  # (it only reads: no episodes/ where none is)
     try:
         return catalog.load(catalog.resolve(arg).episode_id)
     except NotFoundError as exc:
