@@ -60,3 +60,18 @@ def test_a_reading_command_makes_no_models_folder_where_one_was_removed(capsys, 
     got, out, err = run_cli(capsys, *argv, "--data", str(data))
     assert (got, champion in out + err) == ((1, True) if argv == ("eval",) else (0, True)), (out, err)
     assert _entries(data) == before
+
+
+def test_promote_and_rollback_read_the_eval_split_without_making_an_episodes_folder(capsys, tmp_path) -> None:
+    """They change the registry's rows only: the catalog is read for its pinned split, and makes no episodes/."""
+    data = tmp_path / "data"
+    Catalog(data).episodes_dir.rmdir()
+    registry = ModelRegistry(data)
+    first, second = (registry.register(f"w{i}".encode(), {"members": 2}, {"h1_mse": 0.1 / (i + 1)}, "snap", "split-a")
+                     for i in range(2))
+    registry.gate(first)
+    for argv in (("models", "promote", second), ("models", "rollback")):
+        got, out, err = run_cli(capsys, *argv, "--data", str(data))
+        assert got == 0, (out, err)
+        assert "episodes" not in _entries(data)
+    assert registry.champion() == first

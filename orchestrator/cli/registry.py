@@ -278,6 +278,6 @@ def prune_summary(result: PruneResult) -> str:
 
 
 def _current_split(data: Path) -> str | None:
-    """The catalog's pinned eval split hash, or None when none is pinned yet."""
-    split = Catalog(data).eval_split()
+    """The catalog's pinned eval split hash, or None when none is pinned yet (read: no episodes/ folder made)."""
+    split = Catalog(data, make_episodes_dir=False).eval_split()
     return None if split is None else split.hash
