@@ -62,9 +62,9 @@ def diagnose(endpoints: Sequence[str], tls: ClientTls, user: str | None, config:
 def _address(endpoint: str) -> tuple[str, str, int] | None:
     """(protocol, host, port) of a tcp/ or tls/ endpoint, brackets taken off an IPv6 host; None for others."""
     parts = split_endpoint(endpoint)
-    if parts.proto not in ("tcp", "tls") or not parts.port.isdigit() or not parts.host:
+    if parts.proto not in ("tcp", "tls") or parts.port_number is None or not parts.host:
         return None
-    return parts.proto, parts.bare_host, int(parts.port)
+    return parts.proto, parts.bare_host, parts.port_number
 
 
 def unreachable(endpoints: Sequence[str], timeout: float = CONNECT_TIMEOUT_S, who: str = "the router") -> str:

@@ -23,6 +23,12 @@ class EndpointParts(NamedTuple):
     """After the address's last ``:``, as written (perhaps not a number); '' when the address has no ``:``."""
 
     @property
+    def port_number(self) -> int | None:
+        """``port`` as a number when it is written in ASCII digits, else None (``str.isdigit`` takes '²', which
+        ``int`` refuses)."""
+        return int(self.port) if self.port.isascii() and self.port.isdigit() else None
+
+    @property
     def bare_host(self) -> str:
         """``host`` without the brackets of an IPv6 host: what a resolver takes."""
         return self.host.removeprefix("[").removesuffix("]")

@@ -359,10 +359,10 @@ def unlinked(session: zenoh.Session, endpoints: Sequence[str]) -> dict[str, str]
 def _locators(endpoint: str) -> set[str]:
     """The far ends a link to ``endpoint`` may show: the endpoint without its metadata, and its host resolved."""
     parts = split_endpoint(endpoint)
-    if not parts.port.isdigit():
+    if parts.port_number is None:
         return {parts.locator}
     try:
-        infos = socket.getaddrinfo(parts.bare_host, int(parts.port), type=socket.SOCK_STREAM)
+        infos = socket.getaddrinfo(parts.bare_host, parts.port_number, type=socket.SOCK_STREAM)
     except (OSError, UnicodeError):
         return {parts.locator}
     return {parts.locator} | {f"{parts.proto}/{_bracketed(str(info[4][0]))}:{parts.port}" for info in infos}

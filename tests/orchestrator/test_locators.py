@@ -34,11 +34,18 @@ def test_split_endpoint(endpoint: str, parts: tuple[str, str, str, str], bare: s
     assert endpoint.startswith(split.locator)
 
 
+@pytest.mark.parametrize(("port", "number"), [("7447", 7447), ("0", 0), ("", None), ("x7", None), ("\u00b2", None),
+                                              ("\u0667", None), ("-1", None), (" 1", None)])
+def test_the_port_as_a_number_only_in_ascii_digits(port: str, number: int | None) -> None:
+    assert split_endpoint(f"tcp/h:{port}").port_number == number
+
+
 @pytest.mark.parametrize(("endpoint", "far_ends"), [
     ("tcp/127.0.0.1:7447#x=1", {"tcp/127.0.0.1:7447"}),
     ("tcp/[::1]:7447?iface=lo", {"tcp/[::1]:7447"}),
     ("tcp/localhost:7447", {"tcp/localhost:7447", "tcp/127.0.0.1:7447"}),  # (and ::1 where localhost is that too)
     ("tcp/h:x7", {"tcp/h:x7"}),
+    ("tcp/h:\u00b2", {"tcp/h:\u00b2"}),  # (a digit to str.isdigit, not to int: a --zenoh-config's was a traceback)
     ("tcp/h", {"tcp/h"}),
 ])
 def test_the_far_ends_a_link_may_show(endpoint: str, far_ends: set[str]) -> None:
@@ -51,6 +58,7 @@ def test_the_far_ends_a_link_may_show(endpoint: str, far_ends: set[str]) -> None
     ("tls/[::1]:7447?iface=lo", ("tls", "::1", 7447)),
     ("tls/router.example:7447", ("tls", "router.example", 7447)),
     ("tcp/:7447", None), ("tcp/h:", None), ("tcp/h", None), ("udp/h:7447", None), ("tcp?x/h:1", None),
+    ("tcp/h:\u00b2", None), ("tcp/h:\u0667", None),  # (superscript two, Arabic-Indic seven: not a port)
 ])
 def test_the_address_linkprobe_dials(endpoint: str, address: tuple[str, str, int] | None) -> None:
     assert linkprobe._address(endpoint) == address
