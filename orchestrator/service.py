@@ -179,6 +179,7 @@ class Service:
             self._liveliness_sub.undeclare()
         for server in self._servers:
             server.close()
+        self.refusals.flush(everything=True)
         self._tasks.put(None)
         if self.feed is not None:
             self.feed.stop(timeout=30)
@@ -435,6 +436,7 @@ class Service:
                      extended, self.config.lease_s)
 
     def _reap(self) -> None:
+        self.refusals.flush()  # (a client refused no more: its count is not left unsaid)
         try:
             with self._writing():
                 # The service did not run (SIGSTOP, a paused container or VM, a starved host), or this pass waited

@@ -5,12 +5,14 @@ fake elapsed clock) and a real Zenoh client over loopback."""
 from __future__ import annotations
 
 import logging
+import re
 import time
 
 from orchestrator import messages, refusallog, uploads
 from orchestrator.protocol import ErrorCode, ProtocolError
 from orchestrator.refusallog import RefusalLog, claimed_worker
 from orchestrator.transport import Incoming
+from tests.conftest import wait_for
 from tests.orchestrator.test_service import call, refused
 
 UNKNOWN = "0123456789abcdef0123456789abcdef"
@@ -40,16 +42,54 @@ def test_a_client_refused_again_and_again_gets_one_line_a_minute_with_a_count(ma
     refused(ErrorCode.BAD_JSON, call, client, keys.renew, b"{")  # another code (and no worker): one too
     assert len(lines(caplog)) == 3, lines(caplog)
 
-    jumped[0] = 61.0  # a window later
+    jumped[0] = 61.0  # a window later: the reaper says the count it held (it was said only at a later refusal)
+    wait_for(lambda: len(lines(caplog)) > 3, message="the reaper's line with the count")
+    refused(ErrorCode.UNKNOWN_REQUEST, renew, client, keys, "w1")  # counted afresh: no line
     refused(ErrorCode.UNKNOWN_REQUEST, renew, client, keys, "w1")
-    refused(ErrorCode.UNKNOWN_REQUEST, renew, client, keys, "w1")
+    service.stop()  # says what it counted since
     later = lines(caplog)[3:]
-    assert len(later) == 1, later
-    assert later[0].startswith(f"refused {keys.renew} from worker w1: unknown_request: "), later
-    assert later[0].endswith("(and 19 more like it in the 61 s since the last such line)"), later
+    pattern = (rf"refused {re.escape(keys.renew)} from worker w1 (\d+) more time\(s\) in the (\d+) s since the last "
+               rf"such line, the last: unknown_request: expected a known request id, found '{UNKNOWN}'")
+    said = [re.fullmatch(pattern, line) for line in later]
+    assert len(later) == 2 and all(said), later
+    assert [int(m[1]) for m in said] == [19, 2] and 60 <= int(said[0][2]) <= 70, later
     counted = service.metrics.registry.get_sample_value(
         "activecollect_refusals_total", {"reason": "unknown_request", "source": "worker"})
     assert counted == 23  # every one
+
+
+def test_a_later_refusal_says_the_count_and_a_flush_says_it_once_the_window_is_over() -> None:
+    now = [0.0]
+    records: list[str] = []
+    log = logging.getLogger("test.refusallog.flush")
+    log.addHandler(handler := logging.Handler())
+    handler.emit = lambda record: records.append(record.getMessage())  # type: ignore[method-assign]
+    log.setLevel(logging.INFO)
+    refusals = RefusalLog(log, clock=lambda: now[0], window_s=60.0)
+    exc = ProtocolError(ErrorCode.BAD_FIELD, "expected 64px")
+    lease = Incoming("ns/orch/lease", messages.LeaseRequest(worker_id="old-1").to_json(), None)
+    try:
+        for _ in range(5):
+            refusals.refused(lease, exc)
+        refusals.flush()  # the window is not over: nothing
+        assert records == ["refused ns/orch/lease from worker old-1: bad_field: expected 64px"]
+        now[0] = 61.0
+        refusals.refused(lease, exc)  # the window is over: a line with the count
+        assert records[1:] == ["refused ns/orch/lease from worker old-1: bad_field: expected 64px (and 4 more like it "
+                               "in the 61 s since the last such line)"]
+        refusals.refused(lease, exc)
+        now[0] = 130.0
+        refusals.flush()
+        refusals.flush()  # said once
+        refusals.refused(lease, exc)  # within the flush's window: counted
+        refusals.flush(everything=True)  # as the service stops
+        assert records[2:] == [
+            "refused ns/orch/lease from worker old-1 1 more time(s) in the 69 s since the last such line, the last: "
+            "bad_field: expected 64px",
+            "refused ns/orch/lease from worker old-1 1 more time(s) in the 0 s since the last such line, the last: "
+            "bad_field: expected 64px"]
+    finally:
+        log.removeHandler(handler)
 
 
 def test_the_kinds_it_keeps_are_bounded_by_its_own_cap(monkeypatch) -> None:
