@@ -351,9 +351,15 @@ def unlinked(session: zenoh.Session, endpoints: Sequence[str]) -> dict[str, str]
 
     A link's far end is an address (``tcp/127.0.0.1:7447``): an endpoint's host is resolved to compare.
     """
-    far_ends = {link.dst for link in session.info.links()}
+    up = linked(session, endpoints)
     return {ep: linkprobe.unreachable([ep], who="a Zenoh peer or router") or "no Zenoh link came up there"
-            for ep in endpoints if not far_ends & _locators(ep)}
+            for ep in endpoints if ep not in up}
+
+
+def linked(session: zenoh.Session, endpoints: Sequence[str]) -> list[str]:
+    """Those of ``endpoints`` (connect endpoints) that ``session`` has a link to now, in their order."""
+    far_ends = {link.dst for link in session.info.links()}
+    return [ep for ep in endpoints if far_ends & _locators(ep)]
 
 
 def _locators(endpoint: str) -> set[str]:

@@ -272,7 +272,12 @@ def _reached(service: Service, listen: tuple[str, ...], connect: tuple[str, ...]
              mode: str) -> str:
     """``where_served``, where a --connect endpoint the session has no link to is "dialling" (a peer's session
     opens without one and keeps trying), with a warning saying why. Only a peer's: a client links to one of its
-    routers and dials none of the others while it has that link (and it opens with none only to fail)."""
+    routers and dials none of the others while it has that link (and it opens with none only to fail); it is
+    connected to that one, the others named as what it turns to if that link goes."""
+    if mode == "client" and (up := transport.linked(service.session, connect)):
+        others = [ep for ep in connect if ep not in up]
+        where = where_served(listen, tuple(up), zenoh_config, linked=True)
+        return where + (f" ({', '.join(others)} if that link goes)" if others else "")
     dialling = transport.unlinked(service.session, connect) if mode == "peer" else {}
     for ep, why in dialling.items():
         logging.getLogger("orchestrator.service").warning("no link to --connect %s yet (%s); Zenoh keeps dialling it",
