@@ -113,7 +113,7 @@ class ChampionScorer:
 
     def _registry(self) -> ModelRegistry:
         if not hasattr(self._local, "registry"):
-            self._local.registry = ModelRegistry(self.data_dir)
+            self._local.registry = ModelRegistry(self.data_dir, make_models_dir=False)  # (it only reads)
         return self._local.registry
 
     def reload(self) -> str | None:

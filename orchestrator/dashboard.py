@@ -32,7 +32,7 @@ from orchestrator.dashboard_page import render_page
 from orchestrator.dashboard_reader import DeadlineReader
 from orchestrator.metrics import ServiceMetrics
 from orchestrator.storagehealth import StorageHealth
-from storage.database import DB_NAME, MODELS_DIR, busy_timeout, disk_json
+from storage.database import DB_NAME, busy_timeout, disk_json
 from storage.catalog import Catalog
 from storage.jsonsafe import finite_json
 from storage.errors import CatalogError, StorageError, StorageUnavailableError
@@ -375,10 +375,8 @@ class DataSources:
 
     def _frames(self) -> bytes:
         """``frames_png``, checked as ``_stores`` is: the champion's loader opens the registry, which would make the
-        lost data directory anew, or ``models/`` where there is none (no weights to draw with then: not asked)."""
+        lost data directory anew."""
         self._refuse_lost()
-        if not (Path(self.data_dir) / MODELS_DIR).is_dir():
-            return b""
         return self.frames_png()
 
     def sources(self) -> DashboardSources:

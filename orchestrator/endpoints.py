@@ -56,11 +56,12 @@ def endpoint_problem(text: str) -> str:
     if proto not in known:
         return f"unknown protocol {proto!r} in {text!r}; expected one of {', '.join(known)}"
     if proto in _INET_PROTOCOLS:
-        _, _, host, port = split_endpoint(text)
+        parts = split_endpoint(text)
+        host = parts.host
         if not host or host in ("[", "[]") or (host.startswith("[") and not host.endswith("]")):
             return f"expected HOST:PORT after {proto}/, found {text!r}"
-        if not (port.isascii() and port.isdigit() and int(port) <= 65535):
-            return f"port must be 0-65535, found {port!r} in {text!r}"
+        if parts.port_number is None or parts.port_number > 65535:
+            return f"port must be 0-65535, found {parts.port!r} in {text!r}"
     return ""
 
 
