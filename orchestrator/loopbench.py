@@ -311,25 +311,22 @@ def _arm_process(arm: str, seed: int, cfg: LoopBenchConfig, data_dir: Path, coll
     """
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     # Stopped, an arm exits rather than dies: what it holds is released (tqdm's lock, a named semaphore the
-    # resource tracker would otherwise report as leaked when the command ends).
-    signal.signal(signal.SIGTERM, _exit_on_sigterm)
-    die_with_parent()
-    if os.getppid() != parent:  # it died before the line above: no signal will come
-        sys.exit(1)
-    limit_torch_threads(threads)
-    if cfg.deterministic:  # (before the arm's first CUDA call)
-        make_torch_deterministic()
-    run_arm(arm, seed, cfg, data_dir, collect, make_eval_split, log_stderr)
-
-
-def _exit_on_sigterm(signum: int, frame: object) -> None:
-    """An arm's SIGTERM: exit (see ``_arm_process``). ``sys.exit`` raises wherever the main thread is, and inside a
-    callback whose exceptions are only printed (pymunk's cffi gc callback: "Exception ignored from callback") it is
-    lost, and the arm went on collecting with nobody left to stop it (its command SIGKILLed); so an alarm ends the
-    arm ``ARM_EXIT_S`` later if it has not exited by then."""
-    signal.signal(signal.SIGALRM, signal.SIG_DFL)
-    signal.alarm(max(1, int(ARM_EXIT_S)))
-    sys.exit(128 + signum)
+    # resource tracker would otherwise report as leaked when the command ends). Not inside pymunk's callbacks,
+    # where the exception would be lost or crash the arm, nor lost in another callback (see sigterm_raises).
+    try:
+        with sigterm_raises():
+            die_with_parent()
+            if os.getppid() != parent:  # it died before the line above: no signal will come
+                sys.exit(1)
+            limit_torch_threads(threads)
+            if cfg.deterministic:  # (before the arm's first CUDA call)
+                make_torch_deterministic()
+            run_arm(arm, seed, cfg, data_dir, collect, make_eval_split, log_stderr)
+    except Terminated:
+        # An exit that hangs would leave the arm with nobody to stop it (its command SIGKILLed): an alarm ends it.
+        signal.signal(signal.SIGALRM, signal.SIG_DFL)
+        signal.alarm(max(1, int(ARM_EXIT_S)))
+        sys.exit(128 + signal.SIGTERM)
 
 
 def log_stderr(line: str) -> None:

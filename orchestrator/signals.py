@@ -15,6 +15,11 @@ ever. So the signal only wakes a watcher thread, through ``signal.set_wakeup_fd`
 the C-level handler, which takes no lock and does not wait for the main thread to reach a
 bytecode), and the watcher thread calls the callback, once per signal it is told of.
 
+The handlers that do raise (``sigterm_raises``, and Ctrl-C's KeyboardInterrupt in the CLI, ``ctrl_c_put_off``)
+raise nowhere the exception would be lost or break a C library's state: inside pymunk's callbacks and finalizers
+the signal is put off (``put_off``), and one lost in a callback whose exceptions Python only reports is sent
+again (``_lost_sent_again``).
+
 Imports nothing of ours: workers use it too.
 """
 
@@ -24,11 +29,23 @@ import contextlib
 import logging
 import os
 import signal
+import sys
 import threading
 from collections.abc import Iterable, Iterator, Mapping
+from types import FrameType
 from typing import Callable
 
 log = logging.getLogger(__name__)
+
+#: Where a C library calls our processes' Python code back: pymunk's callbacks (its ``_callbacks`` module, which
+#: Chipmunk's iterators and a body's velocity and position functions go through) and its objects' finalizers
+#: (``freebody``, ``shapefree``, ``spacefree``..., which the garbage collector runs at any allocation). An exception
+#: a signal raises there is printed and dropped, or leaves Chipmunk half updated (``freebody``: a segfault), so a
+#: raising handler puts it off (``put_off``). The rest of pymunk is Python called from Python, where it may raise.
+CALLBACK_MODULES = frozenset({"pymunk._callbacks"})
+CALLBACK_FINALIZERS = ("pymunk", "free")  # (a function of this package with this in its name)
+#: How long a put-off signal waits before it is sent again.
+PUT_OFF_S = 0.01
 
 
 def on_stop_signals(handler: Callable[[], None], sigint: bool = True,
@@ -105,9 +122,80 @@ def ignore_while_exiting(sigs: Iterable[signal.Signals]) -> None:
         signal.signal(sig, signal.SIG_IGN)
 
 
+def put_off(signum: int, frame: FrameType | None) -> bool:
+    """For a handler that raises (or exits): True when the main thread is in a callback of ``CALLBACK_MODULES`` or
+    ``CALLBACK_FINALIZERS`` (or in what one called), where the exception would be lost or crash the process; the
+    signal is then sent again ``PUT_OFF_S`` later, and the handler must return without raising. The handler runs
+    again then, wherever the thread is by that time."""
+    package, part = CALLBACK_FINALIZERS
+    while frame is not None:
+        module = str(frame.f_globals.get("__name__", ""))
+        if module in CALLBACK_MODULES or (module.partition(".")[0] == package and part in frame.f_code.co_name):
+            _send_later(signum)
+            return True
+        frame = frame.f_back
+    return False
+
+
+def _send_later(signum: int) -> None:
+    threading.Timer(PUT_OFF_S, os.kill, (os.getpid(), signum)).start()
+
+
 class Terminated(BaseException):
     """SIGTERM, raised in the main thread inside ``sigterm_raises``. A BaseException, as KeyboardInterrupt is, so
     that no ``except Exception`` takes it for an error of the work it stopped."""
+
+
+#: What the raising handlers raise, and for which signal.
+RAISED = ((Terminated, signal.SIGTERM), (KeyboardInterrupt, signal.SIGINT))
+
+
+@contextlib.contextmanager
+def _lost_sent_again() -> Iterator[None]:
+    """Within the block, a ``RAISED`` exception that Python could only report (raised in a callback it calls and
+    whose exceptions it drops: a weakref's, a ``__del__``, which the garbage collector runs at any allocation) is
+    not reported: its signal is sent again ``PUT_OFF_S`` later, so that it is raised where it can unwind."""
+    previous = sys.unraisablehook
+
+    def hook(unraisable: sys.UnraisableHookArgs) -> None:
+        for raised, signum in RAISED:
+            if isinstance(unraisable.exc_value, raised):
+                _send_later(signum)
+                return
+        previous(unraisable)
+
+    sys.unraisablehook = hook
+    try:
+        yield
+    finally:
+        if sys.unraisablehook is hook:
+            sys.unraisablehook = previous
+
+
+def interrupt_put_off(signum: int, frame: FrameType | None) -> None:
+    """Python's own SIGINT handler (KeyboardInterrupt), put off while the main thread is in a callback (``put_off``)."""
+    if not put_off(signum, frame):
+        signal.default_int_handler(signum, frame)
+
+
+@contextlib.contextmanager
+def ctrl_c_put_off() -> Iterator[None]:
+    """Within the block, a SIGINT handled by Python's own handler is ``interrupt_put_off``'s, and a KeyboardInterrupt
+    lost in a callback is raised again (``_lost_sent_again``): the CLI's, for the commands that simulate in their
+    main thread (``collect``, ``bench loop --jobs 1``). An ignored SIGINT stays ignored, another handler stays;
+    Python's own is back after the block, unless the block put in another (a process's ``ignore_while_exiting``).
+    Outside the main thread, nothing."""
+    if (threading.current_thread() is not threading.main_thread()
+            or signal.getsignal(signal.SIGINT) is not signal.default_int_handler):
+        yield
+        return
+    signal.signal(signal.SIGINT, interrupt_put_off)
+    try:
+        with _lost_sent_again():
+            yield
+    finally:
+        if signal.getsignal(signal.SIGINT) is interrupt_put_off:
+            signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
 @contextlib.contextmanager
@@ -117,18 +205,21 @@ def sigterm_raises() -> Iterator[None]:
     they do on Ctrl-C. The previous handler is back after the block.
 
     For a command whose main thread only computes and waits on its children (``bench loop``): the exception
-    comes wherever that thread is, as KeyboardInterrupt does. The services above use ``on_stop_signals``
+    comes wherever that thread is, as KeyboardInterrupt does, except in pymunk's callbacks (``put_off``); one
+    lost in another callback is raised again (``_lost_sent_again``). The services above use ``on_stop_signals``
     instead, which never interrupts their main thread. Outside the main thread it does nothing.
     """
     if threading.current_thread() is not threading.main_thread():
         yield
         return
 
-    def raise_terminated(signum: int, frame: object) -> None:
-        raise Terminated()
+    def raise_terminated(signum: int, frame: FrameType | None) -> None:
+        if not put_off(signum, frame):
+            raise Terminated()
 
     previous = signal.signal(signal.SIGTERM, raise_terminated)
     try:
-        yield
+        with _lost_sent_again():
+            yield
     finally:
         signal.signal(signal.SIGTERM, previous)

@@ -14,6 +14,7 @@ import sys
 
 from orchestrator import transport
 from orchestrator.protocol import one_line
+from orchestrator.signals import ctrl_c_put_off
 from orchestrator.cli import collect, common, loop, loopbench, models, operator, registry, secure, service
 from storage.database import space_note
 from storage.errors import StorageError
@@ -55,7 +56,8 @@ def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     try:
-        return int(args.func(args) or 0)
+        with ctrl_c_put_off():  # (a KeyboardInterrupt raised inside pymunk's callbacks is lost, or a segfault)
+            return int(args.func(args) or 0)
     except (common.UsageError, transport.SecureConfigError) as exc:
         print(f"activecollect: error: {one_line(str(exc))}", file=sys.stderr)  # a path may hold a newline
         return 2
