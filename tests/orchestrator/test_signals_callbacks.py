@@ -21,6 +21,13 @@ from orchestrator.signals import Terminated, ctrl_c_put_off, interrupt_put_off, 
 from tests.conftest import REPO, ignoring_sigint, wait_for
 
 
+#: The handlers that raise: the context that installs one, its signal, what it raises.
+RAISING = pytest.mark.parametrize("handled, sig, expected", [
+    (sigterm_raises, signal.SIGTERM, Terminated),
+    (ctrl_c_put_off, signal.SIGINT, KeyboardInterrupt),
+], ids=["bench-loop-sigterm", "ctrl-c"])
+
+
 def _raised_in_pymunk_callback(sig: int) -> tuple[BaseException | None, int]:
     """Steps a space whose body's velocity function (called from Chipmunk) sends ``sig`` to this process on its
     first call, so that the handler runs inside the callback: (what reached the stepping loop within 30 s, how many
@@ -46,10 +53,7 @@ def _raised_in_pymunk_callback(sig: int) -> tuple[BaseException | None, int]:
     return None, len(sent)
 
 
-@pytest.mark.parametrize("handled, sig, expected", [
-    (sigterm_raises, signal.SIGTERM, Terminated),
-    (ctrl_c_put_off, signal.SIGINT, KeyboardInterrupt),
-], ids=["bench-loop-sigterm", "ctrl-c"])
+@RAISING
 def test_a_signal_inside_a_pymunk_callback_is_raised_once_the_main_thread_is_out_of_it(
         handled: Callable[[], contextlib.AbstractContextManager], sig: int, expected: type[BaseException]) -> None:
     with handled():
@@ -58,10 +62,7 @@ def test_a_signal_inside_a_pymunk_callback_is_raised_once_the_main_thread_is_out
 
 
 @pytest.mark.filterwarnings("error::pytest.PytestUnraisableExceptionWarning")
-@pytest.mark.parametrize("handled, sig, expected", [
-    (sigterm_raises, signal.SIGTERM, Terminated),
-    (ctrl_c_put_off, signal.SIGINT, KeyboardInterrupt),
-], ids=["bench-loop-sigterm", "ctrl-c"])
+@RAISING
 def test_a_signal_lost_in_a_callback_python_only_reports_is_raised_again(
         handled: Callable[[], contextlib.AbstractContextManager], sig: int, expected: type[BaseException]) -> None:
     """A weakref's callback (as the garbage collector runs them, at any allocation): the exception raised there is
