@@ -15,7 +15,7 @@ import math
 import socket
 from pathlib import Path
 
-from orchestrator.locators import split_endpoint
+from orchestrator.locators import INET_PROTOCOLS, endpoint_problem, split_endpoint
 from orchestrator.transport import (MODES, RX_MAX_MESSAGE_BYTES, RX_MAX_MESSAGE_SIZE_KEY, SecureConfigError,
                                     validate_secure_config)
 
@@ -35,34 +35,6 @@ def timeout_seconds(text: str) -> float:
     if not (math.isfinite(value) and 0 < value <= MAX_TIMEOUT_S):
         raise argparse.ArgumentTypeError(f"expected seconds in (0, {MAX_TIMEOUT_S:g}], found {text!r}")
     return value
-
-
-#: Zenoh's link protocols; the first group's addresses are HOST:PORT.
-_INET_PROTOCOLS = ("tcp", "udp", "tls", "quic", "ws")
-_OTHER_PROTOCOLS = ("unixsock-stream",)  # (this build of Zenoh has no unixpipe, serial or vsock links)
-
-
-def endpoint_problem(text: str) -> str:
-    """What is wrong with a Zenoh endpoint's shape ('' when nothing), checked before Zenoh sees it.
-
-    ``PROTOCOL/ADDRESS[?metadata][#config]``; for tcp, udp, tls, quic and ws the address is
-    ``HOST:PORT`` (an IPv6 host in brackets) with a port in 0-65535. Zenoh would refuse the rest
-    only when the session opens, with a message from its Rust internals.
-    """
-    proto, slash, rest = text.partition("/")
-    if not slash or not proto or not rest:
-        return f"expected PROTOCOL/ADDRESS like tcp/10.0.0.5:7447, found {text!r}"
-    known = _INET_PROTOCOLS + _OTHER_PROTOCOLS
-    if proto not in known:
-        return f"unknown protocol {proto!r} in {text!r}; expected one of {', '.join(known)}"
-    if proto in _INET_PROTOCOLS:
-        parts = split_endpoint(text)
-        host = parts.host
-        if not host or host in ("[", "[]") or (host.startswith("[") and not host.endswith("]")):
-            return f"expected HOST:PORT after {proto}/, found {text!r}"
-        if parts.port_number is None or parts.port_number > 65535:
-            return f"port must be 0-65535, found {parts.port!r} in {text!r}"
-    return ""
 
 
 def config_file(text: str) -> Path:
@@ -87,7 +59,7 @@ def with_ports_chosen(listen: tuple[str, ...]) -> tuple[str, ...]:
 
 def _port_chosen(text: str) -> str:
     parts = split_endpoint(text)
-    if parts.proto not in _INET_PROTOCOLS or parts.port != "0":
+    if parts.proto not in INET_PROTOCOLS or parts.port != "0":
         return text
     kind = socket.SOCK_DGRAM if parts.proto in ("udp", "quic") else socket.SOCK_STREAM
     try:

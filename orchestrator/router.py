@@ -17,7 +17,8 @@ from typing import Callable, TextIO
 
 import zenoh
 
-from orchestrator.endpoints import endpoint_problem, keyless_tls_listener
+from orchestrator.endpoints import keyless_tls_listener
+from orchestrator.locators import endpoint_problem
 from orchestrator.secure import is_secure_profile
 from orchestrator.signals import on_stop_signals
 from orchestrator.transport import SecureConfigError, cap_incoming, read_config, validate_secure_config, zenoh_error

@@ -34,8 +34,7 @@ from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 
 from orchestrator import secure_files
 from orchestrator.acl import DEFAULT_NAMESPACE, NAMESPACE_METADATA, ROLES, build_acl
-from orchestrator.endpoints import endpoint_problem
-from orchestrator.locators import split_endpoint
+from orchestrator.locators import endpoint_problem, split_endpoint
 from orchestrator.protocol import Keys, ProtocolError
 from orchestrator.transport import SecureConfigError, lookup_key
 

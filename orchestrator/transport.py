@@ -33,7 +33,7 @@ import json5
 import zenoh
 
 from orchestrator import linkprobe
-from orchestrator.locators import split_endpoint
+from orchestrator.locators import endpoint_problem, split_endpoint
 
 log = logging.getLogger(__name__)
 
@@ -131,13 +131,14 @@ def _check_file(config_path: Path, key: str, value: Any) -> Path:
 def validate_secure_config(path: str | os.PathLike[str]) -> list[Path]:
     """Checks a Zenoh JSON5 config before a process starts with it; returns the files it references.
 
-    Every file the config names (TLS CA, certificates and keys, the usrpwd dictionary, pubkey files) must exist and
-    be readable; TLS files must be PEM, and hold certificates a TLS handshake would take (``_check_tls``). A config
-    naming no files passes (it is not a secure profile). Raises SecureConfigError with a one-line message naming
-    the config, the key and the file; CLIs turn it into exit status 2.
+    Every endpoint it lists must have a valid shape (``endpoint_problem``). Every file the config names (TLS CA,
+    certificates and keys, the usrpwd dictionary, pubkey files) must exist and be readable; TLS files must be PEM,
+    and hold certificates a TLS handshake would take (``_check_tls``). A config naming no files passes (it is not
+    a secure profile). Raises SecureConfigError with a one-line message naming
+    the config, the key and the file or endpoint; CLIs turn it into exit status 2.
     """
     config_path = Path(path)
-    return _check_files(config_path, read_config(config_path))
+    return _check_config(config_path, read_config(config_path))
 
 
 def read_config(config_path: Path) -> dict[str, Any]:
@@ -163,6 +164,26 @@ def read_config(config_path: Path) -> dict[str, Any]:
     if not isinstance(config, dict):
         raise SecureConfigError(f"{config_path}: expected a JSON5 object, found {type(config).__name__}")
     return config
+
+
+def _check_config(config_path: Path, config: dict[str, Any]) -> list[Path]:
+    """``config``'s endpoints (``_check_endpoints``), then its files; returns the files."""
+    _check_endpoints(config_path, config)
+    return _check_files(config_path, config)
+
+
+def _check_endpoints(config_path: Path, config: dict[str, Any]) -> None:
+    """The shape of each endpoint the file lists (``endpoint_problem``), as ``--listen``/``--connect`` are checked:
+    unchecked, Zenoh dials a port such as 99999 (and says nothing listens there) and a connect endpoint with no
+    port never (the command waits its whole ``--timeout``). A list of endpoints per mode is checked whole. What
+    is not a string is left to Zenoh to refuse."""
+    for section in ("listen", "connect"):
+        key = f"{section}/endpoints"
+        value = lookup_key(config, key)
+        for mode, endpoints in value.items() if isinstance(value, dict) else [(None, value)]:
+            for endpoint in endpoints if isinstance(endpoints, list) else []:
+                if isinstance(endpoint, str) and (problem := endpoint_problem(endpoint)):
+                    raise SecureConfigError(f"{config_path}: {key}{'' if mode is None else f'/{mode}'}: {problem}")
 
 
 def _check_files(config_path: Path, config: dict[str, Any]) -> list[Path]:
@@ -265,7 +286,7 @@ def make_config(mode: str = "peer", listen: Sequence[str] = (), connect: Sequenc
     """
     if config_file is not None:
         written = read_config(Path(config_file))
-        _check_files(Path(config_file), written)  # a missing cert or key: one clear line, before Zenoh's own
+        _check_config(Path(config_file), written)  # a missing cert or key: one clear line, before Zenoh's own
         try:
             config = zenoh.Config.from_file(str(config_file))
         except (zenoh.ZError, OSError, ValueError) as exc:

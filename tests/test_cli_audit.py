@@ -141,6 +141,31 @@ def test_a_zenoh_config_that_is_not_text_exits_2_in_one_line(capsys, tmp_path, a
     assert ("is not a Zenoh config: not UTF-8 text" if content == "binary" else "more than 1 MiB") in err
 
 
+@pytest.mark.parametrize("argv", [["secure", "check"], ["stats", "--timeout", "30", "--zenoh-config"],
+                                  ["router", "--zenoh-config"], ["serve", "--dashboard-port", "-1", "--zenoh-config"]],
+                         ids=" ".join)
+@pytest.mark.parametrize("section, endpoints, said", [
+    ("connect", ["tcp/127.0.0.1:99999"], "connect/endpoints: port must be 0-65535, found '99999'"),
+    ("connect", ["tcp/127.0.0.1"], "connect/endpoints: expected HOST:PORT after tcp/, found 'tcp/127.0.0.1'"),
+    ("listen", {"router": ["tcp/127.0.0.1:0"], "peer": ["tcp/[::1:7447"]},
+     "listen/endpoints/peer: expected HOST:PORT after tcp/, found 'tcp/[::1:7447'"),
+], ids=["port-past-65535", "no-port", "per-mode-list"])
+def test_a_zenoh_config_endpoint_of_a_bad_shape_exits_2_in_one_line(capsys, tmp_path, monkeypatch, argv, section,
+                                                                    endpoints, said) -> None:
+    """Checked as --connect and --listen are: unchecked, a port past 65535 was dialled (and "nothing listens
+    there" said) and a connect endpoint without a port made a command wait its whole --timeout."""
+    monkeypatch.setattr("orchestrator.cli.service.on_stop_signals", lambda *a, **k: lambda: None)
+    config = tmp_path / "zenoh.json5"
+    config.write_text(json.dumps({"mode": "peer", section: {"endpoints": endpoints},
+                                  "scouting": {"multicast": {"enabled": False}}}))
+    data = tmp_path / "data"
+    extra = ["--data", str(data)] if argv[0] == "serve" else []
+    rc, out, err = run_cli(capsys, *argv, str(config), *extra)
+    assert rc == 2 and out == "" and err.count("\n") == 1, err
+    assert f"{config}: {said}" in err
+    assert not data.exists()
+
+
 @pytest.fixture(scope="module")
 def champion(tmp_path_factory) -> tuple[Path, str]:
     """A data dir with 4 recorded train episodes of 5 frames, a pinned eval split and a trained champion;
