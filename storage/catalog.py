@@ -201,7 +201,6 @@ class Catalog(CatalogQuarantine, CatalogEvalSplit, CatalogStrays):
                 sha: str, meta: EpisodeMeta, frames: int, split: str,
                 in_transaction: Callable[[sqlite3.Connection], None] | None, readmit: bool) -> IngestResult:
         conn.execute("BEGIN IMMEDIATE")
-        published = False
         try:
             known = episode_table.find(conn, self.data_dir, meta.episode_id)
             if known is not None:
@@ -210,13 +209,13 @@ class Catalog(CatalogQuarantine, CatalogEvalSplit, CatalogStrays):
             _check_frame_size(conn, meta)
             eval_splits.refuse_replay(conn, meta, split)  # no split may hold a recording of the other's
             publish(staged, final)
-            published = True
             episode_table.insert(conn, meta, rel, sha, frames, split, len(data))
             if in_transaction is not None:
                 in_transaction(conn)
             conn.execute("COMMIT")
         except BaseException as exc:
-            if published:  # removed under the write lock unless its row committed: nobody else can index it
+            if not staged.exists():  # published (maybe not returned: a signal's exception in its fsync): removed
+                # under the write lock unless its row committed; nobody else can index it
                 undo_unless_committed(conn, lambda c: stray_files.indexed(c, rel),
                                       lambda: final.unlink(missing_ok=True), exc, str(final))
             elif conn.in_transaction:

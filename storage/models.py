@@ -242,9 +242,8 @@ class ModelRegistry:
 
     # -- registering ---------------------------------------------------------------------------
 
-    def register(self, weights: bytes, config: dict[str, Any], metrics: dict[str, Any],
-                 snapshot_id: str, eval_split_hash: str, parent: str | None = None,
-                 snapshot: Snapshot | None = None) -> str:
+    def register(self, weights: bytes, config: dict[str, Any], metrics: dict[str, Any], snapshot_id: str,
+                 eval_split_hash: str, parent: str | None = None, snapshot: Snapshot | None = None) -> str:
         """Store a new checkpoint as a ``candidate`` and return its version.
 
         ``snapshot``: the episodes it was trained on (``snapshot.json``, read back by ``snapshot``); its id
@@ -270,7 +269,7 @@ class ModelRegistry:
         config_bytes, metrics_bytes = _dump(config, "config"), _dump(metrics, "metrics")
         created = now()
         # The big writes and their fsyncs happen before taking the write lock (leases wait on it).
-        tmp = final = None
+        tmp = None
         try:
             tmp = checkpoint_files.stage(self.models_dir, {WEIGHTS_FILE: weights, CONFIG_FILE: config_bytes, **files,
                                                            METRICS_FILE: _dump(metrics, "metrics", finite=True)})
@@ -285,7 +284,7 @@ class ModelRegistry:
                                 "parent": parent, "created": created, "weights_sha256": sha,
                                 "size_bytes": len(weights), "weights_file": WEIGHTS_FILE}
                         write_synced(tmp / META_FILE, _dump(meta, "meta"))
-                        final = checkpoint_files.publish(self.models_dir, tmp, version)
+                        checkpoint_files.publish(self.models_dir, tmp, version)
                         conn.execute(
                             "INSERT INTO models (version, seq, status, reason, parent, snapshot_id, "
                             "eval_split_hash, weights_sha256, size_bytes, created, updated, metrics, config) "
@@ -293,7 +292,8 @@ class ModelRegistry:
                             (version, seq, ModelStatus.CANDIDATE.value, parent, snapshot_id, eval_split_hash,
                              sha, len(weights), created, created, metrics_bytes.decode(), config_bytes.decode()))
                 except BaseException as exc:
-                    if final is not None:  # published: removed under the write lock unless its row committed
+                    if not tmp.exists():  # published (maybe not returned: a signal's exception in its fsync):
+                        final = self.models_dir / version  # removed under the write lock unless its row committed
                         undo_unless_committed(conn, lambda c: self._registered(c, version),
                                               lambda: shutil.rmtree(final, ignore_errors=True), exc, str(final))
                     raise

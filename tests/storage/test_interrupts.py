@@ -1,4 +1,5 @@
-"""Ctrl-C on a write transaction's COMMIT: what committed keeps its files, what did not leaves none.
+"""Ctrl-C on a write transaction's COMMIT, or on the publish of its file before it: what committed keeps its files,
+what did not leaves none.
 
 CPython runs a Python signal handler once the C call it arrived in returns: a SIGINT that arrives while COMMIT
 runs its fsync comes out as a ``KeyboardInterrupt`` raised after the commit. ``SigintAtCommit`` sends a real
@@ -19,6 +20,8 @@ from typing import Any
 import numpy as np
 import pytest
 
+import storage.catalog
+import storage.checkpoint_files
 import storage.database
 from storage.catalog import Catalog
 from storage.episodes import encode_episode
@@ -128,6 +131,36 @@ def test_a_quarantine_interrupted_before_its_commit_puts_the_file_back(cat, rng,
     assert sigint.sent and cat.count(quarantined=True) == 0
     assert row.path.is_file() and not list((cat.data_dir / "quarantine").rglob("*.mcap"))
     assert cat.verify(ep.meta.episode_id) == ep.meta
+
+
+def _sigint_after(monkeypatch: pytest.MonkeyPatch, module: object) -> None:
+    """``module.publish`` gets a real SIGINT once its rename is done: one that arrived during the fsync of the
+    folder after it comes out as the call returns, before the caller can note that the file is in place."""
+    real = module.publish
+
+    def publish(*args: Any) -> Any:
+        published = real(*args)
+        signal.raise_signal(signal.SIGINT)
+        return published
+
+    monkeypatch.setattr(module, "publish", publish)
+
+
+def test_an_ingest_interrupted_as_its_publish_returns_leaves_no_row_and_no_file(cat, rng, sigint, monkeypatch):
+    """(The file was left in place, unindexed: a stray, where nothing had crashed.)"""
+    ep = make_episode(rng)
+    _sigint_after(monkeypatch, storage.catalog)
+    with pytest.raises(KeyboardInterrupt):
+        cat.add_episode(ep)
+    assert cat.find(ep.meta.episode_id) is None
+    assert not list(cat.episodes_dir.rglob("*.mcap*")) and not cat.strays(min_tmp_age_s=0)
+
+
+def test_a_registration_interrupted_as_its_publish_returns_leaves_no_row_and_no_folder(reg, sigint, monkeypatch):
+    _sigint_after(monkeypatch, storage.checkpoint_files)
+    with pytest.raises(KeyboardInterrupt):
+        reg.register(b"weights" * 10, {}, {"h1_mse": 0.1}, snapshot_id="s", eval_split_hash="h")
+    assert reg.list() == [] and list(reg.models_dir.iterdir()) == []
 
 
 KILLED_BEFORE_COMMIT = """
