@@ -21,6 +21,7 @@ import sys
 from pathlib import Path
 
 from orchestrator.cli.common import Parser
+from orchestrator.signals import Terminated, sigterm_raises
 
 HERE = Path(__file__).resolve().parent
 PY = sys.executable
@@ -50,14 +51,6 @@ def _last_json(text: str) -> object:
     return {"error": "no JSON in output", "tail": text[-2000:]}
 
 
-class _Terminated(Exception):
-    """SIGTERM, raised in the main thread as Ctrl-C raises KeyboardInterrupt."""
-
-
-def _raise_terminated(signum: int, frame: object) -> None:
-    raise _Terminated()
-
-
 def _run(cmd: list[str]) -> tuple[int, str, str, int | None]:
     """(exit status, stdout, stderr, the signal that stopped this run or None). A Ctrl-C reached the benchmark too
     (the terminal sends it to the whole process group), a SIGTERM is passed on to it; either way the benchmark is
@@ -67,8 +60,8 @@ def _run(cmd: list[str]) -> tuple[int, str, str, int | None]:
     try:
         out, err = proc.communicate()
         return proc.returncode, out, err, None
-    except (KeyboardInterrupt, _Terminated) as exc:
-        stopped = signal.SIGTERM if isinstance(exc, _Terminated) else signal.SIGINT
+    except (KeyboardInterrupt, Terminated) as exc:
+        stopped = signal.SIGTERM if isinstance(exc, Terminated) else signal.SIGINT
         if stopped == signal.SIGTERM:
             proc.terminate()
         try:
@@ -101,26 +94,26 @@ def main(argv: list[str] | None = None) -> int:
     }
     failed = []
     stopped = None
-    signal.signal(signal.SIGTERM, _raise_terminated)
-    for name in names:
-        print(f"== bench {name}: {' '.join(BENCHES[name])}", file=sys.stderr, flush=True)
-        returncode, out, err, stopped = _run(BENCHES[name])
-        results[name] = _last_json(out)
-        if returncode != 0:
-            failed.append(name)
-            results[name] = {"error": f"exit {returncode}", "stderr": err[-2000:], "output": results[name]}
-        print(json.dumps(results[name], indent=2, default=str))
+    with sigterm_raises():  # SIGTERM raises Terminated here, as Ctrl-C raises KeyboardInterrupt (see _run)
+        for name in names:
+            print(f"== bench {name}: {' '.join(BENCHES[name])}", file=sys.stderr, flush=True)
+            returncode, out, err, stopped = _run(BENCHES[name])
+            results[name] = _last_json(out)
+            if returncode != 0:
+                failed.append(name)
+                results[name] = {"error": f"exit {returncode}", "stderr": err[-2000:], "output": results[name]}
+            print(json.dumps(results[name], indent=2, default=str))
+            if stopped is not None:
+                results["interrupted"] = {"by": stopped.name, "during": name}
+                break
+        out_dir = HERE / "results"
+        out_dir.mkdir(exist_ok=True)
+        out = out_dir / f"{started:%Y%m%dT%H%M%SZ}.json"
+        out.write_text(json.dumps(results, indent=2, default=str))
+        print(f"results written to {out}", file=sys.stderr)
         if stopped is not None:
-            results["interrupted"] = {"by": stopped.name, "during": name}
-            break
-    out_dir = HERE / "results"
-    out_dir.mkdir(exist_ok=True)
-    out = out_dir / f"{started:%Y%m%dT%H%M%SZ}.json"
-    out.write_text(json.dumps(results, indent=2, default=str))
-    print(f"results written to {out}", file=sys.stderr)
-    if stopped is not None:
-        return 128 + stopped
-    return 1 if failed else 0
+            return 128 + stopped
+        return 1 if failed else 0
 
 
 if __name__ == "__main__":
