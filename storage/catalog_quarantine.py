@@ -41,7 +41,7 @@ class CatalogQuarantine(CatalogReads):
         reason = quarantines.clean_reason(reason)
         row = self.get(episode_id)
         kept = self._kept(row)
-        moved = False
+        moving = False
         try:
             with self._connect() as conn:
                 try:
@@ -52,10 +52,12 @@ class CatalogQuarantine(CatalogReads):
                         if only_if_damaged and holds(row.path, row.sha256):
                             return row
                         if quarantines.record(conn, row, kept, self.data_dir, reason):
+                            moving = True
                             move(row.path, kept)  # (over a damaged leftover there)
-                            moved = True
                 except BaseException as error:
-                    if moved:  # unless the quarantine committed, the file goes back where its row says it is
+                    # Moved (maybe not returned: a signal's exception in its fsync), the file goes back where its
+                    # row says it is unless the quarantine committed.
+                    if moving and not row.path.exists():
                         undo_unless_committed(conn, lambda c: quarantines.is_quarantined(c, row.episode_id),
                                               partial(self._move_back, kept, row, error), error, str(kept))
                     raise

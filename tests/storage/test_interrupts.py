@@ -21,6 +21,7 @@ import numpy as np
 import pytest
 
 import storage.catalog
+import storage.catalog_quarantine
 import storage.checkpoint_files
 import storage.database
 from storage.catalog import Catalog
@@ -133,17 +134,17 @@ def test_a_quarantine_interrupted_before_its_commit_puts_the_file_back(cat, rng,
     assert cat.verify(ep.meta.episode_id) == ep.meta
 
 
-def _sigint_after(monkeypatch: pytest.MonkeyPatch, module: object) -> None:
-    """``module.publish`` gets a real SIGINT once its rename is done: one that arrived during the fsync of the
-    folder after it comes out as the call returns, before the caller can note that the file is in place."""
-    real = module.publish
+def _sigint_after(monkeypatch: pytest.MonkeyPatch, module: object, name: str = "publish") -> None:
+    """``module.<name>`` (a publish, a move) gets a real SIGINT once its rename is done: one that arrived during
+    the fsync of the folder after it comes out as the call returns, before the caller can note the file moved."""
+    real = getattr(module, name)
 
-    def publish(*args: Any) -> Any:
-        published = real(*args)
+    def renamed(*args: Any) -> Any:
+        done = real(*args)
         signal.raise_signal(signal.SIGINT)
-        return published
+        return done
 
-    monkeypatch.setattr(module, "publish", publish)
+    monkeypatch.setattr(module, name, renamed)
 
 
 def test_an_ingest_interrupted_as_its_publish_returns_leaves_no_row_and_no_file(cat, rng, sigint, monkeypatch):
@@ -161,6 +162,17 @@ def test_a_registration_interrupted_as_its_publish_returns_leaves_no_row_and_no_
     with pytest.raises(KeyboardInterrupt):
         reg.register(b"weights" * 10, {}, {"h1_mse": 0.1}, snapshot_id="s", eval_split_hash="h")
     assert reg.list() == [] and list(reg.models_dir.iterdir()) == []
+
+
+def test_a_quarantine_interrupted_as_its_move_returns_puts_the_file_back(cat, rng, sigint, monkeypatch):
+    """(The file was left in quarantine/ with its episode still in training, until a read healed it.)"""
+    ep = make_episode(rng)
+    row = cat.get(cat.add_episode(ep).episode_id)
+    _sigint_after(monkeypatch, storage.catalog_quarantine, "move")
+    with pytest.raises(KeyboardInterrupt):
+        cat.quarantine(ep.meta.episode_id, "operator: blurred")
+    assert row.path.is_file() and not list((cat.data_dir / "quarantine").rglob("*.mcap"))  # (before any read)
+    assert cat.count(quarantined=True) == 0 and cat.verify(ep.meta.episode_id) == ep.meta
 
 
 KILLED_BEFORE_COMMIT = """
