@@ -286,7 +286,7 @@ def make_config(mode: str = "peer", listen: Sequence[str] = (), connect: Sequenc
     """
     if config_file is not None:
         written = read_config(Path(config_file))
-        _check_config(Path(config_file), written)  # a missing cert or key: one clear line, before Zenoh's own
+        _check_config(Path(config_file), written)  # a bad endpoint, a missing cert or key: one line, before Zenoh
         try:
             config = zenoh.Config.from_file(str(config_file))
         except (zenoh.ZError, OSError, ValueError) as exc:
